@@ -1,0 +1,10 @@
+"""virtual_vehicle: simulate and control distributed actuator arrays (Luntz, Messner & Choset, "Virtual Vehicle").
+
+Units are SI throughout: m, s, kg, N, rad.
+"""
+
+__version__ = "0.1.0"
+
+from .errors import IntegrationError, ScenarioError, TippingError, VirtualVehicleError  # noqa: E402
+
+__all__ = ["__version__", "VirtualVehicleError", "ScenarioError", "TippingError", "IntegrationError"]

@@ -1,0 +1,236 @@
+"""Normal forces between a parcel and the cells that support it (paper Section 4.1-4.2, eqs. 3-19).
+
+Units: m for positions, N for forces.
+
+Model (paper 4.1.2): every support is a spring of the same stiffness and the parcel's bottom is a rigid plane, so
+the normal forces are an affine function of position, ``N_i = c + a x_i + b y_i`` (eq. 7), fixed by vertical and
+moment equilibrium (eqs. 3-5). The paper writes this as an (m+3) x (m+3) system with a mask matrix (eqs. 8-19); here
+the same solution comes from the 3x3 moment system: with ``B_i = [1, x_i, y_i]`` and ``theta = [c, a, b]``,
+equilibrium reads ``(B^T B) theta = W [1, x_c, y_c]``, so no large matrix is ever inverted.
+
+Beyond the paper:
+- Lift-off: springs cannot pull, so a cell whose linear force would be negative leaves contact. The contact set is
+  the solution of the tensionless-spring problem (minimum complementary energy ``sum N_i^2`` subject to equilibrium
+  and ``N >= 0``, whose optimality conditions are ``N_i = max(0, B_i theta)``), found by a damped active-set Newton
+  iteration that removes and re-adds cells until every force is >= 0 and every lifted cell's spring is unloaded.
+- Tipping: if the centre of mass lies outside the convex hull of the supports no non-negative forces balance the
+  parcel; :class:`~virtual_vehicle.errors.TippingError` is raised (never a NaN).
+- Collinear supports use the 1-D model of the authors' earlier paper (vertical force and one moment equation). On a
+  layout that is itself a single row the parcel is assumed held laterally (``lateral_support=True``); elsewhere the
+  centre of mass must lie on the line of supports, or the parcel tips.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+
+from .errors import IntegrationError, TippingError
+from .layout import _collinear
+
+_REL_TOL = 1e-12  # relative tolerance for geometric ties (hull boundary, zero forces)
+
+
+@dataclass(frozen=True, eq=False)
+class SupportSolution:
+    """Normal forces for one set of supporting cells and one contact set, as an affine map of the centre of mass.
+
+    All coordinates are local: ``xi = X_c - origin``. For every centre of mass in the region where the contact set
+    stays the same, ``N(xi) = force_lin @ xi + force_const`` (eq. 19 with the mask of the contact set).
+
+    Attributes:
+        origin: (2,) local origin, m (centroid of the supporting cells).
+        points: (m, 2) supporting cells in local coordinates, m.
+        in_contact: (m,) bool, False for cells that have lifted off.
+        basis: (m, d) rows ``[1, x_i, y_i]`` (planar, d = 3) or ``[1, s_i]`` (1-D, d = 2).
+        plane_lin, plane_const: ``plane(xi) = plane_lin @ xi + plane_const`` are the spring-plane parameters;
+            ``basis @ plane(xi)`` is the spring force of every cell (negative for lifted cells).
+        force_lin: (m, 2); force_const: (m,): the normal-force map, zero rows for lifted cells.
+        hull_normals, hull_offsets: the centre of mass is supported iff ``hull_normals @ xi <= hull_offsets``.
+        one_d: True when the 1-D model was used.
+        weight: N.
+    """
+
+    origin: np.ndarray
+    points: np.ndarray
+    in_contact: np.ndarray
+    basis: np.ndarray
+    plane_lin: np.ndarray
+    plane_const: np.ndarray
+    force_lin: np.ndarray
+    force_const: np.ndarray
+    hull_normals: np.ndarray
+    hull_offsets: np.ndarray
+    one_d: bool
+    weight: float
+
+    def forces(self, com) -> np.ndarray:
+        """Normal forces (N) of the supporting cells for centre of mass ``com`` (world coordinates, m)."""
+        xi = np.asarray(com, dtype=float) - self.origin
+        return self.force_lin @ xi + self.force_const
+
+    def spring_values(self, xi: np.ndarray) -> np.ndarray:
+        """Spring force of every supporting cell for local centre of mass ``xi`` (negative = lifted), N."""
+        return self.basis @ (self.plane_lin @ xi + self.plane_const)
+
+    def hull_slack(self, xi: np.ndarray) -> np.ndarray:
+        """Distance (m) of the local centre of mass inside each supporting half-plane (negative = tipping)."""
+        return self.hull_offsets - self.hull_normals @ xi
+
+
+def normal_forces(points, com, weight: float, *, lateral_support: bool = False) -> np.ndarray:
+    """Normal forces (N) of the cells at ``points`` ((m, 2), m) supporting a parcel of weight ``weight`` (N) whose
+    centre of mass is at ``com`` ((2,), m). Eqs. 3-19, with lift-off (forces are never negative).
+
+    Raises:
+        TippingError: the centre of mass is outside the supports' convex hull (or off the line of collinear
+            supports without ``lateral_support``).
+
+    >>> normal_forces([[-1, -1], [1, -1], [-1, 1], [1, 1]], [0.5, 0.0], 4.0).round(6).tolist()
+    [0.5, 1.5, 0.5, 1.5]
+    """
+    sol = solve_support(points, com, weight, lateral_support=lateral_support)
+    return sol.forces(com)
+
+
+def solve_support(points, com, weight: float, *, lateral_support: bool = False,
+                  line_direction=None) -> SupportSolution:
+    """Solve the normal forces and contact set of a parcel at ``com`` on the cells ``points`` (m).
+
+    ``line_direction`` orients the 1-D model when a single cell supports a laterally held parcel.
+    See :func:`normal_forces` for the model; this returns the full affine map (:class:`SupportSolution`).
+    """
+    pts = np.asarray(points, dtype=float)
+    com = np.asarray(com, dtype=float)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ValueError(f"points must have shape (m, 2), got {pts.shape}")
+    if com.shape != (2,):
+        raise ValueError(f"com must have shape (2,), got {com.shape}")
+    if not (np.isfinite(weight) and weight > 0):
+        raise ValueError(f"weight must be a positive force in N, got {weight}")
+    if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(com))):
+        raise ValueError("points and com must be finite")
+    if len(pts) == 0:
+        raise TippingError("no cell supports the parcel")
+    origin = pts.mean(axis=0)
+    local = pts - origin
+    xi = com - origin
+    scale = max(float(np.max(np.abs(local))), float(np.max(np.abs(xi))), 1e-9)
+    tol = _REL_TOL * scale
+
+    if _collinear(pts):
+        return _solve_line(origin, local, xi, weight, tol, lateral_support, line_direction)
+
+    try:
+        hull = ConvexHull(local)
+    except QhullError as exc:  # pragma: no cover - guarded by the collinearity test above
+        raise TippingError(f"degenerate support set: {exc}") from exc
+    h_normals = hull.equations[:, :2]
+    h_offsets = -hull.equations[:, 2]
+    outside = float(np.max(h_normals @ xi - h_offsets))
+    if outside > tol:
+        raise TippingError(
+            f"centre of mass at ({com[0]:.6g}, {com[1]:.6g}) m is {outside:.3g} m outside the convex hull of its "
+            f"{len(pts)} supporting cells: the parcel tips")
+    basis = np.column_stack([np.ones(len(local)), local])
+    r_lin = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    r_const = np.array([1.0, 0.0, 0.0])
+    return _finish(origin, local, xi, basis, r_lin, r_const, weight, h_normals, h_offsets, one_d=False)
+
+
+def _solve_line(origin, local, xi, weight, tol, lateral_support, line_direction) -> SupportSolution:
+    """Collinear supports: the 1-D model (vertical force and one moment equation)."""
+    m = len(local)
+    if m >= 2 and np.ptp(local, axis=0).max() > 0:
+        u = np.linalg.svd(local, full_matrices=False)[2][0]
+    elif line_direction is not None:
+        u = np.asarray(line_direction, dtype=float)
+        u = u / np.linalg.norm(u)
+    else:
+        u = np.array([1.0, 0.0])
+    n = np.array([-u[1], u[0]])
+    s = local @ u
+    s_c = float(xi @ u)
+    normals = [u, -u]
+    offsets = [s.max(), -s.min()]
+    off_line = abs(float(xi @ n))
+    if not lateral_support:
+        if off_line > tol:
+            raise TippingError(
+                f"the {m} supporting cell(s) are collinear and the centre of mass is {off_line:.3g} m off their line: "
+                "the parcel tips")
+        normals += [n, -n]
+        offsets += [tol, tol]
+    h_normals = np.array(normals)
+    h_offsets = np.array(offsets, dtype=float)
+    if s_c > s.max() + tol or s_c < s.min() - tol:
+        raise TippingError(
+            f"centre of mass is beyond the end of the line of {m} supporting cell(s) "
+            f"(by {max(s_c - s.max(), s.min() - s_c):.3g} m): the parcel tips")
+    basis = np.column_stack([np.ones(m), s])
+    r_lin = np.vstack([[0.0, 0.0], u])
+    r_const = np.array([1.0, 0.0])
+    return _finish(origin, local, xi, basis, r_lin, r_const, weight, h_normals, h_offsets, one_d=True)
+
+
+def _finish(origin, local, xi, basis, r_lin, r_const, weight, h_normals, h_offsets, *, one_d) -> SupportSolution:
+    rhs = weight * (r_lin @ xi + r_const)
+    in_contact = contact_set(basis, rhs)
+    ba = basis[in_contact]
+    minv = np.linalg.pinv(ba.T @ ba)
+    plane_lin = weight * minv @ r_lin  # eq. 19: theta = W (M^T A M)^-1 (W_x X_c + W_c), reduced to the moment system
+    plane_const = weight * minv @ r_const
+    force_lin = np.where(in_contact[:, None], basis @ plane_lin, 0.0)
+    force_const = np.where(in_contact, basis @ plane_const, 0.0)
+    for arr in (local, basis, plane_lin, plane_const, force_lin, force_const, h_normals, h_offsets, in_contact):
+        arr.setflags(write=False)
+    return SupportSolution(origin, local, in_contact, basis, plane_lin, plane_const, force_lin, force_const,
+                           h_normals, h_offsets, one_d, float(weight))
+
+
+def contact_set(basis: np.ndarray, rhs: np.ndarray, max_iter: int = 200) -> np.ndarray:
+    """Contact set of tensionless springs: minimise ``phi(theta) = 1/2 sum max(0, B_i theta)^2 - rhs . theta``.
+
+    The gradient of ``phi`` is the equilibrium residual ``B^T max(0, B theta) - rhs``, so its minimiser gives forces
+    ``N = max(0, B theta)`` that are non-negative and balance the load. A full Newton step on the current contact
+    set is the paper's solve with that set's mask; when the contact set would cycle, the step is damped by a
+    backtracking line search on ``phi``, which makes the iteration converge for this convex function.
+
+    Returns the boolean contact mask.
+    """
+    tie = _REL_TOL * max(abs(float(rhs[0])), 1e-300)
+
+    def phi(theta):
+        p = np.maximum(basis @ theta, 0.0)
+        return 0.5 * float(p @ p) - float(rhs @ theta)
+
+    theta = np.linalg.lstsq(basis.T @ basis, rhs, rcond=None)[0]
+    seen: set[bytes] = set()
+    for _ in range(max_iter):
+        p = basis @ theta
+        act = p > tie
+        if not act.any():
+            act = p >= p.max()
+        ba = basis[act]
+        full = np.linalg.lstsq(ba.T @ ba, rhs, rcond=None)[0]
+        p_full = basis @ full
+        consistent = np.all(p_full[act] > -tie) and np.all(p_full[~act] <= tie)
+        if consistent:
+            return act
+        key = act.tobytes()
+        if key not in seen:
+            seen.add(key)
+            theta = full
+            continue
+        # Cycling: damped Newton step (Armijo backtracking on the convex function phi).
+        grad = basis.T @ np.maximum(p, 0.0) - rhs
+        step = full - theta
+        slope = float(grad @ step)
+        f0 = phi(theta)
+        t = 1.0
+        while t > 1e-12 and phi(theta + t * step) > f0 + 1e-4 * t * slope:
+            t *= 0.5
+        theta = theta + t * step
+    raise IntegrationError("the normal-force contact-set iteration did not converge")

@@ -1,0 +1,493 @@
+"""The plant: planar parcel motion on a cell array, integrated piecewise between support changes (paper 4.5).
+
+Units: SI (m, s, kg, N, rad). The state of a parcel is ``[x, y, theta, vx, vy, omega]`` (centre of mass, heading,
+their rates); the equations of motion are ``m Xddot_c = f``, ``I thetaddot = tau`` with f and tau from the friction
+law's per-support-set constants.
+
+Paper 4.5, made exact: compute the cells under the parcel, form the mask (here: the contact set), compute the
+constants, integrate, and when the supports change recompute the constants and continue. "The supports change" is
+located as an event to the integrator's tolerance: a cell entering or leaving the footprint (a zero of its margin), a
+cell lifting off or touching down (a zero of its spring force), or the centre of mass leaving the supports (tipping).
+Constants are cached per (support set, contact set), so a configuration seen again is not solved again.
+
+Two integrators share the model:
+- ``"event"``: adaptive 8th-order Dormand-Prince (scipy's DOP853) on each smooth piece, events located by root
+  finding on the dense output, restarted with the new constants;
+- ``"fixed"``: classical RK4 at a fixed step that looks up the supports at every stage and never locates events,
+  for comparison (first-order accurate across support changes).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Literal
+
+import numpy as np
+from scipy.integrate import DOP853
+from scipy.optimize import brentq
+
+from .contact import SupportSolution, solve_support
+from .errors import IntegrationError, TippingError
+from .friction import FrictionConstants, FrictionLaw
+from .layout import CellArray
+from .parcel import ParcelSpec, footprint_margins, supporting_cells
+
+Mode = Literal["event", "fixed"]
+
+
+@dataclass(frozen=True, eq=False)
+class Piece:
+    """One smooth piece of the dynamics: a support set, its contact set, the normal-force map and the constants.
+
+    ``rhs(t, y)`` is the state derivative valid while the pieces' support and contact sets hold.
+    """
+
+    support: np.ndarray
+    solution: SupportSolution
+    constants: FrictionConstants
+    rhs: Callable[[float, np.ndarray], np.ndarray]
+
+    @property
+    def key(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """(supporting cell ids, ids of those in contact)."""
+        return tuple(self.support.tolist()), tuple(self.support[self.solution.in_contact].tolist())
+
+    def normal_forces(self, y) -> np.ndarray:
+        """Normal forces (N) of the supporting cells at state ``y``."""
+        return self.solution.forces(np.asarray(y[:2], dtype=float))
+
+
+def _make_rhs(k: FrictionConstants, origin: np.ndarray, mass: float, inertia: float):
+    """State derivative from the constants (eqs. 23, 29, 33, 38), in plain floats for speed."""
+    ox, oy = float(origin[0]), float(origin[1])
+    a11, a12, a21, a22 = (float(v) for v in k.a.ravel())
+    b1, b2 = float(k.b[0]), float(k.b[1])
+    c11, c12, c21, c22 = (float(v) for v in k.c.ravel())
+    e1, e2 = float(k.d[0] + k.e[0]), float(k.d[1] + k.e[1])
+    f0 = float(k.f)
+    mu = float(k.damping)
+    W = float(k.weight)
+    K11, K12, K21, K22 = (float(v) for v in k.moment_lin.ravel())
+    k1, k2 = float(k.moment_const[0]), float(k.moment_const[1])
+    s1, s2 = float(k.second_lin[0]), float(k.second_lin[1])
+    s0 = float(k.second_const)
+    inv_m, inv_i = 1.0 / mass, 1.0 / inertia
+
+    def rhs(t, y):
+        x, yy, _th, vx, vy, om = y.tolist()
+        X1 = x - ox
+        X2 = yy - oy
+        fx = a11 * X1 + a12 * X2 + b1  # eq. 23
+        fy = a21 * X1 + a22 * X2 + b2
+        tau = X1 * (c11 * X1 + c12 * X2) + X2 * (c21 * X1 + c22 * X2) + e1 * X1 + e2 * X2 + f0  # eq. 29
+        if mu:
+            S1x = K11 * X1 + K12 * X2 + k1
+            S1y = K21 * X1 + K22 * X2 + k2
+            Dx = S1x - W * X1  # sum N_i (x_i - x_c): zero unless a row holds the parcel laterally
+            Dy = S1y - W * X2
+            fx += mu * (-W * vx + om * Dy)  # eqs. 32-33
+            fy += mu * (-W * vy - om * Dx)
+            second = (s1 * X1 + s2 * X2 + s0) - 2.0 * (X1 * S1x + X2 * S1y) + W * (X1 * X1 + X2 * X2)
+            tau -= mu * ((Dx * vy - Dy * vx) + om * second)  # eq. 38
+        return np.array((vx, vy, om, fx * inv_m, fy * inv_m, tau * inv_i))
+
+    return rhs
+
+
+class ParcelModel:
+    """One parcel on one cell array under constant wheel velocities and a friction law.
+
+    Args:
+        cells: the array.
+        spec: the parcel.
+        velocities: (n, 2) cell surface velocities, m/s.
+        law: the friction law.
+        gravity: m/s^2.
+    """
+
+    def __init__(self, cells: CellArray, spec: ParcelSpec, velocities: np.ndarray, law: FrictionLaw,
+                 gravity: float = 9.81):
+        self.cells = cells
+        self.spec = spec
+        self.velocities = np.asarray(velocities, dtype=float)
+        if self.velocities.shape != (cells.n, 2) or not np.all(np.isfinite(self.velocities)):
+            raise ValueError(f"velocities must be finite with shape ({cells.n}, 2)")
+        self.law = law
+        self.weight = spec.weight(gravity)
+        self._pieces: dict[tuple, Piece] = {}
+        self._by_support: dict[tuple[int, ...], list[Piece]] = {}
+        self.solves = 0
+        self._line_dir = None
+        if cells.is_line and cells.n > 1:
+            self._line_dir = np.linalg.svd(cells.positions - cells.positions.mean(axis=0), full_matrices=False)[2][0]
+
+    def support_at(self, y) -> np.ndarray:
+        """Ids of the cells under the footprint at state (or pose) ``y``."""
+        return supporting_cells(self.spec, y, self.cells.positions, self.cells.tree)
+
+    def piece_at(self, y) -> Piece:
+        """The piece valid at state ``y``. Raises TippingError when the supports cannot carry the parcel."""
+        return self.piece_for(self.support_at(y), y)
+
+    def piece_for(self, support: np.ndarray, y) -> Piece:
+        X = np.asarray(y[:2], dtype=float)
+        skey = tuple(support.tolist())
+        for piece in self._by_support.get(skey, ()):
+            sol = piece.solution
+            xi = X - sol.origin
+            vals = sol.spring_values(xi)
+            if (np.all(vals[sol.in_contact] > 0) and np.all(vals[~sol.in_contact] <= 0)
+                    and np.all(sol.hull_slack(xi) >= 0)):
+                return piece
+        if len(support) == 0:
+            raise TippingError(f"no cell lies under the parcel at ({X[0]:.6g}, {X[1]:.6g}) m")
+        sol = solve_support(self.cells.positions[support], X, self.weight, lateral_support=self.cells.is_line,
+                            line_direction=self._line_dir)
+        self.solves += 1
+        piece = self._make_piece(support, sol)
+        existing = self._pieces.get(piece.key)
+        if existing is not None:
+            return existing
+        self._pieces[piece.key] = piece
+        self._by_support.setdefault(skey, []).append(piece)
+        return piece
+
+    def _make_piece(self, support: np.ndarray, sol: SupportSolution) -> Piece:
+        k = self.law.constants(sol, self.velocities[support], self.cells.drive_directions[support], self.spec.mu)
+        return Piece(support, sol, k, _make_rhs(k, sol.origin, self.spec.mass, self.spec.inertia))
+
+    @property
+    def pieces_cached(self) -> int:
+        """Number of distinct (support set, contact set) pieces solved so far."""
+        return len(self._pieces)
+
+    def rhs(self, t: float, y: np.ndarray) -> np.ndarray:
+        """State derivative at ``y`` (looks the piece up; raises TippingError)."""
+        return self.piece_at(y).rhs(t, y)
+
+
+@dataclass(frozen=True)
+class Event:
+    """Something that changed the dynamics of one parcel.
+
+    ``kind`` is ``"support"`` (cells entered / left the footprint, lifted off / touched down) or ``"tip"`` (the
+    parcel's centre of mass left its supports; the parcel falls off the array and is no longer simulated).
+    Times in s, state as ``[x, y, theta, vx, vy, omega]``.
+    """
+
+    t: float
+    kind: str
+    state: tuple[float, ...]
+    entered: tuple[int, ...] = ()
+    left: tuple[int, ...] = ()
+    lifted: tuple[int, ...] = ()
+    touched: tuple[int, ...] = ()
+    message: str = ""
+
+
+@dataclass
+class Trajectory:
+    """What happened to one parcel: samples, events, and how the run ended.
+
+    Attributes:
+        times: (k,) sample times, s. states: (k, 6) states at those times.
+        events: support changes and tipping, in time order.
+        status: ``"completed"`` (reached the end time) or ``"tipped"``.
+        t_end: time the parcel stopped being simulated, s.
+        segments: smooth pieces integrated (event mode) or steps taken (fixed mode).
+        rhs_evals: right-hand-side evaluations.
+    """
+
+    times: np.ndarray
+    states: np.ndarray
+    events: list[Event]
+    status: str
+    t_end: float
+    segments: int = 0
+    rhs_evals: int = 0
+    stats: dict = field(default_factory=dict)
+
+
+def _diff_event(t, y, old: Piece, new: Piece) -> Event | None:
+    old_s, new_s = set(old.key[0]), set(new.key[0])
+    old_c, new_c = set(old.key[1]), set(new.key[1])
+    entered = tuple(sorted(new_s - old_s))
+    left = tuple(sorted(old_s - new_s))
+    both = old_s & new_s
+    lifted = tuple(sorted(i for i in both if i in old_c and i not in new_c))
+    touched = tuple(sorted(i for i in both if i not in old_c and i in new_c))
+    if not (entered or left or lifted or touched):
+        return None
+    return Event(float(t), "support", tuple(float(v) for v in y), entered, left, lifted, touched)
+
+
+class _Segment:
+    """Event functions of one piece started at state y0: an event is a sign change of any of them.
+
+    The values are, in order: the footprint margin of every candidate cell near the parcel (m), the spring force
+    of every supporting cell (N; its sign is contact), the slack of the centre of mass in the supports' hull (m),
+    and the distance left before the candidate list must be refreshed (m).
+    """
+
+    def __init__(self, model: ParcelModel, piece: Piece, y0: np.ndarray):
+        self.model = model
+        self.piece = piece
+        spec, cells = model.spec, model.cells
+        self.buffer = max(cells.pitch, 0.25 * spec.radius)
+        self.center = np.array(y0[:2], dtype=float)
+        ids = cells.tree.query_ball_point(self.center, spec.radius + self.buffer)
+        self.candidates = cells.positions[np.asarray(sorted(ids), dtype=int)] if ids else np.zeros((0, 2))
+        self.sol = piece.solution
+        nc, m, q = len(self.candidates), len(self.sol.points), len(self.sol.hull_offsets)
+        length = max(1.0, float(np.max(np.abs(cells.positions))), spec.radius)
+        # Rounding noise of each event value: below it a sign is not to be trusted.
+        self.noise = np.concatenate([np.full(nc, _NOISE * length), np.full(m, _NOISE * model.weight),
+                                     np.full(q + 1, _NOISE * length)])
+
+    def values(self, y) -> np.ndarray:
+        """Event values at state ``y`` ((6,) -> (n,)), or at many states ((k, 6) -> (k, n))."""
+        Y = np.asarray(y, dtype=float)
+        many = Y.ndim == 2
+        Y = np.atleast_2d(Y)
+        xi = Y[:, :2] - self.sol.origin
+        out = np.concatenate([
+            footprint_margins(self.model.spec, Y, self.candidates),
+            (self.sol.basis @ (self.sol.plane_lin @ xi.T + self.sol.plane_const[:, None])).T,
+            self.sol.hull_offsets - xi @ self.sol.hull_normals.T,
+            self.buffer - np.hypot(Y[:, 0] - self.center[0], Y[:, 1] - self.center[1])[:, None],
+        ], axis=1)
+        return out if many else out[0]
+
+
+_NOISE = 1e-11
+"""Relative size below which an event value is treated as zero (rounding noise)."""
+_PROBE_MAX = 1e-6
+"""Longest time (s) past an event that the integrator looks ahead to see every value clear of rounding noise."""
+
+_SUBSAMPLES = 8
+"""Points inside every step at which the event predicates are checked, so that two crossings in one long step are
+told apart and a crossing that reverts within the step is still seen."""
+
+
+def _first_change(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float):
+    """The first of ``_SUBSAMPLES`` points in (t_lo, t_hi] where the predicate differs from ``g0``, with the point
+    before it; None if there is none."""
+    ts = np.linspace(t_lo, t_hi, _SUBSAMPLES + 1)[1:]
+    changed = (seg.values(dense(ts).T) > 0) != g0
+    hits = np.flatnonzero(changed.any(axis=1))
+    if len(hits) == 0:
+        return None
+    j = hits[0]
+    return (t_lo if j == 0 else ts[j - 1]), ts[j], changed[j]
+
+
+def _locate(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float, changed: np.ndarray) -> float:
+    """A time just past the earliest event in (t_lo, t_hi], where the event predicate first differs from ``g0``.
+
+    The earliest crossing is the first zero of ``min_k s_k g_k(t)`` over the changed event functions, with ``s_k``
+    the sign that makes each positive before its crossing; it is bracketed by the caller and found by Brent's method.
+    """
+    idx = np.flatnonzero(changed)
+    sgn = np.where(g0[idx], 1.0, -1.0)
+
+    def phi(t):
+        return float(np.min(sgn * seg.values(dense(t))[idx]))
+
+    eps = np.finfo(float).eps
+    xtol = 4 * eps * max(1.0, abs(t_hi))
+    if phi(t_lo) <= 0.0:
+        t_ev = t_lo
+    elif phi(t_hi) > 0.0:  # the change was a sign flip through an exact zero at t_hi
+        t_ev = t_hi
+    else:
+        t_ev = brentq(phi, t_lo, t_hi, xtol=xtol, rtol=4 * eps)
+    # Look just past the root until every event value is clear of rounding noise, so that the new piece is the one
+    # of the motion after the event (cells crossing together by symmetry all cross), not a tie at the event.
+    step = xtol
+    t_star = t_ev
+    first = None
+    while True:
+        g = seg.values(dense(t_star))
+        if np.any((g > 0) != g0):
+            if first is None:
+                first = t_star
+            if np.all(np.abs(g) > seg.noise):
+                return t_star
+        if t_star >= t_hi or t_star - t_ev > _PROBE_MAX:
+            return t_hi if first is None else first
+        t_star = min(t_hi, t_ev + step)
+        step *= 4
+
+
+def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "event", rtol: float = 1e-10,
+              atol: float = 1e-12, max_step: float = np.inf, dt: float = 1e-3, sample_dt: float | None = None,
+              progress: Callable[[float], None] | None = None, max_segments: int = 1_000_000) -> Trajectory:
+    """Integrate one parcel from state ``y0`` at ``t0`` to ``t1`` (s).
+
+    Args:
+        mode: ``"event"`` (piecewise, events located) or ``"fixed"`` (RK4 with step ``dt``, s).
+        rtol, atol: tolerances of the adaptive integrator (event mode); atol in state units (m, rad, m/s, rad/s).
+        max_step: largest step of the adaptive integrator, s.
+        sample_dt: spacing of the output samples, s (default: 100 samples over the run).
+        progress: called with the simulated time now and then.
+
+    Returns:
+        The :class:`Trajectory`. A parcel that tips ends with status ``"tipped"`` and a ``"tip"`` event.
+    """
+    y0 = np.asarray(y0, dtype=float)
+    if y0.shape != (6,) or not np.all(np.isfinite(y0)):
+        raise ValueError("y0 must be six finite numbers [x, y, theta, vx, vy, omega]")
+    if not t1 > t0:
+        raise ValueError(f"t1 must be after t0, got t0={t0}, t1={t1}")
+    if sample_dt is None:
+        sample_dt = (t1 - t0) / 100
+    if not sample_dt > 0:
+        raise ValueError("sample_dt must be positive")
+    n_samples = int(np.floor((t1 - t0) / sample_dt * (1 + 1e-12))) + 1
+    sample_times = t0 + sample_dt * np.arange(n_samples)
+    if sample_times[-1] < t1 - 1e-12 * max(1.0, abs(t1)):
+        sample_times = np.append(sample_times, t1)
+    run = _EVENT if mode == "event" else _FIXED if mode == "fixed" else None
+    if run is None:
+        raise ValueError(f"mode must be 'event' or 'fixed', got {mode!r}")
+    kwargs = dict(rtol=rtol, atol=atol, max_step=max_step) if mode == "event" else dict(dt=dt)
+    return run(model, y0, t0, t1, sample_times, progress, max_segments, **kwargs)
+
+
+class _Recorder:
+    def __init__(self, sample_times):
+        self.sample_times = sample_times
+        self.next = 0
+        self.times: list[float] = []
+        self.states: list[np.ndarray] = []
+
+    def pending_until(self, t) -> np.ndarray:
+        """Sample times not yet recorded that are <= t."""
+        j = int(np.searchsorted(self.sample_times, t, side="right"))
+        return self.sample_times[self.next:j]
+
+    def add(self, ts, ys) -> None:
+        for t, y in zip(ts, ys):
+            self.times.append(float(t))
+            self.states.append(np.asarray(y, dtype=float))
+        self.next += len(ts)
+
+    def final(self, t, y) -> None:
+        if not self.times or t > self.times[-1]:
+            self.times.append(float(t))
+            self.states.append(np.asarray(y, dtype=float))
+
+    def arrays(self):
+        return np.array(self.times), np.array(self.states).reshape(-1, 6)
+
+
+def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol, atol, max_step) -> Trajectory:
+    rec = _Recorder(sample_times)
+    events: list[Event] = []
+    t, y = float(t0), y0.copy()
+    segments = nfev = 0
+    h = None
+    try:
+        piece = model.piece_at(y)
+    except TippingError as exc:
+        rec.final(t, y)
+        events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
+        return Trajectory(*rec.arrays(), events, "tipped", t)
+    status = "completed"
+    while True:
+        segments += 1
+        if segments > max_segments:
+            raise IntegrationError(f"more than {max_segments} support changes: events accumulate near t={t:.9g} s")
+        seg = _Segment(model, piece, y)
+        g0 = seg.values(y) > 0
+        first = None if h is None else min(h, t1 - t)
+        solver = DOP853(piece.rhs, t, y, t1, rtol=rtol, atol=atol, max_step=max_step, first_step=first)
+        hit = False
+        while solver.status == "running":
+            t_prev = solver.t
+            solver.step()
+            if solver.status == "failed":
+                raise IntegrationError(f"integrator failed at t={solver.t:.9g} s")
+            if solver.step_size:
+                h = solver.step_size
+            dense = solver.dense_output()
+            found = _first_change(seg, dense, g0, t_prev, solver.t)
+            if found is not None:
+                t_ev = _locate(seg, dense, g0, *found)
+                due = rec.pending_until(t_ev)
+                if len(due):
+                    rec.add(due, dense(due).T)
+                t, y = t_ev, dense(t_ev)
+                hit = True
+                break
+            due = rec.pending_until(solver.t)
+            if len(due):
+                rec.add(due, dense(due).T)
+            if progress is not None:
+                progress(solver.t)
+        nfev += solver.nfev
+        if not hit:
+            t, y = solver.t, solver.y.copy()
+            break
+        try:
+            new = model.piece_at(y)
+        except TippingError as exc:
+            events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
+            status = "tipped"
+            break
+        ev = _diff_event(t, y, piece, new)
+        if ev is not None:
+            events.append(ev)
+        piece = new
+    rec.final(t, y)
+    return Trajectory(*rec.arrays(), events, status, t, segments, nfev,
+                      {"pieces_cached": model.pieces_cached, "solves": model.solves})
+
+
+def _run_fixed(model, y0, t0, t1, sample_times, progress, max_segments, *, dt) -> Trajectory:
+    if not dt > 0:
+        raise ValueError("dt must be positive")
+    events: list[Event] = []
+    t, y = float(t0), y0.copy()
+    ts, ys = [t], [y.copy()]
+    steps = nfev = 0
+    status = "completed"
+    try:
+        piece = model.piece_at(y)
+        n_steps = int(np.ceil((t1 - t0) / dt - 1e-9))
+        for i in range(n_steps):
+            h = min(dt, t1 - t)
+            k1 = model.rhs(t, y)
+            k2 = model.rhs(t + h / 2, y + h / 2 * k1)
+            k3 = model.rhs(t + h / 2, y + h / 2 * k2)
+            k4 = model.rhs(t + h, y + h * k3)
+            y = y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            t = t0 + (i + 1) * dt if i + 1 < n_steps else t1
+            nfev += 4
+            steps += 1
+            new = model.piece_at(y)
+            ev = _diff_event(t, y, piece, new)
+            if ev is not None:
+                events.append(ev)
+            piece = new
+            ts.append(t)
+            ys.append(y.copy())
+            if progress is not None and i % 256 == 0:
+                progress(t)
+    except TippingError as exc:
+        events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
+        status = "tipped"
+    ts_arr, ys_arr = np.array(ts), np.array(ys)
+    keep = sample_times[sample_times <= t]
+    samples = np.column_stack([np.interp(keep, ts_arr, ys_arr[:, j]) for j in range(6)]) if len(keep) else np.zeros((0, 6))
+    times = list(keep)
+    states = list(samples)
+    if not times or t > times[-1]:
+        times.append(t)
+        states.append(y)
+    return Trajectory(np.array(times), np.array(states).reshape(-1, 6), events, status, t, steps, nfev,
+                      {"pieces_cached": model.pieces_cached, "solves": model.solves})
+
+
+_EVENT = _run_event
+_FIXED = _run_fixed

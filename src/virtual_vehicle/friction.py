@@ -1,0 +1,213 @@
+"""Friction laws: from normal forces and wheel velocities to the net horizontal force and torque on a parcel.
+
+Units: N, N m, m, m/s, rad/s. Torques are about the vertical axis through the parcel's centre of mass,
+counter-clockwise positive.
+
+Both laws of the paper reduce, for one set of supports, to a few constants (eqs. 23 and 29):
+
+    f   = a X_c + b                                   (2-vector)
+    tau = X_c^T c X_c + (d + e) . X_c + f_            (scalar)
+
+Coulomb (paper 4.3, eqs. 20-29): each wheel pushes with ``mu N_i`` in the direction it spins, so cell i pushes with
+``mu N_i F_i`` where ``F_i = sum_k sign(V_i . u_k) u_k`` over its two wheels (``F_i = [+-1, +-1]`` for wheels
+along x and y, eq. 21). As in the paper the wheels are assumed to slide under the parcel in their direction of
+spin (the parcel is slower than the wheels); the simulator reports when that assumption fails.
+
+Viscous (paper 4.4, eqs. 30-38): ``f_i = mu N_i (V_i - Xdot_c + omega J (X_i - X_c))`` with
+``J = [[0, 1], [-1, 0]]``; the driving part has the Coulomb form with ``F`` replaced by the wheel velocities ``V``,
+plus translational damping ``-mu W Xdot_c`` (eq. 33) and rotational damping ``-mu omega sum N_i |X_i - X_c|^2``
+(eq. 38). Here ``mu`` is in s/m.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from .contact import SupportSolution
+from .layout import _collinear
+
+J = np.array([[0.0, 1.0], [-1.0, 0.0]])
+"""The paper's rotation matrix J (eq. 25): ``x^T J v`` is the scalar cross product ``x x v``."""
+
+
+@dataclass(frozen=True, eq=False)
+class FrictionConstants:
+    """Per-support-set constants of the paper (eqs. 23, 29; 33, 38), in the frame of the points they came from.
+
+    Attributes:
+        a: (2, 2), b: (2,): net driving force ``a @ X_c + b`` (N).
+        c: (2, 2), d: (2,), e: (2,), f: float: driving torque ``X_c @ c @ X_c + (d + e) @ X_c + f`` (N m).
+        damping: viscous coefficient ``mu`` (s/m) for the damping terms of eqs. 33 and 38; 0 for Coulomb.
+        weight: W, N.
+        moment_lin, moment_const: ``sum_i N_i X_i = moment_lin @ X_c + moment_const`` (N m). Equals ``W X_c`` when
+            the supports are not collinear (eqs. 4, 5); differs for a laterally held parcel on a row.
+        second_lin, second_const: ``sum_i N_i |X_i|^2 = second_lin @ X_c + second_const`` (N m^2), the paper's
+            ``X^2 N`` of eq. 37.
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+    d: np.ndarray
+    e: np.ndarray
+    f: float
+    damping: float
+    weight: float
+    moment_lin: np.ndarray
+    moment_const: np.ndarray
+    second_lin: np.ndarray
+    second_const: float
+
+    def force(self, com, velocity=(0.0, 0.0), omega: float = 0.0) -> np.ndarray:
+        """Net horizontal force (N) for centre of mass ``com`` (m), its velocity (m/s) and spin ``omega`` (rad/s)."""
+        X = np.asarray(com, dtype=float)
+        v = np.asarray(velocity, dtype=float)
+        f = self.a @ X + self.b
+        if self.damping:
+            D = self.moment_lin @ X + self.moment_const - self.weight * X  # sum N_i (X_i - X_c), zero in 2-D
+            f = f + self.damping * (-self.weight * v + omega * (J @ D))  # eq. 32
+        return f
+
+    def torque(self, com, velocity=(0.0, 0.0), omega: float = 0.0) -> float:
+        """Net torque (N m) about the centre of mass, eqs. 29 and 38."""
+        X = np.asarray(com, dtype=float)
+        v = np.asarray(velocity, dtype=float)
+        tau = float(X @ self.c @ X + (self.d + self.e) @ X + self.f)  # eq. 29
+        if self.damping:
+            S1 = self.moment_lin @ X + self.moment_const
+            S2 = float(self.second_lin @ X + self.second_const)
+            D = S1 - self.weight * X
+            second = S2 - 2.0 * float(X @ S1) + self.weight * float(X @ X)  # sum N_i |X_i - X_c|^2, eq. 37-38
+            tau -= self.damping * (float(D[0] * v[1] - D[1] * v[0]) + omega * second)
+        return tau
+
+
+def drive_constants(points, drive, force_lin, force_const, weight: float, mu: float, damping: float = 0.0) -> FrictionConstants:
+    """Constants for per-cell driving vectors ``drive`` ((m, 2)) and the affine normal-force map
+    ``N = force_lin @ X_c + force_const`` over the cells at ``points`` ((m, 2), m), all in one frame.
+
+    The driving force of cell i is ``mu N_i drive_i``: ``drive`` is the paper's F (Coulomb) or V (viscous).
+    """
+    P = np.asarray(points, dtype=float)
+    D = np.asarray(drive, dtype=float)
+    G = np.asarray(force_lin, dtype=float)
+    h = np.asarray(force_const, dtype=float)
+    a = mu * D.T @ G  # eq. 23: a = mu F C M (M^T A M)^-1 M^T W_x
+    b = mu * D.T @ h  # eq. 23: b = mu F C M (M^T A M)^-1 M^T W_c
+    R = P[:, 0] * D[:, 1] - P[:, 1] * D[:, 0]  # eq. 25: R_i = x_i F_yi - y_i F_xi
+    c = -J @ a  # eq. 28, term pre- and post-multiplied by X_c
+    d = -J @ b  # eq. 28, term pre-multiplied by X_c^T
+    e = mu * R @ G  # eq. 28, term post-multiplied by X_c
+    f = float(mu * R @ h)  # eq. 28, constant term
+    sq = np.einsum("ij,ij->i", P, P)
+    return FrictionConstants(a, b, c, d, e, f, float(damping), float(weight),
+                             P.T @ G, P.T @ h, sq @ G, float(sq @ h))
+
+
+def _all_in_contact_map(points, weight: float):
+    """The paper's eq. 19 with every listed cell in contact (no lift-off), in the points' own frame."""
+    P = np.asarray(points, dtype=float)
+    if _collinear(P):
+        raise ValueError("the paper's planar constants need at least three non-collinear points")
+    B = np.column_stack([np.ones(len(P)), P])
+    minv = np.linalg.inv(B.T @ B)
+    return B @ (weight * minv[:, 1:]), B @ (weight * minv[:, 0])
+
+
+def coulomb_constants(points, directions, weight: float, mu: float) -> FrictionConstants:
+    """The paper's Coulomb constants a, b, c, d, e, f (eqs. 20-29) for cells at ``points`` ((m, 2), m) pushing in
+    ``directions`` ((m, 2), the per-cell F of eq. 21), a parcel of weight ``weight`` (N) and friction coefficient
+    ``mu``, all cells in contact. Coordinates are those of ``points``.
+
+    >>> d = 0.1
+    >>> k = coulomb_constants([[-d/2, -d/2], [d/2, -d/2], [-d/2, d/2], [d/2, d/2]],
+    ...                       [[1, 1], [-1, 1], [1, -1], [-1, -1]], weight=10.0, mu=0.5)
+    >>> k.a.round(9).tolist(), k.b.round(9).tolist(), abs(k.f) < 1e-12
+    ([[-100.0, 0.0], [0.0, -100.0]], [0.0, 0.0], True)
+    """
+    G, h = _all_in_contact_map(points, weight)
+    return drive_constants(points, directions, G, h, weight, mu)
+
+
+def viscous_constants(points, velocities, weight: float, mu: float) -> FrictionConstants:
+    """The viscous constants (eqs. 30-38) for wheel velocities ``velocities`` ((m, 2), m/s) at ``points`` (m),
+    all cells in contact; ``mu`` in s/m."""
+    G, h = _all_in_contact_map(points, weight)
+    return drive_constants(points, velocities, G, h, weight, mu, damping=mu)
+
+
+class FrictionLaw(Protocol):
+    """A friction law: turns supports, normal forces and wheel velocities into constants and wrenches."""
+
+    name: str
+
+    def drive_vectors(self, velocities: np.ndarray, drive_directions: np.ndarray) -> np.ndarray: ...
+
+    def constants(self, solution: SupportSolution, velocities: np.ndarray, drive_directions: np.ndarray,
+                  mu: float) -> FrictionConstants: ...
+
+    def wrench(self, points, normal, velocities, drive_directions, mu: float, state) -> tuple[float, float, float]: ...
+
+
+def _cell_wrench(points, forces, com) -> tuple[float, float, float]:
+    """Sum of per-cell horizontal forces (m, 2) applied at ``points`` and their torque about ``com`` (eq. 24)."""
+    r = np.asarray(points, dtype=float) - np.asarray(com, dtype=float)
+    F = forces.sum(axis=0)
+    tau = float(np.sum(r[:, 0] * forces[:, 1] - r[:, 1] * forces[:, 0]))
+    return float(F[0]), float(F[1]), tau
+
+
+@dataclass(frozen=True)
+class CoulombLaw:
+    """The paper's Coulomb law (4.3): each wheel pushes with ``mu N_i`` along its drive direction, in the direction
+    it spins; a stopped wheel pushes nothing. ``mu`` is dimensionless."""
+
+    name: str = "coulomb"
+
+    def drive_vectors(self, velocities, drive_directions) -> np.ndarray:
+        """Per-cell F (eq. 21): ``sum_k sign(V_i . u_k) u_k``."""
+        V = np.asarray(velocities, dtype=float)
+        U = np.asarray(drive_directions, dtype=float)
+        s = np.sign(np.einsum("ij,ikj->ik", V, U))
+        return np.einsum("ik,ikj->ij", s, U)
+
+    def constants(self, solution, velocities, drive_directions, mu) -> FrictionConstants:
+        F = self.drive_vectors(velocities, drive_directions)
+        return drive_constants(solution.points, F, solution.force_lin, solution.force_const, solution.weight, mu)
+
+    def wrench(self, points, normal, velocities, drive_directions, mu, state):
+        """Direct per-cell sum (eqs. 22, 24) for checking the constants; ``state`` = (x, y, theta, vx, vy, omega)."""
+        F = self.drive_vectors(velocities, drive_directions)
+        return _cell_wrench(points, mu * np.asarray(normal)[:, None] * F, state[:2])
+
+
+@dataclass(frozen=True)
+class ViscousLaw:
+    """The paper's viscous law (4.4): force proportional to normal force and slip velocity; ``mu`` in s/m."""
+
+    name: str = "viscous"
+
+    def drive_vectors(self, velocities, drive_directions) -> np.ndarray:
+        return np.asarray(velocities, dtype=float)
+
+    def constants(self, solution, velocities, drive_directions, mu) -> FrictionConstants:
+        return drive_constants(solution.points, velocities, solution.force_lin, solution.force_const,
+                               solution.weight, mu, damping=mu)
+
+    def wrench(self, points, normal, velocities, drive_directions, mu, state):
+        """Direct per-cell sum of eq. 30 and its torque (eq. 34)."""
+        P = np.asarray(points, dtype=float)
+        X = np.asarray(state[:2], dtype=float)
+        v = np.asarray(state[3:5], dtype=float)
+        slip = np.asarray(velocities, dtype=float) - v + state[5] * (P - X) @ J.T  # eq. 30
+        return _cell_wrench(P, mu * np.asarray(normal)[:, None] * slip, X)
+
+
+LAWS: dict[str, FrictionLaw] = {"coulomb": CoulombLaw(), "viscous": ViscousLaw()}
+"""Friction laws by name, as written in scenario files."""
+
+__all__ = ["FrictionConstants", "CoulombLaw", "ViscousLaw", "LAWS", "coulomb_constants", "viscous_constants",
+           "drive_constants", "J"]

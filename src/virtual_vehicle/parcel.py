@@ -1,0 +1,153 @@
+"""Parcels: what they are (footprint, mass, inertia, friction) and where they are (planar state).
+
+Units: m, kg, kg m^2, rad, m/s, rad/s. The footprint is a convex polygon given in the parcel's body frame, whose
+origin is the centre of mass; the pose (x, y, theta) places that frame in the world.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import shapely
+from shapely import affinity
+
+from .errors import ScenarioError
+
+STATE_FIELDS = ("x", "y", "theta", "vx", "vy", "omega")
+"""Order of the six planar state variables: position of the centre of mass (m), heading (rad), velocities (m/s,
+rad/s)."""
+
+
+@dataclass(frozen=True, eq=False)
+class ParcelSpec:
+    """An immutable description of a parcel.
+
+    Attributes:
+        footprint: (k, 2) vertices of a convex polygon in the body frame (centre of mass at the origin), m,
+            counter-clockwise.
+        mass: kg.
+        inertia: moment of inertia about the vertical axis through the centre of mass, kg m^2.
+        mu: friction coefficient between the parcel's bottom and the rollers. Dimensionless for the Coulomb law;
+            in s/m (force per unit normal force per unit slip speed) for the viscous law, as in the paper, which
+            writes mu for both.
+        name: label used in outputs.
+    """
+
+    footprint: np.ndarray
+    mass: float
+    inertia: float
+    mu: float
+    name: str = "parcel"
+
+    def __post_init__(self) -> None:
+        for attr, unit in (("mass", "kg"), ("inertia", "kg m^2"), ("mu", "")):
+            v = getattr(self, attr)
+            if not (np.isfinite(v) and v > 0):
+                raise ScenarioError(f"parcels.{self.name}.{attr}", f"must be a positive number{' in ' + unit if unit else ''}, got {v}")
+        fp = np.array(self.footprint, dtype=float)
+        if fp.ndim != 2 or fp.shape[1] != 2 or len(fp) < 3 or not np.all(np.isfinite(fp)):
+            raise ScenarioError(f"parcels.{self.name}.footprint", "needs at least three finite [x, y] vertices")
+        poly = shapely.Polygon(fp)
+        if not poly.is_valid or poly.area <= 0:
+            raise ScenarioError(f"parcels.{self.name}.footprint", "is not a simple polygon with positive area")
+        if not np.isclose(poly.convex_hull.area, poly.area, rtol=1e-9):
+            raise ScenarioError(f"parcels.{self.name}.footprint", "must be convex (non-convex shapes are not supported yet)")
+        if _signed_area(fp) < 0:
+            fp = fp[::-1].copy()
+        if not poly.contains(shapely.Point(0.0, 0.0)):
+            raise ScenarioError(f"parcels.{self.name}.footprint", "the centre of mass (body origin) must lie inside the footprint")
+        fp.setflags(write=False)
+        object.__setattr__(self, "footprint", fp)
+
+    @cached_property
+    def polygon(self) -> shapely.Polygon:
+        """The footprint as a shapely polygon in the body frame."""
+        return shapely.Polygon(self.footprint)
+
+    @cached_property
+    def halfplanes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Outward unit normals (k, 2) and offsets (k,) of the footprint edges: inside iff normals @ p < offsets."""
+        a = self.footprint
+        b = np.roll(a, -1, axis=0)
+        edge = b - a
+        normals = np.column_stack([edge[:, 1], -edge[:, 0]])  # outward for a counter-clockwise polygon
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        offsets = np.einsum("ij,ij->i", normals, a)
+        return normals, offsets
+
+    @cached_property
+    def radius(self) -> float:
+        """Largest distance from the centre of mass to the footprint, m."""
+        return float(np.max(np.linalg.norm(self.footprint, axis=1)))
+
+    def weight(self, gravity: float) -> float:
+        """Weight in N for gravitational acceleration ``gravity`` (m/s^2)."""
+        return self.mass * gravity
+
+    def world_polygon(self, pose) -> shapely.Polygon:
+        """The footprint placed at ``pose`` = (x, y, theta)."""
+        x, y, th = pose[:3]
+        return affinity.translate(affinity.rotate(self.polygon, th, origin=(0, 0), use_radians=True), x, y)
+
+
+def _signed_area(v: np.ndarray) -> float:
+    x, y = v[:, 0], v[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
+
+
+def rectangle(length: float, width: float, mass: float, mu: float, inertia: float | None = None, name: str = "parcel") -> ParcelSpec:
+    """A rectangular parcel ``length`` (along body x) by ``width`` (m), centre of mass at its centre.
+
+    ``inertia`` defaults to that of a uniform plate, ``mass * (length**2 + width**2) / 12`` (kg m^2).
+    """
+    for attr, v in (("length", length), ("width", width)):
+        if not (np.isfinite(v) and v > 0):
+            raise ScenarioError(f"parcels.{name}.{attr}", f"must be a positive length in m, got {v}")
+    hl, hw = length / 2.0, width / 2.0
+    fp = np.array([[-hl, -hw], [hl, -hw], [hl, hw], [-hl, hw]])
+    if inertia is None:
+        inertia = mass * (length**2 + width**2) / 12.0
+    return ParcelSpec(fp, float(mass), float(inertia), float(mu), name)
+
+
+def footprint_margins(spec: ParcelSpec, pose, points: np.ndarray) -> np.ndarray:
+    """Signed margin (m) of each point with respect to the footprint at ``pose`` = (x, y, theta, ...).
+
+    Positive strictly inside (it is then the distance to the nearest edge), negative outside. A cell supports the
+    parcel iff its margin is positive; a support change is a zero crossing of some margin. ``pose`` may also be a
+    (k, >=3) array of poses; the result is then (k, len(points)).
+    """
+    pose = np.asarray(pose, dtype=float)
+    many = pose.ndim == 2
+    P = np.atleast_2d(pose)
+    c, s = np.cos(P[:, 2])[:, None], np.sin(P[:, 2])[:, None]
+    pts = np.asarray(points, dtype=float)
+    dx = pts[None, :, 0] - P[:, 0:1]
+    dy = pts[None, :, 1] - P[:, 1:2]
+    # world -> body: rotate by -theta
+    bx = c * dx + s * dy
+    by = -s * dx + c * dy
+    normals, offsets = spec.halfplanes
+    m = np.min(offsets - (bx[..., None] * normals[:, 0] + by[..., None] * normals[:, 1]), axis=-1)
+    return m if many else m[0]
+
+
+def supporting_cells(spec: ParcelSpec, pose, positions: np.ndarray, tree=None) -> np.ndarray:
+    """Indices (sorted) of the cells strictly under the footprint at ``pose``.
+
+    >>> import numpy as np
+    >>> spec = rectangle(0.3, 0.3, 1.0, 0.5)
+    >>> supporting_cells(spec, (0.0, 0.0, 0.0), np.array([[0.1, 0.1], [0.2, 0.0], [0.15, 0.0]])).tolist()
+    [0]
+    """
+    positions = np.asarray(positions, dtype=float)
+    if tree is not None:
+        idx = np.asarray(sorted(tree.query_ball_point((float(pose[0]), float(pose[1])), spec.radius * (1 + 1e-9) + 1e-12)), dtype=int)
+    else:
+        idx = np.arange(len(positions))
+    if len(idx) == 0:
+        return idx
+    m = footprint_margins(spec, pose, positions[idx])
+    return idx[m > 0]

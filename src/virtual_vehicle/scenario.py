@@ -1,0 +1,307 @@
+"""Scenario files (TOML), validated: every field checked for type, unit range and cross-field rules.
+
+Units are SI throughout: m, s, kg, kg m^2, rad, m/s, rad/s, m/s^2. A bundled scenario can be named instead of a
+path (see :func:`bundled_scenarios`). Errors are :class:`~virtual_vehicle.errors.ScenarioError` naming the field.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Literal, Union
+
+import numpy as np
+import shapely
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from . import fields as fieldlib
+from . import layout
+from .errors import ScenarioError, TippingError
+from .friction import LAWS, FrictionLaw
+from .parcel import ParcelSpec, rectangle, supporting_cells
+
+Pos = Annotated[float, Field(gt=0)]
+Point = tuple[float, float]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+
+class GridArray(_Strict):
+    """``nx`` columns by ``ny`` rows at ``pitch`` (m), first cell at ``origin`` (m); wheel 0 drives along
+    ``drive_angle`` (rad from +x), wheel 1 at +90 degrees."""
+
+    kind: Literal["grid"]
+    nx: Annotated[int, Field(ge=1, le=100_000)]
+    ny: Annotated[int, Field(ge=1, le=100_000)]
+    pitch: Pos
+    origin: Point = (0.0, 0.0)
+    drive_angle: float = 0.0
+
+
+class RowArray(_Strict):
+    """A single row of ``n`` cells along +x (the paper's 1-D array)."""
+
+    kind: Literal["row"]
+    n: Annotated[int, Field(ge=1, le=1_000_000)]
+    pitch: Pos
+    origin: Point = (0.0, 0.0)
+    drive_angle: float = 0.0
+
+
+class PointsArray(_Strict):
+    """Cells at explicit ``points`` (m); ``pitch`` (m) defaults to the median nearest-neighbour distance."""
+
+    kind: Literal["points"]
+    points: Annotated[list[Point], Field(min_length=1)]
+    pitch: Pos | None = None
+    drive_angle: float = 0.0
+
+
+class UniformField(_Strict):
+    """Every cell at ``velocity`` (m/s)."""
+
+    kind: Literal["uniform"]
+    velocity: Point
+
+
+class InwardField(_Strict):
+    """Each wheel spins toward ``center`` (m) at ``speed`` (m/s) (the paper's 2x2 inward field)."""
+
+    kind: Literal["inward"]
+    center: Point
+    speed: Pos
+
+
+class ReversedEndField(_Strict):
+    """All cells at ``velocity`` (m/s) except the far end along it, reversed (the 1-D oscillator)."""
+
+    kind: Literal["reversed_end"]
+    velocity: Point
+
+
+class PerCellField(_Strict):
+    """Explicit velocities (m/s), one [vx, vy] per cell in the array's order."""
+
+    kind: Literal["per_cell"]
+    velocities: list[Point]
+
+
+ArraySpec = Annotated[Union[GridArray, RowArray, PointsArray], Field(discriminator="kind")]
+FieldSpec = Annotated[Union[UniformField, InwardField, ReversedEndField, PerCellField], Field(discriminator="kind")]
+
+
+class FrictionSpec(_Strict):
+    """``law``: ``"coulomb"`` (paper 4.3; parcel ``mu`` dimensionless) or ``"viscous"`` (paper 4.4; ``mu`` in s/m)."""
+
+    law: Literal["coulomb", "viscous"] = "coulomb"
+
+
+class IntegratorSpec(_Strict):
+    """``mode``: ``"event"`` (piecewise, support changes located; default) or ``"fixed"`` (RK4 at step ``dt``, s).
+    ``rtol``/``atol`` (state units) and ``max_step`` (s) tune the event-driven integrator."""
+
+    mode: Literal["event", "fixed"] = "event"
+    rtol: Annotated[float, Field(gt=0, lt=1)] = 1e-10
+    atol: Pos = 1e-12
+    max_step: Pos | None = None
+    dt: Pos = 1e-3
+
+
+class ParcelEntry(_Strict):
+    """A rectangular parcel: ``length`` along its body x and ``width`` (m), ``mass`` (kg), ``mu`` (friction
+    coefficient, see :class:`FrictionSpec`), optional ``inertia`` (kg m^2, default uniform plate), and its initial
+    state: centre of mass ``x``, ``y`` (m), heading ``theta`` (rad), ``vx``, ``vy`` (m/s), ``omega`` (rad/s)."""
+
+    name: Annotated[str, Field(min_length=1, max_length=64)]
+    length: Pos
+    width: Pos
+    mass: Pos
+    mu: Pos
+    inertia: Pos | None = None
+    x: float
+    y: float
+    theta: float = 0.0
+    vx: float = 0.0
+    vy: float = 0.0
+    omega: float = 0.0
+
+
+class Scenario(_Strict):
+    """A whole run: the array, the wheel-velocity field, the friction law, the parcels and how long to simulate.
+
+    ``duration`` (s) is the simulated time; ``output_dt`` (s) the spacing of trajectory samples (default
+    duration/500); ``gravity`` in m/s^2.
+    """
+
+    name: Annotated[str, Field(min_length=1)] = "scenario"
+    description: str = ""
+    duration: Annotated[float, Field(gt=0, le=1e7)]
+    output_dt: Pos | None = None
+    gravity: Pos = 9.81
+    array: ArraySpec
+    field: FieldSpec
+    friction: FrictionSpec = FrictionSpec()
+    integrator: IntegratorSpec = IntegratorSpec()
+    parcels: Annotated[list[ParcelEntry], Field(min_length=1)]
+
+    @model_validator(mode="after")
+    def _names_unique(self):
+        seen = set()
+        for p in self.parcels:
+            if p.name in seen:
+                raise ValueError(f"parcel name {p.name!r} is used twice; names must be unique")
+            seen.add(p.name)
+        if self.output_dt is not None and self.output_dt > self.duration:
+            raise ValueError(f"output_dt ({self.output_dt} s) is longer than duration ({self.duration} s)")
+        return self
+
+    def build(self) -> "Setup":
+        """Build the simulation objects and check the rules that need them (cells, parcels on the array, no
+        overlaps). Raises ScenarioError naming the field."""
+        cells = _build_array(self.array)
+        velocities = _build_field(self.field).velocities(cells)
+        specs, states = [], []
+        for i, p in enumerate(self.parcels):
+            where = f"parcels[{i}]"
+            try:
+                spec = rectangle(p.length, p.width, p.mass, p.mu, p.inertia, name=p.name)
+            except ScenarioError as exc:
+                raise ScenarioError(f"{where}.{exc.field.rsplit('.', 1)[-1]}", exc.message) from None
+            state = np.array([p.x, p.y, p.theta, p.vx, p.vy, p.omega], dtype=float)
+            _check_on_array(cells, spec, state, where, p.name)
+            specs.append(spec)
+            states.append(state)
+        polys = [s.world_polygon(st) for s, st in zip(specs, states)]
+        for i in range(len(polys)):
+            for j in range(i + 1, len(polys)):
+                if shapely.intersection(polys[i], polys[j]).area > 1e-12:
+                    raise ScenarioError(f"parcels[{j}]", f"parcel {self.parcels[j].name!r} overlaps parcel "
+                                        f"{self.parcels[i].name!r} at the start; move one of them")
+        return Setup(self, cells, velocities, LAWS[self.friction.law], specs, states)
+
+
+def _check_on_array(cells, spec, state, where, name):
+    from .contact import solve_support
+
+    support = supporting_cells(spec, state, cells.positions, cells.tree)
+    if len(support) == 0:
+        raise ScenarioError(f"{where}.x", f"parcel {name!r} starts off the array: no cell lies under it at "
+                            f"({state[0]:g}, {state[1]:g}) m; the cells span x {cells.bounds[0]:g}..{cells.bounds[2]:g},"
+                            f" y {cells.bounds[1]:g}..{cells.bounds[3]:g} m")
+    try:
+        solve_support(cells.positions[support], state[:2], spec.mass, lateral_support=cells.is_line)
+    except TippingError as exc:
+        raise ScenarioError(f"{where}.x", f"parcel {name!r} cannot rest where it starts: {exc}") from None
+
+
+def _build_array(a) -> layout.CellArray:
+    if isinstance(a, GridArray):
+        return layout.grid(a.nx, a.ny, a.pitch, a.origin, a.drive_angle)
+    if isinstance(a, RowArray):
+        return layout.row(a.n, a.pitch, a.origin, a.drive_angle)
+    return layout.from_points(a.points, a.pitch, a.drive_angle)
+
+
+def _build_field(f):
+    if isinstance(f, UniformField):
+        return fieldlib.Uniform(f.velocity)
+    if isinstance(f, InwardField):
+        return fieldlib.Inward(f.center, f.speed)
+    if isinstance(f, ReversedEndField):
+        return fieldlib.ReversedEnd(f.velocity)
+    return fieldlib.PerCell(tuple(f.velocities))
+
+
+@dataclass(frozen=True, eq=False)
+class Setup:
+    """A validated scenario turned into simulation objects."""
+
+    scenario: Scenario
+    cells: layout.CellArray
+    velocities: np.ndarray
+    law: FrictionLaw
+    specs: list[ParcelSpec]
+    states: list[np.ndarray]
+
+
+def _format_validation(exc: ValidationError) -> ScenarioError:
+    lines = []
+    first_field = ""
+    for err in exc.errors():
+        loc = ""
+        for part in err["loc"]:
+            if isinstance(part, int):
+                loc += f"[{part}]"
+            else:
+                loc += ("." if loc else "") + str(part)
+        # drop the discriminator tag pydantic adds to union locations
+        for tag in ("grid", "row", "points", "uniform", "inward", "reversed_end", "per_cell"):
+            loc = loc.replace(f".{tag}.", ".").removesuffix(f".{tag}")
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown field (check its spelling against the scenario format)"
+        elif err["type"] == "union_tag_invalid":
+            msg = f"unknown kind {err.get('input', {}).get('kind') if isinstance(err.get('input'), dict) else ''!r}; " + msg
+        first_field = first_field or loc
+        lines.append(f"{loc}: {msg}" if loc else msg)
+    text = lines[0] if len(lines) == 1 else "\n".join([f"{len(lines)} problems:"] + [f"  {ln}" for ln in lines])
+    err = ScenarioError("", text)
+    err.field = first_field
+    return err
+
+
+def parse_scenario(data: dict) -> Scenario:
+    """Validate a scenario given as a dict (as read from TOML). Raises ScenarioError."""
+    if not isinstance(data, dict):
+        raise ScenarioError("", "a scenario must be a table of fields")
+    try:
+        return Scenario.model_validate(data)
+    except ValidationError as exc:
+        raise _format_validation(exc) from None
+
+
+def bundled_scenarios() -> dict[str, str]:
+    """Names and one-line descriptions of the scenarios shipped with the package."""
+    out = {}
+    for entry in sorted(resources.files("virtual_vehicle.scenarios").iterdir(), key=lambda p: p.name):
+        if entry.name.endswith(".toml"):
+            data = tomllib.loads(entry.read_text())
+            out[entry.name.removesuffix(".toml")] = str(data.get("description", "")).strip().splitlines()[0] if data.get("description") else ""
+    return out
+
+
+DEFAULT_SCENARIO = "prototype_18"
+"""The scenario ``virtual-vehicle run`` uses when none is named."""
+
+
+def load_scenario(source: str | Path | None = None) -> tuple[Scenario, str]:
+    """Load and validate a scenario from a TOML file path or a bundled scenario's name (default:
+    :data:`DEFAULT_SCENARIO`). Returns the scenario and its TOML text. Raises ScenarioError."""
+    source = DEFAULT_SCENARIO if source is None else source
+    path = Path(source)
+    if path.is_file():
+        try:
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ScenarioError("", f"cannot read scenario file {str(path)!r}: {exc}") from None
+    else:
+        name = str(source).removesuffix(".toml")
+        res = resources.files("virtual_vehicle.scenarios").joinpath(f"{name}.toml")
+        if "/" in name or not res.is_file():
+            raise ScenarioError("", f"no scenario file or bundled scenario named {str(source)!r}; bundled: "
+                                f"{', '.join(bundled_scenarios())}")
+        text = res.read_text(encoding="utf-8")
+    return parse_text(text, str(source)), text
+
+
+def parse_text(text: str, where: str = "scenario") -> Scenario:
+    """Validate a scenario given as TOML text. Raises ScenarioError (malformed TOML included)."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError("", f"{where} is not valid TOML: {exc}") from None
+    return parse_scenario(data)

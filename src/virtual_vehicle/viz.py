@@ -1,0 +1,61 @@
+"""Pictures of a run: the array with each cell's wheel velocity, and the parcels' paths and footprints.
+
+Lengths on the axes are in m.
+"""
+
+from __future__ import annotations
+
+import io as _io
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.patches import Polygon as PolygonPatch  # noqa: E402
+
+from .io import write_atomic  # noqa: E402
+from .sim import RunResult  # noqa: E402
+
+
+def plot_paths(result: RunResult, path: str | Path | None = None, title: str | None = None):
+    """Plot cells (dots), wheel velocities (arrows), each parcel's path of its centre of mass, and its footprint at
+    the start (dashed) and the end (solid; red if it tipped). Saves a PNG to ``path`` if given; returns the figure."""
+    setup = result.setup
+    cells = setup.cells
+    P = cells.positions
+    fig, ax = plt.subplots(figsize=(8, 6), dpi=110)
+    ax.scatter(P[:, 0], P[:, 1], s=12, color="0.45", zorder=1, label="cells")
+    V = setup.velocities
+    speed = np.hypot(V[:, 0], V[:, 1])
+    if np.any(speed > 0):
+        scale = 0.45 * cells.pitch / speed.max()
+        ax.quiver(P[:, 0], P[:, 1], V[:, 0] * scale, V[:, 1] * scale, angles="xy", scale_units="xy", scale=1,
+                  color="tab:blue", width=0.003, alpha=0.7, zorder=2)
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for k, pr in enumerate(result.parcels):
+        c = colors[(k + 1) % len(colors)]
+        tr = pr.trajectory
+        ax.plot(tr.states[:, 0], tr.states[:, 1], "-", color=c, lw=1.5, zorder=3, label=f"{pr.spec.name} path")
+        start = pr.spec.world_polygon(tr.states[0])
+        end = pr.spec.world_polygon(tr.states[-1])
+        ax.add_patch(PolygonPatch(np.asarray(start.exterior.coords), closed=True, fill=False, ls="--", ec=c, lw=1))
+        ec = "red" if tr.status == "tipped" else c
+        ax.add_patch(PolygonPatch(np.asarray(end.exterior.coords), closed=True, fill=True, fc=c, alpha=0.15, ec=ec, lw=1.5))
+        if tr.status == "tipped":
+            ax.plot(*tr.states[-1, :2], "x", color="red", ms=9, mew=2, zorder=4)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    sc = setup.scenario
+    ax.set_title(title or f"{sc.name}: {sc.friction.law} friction, {sc.duration:g} s")
+    ax.legend(loc="upper right", fontsize=8, framealpha=0.8)
+    ax.autoscale_view()
+    ax.margins(0.08)
+    fig.tight_layout()
+    if path is not None:
+        buf = _io.BytesIO()
+        fig.savefig(buf, format="png")
+        write_atomic(Path(path), buf.getvalue())
+    return fig

@@ -1,0 +1,92 @@
+"""Friction laws (paper eqs. 20-38): the paper's worked example, constants against direct per-cell sums, and
+dissipation of the viscous damping terms."""
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from virtual_vehicle.contact import solve_support
+from virtual_vehicle.friction import CoulombLaw, ViscousLaw, coulomb_constants, viscous_constants
+
+D = 0.1
+X2x2 = np.array([[-D / 2, -D / 2], [D / 2, -D / 2], [-D / 2, D / 2], [D / 2, D / 2]])  # eq. 20
+F2x2 = np.array([[1, 1], [-1, 1], [1, -1], [-1, -1]], float)  # eq. 21 (columns of the paper's F)
+XY_WHEELS = np.broadcast_to(np.eye(2), (4, 2, 2))
+
+
+def test_paper_2x2_inward_field():
+    W, mu = 9.81, 0.5
+    k = coulomb_constants(X2x2, F2x2, W, mu)
+    R = X2x2[:, 0] * F2x2[:, 1] - X2x2[:, 1] * F2x2[:, 0]
+    np.testing.assert_allclose(R, 0, atol=1e-15)  # eq. 26
+    # eq. 23: a is diagonal (each force depends only on its own coordinate): a stiffness 2 mu W / d toward the centre
+    np.testing.assert_allclose(k.a, -2 * mu * W / D * np.eye(2), rtol=1e-12)
+    np.testing.assert_allclose(k.b, 0, atol=1e-12)
+    # eq. 29: no torque anywhere over this support set
+    rng = np.random.default_rng(0)
+    for X in rng.uniform(-D / 2, D / 2, size=(20, 2)):
+        assert abs(k.torque(X)) < 1e-12
+        np.testing.assert_allclose(k.force(X), -2 * mu * W / D * X, rtol=1e-12)
+
+
+def test_coulomb_law_derives_eq21_from_wheel_velocities():
+    V = 0.3 * F2x2  # wheels spinning inward at 0.3 m/s
+    np.testing.assert_array_equal(CoulombLaw().drive_vectors(V, XY_WHEELS), F2x2)
+    V[0, 1] = 0.0  # a stopped wheel pushes nothing
+    assert CoulombLaw().drive_vectors(V, XY_WHEELS)[0].tolist() == [1.0, 0.0]
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(0, 10_000), st.sampled_from(["coulomb", "viscous"]))
+def test_constants_equal_direct_per_cell_sums(seed, law_name):
+    """f = a X + b and tau = X^T c X + (d + e) X + f (eqs. 23, 29, 33, 38) against the sums of eqs. 22/24, 30/34."""
+    rng = np.random.default_rng(seed)
+    m = int(rng.integers(3, 12))
+    P = rng.uniform(-0.5, 0.5, size=(m, 2)) + rng.uniform(-2, 2, size=2)
+    angle = rng.uniform(0, np.pi)
+    c, s = np.cos(angle), np.sin(angle)
+    U = np.broadcast_to(np.array([[c, s], [-s, c]]), (m, 2, 2))
+    V = rng.uniform(-1, 1, size=(m, 2))
+    W, mu = 15.0, 0.4
+    law = CoulombLaw() if law_name == "coulomb" else ViscousLaw()
+    com = P.mean(axis=0) + 0.3 * (P[0] - P.mean(axis=0))
+    sol = solve_support(P, com, W)
+    k = law.constants(sol, V, U, mu)
+    N = sol.forces(com)
+    state = np.array([*com, 0.0, *rng.uniform(-1, 1, size=2), rng.uniform(-3, 3)])
+    fx, fy, tau = law.wrench(P, N, V, U, mu, state)
+    xi = com - sol.origin
+    np.testing.assert_allclose(k.force(xi, state[3:5], state[5]), [fx, fy], atol=1e-10 * W)
+    np.testing.assert_allclose(k.torque(xi, state[3:5], state[5]), tau, atol=1e-10 * W)
+
+
+def test_viscous_translation_is_coulomb_form_plus_damping():
+    """Eq. 33: f = mu V N - mu W Xdot_c; the rotation speed does not enter the net force."""
+    W, mu = 10.0, 2.0
+    V = np.array([[0.2, 0.1], [0.0, -0.3], [0.5, 0.5], [-0.1, 0.2]])
+    k = viscous_constants(X2x2, V, W, mu)
+    X = np.array([0.01, -0.02])
+    N = solve_support(X2x2, X, W).forces(X)
+    v = np.array([0.3, -0.1])
+    for omega in (0.0, 1.0, -7.0):
+        np.testing.assert_allclose(k.force(X, v, omega), mu * V.T @ N - mu * W * v, rtol=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000))
+def test_viscous_damping_only_dissipates(seed):
+    """With the wheels stopped the viscous law can only take energy out: f . v + tau omega <= 0 (eqs. 33, 38)."""
+    rng = np.random.default_rng(seed)
+    P = rng.uniform(-1, 1, size=(int(rng.integers(3, 10)), 2))
+    com = P.mean(axis=0) + 0.5 * (P[1] - P.mean(axis=0))
+    sol = solve_support(P, com, 5.0)
+    m = len(P)
+    k = ViscousLaw().constants(sol, np.zeros((m, 2)), np.broadcast_to(np.eye(2), (m, 2, 2)), 0.7)
+    v, omega = rng.uniform(-1, 1, size=2), rng.uniform(-5, 5)
+    xi = com - sol.origin
+    power = k.force(xi, v, omega) @ v + k.torque(xi, v, omega) * omega
+    assert power <= 1e-12
+    # and it is exactly the sum of -mu N_i |slip_i|^2 over the cells
+    r = P - com
+    slip = -(v + omega * np.column_stack([-r[:, 1], r[:, 0]]))
+    np.testing.assert_allclose(power, -0.7 * np.sum(sol.forces(com) * np.sum(slip**2, axis=1)), rtol=1e-9, atol=1e-12)
