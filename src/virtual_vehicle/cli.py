@@ -19,8 +19,8 @@ from .errors import ScenarioError, VirtualVehicleError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Simulate parcels carried by a distributed actuator array (the Virtual Vehicle).")
-err = Console(stderr=True)
-out = Console()
+err = Console(stderr=True, soft_wrap=True)
+out = Console(soft_wrap=True)
 
 
 class _LazyProgress:
