@@ -19,7 +19,7 @@ Two integrators share the model:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Literal
 
 import numpy as np
@@ -33,6 +33,9 @@ from .layout import CellArray
 from .parcel import ParcelSpec, footprint_margins, supporting_cells
 
 Mode = Literal["event", "fixed"]
+
+_PATTERN_RESOLUTION = 1e-9
+"""Relative positions of supporting cells are compared to this fraction of the pitch when matching patterns."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,6 +119,7 @@ class ParcelModel:
         self.weight = spec.weight(gravity)
         self._pieces: dict[tuple, Piece] = {}
         self._by_support: dict[tuple[int, ...], list[Piece]] = {}
+        self._by_pattern: dict[bytes, list[Piece]] = {}
         self.solves = 0
         self._line_dir = None
         if cells.is_line and cells.n > 1:
@@ -130,21 +134,32 @@ class ParcelModel:
         return self.piece_for(self.support_at(y), y)
 
     def piece_for(self, support: np.ndarray, y) -> Piece:
+        """The piece for the cells ``support`` at state ``y``.
+
+        Two caches avoid solving a support set again: by the cells themselves, and by their pattern (positions
+        relative to the first cell, wheel velocities and drive directions), because on a regular lattice a parcel
+        that has moved by whole cells rests on a translated copy of a pattern it has met before, whose local solution
+        and constants are the same.
+        """
         X = np.asarray(y[:2], dtype=float)
         skey = tuple(support.tolist())
-        for piece in self._by_support.get(skey, ()):
-            sol = piece.solution
-            xi = X - sol.origin
-            vals = sol.spring_values(xi)
-            if (np.all(vals[sol.in_contact] > 0) and np.all(vals[~sol.in_contact] <= 0)
-                    and np.all(sol.hull_slack(xi) >= 0)):
-                return piece
+        piece = self._cached(self._by_support.get(skey, ()), X, None)
+        if piece is not None:
+            return piece
         if len(support) == 0:
             raise TippingError(f"no cell lies under the parcel at ({X[0]:.6g}, {X[1]:.6g}) m")
-        sol = solve_support(self.cells.positions[support], X, self.weight, lateral_support=self.cells.is_line,
-                            line_direction=self._line_dir)
-        self.solves += 1
-        piece = self._make_piece(support, sol)
+        pts = self.cells.positions[support]
+        pkey = self._pattern_key(support, pts)
+        origin = pts.mean(axis=0)
+        template = self._cached(self._by_pattern.get(pkey, ()), X, origin)
+        if template is not None:
+            piece = self._make_piece(support, replace(template.solution, origin=origin), template.constants)
+        else:
+            sol = solve_support(pts, X, self.weight, lateral_support=self.cells.is_line, line_direction=self._line_dir)
+            self.solves += 1
+            k = self.law.constants(sol, self.velocities[support], self.cells.drive_directions[support], self.spec.mu)
+            piece = self._make_piece(support, sol, k)
+            self._by_pattern.setdefault(pkey, []).append(piece)
         existing = self._pieces.get(piece.key)
         if existing is not None:
             return existing
@@ -152,8 +167,24 @@ class ParcelModel:
         self._by_support.setdefault(skey, []).append(piece)
         return piece
 
-    def _make_piece(self, support: np.ndarray, sol: SupportSolution) -> Piece:
-        k = self.law.constants(sol, self.velocities[support], self.cells.drive_directions[support], self.spec.mu)
+    @staticmethod
+    def _cached(pieces, X: np.ndarray, origin: np.ndarray | None) -> Piece | None:
+        """The cached piece whose contact set and hull hold at centre of mass X (origin: that of the new support)."""
+        for piece in pieces:
+            sol = piece.solution
+            xi = X - (sol.origin if origin is None else origin)
+            vals = sol.spring_values(xi)
+            if (np.all(vals[sol.in_contact] > 0) and np.all(vals[~sol.in_contact] <= 0)
+                    and np.all(sol.hull_slack(xi) >= 0)):
+                return piece
+        return None
+
+    def _pattern_key(self, support: np.ndarray, pts: np.ndarray) -> bytes:
+        rel = np.round((pts - pts[0]) / (_PATTERN_RESOLUTION * self.cells.pitch)).astype(np.int64)
+        return b"".join((rel.tobytes(), self.velocities[support].tobytes(),
+                         self.cells.drive_directions[support].tobytes()))
+
+    def _make_piece(self, support: np.ndarray, sol: SupportSolution, k: FrictionConstants) -> Piece:
         return Piece(support, sol, k, _make_rhs(k, sol.origin, self.spec.mass, self.spec.inertia))
 
     @property
@@ -239,6 +270,7 @@ class _Segment:
         self.candidates = cells.positions[np.asarray(sorted(ids), dtype=int)] if ids else np.zeros((0, 2))
         self.sol = piece.solution
         nc, m, q = len(self.candidates), len(self.sol.points), len(self.sol.hull_offsets)
+        self.bounds = np.cumsum([0, nc, m, q, 1])
         length = max(1.0, float(np.max(np.abs(cells.positions))), spec.radius)
         # Rounding noise of each event value: below it a sign is not to be trusted.
         self.noise = np.concatenate([np.full(nc, _NOISE * length), np.full(m, _NOISE * model.weight),
@@ -258,9 +290,33 @@ class _Segment:
         ], axis=1)
         return out if many else out[0]
 
+    def values_at(self, y, idx: np.ndarray) -> np.ndarray:
+        """Only the event values at positions ``idx`` (sorted), for one state: the root finder's cheap path."""
+        b = self.bounds
+        sol = self.sol
+        xi0, xi1 = float(y[0]) - sol.origin[0], float(y[1]) - sol.origin[1]
+        parts = []
+        margin_idx = idx[idx < b[1]]
+        spring_idx = idx[(idx >= b[1]) & (idx < b[2])]
+        hull_idx = idx[(idx >= b[2]) & (idx < b[3])]
+        if len(margin_idx):
+            parts.append(footprint_margins(self.model.spec, y, self.candidates[margin_idx]))
+        if len(spring_idx):
+            plane = sol.plane_lin[:, 0] * xi0 + sol.plane_lin[:, 1] * xi1 + sol.plane_const
+            parts.append(sol.basis[spring_idx - b[1]] @ plane)
+        if len(hull_idx):
+            h = hull_idx - b[2]
+            parts.append(sol.hull_offsets[h] - sol.hull_normals[h, 0] * xi0 - sol.hull_normals[h, 1] * xi1)
+        if idx[-1] == b[3]:
+            parts.append(np.array([self.buffer - np.hypot(float(y[0]) - self.center[0], float(y[1]) - self.center[1])]))
+        return np.concatenate(parts)
+
 
 _NOISE = 1e-11
 """Relative size below which an event value is treated as zero (rounding noise)."""
+_PROBE_FIRST = 1e-9
+"""First look-ahead (s) past a located event. Two events closer than this are taken as one; the error of doing so is
+of order (force jump / mass) x look-ahead^2, about 1e-18 m."""
 _PROBE_MAX = 1e-6
 """Longest time (s) past an event that the integrator looks ahead to see every value clear of rounding noise."""
 
@@ -291,10 +347,10 @@ def _locate(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float, chan
     sgn = np.where(g0[idx], 1.0, -1.0)
 
     def phi(t):
-        return float(np.min(sgn * seg.values(dense(t))[idx]))
+        return float(np.min(sgn * seg.values_at(dense(t), idx)))
 
     eps = np.finfo(float).eps
-    xtol = 4 * eps * max(1.0, abs(t_hi))
+    xtol = max(4 * eps * abs(t_hi), 1e-13)
     if phi(t_lo) <= 0.0:
         t_ev = t_lo
     elif phi(t_hi) > 0.0:  # the change was a sign flip through an exact zero at t_hi
@@ -303,8 +359,8 @@ def _locate(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float, chan
         t_ev = brentq(phi, t_lo, t_hi, xtol=xtol, rtol=4 * eps)
     # Look just past the root until every event value is clear of rounding noise, so that the new piece is the one
     # of the motion after the event (cells crossing together by symmetry all cross), not a tie at the event.
-    step = xtol
-    t_star = t_ev
+    step = _PROBE_FIRST
+    t_star = min(t_hi, t_ev + xtol)
     first = None
     while True:
         g = seg.values(dense(t_star))

@@ -78,6 +78,16 @@ class ParcelSpec:
         return normals, offsets
 
     @cached_property
+    def half_extents(self) -> tuple[float, float] | None:
+        """(half length, half width) in m when the footprint is a rectangle centred on the centre of mass and aligned
+        with the body axes (then margins have a closed form), else None."""
+        fp = self.footprint
+        hl, hw = np.max(np.abs(fp), axis=0)
+        if len(fp) == 4 and np.allclose(np.abs(fp), [hl, hw], rtol=0, atol=1e-15 * max(hl, hw)):
+            return float(hl), float(hw)
+        return None
+
+    @cached_property
     def radius(self) -> float:
         """Largest distance from the centre of mass to the footprint, m."""
         return float(np.max(np.linalg.norm(self.footprint, axis=1)))
@@ -129,6 +139,10 @@ def footprint_margins(spec: ParcelSpec, pose, points: np.ndarray) -> np.ndarray:
     # world -> body: rotate by -theta
     bx = c * dx + s * dy
     by = -s * dx + c * dy
+    half = spec.half_extents
+    if half is not None:  # rectangle: the minimum over its four half-planes in closed form
+        m = np.minimum(half[0] - np.abs(bx), half[1] - np.abs(by))
+        return m if many else m[0]
     normals, offsets = spec.halfplanes
     m = np.min(offsets - (bx[..., None] * normals[:, 0] + by[..., None] * normals[:, 1]), axis=-1)
     return m if many else m[0]
