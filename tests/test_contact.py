@@ -52,7 +52,7 @@ def test_matches_paper_literal_eq19_and_rigid_cap_when_no_lift_off(seed, m):
     assert np.all(paper[~under] == 0)
 
 
-def qp_reference(P, com, weight, penalty=1e4):
+def qp_reference(P, com, weight, penalty=1e6):
     """Minimum complementary energy of equal tensionless springs, min sum N^2 s.t. equilibrium and N >= 0, solved
     by scipy's bounded-variable least squares with the equilibrium rows weighted by ``penalty``."""
     B = np.column_stack([np.ones(len(P)), P])
@@ -148,3 +148,17 @@ def test_bad_arguments_are_rejected():
         normal_forces([[0, 0], [1, 0], [0, np.nan]], [0.2, 0.2], 1.0)
     with pytest.raises(ValueError, match="shape"):
         normal_forces([[0, 0, 0]], [0.2, 0.2], 1.0)
+
+
+@pytest.mark.parametrize("frac", [0.9375, 0.96875, 0.999])
+def test_centre_of_mass_near_a_hull_vertex(frac):
+    """Regression: near a vertex the contact set once collapsed to two cells that could not balance the load."""
+    rng = np.random.default_rng(15)
+    P = rng.uniform(-1, 1, size=(15, 2))
+    hull = ConvexHull(P)
+    v = P[hull.vertices[rng.integers(len(hull.vertices))]]
+    com = P.mean(axis=0) + frac * (v - P.mean(axis=0))
+    N = normal_forces(P, com, W)
+    np.testing.assert_allclose(N @ P, W * com, atol=1e-9 * W)
+    np.testing.assert_allclose(N.sum(), W, rtol=1e-12)
+    np.testing.assert_allclose(N, qp_reference(P, com, W), atol=2e-5 * W)

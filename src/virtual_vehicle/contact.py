@@ -194,17 +194,25 @@ def contact_set(basis: np.ndarray, rhs: np.ndarray, max_iter: int = 200) -> np.n
     """Contact set of tensionless springs: minimise ``phi(theta) = 1/2 sum max(0, B_i theta)^2 - rhs . theta``.
 
     The gradient of ``phi`` is the equilibrium residual ``B^T max(0, B theta) - rhs``, so its minimiser gives forces
-    ``N = max(0, B theta)`` that are non-negative and balance the load. A full Newton step on the current contact
-    set is the paper's solve with that set's mask; when the contact set would cycle, the step is damped by a
-    backtracking line search on ``phi``, which makes the iteration converge for this convex function.
+    ``N = max(0, B theta)`` that are non-negative and balance the load; ``phi`` is convex, and coercive when the load
+    lies strictly inside the supports. A full Newton step on the current contact set is the paper's solve with that
+    set's mask (the fast path, usually exact in one or two steps). When that step is not an exact solution (the set
+    would cycle, or is degenerate), a damped Newton step with backtracking line search on ``phi`` is taken, which
+    converges for this convex function.
 
     Returns the boolean contact mask.
     """
-    tie = _REL_TOL * max(abs(float(rhs[0])), 1e-300)
+    scale = max(abs(float(rhs[0])), 1e-300)
+    tie = _REL_TOL * scale
+    res_tol = 1e-9 * scale * max(1.0, float(np.max(np.abs(basis))))
+    d = basis.shape[1]
 
     def phi(theta):
         p = np.maximum(basis @ theta, 0.0)
         return 0.5 * float(p @ p) - float(rhs @ theta)
+
+    def residual(act, theta):
+        return basis[act].T @ (basis[act] @ theta) - rhs
 
     theta = np.linalg.lstsq(basis.T @ basis, rhs, rcond=None)[0]
     seen: set[bytes] = set()
@@ -214,23 +222,25 @@ def contact_set(basis: np.ndarray, rhs: np.ndarray, max_iter: int = 200) -> np.n
         if not act.any():
             act = p >= p.max()
         ba = basis[act]
-        full = np.linalg.lstsq(ba.T @ ba, rhs, rcond=None)[0]
+        hess = ba.T @ ba
+        full = np.linalg.lstsq(hess, rhs, rcond=None)[0]
         p_full = basis @ full
-        consistent = np.all(p_full[act] > -tie) and np.all(p_full[~act] <= tie)
-        if consistent:
+        exact = np.max(np.abs(residual(act, full))) <= res_tol
+        if exact and np.all(p_full[act] > -tie) and np.all(p_full[~act] <= tie):
             return act
         key = act.tobytes()
-        if key not in seen:
+        if exact and key not in seen:
             seen.add(key)
             theta = full
             continue
-        # Cycling: damped Newton step (Armijo backtracking on the convex function phi).
+        # Damped Newton step on the convex function phi (regularised where the contact set is degenerate).
         grad = basis.T @ np.maximum(p, 0.0) - rhs
-        step = full - theta
+        reg = 1e-12 * (np.trace(hess) + 1.0)
+        step = -np.linalg.solve(hess + reg * np.eye(d), grad)
         slope = float(grad @ step)
         f0 = phi(theta)
         t = 1.0
-        while t > 1e-12 and phi(theta + t * step) > f0 + 1e-4 * t * slope:
+        while t > 1e-14 and phi(theta + t * step) > f0 + 1e-4 * t * slope:
             t *= 0.5
         theta = theta + t * step
     raise IntegrationError("the normal-force contact-set iteration did not converge")
