@@ -251,3 +251,16 @@ def test_bundled_files_are_valid_toml_with_descriptions():
             data = tomllib.loads(entry.read_text())
             assert data["description"].strip()
             parse_text(entry.read_text())
+
+
+def test_progress_bar_appears_only_after_its_delay():
+    from virtual_vehicle.cli import _LazyProgress
+
+    quick = _LazyProgress("x", delay=3600.0)
+    quick(0.5)
+    assert quick.bar is None  # a short run shows nothing
+    slow = _LazyProgress("x", delay=0.0)
+    slow(0.25)
+    slow(0.5)
+    assert slow.bar is not None and slow.bar.tasks[0].completed == 0.5
+    slow.close()

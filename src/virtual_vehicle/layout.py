@@ -49,11 +49,10 @@ class CellArray:
             raise ScenarioError("array.drive_angle", "wheel drive directions must be unit vectors")
         if not np.allclose(np.einsum("ij,ij->i", dirs[:, 0], dirs[:, 1]), 0.0, atol=1e-9):
             raise ScenarioError("array.drive_angle", "the two wheels of a cell must drive in orthogonal directions")
+        if cKDTree(pos).query_pairs(1e-9 * max(1.0, float(np.ptp(pos)))):
+            raise ScenarioError("array.points", "two cells share the same position")
         if not (np.isfinite(self.pitch) and self.pitch > 0):
             raise ScenarioError("array.pitch", f"pitch must be a positive length in m, got {self.pitch}")
-        tree = cKDTree(pos)
-        if tree.query_pairs(1e-9 * max(1.0, self.pitch)):
-            raise ScenarioError("array.points", "two cells share the same position")
         pos.setflags(write=False)
         dirs.setflags(write=False)
         object.__setattr__(self, "positions", pos)

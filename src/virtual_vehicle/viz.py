@@ -20,20 +20,22 @@ from .sim import RunResult  # noqa: E402
 
 
 def plot_paths(result: RunResult, path: str | Path | None = None, title: str | None = None):
-    """Plot cells (dots), wheel velocities (arrows), each parcel's path of its centre of mass, and its footprint at
-    the start (dashed) and the end (solid; red if it tipped). Saves a PNG to ``path`` if given; returns the figure."""
+    """Plot the run: left, the cells (dots) with their wheel velocities (arrows), each parcel's centre-of-mass path
+    and its footprint at the start (dashed) and the end (filled; red edge and a cross if it tipped); right, x and y
+    (m) and heading (rad) against time (s). Saves a PNG to ``path`` if given; returns the figure."""
     setup = result.setup
     cells = setup.cells
     P = cells.positions
-    fig, ax = plt.subplots(figsize=(8, 6), dpi=110)
+    fig, (ax, axt) = plt.subplots(1, 2, figsize=(12, 5.2), dpi=110, gridspec_kw={"width_ratios": [1.35, 1]})
     ax.scatter(P[:, 0], P[:, 1], s=12, color="0.45", zorder=1, label="cells")
     V = setup.velocities
     speed = np.hypot(V[:, 0], V[:, 1])
     if np.any(speed > 0):
         scale = 0.45 * cells.pitch / speed.max()
         ax.quiver(P[:, 0], P[:, 1], V[:, 0] * scale, V[:, 1] * scale, angles="xy", scale_units="xy", scale=1,
-                  color="tab:blue", width=0.003, alpha=0.7, zorder=2)
+                  color="tab:blue", width=0.003, alpha=0.7, zorder=2, label=f"wheel velocity (max {speed.max():.3g} m/s)")
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    axh = axt.twinx()
     for k, pr in enumerate(result.parcels):
         c = colors[(k + 1) % len(colors)]
         tr = pr.trajectory
@@ -45,17 +47,37 @@ def plot_paths(result: RunResult, path: str | Path | None = None, title: str | N
         ax.add_patch(PolygonPatch(np.asarray(end.exterior.coords), closed=True, fill=True, fc=c, alpha=0.15, ec=ec, lw=1.5))
         if tr.status == "tipped":
             ax.plot(*tr.states[-1, :2], "x", color="red", ms=9, mew=2, zorder=4)
+        axt.plot(tr.times, tr.states[:, 0], "-", color=c, lw=1.3, label=f"{pr.spec.name} x")
+        axt.plot(tr.times, tr.states[:, 1], "--", color=c, lw=1.3, label=f"{pr.spec.name} y")
+        axh.plot(tr.times, tr.states[:, 2], ":", color=c, lw=1.3, label=f"{pr.spec.name} heading")
+        for e in tr.events:
+            if e.kind == "tip":
+                axt.axvline(e.t, color="red", lw=1, alpha=0.6)
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     sc = setup.scenario
     ax.set_title(title or f"{sc.name}: {sc.friction.law} friction, {sc.duration:g} s")
-    ax.legend(loc="upper right", fontsize=8, framealpha=0.8)
     ax.autoscale_view()
     ax.margins(0.08)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, fontsize=8, frameon=False)
+    axt.set_xlabel("t (s)")
+    axt.set_ylabel("position (m)")
+    axh.set_ylabel("heading (rad)")
+    lo, hi = axh.get_ylim()
+    if hi - lo < 0.02:  # do not magnify rounding noise of a heading that does not change
+        mid = 0.5 * (lo + hi)
+        axh.set_ylim(mid - 0.1, mid + 0.1)
+    axt.set_title("centre of mass and heading")
+    lines = axt.get_legend_handles_labels()
+    lines2 = axh.get_legend_handles_labels()
+    axt.legend(lines[0] + lines2[0], lines[1] + lines2[1], loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3,
+               fontsize=8, frameon=False)
+    axt.grid(alpha=0.3)
     fig.tight_layout()
     if path is not None:
         buf = _io.BytesIO()
         fig.savefig(buf, format="png")
         write_atomic(Path(path), buf.getvalue())
+    plt.close(fig)
     return fig

@@ -1,0 +1,78 @@
+"""Cell arrays and parcels: construction, validation, support detection."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from virtual_vehicle import layout, parcel
+from virtual_vehicle.errors import ScenarioError
+
+
+def test_grid_row_points():
+    g = layout.grid(3, 2, 0.25, origin=(1.0, -1.0))
+    assert g.n == 6 and g.shape == (2, 3)
+    np.testing.assert_allclose(g.positions[4], [1.25, -0.75])
+    np.testing.assert_allclose(g.drive_directions[0], np.eye(2))
+    assert not g.is_line and layout.row(5, 0.1).is_line
+    p = layout.from_points([[0, 0], [0.2, 0], [0, 0.2], [0.2, 0.2]])
+    assert p.pitch == pytest.approx(0.2)
+    rotated = layout.grid(2, 2, 0.1, drive_angle=np.pi / 6)
+    u = rotated.drive_directions[0]
+    assert u[0] @ u[1] == pytest.approx(0.0, abs=1e-15)
+    np.testing.assert_allclose(u[0], [np.cos(np.pi / 6), np.sin(np.pi / 6)])
+
+
+def test_layout_validation():
+    with pytest.raises(ScenarioError, match="same position"):
+        layout.from_points([[0, 0], [0, 0]])
+    with pytest.raises(ScenarioError, match="pitch"):
+        layout.grid(2, 2, -0.1)
+    with pytest.raises(ScenarioError, match="at least one"):
+        layout.grid(0, 2, 0.1)
+    with pytest.raises(ScenarioError, match="orthogonal"):
+        layout.CellArray(np.zeros((1, 2)), np.array([[[1.0, 0.0], [1.0, 0.0]]]), 0.1)
+
+
+def test_rectangle_inertia_and_validation():
+    p = parcel.rectangle(0.3, 0.2, 1.5, 0.4)
+    assert p.inertia == pytest.approx(1.5 * (0.09 + 0.04) / 12)
+    assert p.half_extents == (0.15, 0.1)
+    with pytest.raises(ScenarioError, match="mass"):
+        parcel.rectangle(0.3, 0.2, -1.0, 0.4)
+    with pytest.raises(ScenarioError, match="width"):
+        parcel.rectangle(0.3, 0.0, 1.0, 0.4)
+    with pytest.raises(ScenarioError, match="convex"):
+        parcel.ParcelSpec(np.array([[-1, -1], [1, -1], [0, -0.5], [1, 1], [-1, 1]], float), 1.0, 1.0, 0.5)
+    clockwise = parcel.ParcelSpec(np.array([[-1, -1], [-1, 1], [1, 1], [1, -1]], float), 1.0, 1.0, 0.5)
+    assert parcel._signed_area(clockwise.footprint) > 0  # stored counter-clockwise
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.floats(-1, 1), st.floats(-1, 1), st.floats(-np.pi, np.pi))
+def test_margins_agree_with_shapely_and_the_generic_polygon_path(x, y, theta):
+    spec = parcel.rectangle(0.4, 0.3, 1.0, 0.5)
+    generic = parcel.ParcelSpec(spec.footprint[[0, 1, 2, 3]].copy() * [1, 1], 1.0, 1.0, 0.5)
+    object.__setattr__(generic, "half_extents", None)  # force the half-plane path
+    pts = np.random.default_rng(0).uniform(-1.5, 1.5, size=(50, 2))
+    m = parcel.footprint_margins(spec, (x, y, theta), pts)
+    np.testing.assert_allclose(m, parcel.footprint_margins(generic, (x, y, theta), pts), atol=1e-12)
+    poly = spec.world_polygon((x, y, theta))
+    import shapely
+
+    inside = shapely.contains_xy(poly, pts[:, 0], pts[:, 1])
+    clear = np.abs(m) > 1e-9
+    assert np.array_equal((m > 0)[clear], inside[clear])
+    # inside, the margin is the distance to the boundary
+    dist = shapely.distance(poly.exterior, shapely.points(pts))
+    np.testing.assert_allclose(m[m > 0], dist[m > 0], atol=1e-12)
+
+
+def test_supporting_cells_tree_matches_brute_force():
+    cells = layout.grid(20, 20, 0.1)
+    spec = parcel.rectangle(0.45, 0.35, 1.0, 0.5)
+    rng = np.random.default_rng(3)
+    for pose in rng.uniform([0, 0, -3], [2, 2, 3], size=(50, 3)):
+        a = parcel.supporting_cells(spec, pose, cells.positions, cells.tree)
+        b = parcel.supporting_cells(spec, pose, cells.positions)
+        assert a.tolist() == b.tolist()
