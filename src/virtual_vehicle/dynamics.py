@@ -384,7 +384,8 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
         mode: ``"event"`` (piecewise, events located) or ``"fixed"`` (RK4 with step ``dt``, s).
         rtol, atol: tolerances of the adaptive integrator (event mode); atol in state units (m, rad, m/s, rad/s).
         max_step: largest step of the adaptive integrator, s.
-        sample_dt: spacing of the output samples, s (default: 100 samples over the run).
+        sample_dt: spacing of the output samples, s (default: 100 samples over the run). Event mode samples the
+            integrator's dense output; fixed mode interpolates linearly between its steps.
         progress: called with the simulated time now and then.
 
     Returns:
@@ -403,9 +404,10 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
     sample_times = t0 + sample_dt * np.arange(n_samples)
     if sample_times[-1] < t1 - 1e-12 * max(1.0, abs(t1)):
         sample_times = np.append(sample_times, t1)
-    run = _EVENT if mode == "event" else _FIXED if mode == "fixed" else None
-    if run is None:
+    runners = {"event": _run_event, "fixed": _run_fixed}
+    if mode not in runners:
         raise ValueError(f"mode must be 'event' or 'fixed', got {mode!r}")
+    run = runners[mode]
     kwargs = dict(rtol=rtol, atol=atol, max_step=max_step) if mode == "event" else dict(dt=dt)
     return run(model, y0, t0, t1, sample_times, progress, max_segments, **kwargs)
 
@@ -544,6 +546,3 @@ def _run_fixed(model, y0, t0, t1, sample_times, progress, max_segments, *, dt) -
     return Trajectory(np.array(times), np.array(states).reshape(-1, 6), events, status, t, steps, nfev,
                       {"pieces_cached": model.pieces_cached, "solves": model.solves})
 
-
-_EVENT = _run_event
-_FIXED = _run_fixed

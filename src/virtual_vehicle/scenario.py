@@ -30,26 +30,26 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
 
-class GridArray(_Strict):
+class _Lattice(_Strict):
+    pitch: Pos
+    origin: Point = (0.0, 0.0)
+    drive_angle: float = 0.0
+
+
+class GridArray(_Lattice):
     """``nx`` columns by ``ny`` rows at ``pitch`` (m), first cell at ``origin`` (m); wheel 0 drives along
     ``drive_angle`` (rad from +x), wheel 1 at +90 degrees."""
 
     kind: Literal["grid"]
     nx: Annotated[int, Field(ge=1, le=100_000)]
     ny: Annotated[int, Field(ge=1, le=100_000)]
-    pitch: Pos
-    origin: Point = (0.0, 0.0)
-    drive_angle: float = 0.0
 
 
-class RowArray(_Strict):
-    """A single row of ``n`` cells along +x (the paper's 1-D array)."""
+class RowArray(_Lattice):
+    """A single row of ``n`` cells along +x (the paper's 1-D array), spaced and oriented as a grid."""
 
     kind: Literal["row"]
     n: Annotated[int, Field(ge=1, le=1_000_000)]
-    pitch: Pos
-    origin: Point = (0.0, 0.0)
-    drive_angle: float = 0.0
 
 
 class PointsArray(_Strict):
