@@ -1,0 +1,98 @@
+"""Messages of a cell program, vectorised over cells and ports.
+
+A cell program declares a :class:`Schema`: the words its sentences carry (name, label, type). A :class:`Mailbox`
+holds one sentence per (cell, port): as an outbox, what each cell sends on each port this tick; as an inbox, what
+arrived on each port. Values are stored with the numpy dtype of their word type, so a program sees exactly the
+values a wire would carry (an F32 is a float32) whichever delivery model runs it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .sentence import Word, WordType, decode, encode, wire_size
+
+DTYPE = {WordType.U8: np.uint8, WordType.BOOL: np.bool_, WordType.I16: np.int16, WordType.U16: np.uint16,
+         WordType.I32: np.int32, WordType.F32: np.float32}
+
+
+@dataclass(frozen=True)
+class Field:
+    name: str
+    label: int
+    type: WordType
+
+
+@dataclass(frozen=True)
+class Schema:
+    """The words of a program's sentences. Every sentence carries all of them."""
+
+    fields: tuple[Field, ...]
+
+    def __post_init__(self):
+        names = [f.name for f in self.fields]
+        labels = [f.label for f in self.fields]
+        if len(set(names)) != len(names) or len(set(labels)) != len(labels):
+            raise ValueError("schema names and labels must be unique")
+        wire_size([f.type for f in self.fields])  # raises for unknown types
+        if self.sentence_bytes - 4 > 60:
+            raise ValueError("schema does not fit one sentence")
+
+    @classmethod
+    def of(cls, **words: tuple[int, WordType]) -> "Schema":
+        """``Schema.of(dist=(1, WordType.U8), speed=(2, WordType.F32))``."""
+        return cls(tuple(Field(name, label, WordType(t)) for name, (label, t) in words.items()))
+
+    @property
+    def sentence_bytes(self) -> int:
+        """Bytes on the wire of one sentence."""
+        return wire_size([f.type for f in self.fields])
+
+    def to_bytes(self, values: dict) -> bytes:
+        """Encode one sentence from scalar values by name."""
+        return encode([Word(f.label, f.type, values[f.name].item() if hasattr(values[f.name], "item")
+                            else values[f.name]) for f in self.fields])
+
+    def from_bytes(self, data: bytes) -> dict:
+        """Decode one sentence to values by name; raises SentenceError (also for words not in the schema)."""
+        from .sentence import SentenceError
+
+        words = {w.label: w for w in decode(data)}
+        out = {}
+        for f in self.fields:
+            w = words.get(f.label)
+            if w is None or w.type != f.type:
+                raise SentenceError("schema mismatch", f"word {f.name!r} (label {f.label}) missing or mistyped")
+            out[f.name] = w.value
+        if len(words) != len(self.fields):
+            raise SentenceError("schema mismatch", "unexpected words")
+        return out
+
+
+@dataclass
+class Mailbox:
+    """One sentence per (cell, port): ``present[i, p]`` says whether there is one, ``values[name][i, p]`` its words."""
+
+    schema: Schema
+    present: np.ndarray
+    values: dict[str, np.ndarray]
+
+    @classmethod
+    def empty(cls, schema: Schema, n: int, ports: int) -> "Mailbox":
+        return cls(schema, np.zeros((n, ports), dtype=bool),
+                   {f.name: np.zeros((n, ports), dtype=DTYPE[f.type]) for f in schema.fields})
+
+    @classmethod
+    def broadcast(cls, schema: Schema, send: np.ndarray, ports: int, **values) -> "Mailbox":
+        """Each cell with ``send[i]`` sends the same sentence on every port; values are (n,) arrays by name."""
+        n = len(send)
+        present = np.repeat(np.asarray(send, dtype=bool)[:, None], ports, axis=1)
+        vals = {f.name: np.repeat(np.asarray(values[f.name]).astype(DTYPE[f.type])[:, None], ports, axis=1)
+                for f in schema.fields}
+        return cls(schema, present, vals)
+
+    def count(self) -> int:
+        """Number of sentences held."""
+        return int(self.present.sum())

@@ -1,0 +1,154 @@
+"""The cell network: topology from layouts, ideal-round delivery, and the wire-level model's timing, contention,
+faults and corruption handling."""
+
+import numpy as np
+import pytest
+
+from virtual_vehicle import layout
+from virtual_vehicle.network.delivery import IdealRounds
+from virtual_vehicle.network.messages import Mailbox, Schema
+from virtual_vehicle.network.sentence import WordType
+from virtual_vehicle.network.topology import from_layout
+from virtual_vehicle.network.wire import WireLevel, WireParams
+
+SCHEMA = Schema.of(value=(1, WordType.I16), hops=(2, WordType.U8))
+EAST, NORTH, WEST, SOUTH = range(4)
+
+
+def outbox(n, sends):
+    """sends: {(cell, port): value}"""
+    box = Mailbox.empty(SCHEMA, n, 4)
+    for (i, p), v in sends.items():
+        box.present[i, p] = True
+        box.values["value"][i, p] = v
+        box.values["hops"][i, p] = 1
+    return box
+
+
+def test_topology_of_a_grid_is_mutual_and_silent_at_edges():
+    t = from_layout(layout.grid(4, 3, 0.1))
+    assert t.neighbor.shape == (12, 4)
+    # every link is mutual: the neighbour's back port leads back
+    for i, p in zip(*np.nonzero(t.neighbor >= 0)):
+        j, q = t.neighbor[i, p], t.back_port[i, p]
+        assert t.neighbor[j, q] == i and t.back_port[j, q] == p
+    assert t.neighbor[0, WEST] == -1 and t.neighbor[0, SOUTH] == -1
+    assert (t.neighbor >= 0).sum() == 2 * (3 * 3 + 4 * 2)  # directed links of a 4x3 grid
+    rotated = from_layout(layout.grid(4, 3, 0.1, drive_angle=np.pi / 2))  # ports turn with the cell frame
+    assert rotated.neighbor[0, EAST] == 4  # "east" of the cell is +y in the world
+
+
+def test_topology_faults_cut_both_directions():
+    t = from_layout(layout.grid(3, 3, 0.1)).with_faults(dead_cells=[4], dead_links=[(0, EAST)])
+    assert not t.alive[4] and not t.connected[4].any()
+    assert not t.connected[1, SOUTH] and not t.connected[3, EAST]  # links into the dead centre
+    assert not t.connected[0, EAST] and not t.connected[1, WEST]
+
+
+def test_ideal_rounds_delivers_to_the_opposite_port():
+    t = from_layout(layout.grid(3, 1, 0.1))
+    ideal = IdealRounds(t)
+    inbox, stats = ideal.exchange(outbox(3, {(0, EAST): 7, (1, WEST): -3, (2, EAST): 9}), 0.0, 0.01)
+    assert inbox.present[1, WEST] and inbox.values["value"][1, WEST] == 7
+    assert inbox.present[0, EAST] and inbox.values["value"][0, EAST] == -3
+    assert inbox.count() == 2 and stats.dropped == 1  # cell 2 has nobody to the east
+    assert np.all(stats.latencies == 0.01)
+    assert stats.bytes_sent.sum() == 2 * SCHEMA.sentence_bytes
+
+
+def test_ideal_rounds_loss_and_dead_cells():
+    t = from_layout(layout.grid(10, 10, 0.1))
+    send = np.ones(100, bool)
+    box = Mailbox.broadcast(SCHEMA, send, 4, value=np.arange(100), hops=np.zeros(100))
+    inbox, stats = IdealRounds(t, loss_rate=0.25, seed=1).exchange(box, 0, 0.01)
+    total = (t.neighbor >= 0).sum()
+    assert stats.lost + inbox.count() == total
+    assert abs(stats.lost / total - 0.25) < 0.06
+    dead = IdealRounds(t.with_faults(dead_cells=[55])).exchange(box, 0, 0.01)[0]
+    assert not dead.present[55].any() and not dead.present[54, EAST]
+
+
+def byte_time(params, nbytes):
+    return nbytes * params.bits_per_byte / params.baud
+
+
+def test_wire_latency_follows_the_protocol_exactly():
+    """Cell 0 sends east at t=0: it raises its handshake line at once; cell 1 polls port 0, 1, 2(west) at
+    0, tau, 2 tau, so the transfer starts at 2 tau and lasts select + bytes at 10 bits each."""
+    p = WireParams()
+    w = WireLevel(from_layout(layout.grid(2, 1, 0.1)), p)
+    inbox, stats = w.exchange(outbox(2, {(0, EAST): 123}), 0.0, 0.05)
+    assert inbox.present[1, WEST] and inbox.values["value"][1, WEST] == 123
+    expected = 2 * p.poll_time + p.select_time + byte_time(p, SCHEMA.sentence_bytes)
+    assert stats.latencies.tolist() == pytest.approx([expected], abs=1e-12)
+    assert stats.extra["timeouts"] == 0 and stats.dropped == 0
+
+
+def test_wire_serialises_a_busy_receiver():
+    """Four neighbours send to the centre at once: one port, one sentence at a time, so the last arrives after at
+    least four transfer times, and the queue drains without loss."""
+    p = WireParams(cts_timeout=0.2)
+    t = from_layout(layout.grid(3, 3, 0.1))
+    w = WireLevel(t, p)
+    inbox, stats = w.exchange(outbox(9, {(1, NORTH): 1, (3, EAST): 2, (5, WEST): 3, (7, SOUTH): 4}), 0.0, 0.1)
+    assert inbox.present[4].all() and sorted(inbox.values["value"][4].tolist()) == [1, 2, 3, 4]
+    transfer = p.select_time + byte_time(p, SCHEMA.sentence_bytes)
+    assert max(stats.latencies) >= 4 * transfer
+    assert stats.dropped == 0 and stats.corrupted == 0
+
+
+def test_wire_mutual_sends_resolve_by_backoff():
+    p = WireParams()
+    w = WireLevel(from_layout(layout.grid(2, 1, 0.1)), p, seed=3)
+    inbox, stats = w.exchange(outbox(2, {(0, EAST): 1, (1, WEST): 2}), 0.0, 0.1)
+    assert inbox.present[1, WEST] and inbox.present[0, EAST]
+    assert stats.extra["timeouts"] >= 1  # both waited on each other at first
+
+
+def test_wire_dead_link_times_out_and_drops_after_max_attempts():
+    p = WireParams(max_attempts=3)
+    t = from_layout(layout.grid(2, 1, 0.1)).with_faults(dead_links=[(0, EAST)])
+    w = WireLevel(t, p)
+    inbox, stats = w.exchange(outbox(2, {(0, EAST): 5}), 0.0, 0.1)
+    assert inbox.count() == 0 and stats.extra["timeouts"] == 3 and stats.dropped == 1
+
+
+def test_wire_bit_errors_are_caught_not_misread():
+    p = WireParams(bit_error_rate=0.02, cts_timeout=0.05)
+    t = from_layout(layout.grid(2, 1, 0.1))
+    w = WireLevel(t, p, seed=5)
+    delivered = corrupted = 0
+    for k in range(300):
+        inbox, stats = w.exchange(outbox(2, {(0, EAST): k}), k * 0.02, 0.02)
+        corrupted += stats.corrupted
+        if inbox.present[1, WEST]:
+            delivered += 1
+            if stats.undetected == 0:
+                assert inbox.values["value"][1, WEST] == k
+    # 72 data bits at 2%: P(no error) = 0.98^72 ~ 0.23
+    assert corrupted > 150 and 30 < delivered < 120
+
+
+def test_wire_queue_keeps_the_newest_and_state_persists_between_ticks():
+    """At 1200 baud one sentence takes ~75 ms; ticks of 10 ms pile sentences up: with queue_limit 1 the newest
+    replaces the waiting one and late arrivals carry latencies longer than a tick."""
+    p = WireParams(baud=1200, cts_timeout=1.0)
+    t = from_layout(layout.grid(2, 1, 0.1))
+    w = WireLevel(t, p)
+    got = []
+    lat = []
+    for k in range(40):
+        inbox, stats = w.exchange(outbox(2, {(0, EAST): k}), k * 0.01, 0.01)
+        if inbox.present[1, WEST]:
+            got.append(int(inbox.values["value"][1, WEST]))
+        lat.extend(stats.latencies.tolist())
+    assert got == sorted(got) and len(got) >= 4 and got[0] == 0
+    assert min(lat) > 0.01 and stats.extra["superseded"] >= 0
+    assert all(b - a > 1 for a, b in zip(got, got[1:]))  # older waiting sentences were replaced
+
+
+def test_wire_parameters_are_validated():
+    with pytest.raises(ValueError):
+        WireParams(baud=0)
+    with pytest.raises(ValueError):
+        WireParams(bit_error_rate=2.0)
