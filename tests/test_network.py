@@ -51,7 +51,7 @@ def test_ideal_rounds_delivers_to_the_opposite_port():
     inbox, stats = ideal.exchange(outbox(3, {(0, EAST): 7, (1, WEST): -3, (2, EAST): 9}), 0.0, 0.01)
     assert inbox.present[1, WEST] and inbox.values["value"][1, WEST] == 7
     assert inbox.present[0, EAST] and inbox.values["value"][0, EAST] == -3
-    assert inbox.count() == 2 and stats.dropped == 1  # cell 2 has nobody to the east
+    assert inbox.count() == 2 and stats.unaddressed == 1 and stats.sent.sum() == 2  # cell 2 has nobody east
     assert np.all(stats.latencies == 0.01)
     assert stats.bytes_sent.sum() == 2 * SCHEMA.sentence_bytes
 
@@ -64,8 +64,9 @@ def test_ideal_rounds_loss_and_dead_cells():
     total = (t.neighbor >= 0).sum()
     assert stats.lost + inbox.count() == total
     assert abs(stats.lost / total - 0.25) < 0.06
-    dead = IdealRounds(t.with_faults(dead_cells=[55])).exchange(box, 0, 0.01)[0]
+    dead, dstats = IdealRounds(t.with_faults(dead_cells=[55])).exchange(box, 0, 0.01)
     assert not dead.present[55].any() and not dead.present[54, EAST]
+    assert dstats.lost == 4  # the four neighbours' sentences to the dead cell
 
 
 def byte_time(params, nbytes):

@@ -55,7 +55,8 @@ def run(
     out_dir: Path = typer.Option(Path("results/run"), "--out", "-o", help="Folder for the results."),
     plot: bool = typer.Option(True, help="Write paths.png."),
 ) -> None:
-    """Run a scenario; write trajectories.csv, events.csv, summary.json, scenario.toml and paths.png."""
+    """Run a scenario; write trajectories.csv, events.csv, summary.json, scenario.toml and paths.png (and, with
+    distributed control, network.csv, cell_traffic.csv and traffic.png)."""
     from .io import write_results
     from .scenario import load_scenario
     from .sim import run as run_setup
@@ -72,10 +73,13 @@ def run(
         bar.close()
     paths = write_results(result, out_dir, text)
     if plot:
-        from .viz import plot_paths
+        from .viz import plot_paths, plot_traffic
 
         paths["plot"] = out_dir / "paths.png"
         plot_paths(result, paths["plot"])
+        if result.network is not None:
+            paths["traffic_plot"] = out_dir / "traffic.png"
+            plot_traffic(result, paths["traffic_plot"])
     s = result.summary()
     out.print(f"[bold]{sc.name}[/bold]: {len(result.parcels)} parcel(s), {sc.duration:g} s simulated in "
               f"{result.wall_time:.3g} s ({s['real_time_factor']:.0f}x real time), {sc.friction.law} friction, "
@@ -88,6 +92,11 @@ def run(
         if p["coulomb_sliding_assumption_violated_at_s"] is not None:
             out.print(f"    note: from t={p['coulomb_sliding_assumption_violated_at_s']:.4g} s the parcel outran a wheel; "
                       "the paper's Coulomb law assumes it never does (use the viscous law, or stick-slip when it lands)")
+    if result.network is not None:
+        net = s["network"]
+        lat = "n/a" if net["latency_mean_s"] is None else f"{net['latency_mean_s'] * 1e3:.1f} ms"
+        out.print(f"  network ({net['delivery']}): {net['sentences_sent']} sentences sent, {net['sentences_received']} "
+                  f"received, mean latency {lat}, {net['dropped']} dropped, {net['corrupted']} corrupted")
     out.print(f"results written to {out_dir}/: " + ", ".join(sorted(p.name for p in paths.values())))
 
 

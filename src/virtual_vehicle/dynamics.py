@@ -38,6 +38,21 @@ _PATTERN_RESOLUTION = 1e-9
 """Relative positions of supporting cells are compared to this fraction of the pitch when matching patterns."""
 
 
+class _GeometryCache:
+    """Solved support geometries by pattern, shared by models of one parcel that differ only in wheel velocities."""
+
+    def __init__(self):
+        self.solutions: dict[bytes, list[SupportSolution]] = {}
+        self.solves = 0
+
+
+def _holds(sol: SupportSolution, xi: np.ndarray) -> bool:
+    """Whether ``sol``'s contact set and hull hold at local centre of mass ``xi``."""
+    vals = sol.spring_values(xi)
+    return bool(np.all(vals[sol.in_contact] > 0) and np.all(vals[~sol.in_contact] <= 0)
+                and np.all(sol.hull_slack(xi) >= 0))
+
+
 @dataclass(frozen=True, eq=False)
 class Piece:
     """One smooth piece of the dynamics: a support set, its contact set, the normal-force map and the constants.
@@ -119,8 +134,7 @@ class ParcelModel:
         self.weight = spec.weight(gravity)
         self._pieces: dict[tuple, Piece] = {}
         self._by_support: dict[tuple[int, ...], list[Piece]] = {}
-        self._by_pattern: dict[bytes, list[Piece]] = {}
-        self.solves = 0
+        self._geometry = _GeometryCache()
         self._line_dir = None
         if cells.is_line and cells.n > 1:
             self._line_dir = np.linalg.svd(cells.positions - cells.positions.mean(axis=0), full_matrices=False)[2][0]
@@ -133,56 +147,57 @@ class ParcelModel:
         """The piece valid at state ``y``. Raises TippingError when the supports cannot carry the parcel."""
         return self.piece_for(self.support_at(y), y)
 
+    def with_velocities(self, velocities: np.ndarray) -> "ParcelModel":
+        """The same parcel on the same array under other wheel velocities (m/s), sharing the solved support
+        geometry (normal forces do not depend on the wheels), so a controller may change the field every tick."""
+        other = ParcelModel.__new__(ParcelModel)
+        other.__dict__.update(self.__dict__)
+        other.velocities = np.asarray(velocities, dtype=float)
+        if other.velocities.shape != (self.cells.n, 2) or not np.all(np.isfinite(other.velocities)):
+            raise ValueError(f"velocities must be finite with shape ({self.cells.n}, 2)")
+        other._pieces = {}
+        other._by_support = {}
+        return other
+
+    @property
+    def solves(self) -> int:
+        """Normal-force problems solved so far (shared by models made with :meth:`with_velocities`)."""
+        return self._geometry.solves
+
     def piece_for(self, support: np.ndarray, y) -> Piece:
         """The piece for the cells ``support`` at state ``y``.
 
-        Two caches avoid solving a support set again: by the cells themselves, and by their pattern (positions
-        relative to the first cell, wheel velocities and drive directions), because on a regular lattice a parcel
-        that has moved by whole cells rests on a translated copy of a pattern it has met before, whose local solution
-        and constants are the same.
+        Two caches avoid solving a support set again: by the cells themselves, and by their geometric pattern
+        (positions relative to the first cell), because on a regular lattice a parcel that has moved by whole cells
+        rests on a translated copy of a pattern it has met before, whose local solution is the same. The friction
+        constants of a new support set are recomputed from the solution (cheap).
         """
         X = np.asarray(y[:2], dtype=float)
         skey = tuple(support.tolist())
-        piece = self._cached(self._by_support.get(skey, ()), X, None)
-        if piece is not None:
-            return piece
+        for piece in self._by_support.get(skey, ()):
+            if _holds(piece.solution, X - piece.solution.origin):
+                return piece
         if len(support) == 0:
             raise TippingError(f"no cell lies under the parcel at ({X[0]:.6g}, {X[1]:.6g}) m")
         pts = self.cells.positions[support]
-        pkey = self._pattern_key(support, pts)
+        rel = np.round((pts - pts[0]) / (_PATTERN_RESOLUTION * self.cells.pitch)).astype(np.int64)
+        gkey = rel.tobytes()
         origin = pts.mean(axis=0)
-        template = self._cached(self._by_pattern.get(pkey, ()), X, origin)
-        if template is not None:
-            piece = self._make_piece(support, replace(template.solution, origin=origin), template.constants)
+        sol = next((t for t in self._geometry.solutions.get(gkey, ()) if _holds(t, X - origin)), None)
+        if sol is not None:
+            sol = replace(sol, origin=origin)
         else:
             sol = solve_support(pts, X, self.weight, lateral_support=self.cells.is_line, line_direction=self._line_dir)
-            self.solves += 1
-            k = self.law.constants(sol, self.velocities[support], self.cells.drive_directions[support], self.spec.mu)
-            piece = self._make_piece(support, sol, k)
-            self._by_pattern.setdefault(pkey, []).append(piece)
+            self._geometry.solves += 1
+            self._geometry.solutions.setdefault(gkey, []).append(sol)
+        k = self.law.constants(sol, self.velocities[support], self.cells.drive_directions[support], self.spec.mu)
+        piece = self._make_piece(support, sol, k)
         existing = self._pieces.get(piece.key)
         if existing is not None:
             return existing
         self._pieces[piece.key] = piece
         self._by_support.setdefault(skey, []).append(piece)
         return piece
-
-    @staticmethod
-    def _cached(pieces, X: np.ndarray, origin: np.ndarray | None) -> Piece | None:
-        """The cached piece whose contact set and hull hold at centre of mass X (origin: that of the new support)."""
-        for piece in pieces:
-            sol = piece.solution
-            xi = X - (sol.origin if origin is None else origin)
-            vals = sol.spring_values(xi)
-            if (np.all(vals[sol.in_contact] > 0) and np.all(vals[~sol.in_contact] <= 0)
-                    and np.all(sol.hull_slack(xi) >= 0)):
-                return piece
-        return None
-
-    def _pattern_key(self, support: np.ndarray, pts: np.ndarray) -> bytes:
-        rel = np.round((pts - pts[0]) / (_PATTERN_RESOLUTION * self.cells.pitch)).astype(np.int64)
-        return b"".join((rel.tobytes(), self.velocities[support].tobytes(),
-                         self.cells.drive_directions[support].tobytes()))
 
     def _make_piece(self, support: np.ndarray, sol: SupportSolution, k: FrictionConstants) -> Piece:
         return Piece(support, sol, k, _make_rhs(k, sol.origin, self.spec.mass, self.spec.inertia))

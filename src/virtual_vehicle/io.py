@@ -7,6 +7,9 @@ Columns:
 - ``trajectories.csv``: parcel, t (s), x, y (m), theta (rad), vx, vy (m/s), omega (rad/s), one row per sample.
 - ``events.csv``: parcel, t (s), kind (support | tip), entered, left, lifted, touched (cell ids separated by
   spaces), the state at the event (as above), message.
+- ``network.csv`` (networked runs): per control tick, t (s), sentences sent / received, bytes sent / received,
+  lost, corrupted, undetected, dropped, unaddressed, latency_mean and latency_max (s; empty when nothing arrived).
+- ``cell_traffic.csv`` (networked runs): per cell, cell id, x, y (m), sentences and bytes sent and received.
 """
 
 from __future__ import annotations
@@ -68,6 +71,36 @@ def events_csv(result: RunResult) -> str:
     return buf.getvalue()
 
 
+NETWORK_COLUMNS = ("t", "sent", "received", "bytes_sent", "bytes_received", "lost", "corrupted", "undetected",
+                   "dropped", "unaddressed", "latency_mean", "latency_max")
+
+
+def network_csv(result: RunResult) -> str:
+    rec = result.network
+    buf = _io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(NETWORK_COLUMNS)
+    for k in range(len(rec.per_tick["t"])):
+        row = []
+        for c in NETWORK_COLUMNS:
+            v = rec.per_tick[c][k]
+            row.append("" if isinstance(v, float) and v != v else repr(v.item()))
+        w.writerow(row)
+    return buf.getvalue()
+
+
+def cell_traffic_csv(result: RunResult) -> str:
+    rec = result.network
+    pos = result.setup.cells.positions
+    buf = _io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(("cell", "x", "y", "sent", "received", "bytes_sent", "bytes_received"))
+    for i in range(len(pos)):
+        w.writerow((i, repr(float(pos[i, 0])), repr(float(pos[i, 1])), *(int(rec.per_cell[f"cell_{k}"][i]) for k in
+                    ("sent", "received", "bytes_sent", "bytes_received"))))
+    return buf.getvalue()
+
+
 def write_results(result: RunResult, out_dir: str | Path, scenario_text: str | None = None) -> dict[str, Path]:
     """Write trajectories.csv, events.csv, summary.json and scenario.toml (when its text is given) into
     ``out_dir``. Returns the paths written, by kind."""
@@ -80,6 +113,11 @@ def write_results(result: RunResult, out_dir: str | Path, scenario_text: str | N
     write_atomic(paths["trajectories"], trajectories_csv(result))
     write_atomic(paths["events"], events_csv(result))
     write_atomic(paths["summary"], json.dumps(result.summary(), indent=2) + "\n")
+    if result.network is not None:
+        paths["network"] = out / "network.csv"
+        paths["cell_traffic"] = out / "cell_traffic.csv"
+        write_atomic(paths["network"], network_csv(result))
+        write_atomic(paths["cell_traffic"], cell_traffic_csv(result))
     if scenario_text is not None:
         paths["scenario"] = out / "scenario.toml"
         write_atomic(paths["scenario"], scenario_text)

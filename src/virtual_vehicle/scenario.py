@@ -111,6 +111,42 @@ class IntegratorSpec(_Strict):
     dt: Pos = 1e-3
 
 
+class WireSpec(_Strict):
+    """Wire-level network hardware (see :class:`~virtual_vehicle.network.wire.WireParams`): ``baud`` (bits/s),
+    ``poll_time``, ``select_time``, ``cts_timeout``, ``backoff_max`` (s), ``max_attempts``, ``queue_limit``,
+    ``bit_error_rate`` and ``loss_rate`` (0..1)."""
+
+    baud: Pos = 9600.0
+    poll_time: Pos = 50e-6
+    select_time: Annotated[float, Field(ge=0)] = 20e-6
+    cts_timeout: Pos = 2e-3
+    backoff_max: Annotated[float, Field(ge=0)] = 1e-3
+    max_attempts: Annotated[int, Field(ge=1, le=1000)] = 5
+    queue_limit: Annotated[int, Field(ge=1, le=1000)] = 1
+    bit_error_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
+    loss_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
+
+
+class ControlSpec(_Strict):
+    """Distributed control: every cell runs ``program`` each ``period`` (s); sentences travel by ``delivery``
+    (``"ideal"`` rounds, or ``"wire"``: the paper's RS232 hardware, tuned by ``[control.wire]``). ``loss_rate``
+    (0..1) drops sentences on ideal rounds; ``seed`` fixes the network's randomness.
+
+    Programs: ``"shuttle"`` passes parcels back and forth along the wheel-0 axis at ``speed`` (m/s), reversing by a
+    flood of at most ``hop_limit`` hops started by the end cells that sense a parcel; cells repeat their state
+    every ``heartbeat`` ticks."""
+
+    program: Literal["shuttle"]
+    period: Annotated[float, Field(gt=0, le=10)] = 0.01
+    delivery: Literal["ideal", "wire"] = "ideal"
+    speed: Pos = 0.2
+    hop_limit: Annotated[int, Field(ge=1, le=254)] = 32
+    heartbeat: Annotated[int, Field(ge=1, le=100_000)] = 10
+    loss_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
+    seed: Annotated[int, Field(ge=0)] = 0
+    wire: WireSpec = WireSpec()
+
+
 class ParcelEntry(_Strict):
     """A rectangular parcel: ``length`` along its body x and ``width`` (m), ``mass`` (kg), ``mu`` (friction
     coefficient, see :class:`FrictionSpec`), optional ``inertia`` (kg m^2, default uniform plate), and its initial
@@ -143,7 +179,8 @@ class Scenario(_Strict):
     output_dt: Pos | None = None
     gravity: Pos = 9.81
     array: ArraySpec
-    field: FieldSpec
+    field: FieldSpec | None = None
+    control: ControlSpec | None = None
     friction: FrictionSpec = FrictionSpec()
     integrator: IntegratorSpec = IntegratorSpec()
     parcels: Annotated[list[ParcelEntry], Field(min_length=1)]
@@ -155,6 +192,9 @@ class Scenario(_Strict):
             if p.name in seen:
                 raise ValueError(f"parcel name {p.name!r} is used twice; names must be unique")
             seen.add(p.name)
+        if (self.field is None) == (self.control is None):
+            raise ValueError("give either [field] (constant wheel velocities) or [control] (cells run a program), "
+                             "not both or neither")
         if self.output_dt is not None and self.output_dt > self.duration:
             raise ValueError(f"output_dt ({self.output_dt} s) is longer than duration ({self.duration} s)")
         return self
@@ -163,7 +203,7 @@ class Scenario(_Strict):
         """Build the simulation objects and check the rules that need them (cells, parcels on the array, no
         overlaps). Raises ScenarioError naming the field."""
         cells = _build_array(self.array)
-        velocities = _build_field(self.field).velocities(cells)
+        velocities = np.zeros((cells.n, 2)) if self.field is None else _build_field(self.field).velocities(cells)
         specs, states = [], []
         for i, p in enumerate(self.parcels):
             where = f"parcels[{i}]"
@@ -181,7 +221,8 @@ class Scenario(_Strict):
                 if shapely.intersection(polys[i], polys[j]).area > 1e-12:
                     raise ScenarioError(f"parcels[{j}]", f"parcel {self.parcels[j].name!r} overlaps parcel "
                                         f"{self.parcels[i].name!r} at the start; move one of them")
-        return Setup(self, cells, velocities, LAWS[self.friction.law], specs, states)
+        control = None if self.control is None else _build_control(self.control, cells)
+        return Setup(self, cells, velocities, LAWS[self.friction.law], specs, states, control)
 
 
 def _check_on_array(cells, spec, state, where, name):
@@ -217,8 +258,35 @@ def _build_field(f):
 
 
 @dataclass(frozen=True, eq=False)
+class ControlSetup:
+    """The distributed side of a run: program, topology, delivery model, period (s), per-cell configuration."""
+
+    program: object
+    topology: object
+    delivery: object
+    delivery_name: str
+    period: float
+    config: dict
+
+
+def _build_control(c: ControlSpec, cells: layout.CellArray) -> ControlSetup:
+    from .control import Shuttle
+    from .network.delivery import IdealRounds
+    from .network.topology import from_layout
+    from .network.wire import WireLevel, WireParams
+
+    topo = from_layout(cells)
+    if c.delivery == "ideal":
+        delivery = IdealRounds(topo, loss_rate=c.loss_rate, seed=c.seed)
+    else:
+        delivery = WireLevel(topo, WireParams(**c.wire.model_dump()), seed=c.seed)
+    program = Shuttle(c.speed, c.hop_limit, c.heartbeat)
+    return ControlSetup(program, topo, delivery, c.delivery, c.period, {})
+
+
+@dataclass(frozen=True, eq=False)
 class Setup:
-    """A validated scenario turned into simulation objects."""
+    """A validated scenario turned into simulation objects (``control`` is None for a constant field)."""
 
     scenario: Scenario
     cells: layout.CellArray
@@ -226,6 +294,7 @@ class Setup:
     law: FrictionLaw
     specs: list[ParcelSpec]
     states: list[np.ndarray]
+    control: ControlSetup | None = None
 
 
 def _format_validation(exc: ValidationError) -> ScenarioError:

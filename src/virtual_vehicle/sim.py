@@ -15,6 +15,8 @@ import numpy as np
 from . import __version__
 from .dynamics import ParcelModel, Trajectory, integrate
 from .friction import CoulombLaw
+from .network.messages import Mailbox
+from .network.programs import CellInputs
 from .parcel import ParcelSpec, supporting_cells
 from .scenario import Setup
 
@@ -38,6 +40,7 @@ class RunResult:
     parcels: list[ParcelResult]
     wall_time: float
     stats: dict = field(default_factory=dict)
+    network: "NetworkRecord | None" = None
 
     def summary(self) -> dict:
         """A JSON-ready summary: per-parcel outcome, start/end state, distance, events; run totals."""
@@ -100,7 +103,10 @@ def coulomb_sliding_check(setup: Setup, spec: ParcelSpec, traj: Trajectory) -> t
 
 
 def run(setup: Setup, progress: Callable[[float], None] | None = None) -> RunResult:
-    """Run a built scenario. ``progress`` is called with the fraction of the run done (0..1)."""
+    """Run a built scenario. ``progress`` is called with the fraction of the run done (0..1). A scenario with a
+    ``[control]`` table is co-simulated with its cell program and network (:func:`run_network`)."""
+    if setup.control is not None:
+        return run_network(setup, progress)
     sc = setup.scenario
     integ = sc.integrator
     t_end = sc.duration
@@ -118,3 +124,126 @@ def run(setup: Setup, progress: Callable[[float], None] | None = None) -> RunRes
     if progress is not None:
         progress(1.0)
     return RunResult(setup, results, time.perf_counter() - start)
+
+
+@dataclass
+class NetworkRecord:
+    """Message traffic of a networked run.
+
+    Per tick (arrays of length ticks): ``t`` (s), ``sent``, ``received``, ``bytes_sent``, ``bytes_received``,
+    ``lost``, ``corrupted``, ``undetected``, ``dropped``, ``latency_mean`` / ``latency_max`` (s, NaN when nothing
+    arrived). Per cell (arrays of length n): ``cell_sent``, ``cell_received``, ``cell_bytes_sent``,
+    ``cell_bytes_received``. ``latencies``: every delivered sentence's latency, s.
+    """
+
+    delivery: str
+    period: float
+    per_tick: dict[str, np.ndarray]
+    per_cell: dict[str, np.ndarray]
+    latencies: np.ndarray
+
+    def totals(self) -> dict:
+        lat = self.latencies
+        return {
+            "delivery": self.delivery,
+            "control_period_s": self.period,
+            "sentences_sent": int(self.per_tick["sent"].sum()),
+            "sentences_received": int(self.per_tick["received"].sum()),
+            "bytes_sent": int(self.per_tick["bytes_sent"].sum()),
+            "lost": int(self.per_tick["lost"].sum()),
+            "corrupted": int(self.per_tick["corrupted"].sum()),
+            "undetected_corruptions": int(self.per_tick["undetected"].sum()),
+            "dropped": int(self.per_tick["dropped"].sum()),
+            "unaddressed": int(self.per_tick["unaddressed"].sum()),
+            "latency_mean_s": float(lat.mean()) if len(lat) else None,
+            "latency_p95_s": float(np.percentile(lat, 95)) if len(lat) else None,
+            "latency_max_s": float(lat.max()) if len(lat) else None,
+        }
+
+
+_FAULTS = ("lost", "corrupted", "undetected", "dropped", "unaddressed")
+
+
+def sense_presence(cells, specs, states, active) -> np.ndarray:
+    """(n, 1) presence sensor at each cell centre: 1 where any active parcel's footprint covers it."""
+    out = np.zeros((cells.n, 1), dtype=bool)
+    for spec, y, on in zip(specs, states, active):
+        if on:
+            out[supporting_cells(spec, y, cells.positions, cells.tree), 0] = True
+    return out
+
+
+def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -> RunResult:
+    """Co-simulate cell programs, the network and the parcels: at every control tick the cells read their sensors
+    and the sentences delivered since the last tick, step their program, and send; the wheels hold the commanded
+    speeds until the next tick (zero-order hold) while the plant integrates every parcel (event-driven)."""
+    sc = setup.scenario
+    ctl = setup.control
+    cells, topo = setup.cells, ctl.topology
+    n, P = topo.n, topo.ports
+    period = ctl.period
+    ticks = int(np.ceil(sc.duration / period - 1e-9))
+    sample_dt = min(sc.output_dt or sc.duration / 500, period)
+    integ = sc.integrator
+    start = time.perf_counter()
+    state = ctl.program.init(n, P, ctl.config)
+    inbox = Mailbox.empty(ctl.program.schema, n, P)
+    ys = [y.copy() for y in setup.states]
+    active = [True] * len(ys)
+    base = [ParcelModel(cells, spec, np.zeros((n, 2)), setup.law, sc.gravity) for spec in setup.specs]
+    parts: list[list[Trajectory]] = [[] for _ in ys]
+    keys = ("sent", "received", "bytes_sent", "bytes_received")
+    per_tick = {k: np.zeros(ticks, dtype=np.int64) for k in (*keys, *_FAULTS)}
+    per_tick["t"] = period * np.arange(ticks)
+    per_tick["latency_mean"] = np.full(ticks, np.nan)
+    per_tick["latency_max"] = np.full(ticks, np.nan)
+    per_cell = {f"cell_{k}": np.zeros(n, dtype=np.int64) for k in keys}
+    latencies = []
+    dirs = cells.drive_directions
+    for k in range(ticks):
+        t0 = k * period
+        t1 = min(sc.duration, t0 + period)
+        sensors = sense_presence(cells, setup.specs, ys, active)
+        inputs = CellInputs(t0, sensors, inbox, topo.connected, ctl.config)
+        state, outbox, wheels = ctl.program.step(state, inputs)
+        wheels = np.where(topo.alive[:, None], np.asarray(wheels, dtype=float), 0.0)  # a dead cell does not drive
+        velocities = wheels[:, 0:1] * dirs[:, 0] + wheels[:, 1:2] * dirs[:, 1]
+        inbox, stats = ctl.delivery.exchange(outbox, t0, period)
+        for key in keys:
+            per_tick[key][k] = int(getattr(stats, key).sum())
+            per_cell[f"cell_{key}"] += getattr(stats, key)
+        for key in _FAULTS:
+            per_tick[key][k] = getattr(stats, key)
+        if len(stats.latencies):
+            per_tick["latency_mean"][k] = stats.latencies.mean()
+            per_tick["latency_max"][k] = stats.latencies.max()
+            latencies.append(stats.latencies)
+        for i, model in enumerate(base):
+            if not active[i] or t1 <= t0:
+                continue
+            tr = integrate(model.with_velocities(velocities), ys[i], t0, t1, mode=integ.mode, rtol=integ.rtol,
+                           atol=integ.atol, max_step=integ.max_step or np.inf, dt=integ.dt, sample_dt=sample_dt)
+            parts[i].append(tr)
+            ys[i] = tr.states[-1].copy()
+            if tr.status == "tipped":
+                active[i] = False
+        if progress is not None:
+            progress((k + 1) / ticks)
+    results = []
+    for spec, segs in zip(setup.specs, parts):
+        results.append(ParcelResult(spec, _join(segs)))
+    record = NetworkRecord(ctl.delivery_name, period, per_tick, per_cell,
+                           np.concatenate(latencies) if latencies else np.zeros(0))
+    return RunResult(setup, results, time.perf_counter() - start, {"network": record.totals()}, record)
+
+
+def _join(segs: list[Trajectory]) -> Trajectory:
+    """One trajectory from consecutive per-tick pieces (the shared tick instants appear once)."""
+    times, states, events = [segs[0].times], [segs[0].states], list(segs[0].events)
+    for s in segs[1:]:
+        times.append(s.times[1:])
+        states.append(s.states[1:])
+        events.extend(s.events)
+    last = segs[-1]
+    return Trajectory(np.concatenate(times), np.concatenate(states), events, last.status, last.t_end,
+                      sum(s.segments for s in segs), sum(s.rhs_evals for s in segs), dict(last.stats))

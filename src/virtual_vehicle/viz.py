@@ -81,3 +81,41 @@ def plot_paths(result: RunResult, path: str | Path | None = None, title: str | N
         write_atomic(Path(path), buf.getvalue())
     plt.close(fig)
     return fig
+
+
+def plot_traffic(result: RunResult, path: str | Path | None = None):
+    """Message traffic of a networked run: left, sentences each cell received over the run (colour) on the array;
+    right, sentences sent and received per control tick and the mean latency (ms). Saves a PNG to ``path``."""
+    rec = result.network
+    if rec is None:
+        raise ValueError("this run has no network")
+    P = result.setup.cells.positions
+    fig, (ax, axt) = plt.subplots(1, 2, figsize=(12, 4.8), dpi=110, gridspec_kw={"width_ratios": [1, 1.2]})
+    recv = rec.per_cell["cell_received"]
+    sc = ax.scatter(P[:, 0], P[:, 1], c=recv, s=260, marker="s", cmap="viridis", edgecolors="0.3")
+    fig.colorbar(sc, ax=ax, label="sentences received per cell")
+    ax.set_aspect("equal")
+    ax.margins(0.15)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"traffic per cell ({rec.delivery} delivery)")
+    t = rec.per_tick["t"]
+    axt.step(t, rec.per_tick["sent"], where="post", lw=1, label="sent")
+    axt.step(t, rec.per_tick["received"], where="post", lw=1, label="received")
+    axt.set_xlabel("t (s)")
+    axt.set_ylabel("sentences per tick")
+    axl = axt.twinx()
+    axl.plot(t, rec.per_tick["latency_mean"] * 1e3, ".", ms=3, color="tab:red", label="mean latency")
+    axl.set_ylabel("latency (ms)")
+    h1, l1 = axt.get_legend_handles_labels()
+    h2, l2 = axl.get_legend_handles_labels()
+    axt.legend(h1 + h2, l1 + l2, loc="upper right", fontsize=8)
+    axt.set_title(f"sentences per {rec.period * 1e3:g} ms tick")
+    axt.grid(alpha=0.3)
+    fig.tight_layout()
+    if path is not None:
+        buf = _io.BytesIO()
+        fig.savefig(buf, format="png")
+        write_atomic(Path(path), buf.getvalue())
+    plt.close(fig)
+    return fig

@@ -22,7 +22,12 @@ from .topology import Topology
 
 @dataclass
 class TickStats:
-    """Traffic of one exchange. Per-cell arrays are (n,); latencies (s) are those of sentences delivered."""
+    """Traffic of one exchange. Per-cell arrays are (n,); latencies (s) are those of sentences delivered.
+
+    ``lost``: sent but never arrived (a dead link or neighbour on ideal rounds, random loss); ``corrupted``: arrived
+    but failed the sentence checks; ``undetected``: arrived corrupted but passed them; ``dropped``: given up by the
+    sender (wire level: no answer after every attempt); ``unaddressed``: put on a port with no neighbour at all,
+    which a cell can see, so it is not counted as sent."""
 
     sent: np.ndarray
     received: np.ndarray
@@ -33,6 +38,7 @@ class TickStats:
     corrupted: int = 0
     undetected: int = 0
     dropped: int = 0
+    unaddressed: int = 0
     extra: dict = field(default_factory=dict)
 
 
@@ -62,11 +68,11 @@ class IdealRounds:
         back = np.where(conn, topo.back_port, 0)
         sending = outbox.present & topo.alive[:, None]
         arrives = conn & sending[src, back] & topo.alive[src]
-        attempted = sending & topo.connected
-        lost = 0
+        attempted = sending & (topo.neighbor >= 0)
+        lost = int((attempted & ~topo.connected).sum())
         if self.loss_rate > 0:
             keep = self.rng.random(arrives.shape) >= self.loss_rate
-            lost = int((arrives & ~keep).sum())
+            lost += int((arrives & ~keep).sum())
             arrives &= keep
         inbox = Mailbox(outbox.schema, arrives,
                         {k: np.where(arrives, v[src, back], np.zeros((), v.dtype)) for k, v in outbox.values.items()})
@@ -74,5 +80,5 @@ class IdealRounds:
         sent = attempted.sum(axis=1)
         received = arrives.sum(axis=1)
         stats = TickStats(sent, received, sent * size, received * size, np.full(int(received.sum()), period),
-                          lost=lost, dropped=int((sending & ~topo.connected).sum()))
+                          lost=lost, unaddressed=int((sending & (topo.neighbor < 0)).sum()))
         return inbox, stats

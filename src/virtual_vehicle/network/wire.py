@@ -110,7 +110,7 @@ class WireLevel:
         cells, ports = np.nonzero(outbox.present & topo.alive[:, None])
         for i, q in zip(cells.tolist(), ports.tolist()):
             if topo.neighbor[i, q] < 0:
-                self.dropped += 1  # nobody there: the cell knows the port is empty
+                self.unaddressed += 1  # nobody there: the cell knows the port is empty
                 continue
             data = outbox.schema.to_bytes({k: v[i, q] for k, v in outbox.values.items()})
             queue = self.queues[i][q]
@@ -129,7 +129,7 @@ class WireLevel:
         self._advance(t + period)
         stats = TickStats(self.sent, self.received, self.bytes_sent, self.bytes_received,
                           np.array(self.latencies), lost=self.lost, corrupted=self.corrupted,
-                          undetected=self.undetected, dropped=self.dropped,
+                          undetected=self.undetected, dropped=self.dropped, unaddressed=self.unaddressed,
                           extra={"timeouts": self.timeouts, "superseded": self.superseded,
                                  "queued": sum(len(q) for qs in self.queues for q in qs)})
         return self.inbox, stats
@@ -141,7 +141,8 @@ class WireLevel:
         self.bytes_sent = np.zeros(n, dtype=np.int64)
         self.bytes_received = np.zeros(n, dtype=np.int64)
         self.latencies: list[float] = []
-        self.lost = self.corrupted = self.undetected = self.dropped = self.timeouts = self.superseded = 0
+        self.lost = self.corrupted = self.undetected = self.dropped = self.unaddressed = 0
+        self.timeouts = self.superseded = 0
 
     def _push(self, t, kind, a, b=-1):
         self.seq += 1
