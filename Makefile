@@ -21,6 +21,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_engine.py
+	$(BIN)/python benchmarks/bench_network.py
 
 clean:
 	rm -rf $(VENV) results .pytest_cache .hypothesis

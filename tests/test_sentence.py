@@ -162,3 +162,21 @@ def test_decoder_fuzz_never_misbehaves(data):
         assert exc.reason
         return
     assert encode(words) == data  # anything accepted is exactly a valid sentence
+
+
+@settings(max_examples=200)
+@given(st.integers(0, 255), st.booleans(), st.integers(-(2**15), 2**15 - 1),
+       st.floats(width=32, allow_nan=False, allow_infinity=False))
+def test_schema_fast_encoder_matches_the_reference_encoder(u8, flag, i16, f32):
+    from virtual_vehicle.network.messages import Schema
+
+    schema = Schema.of(a=(10, WordType.U8), b=(11, WordType.BOOL), c=(12, WordType.I16), d=(13, WordType.F32))
+    values = {"a": np.uint8(u8), "b": np.bool_(flag), "c": np.int16(i16), "d": np.float32(f32)}
+    reference = encode([Word(10, WordType.U8, u8), Word(11, WordType.BOOL, flag), Word(12, WordType.I16, i16),
+                        Word(13, WordType.F32, float(np.float32(f32)))])
+    assert schema.to_bytes(values) == reference
+    assert schema.from_bytes(reference) == {"a": u8, "b": flag, "c": i16, "d": float(np.float32(f32))}
+    with pytest.raises(SentenceError):
+        schema.to_bytes({**values, "a": 300})
+    with pytest.raises(SentenceError):
+        schema.to_bytes({**values, "d": float("inf")})
