@@ -70,3 +70,17 @@ def test_control_and_field_are_exclusive():
     d["control"]["wire"]["baud"] = -1
     with pytest.raises(ScenarioError, match="control.wire.baud"):
         parse_scenario(d)
+
+
+def test_dead_links_from_the_scenario_are_cut_and_the_shuttle_still_works():
+    sc, _ = load_scenario("prototype_18_network_ideal")
+    d = sc.model_dump()
+    d["control"]["dead_links"] = [[7, 0], [8, 0], [9, 0]]  # the middle row is cut between columns 1..4
+    res = run(parse_scenario(d).build())
+    topo = res.setup.control.topology
+    assert not topo.connected[7, 0] and not topo.connected[8, 2]
+    assert res.network.per_tick["lost"].sum() > 0  # sentences sent into the cut links
+    assert reversals(res.parcels[0].trajectory.states[:, 0]) >= 5  # the flood goes round through the other rows
+    d["control"]["dead_links"] = [[99, 0]]
+    with pytest.raises(ScenarioError, match=r"control.dead_links\[0\]"):
+        parse_scenario(d).build()

@@ -134,7 +134,8 @@ class ControlSpec(_Strict):
 
     Programs: ``"shuttle"`` passes parcels back and forth along the wheel-0 axis at ``speed`` (m/s), reversing by a
     flood of at most ``hop_limit`` hops started by the end cells that sense a parcel; cells repeat their state
-    every ``heartbeat`` ticks."""
+    every ``heartbeat`` ticks. ``dead_links``: [cell id, port] pairs whose link is cut (ports 0..3 = east, north,
+    west, south of the cell)."""
 
     program: Literal["shuttle"]
     period: Annotated[float, Field(gt=0, le=10)] = 0.01
@@ -144,6 +145,7 @@ class ControlSpec(_Strict):
     heartbeat: Annotated[int, Field(ge=1, le=100_000)] = 10
     loss_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
     seed: Annotated[int, Field(ge=0)] = 0
+    dead_links: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=3)]]] = []
     wire: WireSpec = WireSpec()
 
 
@@ -275,7 +277,10 @@ def _build_control(c: ControlSpec, cells: layout.CellArray) -> ControlSetup:
     from .network.topology import from_layout
     from .network.wire import WireLevel, WireParams
 
-    topo = from_layout(cells)
+    for k, (cell, port) in enumerate(c.dead_links):
+        if cell >= cells.n:
+            raise ScenarioError(f"control.dead_links[{k}]", f"cell {cell} does not exist (the array has {cells.n})")
+    topo = from_layout(cells).with_faults(dead_links=c.dead_links)
     if c.delivery == "ideal":
         delivery = IdealRounds(topo, loss_rate=c.loss_rate, seed=c.seed)
     else:

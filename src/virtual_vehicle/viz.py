@@ -74,13 +74,7 @@ def plot_paths(result: RunResult, path: str | Path | None = None, title: str | N
     axt.legend(lines[0] + lines2[0], lines[1] + lines2[1], loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3,
                fontsize=8, frameon=False)
     axt.grid(alpha=0.3)
-    fig.tight_layout()
-    if path is not None:
-        buf = _io.BytesIO()
-        fig.savefig(buf, format="png")
-        write_atomic(Path(path), buf.getvalue())
-    plt.close(fig)
-    return fig
+    return _finish(fig, path)
 
 
 def plot_traffic(result: RunResult, path: str | Path | None = None):
@@ -112,6 +106,11 @@ def plot_traffic(result: RunResult, path: str | Path | None = None):
     axt.legend(h1 + h2, l1 + l2, loc="upper right", fontsize=8)
     axt.set_title(f"sentences per {rec.period * 1e3:g} ms tick")
     axt.grid(alpha=0.3)
+    return _finish(fig, path)
+
+
+def _finish(fig, path):
+    """Lay out, save as PNG (atomically) when ``path`` is given, release the figure's memory, return it."""
     fig.tight_layout()
     if path is not None:
         buf = _io.BytesIO()
