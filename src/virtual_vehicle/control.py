@@ -5,7 +5,8 @@ computer: every cell drives its wheel 0 at ``speed`` (m/s) in the current direct
 (it has no neighbour on that side: local knowledge) that senses the parcel starts a hop-limited flood "direction
 reversed", with a sequence number one above the newest it knows, and every cell adopts the newest direction it hears.
 Cells repeat what they know every ``heartbeat`` ticks, so a cell that missed a sentence (loss, corruption, a busy
-link) catches up.
+link) catches up. Sequence numbers are 16-bit words; a run with more than 65535 reversals would wrap them, which this
+program does not handle.
 """
 
 from __future__ import annotations

@@ -25,11 +25,13 @@ from .scenario import Setup
 class ParcelResult:
     """One parcel's run. ``sliding_violation`` is, for the Coulomb law, the first sample time (s) at which some
     supporting wheel no longer slid under the parcel in its direction of spin (the paper's Coulomb assumption), and
-    the largest reversed slip (m/s) seen; None when the assumption held at every sample."""
+    the largest reversed slip (m/s) seen; None when the assumption held at every sample or was not checked
+    (``sliding_checked`` False: runs whose wheel speeds change with time)."""
 
     spec: ParcelSpec
     trajectory: Trajectory
     sliding_violation: tuple[float, float] | None = None
+    sliding_checked: bool = True
 
 
 @dataclass
@@ -62,6 +64,7 @@ class RunResult:
                 "rhs_evaluations": tr.rhs_evals,
                 "coulomb_sliding_assumption_violated_at_s": pr.sliding_violation[0] if pr.sliding_violation else None,
                 "coulomb_max_reversed_slip_m_per_s": pr.sliding_violation[1] if pr.sliding_violation else None,
+                "coulomb_sliding_checked": pr.sliding_checked and isinstance(self.setup.law, CoulombLaw),
             })
         simulated = sum(pr.trajectory.t_end for pr in self.parcels)
         return {
@@ -231,7 +234,7 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -
             progress((k + 1) / ticks)
     results = []
     for spec, segs in zip(setup.specs, parts):
-        results.append(ParcelResult(spec, _join(segs)))
+        results.append(ParcelResult(spec, _join(segs), sliding_checked=False))
     record = NetworkRecord(ctl.delivery_name, period, per_tick, per_cell,
                            np.concatenate(latencies) if latencies else np.zeros(0))
     return RunResult(setup, results, time.perf_counter() - start, {"network": record.totals()}, record)
