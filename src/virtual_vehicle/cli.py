@@ -83,7 +83,7 @@ def run(
     s = result.summary()
     out.print(f"[bold]{sc.name}[/bold]: {len(result.parcels)} parcel(s), {sc.duration:g} s simulated in "
               f"{result.wall_time:.3g} s ({s['real_time_factor']:.0f}x real time), {sc.friction.law} friction, "
-              f"{sc.integrator.mode} integrator")
+              f"{s['integrator']} integrator")
     for p in s["parcels"]:
         end = p["end"]
         note = f"tipped at t={p['tipped_at_s']:.4g} s" if p["tipped_at_s"] is not None else "on the array"

@@ -28,7 +28,7 @@ from scipy.optimize import brentq
 
 from .contact import SupportSolution, solve_support
 from .errors import IntegrationError, TippingError
-from .friction import FrictionConstants, FrictionLaw
+from .friction import FrictionConstants, FrictionLaw, StickSlipLaw
 from .layout import CellArray
 from .parcel import ParcelSpec, footprint_margins, supporting_cells
 
@@ -396,7 +396,9 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
     """Integrate one parcel from state ``y0`` at ``t0`` to ``t1`` (s).
 
     Args:
-        mode: ``"event"`` (piecewise, events located) or ``"fixed"`` (RK4 with step ``dt``, s).
+        mode: ``"event"`` (piecewise, events located) or ``"fixed"`` (RK4 with step ``dt``, s). A model whose law is
+            :class:`~virtual_vehicle.stickslip.StickSlipLaw` is always time-stepped at ``dt`` (a complementarity
+            problem per step), whatever the mode.
         rtol, atol: tolerances of the adaptive integrator (event mode); atol in state units (m, rad, m/s, rad/s).
         max_step: largest step of the adaptive integrator, s.
         sample_dt: spacing of the output samples, s (default: 100 samples over the run). Event mode samples the
@@ -422,6 +424,12 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
     runners = {"event": _run_event, "fixed": _run_fixed}
     if mode not in runners:
         raise ValueError(f"mode must be 'event' or 'fixed', got {mode!r}")
+    from .stickslip import run_stick_slip
+
+    if isinstance(model.law, StickSlipLaw):
+        if not dt > 0:
+            raise ValueError("dt must be positive")
+        return run_stick_slip(model, y0, t0, t1, sample_times, progress, dt=dt)
     run = runners[mode]
     kwargs = dict(rtol=rtol, atol=atol, max_step=max_step) if mode == "event" else dict(dt=dt)
     return run(model, y0, t0, t1, sample_times, progress, max_segments, **kwargs)
@@ -550,14 +558,19 @@ def _run_fixed(model, y0, t0, t1, sample_times, progress, max_segments, *, dt) -
     except TippingError as exc:
         events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
         status = "tipped"
-    ts_arr, ys_arr = np.array(ts), np.array(ys)
+    times, states = _sampled(np.array(ts), np.array(ys), sample_times, t, y)
+    return Trajectory(times, states, events, status, t, steps, nfev,
+                      {"pieces_cached": model.pieces_cached, "solves": model.solves})
+
+
+def _sampled(ts: np.ndarray, ys: np.ndarray, sample_times: np.ndarray, t: float, y: np.ndarray):
+    """Samples of a fixed-step run: states interpolated linearly at the sample times reached, plus the last state."""
     keep = sample_times[sample_times <= t]
-    samples = np.column_stack([np.interp(keep, ts_arr, ys_arr[:, j]) for j in range(6)]) if len(keep) else np.zeros((0, 6))
+    samples = np.column_stack([np.interp(keep, ts, ys[:, j]) for j in range(6)]) if len(keep) else np.zeros((0, 6))
     times = list(keep)
     states = list(samples)
     if not times or t > times[-1]:
         times.append(t)
         states.append(y)
-    return Trajectory(np.array(times), np.array(states).reshape(-1, 6), events, status, t, steps, nfev,
-                      {"pieces_cached": model.pieces_cached, "solves": model.solves})
+    return np.array(times), np.array(states).reshape(-1, 6)
 

@@ -206,8 +206,31 @@ class ViscousLaw:
         return _cell_wrench(P, mu * np.asarray(normal)[:, None] * slip, X)
 
 
-LAWS: dict[str, FrictionLaw] = {"coulomb": CoulombLaw(), "viscous": ViscousLaw()}
+@dataclass(frozen=True)
+class StickSlipLaw:
+    """Stick-slip friction (paper Section 5): each wheel sticks to the parcel or slides, solved as a complementarity
+    problem every time step (:mod:`virtual_vehicle.stickslip`). The parcel's ``mu`` is the kinetic coefficient and
+    ``mu_static`` (default ``mu``) the static one. Always time-stepped. Its per-support-set constants (for reference
+    only) are those of the sliding regime: the paper's Coulomb constants. ``max_sweeps`` and ``tolerance`` (relative
+    to the largest impulse bound) control the projected Gauss-Seidel solver."""
+
+    name: str = "stick_slip"
+    max_sweeps: int = 1000
+    tolerance: float = 1e-12
+
+    def drive_vectors(self, velocities, drive_directions) -> np.ndarray:
+        return CoulombLaw().drive_vectors(velocities, drive_directions)
+
+    def constants(self, solution, velocities, drive_directions, mu) -> FrictionConstants:
+        return CoulombLaw().constants(solution, velocities, drive_directions, mu)
+
+    def wrench(self, points, normal, velocities, drive_directions, mu, state):
+        """The sliding-regime wrench (every wheel at its kinetic bound in its direction of spin)."""
+        return CoulombLaw().wrench(points, normal, velocities, drive_directions, mu, state)
+
+
+LAWS: dict[str, FrictionLaw] = {"coulomb": CoulombLaw(), "viscous": ViscousLaw(), "stick_slip": StickSlipLaw()}
 """Friction laws by name, as written in scenario files."""
 
-__all__ = ["FrictionConstants", "CoulombLaw", "ViscousLaw", "LAWS", "coulomb_constants", "viscous_constants",
+__all__ = ["FrictionConstants", "CoulombLaw", "ViscousLaw", "StickSlipLaw", "LAWS", "coulomb_constants", "viscous_constants",
            "drive_constants", "J"]

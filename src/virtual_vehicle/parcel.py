@@ -33,6 +33,7 @@ class ParcelSpec:
             in s/m (force per unit normal force per unit slip speed) for the viscous law, as in the paper, which
             writes mu for both.
         name: label used in outputs.
+        mu_static: static friction coefficient for the stick-slip law (default: ``mu``); at least ``mu``.
     """
 
     footprint: np.ndarray
@@ -40,12 +41,16 @@ class ParcelSpec:
     inertia: float
     mu: float
     name: str = "parcel"
+    mu_static: float | None = None
 
     def __post_init__(self) -> None:
         for attr, unit in (("mass", "kg"), ("inertia", "kg m^2"), ("mu", "")):
             v = getattr(self, attr)
             if not (np.isfinite(v) and v > 0):
                 raise ScenarioError(f"parcels.{self.name}.{attr}", f"must be a positive number{' in ' + unit if unit else ''}, got {v}")
+        if self.mu_static is not None and not (np.isfinite(self.mu_static) and self.mu_static >= self.mu):
+            raise ScenarioError(f"parcels.{self.name}.mu_static",
+                                f"must be at least the kinetic mu ({self.mu}), got {self.mu_static}")
         fp = np.array(self.footprint, dtype=float)
         if fp.ndim != 2 or fp.shape[1] != 2 or len(fp) < 3 or not np.all(np.isfinite(fp)):
             raise ScenarioError(f"parcels.{self.name}.footprint", "needs at least three finite [x, y] vertices")
@@ -107,7 +112,8 @@ def _signed_area(v: np.ndarray) -> float:
     return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
 
 
-def rectangle(length: float, width: float, mass: float, mu: float, inertia: float | None = None, name: str = "parcel") -> ParcelSpec:
+def rectangle(length: float, width: float, mass: float, mu: float, inertia: float | None = None, name: str = "parcel",
+              mu_static: float | None = None) -> ParcelSpec:
     """A rectangular parcel ``length`` (along body x) by ``width`` (m), centre of mass at its centre.
 
     ``inertia`` defaults to that of a uniform plate, ``mass * (length**2 + width**2) / 12`` (kg m^2).
@@ -119,7 +125,7 @@ def rectangle(length: float, width: float, mass: float, mu: float, inertia: floa
     fp = np.array([[-hl, -hw], [hl, -hw], [hl, hw], [-hl, hw]])
     if inertia is None:
         inertia = mass * (length**2 + width**2) / 12.0
-    return ParcelSpec(fp, float(mass), float(inertia), float(mu), name)
+    return ParcelSpec(fp, float(mass), float(inertia), float(mu), name, mu_static)
 
 
 def footprint_margins(spec: ParcelSpec, pose, points: np.ndarray) -> np.ndarray:

@@ -95,9 +95,11 @@ FieldSpec = Annotated[Union[UniformField, InwardField, ReversedEndField, PerCell
 
 
 class FrictionSpec(_Strict):
-    """``law``: ``"coulomb"`` (paper 4.3; parcel ``mu`` dimensionless) or ``"viscous"`` (paper 4.4; ``mu`` in s/m)."""
+    """``law``: ``"coulomb"`` (paper 4.3; parcel ``mu`` dimensionless), ``"viscous"`` (paper 4.4; ``mu`` in s/m) or
+    ``"stick_slip"`` (paper Section 5: wheels stick or slide, parcel ``mu`` kinetic and ``mu_static`` static,
+    dimensionless; time-stepped at ``integrator.dt``)."""
 
-    law: Literal["coulomb", "viscous"] = "coulomb"
+    law: Literal["coulomb", "viscous", "stick_slip"] = "coulomb"
 
 
 class IntegratorSpec(_Strict):
@@ -151,7 +153,8 @@ class ControlSpec(_Strict):
 
 class ParcelEntry(_Strict):
     """A rectangular parcel: ``length`` along its body x and ``width`` (m), ``mass`` (kg), ``mu`` (friction
-    coefficient, see :class:`FrictionSpec`), optional ``inertia`` (kg m^2, default uniform plate), and its initial
+    coefficient, see :class:`FrictionSpec`), optional ``mu_static`` (stick-slip), optional ``inertia`` (kg m^2,
+    default uniform plate), and its initial
     state: centre of mass ``x``, ``y`` (m), heading ``theta`` (rad), ``vx``, ``vy`` (m/s), ``omega`` (rad/s)."""
 
     name: Annotated[str, Field(min_length=1, max_length=64)]
@@ -159,6 +162,7 @@ class ParcelEntry(_Strict):
     width: Pos
     mass: Pos
     mu: Pos
+    mu_static: Pos | None = None
     inertia: Pos | None = None
     x: float
     y: float
@@ -210,7 +214,7 @@ class Scenario(_Strict):
         for i, p in enumerate(self.parcels):
             where = f"parcels[{i}]"
             try:
-                spec = rectangle(p.length, p.width, p.mass, p.mu, p.inertia, name=p.name)
+                spec = rectangle(p.length, p.width, p.mass, p.mu, p.inertia, name=p.name, mu_static=p.mu_static)
             except ScenarioError as exc:
                 raise ScenarioError(f"{where}.{exc.field.rsplit('.', 1)[-1]}", exc.message) from None
             state = np.array([p.x, p.y, p.theta, p.vx, p.vy, p.omega], dtype=float)

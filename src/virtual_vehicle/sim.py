@@ -21,6 +21,9 @@ from .parcel import ParcelSpec, supporting_cells
 from .scenario import Setup
 
 
+_ENERGY = ("kinetic_start", "kinetic_end", "wheel_work", "friction_dissipation", "step_dissipation")
+
+
 @dataclass
 class ParcelResult:
     """One parcel's run. ``sliding_violation`` is, for the Coulomb law, the first sample time (s) at which some
@@ -65,13 +68,14 @@ class RunResult:
                 "coulomb_sliding_assumption_violated_at_s": pr.sliding_violation[0] if pr.sliding_violation else None,
                 "coulomb_max_reversed_slip_m_per_s": pr.sliding_violation[1] if pr.sliding_violation else None,
                 "coulomb_sliding_checked": pr.sliding_checked and isinstance(self.setup.law, CoulombLaw),
+                **({"energy_J": {k: tr.stats[k] for k in _ENERGY}} if "wheel_work" in tr.stats else {}),
             })
         simulated = sum(pr.trajectory.t_end for pr in self.parcels)
         return {
             "scenario": sc.name,
             "version": __version__,
             "friction_law": sc.friction.law,
-            "integrator": sc.integrator.mode,
+            "integrator": "time-stepping (stick-slip)" if sc.friction.law == "stick_slip" else sc.integrator.mode,
             "duration_s": sc.duration,
             "cells": self.setup.cells.n,
             "parcels": parcels,

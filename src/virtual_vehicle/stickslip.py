@@ -1,0 +1,153 @@
+"""Stick-slip friction (the paper's Section 5 future work), solved as a complementarity problem at every time step.
+
+Units: SI (m, s, kg, N, N s, J).
+
+Each roller wheel is one friction contact: it pushes only along its drive direction ``u`` and lets the parcel slide
+freely along its axle. With the cell's normal force ``N`` (paper 4.1, lift-off included), the impulse ``lam`` a wheel
+gives in a step of length ``h`` satisfies
+
+    |lam| <= B = mu N h,    slip s = J nu+ - w,    and   s > 0 => lam = -B,  s < 0 => lam = +B,  |lam| < B => s = 0,
+
+where ``nu+`` is the parcel's twist after the step, ``J = [u_x, u_y, r x u]`` (``r`` from the centre of mass to the
+wheel) and ``w`` the wheel's surface speed. ``mu`` is the static coefficient for a wheel that stuck in the previous step
+and the kinetic one for a wheel that slid. With ``nu+ = nu + M^-1 J^T lam`` this is a box-constrained LCP, the
+optimality condition of ``min 1/2 lam^T A lam + (J nu - w)^T lam`` over the box (``A = J M^-1 J^T``); it is solved by
+projected Gauss-Seidel, warm-started from the previous step, to a tolerance, with no regularisation. Then
+``x+ = x + h nu+`` (semi-implicit Euler).
+
+A parcel can therefore stick and move at exactly the wheel speed. While every wheel slides in its direction of spin,
+each pushes with ``mu N`` along ``u``: the paper's Coulomb law (4.3). Energy is accounted exactly: the change of
+kinetic energy over a step is the wheels' work ``sum lam w`` minus the friction dissipation ``-sum lam s`` (>= 0)
+minus the step's own dissipation ``1/2 |nu+ - nu|_M^2`` (>= 0, vanishing as ``h -> 0``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import TippingError
+from .friction import StickSlipLaw
+
+__all__ = ["StickSlipLaw", "solve_contacts", "run_stick_slip"]
+
+
+def _contacts(model, piece, y):
+    """Per-wheel contact data at state y: Jacobian rows (m, 3), wheel speeds (m,), normal forces (m,), keys."""
+    cells = model.cells
+    support = piece.support
+    N = piece.normal_forces(y)
+    on = N > 0
+    ids = support[on]
+    N = N[on]
+    r = cells.positions[ids] - y[:2]
+    rows, speeds, normals, keys = [], [], [], []
+    for k in range(2):
+        u = cells.drive_directions[ids, k]
+        rows.append(np.column_stack([u[:, 0], u[:, 1], r[:, 0] * u[:, 1] - r[:, 1] * u[:, 0]]))
+        speeds.append(np.einsum("ij,ij->i", model.velocities[ids], u))
+        normals.append(N)
+        keys.extend((int(i), k) for i in ids)
+    return np.vstack(rows), np.concatenate(speeds), np.concatenate(normals), keys
+
+
+def solve_contacts(J, w, bounds, nu, minv, lam0, max_sweeps: int, tol: float):
+    """Projected Gauss-Seidel for the box LCP of one step. Returns (lam, nu_plus, sweeps, converged).
+
+    ``J`` (m, 3), ``w`` (m,) wheel speeds, ``bounds`` (m,) impulse limits, ``nu`` (3,) twist before the step,
+    ``minv`` (3,) inverse mass and inertia, ``lam0`` (m,) warm start.
+    """
+    lam = np.clip(lam0, -bounds, bounds)
+    nu_p = nu + minv * (J.T @ lam)
+    Jl = J.tolist()
+    wl = w.tolist()
+    bl = bounds.tolist()
+    ll = lam.tolist()
+    m0, m1, m2 = (float(v) for v in minv)
+    v0, v1, v2 = (float(v) for v in nu_p)
+    diag = [m0 * a * a + m1 * b * b + m2 * c * c for a, b, c in Jl]
+    scale = max(max(bl, default=0.0), 1e-300)
+    for sweep in range(1, max_sweeps + 1):
+        change = 0.0
+        for j, (a, b, c) in enumerate(Jl):
+            if bl[j] == 0.0:
+                continue
+            s = a * v0 + b * v1 + c * v2 - wl[j]
+            new = ll[j] - s / diag[j]
+            new = -bl[j] if new < -bl[j] else bl[j] if new > bl[j] else new
+            d = new - ll[j]
+            if d:
+                ll[j] = new
+                v0 += m0 * a * d
+                v1 += m1 * b * d
+                v2 += m2 * c * d
+                change = max(change, abs(d))
+        if change <= tol * scale:
+            return np.array(ll), np.array([v0, v1, v2]), sweep, True
+    return np.array(ll), np.array([v0, v1, v2]), max_sweeps, False
+
+
+def run_stick_slip(model, y0, t0, t1, sample_times, progress, *, dt):
+    """Time-step one parcel under :class:`StickSlipLaw` from ``t0`` to ``t1`` (s) at step ``dt`` (s).
+
+    Returns a :class:`~virtual_vehicle.dynamics.Trajectory` whose ``stats`` hold the energy account (J):
+    ``wheel_work``, ``friction_dissipation``, ``step_dissipation``, ``kinetic_start``, ``kinetic_end``, and the
+    solver's ``sweeps_max`` and ``unconverged_steps``.
+    """
+    from .dynamics import Event, Trajectory, _diff_event, _sampled
+
+    law = model.law
+    spec = model.spec
+    mu_k = spec.mu
+    mu_s = spec.mu_static if spec.mu_static is not None else spec.mu
+    mass = np.array([spec.mass, spec.mass, spec.inertia])
+    minv = 1.0 / mass
+    t, y = float(t0), np.array(y0, dtype=float)
+    ts, ys = [t], [y.copy()]
+    events: list = []
+    lam_prev: dict = {}
+    stuck: dict = {}
+    work = friction = numerical = 0.0
+    ke0 = 0.5 * float(mass @ y[3:] ** 2)
+    sweeps_max = unconverged = steps = 0
+    status = "completed"
+    n_steps = int(np.ceil((t1 - t0) / dt - 1e-9))
+    try:
+        piece = model.piece_at(y)
+        for i in range(n_steps):
+            h = min(dt, t1 - t)
+            J, w, N, keys = _contacts(model, piece, y)
+            coef = np.array([mu_s if stuck.get(key, False) else mu_k for key in keys])
+            bounds = coef * N * h
+            lam0 = np.array([lam_prev.get(key, 0.0) for key in keys])
+            nu = y[3:].copy()
+            lam, nu_p, sweeps, ok = solve_contacts(J, w, bounds, nu, minv, lam0, law.max_sweeps, law.tolerance)
+            sweeps_max = max(sweeps_max, sweeps)
+            unconverged += not ok
+            slip = J @ nu_p - w
+            work += float(lam @ w)
+            friction += float(-(lam @ slip))
+            dnu = nu_p - nu
+            numerical += 0.5 * float(mass @ dnu**2)
+            inside = np.abs(lam) < bounds * (1 - 1e-9)
+            stuck = dict(zip(keys, inside.tolist()))
+            lam_prev = dict(zip(keys, lam.tolist()))
+            y = np.concatenate([y[:3] + h * nu_p, nu_p])
+            t = t0 + (i + 1) * dt if i + 1 < n_steps else t1
+            steps += 1
+            new = model.piece_at(y)
+            ev = _diff_event(t, y, piece, new)
+            if ev is not None:
+                events.append(ev)
+            piece = new
+            ts.append(t)
+            ys.append(y.copy())
+            if progress is not None and i % 256 == 0:
+                progress(t)
+    except TippingError as exc:
+        events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
+        status = "tipped"
+    times, states = _sampled(np.array(ts), np.array(ys), sample_times, t, y)
+    stats = {"wheel_work": work, "friction_dissipation": friction, "step_dissipation": numerical,
+             "kinetic_start": ke0, "kinetic_end": 0.5 * float(mass @ y[3:] ** 2), "sweeps_max": sweeps_max,
+             "unconverged_steps": unconverged, "pieces_cached": model.pieces_cached, "solves": model.solves}
+    return Trajectory(times, states, events, status, t, steps, 0, stats)
