@@ -427,8 +427,6 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
     from .stickslip import run_stick_slip
 
     if isinstance(model.law, StickSlipLaw):
-        if not dt > 0:
-            raise ValueError("dt must be positive")
         return run_stick_slip(model, y0, t0, t1, sample_times, progress, dt=dt)
     run = runners[mode]
     kwargs = dict(rtol=rtol, atol=atol, max_step=max_step) if mode == "event" else dict(dt=dt)
@@ -525,26 +523,23 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
                       {"pieces_cached": model.pieces_cached, "solves": model.solves})
 
 
-def _run_fixed(model, y0, t0, t1, sample_times, progress, max_segments, *, dt) -> Trajectory:
+def _fixed_steps(model, y0, t0, t1, dt, sample_times, progress, advance):
+    """Drive a fixed-step method: ``advance(piece, t, y, h) -> y_next`` takes one step of length h from state y.
+    Support changes are logged at the end of the step in which they happened; tipping ends the run.
+    Returns (times, states, events, status, t_end, steps)."""
     if not dt > 0:
         raise ValueError("dt must be positive")
     events: list[Event] = []
-    t, y = float(t0), y0.copy()
+    t, y = float(t0), np.array(y0, dtype=float)
     ts, ys = [t], [y.copy()]
-    steps = nfev = 0
+    steps = 0
     status = "completed"
     try:
         piece = model.piece_at(y)
         n_steps = int(np.ceil((t1 - t0) / dt - 1e-9))
         for i in range(n_steps):
-            h = min(dt, t1 - t)
-            k1 = model.rhs(t, y)
-            k2 = model.rhs(t + h / 2, y + h / 2 * k1)
-            k3 = model.rhs(t + h / 2, y + h / 2 * k2)
-            k4 = model.rhs(t + h, y + h * k3)
-            y = y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            y = advance(piece, t, y, min(dt, t1 - t))
             t = t0 + (i + 1) * dt if i + 1 < n_steps else t1
-            nfev += 4
             steps += 1
             new = model.piece_at(y)
             ev = _diff_event(t, y, piece, new)
@@ -559,7 +554,19 @@ def _run_fixed(model, y0, t0, t1, sample_times, progress, max_segments, *, dt) -
         events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
         status = "tipped"
     times, states = _sampled(np.array(ts), np.array(ys), sample_times, t, y)
-    return Trajectory(times, states, events, status, t, steps, nfev,
+    return times, states, events, status, t, steps
+
+
+def _run_fixed(model, y0, t0, t1, sample_times, progress, max_segments, *, dt) -> Trajectory:
+    def rk4(piece, t, y, h):  # classical RK4; every stage looks its piece up
+        k1 = model.rhs(t, y)
+        k2 = model.rhs(t + h / 2, y + h / 2 * k1)
+        k3 = model.rhs(t + h / 2, y + h / 2 * k2)
+        k4 = model.rhs(t + h, y + h * k3)
+        return y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+    times, states, events, status, t, steps = _fixed_steps(model, y0, t0, t1, dt, sample_times, progress, rk4)
+    return Trajectory(times, states, events, status, t, steps, 4 * steps,
                       {"pieces_cached": model.pieces_cached, "solves": model.solves})
 
 

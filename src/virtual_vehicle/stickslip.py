@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import TippingError
 from .friction import StickSlipLaw
 
 __all__ = ["StickSlipLaw", "solve_contacts", "run_stick_slip"]
@@ -93,7 +92,7 @@ def run_stick_slip(model, y0, t0, t1, sample_times, progress, *, dt):
     ``wheel_work``, ``friction_dissipation``, ``step_dissipation``, ``kinetic_start``, ``kinetic_end``, and the
     solver's ``sweeps_max`` and ``unconverged_steps``.
     """
-    from .dynamics import Event, Trajectory, _diff_event, _sampled
+    from .dynamics import Trajectory, _fixed_steps
 
     law = model.law
     spec = model.spec
@@ -101,53 +100,30 @@ def run_stick_slip(model, y0, t0, t1, sample_times, progress, *, dt):
     mu_s = spec.mu_static if spec.mu_static is not None else spec.mu
     mass = np.array([spec.mass, spec.mass, spec.inertia])
     minv = 1.0 / mass
-    t, y = float(t0), np.array(y0, dtype=float)
-    ts, ys = [t], [y.copy()]
-    events: list = []
-    lam_prev: dict = {}
-    stuck: dict = {}
-    work = friction = numerical = 0.0
-    ke0 = 0.5 * float(mass @ y[3:] ** 2)
-    sweeps_max = unconverged = steps = 0
-    status = "completed"
-    n_steps = int(np.ceil((t1 - t0) / dt - 1e-9))
-    try:
-        piece = model.piece_at(y)
-        for i in range(n_steps):
-            h = min(dt, t1 - t)
-            J, w, N, keys = _contacts(model, piece, y)
-            coef = np.array([mu_s if stuck.get(key, False) else mu_k for key in keys])
-            bounds = coef * N * h
-            lam0 = np.array([lam_prev.get(key, 0.0) for key in keys])
-            nu = y[3:].copy()
-            lam, nu_p, sweeps, ok = solve_contacts(J, w, bounds, nu, minv, lam0, law.max_sweeps, law.tolerance)
-            sweeps_max = max(sweeps_max, sweeps)
-            unconverged += not ok
-            slip = J @ nu_p - w
-            work += float(lam @ w)
-            friction += float(-(lam @ slip))
-            dnu = nu_p - nu
-            numerical += 0.5 * float(mass @ dnu**2)
-            inside = np.abs(lam) < bounds * (1 - 1e-9)
-            stuck = dict(zip(keys, inside.tolist()))
-            lam_prev = dict(zip(keys, lam.tolist()))
-            y = np.concatenate([y[:3] + h * nu_p, nu_p])
-            t = t0 + (i + 1) * dt if i + 1 < n_steps else t1
-            steps += 1
-            new = model.piece_at(y)
-            ev = _diff_event(t, y, piece, new)
-            if ev is not None:
-                events.append(ev)
-            piece = new
-            ts.append(t)
-            ys.append(y.copy())
-            if progress is not None and i % 256 == 0:
-                progress(t)
-    except TippingError as exc:
-        events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
-        status = "tipped"
-    times, states = _sampled(np.array(ts), np.array(ys), sample_times, t, y)
-    stats = {"wheel_work": work, "friction_dissipation": friction, "step_dissipation": numerical,
-             "kinetic_start": ke0, "kinetic_end": 0.5 * float(mass @ y[3:] ** 2), "sweeps_max": sweeps_max,
-             "unconverged_steps": unconverged, "pieces_cached": model.pieces_cached, "solves": model.solves}
+    acc = {"wheel_work": 0.0, "friction_dissipation": 0.0, "step_dissipation": 0.0, "sweeps_max": 0,
+           "unconverged_steps": 0}
+    memory = {"lam": {}, "stuck": {}}
+
+    def step(piece, t, y, h):
+        J, w, N, keys = _contacts(model, piece, y)
+        stuck = memory["stuck"]
+        bounds = np.array([mu_s if stuck.get(key, False) else mu_k for key in keys]) * N * h
+        lam0 = np.array([memory["lam"].get(key, 0.0) for key in keys])
+        nu = y[3:]
+        lam, nu_p, sweeps, ok = solve_contacts(J, w, bounds, nu, minv, lam0, law.max_sweeps, law.tolerance)
+        acc["sweeps_max"] = max(acc["sweeps_max"], sweeps)
+        acc["unconverged_steps"] += not ok
+        slip = J @ nu_p - w
+        acc["wheel_work"] += float(lam @ w)
+        acc["friction_dissipation"] += float(-(lam @ slip))
+        acc["step_dissipation"] += 0.5 * float(mass @ (nu_p - nu) ** 2)
+        memory["stuck"] = dict(zip(keys, (np.abs(lam) < bounds * (1 - 1e-9)).tolist()))  # interior: sticking
+        memory["lam"] = dict(zip(keys, lam.tolist()))
+        return np.concatenate([y[:3] + h * nu_p, nu_p])  # semi-implicit Euler
+
+    times, states, events, status, t, steps = _fixed_steps(model, y0, t0, t1, dt, sample_times, progress, step)
+    y = states[-1]
+    stats = {**acc, "kinetic_start": 0.5 * float(mass @ np.asarray(y0, dtype=float)[3:] ** 2),
+             "kinetic_end": 0.5 * float(mass @ y[3:] ** 2), "pieces_cached": model.pieces_cached,
+             "solves": model.solves}
     return Trajectory(times, states, events, status, t, steps, 0, stats)
