@@ -111,7 +111,7 @@ def test_constant_commands_reproduce_the_open_loop_run():
             return state, Mailbox.empty(self.schema, n, P), wheels
 
     topo = from_layout(setup.cells)
-    ctl = ControlSetup(Constant(), topo, IdealRounds(topo), "ideal", 0.05, {})
+    ctl = ControlSetup(Constant(), topo, lambda: IdealRounds(topo), "ideal", 0.05, {})
     closed = run(dataclasses.replace(setup, control=ctl))
     a, b = open_loop.parcels[0].trajectory, closed.parcels[0].trajectory
     np.testing.assert_allclose(np.interp(1.234, b.times, b.states[:, 0]), np.interp(1.234, a.times, a.states[:, 0]),

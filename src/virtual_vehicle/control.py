@@ -21,16 +21,18 @@ EAST, NORTH, WEST, SOUTH = range(4)
 
 
 class Shuttle:
-    """Distributed back-and-forth transport along the cells' wheel-0 axis (east/west ports)."""
+    """Distributed back-and-forth transport along the cells' wheel-0 axis (east/west ports). An end cell turns the
+    parcel when one of its ``trigger_sensors`` (default: sensor 0, the centre of the default layout) sees it."""
 
     schema = Schema.of(seq=(1, WordType.U16), direction=(2, WordType.I16), hops=(3, WordType.U8))
 
-    def __init__(self, speed: float, hop_limit: int = 32, heartbeat: int = 10):
+    def __init__(self, speed: float, hop_limit: int = 32, heartbeat: int = 10, trigger_sensors=(0,)):
         if not speed > 0:
             raise ValueError("speed must be positive (m/s)")
         self.speed = float(speed)
         self.hop_limit = int(hop_limit)
         self.heartbeat = max(1, int(heartbeat))
+        self.trigger_sensors = tuple(int(k) for k in trigger_sensors)
 
     def init(self, n, ports, config):
         return {"seq": np.zeros(n, dtype=np.int64), "direction": np.ones(n, dtype=np.int64),
@@ -42,7 +44,7 @@ class Shuttle:
         seq, direction, hops, adopted = flood_update(
             state["seq"], state["direction"], state["hops"], inbox.values["seq"], inbox.values["direction"],
             inbox.values["hops"], inbox.present, self.hop_limit)
-        sensed = inputs.sensors.any(axis=1)
+        sensed = inputs.sensors[:, list(self.trigger_sensors)].any(axis=1)
         east_end = ~inputs.connected[:, EAST]
         west_end = ~inputs.connected[:, WEST]
         turn = sensed & ((east_end & (direction > 0)) | (west_end & (direction < 0)))

@@ -10,6 +10,8 @@ Columns:
 - ``network.csv`` (networked runs): per control tick, t (s), sentences sent / received, bytes sent / received,
   lost, corrupted, undetected, dropped, unaddressed, latency_mean and latency_max (s; empty when nothing arrived).
 - ``cell_traffic.csv`` (networked runs): per cell, cell id, x, y (m), sentences and bytes sent and received.
+- ``sensors.csv`` (networked runs with ``[sensors] record = true``): per tick and cell, t (s), cell, the readings
+  s0.. (0/1), and the commanded wheel speeds wheel0, wheel1 (m/s).
 """
 
 from __future__ import annotations
@@ -101,6 +103,18 @@ def cell_traffic_csv(result: RunResult) -> str:
     return buf.getvalue()
 
 
+def sensors_csv(result: RunResult) -> str:
+    buf = _io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    S = result.setup.sensors.count
+    w.writerow(("t", "cell", *(f"s{k}" for k in range(S)), "wheel0", "wheel1"))
+    for t, readings, wheels in result.sensor_log:
+        for cell in range(len(readings)):
+            w.writerow((repr(float(t)), cell, *(int(b) for b in readings[cell]), repr(float(wheels[cell, 0])),
+                        repr(float(wheels[cell, 1]))))
+    return buf.getvalue()
+
+
 def write_results(result: RunResult, out_dir: str | Path, scenario_text: str | None = None) -> dict[str, Path]:
     """Write trajectories.csv, events.csv, summary.json and scenario.toml (when its text is given) into
     ``out_dir``. Returns the paths written, by kind."""
@@ -118,6 +132,9 @@ def write_results(result: RunResult, out_dir: str | Path, scenario_text: str | N
         paths["cell_traffic"] = out / "cell_traffic.csv"
         write_atomic(paths["network"], network_csv(result))
         write_atomic(paths["cell_traffic"], cell_traffic_csv(result))
+    if result.sensor_log is not None:
+        paths["sensors"] = out / "sensors.csv"
+        write_atomic(paths["sensors"], sensors_csv(result))
     if scenario_text is not None:
         paths["scenario"] = out / "scenario.toml"
         write_atomic(paths["scenario"], scenario_text)

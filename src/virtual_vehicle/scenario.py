@@ -151,6 +151,21 @@ class ControlSpec(_Strict):
     wire: WireSpec = WireSpec()
 
 
+class SensorSpec(_Strict):
+    """Presence sensors of every cell: ``offsets`` (1..5 [x, y] in m in the cell's frame; default centre and the four
+    edge midpoints), flip probabilities ``false_positive`` / ``false_negative``, faults ``stuck_on`` / ``stuck_off``
+    as [cell id, sensor index] pairs, ``seed`` of the noise, and ``record`` = true to write every tick's readings
+    and wheel speeds (sensors.csv, networked runs)."""
+
+    offsets: Annotated[list[Point], Field(min_length=1, max_length=5)] | None = None
+    false_positive: Annotated[float, Field(ge=0, le=1)] = 0.0
+    false_negative: Annotated[float, Field(ge=0, le=1)] = 0.0
+    stuck_on: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)]]] = []
+    stuck_off: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)]]] = []
+    seed: Annotated[int, Field(ge=0)] = 0
+    record: bool = False
+
+
 class ParcelEntry(_Strict):
     """A rectangular parcel: ``length`` along its body x and ``width`` (m), ``mass`` (kg), ``mu`` (friction
     coefficient, see :class:`FrictionSpec`), optional ``mu_static`` (stick-slip), optional ``inertia`` (kg m^2,
@@ -189,6 +204,7 @@ class Scenario(_Strict):
     control: ControlSpec | None = None
     friction: FrictionSpec = FrictionSpec()
     integrator: IntegratorSpec = IntegratorSpec()
+    sensors: SensorSpec = SensorSpec()
     parcels: Annotated[list[ParcelEntry], Field(min_length=1)]
 
     @model_validator(mode="after")
@@ -228,7 +244,8 @@ class Scenario(_Strict):
                     raise ScenarioError(f"parcels[{j}]", f"parcel {self.parcels[j].name!r} overlaps parcel "
                                         f"{self.parcels[i].name!r} at the start; move one of them")
         control = None if self.control is None else _build_control(self.control, cells)
-        return Setup(self, cells, velocities, LAWS[self.friction.law], specs, states, control)
+        return Setup(self, cells, velocities, LAWS[self.friction.law], specs, states, control,
+                     _build_sensors(self.sensors, cells))
 
 
 def _check_on_array(cells, spec, state, where, name):
@@ -263,13 +280,31 @@ def _build_field(f):
     return fieldlib.PerCell(tuple(f.velocities))
 
 
+def _build_sensors(spec: SensorSpec, cells: layout.CellArray):
+    from .hardware import Sensors, default_offsets
+
+    offsets = default_offsets(cells.pitch) if spec.offsets is None else np.asarray(spec.offsets, dtype=float)
+    masks = {}
+    for name in ("stuck_on", "stuck_off"):
+        mask = np.zeros((cells.n, len(offsets)), dtype=bool)
+        for k, (cell, sensor) in enumerate(getattr(spec, name)):
+            if cell >= cells.n or sensor >= len(offsets):
+                raise ScenarioError(f"sensors.{name}[{k}]", f"no sensor {sensor} on cell {cell} ({cells.n} cells, "
+                                    f"{len(offsets)} sensors each)")
+            mask[cell, sensor] = True
+        masks[name] = mask
+    return Sensors(cells, offsets, spec.false_positive, spec.false_negative, masks["stuck_on"], masks["stuck_off"],
+                   spec.seed)
+
+
 @dataclass(frozen=True, eq=False)
 class ControlSetup:
-    """The distributed side of a run: program, topology, delivery model, period (s), per-cell configuration."""
+    """The distributed side of a run: program, topology, a factory of fresh delivery models (each run starts from an
+    idle network with its own seeded randomness), period (s), per-cell configuration."""
 
     program: object
     topology: object
-    delivery: object
+    make_delivery: object
     delivery_name: str
     period: float
     config: dict
@@ -286,11 +321,15 @@ def _build_control(c: ControlSpec, cells: layout.CellArray) -> ControlSetup:
             raise ScenarioError(f"control.dead_links[{k}]", f"cell {cell} does not exist (the array has {cells.n})")
     topo = from_layout(cells).with_faults(dead_links=c.dead_links)
     if c.delivery == "ideal":
-        delivery = IdealRounds(topo, loss_rate=c.loss_rate, seed=c.seed)
+        def make_delivery():
+            return IdealRounds(topo, loss_rate=c.loss_rate, seed=c.seed)
     else:
-        delivery = WireLevel(topo, WireParams(**c.wire.model_dump()), seed=c.seed)
+        params = WireParams(**c.wire.model_dump())
+
+        def make_delivery():
+            return WireLevel(topo, params, seed=c.seed)
     program = Shuttle(c.speed, c.hop_limit, c.heartbeat)
-    return ControlSetup(program, topo, delivery, c.delivery, c.period, {})
+    return ControlSetup(program, topo, make_delivery, c.delivery, c.period, {})
 
 
 @dataclass(frozen=True, eq=False)
@@ -304,6 +343,7 @@ class Setup:
     specs: list[ParcelSpec]
     states: list[np.ndarray]
     control: ControlSetup | None = None
+    sensors: object = None
 
 
 def _format_validation(exc: ValidationError) -> ScenarioError:

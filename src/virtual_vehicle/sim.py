@@ -46,6 +46,8 @@ class RunResult:
     wall_time: float
     stats: dict = field(default_factory=dict)
     network: "NetworkRecord | None" = None
+    sensor_log: list | None = None
+    """When recording was asked: per tick (t s, (n, S) readings, (n, 2) wheel speeds m/s)."""
 
     def summary(self) -> dict:
         """A JSON-ready summary: per-parcel outcome, start/end state, distance, events; run totals."""
@@ -171,15 +173,6 @@ class NetworkRecord:
 _FAULTS = ("lost", "corrupted", "undetected", "dropped", "unaddressed")
 
 
-def sense_presence(cells, specs, states, active) -> np.ndarray:
-    """(n, 1) presence sensor at each cell centre: 1 where any active parcel's footprint covers it."""
-    out = np.zeros((cells.n, 1), dtype=bool)
-    for spec, y, on in zip(specs, states, active):
-        if on:
-            out[supporting_cells(spec, y, cells.positions, cells.tree), 0] = True
-    return out
-
-
 def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -> RunResult:
     """Co-simulate cell programs, the network and the parcels: at every control tick the cells read their sensors
     and the sentences delivered since the last tick, step their program, and send; the wheels hold the commanded
@@ -195,6 +188,8 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -
     start = time.perf_counter()
     state = ctl.program.init(n, P, ctl.config)
     inbox = Mailbox.empty(ctl.program.schema, n, P)
+    delivery = ctl.make_delivery()
+    sensor_rng = np.random.default_rng(setup.sensors.seed)
     ys = [y.copy() for y in setup.states]
     active = [True] * len(ys)
     base = [ParcelModel(cells, spec, np.zeros((n, 2)), setup.law, sc.gravity) for spec in setup.specs]
@@ -206,16 +201,19 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -
     per_tick["latency_max"] = np.full(ticks, np.nan)
     per_cell = {f"cell_{k}": np.zeros(n, dtype=np.int64) for k in keys}
     latencies = []
+    sensor_log = []
     dirs = cells.drive_directions
     for k in range(ticks):
         t0 = k * period
         t1 = min(sc.duration, t0 + period)
-        sensors = sense_presence(cells, setup.specs, ys, active)
+        sensors = setup.sensors.read(setup.specs, ys, sensor_rng, active)
         inputs = CellInputs(t0, sensors, inbox, topo.connected, ctl.config)
         state, outbox, wheels = ctl.program.step(state, inputs)
         wheels = np.where(topo.alive[:, None], np.asarray(wheels, dtype=float), 0.0)  # a dead cell does not drive
         velocities = wheels[:, 0:1] * dirs[:, 0] + wheels[:, 1:2] * dirs[:, 1]
-        inbox, stats = ctl.delivery.exchange(outbox, t0, period)
+        if sc.sensors.record:
+            sensor_log.append((t0, sensors.copy(), wheels.copy()))
+        inbox, stats = delivery.exchange(outbox, t0, period)
         for key in keys:
             per_tick[key][k] = int(getattr(stats, key).sum())
             per_cell[f"cell_{key}"] += getattr(stats, key)
@@ -241,7 +239,8 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -
         results.append(ParcelResult(spec, _join(segs), sliding_checked=False))
     record = NetworkRecord(ctl.delivery_name, period, per_tick, per_cell,
                            np.concatenate(latencies) if latencies else np.zeros(0))
-    return RunResult(setup, results, time.perf_counter() - start, {"network": record.totals()}, record)
+    return RunResult(setup, results, time.perf_counter() - start, {"network": record.totals()}, record,
+                     sensor_log if sc.sensors.record else None)
 
 
 def _join(segs: list[Trajectory]) -> Trajectory:
