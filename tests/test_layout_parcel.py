@@ -42,8 +42,10 @@ def test_rectangle_inertia_and_validation():
         parcel.rectangle(0.3, 0.2, -1.0, 0.4)
     with pytest.raises(ScenarioError, match="width"):
         parcel.rectangle(0.3, 0.0, 1.0, 0.4)
-    with pytest.raises(ScenarioError, match="convex"):
-        parcel.ParcelSpec(np.array([[-1, -1], [1, -1], [0, -0.5], [1, 1], [-1, 1]], float), 1.0, 1.0, 0.5)
+    notched = parcel.ParcelSpec(np.array([[-1, -1], [1, -1], [0, -0.5], [1, 1], [-1, 1]], float), 1.0, 1.0, 0.5)
+    assert not notched.convex  # non-convex outlines are fine
+    with pytest.raises(ScenarioError, match="simple polygon"):
+        parcel.ParcelSpec(np.array([[-1, -1], [1, 1], [1, -1], [-1, 1]], float), 1.0, 1.0, 0.5)
     clockwise = parcel.ParcelSpec(np.array([[-1, -1], [-1, 1], [1, 1], [1, -1]], float), 1.0, 1.0, 0.5)
     assert parcel._signed_area(clockwise.footprint) > 0  # stored counter-clockwise
 

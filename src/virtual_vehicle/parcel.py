@@ -25,8 +25,8 @@ class ParcelSpec:
     """An immutable description of a parcel.
 
     Attributes:
-        footprint: (k, 2) vertices of a convex polygon in the body frame (centre of mass at the origin), m,
-            counter-clockwise.
+        footprint: (k, 2) vertices of a simple polygon (convex or not) in the body frame, whose origin is the
+            centre of mass (which must lie inside), m; stored counter-clockwise.
         mass: kg.
         inertia: moment of inertia about the vertical axis through the centre of mass, kg m^2.
         mu: friction coefficient between the parcel's bottom and the rollers. Dimensionless for the Coulomb law;
@@ -57,8 +57,6 @@ class ParcelSpec:
         poly = shapely.Polygon(fp)
         if not poly.is_valid or poly.area <= 0:
             raise ScenarioError(f"parcels.{self.name}.footprint", "is not a simple polygon with positive area")
-        if not np.isclose(poly.convex_hull.area, poly.area, rtol=1e-9):
-            raise ScenarioError(f"parcels.{self.name}.footprint", "must be convex (non-convex shapes are not supported yet)")
         if _signed_area(fp) < 0:
             fp = fp[::-1].copy()
         if not poly.contains(shapely.Point(0.0, 0.0)):
@@ -70,6 +68,11 @@ class ParcelSpec:
     def polygon(self) -> shapely.Polygon:
         """The footprint as a shapely polygon in the body frame."""
         return shapely.Polygon(self.footprint)
+
+    @cached_property
+    def convex(self) -> bool:
+        """Whether the footprint is convex (then margins use its half-planes, which is faster)."""
+        return bool(np.isclose(self.polygon.convex_hull.area, self.polygon.area, rtol=1e-12))
 
     @cached_property
     def halfplanes(self) -> tuple[np.ndarray, np.ndarray]:
@@ -131,7 +134,8 @@ def rectangle(length: float, width: float, mass: float, mu: float, inertia: floa
 def footprint_margins(spec: ParcelSpec, pose, points: np.ndarray) -> np.ndarray:
     """Signed margin (m) of each point with respect to the footprint at ``pose`` = (x, y, theta, ...).
 
-    Positive strictly inside (it is then the distance to the nearest edge), negative outside. A cell supports the
+    Positive strictly inside (it is then the distance to the nearest edge), negative outside (for a convex footprint
+    the most violated edge's distance, for a non-convex one the distance to the polygon). A cell supports the
     parcel iff its margin is positive; a support change is a zero crossing of some margin. ``pose`` may also be a
     (k, >=3) array of poses; the result is then (k, len(points)).
     """
@@ -149,9 +153,57 @@ def footprint_margins(spec: ParcelSpec, pose, points: np.ndarray) -> np.ndarray:
     if half is not None:  # rectangle: the minimum over its four half-planes in closed form
         m = np.minimum(half[0] - np.abs(bx), half[1] - np.abs(by))
         return m if many else m[0]
+    if not spec.convex:  # signed Euclidean distance to the boundary: continuous, positive inside
+        inside = shapely.contains_xy(spec.polygon, bx, by)
+        dist = shapely.distance(spec.polygon.exterior, shapely.points(bx, by))
+        m = np.where(inside, dist, -dist)
+        return m if many else m[0]
     normals, offsets = spec.halfplanes
     m = np.min(offsets - (bx[..., None] * normals[:, 0] + by[..., None] * normals[:, 1]), axis=-1)
     return m if many else m[0]
+
+
+def plate_inertia(vertices: np.ndarray, mass: float, about=(0.0, 0.0)) -> float:
+    """Moment of inertia (kg m^2) about the vertical axis through ``about`` of a uniform plate of ``mass`` (kg)
+    with outline ``vertices`` (m): the polygon second-moment formula, then the parallel-axis theorem."""
+    v = np.asarray(vertices, dtype=float)
+    x, y = v[:, 0], v[:, 1]
+    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    cross = x * yn - xn * y
+    area = cross.sum() / 2
+    cx = ((x + xn) * cross).sum() / (6 * area)
+    cy = ((y + yn) * cross).sum() / (6 * area)
+    polar = ((x * x + x * xn + xn * xn + y * y + y * yn + yn * yn) * cross).sum() / 12  # about the origin
+    i_centroid = mass * (polar / area - (cx * cx + cy * cy))
+    return float(i_centroid + mass * ((cx - about[0]) ** 2 + (cy - about[1]) ** 2))
+
+
+def polygon(vertices, mass: float, mu: float, com=None, inertia: float | None = None, name: str = "parcel",
+            mu_static: float | None = None) -> ParcelSpec:
+    """A parcel with any simple outline ``vertices`` ((k, 2), m, in any frame), convex or not.
+
+    ``com`` (m, in that frame) is its centre of mass, by default the centroid of a uniform plate; the body frame is
+    the vertices' frame moved to ``com``. ``inertia`` defaults to that of a uniform plate of the outline about
+    ``com`` (parallel-axis theorem when ``com`` is not the centroid).
+
+    >>> round(polygon([[0, 0], [2, 0], [2, 1], [0, 1]], 3.0, 0.5).inertia, 12)  # a 2 x 1 plate: m (4 + 1) / 12
+    1.25
+    """
+    v = np.asarray(vertices, dtype=float)
+    if v.ndim != 2 or v.shape[1] != 2 or len(v) < 3 or not np.all(np.isfinite(v)):
+        raise ScenarioError(f"parcels.{name}.vertices", "needs at least three finite [x, y] vertices in m")
+    shape = shapely.Polygon(v)
+    if not shape.is_valid or shape.area <= 0:
+        raise ScenarioError(f"parcels.{name}.vertices", "is not a simple polygon with positive area (check the "
+                            "vertex order and that edges do not cross)")
+    c = np.array([shape.centroid.x, shape.centroid.y]) if com is None else np.asarray(com, dtype=float)
+    if not shape.contains(shapely.Point(*c)):
+        raise ScenarioError(f"parcels.{name}.com", f"the centre of mass {c.tolist()} must lie inside the outline")
+    if not (np.isfinite(mass) and mass > 0):
+        raise ScenarioError(f"parcels.{name}.mass", f"must be a positive number in kg, got {mass}")
+    if inertia is None:
+        inertia = plate_inertia(v, mass, about=c)
+    return ParcelSpec(v - c, float(mass), float(inertia), float(mu), name, mu_static)
 
 
 def supporting_cells(spec: ParcelSpec, pose, positions: np.ndarray, tree=None) -> np.ndarray:

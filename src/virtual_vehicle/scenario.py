@@ -20,7 +20,7 @@ from . import fields as fieldlib
 from . import layout
 from .errors import ScenarioError, TippingError
 from .friction import LAWS, FrictionLaw
-from .parcel import ParcelSpec, rectangle, supporting_cells
+from .parcel import ParcelSpec, polygon, rectangle, supporting_cells
 
 Pos = Annotated[float, Field(gt=0)]
 Point = tuple[float, float]
@@ -167,14 +167,18 @@ class SensorSpec(_Strict):
 
 
 class ParcelEntry(_Strict):
-    """A rectangular parcel: ``length`` along its body x and ``width`` (m), ``mass`` (kg), ``mu`` (friction
+    """A parcel: either a rectangle, ``length`` along its body x and ``width`` (m), or any simple outline
+    ``vertices`` ([[x, y], ...] m, convex or not) with optional centre of mass ``com`` (m, same frame; default the
+    centroid); ``mass`` (kg), ``mu`` (friction
     coefficient, see :class:`FrictionSpec`), optional ``mu_static`` (stick-slip), optional ``inertia`` (kg m^2,
     default uniform plate), and its initial
     state: centre of mass ``x``, ``y`` (m), heading ``theta`` (rad), ``vx``, ``vy`` (m/s), ``omega`` (rad/s)."""
 
     name: Annotated[str, Field(min_length=1, max_length=64)]
-    length: Pos
-    width: Pos
+    length: Pos | None = None
+    width: Pos | None = None
+    vertices: Annotated[list[Point], Field(min_length=3, max_length=1000)] | None = None
+    com: Point | None = None
     mass: Pos
     mu: Pos
     mu_static: Pos | None = None
@@ -185,6 +189,17 @@ class ParcelEntry(_Strict):
     vx: float = 0.0
     vy: float = 0.0
     omega: float = 0.0
+
+    @model_validator(mode="after")
+    def _one_shape(self):
+        rect = self.length is not None or self.width is not None
+        if rect == (self.vertices is not None):
+            raise ValueError("give either length and width (a rectangle) or vertices (any outline)")
+        if rect and (self.length is None or self.width is None):
+            raise ValueError("a rectangle needs both length and width")
+        if self.com is not None and self.vertices is None:
+            raise ValueError("com goes with vertices (a rectangle's centre of mass is its centre)")
+        return self
 
 
 class Scenario(_Strict):
@@ -230,7 +245,10 @@ class Scenario(_Strict):
         for i, p in enumerate(self.parcels):
             where = f"parcels[{i}]"
             try:
-                spec = rectangle(p.length, p.width, p.mass, p.mu, p.inertia, name=p.name, mu_static=p.mu_static)
+                if p.vertices is not None:
+                    spec = polygon(p.vertices, p.mass, p.mu, p.com, p.inertia, name=p.name, mu_static=p.mu_static)
+                else:
+                    spec = rectangle(p.length, p.width, p.mass, p.mu, p.inertia, name=p.name, mu_static=p.mu_static)
             except ScenarioError as exc:
                 raise ScenarioError(f"{where}.{exc.field.rsplit('.', 1)[-1]}", exc.message) from None
             state = np.array([p.x, p.y, p.theta, p.vx, p.vy, p.omega], dtype=float)
