@@ -57,3 +57,20 @@ class Shuttle:
         wheels = np.zeros((n, 2))
         wheels[:, 0] = self.speed * direction
         return {"seq": seq, "direction": direction, "hops": hops, "tick": tick}, out, wheels
+
+
+class FollowField:
+    """Each cell commands its own constant wheel speeds (given at installation, m/s) and sends nothing: a constant
+    field expressed as a cell program, so that motor-driven wheels can be stepped like any controller's."""
+
+    schema = Schema(())
+
+    def __init__(self, wheel_speeds: np.ndarray):
+        self.wheel_speeds = np.asarray(wheel_speeds, dtype=float)
+
+    def init(self, n, ports, config):
+        return {}
+
+    def step(self, state, inputs: CellInputs):
+        n, P = inputs.connected.shape
+        return state, Mailbox.empty(self.schema, n, P), self.wheel_speeds.copy()

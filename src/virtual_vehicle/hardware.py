@@ -102,3 +102,100 @@ class Sensors:
         r = rng.random(truth.shape)
         reading = np.where(truth, r >= self.false_negative, r < self.false_positive)
         return (reading | self.stuck_on) & ~(self.stuck_off & ~self.stuck_on)
+
+
+@dataclass(frozen=True)
+class MotorParams:
+    """A roller wheel driven by a DC motor through a gearbox, PWM H-bridge and quadrature encoder, with a PI speed
+    loop in its cell (paper 2.1-2.2). Defaults: a small 12 V gearmotor; units SI.
+
+    supply_voltage (V): the H-bridge's limit, |V| <= supply. resistance (ohm), torque_constant (N m/A, also the
+    back-EMF constant in V s/rad), rotor_inertia (kg m^2) and viscous_damping (N m s/rad) on the motor side;
+    gear_ratio (motor turns per wheel turn); wheel_radius (m) and wheel_inertia (kg m^2) on the wheel side;
+    encoder_counts per motor revolution; kp (V per m/s) and ki (V per m) of the PI loop on surface speed.
+    Inductance is neglected (electrical time constant << mechanical).
+    """
+
+    supply_voltage: float = 12.0
+    resistance: float = 2.0
+    torque_constant: float = 0.02
+    rotor_inertia: float = 2e-6
+    viscous_damping: float = 1e-6
+    gear_ratio: float = 30.0
+    wheel_radius: float = 0.02
+    wheel_inertia: float = 2e-5
+    encoder_counts: int = 512
+    kp: float = 20.0
+    ki: float = 1500.0
+
+    def __post_init__(self):
+        for name in ("supply_voltage", "resistance", "torque_constant", "rotor_inertia", "gear_ratio",
+                     "wheel_radius", "wheel_inertia"):
+            if not getattr(self, name) > 0:
+                raise ScenarioError(f"wheels.{name}", f"must be positive, got {getattr(self, name)}")
+        if self.viscous_damping < 0 or self.kp < 0 or self.ki < 0 or self.encoder_counts < 1:
+            raise ScenarioError("wheels", "viscous_damping, kp and ki must be >= 0 and encoder_counts >= 1")
+
+    @property
+    def inertia(self) -> float:
+        """Inertia reflected to the wheel shaft, kg m^2."""
+        return self.wheel_inertia + self.gear_ratio**2 * self.rotor_inertia
+
+    @property
+    def damping(self) -> float:
+        """Wheel-side damping including back-EMF, N m s/rad: G^2 k^2 / R + G^2 b."""
+        g, k = self.gear_ratio, self.torque_constant
+        return g * g * (k * k / self.resistance + self.viscous_damping)
+
+    @property
+    def time_constant(self) -> float:
+        """Mechanical time constant of the unloaded drive, s."""
+        return self.inertia / self.damping
+
+    def steady_speed(self, voltage, load_force):
+        """Wheel surface speed (m/s) the drive settles at under ``voltage`` (V) and a friction ``load_force`` (N)
+        that the parcel exerts back on the wheel surface along its drive direction."""
+        gain = self.gear_ratio * self.torque_constant / self.resistance  # N m per V at the wheel
+        return self.wheel_radius * (gain * voltage - self.wheel_radius * load_force) / self.damping
+
+
+class WheelDrives:
+    """The drives of every wheel of an array (n cells x 2 wheels), stepped once per control period.
+
+    ``step(command, load, period)`` takes the commanded surface speeds (n, 2) m/s and the load forces (n, 2) N
+    (what the parcel's friction pushes back on each wheel surface, along its drive direction), runs each cell's PI
+    loop on its encoder measurement, applies the saturated PWM voltage for the period, integrates the wheel exactly
+    (first-order linear dynamics under constant voltage and load), and returns the mean surface speed over the
+    period (n, 2) m/s, which the plant holds for that period.
+    """
+
+    def __init__(self, n: int, params: MotorParams = MotorParams()):
+        self.p = params
+        self.speed = np.zeros((n, 2))  # wheel surface speed, m/s
+        self.angle = np.zeros((n, 2))  # motor shaft angle, rad
+        self.counts = np.zeros((n, 2), dtype=np.int64)
+        self.integral = np.zeros((n, 2))
+        self.measured = np.zeros((n, 2))  # encoder estimate of surface speed, m/s
+        self.voltage = np.zeros((n, 2))
+
+    def step(self, command: np.ndarray, load: np.ndarray, period: float) -> np.ndarray:
+        p = self.p
+        error = command - self.measured
+        unsat = p.kp * error + p.ki * (self.integral + error * period)
+        voltage = np.clip(unsat, -p.supply_voltage, p.supply_voltage)
+        # anti-windup: integrate only where the output is not saturated against the error
+        grow = (voltage == unsat) | (np.sign(error) != np.sign(unsat))
+        self.integral = np.where(grow, self.integral + error * period, self.integral)
+        target = p.steady_speed(voltage, load)
+        tau = p.time_constant
+        decay = np.exp(-period / tau)
+        v0 = self.speed
+        self.speed = target + (v0 - target) * decay
+        mean = target + (v0 - target) * tau * (1 - decay) / period
+        # encoder on the motor shaft: counts of whole increments of the angle
+        self.angle = self.angle + mean * period / p.wheel_radius * p.gear_ratio
+        counts = np.floor(self.angle * p.encoder_counts / (2 * np.pi)).astype(np.int64)
+        self.measured = (counts - self.counts) * (2 * np.pi / p.encoder_counts) / p.gear_ratio * p.wheel_radius / period
+        self.counts = counts
+        self.voltage = voltage
+        return mean

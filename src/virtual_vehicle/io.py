@@ -11,7 +11,8 @@ Columns:
   lost, corrupted, undetected, dropped, unaddressed, latency_mean and latency_max (s; empty when nothing arrived).
 - ``cell_traffic.csv`` (networked runs): per cell, cell id, x, y (m), sentences and bytes sent and received.
 - ``sensors.csv`` (networked runs with ``[sensors] record = true``): per tick and cell, t (s), cell, the readings
-  s0.. (0/1), and the commanded wheel speeds wheel0, wheel1 (m/s).
+  s0.. (0/1), the wheels' mean surface speeds over the tick wheel0, wheel1 and their commands command0, command1
+  (m/s).
 """
 
 from __future__ import annotations
@@ -107,11 +108,11 @@ def sensors_csv(result: RunResult) -> str:
     buf = _io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     S = result.setup.sensors.count
-    w.writerow(("t", "cell", *(f"s{k}" for k in range(S)), "wheel0", "wheel1"))
-    for t, readings, wheels in result.sensor_log:
+    w.writerow(("t", "cell", *(f"s{k}" for k in range(S)), "wheel0", "wheel1", "command0", "command1"))
+    for t, readings, wheels, command in result.sensor_log:
         for cell in range(len(readings)):
-            w.writerow((repr(float(t)), cell, *(int(b) for b in readings[cell]), repr(float(wheels[cell, 0])),
-                        repr(float(wheels[cell, 1]))))
+            w.writerow((repr(float(t)), cell, *(int(b) for b in readings[cell]),
+                        *(repr(float(v)) for v in (*wheels[cell], *command[cell]))))
     return buf.getvalue()
 
 

@@ -166,6 +166,32 @@ class SensorSpec(_Strict):
     record: bool = False
 
 
+class WheelSpec(_Strict):
+    """How the wheels follow their commands: ``model = "ideal"`` (actual speed = commanded) or ``"motor"`` (a DC
+    gearmotor per wheel with PWM limit, encoder and PI loop; see :class:`~virtual_vehicle.hardware.MotorParams` for
+    the parameters below, SI units). With a constant ``[field]``, motors are commanded every ``period`` (s); with
+    ``[control]`` its period is used."""
+
+    model: Literal["ideal", "motor"] = "ideal"
+    period: Annotated[float, Field(gt=0, le=10)] = 0.01
+    supply_voltage: Pos = 12.0
+    resistance: Pos = 2.0
+    torque_constant: Pos = 0.02
+    rotor_inertia: Pos = 2e-6
+    viscous_damping: Annotated[float, Field(ge=0)] = 1e-6
+    gear_ratio: Pos = 30.0
+    wheel_radius: Pos = 0.02
+    wheel_inertia: Pos = 2e-5
+    encoder_counts: Annotated[int, Field(ge=1)] = 512
+    kp: Annotated[float, Field(ge=0)] = 20.0
+    ki: Annotated[float, Field(ge=0)] = 1500.0
+
+    def motor(self):
+        from .hardware import MotorParams
+
+        return MotorParams(**self.model_dump(exclude={"model", "period"}))
+
+
 class ParcelEntry(_Strict):
     """A parcel: either a rectangle, ``length`` along its body x and ``width`` (m), or any simple outline
     ``vertices`` ([[x, y], ...] m, convex or not) with optional centre of mass ``com`` (m, same frame; default the
@@ -220,6 +246,7 @@ class Scenario(_Strict):
     friction: FrictionSpec = FrictionSpec()
     integrator: IntegratorSpec = IntegratorSpec()
     sensors: SensorSpec = SensorSpec()
+    wheels: WheelSpec = WheelSpec()
     parcels: Annotated[list[ParcelEntry], Field(min_length=1)]
 
     @model_validator(mode="after")
@@ -262,6 +289,8 @@ class Scenario(_Strict):
                     raise ScenarioError(f"parcels[{j}]", f"parcel {self.parcels[j].name!r} overlaps parcel "
                                         f"{self.parcels[i].name!r} at the start; move one of them")
         control = None if self.control is None else _build_control(self.control, cells)
+        if control is None and self.wheels.model == "motor":
+            control = _field_control(cells, velocities, self.wheels.period)
         return Setup(self, cells, velocities, LAWS[self.friction.law], specs, states, control,
                      _build_sensors(self.sensors, cells))
 
@@ -313,6 +342,17 @@ def _build_sensors(spec: SensorSpec, cells: layout.CellArray):
         masks[name] = mask
     return Sensors(cells, offsets, spec.false_positive, spec.false_negative, masks["stuck_on"], masks["stuck_off"],
                    spec.seed)
+
+
+def _field_control(cells: layout.CellArray, velocities: np.ndarray, period: float) -> "ControlSetup":
+    """Cells that command their field velocity every period (so that motor wheels can follow it)."""
+    from .control import FollowField
+    from .network.delivery import IdealRounds
+    from .network.topology import from_layout
+
+    topo = from_layout(cells)
+    wheels = np.einsum("ij,ikj->ik", velocities, cells.drive_directions)
+    return ControlSetup(FollowField(wheels), topo, lambda: IdealRounds(topo), "none", period, {})
 
 
 @dataclass(frozen=True, eq=False)

@@ -16,6 +16,7 @@ from . import __version__
 from .dynamics import ParcelModel, Trajectory, integrate
 from .friction import CoulombLaw
 from .network.messages import Mailbox
+from .hardware import WheelDrives
 from .network.programs import CellInputs
 from .parcel import ParcelSpec, supporting_cells
 from .scenario import Setup
@@ -47,7 +48,8 @@ class RunResult:
     stats: dict = field(default_factory=dict)
     network: "NetworkRecord | None" = None
     sensor_log: list | None = None
-    """When recording was asked: per tick (t s, (n, S) readings, (n, 2) wheel speeds m/s)."""
+    """When recording was asked: per tick (t s, (n, S) readings, (n, 2) actual and (n, 2) commanded wheel speeds
+    m/s)."""
 
     def summary(self) -> dict:
         """A JSON-ready summary: per-parcel outcome, start/end state, distance, events; run totals."""
@@ -173,6 +175,34 @@ class NetworkRecord:
 _FAULTS = ("lost", "corrupted", "undetected", "dropped", "unaddressed")
 
 
+def wheel_loads(setup: Setup, models, states, active, speeds: np.ndarray) -> np.ndarray:
+    """(n, 2) friction force (N) each wheel exerts on the parcels above it along its drive direction, whose reaction
+    loads the wheel: Coulomb mu N in the direction of spin (paper 4.3), viscous mu N times the slip (eq. 30),
+    stick-slip mu N against the slip (zero while a wheel is stuck). ``speeds`` are the wheels' surface speeds."""
+    cells = setup.cells
+    law = setup.scenario.friction.law
+    load = np.zeros((cells.n, 2))
+    for model, y, on in zip(models, states, active):
+        if not on:
+            continue
+        piece = model.piece_at(y)
+        ids, N = piece.support, piece.normal_forces(y)
+        r = cells.positions[ids] - y[:2]
+        v = y[3:5] + y[5] * np.column_stack([-r[:, 1], r[:, 0]])  # parcel velocity over each cell
+        for k in range(2):
+            u = cells.drive_directions[ids, k]
+            w = speeds[ids, k]
+            slip = w - np.einsum("ij,ij->i", v, u)
+            if law == "coulomb":
+                f = np.sign(w)
+            elif law == "viscous":
+                f = slip
+            else:
+                f = np.where(np.abs(slip) > 1e-9, np.sign(slip), 0.0)
+            load[ids, k] += model.spec.mu * N * f
+    return load
+
+
 def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -> RunResult:
     """Co-simulate cell programs, the network and the parcels: at every control tick the cells read their sensors
     and the sentences delivered since the last tick, step their program, and send; the wheels hold the commanded
@@ -190,6 +220,7 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -
     inbox = Mailbox.empty(ctl.program.schema, n, P)
     delivery = ctl.make_delivery()
     sensor_rng = np.random.default_rng(setup.sensors.seed)
+    drives = WheelDrives(n, sc.wheels.motor()) if sc.wheels.model == "motor" else None
     ys = [y.copy() for y in setup.states]
     active = [True] * len(ys)
     base = [ParcelModel(cells, spec, np.zeros((n, 2)), setup.law, sc.gravity) for spec in setup.specs]
@@ -209,10 +240,15 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -
         sensors = setup.sensors.read(setup.specs, ys, sensor_rng, active)
         inputs = CellInputs(t0, sensors, inbox, topo.connected, ctl.config)
         state, outbox, wheels = ctl.program.step(state, inputs)
-        wheels = np.where(topo.alive[:, None], np.asarray(wheels, dtype=float), 0.0)  # a dead cell does not drive
+        command = np.where(topo.alive[:, None], np.asarray(wheels, dtype=float), 0.0)  # a dead cell does not drive
+        if drives is None:
+            wheels = command
+        else:
+            load = wheel_loads(setup, base, ys, active, drives.speed)
+            wheels = drives.step(command, load, period)
         velocities = wheels[:, 0:1] * dirs[:, 0] + wheels[:, 1:2] * dirs[:, 1]
         if sc.sensors.record:
-            sensor_log.append((t0, sensors.copy(), wheels.copy()))
+            sensor_log.append((t0, sensors.copy(), wheels.copy(), command.copy()))
         inbox, stats = delivery.exchange(outbox, t0, period)
         for key in keys:
             per_tick[key][k] = int(getattr(stats, key).sum())
