@@ -28,7 +28,7 @@ from scipy.optimize import brentq
 
 from .contact import SupportSolution, solve_support
 from .errors import IntegrationError, TippingError
-from .friction import FrictionConstants, FrictionLaw, StickSlipLaw
+from .friction import CoulombLaw, FrictionConstants, FrictionLaw, StickSlipLaw
 from .layout import CellArray
 from .parcel import ParcelSpec, footprint_margins, supporting_cells
 
@@ -131,6 +131,9 @@ class ParcelModel:
         if self.velocities.shape != (cells.n, 2) or not np.all(np.isfinite(self.velocities)):
             raise ValueError(f"velocities must be finite with shape ({cells.n}, 2)")
         self.law = law
+        if cells.separate and not isinstance(law, (CoulombLaw, StickSlipLaw)):
+            raise ValueError("separate wheels push only along their own drive direction; the paper's viscous law acts "
+                             "on the whole slip vector of a lumped cell: use the coulomb or stick_slip law")
         self.weight = spec.weight(gravity)
         self._pieces: dict[tuple, Piece] = {}
         self._by_support: dict[tuple[int, ...], list[Piece]] = {}
@@ -190,7 +193,7 @@ class ParcelModel:
             sol = solve_support(pts, X, self.weight, lateral_support=self.cells.is_line, line_direction=self._line_dir)
             self._geometry.solves += 1
             self._geometry.solutions.setdefault(gkey, []).append(sol)
-        k = self.law.constants(sol, self.velocities[support], self.cells.drive_directions[support], self.spec.mu)
+        k = self.law.constants(sol, self.velocities[support], self.cells.active_directions[support], self.spec.mu)
         piece = self._make_piece(support, sol, k)
         existing = self._pieces.get(piece.key)
         if existing is not None:

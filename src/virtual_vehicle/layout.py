@@ -34,6 +34,8 @@ class CellArray:
     drive_directions: np.ndarray
     pitch: float
     shape: tuple[int, ...] | None = field(default=None)
+    wheel_active: np.ndarray | None = field(default=None)
+    cell_of: np.ndarray | None = field(default=None)
 
     def __post_init__(self) -> None:
         pos = np.array(self.positions, dtype=float)
@@ -53,10 +55,31 @@ class CellArray:
             raise ScenarioError("array.points", "two cells share the same position")
         if not (np.isfinite(self.pitch) and self.pitch > 0):
             raise ScenarioError("array.pitch", f"pitch must be a positive length in m, got {self.pitch}")
-        pos.setflags(write=False)
-        dirs.setflags(write=False)
+        active = np.ones((len(pos), 2), bool) if self.wheel_active is None else np.asarray(self.wheel_active, bool)
+        cell_of = np.arange(len(pos)) if self.cell_of is None else np.asarray(self.cell_of, dtype=np.int64)
+        for arr in (pos, dirs, active, cell_of):
+            arr.setflags(write=False)
         object.__setattr__(self, "positions", pos)
         object.__setattr__(self, "drive_directions", dirs)
+        object.__setattr__(self, "wheel_active", active)
+        object.__setattr__(self, "cell_of", cell_of)
+
+    @cached_property
+    def active_directions(self) -> np.ndarray:
+        """(n, 2, 2) drive directions with those of absent wheels set to zero (what friction laws use)."""
+        return self.drive_directions * self.wheel_active[:, :, None]
+
+    @property
+    def separate(self) -> bool:
+        """True for a contact layer made by :func:`separate_wheels` (one wheel per contact point)."""
+        return not bool(self.wheel_active.all())
+
+    def contact_velocities(self, cell_velocities: np.ndarray) -> np.ndarray:
+        """Surface velocities (m/s) of this layer's contacts from those of the cells they belong to: each present
+        wheel keeps its own component."""
+        V = np.asarray(cell_velocities, dtype=float)[self.cell_of]
+        U = self.active_directions
+        return np.einsum("ik,ikj->ij", np.einsum("ij,ikj->ik", V, U), U)
 
     @property
     def n(self) -> int:
@@ -133,3 +156,27 @@ def from_points(points, pitch: float | None = None, drive_angle: float = 0.0) ->
             d, _ = cKDTree(pos).query(pos, k=2)
             pitch = float(np.median(d[:, 1]))
     return CellArray(pos, _drive_directions(len(pos), drive_angle), float(pitch))
+
+
+def separate_wheels(cells: CellArray, offsets=None) -> CellArray:
+    """The contact layer in which each of a cell's two wheels is its own support at its own offset (m, in the
+    cell's frame, one row per wheel; default wheel 0 at (0, -pitch/4) and wheel 1 at (-pitch/4, 0)), pushing only
+    along its own drive direction. The paper lumps both wheels at the cell centre (the default layer); here each
+    wheel carries its own share of the load. Contact 2 i + k is wheel k of cell i.
+    """
+    q = cells.pitch / 4
+    off = np.array([[0.0, -q], [-q, 0.0]]) if offsets is None else np.asarray(offsets, dtype=float)
+    if off.shape != (2, 2) or not np.all(np.isfinite(off)):
+        raise ScenarioError("array.wheel_offsets", "needs two finite [x, y] offsets in m, one per wheel")
+    if np.allclose(off[0], off[1]):
+        raise ScenarioError("array.wheel_offsets", "the two wheels of a cell must sit at different points")
+    U = cells.drive_directions
+    pos = cells.positions[:, None, :] + off[None, :, 0, None] * U[:, None, 0, :] + off[None, :, 1, None] * U[:, None, 1, :]
+    dirs = np.empty((cells.n, 2, 2, 2))
+    for k in range(2):
+        u = U[:, k]
+        dirs[:, k, 0] = u
+        dirs[:, k, 1] = np.column_stack([-u[:, 1], u[:, 0]])
+    active = np.tile([True, False], (2 * cells.n, 1))
+    return CellArray(pos.reshape(-1, 2), dirs.reshape(-1, 2, 2), cells.pitch, None, active,
+                     np.repeat(np.arange(cells.n), 2))

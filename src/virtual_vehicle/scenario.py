@@ -23,22 +23,35 @@ from .friction import LAWS, FrictionLaw
 from .parcel import ParcelSpec, polygon, rectangle, supporting_cells
 
 Pos = Annotated[float, Field(gt=0)]
-Point = tuple[float, float]
+Coord = Annotated[float, Field(ge=-1e6, le=1e6)]
+"""A coordinate in m: the simulator's geometry is meant for floors, not for astronomy (|x| <= 1000 km)."""
+Speed = Annotated[float, Field(ge=-1e3, le=1e3)]
+"""A speed in m/s (|v| <= 1 km/s)."""
+Point = tuple[Coord, Coord]
+Vel = tuple[Speed, Speed]
 
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
 
-class _Lattice(_Strict):
-    pitch: Pos
+class _Wheels(_Strict):
+    wheels: Literal["lumped", "separate"] = "lumped"
+    wheel_offsets: tuple[Point, Point] | None = None
+
+
+class _Lattice(_Wheels):
+    pitch: Annotated[float, Field(gt=0, le=1e3)]
     origin: Point = (0.0, 0.0)
-    drive_angle: float = 0.0
+    drive_angle: Annotated[float, Field(ge=-1e3, le=1e3)] = 0.0
 
 
 class GridArray(_Lattice):
     """``nx`` columns by ``ny`` rows at ``pitch`` (m), first cell at ``origin`` (m); wheel 0 drives along
-    ``drive_angle`` (rad from +x), wheel 1 at +90 degrees."""
+    ``drive_angle`` (rad from +x), wheel 1 at +90 degrees. Every array takes ``wheels = "lumped"`` (the paper: both
+    wheels at the cell centre, default) or ``"separate"`` (each wheel its own contact at ``wheel_offsets``, m in the
+    cell frame, default wheel 0 at (0, -pitch/4) and wheel 1 at (-pitch/4, 0); coulomb and stick_slip laws, constant
+    fields only)."""
 
     kind: Literal["grid"]
     nx: Annotated[int, Field(ge=1, le=100_000)]
@@ -52,20 +65,20 @@ class RowArray(_Lattice):
     n: Annotated[int, Field(ge=1, le=1_000_000)]
 
 
-class PointsArray(_Strict):
+class PointsArray(_Wheels):
     """Cells at explicit ``points`` (m); ``pitch`` (m) defaults to the median nearest-neighbour distance."""
 
     kind: Literal["points"]
     points: Annotated[list[Point], Field(min_length=1)]
     pitch: Pos | None = None
-    drive_angle: float = 0.0
+    drive_angle: Annotated[float, Field(ge=-1e3, le=1e3)] = 0.0
 
 
 class UniformField(_Strict):
     """Every cell at ``velocity`` (m/s)."""
 
     kind: Literal["uniform"]
-    velocity: Point
+    velocity: Vel
 
 
 class InwardField(_Strict):
@@ -73,21 +86,21 @@ class InwardField(_Strict):
 
     kind: Literal["inward"]
     center: Point
-    speed: Pos
+    speed: Annotated[float, Field(gt=0, le=1e3)]
 
 
 class ReversedEndField(_Strict):
     """All cells at ``velocity`` (m/s) except the far end along it, reversed (the 1-D oscillator)."""
 
     kind: Literal["reversed_end"]
-    velocity: Point
+    velocity: Vel
 
 
 class PerCellField(_Strict):
     """Explicit velocities (m/s), one [vx, vy] per cell in the array's order."""
 
     kind: Literal["per_cell"]
-    velocities: list[Point]
+    velocities: list[Vel]
 
 
 ArraySpec = Annotated[Union[GridArray, RowArray, PointsArray], Field(discriminator="kind")]
@@ -142,7 +155,7 @@ class ControlSpec(_Strict):
     program: Literal["shuttle"]
     period: Annotated[float, Field(gt=0, le=10)] = 0.01
     delivery: Literal["ideal", "wire"] = "ideal"
-    speed: Pos = 0.2
+    speed: Annotated[float, Field(gt=0, le=1e3)] = 0.2
     hop_limit: Annotated[int, Field(ge=1, le=254)] = 32
     heartbeat: Annotated[int, Field(ge=1, le=100_000)] = 10
     loss_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
@@ -209,12 +222,12 @@ class ParcelEntry(_Strict):
     mu: Pos
     mu_static: Pos | None = None
     inertia: Pos | None = None
-    x: float
-    y: float
-    theta: float = 0.0
-    vx: float = 0.0
-    vy: float = 0.0
-    omega: float = 0.0
+    x: Coord
+    y: Coord
+    theta: Annotated[float, Field(ge=-1e6, le=1e6)] = 0.0
+    vx: Speed = 0.0
+    vy: Speed = 0.0
+    omega: Annotated[float, Field(ge=-1e4, le=1e4)] = 0.0
 
     @model_validator(mode="after")
     def _one_shape(self):
@@ -268,6 +281,15 @@ class Scenario(_Strict):
         overlaps). Raises ScenarioError naming the field."""
         cells = _build_array(self.array)
         velocities = np.zeros((cells.n, 2)) if self.field is None else _build_field(self.field).velocities(cells)
+        contacts = cells
+        if self.array.wheels == "separate":
+            if self.friction.law == "viscous":
+                raise ScenarioError("array.wheels", "separate wheels push only along their own drive direction: use "
+                                    "the coulomb or stick_slip law (the paper's viscous law is for lumped cells)")
+            if self.control is not None or self.wheels.model == "motor":
+                raise ScenarioError("array.wheels", "separate wheels are supported with a constant [field] and ideal "
+                                    "wheels only, for now")
+            contacts = layout.separate_wheels(cells, self.array.wheel_offsets)
         specs, states = [], []
         for i, p in enumerate(self.parcels):
             where = f"parcels[{i}]"
@@ -292,7 +314,7 @@ class Scenario(_Strict):
         if control is None and self.wheels.model == "motor":
             control = _field_control(cells, velocities, self.wheels.period)
         return Setup(self, cells, velocities, LAWS[self.friction.law], specs, states, control,
-                     _build_sensors(self.sensors, cells))
+                     _build_sensors(self.sensors, cells), contacts)
 
 
 def _check_on_array(cells, spec, state, where, name):
@@ -402,6 +424,17 @@ class Setup:
     states: list[np.ndarray]
     control: ControlSetup | None = None
     sensors: object = None
+    contacts: layout.CellArray | None = None
+
+    @property
+    def contact_layer(self) -> layout.CellArray:
+        """Where the parcels touch the array: the cells (lumped wheels) or one contact per wheel."""
+        return self.cells if self.contacts is None else self.contacts
+
+    @property
+    def contact_velocities(self) -> np.ndarray:
+        """Surface velocities (m/s) of the contact layer under the constant field."""
+        return self.contact_layer.contact_velocities(self.velocities)
 
 
 def _format_validation(exc: ValidationError) -> ScenarioError:

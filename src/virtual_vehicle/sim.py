@@ -94,7 +94,8 @@ def coulomb_sliding_check(setup: Setup, spec: ParcelSpec, traj: Trajectory) -> t
     """Check the paper's Coulomb assumption at every sample: under each supporting cell, each spinning wheel's
     surface speed along its drive direction exceeds the parcel's (so the wheel slides in its direction of spin).
     Returns (first violating time s, largest reversed slip m/s) or None."""
-    cells = setup.cells
+    cells = setup.contact_layer
+    velocities = setup.contact_velocities
     first, worst = None, 0.0
     for t, y in zip(traj.times, traj.states):
         ids = supporting_cells(spec, y, cells.positions, cells.tree)
@@ -102,8 +103,8 @@ def coulomb_sliding_check(setup: Setup, spec: ParcelSpec, traj: Trajectory) -> t
             continue
         r = cells.positions[ids] - y[:2]
         w = y[3:5] + y[5] * np.column_stack([-r[:, 1], r[:, 0]])  # parcel velocity over each cell
-        U = cells.drive_directions[ids]
-        wheel = np.einsum("ij,ikj->ik", setup.velocities[ids], U)
+        U = cells.active_directions[ids]
+        wheel = np.einsum("ij,ikj->ik", velocities[ids], U)
         parcel = np.einsum("ij,ikj->ik", w, U)
         reversed_slip = np.where(wheel != 0, -np.sign(wheel) * (wheel - parcel), -np.inf)
         m = float(reversed_slip.max())
@@ -126,7 +127,7 @@ def run(setup: Setup, progress: Callable[[float], None] | None = None) -> RunRes
     results = []
     n = len(setup.specs)
     for i, (spec, y0) in enumerate(zip(setup.specs, setup.states)):
-        model = ParcelModel(setup.cells, spec, setup.velocities, setup.law, sc.gravity)
+        model = ParcelModel(setup.contact_layer, spec, setup.contact_velocities, setup.law, sc.gravity)
         report = None if progress is None else (lambda t, i=i: progress((i + t / t_end) / n))
         traj = integrate(model, y0, 0.0, t_end, mode=integ.mode, rtol=integ.rtol, atol=integ.atol,
                          max_step=integ.max_step or np.inf, dt=integ.dt, sample_dt=sample_dt, progress=report)

@@ -41,11 +41,13 @@ def _contacts(model, piece, y):
     r = cells.positions[ids] - y[:2]
     rows, speeds, normals, keys = [], [], [], []
     for k in range(2):
-        u = cells.drive_directions[ids, k]
-        rows.append(np.column_stack([u[:, 0], u[:, 1], r[:, 0] * u[:, 1] - r[:, 1] * u[:, 0]]))
-        speeds.append(np.einsum("ij,ij->i", model.velocities[ids], u))
-        normals.append(N)
-        keys.extend((int(i), k) for i in ids)
+        has = cells.wheel_active[ids, k]  # a separate-wheel contact has only its own wheel
+        u = cells.drive_directions[ids[has], k]
+        rr = r[has]
+        rows.append(np.column_stack([u[:, 0], u[:, 1], rr[:, 0] * u[:, 1] - rr[:, 1] * u[:, 0]]))
+        speeds.append(np.einsum("ij,ij->i", model.velocities[ids[has]], u))
+        normals.append(N[has])
+        keys.extend((int(i), k) for i in ids[has])
     return np.vstack(rows), np.concatenate(speeds), np.concatenate(normals), keys
 
 
