@@ -289,6 +289,7 @@ class _Segment:
         self.sol = piece.solution
         nc, m, q = len(self.candidates), len(self.sol.points), len(self.sol.hull_offsets)
         self.bounds = np.cumsum([0, nc, m, q, 1])
+        self.spring_gradient = np.linalg.norm(self.sol.basis @ self.sol.plane_lin, axis=1)  # N per m of the COM
         length = max(1.0, float(np.max(np.abs(cells.positions))), spec.radius)
         # Rounding noise of each event value: below it a sign is not to be trusted.
         self.noise = np.concatenate([np.full(nc, _NOISE * length), np.full(m, _NOISE * model.weight),
@@ -307,6 +308,20 @@ class _Segment:
             self.buffer - np.hypot(Y[:, 0] - self.center[0], Y[:, 1] - self.center[1])[:, None],
         ], axis=1)
         return out if many else out[0]
+
+    def rates(self, Y: np.ndarray) -> np.ndarray:
+        """Upper bounds on how fast each event value can change (per s) given the states ``Y`` (k, 6) of a step:
+        a margin no faster than a body point at the candidates' distance moves, a spring force no faster than its
+        gradient times the speed, a hull slack or the refresh distance no faster than the speed."""
+        speed = float(np.max(np.hypot(Y[:, 3], Y[:, 4])))
+        spin = float(np.max(np.abs(Y[:, 5])))
+        reach = self.model.spec.radius + 2 * self.buffer
+        b = self.bounds
+        out = np.empty(b[-1])
+        out[:b[1]] = speed + spin * reach
+        out[b[1]:b[2]] = self.spring_gradient * speed
+        out[b[2]:] = speed
+        return out
 
     def values_at(self, y, idx: np.ndarray) -> np.ndarray:
         """Only the event values at positions ``idx`` (sorted), for one state: the root finder's cheap path."""
@@ -340,19 +355,44 @@ _PROBE_MAX = 1e-6
 
 _SUBSAMPLES = 8
 """Points inside every step at which the event predicates are checked, so that two crossings in one long step are
-told apart and a crossing that reverts within the step is still seen."""
+told apart (intervals where a crossing could hide between samples are refined further)."""
+_RATE_SAFETY = 1.5
+"""Margin on the rate bounds, which are taken from the samples of a step (the speed varies a little between them)."""
+_MIN_BRACKET = 1e-9
+"""Shortest interval (s) the search for a hidden crossing bisects to: a graze shallower than rate x 1e-9 s / 2
+(about 1e-10 m at 0.2 m/s) is not resolved."""
 
 
 def _first_change(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float):
-    """The first of ``_SUBSAMPLES`` points in (t_lo, t_hi] where the predicate differs from ``g0``, with the point
-    before it; None if there is none."""
-    ts = np.linspace(t_lo, t_hi, _SUBSAMPLES + 1)[1:]
-    changed = (seg.values(dense(ts).T) > 0) != g0
-    hits = np.flatnonzero(changed.any(axis=1))
-    if len(hits) == 0:
+    """The earliest bracket (t_a, t_b) in (t_lo, t_hi] across which the event predicate leaves ``g0``, with the
+    components changed at t_b; None if there is none.
+
+    The step is sampled at ``_SUBSAMPLES`` points. Between two samples an event function ``g`` can cross zero and
+    come back (a cell grazing the footprint's edge) only if ``|g_a| + |g_b| <= rate * (t_b - t_a)``, where ``rate``
+    bounds how fast it can change (:meth:`_Segment.rates`); exactly those intervals are bisected, earliest first,
+    until a crossing is found or ruled out (down to ``_MIN_BRACKET`` seconds).
+    """
+    ts = np.linspace(t_lo, t_hi, _SUBSAMPLES + 1)
+    Y = dense(ts).T
+    vals = seg.values(Y)
+    rate = _RATE_SAFETY * seg.rates(Y)
+    for j in range(_SUBSAMPLES):
+        found = _search(seg, dense, g0, ts[j], ts[j + 1], vals[j], vals[j + 1], rate)
+        if found is not None:
+            return found
+    return None
+
+
+def _search(seg, dense, g0, a, b, ga, gb, rate):
+    changed = (gb > 0) != g0
+    if changed.any():
+        return a, b, changed
+    hidden = (np.abs(ga) + np.abs(gb) <= rate * (b - a)) & (np.abs(ga) > seg.noise) & (np.abs(gb) > seg.noise)
+    if not hidden.any() or b - a <= _MIN_BRACKET:
         return None
-    j = hits[0]
-    return (t_lo if j == 0 else ts[j - 1]), ts[j], changed[j]
+    m = 0.5 * (a + b)
+    gm = seg.values(dense(m))
+    return _search(seg, dense, g0, a, m, ga, gm, rate) or _search(seg, dense, g0, m, b, gm, gb, rate)
 
 
 def _locate(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float, changed: np.ndarray) -> float:
