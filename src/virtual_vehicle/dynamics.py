@@ -289,7 +289,8 @@ class _Segment:
         self.sol = piece.solution
         nc, m, q = len(self.candidates), len(self.sol.points), len(self.sol.hull_offsets)
         self.bounds = np.cumsum([0, nc, m, q, 1])
-        self.spring_gradient = np.linalg.norm(self.sol.basis @ self.sol.plane_lin, axis=1)  # N per m of the COM
+        self.spring_dirs = self.sol.basis @ self.sol.plane_lin  # d(spring force)/d(centre of mass), N/m
+        self.spring_gradient = np.linalg.norm(self.spring_dirs, axis=1)
         length = max(1.0, float(np.max(np.abs(cells.positions))), spec.radius)
         # Rounding noise of each event value: below it a sign is not to be trusted.
         self.noise = np.concatenate([np.full(nc, _NOISE * length), np.full(m, _NOISE * model.weight),
@@ -309,19 +310,74 @@ class _Segment:
         ], axis=1)
         return out if many else out[0]
 
-    def rates(self, Y: np.ndarray) -> np.ndarray:
-        """Upper bounds on how fast each event value can change (per s) given the states ``Y`` (k, 6) of a step:
-        a margin no faster than a body point at the candidates' distance moves, a spring force no faster than its
-        gradient times the speed, a hull slack or the refresh distance no faster than the speed."""
-        speed = float(np.max(np.hypot(Y[:, 3], Y[:, 4])))
-        spin = float(np.max(np.abs(Y[:, 5])))
-        reach = self.model.spec.radius + 2 * self.buffer
+    def may_hide_crossing(self, ya, yb, ga, gb, dt, acc, spin_acc) -> np.ndarray:
+        """Which event values, of the same sign at two states ``dt`` seconds apart, could have crossed zero and come
+        back in between, given bounds on the parcel's acceleration (m/s^2) and angular acceleration (rad/s^2).
+
+        A footprint margin changes no faster than a body point at the candidates' distance moves; a spring force is
+        affine in the centre of mass, so it can dip through zero only if its rate ``G . v`` changes sign, which needs
+        ``|G . v_a| + |G . v_b| <= |G| acc dt``. Hull slacks and the refresh distance are not searched (tipping shows
+        up as a lift-off; a late refresh is harmless)."""
+        va, vb = ya[3:5], yb[3:5]
+        speed = max(float(np.hypot(*va)), float(np.hypot(*vb))) + acc * dt / 2
+        spin = max(abs(float(ya[5])), abs(float(yb[5]))) + spin_acc * dt / 2
         b = self.bounds
-        out = np.empty(b[-1])
-        out[:b[1]] = speed + spin * reach
-        out[b[1]:b[2]] = self.spring_gradient * speed
-        out[b[2]:] = speed
-        return out
+        small = np.abs(ga) + np.abs(gb)
+        clear = (np.abs(ga) > self.noise) & (np.abs(gb) > self.noise)
+        out = np.zeros(b[-1], dtype=bool)
+        reach = self.model.spec.radius + 2 * self.buffer
+        out[:b[1]] = small[:b[1]] <= (speed + spin * reach) * dt
+        if self.model.spec.convex and out[:b[1]].any():
+            # a cell can enter and leave unseen only by cutting a corner (different nearest edges at the two ends)
+            # or if its distance to the nearest edge turns around (the edge-distance rate changes sign)
+            sus = np.flatnonzero(out[:b[1]])
+            point_acc = acc + spin_acc * reach + spin * spin * reach
+            ea, ra = self._edge_and_rate(ya, self.candidates[sus])
+            eb, rb = self._edge_and_rate(yb, self.candidates[sus])
+            turn = (np.sign(ra) != np.sign(rb)) | (np.abs(ra) + np.abs(rb) <= point_acc * dt)
+            out[sus] = (ea != eb) | turn
+        G = self.spring_dirs
+        da, db = G @ va, G @ vb
+        norm = self.spring_gradient
+        may_turn = (np.sign(da) != np.sign(db)) | (np.abs(da) + np.abs(db) <= norm * acc * dt)
+        out[b[1]:b[2]] = may_turn & (small[b[1]:b[2]] <= norm * speed * dt)
+        return out & clear
+
+    def may_hide_coarse(self, Y, vals, dt, acc, spin_acc) -> np.ndarray:
+        """For consecutive samples ``Y`` (k+1, 6) with event values ``vals``: per interval (k,), whether any value
+        might hide a crossing by the speed and spring tests of :meth:`may_hide_crossing` (a superset of it, without
+        the corner test), all intervals at once."""
+        speeds = np.hypot(Y[:, 3], Y[:, 4])
+        spins = np.abs(Y[:, 5])
+        speed = np.maximum(speeds[:-1], speeds[1:]) + acc * dt / 2
+        spin = np.maximum(spins[:-1], spins[1:]) + spin_acc * dt / 2
+        b = self.bounds
+        a_abs, b_abs = np.abs(vals[:-1]), np.abs(vals[1:])
+        small = a_abs + b_abs
+        clear = (a_abs > self.noise) & (b_abs > self.noise)
+        reach = self.model.spec.radius + 2 * self.buffer
+        margin = small[:, :b[1]] <= ((speed + spin * reach) * dt)[:, None]
+        d = Y[:, 3:5] @ self.spring_dirs.T
+        norm = self.spring_gradient
+        turn = (np.sign(d[:-1]) != np.sign(d[1:])) | (np.abs(d[:-1]) + np.abs(d[1:]) <= norm * acc * dt)
+        spring = turn & (small[:, b[1]:b[2]] <= norm * speed[:, None] * dt)
+        return (margin & clear[:, :b[1]]).any(axis=1) | (spring & clear[:, b[1]:b[2]]).any(axis=1)
+
+    def _edge_and_rate(self, y, points):
+        """For a convex footprint at state y: each point's nearest (most violated) edge and that edge distance's
+        rate of change (m/s), from the body-frame velocity of the point."""
+        x, yy, th, vx, vy, om = (float(v) for v in y)
+        c, s = np.cos(th), np.sin(th)
+        d = points - (x, yy)
+        bx, by = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
+        normals, offsets = self.model.spec.halfplanes
+        h = offsets - (bx[:, None] * normals[:, 0] + by[:, None] * normals[:, 1])
+        edge = np.argmin(h, axis=1)
+        # world velocity of the cell relative to the parcel point under it, then into the body frame
+        wx, wy = -(vx - om * d[:, 1]), -(vy + om * d[:, 0])
+        pbx, pby = c * wx + s * wy, -s * wx + c * wy
+        n = normals[edge]
+        return edge, -(n[:, 0] * pbx + n[:, 1] * pby)
 
     def values_at(self, y, idx: np.ndarray) -> np.ndarray:
         """Only the event values at positions ``idx`` (sorted), for one state: the root finder's cheap path."""
@@ -357,9 +413,9 @@ _SUBSAMPLES = 8
 """Points inside every step at which the event predicates are checked, so that two crossings in one long step are
 told apart (intervals where a crossing could hide between samples are refined further)."""
 _RATE_SAFETY = 1.5
-"""Margin on the rate bounds, which are taken from the samples of a step (the speed varies a little between them)."""
+"""Margin on the acceleration bounds, which are taken from the samples of a step."""
 _MIN_BRACKET = 1e-9
-"""Shortest interval (s) the search for a hidden crossing bisects to: a graze shallower than rate x 1e-9 s / 2
+"""Shortest interval (s) the search for a hidden crossing bisects to: a graze shallower than speed x 1e-9 s / 2
 (about 1e-10 m at 0.2 m/s) is not resolved."""
 
 
@@ -367,32 +423,35 @@ def _first_change(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float
     """The earliest bracket (t_a, t_b) in (t_lo, t_hi] across which the event predicate leaves ``g0``, with the
     components changed at t_b; None if there is none.
 
-    The step is sampled at ``_SUBSAMPLES`` points. Between two samples an event function ``g`` can cross zero and
-    come back (a cell grazing the footprint's edge) only if ``|g_a| + |g_b| <= rate * (t_b - t_a)``, where ``rate``
-    bounds how fast it can change (:meth:`_Segment.rates`); exactly those intervals are bisected, earliest first,
-    until a crossing is found or ruled out (down to ``_MIN_BRACKET`` seconds).
+    The step is sampled at ``_SUBSAMPLES`` points. Between two samples an event function can cross zero and come
+    back (a cell grazing the footprint's edge) only if it could reach zero in that time
+    (:meth:`_Segment.may_hide_crossing`); such intervals are bisected, earliest first, until the crossing is found
+    or ruled out (down to ``_MIN_BRACKET`` seconds). A bracket is returned only once no other component could hide
+    an earlier crossing inside it.
     """
     ts = np.linspace(t_lo, t_hi, _SUBSAMPLES + 1)
     Y = dense(ts).T
     vals = seg.values(Y)
-    rate = _RATE_SAFETY * seg.rates(Y)
-    for j in range(_SUBSAMPLES):
-        found = _search(seg, dense, g0, ts[j], ts[j + 1], vals[j], vals[j + 1], rate)
+    acc = np.array([seg.piece.rhs(t, y)[3:] for t, y in zip(ts, Y)])
+    bounds = (_RATE_SAFETY * float(np.max(np.hypot(acc[:, 0], acc[:, 1]))), _RATE_SAFETY * float(np.max(np.abs(acc[:, 2]))))
+    look = ((vals[1:] > 0) != g0).any(axis=1) | seg.may_hide_coarse(Y, vals, (t_hi - t_lo) / _SUBSAMPLES, *bounds)
+    for j in np.flatnonzero(look):  # only intervals with a change or a possible hidden crossing
+        found = _search(seg, dense, g0, bounds, ts[j], ts[j + 1], Y[j], Y[j + 1], vals[j], vals[j + 1])
         if found is not None:
             return found
     return None
 
 
-def _search(seg, dense, g0, a, b, ga, gb, rate):
+def _search(seg, dense, g0, bounds, a, b, ya, yb, ga, gb):
     changed = (gb > 0) != g0
-    if changed.any():
-        return a, b, changed
-    hidden = (np.abs(ga) + np.abs(gb) <= rate * (b - a)) & (np.abs(ga) > seg.noise) & (np.abs(gb) > seg.noise)
+    hidden = seg.may_hide_crossing(ya, yb, ga, gb, b - a, *bounds) & ~changed
     if not hidden.any() or b - a <= _MIN_BRACKET:
-        return None
+        return (a, b, changed) if changed.any() else None
     m = 0.5 * (a + b)
-    gm = seg.values(dense(m))
-    return _search(seg, dense, g0, a, m, ga, gm, rate) or _search(seg, dense, g0, m, b, gm, gb, rate)
+    ym = dense(m)
+    gm = seg.values(ym)
+    return (_search(seg, dense, g0, bounds, a, m, ya, ym, ga, gm)
+            or _search(seg, dense, g0, bounds, m, b, ym, yb, gm, gb))
 
 
 def _locate(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float, changed: np.ndarray) -> float:
