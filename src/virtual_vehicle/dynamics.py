@@ -330,12 +330,7 @@ class _Segment:
         if self.model.spec.convex and out[:b[1]].any():
             # a cell can enter and leave unseen only by cutting a corner (different nearest edges at the two ends)
             # or if its distance to the nearest edge turns around (the edge-distance rate changes sign)
-            sus = np.flatnonzero(out[:b[1]])
-            point_acc = acc + spin_acc * reach + spin * spin * reach
-            ea, ra = self._edge_and_rate(ya, self.candidates[sus])
-            eb, rb = self._edge_and_rate(yb, self.candidates[sus])
-            turn = (np.sign(ra) != np.sign(rb)) | (np.abs(ra) + np.abs(rb) <= point_acc * dt)
-            out[sus] = (ea != eb) | turn
+            out[:b[1]] &= self._corner_or_turn(np.vstack([ya, yb]), dt, acc, spin_acc, np.array([spin]))[0]
         G = self.spring_dirs
         da, db = G @ va, G @ vb
         norm = self.spring_gradient
@@ -356,28 +351,41 @@ class _Segment:
         small = a_abs + b_abs
         clear = (a_abs > self.noise) & (b_abs > self.noise)
         reach = self.model.spec.radius + 2 * self.buffer
-        margin = small[:, :b[1]] <= ((speed + spin * reach) * dt)[:, None]
+        margin = (small[:, :b[1]] <= ((speed + spin * reach) * dt)[:, None]) & clear[:, :b[1]]
+        if self.model.spec.convex and margin.any():
+            margin &= self._corner_or_turn(Y, dt, acc, spin_acc, spin)
         d = Y[:, 3:5] @ self.spring_dirs.T
         norm = self.spring_gradient
         turn = (np.sign(d[:-1]) != np.sign(d[1:])) | (np.abs(d[:-1]) + np.abs(d[1:]) <= norm * acc * dt)
         spring = turn & (small[:, b[1]:b[2]] <= norm * speed[:, None] * dt)
-        return (margin & clear[:, :b[1]]).any(axis=1) | (spring & clear[:, b[1]:b[2]]).any(axis=1)
+        return margin.any(axis=1) | (spring & clear[:, b[1]:b[2]]).any(axis=1)
 
-    def _edge_and_rate(self, y, points):
-        """For a convex footprint at state y: each point's nearest (most violated) edge and that edge distance's
-        rate of change (m/s), from the body-frame velocity of the point."""
-        x, yy, th, vx, vy, om = (float(v) for v in y)
-        c, s = np.cos(th), np.sin(th)
-        d = points - (x, yy)
-        bx, by = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
+    def _edges_and_rates(self, Y, points):
+        """For a convex footprint at states ``Y`` (k, 6): each point's nearest (most violated) edge and that edge
+        distance's rate of change (m/s), from the point's velocity relative to the parcel in the body frame;
+        arrays (k, len(points))."""
+        Y = np.atleast_2d(Y)
+        c, s = np.cos(Y[:, 2])[:, None], np.sin(Y[:, 2])[:, None]
+        dx = points[None, :, 0] - Y[:, 0:1]
+        dy = points[None, :, 1] - Y[:, 1:2]
+        bx, by = c * dx + s * dy, -s * dx + c * dy
         normals, offsets = self.model.spec.halfplanes
-        h = offsets - (bx[:, None] * normals[:, 0] + by[:, None] * normals[:, 1])
-        edge = np.argmin(h, axis=1)
-        # world velocity of the cell relative to the parcel point under it, then into the body frame
-        wx, wy = -(vx - om * d[:, 1]), -(vy + om * d[:, 0])
+        h = offsets - (bx[..., None] * normals[:, 0] + by[..., None] * normals[:, 1])
+        edge = np.argmin(h, axis=-1)
+        om = Y[:, 5:6]
+        wx, wy = -(Y[:, 3:4] - om * dy), -(Y[:, 4:5] + om * dx)  # cell velocity relative to the parcel point
         pbx, pby = c * wx + s * wy, -s * wx + c * wy
         n = normals[edge]
-        return edge, -(n[:, 0] * pbx + n[:, 1] * pby)
+        return edge, -(n[..., 0] * pbx + n[..., 1] * pby)
+
+    def _corner_or_turn(self, Y, dt, acc, spin_acc, spin) -> np.ndarray:
+        """(k-1, nc) for consecutive states: whether a candidate could enter and leave between them unseen by a
+        convex footprint: it cuts a corner (different nearest edges) or its edge distance's rate turns around."""
+        reach = self.model.spec.radius + 2 * self.buffer
+        edge, rate = self._edges_and_rates(Y, self.candidates)
+        point_acc = (acc + spin_acc * reach + spin * spin * reach)[:, None]
+        turn = (np.sign(rate[:-1]) != np.sign(rate[1:])) | (np.abs(rate[:-1]) + np.abs(rate[1:]) <= point_acc * dt)
+        return (edge[:-1] != edge[1:]) | turn
 
     def values_at(self, y, idx: np.ndarray) -> np.ndarray:
         """Only the event values at positions ``idx`` (sorted), for one state: the root finder's cheap path."""
@@ -412,14 +420,15 @@ _PROBE_MAX = 1e-6
 _SUBSAMPLES = 8
 """Points inside every step at which the event predicates are checked, so that two crossings in one long step are
 told apart (intervals where a crossing could hide between samples are refined further)."""
-_RATE_SAFETY = 1.5
-"""Margin on the acceleration bounds, which are taken from the samples of a step."""
+_RATE_SAFETY = 2.0
+"""Factor on the acceleration bounds, which are taken from the two ends of a step (smooth within a piece)."""
 _MIN_BRACKET = 1e-9
 """Shortest interval (s) the search for a hidden crossing bisects to: a graze shallower than speed x 1e-9 s / 2
 (about 1e-10 m at 0.2 m/s) is not resolved."""
 
 
-def _first_change(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float):
+def _first_change(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float, f_lo: np.ndarray,
+                  f_hi: np.ndarray):
     """The earliest bracket (t_a, t_b) in (t_lo, t_hi] across which the event predicate leaves ``g0``, with the
     components changed at t_b; None if there is none.
 
@@ -427,13 +436,14 @@ def _first_change(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float
     back (a cell grazing the footprint's edge) only if it could reach zero in that time
     (:meth:`_Segment.may_hide_crossing`); such intervals are bisected, earliest first, until the crossing is found
     or ruled out (down to ``_MIN_BRACKET`` seconds). A bracket is returned only once no other component could hide
-    an earlier crossing inside it.
+    an earlier crossing inside it. ``f_lo``, ``f_hi`` are the state derivatives at the step's ends (the solver's),
+    from which the acceleration bounds are taken with a safety factor.
     """
     ts = np.linspace(t_lo, t_hi, _SUBSAMPLES + 1)
     Y = dense(ts).T
     vals = seg.values(Y)
-    acc = np.array([seg.piece.rhs(t, y)[3:] for t, y in zip(ts, Y)])
-    bounds = (_RATE_SAFETY * float(np.max(np.hypot(acc[:, 0], acc[:, 1]))), _RATE_SAFETY * float(np.max(np.abs(acc[:, 2]))))
+    bounds = (_RATE_SAFETY * max(float(np.hypot(*f_lo[3:5])), float(np.hypot(*f_hi[3:5]))),
+              _RATE_SAFETY * max(abs(float(f_lo[5])), abs(float(f_hi[5]))))
     look = ((vals[1:] > 0) != g0).any(axis=1) | seg.may_hide_coarse(Y, vals, (t_hi - t_lo) / _SUBSAMPLES, *bounds)
     for j in np.flatnonzero(look):  # only intervals with a change or a possible hidden crossing
         found = _search(seg, dense, g0, bounds, ts[j], ts[j + 1], Y[j], Y[j + 1], vals[j], vals[j + 1])
@@ -586,13 +596,14 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         hit = False
         while solver.status == "running":
             t_prev = solver.t
+            f_prev = solver.f
             solver.step()
             if solver.status == "failed":
                 raise IntegrationError(f"integrator failed at t={solver.t:.9g} s")
             if solver.step_size:
                 h = solver.step_size
             dense = solver.dense_output()
-            found = _first_change(seg, dense, g0, t_prev, solver.t)
+            found = _first_change(seg, dense, g0, t_prev, solver.t, f_prev, solver.f)
             if found is not None:
                 t_ev = _locate(seg, dense, g0, *found)
                 due = rec.pending_until(t_ev)
