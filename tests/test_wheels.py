@@ -72,3 +72,17 @@ def test_scenario_option_and_its_limits():
     d["friction"]["law"] = "viscous"
     with pytest.raises(ScenarioError, match="array.wheels"):
         parse_scenario(d).build()
+
+
+def test_start_check_uses_the_contact_layer():
+    """A small parcel balanced on one cell centre rests on a lumped cell, but with separate wheels nothing is under
+    its centre of mass: the scenario must be rejected."""
+    from test_cli import base
+
+    d = base()
+    d["parcels"][0].update(length=0.12, width=0.12, x=0.1, y=0.1)
+    d["friction"]["law"] = "coulomb"
+    parse_scenario(d).build()
+    d["array"]["wheels"] = "separate"
+    with pytest.raises(ScenarioError, match="cannot rest"):
+        parse_scenario(d).build()

@@ -263,7 +263,7 @@ class Scenario(_Strict):
     parcels: Annotated[list[ParcelEntry], Field(min_length=1)]
 
     @model_validator(mode="after")
-    def _names_unique(self):
+    def _cross_field_rules(self):
         seen = set()
         for p in self.parcels:
             if p.name in seen:
@@ -301,7 +301,7 @@ class Scenario(_Strict):
             except ScenarioError as exc:
                 raise ScenarioError(f"{where}.{exc.field.rsplit('.', 1)[-1]}", exc.message) from None
             state = np.array([p.x, p.y, p.theta, p.vx, p.vy, p.omega], dtype=float)
-            _check_on_array(cells, spec, state, where, p.name)
+            _check_on_array(contacts, spec, state, where, p.name)
             specs.append(spec)
             states.append(state)
         polys = [s.world_polygon(st) for s, st in zip(specs, states)]
@@ -318,6 +318,7 @@ class Scenario(_Strict):
 
 
 def _check_on_array(cells, spec, state, where, name):
+    """The parcel must start over supports that can carry it (``cells``: the contact layer)."""
     from .contact import solve_support
 
     support = supporting_cells(spec, state, cells.positions, cells.tree)
