@@ -97,3 +97,18 @@ def test_static_friction_holds_what_kinetic_friction_would_not():
 def test_mu_static_is_validated():
     with pytest.raises(ScenarioError, match="mu_static"):
         parcel.rectangle(0.3, 0.2, 1.0, 0.5, mu_static=0.4)
+
+
+def test_a_run_split_into_ticks_is_the_same_run():
+    """Sticking with mu_static > mu must survive control-tick boundaries: integrating tick by tick (as the
+    co-simulation does, through with_velocities) gives the single run's trajectory."""
+    cells = layout.grid(10, 8, 0.1)
+    spec = parcel.rectangle(0.33, 0.27, 1.3, 0.3, mu_static=0.6)
+    V = fields.Inward((0.45, 0.35), 0.2).velocities(cells)
+    y0 = np.array([0.42, 0.33, 0.2, 0.0, 0.0, 0.0])
+    whole = integrate(ParcelModel(cells, spec, V, friction.StickSlipLaw(), G), y0, 0, 0.5, dt=1e-3, sample_dt=0.01)
+    base = ParcelModel(cells, spec, V, friction.StickSlipLaw(), G)
+    y = y0
+    for k in range(50):
+        y = integrate(base.with_velocities(V), y, k * 0.01, (k + 1) * 0.01, dt=1e-3, sample_dt=0.01).states[-1]
+    np.testing.assert_allclose(y, whole.states[-1], atol=1e-10)

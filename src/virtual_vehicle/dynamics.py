@@ -138,6 +138,10 @@ class ParcelModel:
         self._pieces: dict[tuple, Piece] = {}
         self._by_support: dict[tuple[int, ...], list[Piece]] = {}
         self._geometry = _GeometryCache()
+        self.contact_memory: dict = {"lam": {}, "stuck": {}}
+        """Stick-slip: each wheel's last impulse and whether it stuck, carried from one integrate call to the next
+        (shared with :meth:`with_velocities` copies), so a run split into control ticks is the same run. Use a
+        fresh model for an independent run."""
         self._line_dir = None
         if cells.is_line and cells.n > 1:
             self._line_dir = np.linalg.svd(cells.positions - cells.positions.mean(axis=0), full_matrices=False)[2][0]

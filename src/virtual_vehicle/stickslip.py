@@ -104,7 +104,7 @@ def run_stick_slip(model, y0, t0, t1, sample_times, progress, *, dt):
     minv = 1.0 / mass
     acc = {"wheel_work": 0.0, "friction_dissipation": 0.0, "step_dissipation": 0.0, "sweeps_max": 0,
            "unconverged_steps": 0}
-    memory = {"lam": {}, "stuck": {}}
+    memory = model.contact_memory  # persists across calls: a run split into control ticks stays one run
 
     def step(piece, t, y, h):
         J, w, N, keys = _contacts(model, piece, y)
