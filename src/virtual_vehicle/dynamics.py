@@ -416,8 +416,8 @@ class _Segment:
 _NOISE = 1e-11
 """Relative size below which an event value is treated as zero (rounding noise)."""
 _PROBE_FIRST = 1e-9
-"""First look-ahead (s) past a located event. Two events closer than this are taken as one; the error of doing so is
-of order (force jump / mass) x look-ahead^2, about 1e-18 m."""
+"""First look-ahead (s) past a located event, to read the new piece where no value is within rounding noise of zero.
+Two events closer than the look-ahead are taken as one (the integration itself restarts at the root)."""
 _PROBE_MAX = 1e-6
 """Longest time (s) past an event that the integrator looks ahead to see every value clear of rounding noise."""
 
@@ -468,11 +468,14 @@ def _search(seg, dense, g0, bounds, a, b, ya, yb, ga, gb):
             or _search(seg, dense, g0, bounds, m, b, ym, yb, gm, gb))
 
 
-def _locate(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float, changed: np.ndarray) -> float:
-    """A time just past the earliest event in (t_lo, t_hi], where the event predicate first differs from ``g0``.
+def _locate(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float, changed: np.ndarray):
+    """The earliest event in (t_lo, t_hi]: returns (restart, probe) times.
 
     The earliest crossing is the first zero of ``min_k s_k g_k(t)`` over the changed event functions, with ``s_k``
     the sign that makes each positive before its crossing; it is bracketed by the caller and found by Brent's method.
+    ``restart`` is just past that root: the integration continues from there with the new piece. ``probe`` is a
+    little later, where every event value is clear of rounding noise: the new piece and its event baseline are read
+    there, so that cells crossing together by symmetry all cross and no tie at the root decides the piece.
     """
     idx = np.flatnonzero(changed)
     sgn = np.where(g0[idx], 1.0, -1.0)
@@ -488,8 +491,6 @@ def _locate(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float, chan
         t_ev = t_hi
     else:
         t_ev = brentq(phi, t_lo, t_hi, xtol=xtol, rtol=4 * eps)
-    # Look just past the root until every event value is clear of rounding noise, so that the new piece is the one
-    # of the motion after the event (cells crossing together by symmetry all cross), not a tie at the event.
     step = _PROBE_FIRST
     t_star = min(t_hi, t_ev + xtol)
     first = None
@@ -499,9 +500,10 @@ def _locate(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float, chan
             if first is None:
                 first = t_star
             if np.all(np.abs(g) > seg.noise):
-                return t_star
+                return min(t_ev + xtol, t_star), t_star
         if t_star >= t_hi or t_star - t_ev > _PROBE_MAX:
-            return t_hi if first is None else first
+            probe = t_hi if first is None else first
+            return min(t_ev + xtol, probe), probe
         t_star = min(t_hi, t_ev + step)
         step *= 4
 
@@ -589,12 +591,13 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
         return Trajectory(*rec.arrays(), events, "tipped", t)
     status = "completed"
+    y_probe = y
     while True:
         segments += 1
         if segments > max_segments:
             raise IntegrationError(f"more than {max_segments} support changes: events accumulate near t={t:.9g} s")
-        seg = _Segment(model, piece, y)
-        g0 = seg.values(y) > 0
+        seg = _Segment(model, piece, y_probe)
+        g0 = seg.values(y_probe) > 0
         first = None if h is None else min(h, t1 - t)
         solver = DOP853(piece.rhs, t, y, t1, rtol=rtol, atol=atol, max_step=max_step, first_step=first)
         hit = False
@@ -609,11 +612,12 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             dense = solver.dense_output()
             found = _first_change(seg, dense, g0, t_prev, solver.t, f_prev, solver.f)
             if found is not None:
-                t_ev = _locate(seg, dense, g0, *found)
-                due = rec.pending_until(t_ev)
+                t_restart, t_probe = _locate(seg, dense, g0, *found)
+                due = rec.pending_until(t_restart)
                 if len(due):
                     rec.add(due, dense(due).T)
-                t, y = t_ev, dense(t_ev)
+                t, y = t_restart, dense(t_restart)
+                y_probe = dense(t_probe)
                 hit = True
                 break
             due = rec.pending_until(solver.t)
@@ -626,7 +630,7 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             t, y = solver.t, solver.y.copy()
             break
         try:
-            new = model.piece_at(y)
+            new = model.piece_at(y_probe)
         except TippingError as exc:
             events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
             status = "tipped"
