@@ -314,38 +314,16 @@ class _Segment:
         ], axis=1)
         return out if many else out[0]
 
-    def may_hide_crossing(self, ya, yb, ga, gb, dt, acc, spin_acc) -> np.ndarray:
-        """Which event values, of the same sign at two states ``dt`` seconds apart, could have crossed zero and come
-        back in between, given bounds on the parcel's acceleration (m/s^2) and angular acceleration (rad/s^2).
+    def may_hide_crossing(self, Y, vals, dt, acc, spin_acc) -> np.ndarray:
+        """For consecutive states ``Y`` (k+1, 6), ``dt`` seconds apart, with event values ``vals`` (k+1, n): which
+        values (k, n) could have crossed zero and come back between two samples without changing sign at them,
+        given bounds on the parcel's acceleration (m/s^2) and angular acceleration (rad/s^2).
 
-        A footprint margin changes no faster than a body point at the candidates' distance moves; a spring force is
-        affine in the centre of mass, so it can dip through zero only if its rate ``G . v`` changes sign, which needs
-        ``|G . v_a| + |G . v_b| <= |G| acc dt``. Hull slacks and the refresh distance are not searched (tipping shows
-        up as a lift-off; a late refresh is harmless)."""
-        va, vb = ya[3:5], yb[3:5]
-        speed = max(float(np.hypot(*va)), float(np.hypot(*vb))) + acc * dt / 2
-        spin = max(abs(float(ya[5])), abs(float(yb[5]))) + spin_acc * dt / 2
-        b = self.bounds
-        small = np.abs(ga) + np.abs(gb)
-        clear = (np.abs(ga) > self.noise) & (np.abs(gb) > self.noise)
-        out = np.zeros(b[-1], dtype=bool)
-        reach = self.model.spec.radius + 2 * self.buffer
-        out[:b[1]] = small[:b[1]] <= (speed + spin * reach) * dt
-        if self.model.spec.convex and out[:b[1]].any():
-            # a cell can enter and leave unseen only by cutting a corner (different nearest edges at the two ends)
-            # or if its distance to the nearest edge turns around (the edge-distance rate changes sign)
-            out[:b[1]] &= self._corner_or_turn(np.vstack([ya, yb]), dt, acc, spin_acc, np.array([spin]))[0]
-        G = self.spring_dirs
-        da, db = G @ va, G @ vb
-        norm = self.spring_gradient
-        may_turn = (np.sign(da) != np.sign(db)) | (np.abs(da) + np.abs(db) <= norm * acc * dt)
-        out[b[1]:b[2]] = may_turn & (small[b[1]:b[2]] <= norm * speed * dt)
-        return out & clear
-
-    def may_hide_coarse(self, Y, vals, dt, acc, spin_acc) -> np.ndarray:
-        """For consecutive samples ``Y`` (k+1, 6) with event values ``vals``: per interval (k,), whether any value
-        might hide a crossing by the speed and spring tests of :meth:`may_hide_crossing` (a superset of it, without
-        the corner test), all intervals at once."""
+        A footprint margin changes no faster than a body point at the candidates' distance moves, and for a convex
+        footprint a cell can slip in and out unseen only by cutting a corner or if its edge distance turns around; a
+        spring force is affine in the centre of mass, so it can dip through zero only if its rate ``G . v`` changes
+        sign, which needs ``|G . v_a| + |G . v_b| <= |G| acc dt``. Hull slacks and the refresh distance are not
+        searched (tipping shows up as a lift-off; a late refresh is harmless)."""
         speeds = np.hypot(Y[:, 3], Y[:, 4])
         spins = np.abs(Y[:, 5])
         speed = np.maximum(speeds[:-1], speeds[1:]) + acc * dt / 2
@@ -353,16 +331,16 @@ class _Segment:
         b = self.bounds
         a_abs, b_abs = np.abs(vals[:-1]), np.abs(vals[1:])
         small = a_abs + b_abs
-        clear = (a_abs > self.noise) & (b_abs > self.noise)
+        out = np.zeros(small.shape, dtype=bool)
         reach = self.model.spec.radius + 2 * self.buffer
-        margin = (small[:, :b[1]] <= ((speed + spin * reach) * dt)[:, None]) & clear[:, :b[1]]
-        if self.model.spec.convex and margin.any():
-            margin &= self._corner_or_turn(Y, dt, acc, spin_acc, spin)
+        out[:, :b[1]] = small[:, :b[1]] <= ((speed + spin * reach) * dt)[:, None]
+        if self.model.spec.convex and out[:, :b[1]].any():
+            out[:, :b[1]] &= self._corner_or_turn(Y, dt, acc, spin_acc, spin)
         d = Y[:, 3:5] @ self.spring_dirs.T
         norm = self.spring_gradient
         turn = (np.sign(d[:-1]) != np.sign(d[1:])) | (np.abs(d[:-1]) + np.abs(d[1:]) <= norm * acc * dt)
-        spring = turn & (small[:, b[1]:b[2]] <= norm * speed[:, None] * dt)
-        return margin.any(axis=1) | (spring & clear[:, b[1]:b[2]]).any(axis=1)
+        out[:, b[1]:b[2]] = turn & (small[:, b[1]:b[2]] <= norm * speed[:, None] * dt)
+        return out & (a_abs > self.noise) & (b_abs > self.noise)
 
     def _edges_and_rates(self, Y, points):
         """For a convex footprint at states ``Y`` (k, 6): each point's nearest (most violated) edge and that edge
@@ -448,7 +426,8 @@ def _first_change(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float
     vals = seg.values(Y)
     bounds = (_RATE_SAFETY * max(float(np.hypot(*f_lo[3:5])), float(np.hypot(*f_hi[3:5]))),
               _RATE_SAFETY * max(abs(float(f_lo[5])), abs(float(f_hi[5]))))
-    look = ((vals[1:] > 0) != g0).any(axis=1) | seg.may_hide_coarse(Y, vals, (t_hi - t_lo) / _SUBSAMPLES, *bounds)
+    dt = (t_hi - t_lo) / _SUBSAMPLES
+    look = ((vals[1:] > 0) != g0).any(axis=1) | seg.may_hide_crossing(Y, vals, dt, *bounds).any(axis=1)
     for j in np.flatnonzero(look):  # only intervals with a change or a possible hidden crossing
         found = _search(seg, dense, g0, bounds, ts[j], ts[j + 1], Y[j], Y[j + 1], vals[j], vals[j + 1])
         if found is not None:
@@ -458,7 +437,7 @@ def _first_change(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float
 
 def _search(seg, dense, g0, bounds, a, b, ya, yb, ga, gb):
     changed = (gb > 0) != g0
-    hidden = seg.may_hide_crossing(ya, yb, ga, gb, b - a, *bounds) & ~changed
+    hidden = seg.may_hide_crossing(np.vstack([ya, yb]), np.vstack([ga, gb]), b - a, *bounds)[0] & ~changed
     if not hidden.any() or b - a <= _MIN_BRACKET:
         return (a, b, changed) if changed.any() else None
     m = 0.5 * (a + b)
