@@ -112,3 +112,16 @@ def test_a_run_split_into_ticks_is_the_same_run():
     for k in range(50):
         y = integrate(base.with_velocities(V), y, k * 0.01, (k + 1) * 0.01, dt=1e-3, sample_dt=0.01).states[-1]
     np.testing.assert_allclose(y, whole.states[-1], atol=1e-10)
+
+
+def test_summary_reports_energy_and_solver_health():
+    from virtual_vehicle.scenario import load_scenario
+    from virtual_vehicle.sim import run
+
+    sc, _ = load_scenario("stick_slip_pickup")
+    p = run(sc.build()).summary()["parcels"][0]
+    e = p["energy_J"]
+    assert p["stick_slip_unconverged_steps"] == 0
+    np.testing.assert_allclose(e["kinetic_end"] - e["kinetic_start"],
+                               e["wheel_work"] - e["friction_dissipation"] - e["step_dissipation"], atol=1e-12)
+    np.testing.assert_allclose(e["kinetic_end"], 0.5 * 1.0 * 0.3**2, rtol=1e-9)  # riding at the wheel speed

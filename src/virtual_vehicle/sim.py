@@ -72,7 +72,8 @@ class RunResult:
                 "coulomb_sliding_assumption_violated_at_s": pr.sliding_violation[0] if pr.sliding_violation else None,
                 "coulomb_max_reversed_slip_m_per_s": pr.sliding_violation[1] if pr.sliding_violation else None,
                 "coulomb_sliding_checked": pr.sliding_checked and isinstance(self.setup.law, CoulombLaw),
-                **({"energy_J": {k: tr.stats[k] for k in _ENERGY}} if "wheel_work" in tr.stats else {}),
+                **({"energy_J": {k: tr.stats[k] for k in _ENERGY},
+                    "stick_slip_unconverged_steps": tr.stats["unconverged_steps"]} if "wheel_work" in tr.stats else {}),
             })
         simulated = sum(pr.trajectory.t_end for pr in self.parcels)
         return {
