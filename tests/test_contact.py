@@ -162,3 +162,19 @@ def test_centre_of_mass_near_a_hull_vertex(frac):
     np.testing.assert_allclose(N @ P, W * com, atol=1e-9 * W)
     np.testing.assert_allclose(N.sum(), W, rtol=1e-12)
     np.testing.assert_allclose(N, qp_reference(P, com, W), atol=2e-5 * W)
+
+
+def test_load_on_the_line_of_a_collinear_contact_set():
+    """Regression (found by the parcel-collision property test): the centre of mass 1e-13 m beyond a row of four
+    cells, two more cells behind it. The row carries the whole load and the plate tilts about it; the iteration used
+    to cycle because the row's own solution leaves a tilt free."""
+    from virtual_vehicle.contact import contact_set
+
+    basis = np.array([[1.0, -0.050000000000000266, -0.06666666666666665],
+                      [1.0, 0.04999999999999982, -0.06666666666666665],
+                      [1.0, -0.15000000000000013, 0.033333333333333215],
+                      [1.0, -0.050000000000000266, 0.033333333333333215],
+                      [1.0, 0.04999999999999982, 0.033333333333333215],
+                      [1.0, 0.1499999999999997, 0.033333333333333215]])
+    rhs = np.array([19.431085680226758, 1.123081983536839e-11, 0.6477028560094978])
+    assert contact_set(basis, rhs).tolist() == [False, False, True, True, True, True]

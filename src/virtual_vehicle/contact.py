@@ -190,6 +190,29 @@ def _finish(origin, local, xi, basis, r_lin, r_const, weight, h_normals, h_offse
                            h_normals, h_offsets, one_d, float(weight))
 
 
+def _tilt_clear(active: np.ndarray, inactive: np.ndarray, theta: np.ndarray, tie: float) -> bool:
+    """Whether a degenerate (collinear) contact set's solution ``theta`` can be moved along its null space, which
+    leaves the active springs unchanged, so that every inactive spring is slack (a load exactly on the line of the
+    contacts; otherwise rounding decides which side the plate tilts to)."""
+    _, sv, vt = np.linalg.svd(active, full_matrices=True)
+    rank = int(np.sum(sv > 1e-12 * max(sv.max(), 1e-300)))
+    null = vt[rank:]
+    if len(null) != 1:
+        return False
+    p = inactive @ theta
+    q = inactive @ null[0]
+    lo, hi = -np.inf, np.inf
+    for pk, qk in zip(p, q):
+        if abs(qk) <= 1e-15:
+            if pk > tie:
+                return False
+        elif qk > 0:
+            hi = min(hi, (tie - pk) / qk)
+        else:
+            lo = max(lo, (tie - pk) / qk)
+    return lo <= hi
+
+
 def contact_set(basis: np.ndarray, rhs: np.ndarray, max_iter: int = 200) -> np.ndarray:
     """Contact set of tensionless springs: minimise ``phi(theta) = 1/2 sum max(0, B_i theta)^2 - rhs . theta``.
 
@@ -228,6 +251,8 @@ def contact_set(basis: np.ndarray, rhs: np.ndarray, max_iter: int = 200) -> np.n
         exact = np.max(np.abs(residual(act, full))) <= res_tol
         if exact and np.all(p_full[act] > -tie) and np.all(p_full[~act] <= tie):
             return act
+        if exact and np.all(p_full[act] > -tie) and _tilt_clear(basis[act], basis[~act], full, tie):
+            return act  # a collinear contact set carrying the load on its line: the plate tilts about it
         key = act.tobytes()
         if exact and key not in seen:
             seen.add(key)
