@@ -223,9 +223,10 @@ class ParcelModel:
 class Event:
     """Something that changed the dynamics of one parcel.
 
-    ``kind`` is ``"support"`` (cells entered / left the footprint, lifted off / touched down) or ``"tip"`` (the
-    parcel's centre of mass left its supports; the parcel falls off the array and is no longer simulated).
-    Times in s, state as ``[x, y, theta, vx, vy, omega]``.
+    ``kind`` is ``"support"`` (cells entered / left the footprint, lifted off / touched down), ``"tip"`` (the
+    parcel's centre of mass left its supports; the parcel falls off the array and is no longer simulated), or, in
+    multi-parcel runs (:mod:`virtual_vehicle.plant`), ``"contact"`` / ``"release"`` (it started / stopped pushing
+    against the parcel named ``partner``). Times in s, state as ``[x, y, theta, vx, vy, omega]``.
     """
 
     t: float
@@ -236,6 +237,7 @@ class Event:
     lifted: tuple[int, ...] = ()
     touched: tuple[int, ...] = ()
     message: str = ""
+    partner: str = ""
 
 
 @dataclass
@@ -489,7 +491,7 @@ def _locate(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float, chan
 
 def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "event", rtol: float = 1e-10,
               atol: float = 1e-12, max_step: float = np.inf, dt: float = 1e-3, sample_dt: float | None = None,
-              progress: Callable[[float], None] | None = None, max_segments: int = 1_000_000) -> Trajectory:
+              sample_times: np.ndarray | None = None, progress: Callable[[float], None] | None = None, max_segments: int = 1_000_000) -> Trajectory:
     """Integrate one parcel from state ``y0`` at ``t0`` to ``t1`` (s).
 
     Args:
@@ -500,6 +502,7 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
         max_step: largest step of the adaptive integrator, s.
         sample_dt: spacing of the output samples, s (default: 100 samples over the run). Event mode samples the
             integrator's dense output; fixed mode interpolates linearly between its steps.
+        sample_times: explicit increasing output times (s) within [t0, t1] instead of ``sample_dt``.
         progress: called with the simulated time now and then.
 
     Returns:
@@ -510,14 +513,16 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
         raise ValueError("y0 must be six finite numbers [x, y, theta, vx, vy, omega]")
     if not t1 > t0:
         raise ValueError(f"t1 must be after t0, got t0={t0}, t1={t1}")
-    if sample_dt is None:
-        sample_dt = (t1 - t0) / 100
-    if not sample_dt > 0:
-        raise ValueError("sample_dt must be positive")
-    n_samples = int(np.floor((t1 - t0) / sample_dt * (1 + 1e-12))) + 1
-    sample_times = t0 + sample_dt * np.arange(n_samples)
-    if sample_times[-1] < t1 - 1e-12 * max(1.0, abs(t1)):
-        sample_times = np.append(sample_times, t1)
+    if sample_times is not None:
+        sample_times = np.asarray(sample_times, dtype=float)
+        if np.any(np.diff(sample_times) <= 0) or sample_times[0] < t0 or sample_times[-1] > t1:
+            raise ValueError("sample_times must increase within [t0, t1]")
+    else:
+        if sample_dt is None:
+            sample_dt = (t1 - t0) / 100
+        if not sample_dt > 0:
+            raise ValueError("sample_dt must be positive")
+        sample_times = sample_grid(t0, t1, sample_dt)
     runners = {"event": _run_event, "fixed": _run_fixed}
     if mode not in runners:
         raise ValueError(f"mode must be 'event' or 'fixed', got {mode!r}")
@@ -528,6 +533,15 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
     run = runners[mode]
     kwargs = dict(rtol=rtol, atol=atol, max_step=max_step) if mode == "event" else dict(dt=dt)
     return run(model, y0, t0, t1, sample_times, progress, max_segments, **kwargs)
+
+
+def sample_grid(t0: float, t1: float, sample_dt: float) -> np.ndarray:
+    """Output sample times (s): ``t0, t0 + sample_dt, ...`` up to ``t1``, and ``t1`` itself."""
+    n_samples = int(np.floor((t1 - t0) / sample_dt * (1 + 1e-12))) + 1
+    times = t0 + sample_dt * np.arange(n_samples)
+    if times[-1] < t1 - 1e-12 * max(1.0, abs(t1)):
+        times = np.append(times, t1)
+    return times
 
 
 class _Recorder:
@@ -618,6 +632,8 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         if ev is not None:
             events.append(ev)
         piece = new
+        if t >= t1:  # the event's restart point is the end of the interval
+            break
     rec.final(t, y)
     return Trajectory(*rec.arrays(), events, status, t, segments, nfev,
                       {"pieces_cached": model.pieces_cached, "solves": model.solves})

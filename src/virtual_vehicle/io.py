@@ -5,8 +5,8 @@ leaves a half-written file under a final name.
 
 Columns:
 - ``trajectories.csv``: parcel, t (s), x, y (m), theta (rad), vx, vy (m/s), omega (rad/s), one row per sample.
-- ``events.csv``: parcel, t (s), kind (support | tip), entered, left, lifted, touched (cell ids separated by
-  spaces), the state at the event (as above), message.
+- ``events.csv``: parcel, t (s), kind (support | tip | contact | release), entered, left, lifted, touched (cell
+  ids separated by spaces), partner (the other parcel of a contact), the state at the event (as above), message.
 - ``network.csv`` (networked runs): per control tick, t (s), sentences sent / received, bytes sent / received,
   lost, corrupted, undetected, dropped, unaddressed, latency_mean and latency_max (s; empty when nothing arrived).
 - ``cell_traffic.csv`` (networked runs): per cell, cell id, x, y (m), sentences and bytes sent and received.
@@ -65,12 +65,13 @@ def _ids(ids) -> str:
 def events_csv(result: RunResult) -> str:
     buf = _io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(("parcel", "t", "kind", "entered", "left", "lifted", "touched", *STATE_FIELDS, "message"))
+    w.writerow(("parcel", "t", "kind", "entered", "left", "lifted", "touched", "partner", *STATE_FIELDS,
+                "message"))
     for pr in result.parcels:
         e: Event
         for e in pr.trajectory.events:
             w.writerow((pr.spec.name, repr(e.t), e.kind, _ids(e.entered), _ids(e.left), _ids(e.lifted),
-                        _ids(e.touched), *(repr(v) for v in e.state), e.message))
+                        _ids(e.touched), e.partner, *(repr(v) for v in e.state), e.message))
     return buf.getvalue()
 
 

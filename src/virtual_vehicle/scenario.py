@@ -126,6 +126,26 @@ class IntegratorSpec(_Strict):
     dt: Pos = 1e-3
 
 
+class ContactSpec(_Strict):
+    """How parcels touch each other (see :class:`~virtual_vehicle.collide.ContactParams`): ``mu`` side-to-side
+    Coulomb friction (dimensionless), ``margin`` (m) gap within which a contact is considered, ``slop`` (m) overlap
+    tolerated before it is pushed back, ``window`` (s) longest plant window while parcels could meet,
+    ``min_window`` (s): parcels that could meet within it are stepped together at ``integrator.dt``. Contacts are
+    inelastic (no bounce)."""
+
+    mu: Annotated[float, Field(ge=0, le=10)] = 0.3
+    margin: Annotated[float, Field(gt=0, le=1)] = 1e-3
+    slop: Annotated[float, Field(ge=0, le=0.1)] = 1e-4
+    window: Annotated[float, Field(gt=0, le=1e4)] = 1.0
+    min_window: Annotated[float, Field(gt=0, le=100)] = 0.02
+
+    def params(self):
+        from .collide import ContactParams
+
+        return ContactParams(mu=self.mu, margin=self.margin, slop=self.slop, window=self.window,
+                             min_window=self.min_window)
+
+
 class WireSpec(_Strict):
     """Wire-level network hardware (see :class:`~virtual_vehicle.network.wire.WireParams`): ``baud`` (bits/s),
     ``poll_time``, ``select_time``, ``cts_timeout``, ``backoff_max`` (s), ``max_attempts``, ``queue_limit``,
@@ -258,6 +278,7 @@ class Scenario(_Strict):
     control: ControlSpec | None = None
     friction: FrictionSpec = FrictionSpec()
     integrator: IntegratorSpec = IntegratorSpec()
+    contacts: ContactSpec = ContactSpec()
     sensors: SensorSpec = SensorSpec()
     wheels: WheelSpec = WheelSpec()
     parcels: Annotated[list[ParcelEntry], Field(min_length=1)]
@@ -274,6 +295,9 @@ class Scenario(_Strict):
                              "not both or neither")
         if self.output_dt is not None and self.output_dt > self.duration:
             raise ValueError(f"output_dt ({self.output_dt} s) is longer than duration ({self.duration} s)")
+        if self.contacts.slop >= self.contacts.margin:
+            raise ValueError(f"contacts.slop ({self.contacts.slop} m) must be below contacts.margin "
+                             f"({self.contacts.margin} m)")
         return self
 
     def build(self) -> "Setup":
@@ -426,6 +450,16 @@ class Setup:
     control: ControlSetup | None = None
     sensors: object = None
     contacts: layout.CellArray | None = None
+
+    def plant(self):
+        """A fresh :class:`~virtual_vehicle.plant.Plant` for this scenario's parcels on its contact layer."""
+        from .plant import Integration, Plant
+
+        sc = self.scenario
+        integ = sc.integrator
+        return Plant(self.contact_layer, self.specs, self.law, sc.gravity,
+                     Integration(integ.mode, integ.rtol, integ.atol, integ.max_step or np.inf, integ.dt),
+                     sc.contacts.params())
 
     @property
     def contact_layer(self) -> layout.CellArray:

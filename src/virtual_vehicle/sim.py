@@ -1,7 +1,8 @@
 """The Simulator: runs a validated scenario and records what happened to every parcel.
 
-Units: SI. For this release the wheel velocities are constant over a run (the paper's Section 4 assumption) and
-parcels do not touch each other, so each parcel is integrated on its own over the whole duration.
+Units: SI. A constant field is run as one plant interval; a networked run advances the plant one control tick at
+a time. The plant (:mod:`virtual_vehicle.plant`) integrates each parcel on its own while it cannot meet another and
+resolves contact between parcels when it can.
 """
 
 from __future__ import annotations
@@ -13,7 +14,8 @@ from typing import Callable
 import numpy as np
 
 from . import __version__
-from .dynamics import ParcelModel, Trajectory, integrate
+from .dynamics import Trajectory
+from .plant import join
 from .friction import CoulombLaw
 from .network.messages import Mailbox
 from .hardware import WheelDrives
@@ -22,7 +24,7 @@ from .parcel import ParcelSpec, supporting_cells
 from .scenario import Setup
 
 
-_ENERGY = ("kinetic_start", "kinetic_end", "wheel_work", "friction_dissipation", "step_dissipation")
+_ENERGY = ("kinetic_start", "kinetic_end", "wheel_work", "friction_dissipation", "step_dissipation", "contact_work")
 
 
 @dataclass
@@ -67,6 +69,7 @@ class RunResult:
                 "path_length_m": float(np.sum(np.hypot(path[:, 0], path[:, 1]))) if len(path) else 0.0,
                 "support_changes": sum(1 for e in tr.events if e.kind == "support"),
                 "tipped_at_s": next((e.t for e in tr.events if e.kind == "tip"), None),
+                "contacts_with_parcels": sum(1 for e in tr.events if e.kind == "contact"),
                 "segments": tr.segments,
                 "rhs_evaluations": tr.rhs_evals,
                 "coulomb_sliding_assumption_violated_at_s": pr.sliding_violation[0] if pr.sliding_violation else None,
@@ -121,22 +124,29 @@ def run(setup: Setup, progress: Callable[[float], None] | None = None) -> RunRes
     if setup.control is not None:
         return run_network(setup, progress)
     sc = setup.scenario
-    integ = sc.integrator
     t_end = sc.duration
     sample_dt = sc.output_dt or t_end / 500
     start = time.perf_counter()
+    plant = setup.plant()
+    ys = [y.copy() for y in setup.states]
+    active = [True] * len(ys)
+    report = None if progress is None else (lambda t: progress(t / t_end))
+    trajs = plant.advance(ys, active, setup.contact_velocities, 0.0, t_end, sample_dt, report)
     results = []
-    n = len(setup.specs)
-    for i, (spec, y0) in enumerate(zip(setup.specs, setup.states)):
-        model = ParcelModel(setup.contact_layer, spec, setup.contact_velocities, setup.law, sc.gravity)
-        report = None if progress is None else (lambda t, i=i: progress((i + t / t_end) / n))
-        traj = integrate(model, y0, 0.0, t_end, mode=integ.mode, rtol=integ.rtol, atol=integ.atol,
-                         max_step=integ.max_step or np.inf, dt=integ.dt, sample_dt=sample_dt, progress=report)
+    for spec, traj in zip(setup.specs, trajs):
         check = coulomb_sliding_check(setup, spec, traj) if isinstance(setup.law, CoulombLaw) else None
         results.append(ParcelResult(spec, traj, check))
     if progress is not None:
         progress(1.0)
-    return RunResult(setup, results, time.perf_counter() - start)
+    return RunResult(setup, results, time.perf_counter() - start, {"plant": plant_totals(plant)})
+
+
+def plant_totals(plant) -> dict:
+    """The plant's run-level record, JSON-ready."""
+    rec = plant.record
+    return {"parcel_contacts": rec.parcel_contacts, "max_penetration_m": rec.max_penetration_m,
+            "undetected_overlaps": rec.undetected_overlaps, "grouped_steps": rec.grouped_steps,
+            "unconverged_contact_steps": rec.unconverged_contact_steps, "windows": rec.windows}
 
 
 @dataclass
@@ -216,7 +226,6 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -
     period = ctl.period
     ticks = int(np.ceil(sc.duration / period - 1e-9))
     sample_dt = min(sc.output_dt or sc.duration / 500, period)
-    integ = sc.integrator
     start = time.perf_counter()
     state = ctl.program.init(n, P, ctl.config)
     inbox = Mailbox.empty(ctl.program.schema, n, P)
@@ -225,7 +234,7 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -
     drives = WheelDrives(n, sc.wheels.motor()) if sc.wheels.model == "motor" else None
     ys = [y.copy() for y in setup.states]
     active = [True] * len(ys)
-    base = [ParcelModel(cells, spec, np.zeros((n, 2)), setup.law, sc.gravity) for spec in setup.specs]
+    plant = setup.plant()
     parts: list[list[Trajectory]] = [[] for _ in ys]
     keys = ("sent", "received", "bytes_sent", "bytes_received")
     per_tick = {k: np.zeros(ticks, dtype=np.int64) for k in (*keys, *_FAULTS)}
@@ -246,7 +255,7 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -
         if drives is None:
             wheels = command
         else:
-            load = wheel_loads(setup, base, ys, active, drives.speed)
+            load = wheel_loads(setup, plant.base, ys, active, drives.speed)
             wheels = drives.step(command, load, period)
         velocities = wheels[:, 0:1] * dirs[:, 0] + wheels[:, 1:2] * dirs[:, 1]
         if sc.sensors.record:
@@ -261,33 +270,17 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -
             per_tick["latency_mean"][k] = stats.latencies.mean()
             per_tick["latency_max"][k] = stats.latencies.max()
             latencies.append(stats.latencies)
-        for i, model in enumerate(base):
-            if not active[i] or t1 <= t0:
-                continue
-            tr = integrate(model.with_velocities(velocities), ys[i], t0, t1, mode=integ.mode, rtol=integ.rtol,
-                           atol=integ.atol, max_step=integ.max_step or np.inf, dt=integ.dt, sample_dt=sample_dt)
-            parts[i].append(tr)
-            ys[i] = tr.states[-1].copy()
-            if tr.status == "tipped":
-                active[i] = False
+        if t1 > t0:
+            for i, tr in enumerate(plant.advance(ys, active, velocities, t0, t1, sample_dt)):
+                if tr is not None:
+                    parts[i].append(tr)
         if progress is not None:
             progress((k + 1) / ticks)
     results = []
     for spec, segs in zip(setup.specs, parts):
-        results.append(ParcelResult(spec, _join(segs), sliding_checked=False))
+        results.append(ParcelResult(spec, join(segs), sliding_checked=False))
     record = NetworkRecord(ctl.delivery_name, period, per_tick, per_cell,
                            np.concatenate(latencies) if latencies else np.zeros(0))
-    return RunResult(setup, results, time.perf_counter() - start, {"network": record.totals()}, record,
+    return RunResult(setup, results, time.perf_counter() - start,
+                     {"network": record.totals(), "plant": plant_totals(plant)}, record,
                      sensor_log if sc.sensors.record else None)
-
-
-def _join(segs: list[Trajectory]) -> Trajectory:
-    """One trajectory from consecutive per-tick pieces (the shared tick instants appear once)."""
-    times, states, events = [segs[0].times], [segs[0].states], list(segs[0].events)
-    for s in segs[1:]:
-        times.append(s.times[1:])
-        states.append(s.states[1:])
-        events.extend(s.events)
-    last = segs[-1]
-    return Trajectory(np.concatenate(times), np.concatenate(states), events, last.status, last.t_end,
-                      sum(s.segments for s in segs), sum(s.rhs_evals for s in segs), dict(last.stats))

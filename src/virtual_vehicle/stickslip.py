@@ -51,6 +51,45 @@ def _contacts(model, piece, y):
     return np.vstack(rows), np.concatenate(speeds), np.concatenate(normals), keys
 
 
+def masses(spec) -> np.ndarray:
+    """(3,) generalised masses of a parcel: kg, kg, kg m^2."""
+    return np.array([spec.mass, spec.mass, spec.inertia])
+
+
+def wheel_problem(model, piece, y, h):
+    """One step's wheel rows for ``model``'s parcel at state ``y``: Jacobians (m, 3), wheel speeds (m,) m/s, impulse
+    bounds ``mu N h`` (m,) N s with the static coefficient for wheels that stuck in the previous step, warm start
+    (m,), and the wheels' keys (cell, wheel)."""
+    spec = model.spec
+    mu_s = spec.mu_static if spec.mu_static is not None else spec.mu
+    J, w, N, keys = _contacts(model, piece, y)
+    memory = model.contact_memory  # persists across calls: a run split into control ticks stays one run
+    stuck = memory["stuck"]
+    bounds = np.array([mu_s if stuck.get(key, False) else spec.mu for key in keys]) * N * h
+    lam0 = np.array([memory["lam"].get(key, 0.0) for key in keys])
+    return J, w, bounds, lam0, keys
+
+
+def remember(model, keys, lam, bounds) -> None:
+    """Store each wheel's impulse and whether it stuck (interior of its bound) for the next step."""
+    model.contact_memory["stuck"] = dict(zip(keys, (np.abs(lam) < bounds * (1 - 1e-9)).tolist()))
+    model.contact_memory["lam"] = dict(zip(keys, lam.tolist()))
+
+
+def new_account() -> dict:
+    """An empty energy account (J) and solver record for one parcel."""
+    return {"wheel_work": 0.0, "friction_dissipation": 0.0, "step_dissipation": 0.0, "contact_work": 0.0,
+            "sweeps_max": 0, "unconverged_steps": 0}
+
+
+def account(acc: dict, lam, slip, w, dnu, mass) -> None:
+    """Add one step's energy flows: the wheels' work ``lam . w``, friction dissipation ``-lam . slip`` (>= 0) and
+    the step's own dissipation ``1/2 |dnu|_M^2`` (>= 0)."""
+    acc["wheel_work"] += float(lam @ w)
+    acc["friction_dissipation"] += float(-(lam @ slip))
+    acc["step_dissipation"] += 0.5 * float(mass @ dnu ** 2)
+
+
 def solve_contacts(J, w, bounds, nu, minv, lam0, max_sweeps: int, tol: float):
     """Projected Gauss-Seidel for the box LCP of one step. Returns (lam, nu_plus, sweeps, converged).
 
@@ -97,30 +136,18 @@ def run_stick_slip(model, y0, t0, t1, sample_times, progress, *, dt):
     from .dynamics import Trajectory, _fixed_steps
 
     law = model.law
-    spec = model.spec
-    mu_k = spec.mu
-    mu_s = spec.mu_static if spec.mu_static is not None else spec.mu
-    mass = np.array([spec.mass, spec.mass, spec.inertia])
+    mass = masses(model.spec)
     minv = 1.0 / mass
-    acc = {"wheel_work": 0.0, "friction_dissipation": 0.0, "step_dissipation": 0.0, "sweeps_max": 0,
-           "unconverged_steps": 0}
-    memory = model.contact_memory  # persists across calls: a run split into control ticks stays one run
+    acc = new_account()
 
     def step(piece, t, y, h):
-        J, w, N, keys = _contacts(model, piece, y)
-        stuck = memory["stuck"]
-        bounds = np.array([mu_s if stuck.get(key, False) else mu_k for key in keys]) * N * h
-        lam0 = np.array([memory["lam"].get(key, 0.0) for key in keys])
+        J, w, bounds, lam0, keys = wheel_problem(model, piece, y, h)
         nu = y[3:]
         lam, nu_p, sweeps, ok = solve_contacts(J, w, bounds, nu, minv, lam0, law.max_sweeps, law.tolerance)
         acc["sweeps_max"] = max(acc["sweeps_max"], sweeps)
         acc["unconverged_steps"] += not ok
-        slip = J @ nu_p - w
-        acc["wheel_work"] += float(lam @ w)
-        acc["friction_dissipation"] += float(-(lam @ slip))
-        acc["step_dissipation"] += 0.5 * float(mass @ (nu_p - nu) ** 2)
-        memory["stuck"] = dict(zip(keys, (np.abs(lam) < bounds * (1 - 1e-9)).tolist()))  # interior: sticking
-        memory["lam"] = dict(zip(keys, lam.tolist()))
+        account(acc, lam, J @ nu_p - w, w, nu_p - nu, mass)
+        remember(model, keys, lam, bounds)
         return np.concatenate([y[:3] + h * nu_p, nu_p])  # semi-implicit Euler
 
     times, states, events, status, t, steps = _fixed_steps(model, y0, t0, t1, dt, sample_times, progress, step)

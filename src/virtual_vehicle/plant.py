@@ -1,0 +1,415 @@
+"""The multi-parcel plant: every parcel on the array, and parcels pushing parcels.
+
+Units: SI (m, s, kg, N, N s, J).
+
+:meth:`Plant.advance` moves all parcels from ``t0`` to ``t1`` under constant wheel velocities. Time is cut into
+windows. In each window a parcel that cannot come within ``margin`` of any other (a rigorous bound on how far any
+point of it can move, :func:`~virtual_vehicle.collide.point_reach`) is integrated on its own by the single-parcel
+engine (:func:`~virtual_vehicle.dynamics.integrate`: event-driven, fixed-step or stick-slip, as configured), so a run
+whose parcels never meet is exactly the run without this module. Parcels that might meet are grouped (connected
+components) and time-stepped together at ``dt`` with the contact problem of :mod:`virtual_vehicle.collide` (for the
+stick-slip law the wheels' rows join the same complementarity problem; for the Coulomb and viscous laws the wheels
+give each parcel its free velocity ``nu + h a``, paper eqs. 23/29 per support set).
+
+Events of a grouped parcel (support changes, tipping) are logged at the end of the step in which they happened, as in
+fixed-step mode; contacts add ``"contact"`` (two parcels started pushing each other) and ``"release"`` events.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Callable
+
+import numpy as np
+import shapely
+from scipy.optimize import brentq
+from scipy.spatial import cKDTree
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse import coo_matrix
+
+from .collide import ContactParams, Rows, place, overlap_area, pair_contacts, point_reach, push_gain, solve_rows
+from .dynamics import Event, ParcelModel, Trajectory, _diff_event, _sampled, integrate, sample_grid
+from .errors import TippingError
+from .friction import FrictionLaw, StickSlipLaw, ViscousLaw
+from .layout import CellArray
+from .parcel import ParcelSpec
+from .stickslip import account, masses, new_account, remember, wheel_problem
+
+_ADDITIVE = ("wheel_work", "friction_dissipation", "step_dissipation", "contact_work", "unconverged_steps")
+
+
+@dataclass(frozen=True)
+class Integration:
+    """How single parcels are integrated (see :func:`~virtual_vehicle.dynamics.integrate`) and the step ``dt`` (s)
+    of fixed-step, stick-slip and grouped parcels."""
+
+    mode: str = "event"
+    rtol: float = 1e-10
+    atol: float = 1e-12
+    max_step: float = np.inf
+    dt: float = 1e-3
+
+
+@dataclass
+class PlantRecord:
+    """What the plant counted over a run: ``parcel_contacts`` (pairs that started pushing each other),
+    ``max_penetration_m`` (deepest overlap between two parcels seen at a step, m), ``undetected_overlaps``
+    (window ends where two separately integrated parcels overlapped: must stay 0), ``grouped_steps`` (time steps
+    taken by groups of parcels in contact range), ``unconverged_contact_steps`` (steps whose contact problem did not
+    reach its tolerance within ``max_sweeps``), ``windows``."""
+
+    parcel_contacts: int = 0
+    max_penetration_m: float = 0.0
+    undetected_overlaps: int = 0
+    grouped_steps: int = 0
+    unconverged_contact_steps: int = 0
+    windows: int = 0
+    contacts_per_parcel: list[int] = field(default_factory=list)
+
+
+class Plant:
+    """All parcels of a run on one contact layer (cells, or one contact per wheel).
+
+    Args:
+        cells: the contact layer.
+        specs: the parcels.
+        law: the friction law.
+        gravity: m/s^2.
+        integration: single-parcel integrator settings and the time step of grouped parcels.
+        contact: how parcels touch each other.
+    """
+
+    def __init__(self, cells: CellArray, specs: list[ParcelSpec], law: FrictionLaw, gravity: float = 9.81,
+                 integration: Integration = Integration(), contact: ContactParams = ContactParams()):
+        self.cells = cells
+        self.specs = list(specs)
+        self.law = law
+        self.gravity = gravity
+        self.integration = integration
+        self.contact = contact
+        self.base = [ParcelModel(cells, spec, np.zeros((cells.n, 2)), law, gravity) for spec in specs]
+        self.record = PlantRecord(contacts_per_parcel=[0] * len(specs))
+        self._touching: set[tuple[int, int]] = set()
+        self._warm: dict[tuple[int, int, int], tuple[float, float]] = {}
+        self._velocities: np.ndarray | None = None
+        self._models: list[ParcelModel] = self.base
+        self._law_name = "viscous" if isinstance(law, ViscousLaw) else "coulomb"
+        self._mu_max = [max(s.mu, s.mu_static or 0.0) for s in specs]
+        self._gain = [push_gain(s) for s in specs]
+        self._radius = np.array([s.radius for s in specs])
+
+    def models(self, velocities: np.ndarray) -> list[ParcelModel]:
+        """The parcels' models under contact-layer velocities ``velocities`` (m/s), sharing solved geometry."""
+        if self._velocities is None or not np.array_equal(velocities, self._velocities):
+            self._velocities = np.array(velocities, dtype=float)
+            self._models = [m.with_velocities(self._velocities) for m in self.base]
+        return self._models
+
+    # -- planning ----------------------------------------------------------------------------------------------
+    def _reach(self, i, y, T, wmax, floor=0.0):
+        return point_reach(self.specs[i], y, T, law=self._law_name, mu_max=self._mu_max[i], gravity=self.gravity,
+                           wheel_speed=wmax, speed_floor=floor)
+
+    def _meet_time(self, i, j, ys, gap, H, wmax, floor) -> float:
+        """Earliest time (s, at most H; inf if later) at which parcels i and j could close ``gap`` (m)."""
+        if gap <= 0:
+            return 0.0
+
+        def closing(T):
+            return self._reach(i, ys[i], T, wmax, floor[i])[0] + self._reach(j, ys[j], T, wmax, floor[j])[0] - gap
+
+        if closing(H) < 0:
+            return np.inf
+        return float(brentq(closing, 0.0, H, xtol=1e-9))
+
+    def plan(self, ys, active, velocities, t: float, t1: float) -> tuple[float, list[list[int]]]:
+        """The next window's length (s) and the groups of parcels to step together in it.
+
+        No parcel can come within ``margin`` of a parcel outside its group before the window ends (bounds of
+        :func:`~virtual_vehicle.collide.point_reach`). Pairs that could meet within ``min_window`` are grouped; the
+        window then lasts until the first moment any other pair could meet, at most ``window`` s (or, when no two
+        parcels can meet before ``t1``, all the way to ``t1``).
+        """
+        live = [i for i, on in enumerate(active) if on]
+        horizon = t1 - t
+        if len(live) < 2:
+            return horizon, []
+        cp = self.contact
+        wmax = float(np.max(np.hypot(velocities[:, 0], velocities[:, 1]))) if len(velocities) else 0.0
+        centres = np.array([ys[i][:2] for i in live])
+        tree = cKDTree(centres)
+        radius = self._radius[live]
+
+        def candidates(T, floor):
+            reach = np.array([self._reach(i, ys[i], T, wmax, floor[i])[0] for i in live])
+            ext = radius + reach
+            pairs = tree.query_pairs(2 * float(ext.max()) + cp.margin, output_type="ndarray")
+            if not len(pairs):
+                return pairs, np.zeros(0)
+            d = np.linalg.norm(centres[pairs[:, 0]] - centres[pairs[:, 1]], axis=1)
+            pairs = pairs[d < ext[pairs[:, 0]] + ext[pairs[:, 1]] + cp.margin]
+            if not len(pairs):
+                return pairs, np.zeros(0)
+            gaps = shapely.distance(outlines()[pairs[:, 0]], outlines()[pairs[:, 1]]) - cp.margin
+            keep = gaps < reach[pairs[:, 0]] + reach[pairs[:, 1]]
+            return pairs[keep], gaps[keep]
+
+        shapes = []
+
+        def outlines():  # the footprints where they are, made once per plan and only when needed
+            if not shapes:
+                shapes.append(np.array([shapely.Polygon(place(self.specs[i].footprint, ys[i])) for i in live]))
+            return shapes[0]
+
+        floor = np.zeros(len(self.specs))
+        if not len(candidates(horizon, floor)[0]):
+            return horizon, []
+        H = min(horizon, cp.window)
+        own = np.zeros(len(self.specs))  # fastest point speed each parcel's wheels alone can give it within H
+        for i in live:
+            own[i] = self._reach(i, ys[i], H, wmax)[1]
+        labels = np.arange(len(live))
+        for _ in range(len(live)):  # components only grow, so this ends
+            pairs, gaps = candidates(H, floor)
+            T = np.array([self._meet_time(live[a], live[b], ys, g, H, wmax, floor) for (a, b), g in zip(pairs, gaps)])
+            close = pairs[T < min(cp.min_window, H)] if len(pairs) else pairs
+            graph = coo_matrix((np.ones(len(close)), (close[:, 0], close[:, 1])) if len(close) else ([], ([], [])),
+                               shape=(len(live), len(live)))
+            new = connected_components(graph, directed=False)[1]
+            if np.array_equal(new, labels):
+                break
+            labels = new
+            # A push can make a parcel's points faster than the pusher's: each member of a group may reach its
+            # gain times the fastest speed any member's wheels can give.
+            fastest = np.zeros(new.max() + 1)
+            np.maximum.at(fastest, new, own[live])
+            sizes = np.bincount(new)
+            for k, i in enumerate(live):
+                floor[i] = self._gain[i] * fastest[new[k]] if sizes[new[k]] > 1 else 0.0
+        across = T[labels[pairs[:, 0]] != labels[pairs[:, 1]]] if len(pairs) else T
+        W = float(min(H, across.min())) if len(across) else H
+        out: dict[int, list[int]] = {}
+        for k, i in enumerate(live):
+            out.setdefault(int(labels[k]), []).append(i)
+        return W, sorted((g for g in out.values() if len(g) > 1), key=lambda g: g[0])
+
+    # -- advancing ---------------------------------------------------------------------------------------------
+    def advance(self, ys: list[np.ndarray], active: list[bool], velocities: np.ndarray, t0: float, t1: float,
+                sample_dt: float, progress: Callable[[float], None] | None = None) -> list[Trajectory | None]:
+        """Move every active parcel from ``t0`` to ``t1`` (s) under constant contact-layer ``velocities`` (m/s).
+
+        ``ys`` and ``active`` are updated in place (a parcel that tips becomes inactive). Returns each parcel's
+        :class:`Trajectory` over the interval, sampled every ``sample_dt`` s from ``t0`` and at its end (None for a
+        parcel that was inactive at ``t0``).
+        """
+        models = self.models(velocities)
+        parts: list[list[Trajectory]] = [[] for _ in ys]
+        was_active = list(active)
+        grid = sample_grid(t0, t1, sample_dt)
+        t = float(t0)
+        end = t1 - 1e-12 * max(1.0, abs(t1))
+        while t < end:
+            W, groups = self.plan(ys, active, velocities, t, t1)
+            te = t1 if t + W >= end else t + W
+            inside = grid[(grid > t) & (grid < te)]
+            samples = np.concatenate([[t], inside, [te]])
+            grouped = {i for g in groups for i in g}
+            integ = self.integration
+            for i, on in enumerate(active):
+                if not on or i in grouped:
+                    continue
+                tr = integrate(models[i], ys[i], t, te, mode=integ.mode, rtol=integ.rtol, atol=integ.atol,
+                               max_step=integ.max_step, dt=integ.dt, sample_times=samples)
+                self._take(i, tr, ys, active, parts)
+            for g in groups:
+                for i, tr in self._step_group(g, models, ys, t, te, samples).items():
+                    self._take(i, tr, ys, active, parts)
+            self._check_overlaps(ys, active, groups)
+            self.record.windows += 1
+            t = te
+            if progress is not None:
+                progress(t)
+        return [_on_grid(join(p), grid) if was_active[i] and p else None for i, p in enumerate(parts)]
+
+    @staticmethod
+    def _take(i, tr, ys, active, parts):
+        parts[i].append(tr)
+        ys[i] = tr.states[-1].copy()
+        if tr.status == "tipped":
+            active[i] = False
+
+    def _check_overlaps(self, ys, active, groups):
+        live = [i for i, on in enumerate(active) if on]
+        if len(live) < 2:
+            return
+        group_of = {i: k for k, g in enumerate(groups) for i in g}
+        centres = np.array([ys[i][:2] for i in live])
+        for a, b in cKDTree(centres).query_pairs(2 * float(self._radius[live].max()), output_type="ndarray"):
+            i, j = live[a], live[b]
+            if group_of.get(i, -1 - i) == group_of.get(j, -2 - j):
+                continue
+            if overlap_area(self.specs[i], ys[i], self.specs[j], ys[j]) > 1e-12:
+                self.record.undetected_overlaps += 1
+
+    def _step_group(self, members: list[int], models, ys, t0: float, t1: float, samples: np.ndarray):
+        """Time-step a group of parcels together from ``t0`` to ``t1``; returns {parcel: Trajectory}."""
+        h = self.integration.dt
+        cp = self.contact
+        stick = isinstance(self.law, StickSlipLaw)
+        n_steps = max(1, int(np.ceil((t1 - t0) / h - 1e-9)))
+        Y = {i: np.array(ys[i], dtype=float) for i in members}
+        log = {i: ([t0], [Y[i].copy()], [], "completed") for i in members}
+        acc = {i: new_account() for i in members}
+        pieces = {}
+        live = []
+        for i in members:
+            try:
+                pieces[i] = models[i].piece_at(Y[i])
+                live.append(i)
+            except TippingError as exc:
+                log[i][2].append(Event(t0, "tip", tuple(map(float, Y[i])), message=str(exc)))
+                log[i] = (*log[i][:3], "tipped")
+        t_end = {i: t0 for i in members}
+        for s in range(n_steps):
+            if not live:
+                break
+            t = t0 + s * h
+            t_next = t1 if s + 1 == n_steps else t0 + (s + 1) * h
+            hh = t_next - t
+            slot = {i: b for b, i in enumerate(live)}
+            mass = np.array([masses(self.specs[i]) for i in live])
+            nu = np.array([Y[i][3:] for i in live])
+            rows = Rows()
+            wheels = {}
+            for b, i in enumerate(live):
+                if stick:
+                    J, w, bounds, lam0, keys = wheel_problem(models[i], pieces[i], Y[i], hh)
+                    first = len(rows)
+                    for r in range(len(w)):
+                        rows.box(b, J[r], w[r], bounds[r], lam0[r])
+                    wheels[i] = (first, J, w, bounds, keys)
+                else:
+                    nu[b] = nu[b] + hh * pieces[i].rhs(t, Y[i])[3:]  # wheels alone (eqs. 23/29 per support set)
+            normals = []  # (row, i, j, contact)
+            near_pairs = set()
+            centres = np.array([Y[i][:2] for i in live])
+            radius = self._radius[live]
+            near = cKDTree(centres).query_pairs(2 * float(radius.max()) + cp.margin, output_type="ndarray")
+            for x, z in sorted(map(tuple, near)):
+                i, j = live[x], live[z]
+                if np.hypot(*(centres[x] - centres[z])) > radius[x] + radius[z] + cp.margin:
+                    continue
+                for c in pair_contacts(i, self.specs[i], Y[i], j, self.specs[j], Y[j], cp.margin):
+                    warm = self._warm.get((c.i, c.j, c.feature), (0.0, 0.0))
+                    k, _ = rows.contact(slot[c.i], slot[c.j], c, Y[c.i][:2], Y[c.j][:2], hh, cp, warm)
+                    normals.append((k, c))
+                    self.record.max_penetration_m = max(self.record.max_penetration_m, -c.gap)
+                    if c.gap <= 0.5 * cp.margin:
+                        near_pairs.add((i, j))
+            pushing = set()
+            if not len(rows):
+                V = nu
+            else:
+                law = self.law if stick else cp
+                lam, V, sweeps, ok = solve_rows(rows, nu, 1.0 / mass, law.max_sweeps, cp.tolerance if not stick
+                                                else min(cp.tolerance, law.tolerance))
+                self.record.unconverged_contact_steps += not ok
+                self._warm = {(c.i, c.j, c.feature): (float(lam[k]), float(lam[k + 1])) for k, c in normals}
+                pushing = {(min(c.i, c.j), max(c.i, c.j)) for k, c in normals if lam[k] > 0}
+                for b, i in enumerate(live):
+                    if i in wheels:
+                        first, J, w, bounds, keys = wheels[i]
+                        li = lam[first:first + len(w)]
+                        account(acc[i], li, J @ V[b] - w, w, V[b] - Y[i][3:], mass[b])
+                        remember(models[i], keys, li, bounds)
+                        acc[i]["sweeps_max"] = max(acc[i]["sweeps_max"], sweeps)
+                        acc[i]["unconverged_steps"] += not ok
+                for k, c in normals:  # work of the contact impulses on each parcel over the step
+                    for body, sign in ((c.i, 1.0), (c.j, -1.0)):
+                        if lam[k] or lam[k + 1]:
+                            r = c.point - Y[body][:2]
+                            n = c.normal * sign
+                            tvec = np.array([-n[1], n[0]])
+                            vb = V[slot[body]]
+                            vp = vb[:2] + vb[2] * np.array([-r[1], r[0]])
+                            acc[body]["contact_work"] += float(lam[k] * (n @ vp) + lam[k + 1] * (tvec @ vp))
+            self._contact_events(t_next, Y, pushing, near_pairs, log)
+            self.record.grouped_steps += 1
+            for b, i in enumerate(live):
+                Y[i] = np.concatenate([Y[i][:3] + hh * V[b], V[b]])  # semi-implicit Euler
+                t_end[i] = t_next
+            still = []
+            for i in live:
+                try:
+                    new = models[i].piece_at(Y[i])
+                except TippingError as exc:
+                    log[i][2].append(Event(t_next, "tip", tuple(map(float, Y[i])), message=str(exc)))
+                    log[i] = (*log[i][:3], "tipped")
+                    self._touching = {p for p in self._touching if i not in p}
+                    log[i][0].append(t_next)
+                    log[i][1].append(Y[i].copy())
+                    continue
+                ev = _diff_event(t_next, Y[i], pieces[i], new)
+                if ev is not None:
+                    log[i][2].append(ev)
+                pieces[i] = new
+                log[i][0].append(t_next)
+                log[i][1].append(Y[i].copy())
+                still.append(i)
+            live = still
+        out = {}
+        for i in members:
+            ts, states, events, status = log[i]
+            times, sampled = _sampled(np.array(ts), np.array(states), samples, ts[-1], states[-1])
+            stats = {}
+            if stick:
+                y0, y1 = states[0], states[-1]
+                m = masses(self.specs[i])
+                stats = {**acc[i], "kinetic_start": 0.5 * float(m @ y0[3:] ** 2),
+                         "kinetic_end": 0.5 * float(m @ y1[3:] ** 2)}
+            out[i] = Trajectory(times, sampled, events, status, t_end[i], len(ts) - 1, 0, stats)
+        return out
+
+    def _contact_events(self, t, Y, pushing, near_pairs, log):
+        """Log the pairs of this group (``log``'s parcels) that started pushing each other and those that drew apart
+        (gap above margin / 2)."""
+        mine = {p for p in self._touching if p[0] in log and p[1] in log}
+        for i, j in sorted(pushing - mine):
+            self.record.parcel_contacts += 1
+            for a, b in ((i, j), (j, i)):
+                self.record.contacts_per_parcel[a] += 1
+                log[a][2].append(Event(t, "contact", tuple(map(float, Y[a])), partner=self.specs[b].name))
+        for i, j in sorted(mine - pushing - near_pairs):
+            for a, b in ((i, j), (j, i)):
+                log[a][2].append(Event(t, "release", tuple(map(float, Y[a])), partner=self.specs[b].name))
+        self._touching = (self._touching - mine) | (mine & near_pairs) | pushing
+
+
+def _on_grid(tr: Trajectory, grid: np.ndarray) -> Trajectory:
+    """Keep the samples on the output grid and the last one (window ends are integration restarts, not output)."""
+    keep = np.isin(tr.times, grid)
+    keep[-1] = True
+    if keep.all():
+        return tr
+    return replace(tr, times=tr.times[keep], states=tr.states[keep])
+
+
+def join(segs: list[Trajectory]) -> Trajectory:
+    """One trajectory from consecutive pieces (the shared instants appear once). Energy flows and solver counts add
+    up; the kinetic energy at the start is the first piece's, at the end the last's."""
+    times, states, events = [segs[0].times], [segs[0].states], list(segs[0].events)
+    for s in segs[1:]:
+        times.append(s.times[1:])
+        states.append(s.states[1:])
+        events.extend(s.events)
+    last = segs[-1]
+    stats = dict(last.stats)
+    for key in _ADDITIVE:
+        if any(key in s.stats for s in segs):
+            stats[key] = sum(s.stats.get(key, 0) for s in segs)
+    if any("sweeps_max" in s.stats for s in segs):
+        stats["sweeps_max"] = max(s.stats.get("sweeps_max", 0) for s in segs)
+    if "kinetic_start" in segs[0].stats:
+        stats["kinetic_start"] = segs[0].stats["kinetic_start"]
+    return Trajectory(np.concatenate(times), np.concatenate(states), events, last.status, last.t_end,
+                      sum(s.segments for s in segs), sum(s.rhs_evals for s in segs), stats)
