@@ -100,6 +100,63 @@ def run(
     out.print(f"results written to {out_dir}/: " + ", ".join(sorted(p.name for p in paths.values())))
 
 
+@app.command(name="equilibria")
+def equilibria_cmd(
+    scenario: Optional[str] = typer.Argument(None, help="Scenario TOML file or bundled scenario name (with a "
+                                             "constant [field])."),
+    parcel: Optional[str] = typer.Option(None, help="Parcel name (default: the first)."),
+    out_dir: Path = typer.Option(Path("results/equilibria"), "--out", "-o", help="Folder for the results."),
+    headings: int = typer.Option(73, min=3, max=100_000, help="Headings sampled over a full turn."),
+    step: Optional[float] = typer.Option(None, min=1e-9, help="Spacing (m) of sampled centre-of-mass positions "
+                                         "(default: a quarter pitch)."),
+) -> None:
+    """Find the equilibrium poses a constant field gives a parcel and their stability; write equilibria.json and
+    force_field.png (force and torque at the first stable heading, equilibria marked)."""
+    import json
+
+    import numpy as np
+
+    from .equilibria import equilibria
+    from .io import write_atomic
+    from .scenario import load_scenario
+    from .viz import plot_force_field
+
+    try:
+        sc, _ = load_scenario(scenario)
+        setup = sc.build()
+        if setup.control is not None:
+            raise ScenarioError("field", "equilibria need a constant [field], not [control]")
+        names = [s.name for s in setup.specs]
+        if parcel is not None and parcel not in names:
+            raise ScenarioError("parcel", f"no parcel named {parcel!r}; the scenario has {', '.join(names)}")
+    except VirtualVehicleError as exc:
+        _fail(exc)
+    spec = setup.specs[names.index(parcel) if parcel else 0]
+    cells = setup.contact_layer
+    eqs = equilibria(cells, spec, setup.contact_velocities, setup.law, headings=np.linspace(0, 2 * np.pi, headings),
+                     step=step, gravity=sc.gravity)
+    rows = [{"x_m": e.pose[0], "y_m": e.pose[1], "theta_rad": e.pose[2], "translation": e.translation,
+             "rotation": e.rotation, "stable": e.stable, "stiffness_N_per_m": e.stiffness.tolist(),
+             "torque_below_above_Nm": list(e.torque_jump), "heading_range_rad": e.heading_range,
+             "support": list(e.support)} for e in eqs]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_atomic(out_dir / "equilibria.json", json.dumps({"scenario": sc.name, "parcel": spec.name,
+                                                           "friction_law": sc.friction.law, "equilibria": rows},
+                                                          indent=2).encode())
+    shown = next((e for e in eqs if e.stable and e.rotation == "stable"), next((e for e in eqs if e.stable), None))
+    heading = shown.pose[2] if shown else 0.0
+
+    def at_heading(e):
+        lo, hi = e.heading_range or (e.pose[2], e.pose[2])
+        return any(lo - 1e-6 <= heading + k * 2 * np.pi <= hi + 1e-6 for k in (-1, 0, 1))
+
+    plot_force_field(cells, spec, setup.contact_velocities, setup.law, heading, [e for e in eqs if at_heading(e)],
+                     out_dir / "force_field.png", step=step, gravity=sc.gravity)
+    stable = sum(e.stable for e in eqs)
+    out.print(f"[bold]{sc.name}[/bold] / {spec.name}: {len(eqs)} equilibria ({stable} stable or neutral); "
+              f"written to {out_dir}/equilibria.json and force_field.png")
+
+
 @app.command()
 def scenarios() -> None:
     """List the bundled scenarios."""

@@ -103,8 +103,64 @@ class PerCellField(_Strict):
     velocities: list[Vel]
 
 
+class RadialField(_Strict):
+    """Every cell drives straight toward ``center`` (m) at ``speed`` (m/s; negative: away)."""
+
+    kind: Literal["radial"]
+    center: Point
+    speed: Speed
+
+
+class SqueezeField(_Strict):
+    """Cells drive toward the line through ``point`` (m) along ``direction`` at ``speed`` (m/s), and along it at
+    ``along`` (m/s)."""
+
+    kind: Literal["squeeze"]
+    point: Point
+    direction: Point
+    speed: Speed
+    along: Speed = 0.0
+
+
+class RotationField(_Strict):
+    """Rigid rotation at ``omega`` (rad/s, counter-clockwise) about ``center`` (m)."""
+
+    kind: Literal["rotation"]
+    center: Point
+    omega: Annotated[float, Field(ge=-1e4, le=1e4)]
+
+
+class TwistField(_Strict):
+    """The rigid-body velocity of twist ``twist`` = [vx, vy (m/s), omega (rad/s)] about ``center`` (m)."""
+
+    kind: Literal["twist"]
+    center: Point
+    twist: tuple[Speed, Speed, Annotated[float, Field(ge=-1e4, le=1e4)]]
+
+
+BaseFieldSpec = Annotated[Union[UniformField, InwardField, ReversedEndField, PerCellField, RadialField, SqueezeField,
+                                RotationField, TwistField], Field(discriminator="kind")]
+
+
+class Region(_Strict):
+    """Cells inside ``outline`` ([[x, y], ...] m) follow ``field``."""
+
+    outline: Annotated[list[Point], Field(min_length=3, max_length=10_000)]
+    field: BaseFieldSpec
+
+
+class RegionsField(_Strict):
+    """Fields composed by region: the first of ``regions`` whose outline contains a cell drives it; other cells
+    follow ``default`` (stopped when absent)."""
+
+    kind: Literal["regions"]
+    regions: Annotated[list[Region], Field(min_length=1)]
+    default: BaseFieldSpec | None = None
+
+
 ArraySpec = Annotated[Union[GridArray, RowArray, PointsArray], Field(discriminator="kind")]
-FieldSpec = Annotated[Union[UniformField, InwardField, ReversedEndField, PerCellField], Field(discriminator="kind")]
+FieldSpec = Annotated[Union[UniformField, InwardField, ReversedEndField, PerCellField, RadialField, SqueezeField,
+                            RotationField, TwistField, RegionsField], Field(discriminator="kind")]
 
 
 class FrictionSpec(_Strict):
@@ -365,6 +421,17 @@ def _build_array(a) -> layout.CellArray:
 
 
 def _build_field(f):
+    if isinstance(f, RadialField):
+        return fieldlib.Radial(f.center, f.speed)
+    if isinstance(f, SqueezeField):
+        return fieldlib.Squeeze(f.point, f.direction, f.speed, f.along)
+    if isinstance(f, RotationField):
+        return fieldlib.Rotation(f.center, f.omega)
+    if isinstance(f, TwistField):
+        return fieldlib.Twist(f.center, f.twist)
+    if isinstance(f, RegionsField):
+        return fieldlib.Regions(tuple((r.outline, _build_field(r.field)) for r in f.regions),
+                                None if f.default is None else _build_field(f.default))
     if isinstance(f, UniformField):
         return fieldlib.Uniform(f.velocity)
     if isinstance(f, InwardField):
@@ -483,7 +550,8 @@ def _format_validation(exc: ValidationError) -> ScenarioError:
             else:
                 loc += ("." if loc else "") + str(part)
         # drop the discriminator tag pydantic adds to union locations
-        for tag in ("grid", "row", "points", "uniform", "inward", "reversed_end", "per_cell"):
+        for tag in ("grid", "row", "points", "uniform", "inward", "reversed_end", "per_cell", "radial", "squeeze",
+                    "rotation", "twist", "regions"):
             loc = loc.replace(f".{tag}.", ".").removesuffix(f".{tag}")
         msg = err["msg"]
         if err["type"] == "extra_forbidden":

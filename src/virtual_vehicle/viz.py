@@ -109,6 +109,71 @@ def plot_traffic(result: RunResult, path: str | Path | None = None):
     return _finish(fig, path)
 
 
+def plot_force_field(cells, spec, velocities, law, heading: float, eqs=(), path: str | Path | None = None,
+                     bounds=None, step: float | None = None, gravity: float = 9.81, title: str | None = None):
+    """The force (arrows, N) and torque (colour, N m) a field induces on ``spec`` at rest with heading ``heading``
+    (rad), over centre-of-mass positions (m) in ``bounds`` = (xmin, ymin, xmax, ymax), with the equilibria ``eqs``
+    (:func:`~virtual_vehicle.equilibria.equilibria`) marked: filled = stable or marginal, hollow = neutral,
+    x = unstable; labelled with their headings in degrees when there are at most 12. Saves a PNG to ``path`` if given; returns the figure."""
+    from .dynamics import ParcelModel
+    from .errors import TippingError
+
+    model = ParcelModel(cells, spec, np.asarray(velocities, dtype=float), law, gravity)
+    xmin, ymin, xmax, ymax = cells.bounds if bounds is None else bounds
+    step = step or cells.pitch / 4
+    xs = np.arange(xmin, xmax + 0.5 * step, step)
+    ys = np.arange(ymin, ymax + 0.5 * step, step)
+    F = np.full((len(ys), len(xs), 2), np.nan)
+    T = np.full((len(ys), len(xs)), np.nan)
+    for b, y in enumerate(ys):
+        for a, x in enumerate(xs):
+            try:
+                d = model.rhs(0.0, np.array([x, y, heading, 0.0, 0.0, 0.0]))
+            except TippingError:
+                continue
+            F[b, a] = d[3:5] * spec.mass
+            T[b, a] = d[5] * spec.inertia
+    fig, ax = plt.subplots(figsize=(7.2, 6.0), dpi=110)
+    lim = float(np.nanmax(np.abs(T))) if np.any(np.isfinite(T)) else 1.0
+    lim = lim if lim > 0 else 1.0
+    mesh = ax.pcolormesh(xs, ys, T, cmap="coolwarm", vmin=-lim, vmax=lim, shading="nearest", alpha=0.85)
+    fig.colorbar(mesh, ax=ax, shrink=0.8, label="torque (N m, counter-clockwise +)")
+    X, Y = np.meshgrid(xs, ys)
+    mag = np.hypot(F[..., 0], F[..., 1])
+    top = float(np.nanmax(mag)) if np.any(np.isfinite(mag)) else 0.0
+    if top > 0:  # at most ~24 arrows a side, so they stay readable
+        every = max(1, int(np.ceil(max(len(xs), len(ys)) / 24)))
+        k = 0.85 * every * step / top
+        sl = (slice(None, None, every), slice(None, None, every))
+        ax.quiver(X[sl], Y[sl], F[sl][..., 0] * k, F[sl][..., 1] * k, angles="xy", scale_units="xy", scale=1,
+                  width=0.0035, color="0.1", alpha=0.8, label=f"force at rest (longest {top:.3g} N)")
+    P = cells.positions
+    ax.scatter(P[:, 0], P[:, 1], s=14, marker="s", color="0.35", zorder=3, label="cells")
+    style = {"stable": dict(marker="o", color="tab:green", ms=8),
+             "neutral": dict(marker="o", mfc="none", color="tab:green", ms=8, mew=2),
+             "unstable": dict(marker="x", color="tab:red", ms=8, mew=2)}
+    names = {"stable": "stable equilibrium", "neutral": "neutral in heading", "unstable": "unstable equilibrium"}
+    shown = set()
+    for e in eqs:
+        x, y, th = e.pose
+        kind = "unstable" if not e.stable else ("neutral" if e.rotation == "neutral" else "stable")
+        ax.plot(x, y, ls="none", zorder=4, label=None if kind in shown else names[kind], **style[kind])
+        shown.add(kind)
+        if len(eqs) <= 12:
+            label = (f"{np.degrees(e.heading_range[0]):.0f}..{np.degrees(e.heading_range[1]):.0f}°"
+                     if e.heading_range else f"{np.degrees(th):.1f}°")
+            ax.annotate(label, (x, y), xytext=(6, 6), textcoords="offset points", fontsize=7)
+    outline = spec.world_polygon((0.5 * (xmin + xmax), 0.5 * (ymin + ymax), heading))
+    ax.add_patch(PolygonPatch(np.asarray(outline.exterior.coords), closed=True, fill=False, ls="--", ec="0.2",
+                              lw=1, label="parcel at the centre"))
+    ax.set_aspect("equal")
+    ax.set_xlabel("centre of mass x (m)")
+    ax.set_ylabel("centre of mass y (m)")
+    ax.set_title(title or f"force and torque on {spec.name} at heading {np.degrees(heading):.1f}°")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=3, fontsize=8, frameon=False)
+    return _finish(fig, path)
+
+
 def _finish(fig, path):
     """Lay out, save as PNG (atomically) when ``path`` is given, release the figure's memory, return it."""
     fig.tight_layout()
