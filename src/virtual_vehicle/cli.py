@@ -77,7 +77,7 @@ def run(
 
         paths["plot"] = out_dir / "paths.png"
         plot_paths(result, paths["plot"])
-        if result.network is not None:
+        if result.network is not None and result.network.per_tick["sent"].sum() > 0:
             paths["traffic_plot"] = out_dir / "traffic.png"
             plot_traffic(result, paths["traffic_plot"])
     s = result.summary()
@@ -89,6 +89,10 @@ def run(
         note = f"tipped at t={p['tipped_at_s']:.4g} s" if p["tipped_at_s"] is not None else "on the array"
         out.print(f"  {p['name']}: end x={end['x']:.4f} m, y={end['y']:.4f} m, theta={end['theta']:.4f} rad, "
                   f"{p['support_changes']} support changes, {note}")
+        if "final_error_mm" in p:
+            when = p["settled_within_5mm_2deg_at_s"]
+            out.print(f"    target error {p['final_error_mm']:.2f} mm, {p['final_error_deg']:.2f} deg; "
+                      + (f"within 5 mm and 2 deg from t={when:.3g} s" if when is not None else "not settled"))
         if p["coulomb_sliding_assumption_violated_at_s"] is not None:
             out.print(f"    note: from t={p['coulomb_sliding_assumption_violated_at_s']:.4g} s the parcel outran a wheel; "
                       "the paper's Coulomb law assumes it never does (use the viscous law, or stick-slip when it lands)")

@@ -74,3 +74,99 @@ class FollowField:
     def step(self, state, inputs: CellInputs):
         n, P = inputs.connected.shape
         return state, Mailbox.empty(self.schema, n, P), self.wheel_speeds.copy()
+
+
+class PoseControl:
+    """Central closed loop from the cells' own sensors: drive each parcel to a target pose (issue: the virtual
+    vehicle, closed loop).
+
+    Every tick the controller reads all presence sensors, estimates each parcel's pose from the pattern
+    (:mod:`virtual_vehicle.estimate`, seeded by the last estimate moved by the last command), asks for the twist
+    ``gain * error`` (position error in m, heading error in rad, wrapped to the parcel's symmetry), limited to
+    ``max_speed`` (m/s at any supporting wheel), and gives the cells under the estimated footprint the wheel speeds
+    of that twist (:func:`~virtual_vehicle.design.twist_design`: the steady state of the viscous and stick-slip
+    laws). Within ``tolerance`` (m, rad) of its target a parcel's wheels stop. It knows each parcel's outline and
+    where it was placed (``starts``: the poses a loader put them at), nothing of its motion since.
+
+    A central controller in the cell-program shape: it sends no sentences and reads every cell's sensors.
+    """
+
+    schema = Schema(())
+
+    def __init__(self, cells, sensor_points, specs, starts, targets, *, gain: float = 2.0, max_speed: float = 0.2,
+                 tolerance=(5e-4, np.radians(0.2)), period: float = 0.01, symmetry: list[int] | None = None):
+        from .estimate import sensor_spacing
+
+        self.cells = cells
+        self.points = np.asarray(sensor_points, dtype=float)
+        self.specs = list(specs)
+        self.starts = [np.asarray(s, dtype=float)[:3] for s in starts]
+        self.targets = [np.asarray(t, dtype=float)[:3] for t in targets]
+        if len(self.targets) != len(self.specs):
+            raise ValueError("one target pose per parcel")
+        self.gain = float(gain)
+        self.max_speed = float(max_speed)
+        self.tolerance = tuple(float(v) for v in tolerance)
+        self.period = float(period)
+        self.spacing = sensor_spacing(self.points)
+        self.symmetry = symmetry or [_rotational_symmetry(s) for s in self.specs]
+
+    def init(self, n, ports, config):
+        return {"estimates": [s.copy() for s in self.starts], "twists": [np.zeros(3) for _ in self.specs],
+                "wrong": [0] * len(self.specs)}
+
+    def step(self, state, inputs: CellInputs):
+        from .design import twist_design
+        from .estimate import estimate_pose
+
+        n, P = inputs.connected.shape
+        lit = np.asarray(inputs.sensors, dtype=bool)
+        wheels = np.zeros((n, 2))
+        estimates, twists, wrong = [], [], []
+        for spec, est, tw, target, sym in zip(self.specs, state["estimates"], state["twists"], self.targets,
+                                              self.symmetry):
+            guess = est + self.period * tw  # prediction from the last command
+            pose, bad = estimate_pose(spec, self.points, lit, guess, spacing=self.spacing)
+            err = target - pose
+            period_sym = 2 * np.pi / sym
+            err[2] = (err[2] + period_sym / 2) % period_sym - period_sym / 2
+            if np.hypot(err[0], err[1]) < self.tolerance[0] and abs(err[2]) < self.tolerance[1]:
+                twist = np.zeros(3)
+            else:
+                twist = self.gain * err
+            state_now = np.array([*pose, 0.0, 0.0, 0.0])
+            design = twist_design(self.cells, spec, state_now, twist, vmax=self.max_speed)
+            wheels[design.support] = design.wheel_speeds[design.support]
+            estimates.append(pose)
+            twists.append(design.achieved)
+            wrong.append(bad)
+        return {"estimates": estimates, "twists": twists, "wrong": wrong}, Mailbox.empty(self.schema, n, P), wheels
+
+
+def _rotational_symmetry(spec) -> int:
+    """How many times a turn maps the outline onto itself about its centre of mass (1, 2 or 4 checked)."""
+    for k in (4, 2):
+        c, s = np.cos(2 * np.pi / k), np.sin(2 * np.pi / k)
+        turned = spec.footprint @ np.array([[c, s], [-s, c]])
+        if all(np.min(np.hypot(*(spec.footprint - p).T)) < 1e-9 * max(spec.radius, 1e-12) for p in turned):
+            return k
+    return 1
+
+
+def pose_error(spec, pose, target) -> tuple[float, float]:
+    """Distance (m) and heading error (rad, wrapped to the outline's rotational symmetry) from ``pose`` to
+    ``target``."""
+    sym = _rotational_symmetry(spec)
+    period = 2 * np.pi / sym
+    dth = (float(target[2]) - float(pose[2]) + period / 2) % period - period / 2
+    return float(np.hypot(target[0] - pose[0], target[1] - pose[1])), abs(dth)
+
+
+def settled_at(spec, times, states, target, position_tol: float = 5e-3, heading_tol: float = np.radians(2.0)):
+    """First sample time (s) from which the parcel stays within ``position_tol`` (m) and ``heading_tol`` (rad) of
+    ``target``; None if it never does."""
+    ok = np.array([all(np.less_equal(pose_error(spec, y, target), (position_tol, heading_tol))) for y in states])
+    if not ok[-1]:
+        return None
+    bad = np.flatnonzero(~ok)
+    return float(times[bad[-1] + 1]) if len(bad) else float(times[0])

@@ -225,10 +225,12 @@ class ControlSpec(_Strict):
 
     Programs: ``"shuttle"`` passes parcels back and forth along the wheel-0 axis at ``speed`` (m/s), reversing by a
     flood of at most ``hop_limit`` hops started by the end cells that sense a parcel; cells repeat their state
-    every ``heartbeat`` ticks. ``dead_links``: [cell id, port] pairs whose link is cut (ports 0..3 = east, north,
+    every ``heartbeat`` ticks. ``"pose"`` is a central closed loop from the sensors: it drives parcel k to
+    ``targets[k]`` = [x, y, theta] (m, m, rad) with twist ``gain`` (1/s) times the estimated error, wheels limited
+    to ``speed`` (m/s), stopping within ``tolerance`` = [m, rad]. ``dead_links``: [cell id, port] pairs whose link is cut (ports 0..3 = east, north,
     west, south of the cell)."""
 
-    program: Literal["shuttle"]
+    program: Literal["shuttle", "pose"]
     period: Annotated[float, Field(gt=0, le=10)] = 0.01
     delivery: Literal["ideal", "wire"] = "ideal"
     speed: Annotated[float, Field(gt=0, le=1e3)] = 0.2
@@ -238,6 +240,17 @@ class ControlSpec(_Strict):
     seed: Annotated[int, Field(ge=0)] = 0
     dead_links: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=3)]]] = []
     wire: WireSpec = WireSpec()
+    targets: list[tuple[Coord, Coord, Annotated[float, Field(ge=-1e3, le=1e3)]]] | None = None
+    gain: Annotated[float, Field(gt=0, le=1e3)] = 2.0
+    tolerance: tuple[Annotated[float, Field(gt=0, le=1)], Annotated[float, Field(gt=0, le=3.2)]] = (5e-4, 0.0035)
+
+    @model_validator(mode="after")
+    def _pose_needs_targets(self):
+        if self.program == "pose" and self.targets is None:
+            raise ValueError("program 'pose' needs targets = [[x, y, theta], ...], one per parcel")
+        if self.program != "pose" and self.targets is not None:
+            raise ValueError("targets go with program 'pose'")
+        return self
 
 
 class SensorSpec(_Strict):
@@ -390,11 +403,14 @@ class Scenario(_Strict):
                 if shapely.intersection(polys[i], polys[j]).area > 1e-12:
                     raise ScenarioError(f"parcels[{j}]", f"parcel {self.parcels[j].name!r} overlaps parcel "
                                         f"{self.parcels[i].name!r} at the start; move one of them")
-        control = None if self.control is None else _build_control(self.control, cells)
+        sensors = _build_sensors(self.sensors, cells)
+        if self.control is not None and self.control.targets is not None and len(self.control.targets) != len(specs):
+            raise ScenarioError("control.targets", f"needs one target per parcel: {len(specs)}, got "
+                                f"{len(self.control.targets)}")
+        control = None if self.control is None else _build_control(self.control, cells, sensors, specs, states)
         if control is None and self.wheels.model == "motor":
             control = _field_control(cells, velocities, self.wheels.period)
-        return Setup(self, cells, velocities, LAWS[self.friction.law], specs, states, control,
-                     _build_sensors(self.sensors, cells), contacts)
+        return Setup(self, cells, velocities, LAWS[self.friction.law], specs, states, control, sensors, contacts)
 
 
 def _check_on_array(cells, spec, state, where, name):
@@ -482,8 +498,8 @@ class ControlSetup:
     config: dict
 
 
-def _build_control(c: ControlSpec, cells: layout.CellArray) -> ControlSetup:
-    from .control import Shuttle
+def _build_control(c: ControlSpec, cells: layout.CellArray, sensors, specs, states) -> ControlSetup:
+    from .control import PoseControl, Shuttle
     from .network.delivery import IdealRounds
     from .network.topology import from_layout
     from .network.wire import WireLevel, WireParams
@@ -500,7 +516,11 @@ def _build_control(c: ControlSpec, cells: layout.CellArray) -> ControlSetup:
 
         def make_delivery():
             return WireLevel(topo, params, seed=c.seed)
-    program = Shuttle(c.speed, c.hop_limit, c.heartbeat)
+    if c.program == "pose":
+        program = PoseControl(cells, sensors.points, specs, states, c.targets, gain=c.gain, max_speed=c.speed,
+                              tolerance=c.tolerance, period=c.period)
+    else:
+        program = Shuttle(c.speed, c.hop_limit, c.heartbeat)
     return ControlSetup(program, topo, make_delivery, c.delivery, c.period, {})
 
 

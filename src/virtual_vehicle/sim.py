@@ -78,6 +78,15 @@ class RunResult:
                 **({"energy_J": {k: tr.stats[k] for k in _ENERGY},
                     "stick_slip_unconverged_steps": tr.stats["unconverged_steps"]} if "wheel_work" in tr.stats else {}),
             })
+        if sc.control is not None and sc.control.program == "pose":
+            from .control import pose_error, settled_at
+
+            for entry, pr, target in zip(parcels, self.parcels, sc.control.targets):
+                dist, ang = pose_error(pr.spec, pr.trajectory.states[-1], target)
+                entry.update({"target": dict(zip(("x", "y", "theta"), target)), "final_error_mm": dist * 1e3,
+                              "final_error_deg": float(np.degrees(ang)),
+                              "settled_within_5mm_2deg_at_s": settled_at(pr.spec, pr.trajectory.times,
+                                                                          pr.trajectory.states, target)})
         simulated = sum(pr.trajectory.t_end for pr in self.parcels)
         return {
             "scenario": sc.name,

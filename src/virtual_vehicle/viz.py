@@ -21,7 +21,8 @@ from .sim import RunResult  # noqa: E402
 
 def plot_paths(result: RunResult, path: str | Path | None = None, title: str | None = None):
     """Plot the run: left, the cells (dots) with their wheel velocities (arrows), each parcel's centre-of-mass path
-    and its footprint at the start (dashed) and the end (filled; red edge and a cross if it tipped); right, x and y
+    and its footprint at the start (dashed), the end (filled; red edge and a cross if it tipped) and its target
+    (dotted black, pose control); right, x and y
     (m) and heading (rad) against time (s). Saves a PNG to ``path`` if given; returns the figure."""
     setup = result.setup
     cells = setup.cells
@@ -47,6 +48,11 @@ def plot_paths(result: RunResult, path: str | Path | None = None, title: str | N
         ax.add_patch(PolygonPatch(np.asarray(end.exterior.coords), closed=True, fill=True, fc=c, alpha=0.15, ec=ec, lw=1.5))
         if tr.status == "tipped":
             ax.plot(*tr.states[-1, :2], "x", color="red", ms=9, mew=2, zorder=4)
+        targets = setup.scenario.control.targets if setup.scenario.control is not None else None
+        if targets:
+            goal = pr.spec.world_polygon(targets[k])
+            ax.add_patch(PolygonPatch(np.asarray(goal.exterior.coords), closed=True, fill=False, ls=":", ec="k",
+                                      lw=1.2, label="target" if k == 0 else None))
         axt.plot(tr.times, tr.states[:, 0], "-", color=c, lw=1.3, label=f"{pr.spec.name} x")
         axt.plot(tr.times, tr.states[:, 1], "--", color=c, lw=1.3, label=f"{pr.spec.name} y")
         axh.plot(tr.times, tr.states[:, 2], ":", color=c, lw=1.3, label=f"{pr.spec.name} heading")
