@@ -170,3 +170,47 @@ def settled_at(spec, times, states, target, position_tol: float = 5e-3, heading_
         return None
     bad = np.flatnonzero(~ok)
     return float(times[bad[-1] + 1]) if len(bad) else float(times[0])
+
+
+class Diffusion:
+    """The diffusion law of the authors' earlier work: each cell's wheel speeds relax toward its neighbours', the
+    discrete heat equation on the cell network,
+
+        v_i <- v_i + alpha * sum_{j in N(i)} (v_j - v_i),
+
+    with ``alpha`` (per tick; stable for alpha <= 1 / (number of ports)) and the neighbours' speeds as last heard
+    (trusted for ``max_age`` ticks, so a slow or lossy link leaves that neighbour out rather than freezing its
+    value). Cells with config ``fixed`` hold config ``speed`` ((n, 2) m/s): sources and sinks (Dirichlet);
+    a missing neighbour adds nothing (no flux, Neumann). Initial speeds: config ``speed``. Speeds travel as F32
+    words, so the scheme is exact to single precision in transit.
+    """
+
+    schema = Schema.of(v0=(1, WordType.F32), v1=(2, WordType.F32))
+
+    def __init__(self, alpha: float, max_age: int = 0):
+        if not 0 < alpha:
+            raise ValueError("alpha must be positive")
+        self.alpha = float(alpha)
+        self.max_age = int(max_age)
+
+    def init(self, n, ports, config):
+        v = np.asarray(config.get("speed", np.zeros((n, 2))), dtype=float).reshape(n, 2).copy()
+        return {"v": v, "heard": np.zeros((n, ports, 2)),
+                "age": np.full((n, ports), np.iinfo(np.int32).max, dtype=np.int64), "sent": False}
+
+    def step(self, state, inputs: CellInputs):
+        inbox = inputs.inbox
+        n, P = inbox.present.shape
+        got = np.stack([inbox.values["v0"], inbox.values["v1"]], axis=-1).astype(float)
+        heard = np.where(inbox.present[..., None], got, state["heard"])
+        age = np.where(inbox.present, 0, np.minimum(state["age"] + 1, np.iinfo(np.int32).max))
+        trusted = (age <= self.max_age) & inputs.connected
+        v = state["v"]
+        if state["sent"]:  # from the second tick on, neighbours' speeds are known
+            flux = np.where(trusted[..., None], heard - v[:, None, :], 0.0).sum(axis=1)
+            v = v + self.alpha * flux
+        fixed = np.asarray(inputs.config.get("fixed", np.zeros(n, bool)), dtype=bool)
+        if fixed.any():
+            v = np.where(fixed[:, None], np.asarray(inputs.config["speed"], dtype=float).reshape(n, 2), v)
+        out = Mailbox.broadcast(self.schema, np.ones(n, bool), P, v0=v[:, 0], v1=v[:, 1])
+        return {"v": v, "heard": heard, "age": age, "sent": True}, out, v.copy()

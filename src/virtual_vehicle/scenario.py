@@ -227,10 +227,12 @@ class ControlSpec(_Strict):
     flood of at most ``hop_limit`` hops started by the end cells that sense a parcel; cells repeat their state
     every ``heartbeat`` ticks. ``"pose"`` is a central closed loop from the sensors: it drives parcel k to
     ``targets[k]`` = [x, y, theta] (m, m, rad) with twist ``gain`` (1/s) times the estimated error, wheels limited
-    to ``speed`` (m/s), stopping within ``tolerance`` = [m, rad]. ``dead_links``: [cell id, port] pairs whose link is cut (ports 0..3 = east, north,
+    to ``speed`` (m/s), stopping within ``tolerance`` = [m, rad]. ``"diffusion"``: every cell's wheel speeds relax
+    toward its neighbours' at rate ``alpha`` per tick (the discrete heat equation); ``sources`` = [[cell, v0, v1],
+    ...] hold their wheel speeds (m/s). ``dead_links``: [cell id, port] pairs whose link is cut (ports 0..3 = east, north,
     west, south of the cell)."""
 
-    program: Literal["shuttle", "pose"]
+    program: Literal["shuttle", "pose", "diffusion"]
     period: Annotated[float, Field(gt=0, le=10)] = 0.01
     delivery: Literal["ideal", "wire"] = "ideal"
     speed: Annotated[float, Field(gt=0, le=1e3)] = 0.2
@@ -243,6 +245,8 @@ class ControlSpec(_Strict):
     targets: list[tuple[Coord, Coord, Annotated[float, Field(ge=-1e3, le=1e3)]]] | None = None
     gain: Annotated[float, Field(gt=0, le=1e3)] = 2.0
     tolerance: tuple[Annotated[float, Field(gt=0, le=1)], Annotated[float, Field(gt=0, le=3.2)]] = (5e-4, 0.0035)
+    alpha: Annotated[float, Field(gt=0, le=1)] = 0.2
+    sources: list[tuple[Annotated[int, Field(ge=0)], Speed, Speed]] = []
 
     @model_validator(mode="after")
     def _pose_needs_targets(self):
@@ -516,6 +520,18 @@ def _build_control(c: ControlSpec, cells: layout.CellArray, sensors, specs, stat
 
         def make_delivery():
             return WireLevel(topo, params, seed=c.seed)
+    if c.program == "diffusion":
+        from .control import Diffusion
+
+        fixed = np.zeros(cells.n, dtype=bool)
+        speed = np.zeros((cells.n, 2))
+        for k, (cell, v0, v1) in enumerate(c.sources):
+            if cell >= cells.n:
+                raise ScenarioError(f"control.sources[{k}]", f"cell {cell} does not exist (the array has {cells.n})")
+            fixed[cell] = True
+            speed[cell] = (v0, v1)
+        program = Diffusion(c.alpha, max_age=0 if c.delivery == "ideal" else 20)
+        return ControlSetup(program, topo, make_delivery, c.delivery, c.period, {"fixed": fixed, "speed": speed})
     if c.program == "pose":
         program = PoseControl(cells, sensors.points, specs, states, c.targets, gain=c.gain, max_speed=c.speed,
                               tolerance=c.tolerance, period=c.period)

@@ -1,0 +1,91 @@
+"""Distributed cell programs of the Virtual Vehicle: the diffusion law (the discrete heat equation on the cell
+network) against the heat equation, under ideal rounds and the wire-level network."""
+
+import numpy as np
+import pytest
+
+from virtual_vehicle import layout
+from virtual_vehicle.control import Diffusion
+from virtual_vehicle.network.delivery import IdealRounds
+from virtual_vehicle.network.messages import Mailbox
+from virtual_vehicle.network.programs import CellInputs, check_program
+from virtual_vehicle.network.topology import from_layout
+from virtual_vehicle.network.wire import WireLevel, WireParams
+from virtual_vehicle.scenario import parse_scenario
+from virtual_vehicle.sim import run
+
+
+def diffuse(cells, program, config, ticks, delivery=None, period=0.01):
+    topo = from_layout(cells)
+    state = program.init(cells.n, topo.ports, config)
+    inbox = Mailbox.empty(program.schema, cells.n, topo.ports)
+    delivery = delivery or IdealRounds(topo)
+    hist = []
+    for k in range(ticks):
+        inputs = CellInputs(k * period, np.zeros((cells.n, 1), bool), inbox, topo.connected, config)
+        state, out, wheels = program.step(state, inputs)
+        hist.append(np.array(wheels))
+        inbox, _ = delivery.exchange(out, k * period, period)
+    return np.array(hist)
+
+
+def test_diffusion_transient_is_the_heat_equation():
+    """A row of N cells (no flux at the ends) started in the first cosine mode: the discrete heat equation decays
+    it by exactly 1 - 2 alpha (1 - cos(pi / N)) per tick; the continuous heat equation u_t = D u_xx with
+    D = alpha h^2 / T decays it as exp(-D (pi / L)^2 t), L = N h, which the array matches to O((pi / N)^2)."""
+    N, h, T, alpha = 40, 0.1, 0.01, 0.2
+    cells = layout.row(N, h)
+    x = (np.arange(N) + 0.5) * h
+    v0 = np.cos(np.pi * x / (N * h))
+    hist = diffuse(cells, Diffusion(alpha), {"speed": np.column_stack([v0, 0.5 * v0])}, 300)
+    lam = 1 - 2 * alpha * (1 - np.cos(np.pi / N))
+    k = np.arange(300)
+    np.testing.assert_allclose(hist[:, :, 0], lam ** k[:, None] * v0, atol=1e-6)  # F32 words in transit
+    np.testing.assert_allclose(hist[:, :, 1], 0.5 * lam ** k[:, None] * v0, atol=1e-6)
+    D = alpha * h * h / T
+    heat = np.exp(-D * (np.pi / (N * h)) ** 2 * k * T)[:, None] * v0
+    assert np.abs(hist[:, :, 0] - heat).max() < 2e-3
+    # the mean is conserved (no flux through the ends)
+    np.testing.assert_allclose(hist[:, :, 0].mean(axis=1), v0.mean(), atol=1e-6)
+
+
+def test_sources_give_the_steady_linear_profile():
+    """Dirichlet ends held at 0 and 1 m/s: the steady state of the heat equation is the straight line between them."""
+    N = 12
+    cells = layout.row(N, 0.1)
+    fixed = np.zeros(N, bool)
+    fixed[[0, -1]] = True
+    speed = np.zeros((N, 2))
+    speed[-1, 0] = 1.0
+    hist = diffuse(cells, Diffusion(0.4), {"fixed": fixed, "speed": speed}, 2000)
+    np.testing.assert_allclose(hist[-1, :, 0], np.linspace(0, 1, N), atol=1e-5)
+
+
+def test_diffusion_over_the_wire_reaches_consensus():
+    cells = layout.grid(5, 5, 0.1)
+    rng = np.random.default_rng(0)
+    v0 = rng.uniform(-0.2, 0.2, (cells.n, 2))
+    topo = from_layout(cells)
+    hist = diffuse(cells, Diffusion(0.2, max_age=20), {"speed": v0}, 600,
+                   WireLevel(topo, WireParams(baud=115200), seed=1))
+    spread = hist[-1].max(axis=0) - hist[-1].min(axis=0)
+    assert np.all(spread < 1e-3 * (v0.max() - v0.min()))
+
+
+def test_diffusion_is_a_local_program():
+    cells = layout.grid(4, 3, 0.1)
+    rng = np.random.default_rng(2)
+    fixed = np.zeros(cells.n, bool)
+    fixed[0] = True
+    check_program(Diffusion(0.2), from_layout(cells), {"speed": rng.uniform(-1, 1, (cells.n, 2)), "fixed": fixed})
+
+
+def test_diffusion_scenario_spreads_a_source_under_a_parcel():
+    sc = parse_scenario({
+        "duration": 3.0, "array": {"kind": "grid", "nx": 12, "ny": 3, "pitch": 0.1},
+        "control": {"program": "diffusion", "alpha": 0.2, "sources": [[0, 0.3, 0.0], [12, 0.3, 0.0], [24, 0.3, 0.0]]},
+        "friction": {"law": "viscous"},
+        "parcels": [{"name": "a", "length": 0.25, "width": 0.25, "mass": 1.0, "mu": 0.5, "x": 0.3, "y": 0.1}]})
+    res = run(sc.build())
+    tr = res.parcels[0].trajectory
+    assert tr.states[-1, 0] > 0.35 and np.all(np.diff(tr.states[:, 0]) >= -1e-12)  # pushed along +x, never back
