@@ -58,11 +58,14 @@ def test_bundled_scenarios_run(name, tmp_path):
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["scenario"] == name
     for p in summary["parcels"]:
+        if "outcome" in p:  # a sorting run: parcels leave through their exits
+            assert p["outcome"] in ("on_array", "waiting") or (p["outcome"] == "delivered" and p["correct"]), p
+            continue
         assert p["status"] == "completed", f"{name}: {p['name']} should stay on the array"
         assert p["coulomb_sliding_assumption_violated_at_s"] is None, f"{name}: wheels too slow for the paper's law"
     rows = list(csv.DictReader(open(tmp_path / "trajectories.csv")))
     assert list(rows[0]) == ["parcel", "t", "x", "y", "theta", "vx", "vy", "omega"]
-    assert float(rows[-1]["t"]) == pytest.approx(summary["duration_s"])
+    assert max(float(r["t"]) for r in rows) == pytest.approx(summary["duration_s"])
     assert all(np.isfinite(float(r[k])) for r in rows for k in ("x", "y", "theta", "vx", "vy", "omega"))
 
 

@@ -76,7 +76,12 @@ def run(
         from .viz import plot_paths, plot_traffic
 
         paths["plot"] = out_dir / "paths.png"
-        plot_paths(result, paths["plot"])
+        if sc.control is not None and sc.control.program == "sort":
+            from .viz import plot_sorting
+
+            plot_sorting(result, paths["plot"])
+        else:
+            plot_paths(result, paths["plot"])
         if result.network is not None and result.network.per_tick["sent"].sum() > 0:
             paths["traffic_plot"] = out_dir / "traffic.png"
             plot_traffic(result, paths["traffic_plot"])
@@ -86,7 +91,11 @@ def run(
               f"{s['integrator']} integrator")
     for p in s["parcels"]:
         end = p["end"]
-        note = f"tipped at t={p['tipped_at_s']:.4g} s" if p["tipped_at_s"] is not None else "on the array"
+        note = (f"tipped at t={p['tipped_at_s']:.4g} s" if p["tipped_at_s"] is not None else
+                "never put on (its place stayed taken)" if p["status"] == "waiting" else "on the array")
+        if p.get("outcome") == "delivered":
+            note = f"left through exit {p['exit']} at t={p['tipped_at_s']:.4g} s" + ("" if p["correct"] else
+                                                                                      " (wrong exit)")
         out.print(f"  {p['name']}: end x={end['x']:.4f} m, y={end['y']:.4f} m, theta={end['theta']:.4f} rad, "
                   f"{p['support_changes']} support changes, {note}")
         if "final_error_mm" in p:
@@ -96,6 +105,11 @@ def run(
         if p["coulomb_sliding_assumption_violated_at_s"] is not None:
             out.print(f"    note: from t={p['coulomb_sliding_assumption_violated_at_s']:.4g} s the parcel outran a wheel; "
                       "the paper's Coulomb law assumes it never does (use the viscous law, or stick-slip when it lands)")
+    if "sorting" in s:
+        so = s["sorting"]
+        out.print(f"  sorting: {so['correct']} delivered to the right exit, {so['misrouted']} misrouted, {so['lost']} "
+                  f"lost, {so['on_array']} still on the array, {so['waiting']} waiting; {so['collisions']} collisions; "
+                  f"{so['throughput_per_hour']:.0f} parcels/hour")
     if result.network is not None:
         net = s["network"]
         lat = "n/a" if net["latency_mean_s"] is None else f"{net['latency_mean_s'] * 1e3:.1f} ms"

@@ -513,6 +513,9 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
         raise ValueError("y0 must be six finite numbers [x, y, theta, vx, vy, omega]")
     if not t1 > t0:
         raise ValueError(f"t1 must be after t0, got t0={t0}, t1={t1}")
+    # Flush values below 1e-100 (a velocity decaying for minutes under viscous damping reaches subnormal floats,
+    # where the adaptive integrator's error norm underflows to 0/0).
+    y0 = np.where(np.abs(y0) < 1e-100, 0.0, y0)
     if sample_times is not None:
         sample_times = np.asarray(sample_times, dtype=float)
         if np.any(np.diff(sample_times) <= 0) or sample_times[0] < t0 or sample_times[-1] > t1:

@@ -210,6 +210,8 @@ class Plant:
         end = t1 - 1e-12 * max(1.0, abs(t1))
         while t < end:
             W, groups = self.plan(ys, active, velocities, t, t1)
+            if t + W < end and t1 - (t + W) < 1e-6 * (t1 - t):
+                W = 0.5 * (t1 - t)  # never leave a sliver of an interval for the next window
             te = t1 if t + W >= end else t + W
             inside = grid[(grid > t) & (grid < te)]
             samples = np.concatenate([[t], inside, [te]])

@@ -229,10 +229,13 @@ class ControlSpec(_Strict):
     ``targets[k]`` = [x, y, theta] (m, m, rad) with twist ``gain`` (1/s) times the estimated error, wheels limited
     to ``speed`` (m/s), stopping within ``tolerance`` = [m, rad]. ``"diffusion"``: every cell's wheel speeds relax
     toward its neighbours' at rate ``alpha`` per tick (the discrete heat equation); ``sources`` = [[cell, v0, v1],
-    ...] hold their wheel speeds (m/s). ``dead_links``: [cell id, port] pairs whose link is cut (ports 0..3 = east, north,
+    ...] hold their wheel speeds (m/s). ``"sort"``: the Virtual Vehicle (:mod:`virtual_vehicle.sorting`): cells
+    inside ``entries`` outlines read each arriving parcel's ``destination``, cells inside ``exits[k]`` are exit k (a
+    lane reaching the edge; parcels leave through the side most of its cells have open);
+    parcels ride at ``speed`` keeping ``gap`` free cells ahead, sharing decisions over ``reach`` hops. ``dead_links``: [cell id, port] pairs whose link is cut (ports 0..3 = east, north,
     west, south of the cell)."""
 
-    program: Literal["shuttle", "pose", "diffusion"]
+    program: Literal["shuttle", "pose", "diffusion", "sort"]
     period: Annotated[float, Field(gt=0, le=10)] = 0.01
     delivery: Literal["ideal", "wire"] = "ideal"
     speed: Annotated[float, Field(gt=0, le=1e3)] = 0.2
@@ -247,6 +250,10 @@ class ControlSpec(_Strict):
     tolerance: tuple[Annotated[float, Field(gt=0, le=1)], Annotated[float, Field(gt=0, le=3.2)]] = (5e-4, 0.0035)
     alpha: Annotated[float, Field(gt=0, le=1)] = 0.2
     sources: list[tuple[Annotated[int, Field(ge=0)], Speed, Speed]] = []
+    exits: Annotated[list[Annotated[list[Point], Field(min_length=3)]], Field(max_length=4)] = []
+    entries: list[Annotated[list[Point], Field(min_length=3)]] = []
+    gap: Annotated[int, Field(ge=1, le=50)] = 2
+    reach: Annotated[int, Field(ge=1, le=62)] = 8
 
     @model_validator(mode="after")
     def _pose_needs_targets(self):
@@ -254,6 +261,9 @@ class ControlSpec(_Strict):
             raise ValueError("program 'pose' needs targets = [[x, y, theta], ...], one per parcel")
         if self.program != "pose" and self.targets is not None:
             raise ValueError("targets go with program 'pose'")
+        if self.program == "sort" and (not self.exits or not self.entries):
+            raise ValueError("program 'sort' needs exits = [outline, ...] and entries = [outline, ...] "
+                             "(outlines [[x, y], ...] in m)")
         return self
 
 
@@ -304,7 +314,9 @@ class ParcelEntry(_Strict):
     centroid); ``mass`` (kg), ``mu`` (friction
     coefficient, see :class:`FrictionSpec`), optional ``mu_static`` (stick-slip), optional ``inertia`` (kg m^2,
     default uniform plate), and its initial
-    state: centre of mass ``x``, ``y`` (m), heading ``theta`` (rad), ``vx``, ``vy`` (m/s), ``omega`` (rad/s)."""
+    state: centre of mass ``x``, ``y`` (m), heading ``theta`` (rad), ``vx``, ``vy`` (m/s), ``omega`` (rad/s).
+    ``t_start`` (s): when the parcel is put on the array (networked runs; it waits while its place is taken);
+    ``destination``: the exit (0..3) its label names, read by the cells at an entry (program ``"sort"``)."""
 
     name: Annotated[str, Field(min_length=1, max_length=64)]
     length: Pos | None = None
@@ -321,6 +333,8 @@ class ParcelEntry(_Strict):
     vx: Speed = 0.0
     vy: Speed = 0.0
     omega: Annotated[float, Field(ge=-1e4, le=1e4)] = 0.0
+    t_start: Annotated[float, Field(ge=0, le=1e7)] = 0.0
+    destination: Annotated[int, Field(ge=0, le=3)] | None = None
 
     @model_validator(mode="after")
     def _one_shape(self):
@@ -404,6 +418,8 @@ class Scenario(_Strict):
         polys = [s.world_polygon(st) for s, st in zip(specs, states)]
         for i in range(len(polys)):
             for j in range(i + 1, len(polys)):
+                if self.parcels[i].t_start > 0 or self.parcels[j].t_start > 0:
+                    continue  # a later arrival waits until its place is free
                 if shapely.intersection(polys[i], polys[j]).area > 1e-12:
                     raise ScenarioError(f"parcels[{j}]", f"parcel {self.parcels[j].name!r} overlaps parcel "
                                         f"{self.parcels[i].name!r} at the start; move one of them")
@@ -411,6 +427,13 @@ class Scenario(_Strict):
         if self.control is not None and self.control.targets is not None and len(self.control.targets) != len(specs):
             raise ScenarioError("control.targets", f"needs one target per parcel: {len(specs)}, got "
                                 f"{len(self.control.targets)}")
+        for i, p in enumerate(self.parcels):
+            if p.t_start > 0 and self.control is None:
+                raise ScenarioError(f"parcels[{i}].t_start", "parcels arriving later need [control] (a networked run)")
+            if p.destination is not None and self.control is not None and self.control.program == "sort" \
+                    and p.destination >= len(self.control.exits):
+                raise ScenarioError(f"parcels[{i}].destination", f"exit {p.destination} does not exist (the "
+                                    f"scenario has {len(self.control.exits)} exits, 0..{len(self.control.exits) - 1})")
         control = None if self.control is None else _build_control(self.control, cells, sensors, specs, states)
         if control is None and self.wheels.model == "motor":
             control = _field_control(cells, velocities, self.wheels.period)
@@ -532,12 +555,52 @@ def _build_control(c: ControlSpec, cells: layout.CellArray, sensors, specs, stat
             speed[cell] = (v0, v1)
         program = Diffusion(c.alpha, max_age=0 if c.delivery == "ideal" else 20)
         return ControlSetup(program, topo, make_delivery, c.delivery, c.period, {"fixed": fixed, "speed": speed})
+    if c.program == "sort":
+        return _build_sorter(c, cells, topo, make_delivery)
     if c.program == "pose":
         program = PoseControl(cells, sensors.points, specs, states, c.targets, gain=c.gain, max_speed=c.speed,
                               tolerance=c.tolerance, period=c.period)
     else:
         program = Shuttle(c.speed, c.hop_limit, c.heartbeat)
     return ControlSetup(program, topo, make_delivery, c.delivery, c.period, {})
+
+
+def _inside(outline, cells: layout.CellArray, where: str) -> np.ndarray:
+    poly = shapely.Polygon(np.asarray(outline, dtype=float))
+    if not poly.is_valid or poly.area <= 0:
+        raise ScenarioError(where, "is not a simple polygon with positive area")
+    inside = shapely.covers(poly, shapely.points(cells.positions))
+    if not inside.any():
+        raise ScenarioError(where, "contains no cell")
+    return inside
+
+
+def _build_sorter(c: ControlSpec, cells: layout.CellArray, topo, make_delivery) -> ControlSetup:
+    from .sorting import Sorter
+
+    exit_id = np.full(cells.n, -1, dtype=np.int64)
+    for k, outline in enumerate(c.exits):
+        inside = _inside(outline, cells, f"control.exits[{k}]")
+        exit_id[inside & (exit_id < 0)] = k
+    exit_port = np.full(cells.n, -1, dtype=np.int64)
+    for k in range(len(c.exits)):
+        region = np.flatnonzero(exit_id == k)
+        free = (~topo.connected[region]).sum(axis=0)  # sides of the region's cells with no neighbour, by port
+        if free.max() == 0:
+            raise ScenarioError(f"control.exits[{k}]", "an exit must reach the edge of the array (parcels leave "
+                                "through a side with no neighbour)")
+        if np.sum(free == free.max()) > 1:
+            raise ScenarioError(f"control.exits[{k}]", "the way out is ambiguous (the exit touches two edges as much; "
+                                "keep it off the corner)")
+        exit_port[region] = int(np.argmax(free))  # the way out: the side most of its cells have open
+    entry = np.zeros(cells.n, dtype=bool)
+    for k, outline in enumerate(c.entries):
+        entry |= _inside(outline, cells, f"control.entries[{k}]")
+    config = {"exit": exit_id, "exit_port": exit_port, "entry": entry,
+              "entry_no": np.arange(1, cells.n + 1, dtype=np.int64),  # installation numbers: unique vehicle ids
+              "clearance": (c.gap + 1) * cells.pitch}  # the loader waits for this much room around a new parcel
+    program = Sorter(c.speed, c.gap, c.reach, max_age=0 if c.delivery == "ideal" else 20, period=c.period)
+    return ControlSetup(program, topo, make_delivery, c.delivery, c.period, config)
 
 
 @dataclass(frozen=True, eq=False)

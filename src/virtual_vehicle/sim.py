@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+import shapely
 
 from . import __version__
 from .dynamics import Trajectory
@@ -38,6 +39,8 @@ class ParcelResult:
     trajectory: Trajectory
     sliding_violation: tuple[float, float] | None = None
     sliding_checked: bool = True
+    entered_at: float | None = 0.0
+    """When the parcel was put on the array (s); None if its place never came free (status ``"waiting"``)."""
 
 
 @dataclass
@@ -87,6 +90,14 @@ class RunResult:
                               "final_error_deg": float(np.degrees(ang)),
                               "settled_within_5mm_2deg_at_s": settled_at(pr.spec, pr.trajectory.times,
                                                                           pr.trajectory.states, target)})
+        extra = {}
+        if sc.control is not None and sc.control.program == "sort":
+            from .tasks import sorting_report
+
+            report = sorting_report(self)
+            for entry, row in zip(parcels, report.pop("parcels")):
+                entry.update({k: v for k, v in row.items() if k != "name"})
+            extra["sorting"] = report
         simulated = sum(pr.trajectory.t_end for pr in self.parcels)
         return {
             "scenario": sc.name,
@@ -100,6 +111,7 @@ class RunResult:
             "real_time_factor": (sc.duration / self.wall_time) if self.wall_time > 0 else None,
             "parcel_seconds_simulated": simulated,
             **self.stats,
+            **extra,
         }
 
 
@@ -242,7 +254,11 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -
     sensor_rng = np.random.default_rng(setup.sensors.seed)
     drives = WheelDrives(n, sc.wheels.motor()) if sc.wheels.model == "motor" else None
     ys = [y.copy() for y in setup.states]
-    active = [True] * len(ys)
+    arrive = [p.t_start for p in sc.parcels]
+    active = [t == 0 for t in arrive]
+    entered = [0.0 if t == 0 else None for t in arrive]
+    destinations = [p.destination for p in sc.parcels]
+    labelled = any(d is not None for d in destinations)
     plant = setup.plant()
     parts: list[list[Trajectory]] = [[] for _ in ys]
     keys = ("sent", "received", "bytes_sent", "bytes_received")
@@ -257,8 +273,10 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -
     for k in range(ticks):
         t0 = k * period
         t1 = min(sc.duration, t0 + period)
+        _admit(setup, ys, active, entered, arrive, t0)
         sensors = setup.sensors.read(setup.specs, ys, sensor_rng, active)
-        inputs = CellInputs(t0, sensors, inbox, topo.connected, ctl.config)
+        labels = _labels(setup, ys, active, destinations) if labelled else None
+        inputs = CellInputs(t0, sensors, inbox, topo.connected, ctl.config, labels)
         state, outbox, wheels = ctl.program.step(state, inputs)
         command = np.where(topo.alive[:, None], np.asarray(wheels, dtype=float), 0.0)  # a dead cell does not drive
         if drives is None:
@@ -286,10 +304,40 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -
         if progress is not None:
             progress((k + 1) / ticks)
     results = []
-    for spec, segs in zip(setup.specs, parts):
-        results.append(ParcelResult(spec, join(segs), sliding_checked=False))
+    for spec, segs, y, t in zip(setup.specs, parts, ys, arrive):
+        traj = join(segs) if segs else Trajectory(np.array([t]), y[None].copy(), [], "waiting", t)
+        results.append(ParcelResult(spec, traj, sliding_checked=False, entered_at=entered[len(results)]))
     record = NetworkRecord(ctl.delivery_name, period, per_tick, per_cell,
                            np.concatenate(latencies) if latencies else np.zeros(0))
     return RunResult(setup, results, time.perf_counter() - start,
                      {"network": record.totals(), "plant": plant_totals(plant)}, record,
                      sensor_log if sc.sensors.record else None)
+
+
+def _admit(setup: Setup, ys, active, entered, arrive, t: float) -> None:
+    """Put on the array the parcels due by ``t`` whose place is free: no active parcel overlaps it, or, when the
+    program asks for a clearance (config ``clearance``, m), none comes that close."""
+    for i in sorted(range(len(arrive)), key=lambda i: (arrive[i], i)):  # first come, first placed
+        due = arrive[i]
+        if entered[i] is not None:
+            continue
+        if due > t + 1e-12:
+            return
+        place = setup.specs[i].world_polygon(ys[i])
+        clearance = float(setup.control.config.get("clearance", 0.0)) if setup.control is not None else 0.0
+        if any(active[j] and shapely.distance(place, setup.specs[j].world_polygon(ys[j])) <= clearance
+               and (clearance > 0 or shapely.intersection(place, setup.specs[j].world_polygon(ys[j])).area > 1e-12)
+               for j in range(len(ys)) if j != i):
+            return  # the queue waits behind its first parcel
+        active[i] = True
+        entered[i] = t
+
+
+def _labels(setup: Setup, ys, active, destinations) -> np.ndarray:
+    """(n,) the destination label of the parcel above each cell's centre, -1 for none."""
+    cells = setup.cells
+    out = np.full(cells.n, -1, dtype=np.int64)
+    for spec, y, on, dest in zip(setup.specs, ys, active, destinations):
+        if on and dest is not None:
+            out[supporting_cells(spec, y, cells.positions, cells.tree)] = dest
+    return out

@@ -83,6 +83,64 @@ def plot_paths(result: RunResult, path: str | Path | None = None, title: str | N
     return _finish(fig, path)
 
 
+def plot_sorting(result: RunResult, path: str | Path | None = None):
+    """A sorting run (program ``"sort"``): left, the array with its entry (grey) and exit lanes (one colour each),
+    every parcel's path coloured by its destination, a filled dot where it left the array (at the right exit) or a
+    red cross (elsewhere), and hollow squares for parcels still on it; right, parcels delivered to the right exit
+    and parcels on the array against time (s). Saves a PNG to ``path`` if given; returns the figure."""
+    from .tasks import sorting_report
+
+    setup = result.setup
+    cells = setup.cells
+    P = cells.positions
+    cfg = setup.control.config
+    report = sorting_report(result)
+    fig, (ax, axt) = plt.subplots(1, 2, figsize=(13, 5.0), dpi=110, gridspec_kw={"width_ratios": [1.5, 1]})
+    colors = ["tab:blue", "tab:orange", "tab:green", "tab:purple"]
+    ax.scatter(P[:, 0], P[:, 1], s=8, color="0.75", zorder=1)
+    ax.scatter(P[cfg["entry"], 0], P[cfg["entry"], 1], s=60, marker="s", color="0.55", zorder=1, label="entry")
+    exits = np.asarray(cfg["exit"])
+    for k in range(exits.max() + 1):
+        sel = exits == k
+        ax.scatter(P[sel, 0], P[sel, 1], s=60, marker="s", color=colors[k % 4], alpha=0.35, zorder=1,
+                   label=f"exit {k}")
+    for pr, row in zip(result.parcels, report["parcels"]):
+        tr = pr.trajectory
+        c = colors[(row["destination"] or 0) % 4]
+        if row["outcome"] == "waiting":
+            continue
+        ax.plot(tr.states[:, 0], tr.states[:, 1], "-", color=c, lw=1.0, alpha=0.7, zorder=2)
+        x, y = tr.states[-1, :2]
+        if row["outcome"] == "delivered" and row["correct"]:
+            ax.plot(x, y, "o", color=c, ms=6, zorder=3)
+        elif row["outcome"] in ("delivered", "lost"):
+            ax.plot(x, y, "x", color="red", ms=9, mew=2, zorder=3)
+        else:
+            end = pr.spec.world_polygon(tr.states[-1])
+            ax.add_patch(PolygonPatch(np.asarray(end.exterior.coords), closed=True, fill=False, ec=c, lw=1.2))
+    ax.set_aspect("equal")
+    ax.margins(0.05)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    sc = setup.scenario
+    ax.set_title(f"{sc.name}: paths coloured by destination")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=5, fontsize=8, frameon=False)
+    t = np.linspace(0.0, sc.duration, 400)
+    done = [r["entered_at_s"] + r["delivery_time_s"] for r in report["parcels"] if r["correct"]]
+    entered = [r["entered_at_s"] for r in report["parcels"] if r["entered_at_s"] is not None]
+    left = [pr.trajectory.t_end for pr, r in zip(result.parcels, report["parcels"])
+            if r["outcome"] in ("delivered", "lost")]
+    axt.step(t, [sum(d <= ti for d in done) for ti in t], where="post", label="delivered to the right exit")
+    on = [sum(e <= ti for e in entered) - sum(x <= ti for x in left) for ti in t]
+    axt.step(t, on, where="post", label="on the array")
+    axt.set_xlabel("t (s)")
+    axt.set_ylabel("parcels")
+    axt.set_title(f"{report['throughput_per_hour']:.0f} parcels/hour, {report['collisions']} collisions")
+    axt.grid(alpha=0.3)
+    axt.legend(loc="upper left", fontsize=8)
+    return _finish(fig, path)
+
+
 def plot_traffic(result: RunResult, path: str | Path | None = None):
     """Message traffic of a networked run: left, sentences each cell received over the run (colour) on the array;
     right, sentences sent and received per control tick and the mean latency (ms). Saves a PNG to ``path``."""

@@ -38,6 +38,8 @@ class CellInputs:
         inbox: sentences that arrived since the last tick, per port.
         connected: (n, P) ports that lead to a neighbour (a cell can tell whether a neighbour is plugged in).
         config: per-cell local configuration, arrays by name.
+        labels: (n,) the label (e.g. destination) a reader in the cell sees on the parcel above it, -1 for none;
+            None when the run has no labelled parcels. Programs read it only where a reader is installed.
     """
 
     t: float
@@ -45,6 +47,7 @@ class CellInputs:
     inbox: Mailbox
     connected: np.ndarray
     config: dict = field(default_factory=dict)
+    labels: np.ndarray | None = None
 
 
 class CellProgram(Protocol):

@@ -1,0 +1,58 @@
+"""Task metrics: what a run achieved, in the terms a sorting hall is judged by.
+
+Units: s, m, parcels per hour.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def sorting_report(result) -> dict:
+    """Outcome of every parcel of a sorting run and the run's totals.
+
+    A parcel is ``"delivered"`` when it left the array (tipped off the edge) with its centre of mass within 1.5
+    pitches of a cell of an exit lane, which is the exit it reached; ``"correct"`` when that exit is its
+    destination. ``"lost"``: it left the array anywhere else; ``"on_array"``: still there at the end;
+    ``"waiting"``: never put on (its place at the entry never came free). Delivery time runs from being put on the
+    array to leaving it. ``collisions`` counts pairs of parcels that started pushing each other (must be 0).
+    ``throughput_per_hour`` counts correct deliveries.
+    """
+    setup = result.setup
+    sc = setup.scenario
+    cells = setup.cells
+    exit_id = np.asarray(setup.control.config["exit"])
+    exit_cells = np.flatnonzero(exit_id >= 0)
+    rows = []
+    for pr, entry in zip(result.parcels, sc.parcels):
+        tr = pr.trajectory
+        row = {"name": pr.spec.name, "destination": entry.destination, "due_s": entry.t_start,
+               "entered_at_s": pr.entered_at, "outcome": "on_array", "exit": None, "correct": False,
+               "delivery_time_s": None, "collisions": sum(1 for e in tr.events if e.kind == "contact")}
+        if pr.entered_at is None:
+            row["outcome"] = "waiting"
+        elif tr.status == "tipped":
+            d = np.hypot(*(cells.positions[exit_cells] - tr.states[-1, :2]).T)
+            k = int(np.argmin(d)) if len(d) else -1
+            if k >= 0 and d[k] <= 1.5 * cells.pitch:
+                row.update(outcome="delivered", exit=int(exit_id[exit_cells[k]]),
+                           delivery_time_s=float(tr.t_end - pr.entered_at))
+                row["correct"] = row["exit"] == entry.destination
+            else:
+                row["outcome"] = "lost"
+        rows.append(row)
+    times = [r["delivery_time_s"] for r in rows if r["delivery_time_s"] is not None]
+    delays = [r["entered_at_s"] - r["due_s"] for r in rows if r["entered_at_s"] is not None]
+    correct = sum(r["correct"] for r in rows)
+    count = {k: sum(r["outcome"] == k for r in rows) for k in ("delivered", "lost", "on_array", "waiting")}
+    return {
+        "parcels": rows,
+        **count,
+        "correct": correct,
+        "misrouted": count["delivered"] - correct,
+        "collisions": int(result.stats.get("plant", {}).get("parcel_contacts", 0)),
+        "throughput_per_hour": correct / sc.duration * 3600.0,
+        "delivery_time_mean_s": float(np.mean(times)) if times else None,
+        "delivery_time_max_s": float(np.max(times)) if times else None,
+        "entry_delay_mean_s": float(np.mean(delays)) if delays else None,
+    }
