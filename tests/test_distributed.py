@@ -139,3 +139,24 @@ def test_parcels_detour_around_dead_cells():
         path = pr.trajectory.states
         crossing = (np.abs(path[:, 0] - 1.0) < 0.05) & (path[:, 1] > 0.3) & (path[:, 1] < 0.8)
         assert not crossing.any()
+
+
+def test_central_and_distributed_sorting_side_by_side():
+    from virtual_vehicle.tasks import compare_sorting
+
+    both = compare_sorting(sorting())
+    for mode in ("distributed", "central"):
+        r = both[mode]
+        assert r["collisions"] == 0 and r["lost"] == 0 and r["misrouted"] == 0, (mode, r)
+        assert r["correct"] >= 5, (mode, r)
+    # without network delay the central computer starts and stops vehicles sooner
+    assert both["central"]["delivery_time_mean_s"] <= both["distributed"]["delivery_time_mean_s"]
+
+
+def test_compare_command_rejects_a_scenario_that_does_not_sort():
+    from typer.testing import CliRunner
+
+    from virtual_vehicle.cli import app
+
+    res = CliRunner().invoke(app, ["compare", "prototype_18"])
+    assert res.exit_code == 2 and "sort" in res.output

@@ -176,6 +176,52 @@ def equilibria_cmd(
 
 
 @app.command()
+def compare(
+    scenario: str = typer.Argument("sorting_junction", help="A sorting scenario (program \"sort\")."),
+    out_dir: Path = typer.Option(Path("results/compare"), "--out", "-o", help="Folder for compare.json."),
+) -> None:
+    """Run a sorting scenario with distributed and with central control and print the metrics side by side."""
+    import json
+
+    from rich.table import Table
+
+    from .io import write_atomic
+    from .scenario import load_scenario
+    from .tasks import compare_sorting
+
+    try:
+        sc, _ = load_scenario(scenario)
+        if sc.control is None or sc.control.program != "sort":
+            raise ScenarioError("control.program", "compare needs a sorting scenario (program = \"sort\")")
+    except VirtualVehicleError as exc:
+        _fail(exc)
+    bar = _LazyProgress(f"simulating {sc.name} twice")
+    try:
+        both = compare_sorting(sc, progress=bar)
+    finally:
+        bar.close()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_atomic(out_dir / "compare.json", json.dumps({"scenario": sc.name, **both}, indent=2).encode())
+    table = Table(title=f"{sc.name}: {sc.duration:g} s, {len(sc.parcels)} parcels")
+    table.add_column("metric")
+    table.add_column("distributed")
+    table.add_column("central")
+    for key, label in (("correct", "delivered to the right exit"), ("misrouted", "misrouted"), ("lost", "lost"),
+                       ("collisions", "collisions"), ("throughput_per_hour", "parcels per hour"),
+                       ("delivery_time_mean_s", "mean delivery time (s)"),
+                       ("delivery_time_max_s", "longest delivery time (s)"),
+                       ("entry_delay_mean_s", "mean wait at the entry (s)"), ("on_array", "still on the array"),
+                       ("waiting", "never put on")):
+        cells = []
+        for mode in ("distributed", "central"):
+            v = both[mode][key]
+            cells.append("n/a" if v is None else f"{v:.4g}" if isinstance(v, float) else str(v))
+        table.add_row(label, *cells)
+    out.print(table)
+    out.print(f"written to {out_dir}/compare.json")
+
+
+@app.command()
 def scenarios() -> None:
     """List the bundled scenarios."""
     from .scenario import DEFAULT_SCENARIO, bundled_scenarios

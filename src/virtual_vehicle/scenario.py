@@ -232,7 +232,9 @@ class ControlSpec(_Strict):
     ...] hold their wheel speeds (m/s). ``"sort"``: the Virtual Vehicle (:mod:`virtual_vehicle.sorting`): cells
     inside ``entries`` outlines read each arriving parcel's ``destination``, cells inside ``exits[k]`` are exit k (a
     lane reaching the edge; parcels leave through the side most of its cells have open);
-    parcels ride at ``speed`` keeping ``gap`` free cells ahead, sharing decisions over ``reach`` hops. ``dead_links``: [cell id, port] pairs whose link is cut (ports 0..3 = east, north,
+    parcels ride at ``speed`` keeping ``gap`` free cells ahead, sharing decisions over ``reach`` hops; ``central``
+    = true runs the same policies on one central computer instead (:class:`~virtual_vehicle.sorting.CentralSorter`),
+    for comparison. ``dead_links``: [cell id, port] pairs whose link is cut (ports 0..3 = east, north,
     west, south of the cell)."""
 
     program: Literal["shuttle", "pose", "diffusion", "sort"]
@@ -254,6 +256,7 @@ class ControlSpec(_Strict):
     entries: list[Annotated[list[Point], Field(min_length=3)]] = []
     gap: Annotated[int, Field(ge=1, le=50)] = 2
     reach: Annotated[int, Field(ge=1, le=62)] = 8
+    central: bool = False
 
     @model_validator(mode="after")
     def _pose_needs_targets(self):
@@ -599,7 +602,12 @@ def _build_sorter(c: ControlSpec, cells: layout.CellArray, topo, make_delivery) 
     config = {"exit": exit_id, "exit_port": exit_port, "entry": entry,
               "entry_no": np.arange(1, cells.n + 1, dtype=np.int64),  # installation numbers: unique vehicle ids
               "clearance": (c.gap + 1) * cells.pitch}  # the loader waits for this much room around a new parcel
-    program = Sorter(c.speed, c.gap, c.reach, max_age=0 if c.delivery == "ideal" else 20, period=c.period)
+    if c.central:
+        from .sorting import CentralSorter
+
+        program = CentralSorter(topo, c.speed, c.gap, period=c.period)
+    else:
+        program = Sorter(c.speed, c.gap, c.reach, max_age=0 if c.delivery == "ideal" else 20, period=c.period)
     return ControlSetup(program, topo, make_delivery, c.delivery, c.period, config)
 
 

@@ -258,3 +258,159 @@ class Sorter:
                      "dir": np.where(moving | (direction >= 0), direction, _NONE), "key": key, "stop": stop,
                      "hold": new_hold, "hdep": hdep, "hport": hport, "ack": ack}
         return new_state, out, wheels
+
+
+class CentralSorter:
+    """The central counterpart of :class:`Sorter`, for side-by-side comparison: one computer that sees every cell's
+    sensors at once, with no network delay, applies the same policies globally each tick.
+
+    It finds parcels as connected groups of lit cells, keeps their records (id = arrival tick, goal = the label
+    read at an entry), routes each by shortest-path distances to its exit (Dijkstra on the cell graph, edge cells
+    costing ``1 + edge_cost`` as in the cells' gradients; a parcel goes the way that brings the cells carrying it
+    closest to the exit on average), never moves a parcel over the edge or a dead cell except
+    out of its exit lane, moves it sideways into the lane at its exit, and grants cells ahead to the oldest parcel
+    first, ``gap + 1`` deep (a parcel moves when ``gap`` are free ahead of every front cell).
+
+    Config and inputs as for :class:`Sorter`, plus the topology (neighbours and live links) given at construction.
+    """
+
+    schema = Schema(())
+
+    def __init__(self, topology, speed: float, gap: int = 2, edge_cost: int = 3, period: float = 0.01):
+        self.topo = topology
+        self.speed = float(speed)
+        self.gap = int(gap)
+        self.edge_cost = int(edge_cost)
+        self.period = float(period)
+
+    def init(self, n, ports, config):
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import dijkstra
+
+        topo = self.topo
+        exit_id = np.asarray(config["exit"])
+        conn = topo.connected
+        cost = np.where(conn.all(axis=1) | (exit_id >= 0), 1.0, 1.0 + self.edge_cost)
+        a, p = np.nonzero(conn)
+        b = topo.neighbor[a, p]
+        graph = coo_matrix((cost[a], (b, a)), shape=(n, n)).tocsr()  # stepping from b into a costs a's cost
+        dist = np.full((MAX_EXITS, n), np.inf)
+        for e in range(MAX_EXITS):
+            src = np.flatnonzero(exit_id == e)
+            if len(src):
+                dist[e] = dijkstra(graph, indices=src, min_only=True)
+        return {"dist": dist, "vehicles": {}, "owner": np.full(n, _NONE, dtype=np.int64)}
+
+    def step(self, state, inputs: CellInputs):
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        topo, cfg = self.topo, inputs.config
+        n, P = inputs.connected.shape
+        lit = np.asarray(inputs.sensors, dtype=bool).any(axis=1) & topo.alive
+        core = np.asarray(inputs.sensors, dtype=bool)[:, 0] & topo.alive
+        exit_id = np.asarray(cfg["exit"])
+        exit_port = np.asarray(cfg["exit_port"])
+        entry = np.asarray(cfg["entry"], dtype=bool)
+        labels = np.full(n, _NONE) if inputs.labels is None else np.asarray(inputs.labels)
+        # parcels = connected groups of lit cells
+        idx = np.flatnonzero(lit)
+        pos = {c: k for k, c in enumerate(idx)}
+        a, p = np.nonzero(inputs.connected[idx])
+        b = topo.neighbor[idx[a], p]
+        keep = lit[b]
+        graph = coo_matrix((np.ones(int(keep.sum())), (a[keep], [pos[c] for c in b[keep]])), shape=(len(idx),) * 2)
+        count, comp = connected_components(graph, directed=False) if len(idx) else (0, np.zeros(0, int))
+        owner_prev = state["owner"]
+        vehicles = {}
+        owner = np.full(n, _NONE, dtype=np.int64)
+        tick = int(round(inputs.t / self.period))
+        for k in range(count):
+            blob = idx[comp == k]
+            prev = owner_prev[blob]
+            prev = prev[prev >= 0]
+            if len(prev):
+                vid = int(np.bincount(prev - prev.min()).argmax() + prev.min())  # the record most of it had
+                record = state["vehicles"].get(vid)
+            else:
+                record = None
+            if record is None:
+                lab = labels[blob[entry[blob] & (labels[blob] >= 0)]]
+                if not len(lab):
+                    continue  # an unknown parcel: nobody drives it
+                vid = tick * 1024 + int(blob.min()) % 1024
+                record = {"goal": int(lab[0]), "dir": _NONE}
+            vehicles[vid] = {**record, "cells": blob}
+            owner[blob] = vid
+        wheels = np.zeros((n, 2))
+        held = np.zeros(n, dtype=bool)
+        sign = np.array([1.0, 1.0, -1.0, -1.0])
+        axis = np.array([0, 1, 0, 1])
+        for vid in sorted(vehicles):
+            v = vehicles[vid]
+            cells, goal = v["cells"], v["goal"]
+            body = cells[core[cells]] if core[cells].any() else cells
+            direction = self._direction(state["dist"][goal], cells, body, goal, exit_id, exit_port, inputs, v["dir"])
+            v["dir"] = direction
+            if direction < 0:
+                continue
+            go, claim = self._ahead(cells, body, direction, vid, owner, held, goal, exit_id, exit_port, inputs)
+            if go:
+                held[claim] = True
+                wheels[cells, axis[direction]] = sign[direction] * self.speed
+        return ({"dist": state["dist"], "vehicles": {k: {"goal": v["goal"], "dir": v["dir"]} for k, v in
+                                                      vehicles.items()}, "owner": owner},
+                Mailbox.empty(self.schema, n, P), wheels)
+
+    def _direction(self, dist, cells, body, goal, exit_id, exit_port, inputs, current):
+        topo = self.topo
+        lane = body[exit_id[body] == goal]
+        if len(lane):  # as the cells do: out once nothing beside a lane cell, across the way out, is off the lane
+            out = int(exit_port[lane[0]])
+            member = np.zeros(len(dist), dtype=bool)
+            member[body] = True
+            for q in ((out + 1) % 4, (out + 3) % 4):
+                nb = topo.neighbor[lane, q]
+                if np.any((nb >= 0) & member[np.maximum(nb, 0)] & (exit_id[np.maximum(nb, 0)] != goal)):
+                    return (q + 2) % 4  # away from the part still beside the lane
+            return out
+        best, best_score = _NONE, np.inf
+        for q in range(4):
+            if not inputs.connected[body, q].all():
+                continue  # a cell carrying the parcel has no neighbour that way: closed
+            score = float(np.mean(dist[topo.neighbor[body, q]]))  # where the carrying cells would be, on average
+            if not np.isfinite(score):
+                continue
+            score = (score, q != current, q)
+            if best < 0 or score < best_score:
+                best, best_score = q, score
+        return best
+
+    def _ahead(self, cells, body, q, vid, owner, held, goal, exit_id, exit_port, inputs):
+        """Whether the vehicle may move toward port q, and the cells it then holds."""
+        topo = self.topo
+        member = np.zeros(len(owner), dtype=bool)
+        member[cells] = True
+        claim = []
+        for c in cells:
+            nb = topo.neighbor[c, q]
+            if nb >= 0 and member[nb]:
+                continue  # not a front cell
+            if not inputs.connected[c, q]:
+                if exit_id[c] == goal and exit_port[c] == q:
+                    continue  # leaving through its exit
+                if c in body:
+                    return False, []
+                continue  # only its edge hangs over
+            run = c
+            for depth in range(self.gap + 1):
+                nxt = topo.neighbor[run, q] if inputs.connected[run, q] else -1
+                if nxt < 0:
+                    break
+                if (owner[nxt] >= 0 and owner[nxt] != vid) or held[nxt]:
+                    if depth < self.gap:
+                        return False, []
+                    break
+                claim.append(nxt)
+                run = nxt
+        return True, claim

@@ -56,3 +56,20 @@ def sorting_report(result) -> dict:
         "delivery_time_max_s": float(np.max(times)) if times else None,
         "entry_delay_mean_s": float(np.mean(delays)) if delays else None,
     }
+
+
+def compare_sorting(scenario, progress=None) -> dict:
+    """Run a sorting scenario (program ``"sort"``) twice, with distributed and with central control, and return
+    both reports side by side: {"distributed": report, "central": report} (see :func:`sorting_report`, without the
+    per-parcel rows), each with the run's wall time (s)."""
+    from .sim import run
+
+    out = {}
+    for mode in ("distributed", "central"):
+        control = scenario.control.model_copy(update={"central": mode == "central"})
+        result = run(scenario.model_copy(update={"control": control}).build(), progress)
+        report = sorting_report(result)
+        report.pop("parcels")
+        report["wall_time_s"] = result.wall_time
+        out[mode] = report
+    return out
