@@ -160,3 +160,16 @@ def test_compare_command_rejects_a_scenario_that_does_not_sort():
 
     res = CliRunner().invoke(app, ["compare", "prototype_18"])
     assert res.exit_code == 2 and "sort" in res.output
+
+
+def test_two_streams_merge_oldest_first_without_collisions():
+    from virtual_vehicle.scenario import load_scenario
+
+    sc, _ = load_scenario("merge_two_streams")
+    res = run(sc.model_copy(update={"duration": 30.0}).build())
+    s = res.summary()
+    so = s["sorting"]
+    assert so["collisions"] == 0 and so["lost"] == 0 and so["misrouted"] == 0
+    assert so["correct"] >= 8
+    delivered = [p["name"] for p in s["parcels"] if p["outcome"] == "delivered"]
+    assert any(n.startswith("s") for n in delivered) and any(n.startswith("n") for n in delivered)

@@ -62,3 +62,9 @@ def test_pose_program_needs_one_target_per_parcel():
                         "parcels": [{"name": "a", "length": 0.1, "width": 0.1, "mass": 1, "mu": 0.5, "x": 0.1, "y": 0}]})
     with pytest.raises(ScenarioError, match="one target per parcel"):
         pose_scenario(targets=((0.5, 0.5, 0.0), (0.6, 0.6, 0.0))).build()
+
+
+def test_rotate_in_place_to_an_angle():
+    s = run(pose_scenario(targets=((0.3, 0.3, 0.8),)).build()).summary()
+    p = s["parcels"][0]
+    assert p["final_error_mm"] < 5.0 and p["final_error_deg"] < 3.0
