@@ -92,3 +92,56 @@ def test_an_interrupted_write_leaves_no_file(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         io.write_atomic(target, "new")
     assert target.read_text() == "old"  # the previous complete file survives
+
+
+def test_a_killed_networked_run_resumes_to_the_uninterrupted_result(tmp_path):
+    """Kill a checkpointing run (a real process, SIGKILL) after its first checkpoint, resume it, and get exactly
+    the files of an uninterrupted run (the summary differs only in wall time)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    scenario = tmp_path / "s.toml"
+    text = _bundled_text("sorting_junction").replace("duration = 40.0", "duration = 8.0")
+    scenario.write_text(text)
+    exe = [sys.executable, "-m", "virtual_vehicle.cli"]
+    ref = tmp_path / "ref"
+    subprocess.run([*exe, "run", str(scenario), "-o", str(ref), "--no-plot"], check=True, capture_output=True)
+    ck = tmp_path / "run.ckpt"
+    proc = subprocess.Popen([*exe, "run", str(scenario), "-o", str(tmp_path / "killed"), "--no-plot",
+                             "--checkpoint", str(ck), "--checkpoint-every", "2"])
+    deadline = time.time() + 120
+    while not ck.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert ck.exists() and not (tmp_path / "killed" / "summary.json").exists()
+    out = tmp_path / "resumed"
+    subprocess.run([*exe, "resume", str(ck), "-o", str(out), "--no-plot"], check=True, capture_output=True)
+    for name in ("trajectories.csv", "events.csv", "network.csv", "scenario.toml"):
+        assert (out / name).read_bytes() == (ref / name).read_bytes(), name
+    a, b = (json.loads((d / "summary.json").read_text()) for d in (ref, out))
+    for s in (a, b):
+        s.pop("wall_time_s"), s.pop("real_time_factor")
+    assert a == b
+
+
+def test_resume_rejects_what_is_not_a_checkpoint(tmp_path):
+    from typer.testing import CliRunner
+
+    from virtual_vehicle.cli import app
+
+    bad = tmp_path / "x.ckpt"
+    bad.write_bytes(b"not a checkpoint")
+    res = CliRunner().invoke(app, ["resume", str(bad)])
+    assert res.exit_code == 2 and "not a virtual_vehicle checkpoint" in res.output
+    res = CliRunner().invoke(app, ["run", "prototype_18", "--checkpoint", str(tmp_path / "c")])
+    assert res.exit_code == 2 and "networked" in res.output
+
+
+def _bundled_text(name):
+    from virtual_vehicle.scenario import load_scenario
+
+    return load_scenario(name)[1]

@@ -54,23 +54,60 @@ def run(
                                              "18-cell prototype)."),
     out_dir: Path = typer.Option(Path("results/run"), "--out", "-o", help="Folder for the results."),
     plot: bool = typer.Option(True, help="Write paths.png."),
+    checkpoint: Optional[Path] = typer.Option(None, help="Networked runs: keep the run's state in this file, to "
+                                              "resume after an interruption (virtual-vehicle resume)."),
+    checkpoint_every: float = typer.Option(60.0, min=1e-6, help="Simulated seconds between checkpoints."),
 ) -> None:
     """Run a scenario; write trajectories.csv, events.csv, summary.json, scenario.toml and paths.png (and, with
     distributed control, network.csv, cell_traffic.csv and traffic.png)."""
-    from .io import write_results
     from .scenario import load_scenario
-    from .sim import run as run_setup
+    from .sim import run as run_setup, run_network
 
     try:
         sc, text = load_scenario(scenario)
         setup = sc.build()
+        if checkpoint is not None and setup.control is None:
+            raise ScenarioError("control", "checkpoints are for networked runs (a [control] table); a constant "
+                                "field runs in one piece")
     except VirtualVehicleError as exc:
         _fail(exc)
     bar = _LazyProgress(f"simulating {sc.name}")
     try:
-        result = run_setup(setup, progress=bar)
+        if checkpoint is None:
+            result = run_setup(setup, progress=bar)
+        else:
+            result = run_network(setup, progress=bar, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
+                                 scenario_text=text)
     finally:
         bar.close()
+    _report(result, out_dir, plot, text)
+
+
+@app.command(name="resume")
+def resume_cmd(
+    checkpoint: Path = typer.Argument(..., help="A checkpoint written by 'run --checkpoint'."),
+    out_dir: Path = typer.Option(Path("results/run"), "--out", "-o", help="Folder for the results."),
+    plot: bool = typer.Option(True, help="Write paths.png."),
+) -> None:
+    """Continue an interrupted networked run from its checkpoint; the results are those of an uninterrupted run."""
+    from .sim import resume
+
+    bar = _LazyProgress(f"resuming {checkpoint}")
+    try:
+        result = resume(checkpoint, progress=bar)
+    except VirtualVehicleError as exc:
+        bar.close()
+        _fail(exc)
+    finally:
+        bar.close()
+    _report(result, out_dir, plot, result.scenario_text)
+
+
+def _report(result, out_dir: Path, plot: bool, text: str | None) -> None:
+    """Write a run's files and print its summary."""
+    from .io import write_results
+
+    sc = result.setup.scenario
     paths = write_results(result, out_dir, text)
     if plot:
         from .viz import plot_paths, plot_traffic

@@ -64,6 +64,11 @@ class Piece:
     solution: SupportSolution
     constants: FrictionConstants
     rhs: Callable[[float, np.ndarray], np.ndarray]
+    mass: float = 1.0
+    inertia: float = 1.0
+
+    def __reduce__(self):  # the rhs is a closure: pickle the constants and build it again (same floats)
+        return _rebuild_piece, (self.support, self.solution, self.constants, self.mass, self.inertia)
 
     @property
     def key(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
@@ -73,6 +78,10 @@ class Piece:
     def normal_forces(self, y) -> np.ndarray:
         """Normal forces (N) of the supporting cells at state ``y``."""
         return self.solution.forces(np.asarray(y[:2], dtype=float))
+
+
+def _rebuild_piece(support, solution, constants, mass, inertia) -> "Piece":
+    return Piece(support, solution, constants, _make_rhs(constants, solution.origin, mass, inertia), mass, inertia)
 
 
 def _make_rhs(k: FrictionConstants, origin: np.ndarray, mass: float, inertia: float):
@@ -207,7 +216,7 @@ class ParcelModel:
         return piece
 
     def _make_piece(self, support: np.ndarray, sol: SupportSolution, k: FrictionConstants) -> Piece:
-        return Piece(support, sol, k, _make_rhs(k, sol.origin, self.spec.mass, self.spec.inertia))
+        return _rebuild_piece(support, sol, k, self.spec.mass, self.spec.inertia)
 
     @property
     def pieces_cached(self) -> int:

@@ -6,6 +6,7 @@ path (see :func:`bundled_scenarios`). Errors are :class:`~virtual_vehicle.errors
 
 from __future__ import annotations
 
+import functools
 import tomllib
 from dataclasses import dataclass
 from importlib import resources
@@ -512,7 +513,7 @@ def _field_control(cells: layout.CellArray, velocities: np.ndarray, period: floa
 
     topo = from_layout(cells)
     wheels = np.einsum("ij,ikj->ik", velocities, cells.drive_directions)
-    return ControlSetup(FollowField(wheels), topo, lambda: IdealRounds(topo), "none", period, {})
+    return ControlSetup(FollowField(wheels), topo, functools.partial(IdealRounds, topo), "none", period, {})
 
 
 @dataclass(frozen=True, eq=False)
@@ -538,14 +539,10 @@ def _build_control(c: ControlSpec, cells: layout.CellArray, sensors, specs, stat
         if cell >= cells.n:
             raise ScenarioError(f"control.dead_links[{k}]", f"cell {cell} does not exist (the array has {cells.n})")
     topo = from_layout(cells).with_faults(dead_links=c.dead_links)
-    if c.delivery == "ideal":
-        def make_delivery():
-            return IdealRounds(topo, loss_rate=c.loss_rate, seed=c.seed)
+    if c.delivery == "ideal":  # partials, not closures: a checkpoint of a run pickles them
+        make_delivery = functools.partial(IdealRounds, topo, loss_rate=c.loss_rate, seed=c.seed)
     else:
-        params = WireParams(**c.wire.model_dump())
-
-        def make_delivery():
-            return WireLevel(topo, params, seed=c.seed)
+        make_delivery = functools.partial(WireLevel, topo, WireParams(**c.wire.model_dump()), seed=c.seed)
     if c.program == "diffusion":
         from .control import Diffusion
 

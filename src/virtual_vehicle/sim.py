@@ -7,8 +7,10 @@ resolves contact between parcels when it can.
 
 from __future__ import annotations
 
+import pickle
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -55,6 +57,8 @@ class RunResult:
     sensor_log: list | None = None
     """When recording was asked: per tick (t s, (n, S) readings, (n, 2) actual and (n, 2) commanded wheel speeds
     m/s)."""
+    scenario_text: str | None = None
+    """The scenario file's text, when the run was started from one (kept through checkpoints)."""
 
     def summary(self) -> dict:
         """A JSON-ready summary: per-parcel outcome, start/end state, distance, events; run totals."""
@@ -236,82 +240,155 @@ def wheel_loads(setup: Setup, models, states, active, speeds: np.ndarray) -> np.
     return load
 
 
-def run_network(setup: Setup, progress: Callable[[float], None] | None = None) -> RunResult:
+def run_network(setup: Setup, progress: Callable[[float], None] | None = None, *,
+                checkpoint: str | Path | None = None, checkpoint_every: float | None = None,
+                scenario_text: str | None = None) -> RunResult:
     """Co-simulate cell programs, the network and the parcels: at every control tick the cells read their sensors
     and the sentences delivered since the last tick, step their program, and send; the wheels hold the commanded
-    speeds until the next tick (zero-order hold) while the plant integrates every parcel (event-driven)."""
-    sc = setup.scenario
-    ctl = setup.control
-    cells, topo = setup.cells, ctl.topology
-    n, P = topo.n, topo.ports
-    period = ctl.period
-    ticks = int(np.ceil(sc.duration / period - 1e-9))
-    sample_dt = min(sc.output_dt or sc.duration / 500, period)
-    start = time.perf_counter()
-    state = ctl.program.init(n, P, ctl.config)
-    inbox = Mailbox.empty(ctl.program.schema, n, P)
-    delivery = ctl.make_delivery()
-    sensor_rng = np.random.default_rng(setup.sensors.seed)
-    drives = WheelDrives(n, sc.wheels.motor()) if sc.wheels.model == "motor" else None
-    ys = [y.copy() for y in setup.states]
-    arrive = [p.t_start for p in sc.parcels]
-    active = [t == 0 for t in arrive]
-    entered = [0.0 if t == 0 else None for t in arrive]
-    destinations = [p.destination for p in sc.parcels]
-    labelled = any(d is not None for d in destinations)
-    plant = setup.plant()
-    parts: list[list[Trajectory]] = [[] for _ in ys]
-    keys = ("sent", "received", "bytes_sent", "bytes_received")
-    per_tick = {k: np.zeros(ticks, dtype=np.int64) for k in (*keys, *_FAULTS)}
-    per_tick["t"] = period * np.arange(ticks)
-    per_tick["latency_mean"] = np.full(ticks, np.nan)
-    per_tick["latency_max"] = np.full(ticks, np.nan)
-    per_cell = {f"cell_{k}": np.zeros(n, dtype=np.int64) for k in keys}
-    latencies = []
-    sensor_log = []
-    dirs = cells.drive_directions
-    for k in range(ticks):
+    speeds until the next tick (zero-order hold) while the plant integrates every parcel (event-driven).
+
+    With ``checkpoint`` (a file path) and ``checkpoint_every`` (simulated s), the whole run's state is written there
+    (atomically) that often; :func:`resume` continues from it to exactly the result an uninterrupted run gives.
+    """
+    job = NetworkRun(setup)
+    job.scenario_text = scenario_text
+    return job.run(progress, checkpoint=checkpoint, checkpoint_every=checkpoint_every)
+
+
+def resume(checkpoint: str | Path, progress: Callable[[float], None] | None = None, *,
+           checkpoint_every: float | None = None) -> RunResult:
+    """Continue a networked run from its last checkpoint (see :func:`run_network`); by default it keeps writing
+    checkpoints to the same file as often as before. Raises VirtualVehicleError for a file that is not one."""
+    from .errors import VirtualVehicleError
+
+    path = Path(checkpoint)
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(len(_CHECKPOINT_MAGIC))
+            if magic != _CHECKPOINT_MAGIC:
+                raise VirtualVehicleError(f"{path} is not a virtual_vehicle checkpoint")
+            job, every = pickle.load(f)
+    except (OSError, pickle.UnpicklingError, EOFError) as exc:
+        raise VirtualVehicleError(f"cannot read checkpoint {path}: {exc}") from None
+    if job.version != __version__:
+        raise VirtualVehicleError(f"checkpoint {path} was written by version {job.version}; this is {__version__}")
+    return job.run(progress, checkpoint=path, checkpoint_every=checkpoint_every or every)
+
+
+_CHECKPOINT_MAGIC = b"virtual_vehicle checkpoint 1\n"
+
+
+class NetworkRun:
+    """The state of a networked run between control ticks: everything needed to go on (picklable, so that a long
+    run can be checkpointed and resumed bit for bit)."""
+
+    def __init__(self, setup: Setup):
+        sc = setup.scenario
+        ctl = setup.control
+        n, P = ctl.topology.n, ctl.topology.ports
+        self.version = __version__
+        self.scenario_text: str | None = None
+        self.setup = setup
+        self.period = ctl.period
+        self.ticks = int(np.ceil(sc.duration / self.period - 1e-9))
+        self.sample_dt = min(sc.output_dt or sc.duration / 500, self.period)
+        self.k = 0
+        self.wall = 0.0
+        self.state = ctl.program.init(n, P, ctl.config)
+        self.inbox = Mailbox.empty(ctl.program.schema, n, P)
+        self.delivery = ctl.make_delivery()
+        self.sensor_rng = np.random.default_rng(setup.sensors.seed)
+        self.drives = WheelDrives(n, sc.wheels.motor()) if sc.wheels.model == "motor" else None
+        self.ys = [y.copy() for y in setup.states]
+        self.arrive = [p.t_start for p in sc.parcels]
+        self.active = [t == 0 for t in self.arrive]
+        self.entered = [0.0 if t == 0 else None for t in self.arrive]
+        self.destinations = [p.destination for p in sc.parcels]
+        self.plant = setup.plant()
+        self.parts: list[list[Trajectory]] = [[] for _ in self.ys]
+        keys = ("sent", "received", "bytes_sent", "bytes_received")
+        self.per_tick = {k: np.zeros(self.ticks, dtype=np.int64) for k in (*keys, *_FAULTS)}
+        self.per_tick["t"] = self.period * np.arange(self.ticks)
+        self.per_tick["latency_mean"] = np.full(self.ticks, np.nan)
+        self.per_tick["latency_max"] = np.full(self.ticks, np.nan)
+        self.per_cell = {f"cell_{k}": np.zeros(n, dtype=np.int64) for k in keys}
+        self.latencies: list[np.ndarray] = []
+        self.sensor_log: list = []
+
+    def run(self, progress=None, *, checkpoint=None, checkpoint_every=None) -> RunResult:
+        """Step to the end (writing checkpoints when asked) and return the result."""
+        if checkpoint is not None and not (checkpoint_every and checkpoint_every > 0):
+            raise ValueError("checkpoint_every must be a positive number of simulated seconds")
+        every = None if checkpoint is None else max(1, int(round(checkpoint_every / self.period)))
+        start = time.perf_counter()
+        while self.k < self.ticks:
+            self.tick()
+            if progress is not None:
+                progress(self.k / self.ticks)
+            if every is not None and self.k % every == 0 and self.k < self.ticks:
+                self.wall += time.perf_counter() - start
+                start = time.perf_counter()
+                self.save(checkpoint, checkpoint_every)
+        self.wall += time.perf_counter() - start
+        return self.result()
+
+    def save(self, path, checkpoint_every: float) -> None:
+        """Write this run's state to ``path`` atomically."""
+        from .io import write_atomic
+
+        write_atomic(Path(path), _CHECKPOINT_MAGIC + pickle.dumps((self, checkpoint_every),
+                                                                  protocol=pickle.HIGHEST_PROTOCOL))
+
+    def tick(self) -> None:
+        """One control tick: sensors, program, network, wheels, plant."""
+        setup, sc, ctl = self.setup, self.setup.scenario, self.setup.control
+        topo, cells = ctl.topology, setup.cells
+        k, period = self.k, self.period
         t0 = k * period
         t1 = min(sc.duration, t0 + period)
-        _admit(setup, ys, active, entered, arrive, t0)
-        sensors = setup.sensors.read(setup.specs, ys, sensor_rng, active)
-        labels = _labels(setup, ys, active, destinations) if labelled else None
-        inputs = CellInputs(t0, sensors, inbox, topo.connected, ctl.config, labels)
-        state, outbox, wheels = ctl.program.step(state, inputs)
+        ys, active = self.ys, self.active
+        _admit(setup, ys, active, self.entered, self.arrive, t0)
+        sensors = setup.sensors.read(setup.specs, ys, self.sensor_rng, active)
+        labelled = any(d is not None for d in self.destinations)
+        labels = _labels(setup, ys, active, self.destinations) if labelled else None
+        inputs = CellInputs(t0, sensors, self.inbox, topo.connected, ctl.config, labels)
+        self.state, outbox, wheels = ctl.program.step(self.state, inputs)
         command = np.where(topo.alive[:, None], np.asarray(wheels, dtype=float), 0.0)  # a dead cell does not drive
-        if drives is None:
+        if self.drives is None:
             wheels = command
         else:
-            load = wheel_loads(setup, plant.base, ys, active, drives.speed)
-            wheels = drives.step(command, load, period)
+            load = wheel_loads(setup, self.plant.base, ys, active, self.drives.speed)
+            wheels = self.drives.step(command, load, period)
+        dirs = cells.drive_directions
         velocities = wheels[:, 0:1] * dirs[:, 0] + wheels[:, 1:2] * dirs[:, 1]
         if sc.sensors.record:
-            sensor_log.append((t0, sensors.copy(), wheels.copy(), command.copy()))
-        inbox, stats = delivery.exchange(outbox, t0, period)
-        for key in keys:
-            per_tick[key][k] = int(getattr(stats, key).sum())
-            per_cell[f"cell_{key}"] += getattr(stats, key)
+            self.sensor_log.append((t0, sensors.copy(), wheels.copy(), command.copy()))
+        self.inbox, stats = self.delivery.exchange(outbox, t0, period)
+        for key in ("sent", "received", "bytes_sent", "bytes_received"):
+            self.per_tick[key][k] = int(getattr(stats, key).sum())
+            self.per_cell[f"cell_{key}"] += getattr(stats, key)
         for key in _FAULTS:
-            per_tick[key][k] = getattr(stats, key)
+            self.per_tick[key][k] = getattr(stats, key)
         if len(stats.latencies):
-            per_tick["latency_mean"][k] = stats.latencies.mean()
-            per_tick["latency_max"][k] = stats.latencies.max()
-            latencies.append(stats.latencies)
+            self.per_tick["latency_mean"][k] = stats.latencies.mean()
+            self.per_tick["latency_max"][k] = stats.latencies.max()
+            self.latencies.append(stats.latencies)
         if t1 > t0:
-            for i, tr in enumerate(plant.advance(ys, active, velocities, t0, t1, sample_dt)):
+            for i, tr in enumerate(self.plant.advance(ys, active, velocities, t0, t1, self.sample_dt)):
                 if tr is not None:
-                    parts[i].append(tr)
-        if progress is not None:
-            progress((k + 1) / ticks)
-    results = []
-    for spec, segs, y, t in zip(setup.specs, parts, ys, arrive):
-        traj = join(segs) if segs else Trajectory(np.array([t]), y[None].copy(), [], "waiting", t)
-        results.append(ParcelResult(spec, traj, sliding_checked=False, entered_at=entered[len(results)]))
-    record = NetworkRecord(ctl.delivery_name, period, per_tick, per_cell,
-                           np.concatenate(latencies) if latencies else np.zeros(0))
-    return RunResult(setup, results, time.perf_counter() - start,
-                     {"network": record.totals(), "plant": plant_totals(plant)}, record,
-                     sensor_log if sc.sensors.record else None)
+                    self.parts[i].append(tr)
+        self.k += 1
+
+    def result(self) -> RunResult:
+        setup, ctl = self.setup, self.setup.control
+        results = []
+        for i, (spec, segs, y, t) in enumerate(zip(setup.specs, self.parts, self.ys, self.arrive)):
+            traj = join(segs) if segs else Trajectory(np.array([t]), y[None].copy(), [], "waiting", t)
+            results.append(ParcelResult(spec, traj, sliding_checked=False, entered_at=self.entered[i]))
+        record = NetworkRecord(ctl.delivery_name, self.period, self.per_tick, self.per_cell,
+                               np.concatenate(self.latencies) if self.latencies else np.zeros(0))
+        return RunResult(setup, results, self.wall, {"network": record.totals(), "plant": plant_totals(self.plant)},
+                         record, self.sensor_log if setup.scenario.sensors.record else None, self.scenario_text)
 
 
 def _admit(setup: Setup, ys, active, entered, arrive, t: float) -> None:
