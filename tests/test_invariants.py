@@ -69,6 +69,7 @@ def test_cell_numbering_does_not_matter():
 @pytest.mark.parametrize("name", sorted(bundled_scenarios()))
 def test_bundled_scenarios_are_bit_reproducible(name):
     sc, _ = load_scenario(name)
+    sc = sc.model_copy(update={"duration": min(sc.duration, 12.0)})  # long enough for every kind of event
     a, b = run(sc.build()), run(sc.build())
     for pa, pb in zip(a.parcels, b.parcels):
         assert np.array_equal(pa.trajectory.states, pb.trajectory.states)
