@@ -8,7 +8,6 @@ from hypothesis import given, settings, strategies as st
 
 from virtual_vehicle import layout
 from virtual_vehicle.collide import ContactParams, outline_distance, overlap_area, pair_contacts
-from virtual_vehicle.dynamics import integrate, ParcelModel
 from virtual_vehicle.friction import LAWS
 from virtual_vehicle.parcel import polygon, rectangle
 from virtual_vehicle.plant import Plant, Integration

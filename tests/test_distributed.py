@@ -2,7 +2,6 @@
 network) against the heat equation, under ideal rounds and the wire-level network."""
 
 import numpy as np
-import pytest
 
 from virtual_vehicle import layout
 from virtual_vehicle.control import Diffusion

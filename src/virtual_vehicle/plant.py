@@ -316,7 +316,8 @@ class Plant:
                 lam, V, sweeps, ok = solve_rows(rows, nu, 1.0 / mass, law.max_sweeps, cp.tolerance if not stick
                                                 else min(cp.tolerance, law.tolerance))
                 self.record.unconverged_contact_steps += not ok
-                self._warm = {(c.i, c.j, c.feature): (float(lam[k]), float(lam[k + 1])) for k, c in normals}
+                self._warm = {key: v for key, v in self._warm.items() if not (key[0] in slot and key[1] in slot)}
+                self._warm.update({(c.i, c.j, c.feature): (float(lam[k]), float(lam[k + 1])) for k, c in normals})
                 pushing = {(min(c.i, c.j), max(c.i, c.j)) for k, c in normals if lam[k] > 0}
                 for b, i in enumerate(live):
                     if i in wheels:
