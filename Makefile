@@ -23,6 +23,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_engine.py
 	$(BIN)/python benchmarks/bench_network.py
 	$(BIN)/python benchmarks/bench_friction.py
+	$(BIN)/python benchmarks/bench_scale.py
 
 fuzz: $(STAMP)
 	$(BIN)/python benchmarks/fuzz_sentences.py

@@ -1,0 +1,79 @@
+"""Scale benchmark (issue: performance at facility scale): real-time factor and peak memory of networked runs with
+100 Hz distributed control (the Virtual Vehicle sorter) under ideal rounds, for 1 to 200 parcels on 30 x 30
+and 100 x 100 arrays. Prints a table; asserts nothing about time.
+
+Each configuration runs in its own process (so that its peak resident memory is its own): parcels of 0.25 x 0.22 m
+on 10 cm cells, placed on a 0.55 m lattice (25 fit on 30 x 30 with the gaps the sorter keeps), labelled for one exit lane on the east edge (every cell reads labels so
+they get their vehicle records where they stand), simulated for ``--seconds`` (default 1 s).
+
+Run: ``python benchmarks/bench_scale.py`` (or ``make bench``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+
+
+def scenario(side: int, parcels: int, seconds: float) -> dict:
+    pitch = 0.1
+    spacing = 0.55  # m between parcel centres: the sorter keeps two free cells around every parcel
+    coords = [0.2 + spacing * k for k in range(int((side * pitch - 0.4) / spacing) + 1)]
+    spots = [(x, y) for y in coords for x in coords if x < (side - 5) * pitch]
+    if len(spots) < parcels:
+        raise SystemExit(f"a {side} x {side} array holds {len(spots)} parcels this way, not {parcels}")
+    lane_y0 = (side // 2 - 2) * pitch - 0.05
+    return {
+        "name": f"scale_{side}x{side}_{parcels}", "duration": seconds, "output_dt": 0.05,
+        "array": {"kind": "grid", "nx": side, "ny": side, "pitch": pitch},
+        "control": {"program": "sort", "period": 0.01, "speed": 0.3, "gap": 2,
+                    # every cell reads labels, so the parcels placed on the floor get their vehicle records
+                    "entries": [[[-0.05, -0.05], [(side - 5) * pitch, -0.05], [(side - 5) * pitch, side * pitch],
+                                 [-0.05, side * pitch]]],
+                    "exits": [[[(side - 4) * pitch - 0.05, lane_y0], [side * pitch - 0.05, lane_y0],
+                               [side * pitch - 0.05, lane_y0 + 0.4], [(side - 4) * pitch - 0.05, lane_y0 + 0.4]]]},
+        "friction": {"law": "viscous"},
+        "parcels": [{"name": f"p{k}", "length": 0.22, "width": 0.22, "mass": 1.5, "mu": 2.0, "x": x, "y": y,
+                     "destination": 0} for k, (x, y) in enumerate(spots[:parcels])],
+    }
+
+
+def one(side: int, parcels: int, seconds: float) -> dict:
+    """Run one configuration here; return its figures."""
+    from virtual_vehicle.scenario import parse_scenario
+    from virtual_vehicle.sim import run_network
+
+    setup = parse_scenario(scenario(side, parcels, seconds)).build()
+    start = time.perf_counter()
+    res = run_network(setup)
+    wall = time.perf_counter() - start
+    moved = sum(float(abs(p.trajectory.states[-1, 0] - p.trajectory.states[0, 0])) > 0.01 for p in res.parcels)
+    return {"cells": side * side, "parcels": parcels, "simulated_s": seconds, "wall_s": wall,
+            "real_time_factor": seconds / wall, "peak_rss_MiB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "windows": res.stats["plant"]["windows"], "parcels_moving": moved}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seconds", type=float, default=1.0)
+    ap.add_argument("--one", nargs=2, type=int, metavar=("SIDE", "PARCELS"))
+    args = ap.parse_args()
+    if args.one:
+        print(json.dumps(one(*args.one, args.seconds)))
+        return
+    print(f"# Networked runs, 100 Hz distributed control (sorter), ideal rounds, {args.seconds:g} s simulated")
+    print(f"{'array':>9}{'parcels':>9}{'moving':>8}{'wall s':>10}{'x real time':>13}{'peak MiB':>10}")
+    for side, parcels in ((30, 1), (30, 25), (100, 1), (100, 50), (100, 200)):
+        out = subprocess.run([sys.executable, __file__, "--one", str(side), str(parcels), "--seconds",
+                              str(args.seconds)], capture_output=True, text=True, check=True)
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        print(f"{side}x{side:<6}{parcels:>9}{r['parcels_moving']:>8}{r['wall_s']:>10.2f}{r['real_time_factor']:>13.3f}{r['peak_rss_MiB']:>10.0f}",
+              flush=True)
+
+
+if __name__ == "__main__":
+    main()
