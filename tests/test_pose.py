@@ -68,3 +68,11 @@ def test_rotate_in_place_to_an_angle():
     s = run(pose_scenario(targets=((0.3, 0.3, 0.8),)).build()).summary()
     p = s["parcels"][0]
     assert p["final_error_mm"] < 5.0 and p["final_error_deg"] < 3.0
+
+
+def test_transport_along_a_path():
+    """An L-shaped path through a waypoint: the parcel passes it, ends at the target, and stays near the path."""
+    sc = pose_scenario(targets=((0.65, 0.65, 0.0),), waypoints=[[[0.65, 0.3, 0.0]]], pass_radius=0.01)
+    p = run(sc.model_copy(update={"duration": 6.0}).build()).summary()["parcels"][0]
+    assert p["final_error_mm"] < 5.0 and p["final_error_deg"] < 3.0
+    assert p["max_path_deviation_mm"] < 30.0

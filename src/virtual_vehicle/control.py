@@ -85,8 +85,10 @@ class PoseControl:
     ``gain * error`` (position error in m, heading error in rad, wrapped to the parcel's symmetry), limited to
     ``max_speed`` (m/s at any supporting wheel), and gives the cells under the estimated footprint the wheel speeds
     of that twist (:func:`~virtual_vehicle.design.twist_design`: the steady state of the viscous and stick-slip
-    laws). Within ``tolerance`` (m, rad) of its target a parcel's wheels stop. It knows each parcel's outline and
-    where it was placed (``starts``: the poses a loader put them at), nothing of its motion since.
+    laws). Within ``tolerance`` (m, rad) of its target a parcel's wheels stop. With ``waypoints`` (per parcel, a list
+    of poses) a parcel is transported along a path: it heads for each waypoint in turn and passes it once its
+    estimate is within ``pass_radius`` (m) of it. It knows each parcel's outline and where it was placed
+    (``starts``: the poses a loader put them at), nothing of its motion since.
 
     A central controller in the cell-program shape: it sends no sentences and reads every cell's sensors.
     """
@@ -94,7 +96,8 @@ class PoseControl:
     schema = Schema(())
 
     def __init__(self, cells, sensor_points, specs, starts, targets, *, gain: float = 2.0, max_speed: float = 0.2,
-                 tolerance=(5e-4, np.radians(0.2)), period: float = 0.01, symmetry: list[int] | None = None):
+                 tolerance=(5e-4, np.radians(0.2)), period: float = 0.01, symmetry: list[int] | None = None,
+                 waypoints=None, pass_radius: float = 0.01):
         from .estimate import sensor_spacing
 
         self.cells = cells
@@ -110,10 +113,14 @@ class PoseControl:
         self.period = float(period)
         self.spacing = sensor_spacing(self.points)
         self.symmetry = symmetry or [_rotational_symmetry(s) for s in self.specs]
+        self.waypoints = [np.asarray(w, dtype=float).reshape(-1, 3) for w in (waypoints or [[]] * len(self.specs))]
+        if len(self.waypoints) != len(self.specs):
+            raise ValueError("one list of waypoints per parcel")
+        self.pass_radius = float(pass_radius)
 
     def init(self, n, ports, config):
         return {"estimates": [s.copy() for s in self.starts], "twists": [np.zeros(3) for _ in self.specs],
-                "wrong": [0] * len(self.specs)}
+                "wrong": [0] * len(self.specs), "leg": [0] * len(self.specs)}
 
     def step(self, state, inputs: CellInputs):
         from .design import twist_design
@@ -122,11 +129,15 @@ class PoseControl:
         n, P = inputs.connected.shape
         lit = np.asarray(inputs.sensors, dtype=bool)
         wheels = np.zeros((n, 2))
-        estimates, twists, wrong = [], [], []
-        for spec, est, tw, target, sym in zip(self.specs, state["estimates"], state["twists"], self.targets,
-                                              self.symmetry):
+        estimates, twists, wrong, legs = [], [], [], []
+        for spec, est, tw, target, sym, way, leg in zip(self.specs, state["estimates"], state["twists"], self.targets,
+                                                        self.symmetry, self.waypoints, state["leg"]):
             guess = est + self.period * tw  # prediction from the last command
             pose, bad = estimate_pose(spec, self.points, lit, guess, spacing=self.spacing)
+            while leg < len(way) and np.hypot(*(way[leg, :2] - pose[:2])) < self.pass_radius:
+                leg += 1  # waypoint passed
+            if leg < len(way):
+                target = way[leg]
             err = target - pose
             period_sym = 2 * np.pi / sym
             err[2] = (err[2] + period_sym / 2) % period_sym - period_sym / 2
@@ -140,7 +151,9 @@ class PoseControl:
             estimates.append(pose)
             twists.append(design.achieved)
             wrong.append(bad)
-        return {"estimates": estimates, "twists": twists, "wrong": wrong}, Mailbox.empty(self.schema, n, P), wheels
+            legs.append(leg)
+        return ({"estimates": estimates, "twists": twists, "wrong": wrong, "leg": legs},
+                Mailbox.empty(self.schema, n, P), wheels)
 
 
 def _rotational_symmetry(spec) -> int:
@@ -160,6 +173,18 @@ def pose_error(spec, pose, target) -> tuple[float, float]:
     period = 2 * np.pi / sym
     dth = (float(target[2]) - float(pose[2]) + period / 2) % period - period / 2
     return float(np.hypot(target[0] - pose[0], target[1] - pose[1])), abs(dth)
+
+
+def path_deviation(states, path) -> float:
+    """Largest distance (m) of the centre of mass from the polyline ``path`` ((k, 2) or (k, 3), m)."""
+    P = np.asarray(path, dtype=float)[:, :2]
+    X = np.asarray(states, dtype=float)[:, :2]
+    a, b = P[:-1], P[1:]
+    e = b - a
+    L2 = np.maximum(np.einsum("ij,ij->i", e, e), 1e-300)
+    t = np.clip(np.einsum("pkj,kj->pk", X[:, None, :] - a[None], e) / L2, 0.0, 1.0)
+    d = np.hypot(*(X[:, None, :] - (a[None] + t[..., None] * e[None])).transpose(2, 0, 1))
+    return float(d.min(axis=1).max())
 
 
 def settled_at(spec, times, states, target, position_tol: float = 5e-3, heading_tol: float = np.radians(2.0)):

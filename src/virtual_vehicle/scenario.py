@@ -228,7 +228,8 @@ class ControlSpec(_Strict):
     flood of at most ``hop_limit`` hops started by the end cells that sense a parcel; cells repeat their state
     every ``heartbeat`` ticks. ``"pose"`` is a central closed loop from the sensors: it drives parcel k to
     ``targets[k]`` = [x, y, theta] (m, m, rad) with twist ``gain`` (1/s) times the estimated error, wheels limited
-    to ``speed`` (m/s), stopping within ``tolerance`` = [m, rad]. ``"diffusion"``: every cell's wheel speeds relax
+    to ``speed`` (m/s), stopping within ``tolerance`` = [m, rad]; with ``waypoints`` (one list of [x, y, theta] per
+    parcel) it transports each along that path, passing a waypoint within ``pass_radius`` (m). ``"diffusion"``: every cell's wheel speeds relax
     toward its neighbours' at rate ``alpha`` per tick (the discrete heat equation); ``sources`` = [[cell, v0, v1],
     ...] hold their wheel speeds (m/s). ``"sort"``: the Virtual Vehicle (:mod:`virtual_vehicle.sorting`): cells
     inside ``entries`` outlines read each arriving parcel's ``destination``, cells inside ``exits[k]`` are exit k (a
@@ -249,6 +250,8 @@ class ControlSpec(_Strict):
     dead_links: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=3)]]] = []
     wire: WireSpec = WireSpec()
     targets: list[tuple[Coord, Coord, Annotated[float, Field(ge=-1e3, le=1e3)]]] | None = None
+    waypoints: list[list[tuple[Coord, Coord, Annotated[float, Field(ge=-1e3, le=1e3)]]]] | None = None
+    pass_radius: Annotated[float, Field(gt=0, le=10)] = 0.01
     gain: Annotated[float, Field(gt=0, le=1e3)] = 2.0
     tolerance: tuple[Annotated[float, Field(gt=0, le=1)], Annotated[float, Field(gt=0, le=3.2)]] = (5e-4, 0.0035)
     alpha: Annotated[float, Field(gt=0, le=1)] = 0.2
@@ -263,8 +266,10 @@ class ControlSpec(_Strict):
     def _pose_needs_targets(self):
         if self.program == "pose" and self.targets is None:
             raise ValueError("program 'pose' needs targets = [[x, y, theta], ...], one per parcel")
-        if self.program != "pose" and self.targets is not None:
-            raise ValueError("targets go with program 'pose'")
+        if self.program != "pose" and (self.targets is not None or self.waypoints is not None):
+            raise ValueError("targets and waypoints go with program 'pose'")
+        if self.waypoints is not None and self.targets is not None and len(self.waypoints) != len(self.targets):
+            raise ValueError("waypoints: one list per parcel, like targets")
         if self.program == "sort" and (not self.exits or not self.entries):
             raise ValueError("program 'sort' needs exits = [outline, ...] and entries = [outline, ...] "
                              "(outlines [[x, y], ...] in m)")
@@ -559,7 +564,8 @@ def _build_control(c: ControlSpec, cells: layout.CellArray, sensors, specs, stat
         return _build_sorter(c, cells, topo, make_delivery)
     if c.program == "pose":
         program = PoseControl(cells, sensors.points, specs, states, c.targets, gain=c.gain, max_speed=c.speed,
-                              tolerance=c.tolerance, period=c.period)
+                              tolerance=c.tolerance, period=c.period, waypoints=c.waypoints,
+                              pass_radius=c.pass_radius)
     else:
         program = Shuttle(c.speed, c.hop_limit, c.heartbeat)
     return ControlSetup(program, topo, make_delivery, c.delivery, c.period, {})

@@ -86,9 +86,13 @@ class RunResult:
                     "stick_slip_unconverged_steps": tr.stats["unconverged_steps"]} if "wheel_work" in tr.stats else {}),
             })
         if sc.control is not None and sc.control.program == "pose":
-            from .control import pose_error, settled_at
+            from .control import path_deviation, pose_error, settled_at
 
-            for entry, pr, target in zip(parcels, self.parcels, sc.control.targets):
+            ways = sc.control.waypoints or [[] for _ in self.parcels]
+            for entry, pr, target, way in zip(parcels, self.parcels, sc.control.targets, ways):
+                if way:
+                    path = [pr.trajectory.states[0, :3], *way, target]
+                    entry["max_path_deviation_mm"] = path_deviation(pr.trajectory.states, path) * 1e3
                 dist, ang = pose_error(pr.spec, pr.trajectory.states[-1], target)
                 entry.update({"target": dict(zip(("x", "y", "theta"), target)), "final_error_mm": dist * 1e3,
                               "final_error_deg": float(np.degrees(ang)),
