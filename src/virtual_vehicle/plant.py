@@ -92,17 +92,18 @@ class Plant:
         self._touching: set[tuple[int, int]] = set()
         self._warm: dict[tuple[int, int, int], tuple[float, float]] = {}
         self._velocities: np.ndarray | None = None
-        self._models: list[ParcelModel] = self.base
+        self._models = None
         self._law_name = "viscous" if isinstance(law, ViscousLaw) else "coulomb"
         self._mu_max = [max(s.mu, s.mu_static or 0.0) for s in specs]
         self._gain = [push_gain(s) for s in specs]
         self._radius = np.array([s.radius for s in specs])
 
-    def models(self, velocities: np.ndarray) -> list[ParcelModel]:
-        """The parcels' models under contact-layer velocities ``velocities`` (m/s), sharing solved geometry."""
+    def models(self, velocities: np.ndarray) -> "_Models":
+        """The parcels' models under contact-layer velocities ``velocities`` (m/s), sharing solved geometry; each is
+        made when first asked for (a long run has many parcels that are not on the array)."""
         if self._velocities is None or not np.array_equal(velocities, self._velocities):
             self._velocities = np.array(velocities, dtype=float)
-            self._models = [m.with_velocities(self._velocities) for m in self.base]
+            self._models = _Models(self.base, self._velocities)
         return self._models
 
     # -- planning ----------------------------------------------------------------------------------------------
@@ -130,7 +131,7 @@ class Plant:
         window then lasts until the first moment any other pair could meet, at most ``window`` s (or, when no two
         parcels can meet before ``t1``, all the way to ``t1``).
         """
-        live = [i for i, on in enumerate(active) if on]
+        live = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
         horizon = t1 - t
         if len(live) < 2:
             return horizon, []
@@ -203,8 +204,8 @@ class Plant:
         parcel that was inactive at ``t0``).
         """
         models = self.models(velocities)
-        parts: list[list[Trajectory]] = [[] for _ in ys]
-        was_active = list(active)
+        was_active = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
+        parts: dict[int, list[Trajectory]] = {i: [] for i in was_active}
         grid = sample_grid(t0, t1, sample_dt)
         t = float(t0)
         end = t1 - 1e-12 * max(1.0, abs(t1))
@@ -217,8 +218,8 @@ class Plant:
             samples = np.concatenate([[t], inside, [te]])
             grouped = {i for g in groups for i in g}
             integ = self.integration
-            for i, on in enumerate(active):
-                if not on or i in grouped:
+            for i in was_active:
+                if not active[i] or i in grouped:
                     continue
                 tr = integrate(models[i], ys[i], t, te, mode=integ.mode, rtol=integ.rtol, atol=integ.atol,
                                max_step=integ.max_step, dt=integ.dt, sample_times=samples)
@@ -231,7 +232,11 @@ class Plant:
             t = te
             if progress is not None:
                 progress(t)
-        return [_on_grid(join(p), grid) if was_active[i] and p else None for i, p in enumerate(parts)]
+        out: list[Trajectory | None] = [None] * len(ys)
+        for i, p in parts.items():
+            if p:
+                out[i] = _on_grid(join(p), grid)
+        return out
 
     @staticmethod
     def _take(i, tr, ys, active, parts):
@@ -241,7 +246,7 @@ class Plant:
             active[i] = False
 
     def _check_overlaps(self, ys, active, groups):
-        live = [i for i, on in enumerate(active) if on]
+        live = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
         if len(live) < 2:
             return
         group_of = {i: k for k, g in enumerate(groups) for i in g}
@@ -386,6 +391,26 @@ class Plant:
             for a, b in ((i, j), (j, i)):
                 log[a][2].append(Event(t, "release", tuple(map(float, Y[a])), partner=self.specs[b].name))
         self._touching = (self._touching - mine) | (mine & near_pairs) | pushing
+
+
+class _Models:
+    """Models of every parcel under one set of velocities, made on first use."""
+
+    def __init__(self, base: list[ParcelModel], velocities: np.ndarray):
+        if velocities.ndim != 2 or not np.all(np.isfinite(velocities)):
+            raise ValueError("velocities must be finite, shape (n, 2)")
+        self.base = base
+        self.velocities = velocities
+        self.made: dict[int, ParcelModel] = {}
+
+    def __getitem__(self, i: int) -> ParcelModel:
+        model = self.made.get(i)
+        if model is None:
+            model = self.made[i] = self.base[i].with_velocities(self.velocities)
+        return model
+
+    def __len__(self) -> int:
+        return len(self.base)
 
 
 def _on_grid(tr: Trajectory, grid: np.ndarray) -> Trajectory:

@@ -306,6 +306,8 @@ class NetworkRun:
         self.ys = [y.copy() for y in setup.states]
         self.arrive = [p.t_start for p in sc.parcels]
         self.active = [t == 0 for t in self.arrive]
+        self.on = [i for i, a in enumerate(self.active) if a]  # the active parcels, in order
+        self.queue = sorted((i for i, t in enumerate(self.arrive) if t > 0), key=lambda i: (self.arrive[i], i))
         self.entered = [0.0 if t == 0 else None for t in self.arrive]
         self.destinations = [p.destination for p in sc.parcels]
         self.plant = setup.plant()
@@ -351,10 +353,12 @@ class NetworkRun:
         t0 = k * period
         t1 = min(sc.duration, t0 + period)
         ys, active = self.ys, self.active
-        _admit(setup, ys, active, self.entered, self.arrive, t0)
-        sensors = setup.sensors.read(setup.specs, ys, self.sensor_rng, active)
-        labelled = any(d is not None for d in self.destinations)
-        labels = _labels(setup, ys, active, self.destinations) if labelled else None
+        self._admit(t0)
+        on = self.on
+        sensors = setup.sensors.read([setup.specs[i] for i in on], [ys[i] for i in on], self.sensor_rng)
+        labelled = any(self.destinations[i] is not None for i in on)
+        labels = _labels(setup, [ys[i] for i in on], [setup.specs[i] for i in on],
+                         [self.destinations[i] for i in on]) if labelled else None
         inputs = CellInputs(t0, sensors, self.inbox, topo.connected, ctl.config, labels)
         self.state, outbox, wheels = ctl.program.step(self.state, inputs)
         command = np.where(topo.alive[:, None], np.asarray(wheels, dtype=float), 0.0)  # a dead cell does not drive
@@ -381,7 +385,28 @@ class NetworkRun:
             for i, tr in enumerate(self.plant.advance(ys, active, velocities, t0, t1, self.sample_dt)):
                 if tr is not None:
                     self.parts[i].append(tr)
+            self.on = [i for i in self.on if active[i]]  # those that left the array are gone
         self.k += 1
+
+    def _admit(self, t: float) -> None:
+        """Put on the array the parcels due by ``t``, first come first placed, while their place is free: no active
+        parcel overlaps it, or, when the program asks for a clearance (config ``clearance``, m), none comes that
+        close. The queue waits behind its first parcel."""
+        setup = self.setup
+        clearance = float(setup.control.config.get("clearance", 0.0))
+        while self.queue and self.arrive[self.queue[0]] <= t + 1e-12:
+            i = self.queue[0]
+            place = setup.specs[i].world_polygon(self.ys[i])
+            for j in self.on:
+                other = setup.specs[j].world_polygon(self.ys[j])
+                if clearance > 0 and shapely.distance(place, other) <= clearance:
+                    return
+                if clearance <= 0 and shapely.intersection(place, other).area > 1e-12:
+                    return
+            self.queue.pop(0)
+            self.active[i] = True
+            self.entered[i] = t
+            self.on = sorted([*self.on, i])
 
     def result(self) -> RunResult:
         setup, ctl = self.setup, self.setup.control
@@ -395,30 +420,12 @@ class NetworkRun:
                          record, self.sensor_log if setup.scenario.sensors.record else None, self.scenario_text)
 
 
-def _admit(setup: Setup, ys, active, entered, arrive, t: float) -> None:
-    """Put on the array the parcels due by ``t`` whose place is free: no active parcel overlaps it, or, when the
-    program asks for a clearance (config ``clearance``, m), none comes that close."""
-    for i in sorted(range(len(arrive)), key=lambda i: (arrive[i], i)):  # first come, first placed
-        due = arrive[i]
-        if entered[i] is not None:
-            continue
-        if due > t + 1e-12:
-            return
-        place = setup.specs[i].world_polygon(ys[i])
-        clearance = float(setup.control.config.get("clearance", 0.0)) if setup.control is not None else 0.0
-        if any(active[j] and shapely.distance(place, setup.specs[j].world_polygon(ys[j])) <= clearance
-               and (clearance > 0 or shapely.intersection(place, setup.specs[j].world_polygon(ys[j])).area > 1e-12)
-               for j in range(len(ys)) if j != i):
-            return  # the queue waits behind its first parcel
-        active[i] = True
-        entered[i] = t
-
-
-def _labels(setup: Setup, ys, active, destinations) -> np.ndarray:
-    """(n,) the destination label of the parcel above each cell's centre, -1 for none."""
+def _labels(setup: Setup, states, specs, destinations) -> np.ndarray:
+    """(n,) the destination label of the parcel above each cell's centre, -1 for none (``states``, ``specs`` and
+    ``destinations`` of the parcels on the array)."""
     cells = setup.cells
     out = np.full(cells.n, -1, dtype=np.int64)
-    for spec, y, on, dest in zip(setup.specs, ys, active, destinations):
-        if on and dest is not None:
+    for spec, y, dest in zip(specs, states, destinations):
+        if dest is not None:
             out[supporting_cells(spec, y, cells.positions, cells.tree)] = dest
     return out
