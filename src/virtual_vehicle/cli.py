@@ -140,8 +140,8 @@ def _report(result, out_dir: Path, plot: bool, text: str | None) -> None:
             out.print(f"    target error {p['final_error_mm']:.2f} mm, {p['final_error_deg']:.2f} deg; "
                       + (f"within 5 mm and 2 deg from t={when:.3g} s" if when is not None else "not settled"))
         if p["coulomb_sliding_assumption_violated_at_s"] is not None:
-            out.print(f"    note: from t={p['coulomb_sliding_assumption_violated_at_s']:.4g} s the parcel outran a wheel; "
-                      "the paper's Coulomb law assumes it never does (use the viscous law, or stick-slip when it lands)")
+            out.print(f"    note: from t={p['coulomb_sliding_assumption_violated_at_s']:.4g} s the parcel outran a "
+                      "wheel; the paper's Coulomb law assumes it never does (use the viscous or stick_slip law)")
     if "sorting" in s:
         so = s["sorting"]
         out.print(f"  sorting: {so['correct']} delivered to the right exit, {so['misrouted']} misrouted, {so['lost']} "

@@ -500,7 +500,8 @@ def _locate(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float, chan
 
 def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "event", rtol: float = 1e-10,
               atol: float = 1e-12, max_step: float = np.inf, dt: float = 1e-3, sample_dt: float | None = None,
-              sample_times: np.ndarray | None = None, progress: Callable[[float], None] | None = None, max_segments: int = 1_000_000) -> Trajectory:
+              sample_times: np.ndarray | None = None, progress: Callable[[float], None] | None = None,
+              max_segments: int = 1_000_000) -> Trajectory:
     """Integrate one parcel from state ``y0`` at ``t0`` to ``t1`` (s).
 
     Args:

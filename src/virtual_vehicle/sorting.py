@@ -99,6 +99,8 @@ class Sorter:
         self.period = float(period)
 
     def init(self, n, ports, config):
+        if ports != 4:
+            raise ValueError("the sorter runs on square lattices (four ports a cell)")
         P = ports
         return {"dist": np.full((n, MAX_EXITS), UNREACHABLE, dtype=np.int64),
                 "heard": {f.name: np.zeros((n, P), dtype=np.int64) for f in self.schema.fields},
@@ -176,9 +178,10 @@ class Sorter:
             into_band = np.where(beside & (into_band < 0), (sp + 2) % 4, into_band)
         at_exit = mine & (into_band < 0)
         # The vehicle is a body, not a point: a side on which any cell carrying it (centre sensor lit) has no
-        # neighbour (the array's edge, a dead cell, a cut link) is closed to the whole vehicle (spread hop-limited, like stopping), except the
-        # way out at its exit. Each cell proposes its open side toward the neighbour nearest the goal, ranked by
-        # that neighbour's distance: the front's proposals win, and a vehicle that cannot go on sidesteps.
+        # neighbour (the array's edge, a dead cell, a cut link) is closed to the whole vehicle (spread hop-limited,
+        # like stopping), except the way out at its exit. Each cell proposes its open side toward the neighbour
+        # nearest the goal, ranked by that neighbour's distance: the front's proposals win, and a vehicle that
+        # cannot go on sidesteps.
         core = on & np.asarray(inputs.sensors, dtype=bool)[:, 0]  # the cell carries the parcel (centre sensor lit)
         own_block = core[:, None] & ~inputs.connected
         own_block &= ~(at_exit[:, None] & (np.arange(P)[None, :] == exit_port[:, None]))
