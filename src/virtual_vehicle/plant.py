@@ -196,17 +196,18 @@ class Plant:
 
     # -- advancing ---------------------------------------------------------------------------------------------
     def advance(self, ys: list[np.ndarray], active: list[bool], velocities: np.ndarray, t0: float, t1: float,
-                sample_dt: float, progress: Callable[[float], None] | None = None) -> list[Trajectory | None]:
+                sample_dt: float, progress: Callable[[float], None] | None = None,
+                sample_times: np.ndarray | None = None) -> list[Trajectory | None]:
         """Move every active parcel from ``t0`` to ``t1`` (s) under constant contact-layer ``velocities`` (m/s).
 
         ``ys`` and ``active`` are updated in place (a parcel that tips becomes inactive). Returns each parcel's
-        :class:`Trajectory` over the interval, sampled every ``sample_dt`` s from ``t0`` and at its end (None for a
-        parcel that was inactive at ``t0``).
+        :class:`Trajectory` over the interval, sampled every ``sample_dt`` s from ``t0`` (or at ``sample_times``,
+        s, within the interval) and at its end (None for a parcel that was inactive at ``t0``).
         """
         models = self.models(velocities)
         was_active = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
         parts: dict[int, list[Trajectory]] = {i: [] for i in was_active}
-        grid = sample_grid(t0, t1, sample_dt)
+        grid = sample_grid(t0, t1, sample_dt) if sample_times is None else np.asarray(sample_times, dtype=float)
         t = float(t0)
         end = t1 - 1e-12 * max(1.0, abs(t1))
         while t < end:

@@ -17,7 +17,7 @@ import numpy as np
 import shapely
 
 from . import __version__
-from .dynamics import Trajectory
+from .dynamics import Trajectory, sample_grid
 from .plant import join
 from .friction import CoulombLaw
 from .network.messages import Mailbox
@@ -295,7 +295,7 @@ class NetworkRun:
         self.setup = setup
         self.period = ctl.period
         self.ticks = int(np.ceil(sc.duration / self.period - 1e-9))
-        self.sample_dt = min(sc.output_dt or sc.duration / 500, self.period)
+        self.grid = sample_grid(0.0, sc.duration, sc.output_dt or sc.duration / 500)  # output sample times, s
         self.k = 0
         self.wall = 0.0
         self.state = ctl.program.init(n, P, ctl.config)
@@ -311,7 +311,7 @@ class NetworkRun:
         self.entered = [0.0 if t == 0 else None for t in self.arrive]
         self.destinations = [p.destination for p in sc.parcels]
         self.plant = setup.plant()
-        self.parts: list[list[Trajectory]] = [[] for _ in self.ys]
+        self.tracks = [_Track() for _ in self.ys]
         keys = ("sent", "received", "bytes_sent", "bytes_received")
         self.per_tick = {k: np.zeros(self.ticks, dtype=np.int64) for k in (*keys, *_FAULTS)}
         self.per_tick["t"] = self.period * np.arange(self.ticks)
@@ -382,9 +382,13 @@ class NetworkRun:
             self.per_tick["latency_max"][k] = stats.latencies.max()
             self.latencies.append(stats.latencies)
         if t1 > t0:
-            for i, tr in enumerate(self.plant.advance(ys, active, velocities, t0, t1, self.sample_dt)):
+            eps = 1e-12 * max(1.0, t1)
+            window = self.grid[np.searchsorted(self.grid, t0 - eps, side="left"):
+                               np.searchsorted(self.grid, t1 + eps, side="right")]  # output samples in this tick
+            for i, tr in enumerate(self.plant.advance(ys, active, velocities, t0, t1, self.period,
+                                                      sample_times=window)):
                 if tr is not None:
-                    self.parts[i].append(tr)
+                    self.tracks[i].add(tr, window)
             self.on = [i for i in self.on if active[i]]  # those that left the array are gone
         self.k += 1
 
@@ -411,13 +415,64 @@ class NetworkRun:
     def result(self) -> RunResult:
         setup, ctl = self.setup, self.setup.control
         results = []
-        for i, (spec, segs, y, t) in enumerate(zip(setup.specs, self.parts, self.ys, self.arrive)):
-            traj = join(segs) if segs else Trajectory(np.array([t]), y[None].copy(), [], "waiting", t)
+        for i, (spec, track, y, t) in enumerate(zip(setup.specs, self.tracks, self.ys, self.arrive)):
+            traj = track.trajectory() if track.started else Trajectory(np.array([t]), y[None].copy(), [], "waiting", t)
             results.append(ParcelResult(spec, traj, sliding_checked=False, entered_at=self.entered[i]))
         record = NetworkRecord(ctl.delivery_name, self.period, self.per_tick, self.per_cell,
                                np.concatenate(self.latencies) if self.latencies else np.zeros(0))
         return RunResult(setup, results, self.wall, {"network": record.totals(), "plant": plant_totals(self.plant)},
                          record, self.sensor_log if setup.scenario.sensors.record else None, self.scenario_text)
+
+
+class _Track:
+    """One parcel's trajectory as a networked run goes: only the samples on the output grid and the latest state
+    are kept (a run of an hour at 100 Hz would otherwise hold a piece per tick), events, status and the energy and
+    solver counts (added up as :func:`~virtual_vehicle.plant.join` does)."""
+
+    def __init__(self):
+        self.times: list[float] = []
+        self.states: list[np.ndarray] = []
+        self.events: list = []
+        self.last = None
+        self.piece = None  # the latest piece, whose status, end and stats carry on
+        self.segments = 0
+        self.rhs_evals = 0
+        self.stats_pieces: list[dict] = []
+
+    @property
+    def started(self) -> bool:
+        return self.last is not None
+
+    def add(self, tr: Trajectory, grid: np.ndarray) -> None:
+        on = np.isin(tr.times, grid)
+        for t, y in zip(tr.times[on], tr.states[on]):
+            if not self.times or t > self.times[-1]:
+                self.times.append(float(t))
+                self.states.append(y.copy())
+        self.last = (float(tr.times[-1]), tr.states[-1].copy())
+        self.events.extend(tr.events)
+        self.segments += tr.segments
+        self.rhs_evals += tr.rhs_evals
+        self.piece = tr
+        if tr.stats:
+            first = self.stats_pieces[:1]
+            self.stats_pieces = join_stats([*first, tr]) if first else [tr]
+
+    def trajectory(self) -> Trajectory:
+        times, states = list(self.times), list(self.states)
+        if not times or self.last[0] > times[-1]:
+            times.append(self.last[0])
+            states.append(self.last[1])
+        stats = self.stats_pieces[0].stats if self.stats_pieces else dict(self.piece.stats)
+        return Trajectory(np.array(times), np.array(states).reshape(-1, 6), self.events, self.piece.status,
+                          self.piece.t_end, self.segments, self.rhs_evals, stats)
+
+
+def join_stats(pieces: list[Trajectory]) -> list[Trajectory]:
+    """The stats of consecutive pieces added up (as :func:`~virtual_vehicle.plant.join` does), as one stand-in
+    piece (its samples are not used)."""
+    merged = join(pieces)
+    return [Trajectory(merged.times[:1], merged.states[:1], [], merged.status, merged.t_end, 0, 0, merged.stats)]
 
 
 def _labels(setup: Setup, states, specs, destinations) -> np.ndarray:
