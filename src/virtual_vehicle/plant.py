@@ -106,6 +106,15 @@ class Plant:
             self._models = _Models(self.base, self._velocities)
         return self._models
 
+    def release(self, i: int) -> None:
+        """Forget what parcel ``i``'s model has cached (solved supports, pieces): it has left the array, and a long
+        run should hold memory for the parcels on it, not for every parcel it ever carried."""
+        fresh = ParcelModel(self.cells, self.specs[i], np.zeros((self.cells.n, 2)), self.law, self.gravity)
+        fresh.contact_memory = self.base[i].contact_memory
+        self.base[i] = fresh
+        if self._models is not None:
+            self._models.made.pop(i, None)
+
     # -- planning ----------------------------------------------------------------------------------------------
     def _reach(self, i, y, T, wmax, floor=0.0):
         return point_reach(self.specs[i], y, T, law=self._law_name, mu_max=self._mu_max[i], gravity=self.gravity,

@@ -389,7 +389,11 @@ class NetworkRun:
                                                       sample_times=window)):
                 if tr is not None:
                     self.tracks[i].add(tr, window)
-            self.on = [i for i in self.on if active[i]]  # those that left the array are gone
+            gone = [i for i in self.on if not active[i]]
+            for i in gone:  # those that left the array are gone, and so is what was cached for them
+                self.plant.release(i)
+            if gone:
+                self.on = [i for i in self.on if active[i]]
         self.k += 1
 
     def _admit(self, t: float) -> None:
