@@ -20,7 +20,7 @@ Trinkle 1996 / Anitescu & Potra 1997, with "speculative" contacts):
 
 Overlap can then only come from linearising a rotation over one step (second order in ``h``); overlap deeper than
 ``slop`` is pushed back at ``beta (depth - slop) / h``. The run reports the deepest overlap seen
-(``max_penetration_m``), which the tests hold below ``slop`` plus a small multiple of the rotation per step.
+(``max_penetration_m``), which the tests hold below 0.5 mm.
 
 Face normals keep corner-on-corner meetings honest: a corner sliding past another meets the face's line, never
 slips inside between two steps. The plant also checks every window's end for overlaps between parcels that were
@@ -43,7 +43,7 @@ class ContactParams:
 
     Attributes:
         mu: Coulomb friction coefficient between two parcels' sides (dimensionless).
-        margin: gap (m) within which a vertex and an outline are a (speculative) contact.
+        margin: gap (m) within which a point of one outline and a face of another are a (speculative) contact.
         slop: overlap depth (m) tolerated before it is pushed back.
         beta: fraction of the overlap beyond ``slop`` removed per step.
         window: longest plant window (s) while two parcels could meet before the end of the interval; parcels that
@@ -324,7 +324,7 @@ class Rows:
 
     def contact(self, ia: int, ib: int, c: Contact, ca, cb, h: float, params: ContactParams,
                 warm=(0.0, 0.0)) -> tuple[int, int]:
-        """A normal and a friction row for contact ``c`` between bodies ``ia`` (owner of the vertex, centre of mass
+        """A normal and a friction row for contact ``c`` between bodies ``ia`` (owner of the point, centre of mass
         ``ca``) and ``ib`` (centre ``cb``); returns their indices."""
         n = c.normal
         t = np.array([-n[1], n[0]])
