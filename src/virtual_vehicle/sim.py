@@ -301,7 +301,9 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None, *
 def resume(checkpoint: str | Path, progress: Callable[[float], None] | None = None, *,
            checkpoint_every: float | None = None) -> RunResult:
     """Continue a networked run from its last checkpoint (see :func:`run_network`); by default it keeps writing
-    checkpoints to the same file as often as before. Raises VirtualVehicleError for a file that is not one."""
+    checkpoints to the same file as often as before. Raises VirtualVehicleError for a file that is not one.
+
+    A checkpoint is a Python pickle: resume only files you (or a run you trust) wrote."""
     from .errors import VirtualVehicleError
 
     path = Path(checkpoint)
@@ -311,7 +313,7 @@ def resume(checkpoint: str | Path, progress: Callable[[float], None] | None = No
             if magic != _CHECKPOINT_MAGIC:
                 raise VirtualVehicleError(f"{path} is not a virtual_vehicle checkpoint")
             job, every = pickle.load(f)
-    except (OSError, pickle.UnpicklingError, EOFError) as exc:
+    except (OSError, pickle.UnpicklingError, EOFError, AttributeError, ImportError, TypeError, ValueError) as exc:
         raise VirtualVehicleError(f"cannot read checkpoint {path}: {exc}") from None
     if job.version != __version__:
         raise VirtualVehicleError(f"checkpoint {path} was written by version {job.version}; this is {__version__}")
