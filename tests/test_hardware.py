@@ -83,7 +83,7 @@ def test_recorded_readings_match_the_trajectory(tmp_path):
     d["duration"] = 1.0
     res = run(parse_scenario(d).build())
     paths = write_results(res, tmp_path)
-    rows = list(csv.DictReader(open(paths["sensors"])))
+    rows = list(csv.DictReader(open(paths["cells.csv"])))
     assert len(rows) == 100 * 18 and list(rows[0])[:3] == ["t", "cell", "s0"]
     tr = res.parcels[0].trajectory
     spec = res.setup.specs[0]
@@ -189,9 +189,9 @@ def test_a_heavy_parcel_slows_its_wheels():
         d["sensors"]["record"] = True
         d["duration"] = 0.6
         d["parcels"][0]["mass"] = mass
-        log = run(parse_scenario(d).build()).sensor_log
-        under = log[5][1][:, 0]  # centre sensor sees the parcel
-        free = ~log[5][1].any(axis=1)
-        lag[mass] = min(w[under, 0].mean() - w[free, 0].mean() for _, _, w, _ in log[1:12])
-        assert abs(log[-1][2][under, 0] - 0.2).max() < 0.005  # the loop has caught up by the end
+        log = run(parse_scenario(d).build()).cell_log
+        under = log.readings[5][:, 0]  # centre sensor sees the parcel
+        free = ~log.readings[5].any(axis=1)
+        lag[mass] = min(w[under, 0].mean() - w[free, 0].mean() for w in log.wheels[1:12])
+        assert abs(log.wheels[-1][under, 0] - 0.2).max() < 0.005  # the loop has caught up by the end
     assert lag[40.0] < -0.003 < -0.001 < lag[1.0]

@@ -54,33 +54,31 @@ def run(
                                              "18-cell prototype)."),
     out_dir: Path = typer.Option(Path("results/run"), "--out", "-o", help="Folder for the results."),
     plot: bool = typer.Option(True, help="Write paths.png."),
-    checkpoint: Optional[Path] = typer.Option(None, help="Networked runs: keep the run's state in this file, to "
+    checkpoint: Optional[Path] = typer.Option(None, help="Keep the run's state in this file, to "
                                               "resume after an interruption (virtual-vehicle resume)."),
     checkpoint_every: float = typer.Option(60.0, min=1e-6, help="Simulated seconds between checkpoints."),
+    formats: list[str] = typer.Option(["parquet", "csv"], "--format", help="Table formats to write (repeat the "
+                                      "option for several): parquet, csv."),
 ) -> None:
-    """Run a scenario; write trajectories.csv, events.csv, summary.json, scenario.toml and paths.png (and, with
-    distributed control, network.csv, cell_traffic.csv and traffic.png)."""
+    """Run a scenario; write its tables (trajectories, events and, with distributed control, network and
+    cell_traffic) as Parquet and CSV, summary.json, scenario.toml, paths.png (traffic.png) and the manifest
+    run.json."""
     from .scenario import load_scenario
-    from .sim import run as run_setup, run_network
+    from .sim import run as run_setup
 
     try:
+        formats = _formats(formats)
         sc, text = load_scenario(scenario)
         setup = sc.build()
-        if checkpoint is not None and setup.control is None:
-            raise ScenarioError("control", "checkpoints are for networked runs (a [control] table); a constant "
-                                "field runs in one piece")
     except VirtualVehicleError as exc:
         _fail(exc)
     bar = _LazyProgress(f"simulating {sc.name}")
     try:
-        if checkpoint is None:
-            result = run_setup(setup, progress=bar)
-        else:
-            result = run_network(setup, progress=bar, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
-                                 scenario_text=text)
+        result = run_setup(setup, progress=bar, checkpoint=checkpoint,
+                           checkpoint_every=checkpoint_every if checkpoint is not None else None, scenario_text=text)
     finally:
         bar.close()
-    _report(result, out_dir, plot, text)
+    _report(result, out_dir, plot, text, formats)
 
 
 @app.command(name="resume")
@@ -88,40 +86,52 @@ def resume_cmd(
     checkpoint: Path = typer.Argument(..., help="A checkpoint written by 'run --checkpoint'."),
     out_dir: Path = typer.Option(Path("results/run"), "--out", "-o", help="Folder for the results."),
     plot: bool = typer.Option(True, help="Write paths.png."),
+    formats: list[str] = typer.Option(["parquet", "csv"], "--format", help="Table formats to write: parquet, csv."),
 ) -> None:
-    """Continue an interrupted networked run from its checkpoint; the results are those of an uninterrupted run."""
+    """Continue an interrupted run from its checkpoint; the results are those of an uninterrupted run."""
     from .sim import resume
 
     bar = _LazyProgress(f"resuming {checkpoint}")
     try:
+        formats = _formats(formats)
         result = resume(checkpoint, progress=bar)
     except VirtualVehicleError as exc:
         bar.close()
         _fail(exc)
     finally:
         bar.close()
-    _report(result, out_dir, plot, result.scenario_text)
+    _report(result, out_dir, plot, result.scenario_text, formats)
 
 
-def _report(result, out_dir: Path, plot: bool, text: str | None) -> None:
+def _formats(formats: list[str]) -> tuple[str, ...]:
+    from .io import FORMATS
+
+    bad = [f for f in formats if f not in FORMATS]
+    if bad or not formats:
+        raise VirtualVehicleError(f"--format: {', '.join(bad) or 'none given'}; use {' or '.join(FORMATS)}")
+    return tuple(dict.fromkeys(formats))
+
+
+def _report(result, out_dir: Path, plot: bool, text: str | None, formats: tuple[str, ...]) -> None:
     """Write a run's files and print its summary."""
     from .io import write_results
 
     sc = result.setup.scenario
-    paths = write_results(result, out_dir, text)
+    pictures = {}
     if plot:
         from .viz import plot_paths, plot_traffic
 
-        paths["plot"] = out_dir / "paths.png"
+        pictures["plot"] = out_dir / "paths.png"
         if sc.control is not None and sc.control.program == "sort":
             from .viz import plot_sorting
 
-            plot_sorting(result, paths["plot"])
+            plot_sorting(result, pictures["plot"])
         else:
-            plot_paths(result, paths["plot"])
+            plot_paths(result, pictures["plot"])
         if result.network is not None and result.network.per_tick["sent"].sum() > 0:
-            paths["traffic_plot"] = out_dir / "traffic.png"
-            plot_traffic(result, paths["traffic_plot"])
+            pictures["traffic_plot"] = out_dir / "traffic.png"
+            plot_traffic(result, pictures["traffic_plot"])
+    paths = {**write_results(result, out_dir, text, formats, extra=list(pictures.values())), **pictures}
     s = result.summary()
     out.print(f"[bold]{sc.name}[/bold]: {len(result.parcels)} parcel(s), {sc.duration:g} s simulated in "
               f"{result.wall_time:.3g} s ({s['real_time_factor']:.0f}x real time), {sc.friction.law} friction, "

@@ -1,32 +1,31 @@
-"""Results out: trajectories and events as CSV, a JSON summary, the scenario as run.
+"""Results out: the run's tables (:mod:`virtual_vehicle.tables`) as Parquet and/or CSV, a JSON summary, the
+scenario as run and a manifest.
 
 Files are written atomically (to a temporary name in the same folder, then renamed), so an interrupted run never
-leaves a half-written file under a final name.
+leaves a half-written file under a final name; ``run.json`` (the manifest) is written last, so a folder without it
+holds an unfinished run.
 
-Columns:
-- ``trajectories.csv``: parcel, t (s), x, y (m), theta (rad), vx, vy (m/s), omega (rad/s), one row per sample.
-- ``events.csv``: parcel, t (s), kind (support | tip | contact | release), entered, left, lifted, touched (cell
-  ids separated by spaces), partner (the other parcel of a contact), the state at the event (as above), message.
-- ``network.csv`` (networked runs): per control tick, t (s), sentences sent / received, bytes sent / received,
-  lost, corrupted, undetected, dropped, unaddressed, latency_mean and latency_max (s; empty when nothing arrived).
-- ``cell_traffic.csv`` (networked runs): per cell, cell id, x, y (m), sentences and bytes sent and received.
-- ``sensors.csv`` (networked runs with ``[sensors] record = true``): per tick and cell, t (s), cell, the readings
-  s0.. (0/1), the wheels' mean surface speeds over the tick wheel0, wheel1 and their commands command0, command1
-  (m/s).
+A run folder holds ``trajectories``, ``events`` and, for networked runs, ``network`` and ``cell_traffic``, and
+``cells`` when ``[sensors] record = true`` (columns and units: :mod:`virtual_vehicle.tables`), each as ``.parquet``
+and/or ``.csv``; ``summary.json`` (:meth:`~virtual_vehicle.sim.RunResult.summary`); ``scenario.toml`` (the scenario
+exactly as run, seeds included: ``virtual-vehicle run FOLDER/scenario.toml`` reproduces the run bit for bit on the
+same versions); ``run.json``: the versions of this package, Python, numpy, scipy and shapely, the scenario's name
+and seeds, and every file written with its size and SHA-256.
 """
 
 from __future__ import annotations
 
-import csv
-import io as _io
+import hashlib
 import json
 import os
+import platform
 import tempfile
 from pathlib import Path
 
-from .dynamics import Event
-from .parcel import STATE_FIELDS
+from . import tables
 from .sim import RunResult
+
+FORMATS = ("parquet", "csv")
 
 
 def write_atomic(path: Path, data: str | bytes) -> None:
@@ -47,97 +46,65 @@ def write_atomic(path: Path, data: str | bytes) -> None:
         raise
 
 
-def trajectories_csv(result: RunResult) -> str:
-    buf = _io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(("parcel", "t", *STATE_FIELDS))
-    for pr in result.parcels:
-        tr = pr.trajectory
-        for t, y in zip(tr.times, tr.states):
-            w.writerow((pr.spec.name, repr(float(t)), *(repr(float(v)) for v in y)))
-    return buf.getvalue()
+def scenario_toml(result: RunResult) -> str:
+    """The run's scenario as TOML text: the file it was started from, else its validated model written out (a
+    scenario built in code)."""
+    if result.scenario_text is not None:
+        return result.scenario_text
+    from .scenario import dump_toml
+
+    return dump_toml(result.setup.scenario)
 
 
-def _ids(ids) -> str:
-    return " ".join(str(i) for i in ids)
-
-
-def events_csv(result: RunResult) -> str:
-    buf = _io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(("parcel", "t", "kind", "entered", "left", "lifted", "touched", "partner", *STATE_FIELDS,
-                "message"))
-    for pr in result.parcels:
-        e: Event
-        for e in pr.trajectory.events:
-            w.writerow((pr.spec.name, repr(e.t), e.kind, _ids(e.entered), _ids(e.left), _ids(e.lifted),
-                        _ids(e.touched), e.partner, *(repr(v) for v in e.state), e.message))
-    return buf.getvalue()
-
-
-NETWORK_COLUMNS = ("t", "sent", "received", "bytes_sent", "bytes_received", "lost", "corrupted", "undetected",
-                   "dropped", "unaddressed", "latency_mean", "latency_max")
-
-
-def network_csv(result: RunResult) -> str:
-    rec = result.network
-    buf = _io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(NETWORK_COLUMNS)
-    for k in range(len(rec.per_tick["t"])):
-        row = []
-        for c in NETWORK_COLUMNS:
-            v = rec.per_tick[c][k]
-            row.append("" if isinstance(v, float) and v != v else repr(v.item()))
-        w.writerow(row)
-    return buf.getvalue()
-
-
-def cell_traffic_csv(result: RunResult) -> str:
-    rec = result.network
-    pos = result.setup.cells.positions
-    buf = _io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(("cell", "x", "y", "sent", "received", "bytes_sent", "bytes_received"))
-    for i in range(len(pos)):
-        w.writerow((i, repr(float(pos[i, 0])), repr(float(pos[i, 1])), *(int(rec.per_cell[f"cell_{k}"][i]) for k in
-                    ("sent", "received", "bytes_sent", "bytes_received"))))
-    return buf.getvalue()
-
-
-def sensors_csv(result: RunResult) -> str:
-    buf = _io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    S = result.setup.sensors.count
-    w.writerow(("t", "cell", *(f"s{k}" for k in range(S)), "wheel0", "wheel1", "command0", "command1"))
-    for t, readings, wheels, command in result.sensor_log:
-        for cell in range(len(readings)):
-            w.writerow((repr(float(t)), cell, *(int(b) for b in readings[cell]),
-                        *(repr(float(v)) for v in (*wheels[cell], *command[cell]))))
-    return buf.getvalue()
-
-
-def write_results(result: RunResult, out_dir: str | Path, scenario_text: str | None = None) -> dict[str, Path]:
-    """Write trajectories.csv, events.csv, summary.json and scenario.toml (when its text is given) into
-    ``out_dir``. Returns the paths written, by kind."""
+def write_results(result: RunResult, out_dir: str | Path, scenario_text: str | None = None,
+                  formats: tuple[str, ...] = FORMATS, extra: list[Path] = ()) -> dict[str, Path]:
+    """Write the run's tables in ``formats`` (``"parquet"``, ``"csv"``), summary.json, scenario.toml (``scenario_text``,
+    else :func:`scenario_toml`) and, last, the manifest run.json into ``out_dir`` (listing also the ``extra`` files
+    already there, such as plots). Returns the paths written, by kind (``trajectories`` is the first format's file,
+    ``trajectories.csv`` etc. name each)."""
+    bad = set(formats) - set(FORMATS)
+    if bad or not formats:
+        raise ValueError(f"formats must be some of {FORMATS}, not {sorted(bad) or 'none'}")
     out = Path(out_dir)
-    paths = {
-        "trajectories": out / "trajectories.csv",
-        "events": out / "events.csv",
-        "summary": out / "summary.json",
-    }
-    write_atomic(paths["trajectories"], trajectories_csv(result))
-    write_atomic(paths["events"], events_csv(result))
+    paths: dict[str, Path] = {}
+    for name, table in tables.build(result).items():
+        for fmt in formats:
+            path = out / f"{name}.{fmt}"
+            write_atomic(path, tables.to_parquet(table) if fmt == "parquet" else tables.to_csv(table))
+            paths.setdefault(name, path)
+            paths[f"{name}.{fmt}"] = path
+    paths["summary"] = out / "summary.json"
     write_atomic(paths["summary"], json.dumps(result.summary(), indent=2) + "\n")
-    if result.network is not None:
-        paths["network"] = out / "network.csv"
-        paths["cell_traffic"] = out / "cell_traffic.csv"
-        write_atomic(paths["network"], network_csv(result))
-        write_atomic(paths["cell_traffic"], cell_traffic_csv(result))
-    if result.sensor_log is not None:
-        paths["sensors"] = out / "sensors.csv"
-        write_atomic(paths["sensors"], sensors_csv(result))
-    if scenario_text is not None:
-        paths["scenario"] = out / "scenario.toml"
-        write_atomic(paths["scenario"], scenario_text)
+    paths["scenario"] = out / "scenario.toml"
+    write_atomic(paths["scenario"], scenario_text if scenario_text is not None else scenario_toml(result))
+    paths["manifest"] = out / "run.json"
+    write_atomic(paths["manifest"], json.dumps(manifest(result, sorted({*paths.values(), *map(Path, extra)} - {paths["manifest"]})),
+                                               indent=2) + "\n")
     return paths
+
+
+def manifest(result: RunResult, files: list[Path]) -> dict:
+    """What a run folder needs to be reproduced and checked: versions, scenario name and seeds, files and hashes."""
+    import numpy
+    import scipy
+    import shapely
+
+    from . import __version__
+
+    sc = result.setup.scenario
+    seeds = {"sensors": sc.sensors.seed}
+    if sc.control is not None:
+        seeds["network"] = sc.control.seed
+    return {
+        "virtual_vehicle": __version__,
+        "python": platform.python_version(),
+        "numpy": numpy.__version__,
+        "scipy": scipy.__version__,
+        "shapely": shapely.__version__,
+        "platform": platform.platform(),
+        "scenario": sc.name,
+        "seeds": seeds,
+        "reproduce": "virtual-vehicle run scenario.toml",
+        "files": {p.name: {"bytes": p.stat().st_size, "sha256": hashlib.sha256(p.read_bytes()).hexdigest()}
+                  for p in files},
+    }

@@ -280,7 +280,7 @@ class SensorSpec(_Strict):
     """Presence sensors of every cell: ``offsets`` (1..5 [x, y] in m in the cell's frame; default centre and the four
     edge midpoints), flip probabilities ``false_positive`` / ``false_negative``, faults ``stuck_on`` / ``stuck_off``
     as [cell id, sensor index] pairs, ``seed`` of the noise, and ``record`` = true to write every tick's readings
-    and wheel speeds (sensors.csv, networked runs)."""
+    and wheel speeds (the ``cells`` table, networked runs)."""
 
     offsets: Annotated[list[Point], Field(min_length=1, max_length=5)] | None = None
     false_positive: Annotated[float, Field(ge=0, le=1)] = 0.0
@@ -727,3 +727,16 @@ def parse_text(text: str, where: str = "scenario") -> Scenario:
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError("", f"{where} is not valid TOML: {exc}") from None
     return parse_scenario(data)
+
+
+def dump_toml(scenario: Scenario) -> str:
+    """A scenario as TOML text that :func:`parse_text` reads back to an equal scenario (fields left at None are
+    left out, so they take their defaults again).
+
+    >>> sc = load_scenario("paper_2x2_inward")[0]
+    >>> parse_text(dump_toml(sc)) == sc
+    True
+    """
+    import tomli_w
+
+    return tomli_w.dumps(scenario.model_dump(mode="json", exclude_none=True), multiline_strings=True)

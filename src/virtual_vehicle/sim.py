@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import pickle
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -46,6 +46,29 @@ class ParcelResult:
 
 
 @dataclass
+class CellLog:
+    """What every cell saw and did at every control tick (T ticks, n cells, S sensors per cell).
+
+    ``t`` (T,) tick start, s; ``readings`` (T, n, S) presence sensors, bool; ``wheels`` (T, n, 2) the wheels' mean
+    surface speeds over the tick and ``commands`` (T, n, 2) the speeds the cell program asked for, m/s (wheel 0
+    along the cell's first drive direction); ``sent`` / ``received`` (T, n) sentences each cell put on and took off
+    its links during the tick."""
+
+    t: np.ndarray
+    readings: np.ndarray
+    wheels: np.ndarray
+    commands: np.ndarray
+    sent: np.ndarray
+    received: np.ndarray
+
+    @classmethod
+    def stack(cls, rows: list[tuple]) -> "CellLog":
+        """From per-tick rows (t, readings, wheels, commands, sent, received)."""
+        cols = list(zip(*rows))
+        return cls(*(np.asarray(c) for c in cols))
+
+
+@dataclass
 class RunResult:
     """Everything a run produced."""
 
@@ -54,9 +77,8 @@ class RunResult:
     wall_time: float
     stats: dict = field(default_factory=dict)
     network: "NetworkRecord | None" = None
-    sensor_log: list | None = None
-    """When recording was asked: per tick (t s, (n, S) readings, (n, 2) actual and (n, 2) commanded wheel speeds
-    m/s)."""
+    cell_log: "CellLog | None" = None
+    """Every cell at every control tick, when recording was asked (``[sensors] record = true``, networked runs)."""
     scenario_text: str | None = None
     """The scenario file's text, when the run was started from one (kept through checkpoints)."""
 
@@ -147,27 +169,113 @@ def coulomb_sliding_check(setup: Setup, spec: ParcelSpec, traj: Trajectory) -> t
     return None if first is None else (first, worst)
 
 
-def run(setup: Setup, progress: Callable[[float], None] | None = None) -> RunResult:
+def run(setup: Setup, progress: Callable[[float], None] | None = None, *,
+        checkpoint: str | Path | None = None, checkpoint_every: float | None = None,
+        scenario_text: str | None = None) -> RunResult:
     """Run a built scenario. ``progress`` is called with the fraction of the run done (0..1). A scenario with a
-    ``[control]`` table is co-simulated with its cell program and network (:func:`run_network`)."""
+    ``[control]`` table is co-simulated with its cell program and network (:func:`run_network`); a constant field
+    is one plant interval, cut at every checkpoint when ``checkpoint`` (a file path) and ``checkpoint_every``
+    (simulated s) are given, and :func:`resume` continues it to exactly the result the same checkpointed run gives
+    uninterrupted."""
     if setup.control is not None:
-        return run_network(setup, progress)
-    sc = setup.scenario
-    t_end = sc.duration
-    sample_dt = sc.output_dt or t_end / 500
-    start = time.perf_counter()
-    plant = setup.plant()
-    ys = [y.copy() for y in setup.states]
-    active = [True] * len(ys)
-    report = None if progress is None else (lambda t: progress(t / t_end))
-    trajs = plant.advance(ys, active, setup.contact_velocities, 0.0, t_end, sample_dt, report)
-    results = []
-    for spec, traj in zip(setup.specs, trajs):
-        check = coulomb_sliding_check(setup, spec, traj) if isinstance(setup.law, CoulombLaw) else None
-        results.append(ParcelResult(spec, traj, check))
-    if progress is not None:
-        progress(1.0)
-    return RunResult(setup, results, time.perf_counter() - start, {"plant": plant_totals(plant)})
+        return run_network(setup, progress, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
+                           scenario_text=scenario_text)
+    job = FieldRun(setup)
+    job.scenario_text = scenario_text
+    return job.run(progress, checkpoint=checkpoint, checkpoint_every=checkpoint_every)
+
+
+class _Job:
+    """A run that can be cut into steps, checkpointed between them and resumed (subclasses: :class:`FieldRun`,
+    :class:`NetworkRun`). ``step`` advances and says whether a checkpoint is due; ``result`` finishes."""
+
+    version: str
+    wall: float
+
+    @property
+    def done(self) -> bool:
+        raise NotImplementedError
+
+    def step(self, every: float | None, progress) -> bool:
+        raise NotImplementedError
+
+    def result(self) -> RunResult:
+        raise NotImplementedError
+
+    def run(self, progress=None, *, checkpoint=None, checkpoint_every=None) -> RunResult:
+        """Step to the end (writing checkpoints when asked) and return the result."""
+        if checkpoint is not None and not (checkpoint_every and checkpoint_every > 0):
+            raise ValueError("checkpoint_every must be a positive number of simulated seconds")
+        every = None if checkpoint is None else float(checkpoint_every)
+        start = time.perf_counter()
+        while not self.done:
+            due = self.step(every, progress)
+            if due and not self.done:
+                self.wall += time.perf_counter() - start
+                start = time.perf_counter()
+                self.save(checkpoint, every)
+        self.wall += time.perf_counter() - start
+        if progress is not None:
+            progress(1.0)
+        return self.result()
+
+    def save(self, path, checkpoint_every: float) -> None:
+        """Write this run's state to ``path`` atomically."""
+        from .io import write_atomic
+
+        write_atomic(Path(path), _CHECKPOINT_MAGIC + pickle.dumps((self, checkpoint_every),
+                                                                  protocol=pickle.HIGHEST_PROTOCOL))
+
+
+class FieldRun(_Job):
+    """A constant-field run between checkpoints: the plant, every parcel's state and the pieces of trajectory so
+    far (picklable)."""
+
+    def __init__(self, setup: Setup):
+        sc = setup.scenario
+        self.version = __version__
+        self.scenario_text: str | None = None
+        self.setup = setup
+        self.t = 0.0
+        self.wall = 0.0
+        self.grid = sample_grid(0.0, sc.duration, sc.output_dt or sc.duration / 500)  # output sample times, s
+        self.plant = setup.plant()
+        self.ys = [y.copy() for y in setup.states]
+        self.active = [True] * len(self.ys)
+        self.parts: list[list[Trajectory]] = [[] for _ in self.ys]
+
+    @property
+    def done(self) -> bool:
+        return self.t >= self.setup.scenario.duration
+
+    def step(self, every, progress) -> bool:
+        t_end = self.setup.scenario.duration
+        t0 = self.t
+        t1 = t_end if every is None or t0 + every >= t_end - 1e-9 * every else t0 + every
+        eps = 1e-12 * max(1.0, t1)
+        inside = self.grid[np.searchsorted(self.grid, t0 + eps, side="right"):
+                           np.searchsorted(self.grid, t1 - eps, side="left")]
+        window = np.concatenate([[t0], inside, [t1]])  # the pieces meet at the cuts; join drops the repeats
+        report = None if progress is None else (lambda t: progress(t / t_end))
+        for part, tr in zip(self.parts, self.plant.advance(self.ys, self.active, self.setup.contact_velocities,
+                                                           t0, t1, 0.0, report, sample_times=window)):
+            if tr is not None:
+                part.append(tr)
+        self.t = t1
+        return True
+
+    def result(self) -> RunResult:
+        setup = self.setup
+        results = []
+        for spec, part in zip(setup.specs, self.parts):
+            traj = join(part)
+            keep = np.isin(traj.times, self.grid)  # the output samples, wherever the checkpoints cut
+            keep[-1] = True
+            traj = replace(traj, times=traj.times[keep], states=traj.states[keep])
+            check = coulomb_sliding_check(setup, spec, traj) if isinstance(setup.law, CoulombLaw) else None
+            results.append(ParcelResult(spec, traj, check))
+        return RunResult(setup, results, self.wall, {"plant": plant_totals(self.plant)},
+                         scenario_text=self.scenario_text)
 
 
 def plant_totals(plant) -> dict:
@@ -300,7 +408,7 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None, *
 
 def resume(checkpoint: str | Path, progress: Callable[[float], None] | None = None, *,
            checkpoint_every: float | None = None) -> RunResult:
-    """Continue a networked run from its last checkpoint (see :func:`run_network`); by default it keeps writing
+    """Continue a run from its last checkpoint (see :func:`run` and :func:`run_network`); by default it keeps writing
     checkpoints to the same file as often as before. Raises VirtualVehicleError for a file that is not one.
 
     A checkpoint is a Python pickle: resume only files you (or a run you trust) wrote."""
@@ -323,7 +431,7 @@ def resume(checkpoint: str | Path, progress: Callable[[float], None] | None = No
 _CHECKPOINT_MAGIC = b"virtual_vehicle checkpoint 1\n"
 
 
-class NetworkRun:
+class NetworkRun(_Job):
     """The state of a networked run between control ticks: everything needed to go on (picklable, so that a long
     run can be checkpointed and resumed bit for bit)."""
 
@@ -360,31 +468,17 @@ class NetworkRun:
         self.per_tick["latency_max"] = np.full(self.ticks, np.nan)
         self.per_cell = {f"cell_{k}": np.zeros(n, dtype=np.int64) for k in keys}
         self.latency = LatencyStats()
-        self.sensor_log: list = []
+        self.cell_log: list = []
 
-    def run(self, progress=None, *, checkpoint=None, checkpoint_every=None) -> RunResult:
-        """Step to the end (writing checkpoints when asked) and return the result."""
-        if checkpoint is not None and not (checkpoint_every and checkpoint_every > 0):
-            raise ValueError("checkpoint_every must be a positive number of simulated seconds")
-        every = None if checkpoint is None else max(1, int(round(checkpoint_every / self.period)))
-        start = time.perf_counter()
-        while self.k < self.ticks:
-            self.tick()
-            if progress is not None:
-                progress(self.k / self.ticks)
-            if every is not None and self.k % every == 0 and self.k < self.ticks:
-                self.wall += time.perf_counter() - start
-                start = time.perf_counter()
-                self.save(checkpoint, checkpoint_every)
-        self.wall += time.perf_counter() - start
-        return self.result()
+    @property
+    def done(self) -> bool:
+        return self.k >= self.ticks
 
-    def save(self, path, checkpoint_every: float) -> None:
-        """Write this run's state to ``path`` atomically."""
-        from .io import write_atomic
-
-        write_atomic(Path(path), _CHECKPOINT_MAGIC + pickle.dumps((self, checkpoint_every),
-                                                                  protocol=pickle.HIGHEST_PROTOCOL))
+    def step(self, every, progress) -> bool:
+        self.tick()
+        if progress is not None:
+            progress(self.k / self.ticks)
+        return every is not None and self.k % max(1, int(round(every / self.period))) == 0
 
     def tick(self) -> None:
         """One control tick: sensors, program, network, wheels, plant."""
@@ -410,9 +504,10 @@ class NetworkRun:
             wheels = self.drives.step(command, load, period)
         dirs = cells.drive_directions
         velocities = wheels[:, 0:1] * dirs[:, 0] + wheels[:, 1:2] * dirs[:, 1]
-        if sc.sensors.record:
-            self.sensor_log.append((t0, sensors.copy(), wheels.copy(), command.copy()))
         self.inbox, stats = self.delivery.exchange(outbox, t0, period)
+        if sc.sensors.record:
+            self.cell_log.append((t0, sensors.astype(bool), np.array(wheels, dtype=float), command.copy(),
+                                  stats.sent.copy(), stats.received.copy()))
         for key in ("sent", "received", "bytes_sent", "bytes_received"):
             self.per_tick[key][k] = int(getattr(stats, key).sum())
             self.per_cell[f"cell_{key}"] += getattr(stats, key)
@@ -465,7 +560,8 @@ class NetworkRun:
             results.append(ParcelResult(spec, traj, sliding_checked=False, entered_at=self.entered[i]))
         record = NetworkRecord(ctl.delivery_name, self.period, self.per_tick, self.per_cell, self.latency)
         return RunResult(setup, results, self.wall, {"network": record.totals(), "plant": plant_totals(self.plant)},
-                         record, self.sensor_log if setup.scenario.sensors.record else None, self.scenario_text)
+                         record, CellLog.stack(self.cell_log) if setup.scenario.sensors.record and self.cell_log else None,
+                         self.scenario_text)
 
 
 class _Track:
