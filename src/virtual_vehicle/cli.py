@@ -165,6 +165,50 @@ def _report(result, out_dir: Path, plot: bool, text: str | None, formats: tuple[
     out.print(f"results written to {out_dir}/: " + ", ".join(sorted(p.name for p in paths.values())))
 
 
+@app.command(name="animate")
+def animate_cmd(
+    scenario: Optional[str] = typer.Argument(None, help="Scenario TOML file or bundled scenario name (default: the "
+                                             "18-cell prototype)."),
+    video: Path = typer.Option(Path("results/animation.mp4"), "--out", "-o", help="Video file: .mp4 (a .gif is "
+                             "written beside it if no ffmpeg is found) or .gif."),
+    fps: float = typer.Option(20.0, min=1e-3, help="Frames per second of video."),
+    speed: float = typer.Option(1.0, min=1e-6, help="Simulated seconds per second of video."),
+    start: Optional[float] = typer.Option(None, help="First simulated time shown (s; default 0)."),
+    end: Optional[float] = typer.Option(None, help="Last simulated time shown (s; default the scenario's duration)."),
+) -> None:
+    """Run a scenario and animate it: wheel commands as arrows, lit sensors, parcels with their names and goals,
+    message traffic as a heat map. Networked runs are recorded for this ([sensors] record = true)."""
+    from .animate import SUFFIXES, animate
+    from .scenario import load_scenario
+    from .sim import run as run_setup
+
+    try:
+        if video.suffix.lower() not in SUFFIXES:
+            raise VirtualVehicleError(f"--out: the video must end in {' or '.join(SUFFIXES)}, got {video.name!r}")
+        sc, text = load_scenario(scenario)
+        if sc.control is not None and not sc.sensors.record:
+            sc = sc.model_copy(update={"sensors": sc.sensors.model_copy(update={"record": True})})
+        duration = sc.duration
+        t0, t1 = 0.0 if start is None else start, duration if end is None else end
+        if not 0.0 <= t0 < t1 <= duration:
+            raise VirtualVehicleError(f"--start/--end: need 0 <= start < end <= {duration:g} s, got {t0:g}..{t1:g}")
+        setup = sc.build()
+    except VirtualVehicleError as exc:
+        _fail(exc)
+    bar = _LazyProgress(f"simulating {sc.name}")
+    try:
+        result = run_setup(setup, progress=bar, scenario_text=text)
+    finally:
+        bar.close()
+    bar = _LazyProgress(f"drawing {video.name}")
+    try:
+        written = animate(result, video, fps=fps, speed=speed, start=start, end=end, progress=bar)
+    finally:
+        bar.close()
+    note = "" if written == video else " (no ffmpeg found, so a GIF)"
+    out.print(f"[bold]{sc.name}[/bold]: animation written to {written}{note}")
+
+
 @app.command(name="equilibria")
 def equilibria_cmd(
     scenario: Optional[str] = typer.Argument(None, help="Scenario TOML file or bundled scenario name (with a "

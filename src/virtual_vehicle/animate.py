@@ -1,0 +1,280 @@
+"""Animations of a run: MP4 through the ffmpeg that the ``imageio-ffmpeg`` package ships (or one on the PATH), GIF
+(Pillow) when no ffmpeg is found or when the file name asks for it.
+
+Each frame shows the array as squares coloured by message traffic (sentences each cell received per second over
+the last ``window`` s; networked runs), every wheel's commanded surface velocity as an arrow along its drive
+direction, every presence sensor (lit = covered), and the parcels with their names, destinations (sorting) or
+target outlines (pose control). Lengths in m, times in s.
+
+A networked run is animated from its cell log, so run it with ``[sensors] record = true``
+(``virtual-vehicle animate`` does this for you); a constant-field run needs nothing more: its wheels hold the
+field and its sensors are computed from the parcels' poses (noise-free).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.animation import FFMpegWriter, FuncAnimation, PillowWriter  # noqa: E402
+from matplotlib.collections import PolyCollection  # noqa: E402
+from matplotlib.colors import LinearSegmentedColormap  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
+from matplotlib.patches import Polygon as PolygonPatch  # noqa: E402
+
+from .sim import RunResult  # noqa: E402
+
+SUFFIXES = (".mp4", ".gif")
+_DEST_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink")
+
+
+def ffmpeg_exe() -> str | None:
+    """The ffmpeg to encode MP4 with: the one bundled by ``imageio-ffmpeg``, else one on the PATH, else None."""
+    try:
+        import imageio_ffmpeg
+
+        return imageio_ffmpeg.get_ffmpeg_exe()
+    except (ImportError, RuntimeError, OSError):
+        return shutil.which("ffmpeg")
+
+
+@dataclass(frozen=True)
+class FrameData:
+    """What each frame shows, as arrays over the frames' times (F frames, n cells, S sensors, m contacts).
+
+    ``times`` (F,) s; ``wheel_speeds`` (F, n, 2) commanded surface speed of each cell's wheels along their drive
+    directions, m/s; ``lit`` (F, n, S) sensors covered (as read, for networked runs); ``traffic`` (F, n) sentences
+    received per second over the trailing window, or None without a network; ``poses`` (F, P, 3) each parcel's
+    x, y (m), theta (rad), NaN while it is not on the array; ``window`` the traffic averaging span, s."""
+
+    times: np.ndarray
+    wheel_speeds: np.ndarray
+    lit: np.ndarray
+    traffic: np.ndarray | None
+    poses: np.ndarray
+    window: float
+
+
+def frame_data(result: RunResult, times, window: float = 0.5) -> FrameData:
+    """Sample ``result`` at ``times`` (s) for an animation (see :class:`FrameData`); ``window`` (s) is the span over
+    which message traffic is averaged. Raises ValueError for a networked run without a cell log."""
+    setup = result.setup
+    times = np.asarray(times, dtype=float)
+    if times.ndim != 1 or len(times) == 0 or not np.all(np.isfinite(times)):
+        raise ValueError("times must be a non-empty 1-D array of finite seconds")
+    if not window > 0:
+        raise ValueError(f"window must be a positive number of seconds, got {window}")
+    poses = np.full((len(times), len(result.parcels), 3), np.nan)
+    for k, pr in enumerate(result.parcels):
+        tr = pr.trajectory
+        if pr.entered_at is None:
+            continue
+        shown = (times >= tr.times[0]) & ((times <= tr.times[-1]) | (tr.status == "tipped"))
+        for j in range(3):
+            poses[shown, k, j] = np.interp(times[shown], tr.times, tr.states[:, j])
+    cells = setup.cells
+    if setup.control is None:
+        speeds = np.einsum("ij,ikj->ik", setup.velocities, cells.drive_directions)
+        wheel_speeds = np.broadcast_to(speeds, (len(times), cells.n, 2))
+        lit = np.stack([setup.sensors.covered(setup.specs, np.nan_to_num(poses[f]),
+                                              active=~np.isnan(poses[f, :, 0])) for f in range(len(times))])
+        return FrameData(times, wheel_speeds, lit, None, poses, window)
+    log = result.cell_log
+    if log is None:
+        raise ValueError("a networked run is animated from its cell log: run it with [sensors] record = true")
+    tick = np.clip(np.searchsorted(log.t, times, side="right") - 1, 0, len(log.t) - 1)
+    period = setup.control.period
+    ticks = max(1, int(round(window / period)))
+    csum = np.concatenate([np.zeros((1, cells.n)), np.cumsum(log.received, axis=0)])
+    lo = np.maximum(tick + 1 - ticks, 0)
+    traffic = (csum[tick + 1] - csum[lo]) / ((tick + 1 - lo)[:, None] * period)
+    return FrameData(times, log.commands[tick], log.readings[tick], traffic, poses, ticks * period)
+
+
+def animate(result: RunResult, path: str | Path, *, fps: float = 20.0, speed: float = 1.0,
+            start: float | None = None, end: float | None = None, window: float = 0.5, dpi: int = 100,
+            progress: Callable[[float], None] | None = None) -> Path:
+    """Write an animation of ``result`` to ``path`` (.mp4 or .gif) and return the path written: the .gif beside it
+    when an MP4 was asked for and no ffmpeg is found (with a warning). ``fps`` frames per second of video,
+    ``speed`` simulated seconds per second of video, ``start``/``end`` the simulated span (s, default the whole
+    run), ``window`` (s) the traffic averaging span; ``progress`` is called with the fraction of frames drawn.
+    The file appears whole or not at all."""
+    path = Path(path)
+    if path.suffix.lower() not in SUFFIXES:
+        raise ValueError(f"animation file must end in {' or '.join(SUFFIXES)}, got {path.name!r}")
+    if not (fps > 0 and speed > 0):
+        raise ValueError("fps and speed must be positive")
+    duration = result.setup.scenario.duration
+    t0 = 0.0 if start is None else float(start)
+    t1 = duration if end is None else float(end)
+    if not 0.0 <= t0 < t1 <= duration:
+        raise ValueError(f"need 0 <= start < end <= {duration:g} s (the run's duration), got {t0:g}..{t1:g}")
+    count = max(2, int(np.floor((t1 - t0) / speed * fps)) + 1)
+    times = t0 + np.arange(count) * speed / fps
+    data = frame_data(result, times[times <= t1 + 1e-12], window)
+    writer = None
+    if path.suffix.lower() == ".mp4":
+        exe = ffmpeg_exe()
+        if exe is None:
+            warnings.warn("no ffmpeg found (install imageio-ffmpeg); writing a GIF instead", stacklevel=2)
+            path = path.with_suffix(".gif")
+        else:
+            matplotlib.rcParams["animation.ffmpeg_path"] = exe
+            writer = FFMpegWriter(fps=fps, codec="libx264", extra_args=["-pix_fmt", "yuv420p"])
+    if writer is None:
+        writer = PillowWriter(fps=fps)
+    fig, update = _scene(result, data)
+    anim = FuncAnimation(fig, update, frames=len(data.times), blit=False)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        anim.save(tmp, writer=writer, dpi=dpi,
+                  progress_callback=None if progress is None else (lambda i, n: progress((i + 1) / n)))
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def _scene(result: RunResult, data: FrameData):
+    """The figure and the function that draws frame ``f`` of ``data`` into it."""
+    setup = result.setup
+    sc = setup.scenario
+    cells = setup.cells
+    P = cells.positions
+    U = cells.drive_directions
+    pitch = cells.pitch
+    xmin, ymin, xmax, ymax = cells.bounds
+    for k, pr in enumerate(result.parcels):  # parcels may stick out of the array (entering, leaving)
+        seen = data.poses[:, k, :2][np.isfinite(data.poses[:, k, 0])]
+        if len(seen):
+            r = pr.spec.radius - pitch
+            xmin, ymin = min(xmin, seen[:, 0].min() - r), min(ymin, seen[:, 1].min() - r)
+            xmax, ymax = max(xmax, seen[:, 0].max() + r), max(ymax, seen[:, 1].max() + r)
+    span = max(xmax - xmin, ymax - ymin, pitch)
+    width_in = 8.0
+    height_in = float(np.clip(width_in * (ymax - ymin + 2 * pitch) / (xmax - xmin + 2 * pitch), 3.5, 9.0)) + 1.2
+    fig, ax = plt.subplots(figsize=(width_in, 2 * round(height_in * 50) / 100))  # even pixel count for H.264
+    # the cells: squares along their drive directions, coloured by traffic
+    h = 0.47 * pitch
+    corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * h
+    squares = P[:, None, :] + corners[None, :, 0, None] * U[:, None, 0, :] + corners[None, :, 1, None] * U[:, None, 1, :]
+    tiles = PolyCollection(squares, edgecolors="0.75", linewidths=0.5, zorder=1)
+    if data.traffic is not None and data.traffic.max() > 0:
+        top = float(data.traffic.max())
+        tiles.set_cmap(LinearSegmentedColormap.from_list("traffic", ["white", "#8c6bb1"]))  # pale: arrows on top
+        tiles.set_clim(0.0, top)
+        tiles.set_array(data.traffic[0])
+        fig.colorbar(tiles, ax=ax, shrink=0.8, pad=0.02, label=f"sentences received per s (last {data.window:g} s)")
+    else:
+        tiles.set_facecolor("0.96")
+    ax.add_collection(tiles)
+    # wheel arrows: one per wheel along its drive direction, from the wheel's contact point
+    layer = setup.contact_layer
+    origin, direction, owner, wheel = [], [], [], []
+    for j in range(layer.n):
+        for k in range(2):
+            if layer.wheel_active[j, k]:
+                origin.append(layer.positions[j])
+                direction.append(layer.drive_directions[j, k])
+                owner.append(layer.cell_of[j])
+                wheel.append(k)
+    origin, direction = np.array(origin), np.array(direction)
+    owner, wheel = np.array(owner), np.array(wheel)
+    top_speed = float(np.abs(data.wheel_speeds).max())
+    scale = 0.45 * pitch / top_speed if top_speed > 0 else 0.0
+
+    def arrows(f):
+        s = data.wheel_speeds[f][owner, wheel] * scale
+        return direction[:, 0] * s, direction[:, 1] * s
+
+    u, v = arrows(0)
+    quiver = ax.quiver(origin[:, 0], origin[:, 1], u, v, angles="xy", scale_units="xy", scale=1, minlength=0, color="navy",
+                       width=0.0035 * min(1.0, 12 * pitch / span) + 0.0015, zorder=3)
+    # sensors
+    pts = setup.sensors.points.reshape(-1, 2)
+    dots = ax.scatter(pts[:, 0], pts[:, 1], s=float(np.clip(300.0 * pitch / span, 3.0, 30.0)),
+                      c=_lit_colours(data.lit[0]), edgecolors="none", zorder=6)
+    # parcels
+    names = [pr.spec.name for pr in result.parcels]
+    dests = [p.destination for p in sc.parcels] if sc.control is not None and sc.control.program == "sort" else None
+    targets = sc.control.targets if sc.control is not None and sc.control.program == "pose" else None
+    colours = [_DEST_COLOURS[(d or 0) % len(_DEST_COLOURS)] for d in dests] if dests else \
+        [_DEST_COLOURS[k % len(_DEST_COLOURS)] for k in range(len(names))]
+    if targets:
+        for k, tgt in enumerate(targets):
+            goal = result.parcels[k].spec.world_polygon(tgt)
+            ax.add_patch(PolygonPatch(np.asarray(goal.exterior.coords), closed=True, fill=False, ls=":", ec=colours[k],
+                                      lw=1.3, zorder=2))
+    patches, labels = [], []
+    fontsize = float(np.clip(160 * pitch / span, 6, 10))
+    for k, name in enumerate(names):
+        patch = PolygonPatch(np.zeros((4, 2)), closed=True, fc=colours[k], alpha=0.35, ec=colours[k], lw=1.5,
+                             zorder=5, visible=False)
+        ax.add_patch(patch)
+        patches.append(patch)
+        text = name if dests is None or dests[k] is None else f"{name}→{dests[k]}"
+        labels.append(ax.text(0, 0, text, ha="center", va="center", fontsize=fontsize, zorder=7, visible=False,
+                              clip_on=True, bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.7)))
+    legend = [Line2D([], [], color="navy", lw=1.5, label="wheel command"),
+              Line2D([], [], ls="none", marker="o", color="crimson", label="sensor lit"),
+              Line2D([], [], ls="none", marker="o", color="0.7", label="sensor dark")]
+    if dests:
+        legend += [Line2D([], [], ls="none", marker="s", color=_DEST_COLOURS[d % len(_DEST_COLOURS)], alpha=0.5,
+                          label=f"parcel→exit {d}") for d in sorted({d for d in dests if d is not None})]
+    if targets:
+        legend.append(Line2D([], [], ls=":", color="0.2", label="target pose"))
+    ax.legend(handles=legend, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=min(3, len(legend)), fontsize=8,
+              frameon=False)
+    if top_speed > 0:
+        ax.quiverkey(quiver, 0.9, 1.02, top_speed * scale, f"{top_speed:.3g} m/s", labelpos="W", coordinates="axes",
+                     fontproperties={"size": 8})
+    ax.set_xlim(xmin - pitch, xmax + pitch)
+    ax.set_ylim(ymin - pitch, ymax + pitch)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    title = ax.set_title("")
+    fig.tight_layout()
+
+    def update(f):
+        if data.traffic is not None and data.traffic.max() > 0:
+            tiles.set_array(data.traffic[f])
+        quiver.set_UVC(*arrows(f))
+        dots.set_facecolors(_lit_colours(data.lit[f]))
+        for k, pr in enumerate(result.parcels):
+            pose = data.poses[f, k]
+            on = bool(np.all(np.isfinite(pose)))
+            patches[k].set_visible(on)
+            labels[k].set_visible(on)
+            if on:
+                patches[k].set_xy(np.asarray(pr.spec.world_polygon(pose).exterior.coords))
+                labels[k].set_position(pose[:2])
+                tipped = pr.trajectory.status == "tipped" and data.times[f] >= pr.trajectory.t_end
+                patches[k].set_edgecolor("red" if tipped else colours[k])
+        title.set_text(f"{sc.name}   t = {data.times[f]:.2f} s")
+        return []
+
+    update(0)
+    return fig, update
+
+
+def _lit_colours(lit: np.ndarray) -> np.ndarray:
+    """RGBA per sensor: crimson when lit, light grey when dark."""
+    flat = lit.reshape(-1)
+    out = np.tile(np.array([0.6, 0.6, 0.6, 0.55]), (len(flat), 1))
+    out[flat] = (0.86, 0.08, 0.24, 1.0)
+    return out

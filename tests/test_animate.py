@@ -1,0 +1,123 @@
+"""Animations: what each frame shows is what the run did, and the video files are whole and of the right length."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+from typer.testing import CliRunner
+
+from virtual_vehicle import animate as anim
+from virtual_vehicle.cli import app
+from virtual_vehicle.scenario import load_scenario
+from virtual_vehicle.sim import run
+
+
+def _run(name: str, duration: float, record: bool = True):
+    sc, _ = load_scenario(name)
+    update = {"duration": duration}
+    if record:
+        update["sensors"] = sc.sensors.model_copy(update={"record": True})
+    return run(sc.model_copy(update=update).build())
+
+
+@pytest.fixture(scope="module")
+def field_run():
+    return _run("prototype_18", 2.0, record=False)
+
+
+@pytest.fixture(scope="module")
+def sorting_run():
+    return _run("sorting_junction", 6.0)
+
+
+def test_constant_field_frames_show_the_field_and_the_covered_sensors(field_run):
+    r = field_run
+    times = np.array([0.0, 0.37, 1.5, 2.0])
+    d = anim.frame_data(r, times)
+    setup = r.setup
+    tr = r.parcels[0].trajectory
+    for f, t in enumerate(times):
+        pose = [np.interp(t, tr.times, tr.states[:, j]) for j in range(3)]
+        np.testing.assert_allclose(d.poses[f, 0], pose)
+        state = np.array([*pose, 0.0, 0.0, 0.0])
+        np.testing.assert_array_equal(d.lit[f], setup.sensors.covered(setup.specs, [state]))
+        assert d.lit[f].any()
+        # each wheel's speed along its drive direction recombines into the cell's field velocity
+        V = np.einsum("ik,ikj->ij", d.wheel_speeds[f], setup.cells.drive_directions)
+        np.testing.assert_allclose(V, setup.velocities, atol=1e-15)
+    assert d.traffic is None
+
+
+def test_networked_frames_come_from_the_cell_log(sorting_run):
+    r = sorting_run
+    log = r.cell_log
+    period = r.setup.control.period
+    times = np.array([0.0, 1.234, 3.0, 5.999])
+    d = anim.frame_data(r, times, window=0.2)
+    for f, t in enumerate(times):
+        k = int(np.searchsorted(log.t, t, side="right") - 1)
+        assert log.t[k] <= t < log.t[k] + period + 1e-12
+        np.testing.assert_array_equal(d.lit[f], log.readings[k])
+        np.testing.assert_array_equal(d.wheel_speeds[f], log.commands[k])
+        lo = max(0, k + 1 - round(0.2 / period))
+        np.testing.assert_allclose(d.traffic[f], log.received[lo:k + 1].sum(axis=0) / ((k + 1 - lo) * period))
+    assert d.traffic.max() > 0
+    # parcels appear when put on and vanish when gone
+    for p, pr in enumerate(r.parcels):
+        tr = pr.trajectory
+        for f, t in enumerate(times):
+            on = pr.entered_at is not None and tr.times[0] <= t <= tr.times[-1]
+            assert np.isfinite(d.poses[f, p, 0]) == on
+
+
+def test_a_networked_run_without_a_cell_log_is_refused():
+    r = _run("prototype_18_network_ideal", 0.2, record=False)
+    with pytest.raises(ValueError, match="record = true"):
+        anim.frame_data(r, [0.0])
+
+
+@pytest.mark.skipif(anim.ffmpeg_exe() is None, reason="no ffmpeg")
+def test_mp4_has_one_frame_per_step_of_video(field_run, tmp_path):
+    import imageio_ffmpeg
+
+    out = anim.animate(field_run, tmp_path / "a.mp4", fps=10, speed=1.0)
+    assert out == tmp_path / "a.mp4"
+    frames, secs = imageio_ffmpeg.count_frames_and_secs(str(out))
+    assert frames == 21 and secs == pytest.approx(2.1, abs=0.11)  # t = 0, 0.1, ..., 2.0 s
+    assert [p.name for p in tmp_path.iterdir()] == ["a.mp4"]  # no temporary left behind
+
+
+def test_without_ffmpeg_an_mp4_falls_back_to_a_gif(field_run, tmp_path, monkeypatch):
+    monkeypatch.setattr(anim, "ffmpeg_exe", lambda: None)
+    with pytest.warns(UserWarning, match="GIF"):
+        out = anim.animate(field_run, tmp_path / "a.mp4", fps=4, speed=2.0, start=0.5)
+    assert out == tmp_path / "a.gif"
+    with Image.open(out) as im:
+        assert im.n_frames == 4  # t = 0.5, 1.0, 1.5, 2.0 s
+        assert im.size[0] % 2 == 0 and im.size[1] % 2 == 0
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"path": "a.avi"}, "must end in"),
+    ({"fps": 0}, "positive"),
+    ({"start": 1.5, "end": 1.0}, "start < end"),
+    ({"end": 9.0}, "start < end"),
+])
+def test_bad_animation_requests_are_refused(field_run, tmp_path, kwargs, message):
+    path = tmp_path / kwargs.pop("path", "a.gif")
+    with pytest.raises(ValueError, match=message):
+        anim.animate(field_run, path, **kwargs)
+    assert not any(tmp_path.iterdir())
+
+
+def test_the_animate_command_records_a_networked_run(tmp_path):
+    out = tmp_path / "net.gif"
+    res = CliRunner().invoke(app, ["animate", "prototype_18_network_ideal", "--out", str(out), "--end", "0.5",
+                                   "--fps", "6"])
+    assert res.exit_code == 0, res.output
+    with Image.open(out) as im:
+        assert im.n_frames == 4  # t = 0, 1/6, 2/6, 3/6 s
+    res = CliRunner().invoke(app, ["animate", "prototype_18", "--out", str(tmp_path / "x.gif"), "--start", "5",
+                                   "--end", "1"])
+    assert res.exit_code == 2 and "--start/--end" in res.output
