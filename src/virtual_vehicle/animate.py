@@ -83,17 +83,18 @@ def frame_data(result: RunResult, times, window: float = 0.5) -> FrameData:
         for j in range(3):
             poses[shown, k, j] = np.interp(times[shown], tr.times, tr.states[:, j])
     cells = setup.cells
-    if setup.control is None:
+    log = result.cell_log
+    if log is None and setup.control is None:
         speeds = np.einsum("ij,ikj->ik", setup.velocities, cells.drive_directions)
         wheel_speeds = np.broadcast_to(speeds, (len(times), cells.n, 2))
         lit = np.stack([setup.sensors.covered(setup.specs, np.nan_to_num(poses[f]),
                                               active=~np.isnan(poses[f, :, 0])) for f in range(len(times))])
         return FrameData(times, wheel_speeds, lit, None, poses, window)
-    log = result.cell_log
     if log is None:
         raise ValueError("a networked run is animated from its cell log: run it with [sensors] record = true")
     tick = np.clip(np.searchsorted(log.t, times, side="right") - 1, 0, len(log.t) - 1)
-    period = setup.control.period
+    period = setup.control.period if setup.control is not None else \
+        float(np.median(np.diff(log.t))) if len(log.t) > 1 else window
     ticks = max(1, int(round(window / period)))
     csum = np.concatenate([np.zeros((1, cells.n)), np.cumsum(log.received, axis=0)])
     lo = np.maximum(tick + 1 - ticks, 0)
@@ -103,11 +104,12 @@ def frame_data(result: RunResult, times, window: float = 0.5) -> FrameData:
 
 def animate(result: RunResult, path: str | Path, *, fps: float = 20.0, speed: float = 1.0,
             start: float | None = None, end: float | None = None, window: float = 0.5, dpi: int = 100,
-            progress: Callable[[float], None] | None = None) -> Path:
+            targets=None, progress: Callable[[float], None] | None = None) -> Path:
     """Write an animation of ``result`` to ``path`` (.mp4 or .gif) and return the path written: the .gif beside it
     when an MP4 was asked for and no ffmpeg is found (with a warning). ``fps`` frames per second of video,
     ``speed`` simulated seconds per second of video, ``start``/``end`` the simulated span (s, default the whole
-    run), ``window`` (s) the traffic averaging span; ``progress`` is called with the fraction of frames drawn.
+    run), ``window`` (s) the traffic averaging span, ``targets`` (P, 3) target poses to outline (default: those of
+    a pose-control scenario); ``progress`` is called with the fraction of frames drawn.
     The file appears whole or not at all."""
     path = Path(path)
     if path.suffix.lower() not in SUFFIXES:
@@ -133,7 +135,7 @@ def animate(result: RunResult, path: str | Path, *, fps: float = 20.0, speed: fl
             writer = FFMpegWriter(fps=fps, codec="libx264", extra_args=["-pix_fmt", "yuv420p"])
     if writer is None:
         writer = PillowWriter(fps=fps)
-    fig, update = _scene(result, data)
+    fig, update = _scene(result, data, targets)
     anim = FuncAnimation(fig, update, frames=len(data.times), blit=False)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
@@ -149,8 +151,8 @@ def animate(result: RunResult, path: str | Path, *, fps: float = 20.0, speed: fl
     return path
 
 
-def _scene(result: RunResult, data: FrameData):
-    """The figure and the function that draws frame ``f`` of ``data`` into it."""
+def _scene(result: RunResult, data: FrameData, targets=None):
+    """The figure and the function that draws frame ``f`` of ``data`` into it (``targets``: see :func:`animate`)."""
     setup = result.setup
     sc = setup.scenario
     cells = setup.cells
@@ -211,10 +213,11 @@ def _scene(result: RunResult, data: FrameData):
     # parcels
     names = [pr.spec.name for pr in result.parcels]
     dests = [p.destination for p in sc.parcels] if sc.control is not None and sc.control.program == "sort" else None
-    targets = sc.control.targets if sc.control is not None and sc.control.program == "pose" else None
+    if targets is None and sc.control is not None and sc.control.program == "pose":
+        targets = sc.control.targets
     colours = [_DEST_COLOURS[(d or 0) % len(_DEST_COLOURS)] for d in dests] if dests else \
         [_DEST_COLOURS[k % len(_DEST_COLOURS)] for k in range(len(names))]
-    if targets:
+    if targets is not None:
         for k, tgt in enumerate(targets):
             goal = result.parcels[k].spec.world_polygon(tgt)
             ax.add_patch(PolygonPatch(np.asarray(goal.exterior.coords), closed=True, fill=False, ls=":", ec=colours[k],
@@ -235,7 +238,7 @@ def _scene(result: RunResult, data: FrameData):
     if dests:
         legend += [Line2D([], [], ls="none", marker="s", color=_DEST_COLOURS[d % len(_DEST_COLOURS)], alpha=0.5,
                           label=f"parcel→exit {d}") for d in sorted({d for d in dests if d is not None})]
-    if targets:
+    if targets is not None:
         legend.append(Line2D([], [], ls=":", color="0.2", label="target pose"))
     ax.legend(handles=legend, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=min(3, len(legend)), fontsize=8,
               frameon=False)
