@@ -162,7 +162,7 @@ def _report(result, out_dir: Path, plot: bool, text: str | None, formats: tuple[
         lat = "n/a" if net["latency_mean_s"] is None else f"{net['latency_mean_s'] * 1e3:.1f} ms"
         out.print(f"  network ({net['delivery']}): {net['sentences_sent']} sentences sent, {net['sentences_received']} "
                   f"received, mean latency {lat}, {net['dropped']} dropped, {net['corrupted']} corrupted")
-    out.print(f"results written to {out_dir}/: " + ", ".join(sorted(p.name for p in paths.values())))
+    out.print(f"results written to {out_dir}/: " + ", ".join(sorted({p.name for p in paths.values()})))
 
 
 @app.command(name="animate")

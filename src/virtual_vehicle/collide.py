@@ -320,6 +320,7 @@ class Rows:
         return len(self.a) - 1
 
     def box(self, body: int, J, target: float, bound: float, warm: float = 0.0) -> int:
+        """Axis-aligned bounding box of the rows' outlines, (xmin, ymin, xmax, ymax) in m."""
         return self._add(body, J, -1, None, target, -bound, bound, -1, 0.0, warm)
 
     def contact(self, ia: int, ib: int, c: Contact, ca, cb, h: float, params: ContactParams,

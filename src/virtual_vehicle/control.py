@@ -35,10 +35,14 @@ class Shuttle:
         self.trigger_sensors = tuple(int(k) for k in trigger_sensors)
 
     def init(self, n, ports, config):
+        """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each (see
+        :class:`~virtual_vehicle.network.programs.CellProgram`)."""
         return {"seq": np.zeros(n, dtype=np.int64), "direction": np.ones(n, dtype=np.int64),
                 "hops": np.zeros(n, dtype=np.int64), "tick": np.zeros(n, dtype=np.int64)}
 
     def step(self, state, inputs: CellInputs):
+        """One control tick for every cell at once: new state, the sentences to send, and the (n, 2) wheel speeds (m/s
+        along each drive direction); see :class:`~virtual_vehicle.network.programs.CellProgram`."""
         inbox = inputs.inbox
         n, P = inbox.present.shape
         seq, direction, hops, adopted = flood_update(
@@ -69,9 +73,13 @@ class FollowField:
         self.wheel_speeds = np.asarray(wheel_speeds, dtype=float)
 
     def init(self, n, ports, config):
+        """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each (see
+        :class:`~virtual_vehicle.network.programs.CellProgram`)."""
         return {}
 
     def step(self, state, inputs: CellInputs):
+        """One control tick for every cell at once: new state, the sentences to send, and the (n, 2) wheel speeds (m/s
+        along each drive direction); see :class:`~virtual_vehicle.network.programs.CellProgram`."""
         n, P = inputs.connected.shape
         return state, Mailbox.empty(self.schema, n, P), self.wheel_speeds.copy()
 
@@ -119,10 +127,14 @@ class PoseControl:
         self.pass_radius = float(pass_radius)
 
     def init(self, n, ports, config):
+        """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each (see
+        :class:`~virtual_vehicle.network.programs.CellProgram`)."""
         return {"estimates": [s.copy() for s in self.starts], "twists": [np.zeros(3) for _ in self.specs],
                 "wrong": [0] * len(self.specs), "leg": [0] * len(self.specs)}
 
     def step(self, state, inputs: CellInputs):
+        """One control tick for every cell at once: new state, the sentences to send, and the (n, 2) wheel speeds (m/s
+        along each drive direction); see :class:`~virtual_vehicle.network.programs.CellProgram`."""
         from .design import twist_design
         from .estimate import estimate_pose
 
@@ -219,11 +231,15 @@ class Diffusion:
         self.max_age = int(max_age)
 
     def init(self, n, ports, config):
+        """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each (see
+        :class:`~virtual_vehicle.network.programs.CellProgram`)."""
         v = np.asarray(config.get("speed", np.zeros((n, 2))), dtype=float).reshape(n, 2).copy()
         return {"v": v, "heard": np.zeros((n, ports, 2)),
                 "age": np.full((n, ports), np.iinfo(np.int32).max, dtype=np.int64), "sent": False}
 
     def step(self, state, inputs: CellInputs):
+        """One control tick for every cell at once: new state, the sentences to send, and the (n, 2) wheel speeds (m/s
+        along each drive direction); see :class:`~virtual_vehicle.network.programs.CellProgram`."""
         inbox = inputs.inbox
         n, P = inbox.present.shape
         got = np.stack([inbox.values["v0"], inbox.values["v1"]], axis=-1).astype(float)

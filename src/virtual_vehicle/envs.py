@@ -149,9 +149,11 @@ class Episode:
 
     @property
     def truncated(self) -> bool:
+        """True once ``max_steps`` decisions have been taken."""
         return self.k >= self.max_steps
 
     def info(self) -> dict:
+        """The step's info dict: ``t`` (s), ``error_m`` and ``error_rad`` per parcel, ``success``, ``on_array``."""
         pos, ang = self.errors()
         return {"t": self.t, "error_m": pos, "error_rad": ang, "success": self.success,
                 "on_array": np.array(self.active)}

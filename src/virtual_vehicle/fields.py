@@ -22,6 +22,7 @@ class Uniform:
     velocity: tuple[float, float]
 
     def velocities(self, cells: CellArray) -> np.ndarray:
+        """(n, 2) surface velocity of every cell of ``cells`` under this field, m/s (world frame)."""
         return np.tile(np.asarray(self.velocity, dtype=float), (cells.n, 1))
 
 
@@ -35,6 +36,7 @@ class Inward:
     speed: float
 
     def velocities(self, cells: CellArray) -> np.ndarray:
+        """(n, 2) surface velocity of every cell of ``cells`` under this field, m/s (world frame)."""
         return self.speed * np.sign(np.asarray(self.center, dtype=float) - cells.positions)
 
 
@@ -47,6 +49,7 @@ class ReversedEnd:
     velocity: tuple[float, float]
 
     def velocities(self, cells: CellArray) -> np.ndarray:
+        """(n, 2) surface velocity of every cell of ``cells`` under this field, m/s (world frame)."""
         v = np.asarray(self.velocity, dtype=float)
         speed = float(np.linalg.norm(v))
         if speed == 0:
@@ -65,6 +68,7 @@ class PerCell:
     values: tuple[tuple[float, float], ...]
 
     def velocities(self, cells: CellArray) -> np.ndarray:
+        """(n, 2) surface velocity of every cell of ``cells`` under this field, m/s (world frame)."""
         v = np.asarray(self.values, dtype=float)
         if v.shape != (cells.n, 2):
             raise ScenarioError("field.velocities", f"needs one [vx, vy] per cell: {cells.n} rows, got shape {v.shape}")
@@ -81,6 +85,7 @@ class Radial:
     speed: float
 
     def velocities(self, cells: CellArray) -> np.ndarray:
+        """(n, 2) surface velocity of every cell of ``cells`` under this field, m/s (world frame)."""
         d = np.asarray(self.center, dtype=float) - cells.positions
         r = np.hypot(d[:, 0], d[:, 1])
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -99,6 +104,7 @@ class Squeeze:
     along: float = 0.0
 
     def velocities(self, cells: CellArray) -> np.ndarray:
+        """(n, 2) surface velocity of every cell of ``cells`` under this field, m/s (world frame)."""
         d = np.asarray(self.direction, dtype=float)
         norm = float(np.hypot(*d))
         if norm == 0:
@@ -118,6 +124,7 @@ class Rotation:
     omega: float
 
     def velocities(self, cells: CellArray) -> np.ndarray:
+        """(n, 2) surface velocity of every cell of ``cells`` under this field, m/s (world frame)."""
         r = cells.positions - np.asarray(self.center, dtype=float)
         return self.omega * np.column_stack([-r[:, 1], r[:, 0]])
 
@@ -132,6 +139,7 @@ class Twist:
     twist: tuple[float, float, float]
 
     def velocities(self, cells: CellArray) -> np.ndarray:
+        """(n, 2) surface velocity of every cell of ``cells`` under this field, m/s (world frame)."""
         vx, vy, w = (float(v) for v in self.twist)
         r = cells.positions - np.asarray(self.center, dtype=float)
         return np.column_stack([vx - w * r[:, 1], vy + w * r[:, 0]])
@@ -147,6 +155,7 @@ class Regions:
     default: object = None
 
     def velocities(self, cells: CellArray) -> np.ndarray:
+        """(n, 2) surface velocity of every cell of ``cells`` under this field, m/s (world frame)."""
         import shapely
 
         out = np.zeros((cells.n, 2)) if self.default is None else self.default.velocities(cells)

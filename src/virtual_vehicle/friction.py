@@ -144,12 +144,18 @@ class FrictionLaw(Protocol):
 
     name: str
 
-    def drive_vectors(self, velocities: np.ndarray, drive_directions: np.ndarray) -> np.ndarray: ...
+    def drive_vectors(self, velocities: np.ndarray, drive_directions: np.ndarray) -> np.ndarray:
+        """(n, 2) the per-cell drive vector the law's constants are built from (eq. 21 for Coulomb, the V_i of eq. 30
+        for viscous), from cell velocities (n, 2) m/s and drive directions (n, 2, 2)."""
 
     def constants(self, solution: SupportSolution, velocities: np.ndarray, drive_directions: np.ndarray,
-                  mu: float) -> FrictionConstants: ...
+                  mu: float) -> FrictionConstants:
+        """The per-support-set constants (eqs. 20-29 Coulomb, 30-38 viscous) of a solved support set: the parcel's
+        wrench is then affine in its state."""
 
-    def wrench(self, points, normal, velocities, drive_directions, mu: float, state) -> tuple[float, float, float]: ...
+    def wrench(self, points, normal, velocities, drive_directions, mu: float, state) -> tuple[float, float, float]:
+        """The net horizontal force (N, N) and torque (N m) on the parcel by direct summation over the cells at
+        ``points`` with normal forces ``normal`` (N); ``state`` = (x, y, theta, vx, vy, omega)."""
 
 
 def _cell_wrench(points, forces, com) -> tuple[float, float, float]:
@@ -175,6 +181,7 @@ class CoulombLaw:
         return np.einsum("ik,ikj->ij", s, U)
 
     def constants(self, solution, velocities, drive_directions, mu) -> FrictionConstants:
+        """Per-support-set constants (eqs. 20-29) from the drive vectors of eq. 21."""
         F = self.drive_vectors(velocities, drive_directions)
         return drive_constants(solution.points, F, solution.force_lin, solution.force_const, solution.weight, mu)
 
@@ -191,9 +198,12 @@ class ViscousLaw:
     name: str = "viscous"
 
     def drive_vectors(self, velocities, drive_directions) -> np.ndarray:
+        """Per-cell wheel velocity projected on the drive directions (the V_i of eq. 30), m/s:
+        ``sum_k (V_i . u_k) u_k``."""
         return np.asarray(velocities, dtype=float)
 
     def constants(self, solution, velocities, drive_directions, mu) -> FrictionConstants:
+        """Per-support-set constants (eqs. 30-38): the wrench is linear in the parcel's twist."""
         return drive_constants(solution.points, velocities, solution.force_lin, solution.force_const,
                                solution.weight, mu, damping=mu)
 
@@ -219,9 +229,11 @@ class StickSlipLaw:
     tolerance: float = 1e-12
 
     def drive_vectors(self, velocities, drive_directions) -> np.ndarray:
+        """Per-cell wheel velocity projected on the drive directions, m/s (the slip velocities are formed from it)."""
         return CoulombLaw().drive_vectors(velocities, drive_directions)
 
     def constants(self, solution, velocities, drive_directions, mu) -> FrictionConstants:
+        """Per-support-set geometry (the law's wrench is solved per step, not affine in the state)."""
         return CoulombLaw().constants(solution, velocities, drive_directions, mu)
 
     def wrench(self, points, normal, velocities, drive_directions, mu, state):

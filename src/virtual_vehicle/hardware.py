@@ -179,6 +179,9 @@ class WheelDrives:
         self.voltage = np.zeros((n, 2))
 
     def step(self, command: np.ndarray, load: np.ndarray, period: float) -> np.ndarray:
+        """Apply speed ``command`` (n, 2, m/s) for ``period`` s against the friction ``load`` (n, 2, N) through the PI
+        loop and motor model; returns the wheels' mean surface speed over the period (m/s) and updates the encoder
+        reading."""
         p = self.p
         error = command - self.measured
         unsat = p.kp * error + p.ki * (self.integral + error * period)

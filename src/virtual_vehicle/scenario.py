@@ -60,14 +60,16 @@ class GridArray(_Lattice):
 
 
 class RowArray(_Lattice):
-    """A single row of ``n`` cells along +x (the paper's 1-D array), spaced and oriented as a grid."""
+    """A single row of ``n`` cells along +x (the paper's 1-D array), spaced and oriented as a grid: ``pitch`` (m),
+    ``origin`` (m), ``drive_angle`` (rad), ``wheels`` and ``wheel_offsets`` (m) as for :class:`GridArray`."""
 
     kind: Literal["row"]
     n: Annotated[int, Field(ge=1, le=1_000_000)]
 
 
 class PointsArray(_Wheels):
-    """Cells at explicit ``points`` (m); ``pitch`` (m) defaults to the median nearest-neighbour distance."""
+    """Cells at explicit ``points`` (m); ``pitch`` (m) defaults to the median nearest-neighbour distance;
+    ``drive_angle`` (rad), ``wheels`` and ``wheel_offsets`` (m) as for :class:`GridArray`."""
 
     kind: Literal["points"]
     points: Annotated[list[Point], Field(min_length=1)]
@@ -98,7 +100,7 @@ class ReversedEndField(_Strict):
 
 
 class PerCellField(_Strict):
-    """Explicit velocities (m/s), one [vx, vy] per cell in the array's order."""
+    """Explicit ``velocities`` (m/s), one [vx, vy] per cell in the array's order."""
 
     kind: Literal["per_cell"]
     velocities: list[Vel]
@@ -197,6 +199,7 @@ class ContactSpec(_Strict):
     min_window: Annotated[float, Field(gt=0, le=100)] = 0.02
 
     def params(self):
+        """These settings as the plant's :class:`~virtual_vehicle.collide.ContactParams`."""
         from .collide import ContactParams
 
         return ContactParams(mu=self.mu, margin=self.margin, slop=self.slop, window=self.window,
@@ -295,7 +298,13 @@ class WheelSpec(_Strict):
     """How the wheels follow their commands: ``model = "ideal"`` (actual speed = commanded) or ``"motor"`` (a DC
     gearmotor per wheel with PWM limit, encoder and PI loop; see :class:`~virtual_vehicle.hardware.MotorParams` for
     the parameters below, SI units). With a constant ``[field]``, motors are commanded every ``period`` (s); with
-    ``[control]`` its period is used."""
+    ``[control]`` its period is used.
+
+    Motor parameters: ``supply_voltage`` (V, the H-bridge's limit); ``resistance`` (ohm), ``torque_constant``
+    (N m/A, also the back-EMF constant in V s/rad), ``rotor_inertia`` (kg m^2) and ``viscous_damping`` (N m s/rad)
+    on the motor side; ``gear_ratio`` (motor turns per wheel turn); ``wheel_radius`` (m) and ``wheel_inertia``
+    (kg m^2) on the wheel side; ``encoder_counts`` per motor revolution; ``kp`` (V per m/s) and ``ki`` (V per m) of
+    the PI loop on surface speed."""
 
     model: Literal["ideal", "motor"] = "ideal"
     period: Annotated[float, Field(gt=0, le=10)] = 0.01
@@ -312,13 +321,14 @@ class WheelSpec(_Strict):
     ki: Annotated[float, Field(ge=0)] = 1500.0
 
     def motor(self):
+        """These settings as :class:`~virtual_vehicle.hardware.MotorParams` (SI units)."""
         from .hardware import MotorParams
 
         return MotorParams(**self.model_dump(exclude={"model", "period"}))
 
 
 class ParcelEntry(_Strict):
-    """A parcel: either a rectangle, ``length`` along its body x and ``width`` (m), or any simple outline
+    """A parcel, called ``name`` (unique in the scenario): either a rectangle, ``length`` along its body x and ``width`` (m), or any simple outline
     ``vertices`` ([[x, y], ...] m, convex or not) with optional centre of mass ``com`` (m, same frame; default the
     centroid); ``mass`` (kg), ``mu`` (friction
     coefficient, see :class:`FrictionSpec`), optional ``mu_static`` (stick-slip), optional ``inertia`` (kg m^2,
@@ -360,8 +370,11 @@ class ParcelEntry(_Strict):
 class Scenario(_Strict):
     """A whole run: the array, the wheel-velocity field, the friction law, the parcels and how long to simulate.
 
-    ``duration`` (s) is the simulated time; ``output_dt`` (s) the spacing of trajectory samples (default
-    duration/500); ``gravity`` in m/s^2.
+    ``name`` and ``description`` label it (the name names its results); ``duration`` (s) is the simulated time;
+    ``output_dt`` (s) the spacing of trajectory samples (default duration/500); ``gravity`` in m/s^2. The tables:
+    ``array`` (the cells), either ``field`` (constant wheel velocities) or ``control`` (the cells run a program
+    over a network), ``friction``, ``integrator``, ``contacts`` (parcel against parcel), ``sensors``, ``wheels``
+    (ideal or motor-driven) and one ``parcels`` entry per parcel.
     """
 
     name: Annotated[str, Field(min_length=1)] = "scenario"

@@ -246,9 +246,11 @@ class FieldRun(_Job):
 
     @property
     def done(self) -> bool:
+        """True once the plant has reached the scenario's duration."""
         return self.t >= self.setup.scenario.duration
 
     def step(self, every, progress) -> bool:
+        """Advance to the next checkpoint (or the end); True when a checkpoint is due."""
         t_end = self.setup.scenario.duration
         t0 = self.t
         t1 = t_end if every is None or t0 + every >= t_end - 1e-9 * every else t0 + every
@@ -265,6 +267,7 @@ class FieldRun(_Job):
         return True
 
     def result(self) -> RunResult:
+        """Join the pieces into the run's :class:`RunResult` (samples on the output grid, and each parcel's last)."""
         setup = self.setup
         results = []
         for spec, part in zip(setup.specs, self.parts):
@@ -300,6 +303,7 @@ class LatencyStats:
         self.counts = np.zeros(512, dtype=np.int64)
 
     def add(self, latencies: np.ndarray) -> None:
+        """Count more sentence latencies (s)."""
         if not len(latencies):
             return
         self.count += len(latencies)
@@ -311,6 +315,7 @@ class LatencyStats:
 
     @property
     def mean(self) -> float | None:
+        """Mean latency, s (None before any)."""
         return self.total / self.count if self.count else None
 
     def percentile(self, q: float) -> float | None:
@@ -342,6 +347,7 @@ class NetworkRecord:
     latency: LatencyStats
 
     def totals(self) -> dict:
+        """Run totals for the summary: sentences, bytes, faults, latency statistics (s)."""
         lat = self.latency
         return {
             "delivery": self.delivery,
@@ -472,9 +478,11 @@ class NetworkRun(_Job):
 
     @property
     def done(self) -> bool:
+        """True once every control tick has run."""
         return self.k >= self.ticks
 
     def step(self, every, progress) -> bool:
+        """One control tick; True when a checkpoint is due."""
         self.tick()
         if progress is not None:
             progress(self.k / self.ticks)
@@ -553,6 +561,7 @@ class NetworkRun(_Job):
             self.on = sorted([*self.on, i])
 
     def result(self) -> RunResult:
+        """The run's :class:`RunResult`: trajectories, network record and (when recorded) the cell log."""
         setup, ctl = self.setup, self.setup.control
         results = []
         for i, (spec, track, y, t) in enumerate(zip(setup.specs, self.tracks, self.ys, self.arrive)):

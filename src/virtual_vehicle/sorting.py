@@ -99,6 +99,8 @@ class Sorter:
         self.period = float(period)
 
     def init(self, n, ports, config):
+        """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each (see
+        :class:`~virtual_vehicle.network.programs.CellProgram`)."""
         if ports != 4:
             raise ValueError("the sorter runs on square lattices (four ports a cell)")
         P = ports
@@ -112,6 +114,8 @@ class Sorter:
                 "ack": np.zeros(n, dtype=np.int64)}
 
     def step(self, state, inputs: CellInputs):
+        """One control tick for every cell at once: new state, the sentences to send, and the (n, 2) wheel speeds (m/s
+        along each drive direction); see :class:`~virtual_vehicle.network.programs.CellProgram`."""
         inbox = inputs.inbox
         n, P = inbox.present.shape
         cfg = inputs.config
@@ -287,6 +291,8 @@ class CentralSorter:
         self.period = float(period)
 
     def init(self, n, ports, config):
+        """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each (see
+        :class:`~virtual_vehicle.network.programs.CellProgram`)."""
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import dijkstra
 
@@ -305,6 +311,8 @@ class CentralSorter:
         return {"dist": dist, "vehicles": {}, "owner": np.full(n, _NONE, dtype=np.int64)}
 
     def step(self, state, inputs: CellInputs):
+        """One control tick for every cell at once: new state, the sentences to send, and the (n, 2) wheel speeds (m/s
+        along each drive direction); see :class:`~virtual_vehicle.network.programs.CellProgram`."""
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import connected_components
 

@@ -45,7 +45,9 @@ class TickStats:
 class Delivery(Protocol):
     topology: Topology
 
-    def exchange(self, outbox: Mailbox, t: float, period: float) -> tuple[Mailbox, TickStats]: ...
+    def exchange(self, outbox: Mailbox, t: float, period: float) -> tuple[Mailbox, TickStats]:
+        """Carry the sentences of ``outbox`` (sent at ``t``, s) over the links for one tick of ``period`` s; returns the
+        inbox the cells read at the next tick and the tick's traffic statistics."""
 
 
 class IdealRounds:
@@ -62,6 +64,8 @@ class IdealRounds:
         self.rng = np.random.default_rng(seed)
 
     def exchange(self, outbox: Mailbox, t: float, period: float) -> tuple[Mailbox, TickStats]:
+        """Every sentence on a connected port arrives at the next tick (each dropped with ``loss_rate``); see
+        :class:`Delivery`."""
         topo = self.topology
         conn = topo.connected & topo.alive[:, None]
         src = np.where(conn, topo.neighbor, 0)

@@ -53,9 +53,14 @@ class CellInputs:
 class CellProgram(Protocol):
     schema: Schema
 
-    def init(self, n: int, ports: int, config: dict) -> dict: ...
+    def init(self, n: int, ports: int, config: dict) -> dict:
+        """Per-cell state for ``n`` cells with ``ports`` links each, as a dict of arrays with first axis n (``config``
+        is the scenario's [control.config] table)."""
 
-    def step(self, state: dict, inputs: CellInputs) -> tuple[dict, Mailbox, np.ndarray]: ...
+    def step(self, state: dict, inputs: CellInputs) -> tuple[dict, Mailbox, np.ndarray]:
+        """One control tick for all cells at once, each using only its own row of ``state`` and ``inputs`` (its sensors,
+        its inbox from its neighbours, its links): returns the new state, the outbox (a sentence per port) and the (n,
+        2) wheel speeds, m/s along each cell's drive directions."""
 
 
 # --------------------------------------------------------------------------- primitives (pure, vectorised)
@@ -116,6 +121,7 @@ class Routing:
         self.max_age = int(max_age)
 
     def init(self, n, ports, config):
+        """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each."""
         packets = np.asarray(config.get("packet", np.full(n, -1)), dtype=np.int64)
         return {"dist": np.full(n, UNREACHABLE, dtype=np.int64),
                 "heard": np.full((n, ports), UNREACHABLE, dtype=np.int64),
@@ -124,6 +130,8 @@ class Routing:
                 "delivered": [[] for _ in range(n)]}
 
     def step(self, state, inputs):
+        """One control tick for every cell at once: new state, the sentences to send, and the (n, 2) wheel speeds,
+        m/s."""
         inbox = inputs.inbox
         n, P = inbox.present.shape
         exits = np.asarray(inputs.config.get("exit", np.zeros(n, bool)), dtype=bool)
@@ -160,11 +168,14 @@ class Flood:
         self.limit = int(limit)
 
     def init(self, n, ports, config):
+        """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each."""
         origin = np.asarray(config.get("origin", np.zeros(n, bool)), dtype=bool)
         return {"seq": np.where(origin, 1, 0), "value": np.where(origin, np.asarray(config.get("value", 0)), 0),
                 "hops": np.zeros(n, dtype=np.int64), "fresh": origin.copy()}
 
     def step(self, state, inputs):
+        """One control tick for every cell at once: new state, the sentences to send, and the (n, 2) wheel speeds,
+        m/s."""
         inbox = inputs.inbox
         n, P = inbox.present.shape
         seq, value, hops, adopted = flood_update(state["seq"], state["value"], state["hops"], inbox.values["seq"],

@@ -34,10 +34,12 @@ class Topology:
 
     @property
     def n(self) -> int:
+        """Number of cells."""
         return self.neighbor.shape[0]
 
     @property
     def ports(self) -> int:
+        """Links (ports) per cell."""
         return self.neighbor.shape[1]
 
     @property

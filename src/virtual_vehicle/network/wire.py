@@ -99,6 +99,9 @@ class WireLevel:
 
     # ------------------------------------------------------------------ public
     def exchange(self, outbox: Mailbox, t: float, period: float) -> tuple[Mailbox, TickStats]:
+        """Serialise, frame and checksum every sentence at the link's baud rate and deliver what is complete by the
+        tick's end (corrupted frames are counted and dropped); see
+        :class:`~virtual_vehicle.network.delivery.Delivery`."""
         if t < self.now - 1e-12:
             raise ValueError("exchange times must not go backwards")
         topo = self.topology
