@@ -209,6 +209,33 @@ def animate_cmd(
     out.print(f"[bold]{sc.name}[/bold]: animation written to {written}{note}")
 
 
+@app.command()
+def sweep(
+    spec: Path = typer.Argument(..., help="Sweep file (TOML): base scenario, mode, and the fields to vary."),
+    out_dir: Path = typer.Option(Path("results/sweep"), "--out", "-o", help="Folder for runs/ and summary.parquet; "
+                                 "run again on the same folder to resume."),
+    scheduler: Optional[str] = typer.Option(None, help="Address of a running Dask scheduler (default: a local "
+                                            "cluster)."),
+    workers: int = typer.Option(2, min=1, max=4096, help="Worker processes of the local cluster."),
+) -> None:
+    """Run every variation of a base scenario on Dask and collect their summaries into one Parquet table; failed
+    runs are recorded with their error, and an interrupted sweep resumes without redoing finished runs."""
+    from .sweep import load_sweep, run_sweep
+
+    try:
+        sw, base = load_sweep(spec)
+        count = len(sw.variations())
+    except VirtualVehicleError as exc:
+        _fail(exc)
+    bar = _LazyProgress(f"sweeping {count} variations of {sw.base}", delay=0.0)
+    try:
+        res = run_sweep(sw, base, out_dir, scheduler=scheduler, workers=workers, progress=bar)
+    finally:
+        bar.close()
+    out.print(f"[bold]{sw.base}[/bold]: {res['runs']} runs ({res['ran']} run now, {res['skipped']} already done), "
+              f"{res['failed']} failed; summary in {res['summary']}")
+
+
 @app.command(name="equilibria")
 def equilibria_cmd(
     scenario: Optional[str] = typer.Argument(None, help="Scenario TOML file or bundled scenario name (with a "

@@ -140,7 +140,7 @@ def to_csv(table: pa.Table) -> str:
         elif pa.types.is_floating(field.type):
             values = ["" if v is None or v != v else repr(v) for v in values]
         elif pa.types.is_boolean(field.type):
-            values = [int(v) for v in values]
+            values = ["" if v is None else int(v) for v in values]
         else:
             values = ["" if v is None else v for v in values]
         cols.append(values)
