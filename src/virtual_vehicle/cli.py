@@ -236,6 +236,54 @@ def sweep(
               f"{res['failed']} failed; summary in {res['summary']}")
 
 
+@app.command(name="fault-study")
+def fault_study_cmd(
+    scenario: str = typer.Argument("sorting_junction", help="A sorting scenario (program \"sort\")."),
+    kind: str = typer.Option("dead_cell_rate", help="Which failure rate to vary: dead_cell_rate, stuck_wheel_rate, "
+                             "free_wheel_rate, dead_link_rate, stuck_sensor_rate."),
+    rates: str = typer.Option("0,0.02,0.05,0.1", help="Comma-separated failure rates (probability per item)."),
+    samples: int = typer.Option(5, min=1, max=100_000, help="Runs (fault seeds) per rate."),
+    duration: Optional[float] = typer.Option(None, help="Simulated seconds per run (default: the scenario's)."),
+    out_dir: Path = typer.Option(Path("results/fault_study"), "--out", "-o", help="Folder (resumable sweep)."),
+    scheduler: Optional[str] = typer.Option(None, help="Address of a running Dask scheduler."),
+    workers: int = typer.Option(2, min=1, max=4096, help="Worker processes of the local cluster."),
+) -> None:
+    """Monte-Carlo redundancy study: delivered fraction, delay and collisions against a failure rate, over random
+    fault draws; writes study.json, study.png and the sweep's summary.parquet."""
+    from rich.table import Table
+
+    from .sweep import fault_study
+    from .viz import plot_fault_study
+
+    try:
+        values = [float(x) for x in rates.split(",") if x.strip()]
+    except ValueError:
+        _fail(VirtualVehicleError(f"--rates: not a list of numbers: {rates!r}"))
+    bar = _LazyProgress(f"fault study of {scenario}", delay=0.0)
+    try:
+        rows = fault_study(scenario, kind, values, samples, out_dir, duration=duration, scheduler=scheduler,
+                           workers=workers, progress=bar)
+    except VirtualVehicleError as exc:
+        bar.close()
+        _fail(exc)
+    finally:
+        bar.close()
+    plot_fault_study(rows, kind, f"{scenario}: {samples} fault draws per rate", out_dir / "study.png")
+    table = Table(title=f"{scenario}: {kind}")
+    for head in ("rate", "delivered (mean ± std)", "delivery time (s)", "collisions", "misrouted", "lost", "failed"):
+        table.add_column(head)
+
+    def fmt(v, spec=".3g"):
+        return "n/a" if v is None else format(v, spec)
+
+    for r in rows:
+        table.add_row(fmt(r["rate"]), f"{fmt(r['delivered_fraction'])} ± {fmt(r['delivered_fraction_std'])}",
+                      fmt(r["delivery_time_mean_s"]), fmt(r["collisions"]), fmt(r["misrouted"]), fmt(r["lost"]),
+                      str(r["failed"]))
+    out.print(table)
+    out.print(f"written to {out_dir}/study.json, study.png and summary.parquet")
+
+
 @app.command(name="equilibria")
 def equilibria_cmd(
     scenario: Optional[str] = typer.Argument(None, help="Scenario TOML file or bundled scenario name (with a "

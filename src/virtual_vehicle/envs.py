@@ -114,6 +114,8 @@ class Episode:
         period; returns (reward, terminated). ``sent``/``received`` (n,) messages, for the cell log only."""
         setup = self.setup
         wheels = np.clip(np.asarray(wheels, dtype=float).reshape(self.n, 2), -self.vmax, self.vmax)
+        if setup.faults is not None:
+            wheels = setup.faults.hold(wheels)  # the scenario's stuck wheels and dead cells do not turn
         zero = np.zeros(self.n, dtype=np.int64)
         self.log.append((self.t, self.readings.astype(bool), wheels.copy(), wheels.copy(),
                          zero if sent is None else sent, zero if received is None else received))

@@ -6,6 +6,7 @@ path (see :func:`bundled_scenarios`). Errors are :class:`~virtual_vehicle.errors
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import tomllib
 from dataclasses import dataclass
@@ -327,6 +328,26 @@ class WheelSpec(_Strict):
         return MotorParams(**self.model_dump(exclude={"model", "period"}))
 
 
+class FaultSpec(_Strict):
+    """Broken hardware (:mod:`virtual_vehicle.faults`): listed ``dead_cells`` (cell ids: no drive, no sentences),
+    ``stuck_wheels`` and ``free_wheels`` ([cell id, wheel 0 or 1] pairs: held still / spinning freely, no traction
+    along its drive; free wheels need the coulomb or stick_slip law), and faults drawn at random, each item
+    independently with probability ``dead_cell_rate``, ``stuck_wheel_rate``, ``free_wheel_rate``,
+    ``dead_link_rate`` (per link) and ``stuck_sensor_rate`` (per sensor; stuck on or off with equal chance), from
+    ``seed``. Dead links can also be listed as ``[control] dead_links``; stuck sensors as ``[sensors] stuck_on`` /
+    ``stuck_off``."""
+
+    dead_cells: list[Annotated[int, Field(ge=0)]] = []
+    stuck_wheels: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=1)]]] = []
+    free_wheels: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=1)]]] = []
+    dead_cell_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
+    stuck_wheel_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
+    free_wheel_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
+    dead_link_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
+    stuck_sensor_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
+    seed: Annotated[int, Field(ge=0)] = 0
+
+
 class ParcelEntry(_Strict):
     """A parcel, called ``name`` (unique in the scenario): either a rectangle, ``length`` along its body x and ``width`` (m), or any simple outline
     ``vertices`` ([[x, y], ...] m, convex or not) with optional centre of mass ``com`` (m, same frame; default the
@@ -374,7 +395,7 @@ class Scenario(_Strict):
     ``output_dt`` (s) the spacing of trajectory samples (default duration/500); ``gravity`` in m/s^2. The tables:
     ``array`` (the cells), either ``field`` (constant wheel velocities) or ``control`` (the cells run a program
     over a network), ``friction``, ``integrator``, ``contacts`` (parcel against parcel), ``sensors``, ``wheels``
-    (ideal or motor-driven) and one ``parcels`` entry per parcel.
+    (ideal or motor-driven), ``faults`` (broken hardware) and one ``parcels`` entry per parcel.
     """
 
     name: Annotated[str, Field(min_length=1)] = "scenario"
@@ -390,6 +411,7 @@ class Scenario(_Strict):
     contacts: ContactSpec = ContactSpec()
     sensors: SensorSpec = SensorSpec()
     wheels: WheelSpec = WheelSpec()
+    faults: FaultSpec = FaultSpec()
     parcels: Annotated[list[ParcelEntry], Field(min_length=1)]
 
     @model_validator(mode="after")
@@ -412,8 +434,24 @@ class Scenario(_Strict):
     def build(self) -> "Setup":
         """Build the simulation objects and check the rules that need them (cells, parcels on the array, no
         overlaps). Raises ScenarioError naming the field."""
+        from .faults import resolve
+        from .network.topology import from_layout
+
         cells = _build_array(self.array)
         velocities = np.zeros((cells.n, 2)) if self.field is None else _build_field(self.field).velocities(cells)
+        sensors = _build_sensors(self.sensors, cells)
+        listed_links = self.control.dead_links if self.control is not None else ()
+        for k, (cell, port) in enumerate(listed_links):
+            if cell >= cells.n:
+                raise ScenarioError(f"control.dead_links[{k}]", f"cell {cell} does not exist (the array has {cells.n})")
+        faults = resolve(self.faults, cells, sensors.count, from_layout(cells).neighbor, listed_links)
+        if faults.free_wheels.any() and self.friction.law == "viscous":
+            raise ScenarioError("faults", "free-spinning wheels need the coulomb or stick_slip law (the paper's "
+                                "viscous law acts on a cell's whole slip vector)")
+        velocities = faults.hold_velocities(velocities, cells.drive_directions)
+        if faults.stuck_on.any() or faults.stuck_off.any():
+            sensors = dataclasses.replace(sensors, stuck_on=sensors.stuck_on | faults.stuck_on,
+                                          stuck_off=sensors.stuck_off | faults.stuck_off)
         contacts = cells
         if self.array.wheels == "separate":
             if self.friction.law == "viscous":
@@ -423,6 +461,10 @@ class Scenario(_Strict):
                 raise ScenarioError("array.wheels", "separate wheels are supported with a constant [field] and ideal "
                                     "wheels only, for now")
             contacts = layout.separate_wheels(cells, self.array.wheel_offsets)
+        if faults.free_wheels.any():  # a free wheel gives no traction: its contact loses that drive direction
+            free = faults.free_wheels[contacts.cell_of]
+            contacts = layout.CellArray(contacts.positions, contacts.drive_directions, contacts.pitch, contacts.shape,
+                                        contacts.wheel_active & ~free, contacts.cell_of)
         specs, states = [], []
         for i, p in enumerate(self.parcels):
             where = f"parcels[{i}]"
@@ -445,7 +487,6 @@ class Scenario(_Strict):
                 if shapely.intersection(polys[i], polys[j]).area > 1e-12:
                     raise ScenarioError(f"parcels[{j}]", f"parcel {self.parcels[j].name!r} overlaps parcel "
                                         f"{self.parcels[i].name!r} at the start; move one of them")
-        sensors = _build_sensors(self.sensors, cells)
         if self.control is not None and self.control.targets is not None and len(self.control.targets) != len(specs):
             raise ScenarioError("control.targets", f"needs one target per parcel: {len(specs)}, got "
                                 f"{len(self.control.targets)}")
@@ -456,10 +497,12 @@ class Scenario(_Strict):
                     and p.destination >= len(self.control.exits):
                 raise ScenarioError(f"parcels[{i}].destination", f"exit {p.destination} does not exist (the "
                                     f"scenario has {len(self.control.exits)} exits, 0..{len(self.control.exits) - 1})")
-        control = None if self.control is None else _build_control(self.control, cells, sensors, specs, states)
+        control = None if self.control is None else _build_control(self.control, cells, sensors, specs, states,
+                                                                       faults)
         if control is None and self.wheels.model == "motor":
             control = _field_control(cells, velocities, self.wheels.period)
-        return Setup(self, cells, velocities, LAWS[self.friction.law], specs, states, control, sensors, contacts)
+        return Setup(self, cells, velocities, LAWS[self.friction.law], specs, states, control, sensors, contacts,
+                     faults)
 
 
 def _check_on_array(cells, spec, state, where, name):
@@ -547,16 +590,13 @@ class ControlSetup:
     config: dict
 
 
-def _build_control(c: ControlSpec, cells: layout.CellArray, sensors, specs, states) -> ControlSetup:
+def _build_control(c: ControlSpec, cells: layout.CellArray, sensors, specs, states, faults) -> ControlSetup:
     from .control import PoseControl, Shuttle
     from .network.delivery import IdealRounds
     from .network.topology import from_layout
     from .network.wire import WireLevel, WireParams
 
-    for k, (cell, port) in enumerate(c.dead_links):
-        if cell >= cells.n:
-            raise ScenarioError(f"control.dead_links[{k}]", f"cell {cell} does not exist (the array has {cells.n})")
-    topo = from_layout(cells).with_faults(dead_links=c.dead_links)
+    topo = from_layout(cells).with_faults(dead_cells=np.flatnonzero(faults.dead_cells), dead_links=faults.dead_links)
     if c.delivery == "ideal":  # partials, not closures: a checkpoint of a run pickles them
         make_delivery = functools.partial(IdealRounds, topo, loss_rate=c.loss_rate, seed=c.seed)
     else:
@@ -640,6 +680,7 @@ class Setup:
     control: ControlSetup | None = None
     sensors: object = None
     contacts: layout.CellArray | None = None
+    faults: object = None
 
     def plant(self):
         """A fresh :class:`~virtual_vehicle.plant.Plant` for this scenario's parcels on its contact layer."""

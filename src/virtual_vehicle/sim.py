@@ -128,6 +128,9 @@ class RunResult:
             for entry, row in zip(parcels, report.pop("parcels")):
                 entry.update({k: v for k, v in row.items() if k != "name"})
             extra["sorting"] = report
+        faults = self.setup.faults
+        if faults is not None and faults.any():
+            extra["faults"] = faults.summary()
         simulated = sum(pr.trajectory.t_end for pr in self.parcels)
         return {
             "scenario": sc.name,
@@ -510,6 +513,8 @@ class NetworkRun(_Job):
         else:
             load = wheel_loads(setup, self.plant.base, ys, active, self.drives.speed)
             wheels = self.drives.step(command, load, period)
+        if setup.faults is not None:
+            wheels = setup.faults.hold(wheels)  # stuck wheels (and those of dead cells) stay still
         dirs = cells.drive_directions
         velocities = wheels[:, 0:1] * dirs[:, 0] + wheels[:, 1:2] * dirs[:, 1]
         self.inbox, stats = self.delivery.exchange(outbox, t0, period)

@@ -238,6 +238,39 @@ def plot_force_field(cells, spec, velocities, law, heading: float, eqs=(), path:
     return _finish(fig, path)
 
 
+def plot_fault_study(rows: list[dict], kind: str, title: str, path: str | Path | None = None):
+    """A fault study (:func:`~virtual_vehicle.sweep.fault_study`): left, the fraction of parcels delivered to the
+    right exit (mean and one standard deviation over the fault seeds) against the failure rate; right, the mean
+    delivery time (s) and the mean collisions, misroutes and losses per run. Saves a PNG to ``path`` if given."""
+    rate = np.array([r["rate"] for r in rows])
+
+    def col(key):
+        return np.array([np.nan if r[key] is None else r[key] for r in rows], dtype=float)
+
+    fig, (ax, axt) = plt.subplots(1, 2, figsize=(11, 4.2), dpi=110)
+    frac, std = col("delivered_fraction"), col("delivered_fraction_std")
+    ax.errorbar(rate, frac, yerr=std, marker="o", capsize=4, color="tab:blue")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_xlabel(f"{kind.replace('_', ' ')} (probability per item)")
+    ax.set_ylabel("fraction delivered to the right exit")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    axt.plot(rate, col("delivery_time_mean_s"), "o-", color="tab:green", label="mean delivery time (s)")
+    axt.set_xlabel(ax.get_xlabel())
+    axt.set_ylabel("delivery time (s)")
+    axc = axt.twinx()
+    for key, colour in (("collisions", "tab:red"), ("misrouted", "tab:orange"), ("lost", "tab:purple")):
+        axc.plot(rate, col(key), "s--", color=colour, ms=4, label=f"{key} per run")
+    axc.set_ylabel("per run (mean)")
+    axc.set_ylim(0.0, max(1.0, 1.1 * float(np.nanmax([col(k) for k in ("collisions", "misrouted", "lost")]))))
+    h1, l1 = axt.get_legend_handles_labels()
+    h2, l2 = axc.get_legend_handles_labels()
+    axt.legend(h1 + h2, l1 + l2, fontsize=8, loc="upper left")
+    axt.grid(alpha=0.3)
+    axt.set_title("delay and failures")
+    return _finish(fig, path)
+
+
 def _finish(fig, path):
     """Lay out, save as PNG (atomically) when ``path`` is given, release the figure's memory, return it."""
     fig.tight_layout()

@@ -1,0 +1,134 @@
+"""Broken hardware: faults listed or drawn at random do what they say, to the wheels, the contacts, the network and
+the parcels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from virtual_vehicle.errors import ScenarioError
+from virtual_vehicle.scenario import load_scenario
+from virtual_vehicle.sim import run
+
+
+def _with_faults(name: str, **faults):
+    sc, _ = load_scenario(name)
+    return sc.model_copy(update={"faults": sc.faults.model_copy(update=faults)})
+
+
+def test_listed_faults_hold_wheels_free_contacts_and_are_reported():
+    sc = _with_faults("crossing_30x30", dead_cells=[5], stuck_wheels=[[7, 0]], free_wheels=[[9, 1]])
+    sc = sc.model_copy(update={"friction": sc.friction.model_copy(update={"law": "coulomb"})})
+    setup = sc.build()
+    clean = load_scenario("crossing_30x30")[0].build()
+    U = setup.cells.drive_directions
+    assert np.all(setup.velocities[5] == 0) and np.any(clean.velocities[5] != 0)
+    assert setup.velocities[7] @ U[7, 0] == 0 and setup.velocities[7] @ U[7, 1] == clean.velocities[7] @ U[7, 1]
+    others = np.setdiff1d(np.arange(setup.cells.n), [5, 7])
+    np.testing.assert_array_equal(setup.velocities[others], clean.velocities[others])
+    assert setup.contact_layer.wheel_active[9].tolist() == [True, False]
+    assert setup.contact_layer.wheel_active.sum() == 2 * setup.cells.n - 1
+    faults = run(sc.model_copy(update={"duration": 0.1}).build()).summary()["faults"]
+    assert faults["dead_cells"] == [5] and faults["stuck_wheels"] == [[7, 0]] and faults["free_wheels"] == [[9, 1]]
+
+
+def test_random_faults_follow_their_rates_and_seed():
+    sc = _with_faults("crossing_30x30", dead_cell_rate=0.1, stuck_wheel_rate=0.05, dead_link_rate=0.2,
+                      stuck_sensor_rate=0.02, seed=3)
+    f = sc.build().faults
+    n = f.dead_cells.size  # 900 cells: binomial counts well inside 5 standard deviations
+    for count, trials, rate in ((f.dead_cells.sum(), n, 0.1), (f.stuck_wheels.sum(), 2 * n, 0.05),
+                                ((f.stuck_on | f.stuck_off).sum(), f.stuck_on.size, 0.02),
+                                (len(f.dead_links), 2 * 30 * 29, 0.2)):
+        assert abs(count - rate * trials) < 5 * np.sqrt(trials * rate * (1 - rate))
+    assert f.stuck_on.sum() > 0 and f.stuck_off.sum() > 0 and not (f.stuck_on & f.stuck_off).any()
+    again = sc.build().faults
+    assert np.array_equal(again.dead_cells, f.dead_cells) and again.dead_links == f.dead_links
+    other = sc.model_copy(update={"faults": sc.faults.model_copy(update={"seed": 4})}).build().faults
+    assert not np.array_equal(other.dead_cells, f.dead_cells)
+    assert not load_scenario("crossing_30x30")[0].build().faults.any()
+    sensors = sc.build().sensors
+    assert np.array_equal(sensors.stuck_on, f.stuck_on) and np.array_equal(sensors.stuck_off, f.stuck_off)
+
+
+@pytest.mark.parametrize("kind", [None, "free_wheels", "stuck_wheels"])
+def test_free_and_stuck_wheels_act_as_their_names_say(kind):
+    """Stick-slip law, rollers running at 0.3 m/s along x, a carton sliding along x at 0.1 m/s. Sound wheels take it
+    up to 0.3 m/s; free x-wheels give no friction along x, so it keeps 0.1 m/s (Newton's first law); held x-wheels
+    grip the other way and stop it."""
+    sc, _ = load_scenario("stick_slip_pickup")
+    parcels = [sc.parcels[0].model_copy(update={"vx": 0.1})]
+    n = sc.array.nx * sc.array.ny
+    faults = sc.faults if kind is None else sc.faults.model_copy(update={kind: [[c, 0] for c in range(n)]})
+    res = run(sc.model_copy(update={"duration": 0.3, "parcels": parcels, "faults": faults}).build())
+    vx = res.parcels[0].trajectory.states[-1, 3]
+    expected = {None: 0.3, "free_wheels": 0.1, "stuck_wheels": 0.0}[kind]
+    assert vx == pytest.approx(expected, abs=1e-6)
+
+
+def test_cells_route_parcels_around_a_dead_cell_that_stays_silent_and_still():
+    sc = _with_faults("sorting_junction", dead_cells=[5 * 24 + 12])  # mid-array, on the way east
+    sc = sc.model_copy(update={"duration": 20.0, "sensors": sc.sensors.model_copy(update={"record": True})})
+    res = run(sc.build())
+    so = res.summary()["sorting"]
+    assert so["misrouted"] == 0 and so["lost"] == 0 and so["collisions"] == 0 and so["correct"] >= 3
+    log = res.cell_log
+    dead = 5 * 24 + 12
+    import shapely
+
+    centre = shapely.Point(res.setup.cells.positions[dead])
+    for pr in res.parcels:  # diverted around it: no parcel ever rests over the dead cell's centre
+        assert not any(pr.spec.world_polygon(y).contains(centre) for y in pr.trajectory.states)
+    assert np.all(log.wheels[:, dead] == 0) and log.sent[:, dead].sum() == 0 and log.received[:, dead].sum() == 0
+    assert res.network.per_cell["cell_sent"][dead] == 0
+
+
+def test_bad_faults_are_named():
+    with pytest.raises(ScenarioError, match=r"faults\.dead_cells\[0\]"):
+        _with_faults("crossing_30x30", dead_cells=[900]).build()
+    with pytest.raises(ScenarioError, match="free-spinning wheels need"):
+        sc = _with_faults("paper_2x2_inward", free_wheels=[[0, 0]])
+        sc.model_copy(update={"friction": sc.friction.model_copy(update={"law": "viscous"})}).build()
+    with pytest.raises(ScenarioError, match="dead_link_rate"):
+        from virtual_vehicle.scenario import parse_text
+
+        parse_text(load_scenario("crossing_30x30")[1] + "\n[faults]\ndead_link_rate = 2.0\n")
+
+
+def test_the_fault_study_measures_delivery_against_failure_rate(tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from virtual_vehicle.cli import app
+
+    out = tmp_path / "study"
+    res = CliRunner().invoke(app, ["fault-study", "sorting_junction", "--rates", "0,0.3", "--samples", "2",
+                                   "--duration", "14", "--out", str(out), "--workers", "2"])
+    assert res.exit_code == 0, res.output
+    study = json.loads((out / "study.json").read_text())
+    clean, broken = study["rows"]
+    assert (clean["rate"], broken["rate"]) == (0.0, 0.3) and clean["runs"] == broken["runs"] == 2
+    sc, _ = load_scenario("sorting_junction")
+    direct = run(sc.model_copy(update={"duration": 14.0}).build()).summary()["sorting"]
+    due = sum(p.t_start <= 14.0 for p in sc.parcels)
+    assert clean["parcels_due"] == due < len(sc.parcels)
+    assert clean["delivered_fraction"] == pytest.approx(direct["correct"] / due)
+    assert clean["delivered_fraction_std"] == 0.0 and clean["delivered_fraction"] > 0
+    assert broken["delivered_fraction"] < clean["delivered_fraction"]  # 30% of the cells dead
+    assert (out / "study.png").stat().st_size > 10_000 and (out / "summary.parquet").is_file()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["sorting_junction", "--kind", "bad_rate"], "not a fault rate"),
+    (["prototype_18"], "sorting scenario"),
+    (["sorting_junction", "--rates", "0,x"], "--rates"),
+    (["sorting_junction", "--rates", "1.5"], "rates in [0, 1]"),
+])
+def test_bad_fault_studies_exit_2(tmp_path, args, message):
+    from typer.testing import CliRunner
+
+    from virtual_vehicle.cli import app
+
+    res = CliRunner().invoke(app, ["fault-study", *args, "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and message in res.output, res.output
