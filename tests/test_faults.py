@@ -132,3 +132,45 @@ def test_bad_fault_studies_exit_2(tmp_path, args, message):
 
     res = CliRunner().invoke(app, ["fault-study", *args, "--out", str(tmp_path / "o")])
     assert res.exit_code == 2 and message in res.output, res.output
+
+
+def _inject(sc, **event):
+    from virtual_vehicle.scenario import FaultEvent
+
+    return sc.model_copy(update={"faults": sc.faults.model_copy(update={"events": [FaultEvent(**event)]})})
+
+
+def test_a_cell_that_dies_mid_run_goes_silent_and_still_from_then_on(tmp_path):
+    sc, _ = load_scenario("sorting_junction")
+    dead = 5 * 24 + 12
+    sc = _inject(sc.model_copy(update={"duration": 20.0, "sensors": sc.sensors.model_copy(update={"record": True})}),
+                 t=6.0, dead_cells=[dead], stuck_on=[[0, 0]])
+    res = run(sc.build())
+    log = res.cell_log
+    before, after = log.t < 6.0 - 1e-9, log.t >= 6.0 - 1e-9
+    assert log.sent[before, dead].sum() > 0 and log.sent[after, dead].sum() == 0
+    assert log.received[after, dead].sum() == 0 and np.all(log.wheels[after, dead] == 0)
+    assert not log.readings[before, 0, 0].all() and log.readings[after, 0, 0].all()  # the stuck sensor
+    (event,) = res.summary()["faults_injected"]
+    assert event["t_s"] == 6.0 and event["dead_cells"] == [dead] and event["stuck_on_sensors"] == [[0, 0]]
+    so = res.summary()["sorting"]
+    assert so["misrouted"] == 0 and so["collisions"] == 0 and so["lost"] == 0 and so["correct"] >= 3
+    # the same run, checkpointed across the event and resumed, ends the same
+    from virtual_vehicle.sim import resume
+
+    whole = run(sc.build(), checkpoint=tmp_path / "c.ckpt", checkpoint_every=8.0)
+    again = resume(tmp_path / "c.ckpt")
+    for a, b in zip(whole.parcels, again.parcels):
+        assert np.array_equal(a.trajectory.states, b.trajectory.states)
+
+
+@pytest.mark.parametrize("name, event, message", [
+    ("sorting_junction", {"t": 50.0, "dead_cells": [1]}, "not before the end"),
+    ("sorting_junction", {"t": 1.0, "dead_cells": [9999]}, r"faults\.events\[0\]\.dead_cells\[0\]"),
+    ("sorting_junction", {"t": 1.0, "stuck_on": [[0, 7]]}, "no sensor 7"),
+    ("crossing_30x30", {"t": 1.0, "dead_cells": [1]}, "need \\[control\\]"),
+    ("prototype_18_network", {"t": 1.0, "dead_cells": [1]}, "ideal"),
+])
+def test_bad_fault_events_are_named(name, event, message):
+    with pytest.raises(ScenarioError, match=message):
+        _inject(load_scenario(name)[0], **event).build()

@@ -75,15 +75,13 @@ def resolve(spec, cells, sensors_per_cell: int, neighbor: np.ndarray, listed_lin
     rng = np.random.default_rng(spec.seed)
     dead = np.zeros(n, bool)
     for k, c in enumerate(spec.dead_cells):
-        if c >= n:
-            raise ScenarioError(f"faults.dead_cells[{k}]", f"cell {c} does not exist (the array has {n})")
+        _check_cell(c, n, f"faults.dead_cells[{k}]")
         dead[c] = True
     wheels = {}
     for name in ("stuck_wheels", "free_wheels"):
         mask = np.zeros((n, 2), bool)
         for k, (c, w) in enumerate(getattr(spec, name)):
-            if c >= n:
-                raise ScenarioError(f"faults.{name}[{k}]", f"cell {c} does not exist (the array has {n})")
+            _check_cell(c, n, f"faults.{name}[{k}]")
             mask[c, w] = True
         wheels[name] = mask
     dead |= rng.random(n) < spec.dead_cell_rate
@@ -99,3 +97,33 @@ def resolve(spec, cells, sensors_per_cell: int, neighbor: np.ndarray, listed_lin
     on = rng.random((n, S)) < 0.5
     return Faults(dead, wheels["stuck_wheels"], wheels["free_wheels"], tuple(sorted(links)), stuck & on,
                   stuck & ~on)
+
+
+def later(now: Faults, event, n: int, sensors_per_cell: int, where: str) -> Faults:
+    """The faults after ``event`` (:class:`~virtual_vehicle.scenario.FaultEvent`) adds its own to ``now`` (a
+    fault never heals). Raises ScenarioError, naming ``where``, for an item that does not exist."""
+    dead = now.dead_cells.copy()
+    stuck = now.stuck_wheels.copy()
+    on, off = now.stuck_on.copy(), now.stuck_off.copy()
+    for k, c in enumerate(event.dead_cells):
+        _check_cell(c, n, f"{where}.dead_cells[{k}]")
+        dead[c] = True
+    for k, (c, w) in enumerate(event.stuck_wheels):
+        _check_cell(c, n, f"{where}.stuck_wheels[{k}]")
+        stuck[c, w] = True
+    for name, mask in (("stuck_on", on), ("stuck_off", off)):
+        for k, (c, s) in enumerate(getattr(event, name)):
+            _check_cell(c, n, f"{where}.{name}[{k}]")
+            if s >= sensors_per_cell:
+                raise ScenarioError(f"{where}.{name}[{k}]", f"no sensor {s}: cells have {sensors_per_cell}")
+            mask[c, s] = True
+    links = set(now.dead_links)
+    for k, (c, port) in enumerate(event.dead_links):
+        _check_cell(c, n, f"{where}.dead_links[{k}]")
+        links.add((int(c), int(port)))
+    return Faults(dead, stuck, now.free_wheels, tuple(sorted(links)), on, off & ~on)
+
+
+def _check_cell(c: int, n: int, where: str) -> None:
+    if c >= n:
+        raise ScenarioError(where, f"cell {c} does not exist (the array has {n})")

@@ -328,6 +328,18 @@ class WheelSpec(_Strict):
         return MotorParams(**self.model_dump(exclude={"model", "period"}))
 
 
+class FaultEvent(_Strict):
+    """Faults that appear at time ``t`` (s) of a networked run and stay: ``dead_cells``, ``stuck_wheels``,
+    ``dead_links`` ([cell id, port]) and stuck sensors ``stuck_on`` / ``stuck_off`` ([cell id, sensor index])."""
+
+    t: Annotated[float, Field(gt=0, le=1e7)]
+    dead_cells: list[Annotated[int, Field(ge=0)]] = []
+    stuck_wheels: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=1)]]] = []
+    dead_links: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=3)]]] = []
+    stuck_on: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)]]] = []
+    stuck_off: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)]]] = []
+
+
 class FaultSpec(_Strict):
     """Broken hardware (:mod:`virtual_vehicle.faults`): listed ``dead_cells`` (cell ids: no drive, no sentences),
     ``stuck_wheels`` and ``free_wheels`` ([cell id, wheel 0 or 1] pairs: held still / spinning freely, no traction
@@ -335,7 +347,8 @@ class FaultSpec(_Strict):
     independently with probability ``dead_cell_rate``, ``stuck_wheel_rate``, ``free_wheel_rate``,
     ``dead_link_rate`` (per link) and ``stuck_sensor_rate`` (per sensor; stuck on or off with equal chance), from
     ``seed``. Dead links can also be listed as ``[control] dead_links``; stuck sensors as ``[sensors] stuck_on`` /
-    ``stuck_off``."""
+    ``stuck_off``. ``events`` ([[faults.events]] tables, :class:`FaultEvent`) inject faults at given times of a
+    networked run with ideal delivery."""
 
     dead_cells: list[Annotated[int, Field(ge=0)]] = []
     stuck_wheels: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=1)]]] = []
@@ -346,6 +359,7 @@ class FaultSpec(_Strict):
     dead_link_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
     stuck_sensor_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
     seed: Annotated[int, Field(ge=0)] = 0
+    events: list[FaultEvent] = []
 
 
 class ParcelEntry(_Strict):
@@ -434,7 +448,7 @@ class Scenario(_Strict):
     def build(self) -> "Setup":
         """Build the simulation objects and check the rules that need them (cells, parcels on the array, no
         overlaps). Raises ScenarioError naming the field."""
-        from .faults import resolve
+        from .faults import later, resolve
         from .network.topology import from_layout
 
         cells = _build_array(self.array)
@@ -449,6 +463,15 @@ class Scenario(_Strict):
             raise ScenarioError("faults", "free-spinning wheels need the coulomb or stick_slip law (the paper's "
                                 "viscous law acts on a cell's whole slip vector)")
         velocities = faults.hold_velocities(velocities, cells.drive_directions)
+        if self.faults.events:
+            if self.control is None or self.control.delivery != "ideal":
+                raise ScenarioError("faults.events", "faults injected during a run need [control] with delivery = "
+                                    "\"ideal\" (constant fields have no ticks to inject them at; the wire model's "
+                                    "links in flight are not cut mid-run yet)")
+            for k, ev in enumerate(self.faults.events):
+                if ev.t >= self.duration:
+                    raise ScenarioError(f"faults.events[{k}].t", f"{ev.t} s is not before the end of the run "
+                                        f"({self.duration} s)")
         if faults.stuck_on.any() or faults.stuck_off.any():
             sensors = dataclasses.replace(sensors, stuck_on=sensors.stuck_on | faults.stuck_on,
                                           stuck_off=sensors.stuck_off | faults.stuck_off)
@@ -501,8 +524,12 @@ class Scenario(_Strict):
                                                                        faults)
         if control is None and self.wheels.model == "motor":
             control = _field_control(cells, velocities, self.wheels.period)
+        events, now = [], faults
+        for k, ev in sorted(enumerate(self.faults.events), key=lambda e: e[1].t):
+            now = later(now, ev, cells.n, sensors.count, f"faults.events[{k}]")
+            events.append((ev.t, now))
         return Setup(self, cells, velocities, LAWS[self.friction.law], specs, states, control, sensors, contacts,
-                     faults)
+                     faults, events)
 
 
 def _check_on_array(cells, spec, state, where, name):
@@ -681,6 +708,8 @@ class Setup:
     sensors: object = None
     contacts: layout.CellArray | None = None
     faults: object = None
+    fault_events: list = dataclasses.field(default_factory=list)
+    """(t, :class:`~virtual_vehicle.faults.Faults` from then on) for each fault event, in time order."""
 
     def plant(self):
         """A fresh :class:`~virtual_vehicle.plant.Plant` for this scenario's parcels on its contact layer."""

@@ -478,6 +478,11 @@ class NetworkRun(_Job):
         self.per_cell = {f"cell_{k}": np.zeros(n, dtype=np.int64) for k in keys}
         self.latency = LatencyStats()
         self.cell_log: list = []
+        self.topology = ctl.topology  # these three change when faults are injected during the run
+        self.faults = setup.faults
+        self.sensors = setup.sensors
+        self.next_fault = 0
+        self.injected: list[dict] = []
 
     @property
     def done(self) -> bool:
@@ -494,14 +499,15 @@ class NetworkRun(_Job):
     def tick(self) -> None:
         """One control tick: sensors, program, network, wheels, plant."""
         setup, sc, ctl = self.setup, self.setup.scenario, self.setup.control
-        topo, cells = ctl.topology, setup.cells
         k, period = self.k, self.period
         t0 = k * period
         t1 = min(sc.duration, t0 + period)
+        self._inject(t0)
+        topo, cells = self.topology, setup.cells
         ys, active = self.ys, self.active
         self._admit(t0)
         on = self.on
-        sensors = setup.sensors.read([setup.specs[i] for i in on], [ys[i] for i in on], self.sensor_rng)
+        sensors = self.sensors.read([setup.specs[i] for i in on], [ys[i] for i in on], self.sensor_rng)
         labelled = any(self.destinations[i] is not None for i in on)
         labels = _labels(setup, [ys[i] for i in on], [setup.specs[i] for i in on],
                          [self.destinations[i] for i in on]) if labelled else None
@@ -513,8 +519,8 @@ class NetworkRun(_Job):
         else:
             load = wheel_loads(setup, self.plant.base, ys, active, self.drives.speed)
             wheels = self.drives.step(command, load, period)
-        if setup.faults is not None:
-            wheels = setup.faults.hold(wheels)  # stuck wheels (and those of dead cells) stay still
+        if self.faults is not None:
+            wheels = self.faults.hold(wheels)  # stuck wheels (and those of dead cells) stay still
         dirs = cells.drive_directions
         velocities = wheels[:, 0:1] * dirs[:, 0] + wheels[:, 1:2] * dirs[:, 1]
         self.inbox, stats = self.delivery.exchange(outbox, t0, period)
@@ -545,6 +551,24 @@ class NetworkRun(_Job):
                 self.on = [i for i in self.on if active[i]]
         self.k += 1
 
+    def _inject(self, t: float) -> None:
+        """Break what the scenario's fault events due by ``t`` (s) break: from this tick on, dead cells are silent
+        and still, stuck wheels held, dead links cut, stuck sensors stuck."""
+        from .network.topology import from_layout
+
+        events = self.setup.fault_events
+        while self.next_fault < len(events) and events[self.next_fault][0] <= t + 1e-9 * max(1.0, t):
+            t_event, faults = events[self.next_fault]
+            self.next_fault += 1
+            self.faults = faults
+            self.topology = from_layout(self.setup.cells).with_faults(
+                dead_cells=np.flatnonzero(faults.dead_cells), dead_links=faults.dead_links)
+            self.delivery.topology = self.topology
+            base = self.setup.sensors
+            self.sensors = replace(base, stuck_on=base.stuck_on | faults.stuck_on,
+                                   stuck_off=(base.stuck_off | faults.stuck_off) & ~(base.stuck_on | faults.stuck_on))
+            self.injected.append({"t_s": t_event, "at_tick_s": t, **faults.summary()})
+
     def _admit(self, t: float) -> None:
         """Put on the array the parcels due by ``t``, first come first placed, while their place is free: no active
         parcel overlaps it, or, when the program asks for a clearance (config ``clearance``, m), none comes that
@@ -573,7 +597,10 @@ class NetworkRun(_Job):
             traj = track.trajectory() if track.started else Trajectory(np.array([t]), y[None].copy(), [], "waiting", t)
             results.append(ParcelResult(spec, traj, sliding_checked=False, entered_at=self.entered[i]))
         record = NetworkRecord(ctl.delivery_name, self.period, self.per_tick, self.per_cell, self.latency)
-        return RunResult(setup, results, self.wall, {"network": record.totals(), "plant": plant_totals(self.plant)},
+        stats = {"network": record.totals(), "plant": plant_totals(self.plant)}
+        if self.injected:
+            stats["faults_injected"] = self.injected
+        return RunResult(setup, results, self.wall, stats,
                          record, CellLog.stack(self.cell_log) if setup.scenario.sensors.record and self.cell_log else None,
                          self.scenario_text)
 
