@@ -8,7 +8,7 @@ import pytest
 from scipy.linalg import expm
 from scipy.optimize import brentq
 
-from virtual_vehicle import dynamics, fields, friction, layout, parcel
+from virtual_vehicle import contact, dynamics, fields, friction, layout, parcel
 from virtual_vehicle.dynamics import ParcelModel, integrate
 
 G = 9.81
@@ -46,6 +46,28 @@ def test_viscous_uniform_field_relaxes_to_wheel_speed():
     np.testing.assert_allclose(tr.states[:, 3], V * (1 - np.exp(-k * t)), atol=1e-10)
     np.testing.assert_allclose(tr.states[:, 0], 0.52 + V * (t - (1 - np.exp(-k * t)) / k), atol=1e-10)
     assert len(tr.events) >= 10  # it crossed many columns on the way
+
+
+@pytest.mark.parametrize("x, y", [(0.5, 0.3), (2.9, 0.3 + 0.48 * 10)])
+def test_a_load_starting_on_a_row_of_cells_shares_it_as_soon_as_it_leaves_the_row(x, y):
+    """A parcel whose edges start exactly on two rows of cells rests at first on the middle row alone (its centre of
+    mass on that line, the plate free to tilt about it). Moving off the line, the next row must touch down at once:
+    found by the 100 x 100 hall test, the line's solution was kept (its tilt left the next row compressed but not
+    in contact, the moments unbalanced) and a torque from nowhere turned the parcel; in the second case (both edge
+    rows change at the same instant) a first repair made support events accumulate. Eq. 33 and zero torque must
+    hold throughout."""
+    cells = layout.grid(60, 60, 0.1)
+    spec = parcel.rectangle(0.25, 0.2, 1.0, 1.0)
+    m = model(cells, spec, fields.Uniform((0.2, 0.05)), friction.ViscousLaw())
+    tr = integrate(m, [x, y, 0.0, 0, 0, 0], 0, 0.1, sample_dt=0.01, max_segments=50)
+    np.testing.assert_allclose(tr.states[:, 3:5], np.outer(1 - np.exp(-G * tr.times), [0.2, 0.05]), atol=1e-10)
+    assert np.max(np.abs(tr.states[:, [2, 5]])) < 1e-12  # no turning
+    rows = [[0.0, 0.0], [0.1, 0.0], [0.2, 0.0], [0.0, 0.1], [0.1, 0.1], [0.2, 0.1]]
+    sol = contact.solve_support(rows, [0.1, 0.1], 9.81)
+    assert sol.in_contact.tolist() == [False] * 3 + [True] * 3  # the load on the upper row's line
+    assert np.all(sol.spring_values(np.array([0.0, 0.05]))[:3] <= 1e-12)  # the others slack: a consistent tilt
+    np.testing.assert_allclose(sol.forces([0.1, 0.1])[3:], 9.81 / 3)
+    assert sol.hull_slack(np.array([0.0, 0.05 + 1e-9])).min() < 0  # off the line the solution no longer holds
 
 
 def test_viscous_spin_decays_at_the_rate_of_eq38():

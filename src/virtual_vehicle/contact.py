@@ -31,6 +31,7 @@ from .errors import IntegrationError, TippingError
 from .layout import _collinear
 
 _REL_TOL = 1e-12  # relative tolerance for geometric ties (hull boundary, zero forces)
+_SLAB = 1e-9  # relative half-width of the band in which a load counts as on the line of its contacts
 
 
 @dataclass(frozen=True, eq=False)
@@ -182,12 +183,47 @@ def _finish(origin, local, xi, basis, r_lin, r_const, weight, h_normals, h_offse
     minv = np.linalg.pinv(ba.T @ ba)
     plane_lin = weight * minv @ r_lin  # eq. 19: theta = W (M^T A M)^-1 (W_x X_c + W_c), reduced to the moment system
     plane_const = weight * minv @ r_const
+    if not one_d and _collinear(local[in_contact]):
+        plane_const, h_normals, h_offsets = _on_contact_line(local, xi, basis, in_contact, plane_lin, plane_const,
+                                                             weight, h_normals, h_offsets)
     force_lin = np.where(in_contact[:, None], basis @ plane_lin, 0.0)
     force_const = np.where(in_contact, basis @ plane_const, 0.0)
     for arr in (local, basis, plane_lin, plane_const, force_lin, force_const, h_normals, h_offsets, in_contact):
         arr.setflags(write=False)
     return SupportSolution(origin, local, in_contact, basis, plane_lin, plane_const, force_lin, force_const,
                            h_normals, h_offsets, one_d, float(weight))
+
+
+def _on_contact_line(local, xi, basis, in_contact, plane_lin, plane_const, weight, h_normals, h_offsets):
+    """A load exactly on the line (or point) of a collinear contact set under planar supports: the plate tilts about
+    that line, which the moment equations leave free. Tilt it so that the other springs are slack (the solution is
+    then consistent), and add to the hull the slab in which the centre of mass stays on the line (half-width ``_SLAB``
+    relative to the supports' size: far wider than the contact-set tie, so that beyond it the other cells' share is
+    clearly positive and a planar contact set is found): the solution holds only there, so leaving it is an event
+    and the next piece is solved afresh, the other cells touching down and sharing the load."""
+    tol = _SLAB * max(float(np.max(np.abs(local))), float(np.max(np.abs(xi))), 1e-9)
+    pts = local[in_contact]
+    centre = pts.mean(axis=0)
+    if len(pts) >= 2 and np.ptp(pts, axis=0).max() > 0:
+        u = np.linalg.svd(pts - centre, full_matrices=False)[2][0]
+        dirs = [np.array([-u[1], u[0]])]
+    else:
+        dirs = [np.array([1.0, 0.0]), np.array([0.0, 1.0])]
+    rows = [d * sign for d in dirs for sign in (1.0, -1.0)]
+    h_normals = np.vstack([h_normals, rows])
+    h_offsets = np.concatenate([h_offsets, [float(r @ centre) + tol for r in rows]])
+    _, sv, vt = np.linalg.svd(basis[in_contact], full_matrices=True)
+    null = vt[int(np.sum(sv > 1e-12 * max(sv.max(), 1e-300))):]
+    if len(null) == 1:
+        p, q = basis[~in_contact] @ (plane_lin @ xi + plane_const), basis[~in_contact] @ null[0]
+        for margin in (_SLAB * 1e3 * weight, 0.0):  # each other spring clearly slack, else at most 0
+            hi = min([(-margin - a) / b for a, b in zip(p, q) if b > 1e-15], default=np.inf)
+            lo = max([(-margin - a) / b for a, b in zip(p, q) if b < -1e-15], default=-np.inf)
+            if lo <= hi:
+                break
+        lam = 0.0 if lo <= 0.0 <= hi else (hi if np.isfinite(hi) and hi < 0 else lo)
+        plane_const = plane_const + lam * null[0]
+    return plane_const, h_normals, h_offsets
 
 
 def _tilt_clear(active: np.ndarray, inactive: np.ndarray, theta: np.ndarray, tie: float) -> bool:
