@@ -1,7 +1,7 @@
 """Animations of a run: MP4 through the ffmpeg that the ``imageio-ffmpeg`` package ships (or one on the PATH), GIF
 (Pillow) when no ffmpeg is found or when the file name asks for it.
 
-Each frame shows the array as squares coloured by message traffic (sentences each cell received per second over
+Each frame shows the array as cell outlines coloured by message traffic (sentences each cell received per second over
 the last ``window`` s; networked runs), every wheel's commanded surface velocity as an arrow along its drive
 direction, every presence sensor (lit = covered), and the parcels with their names, destinations (sorting) or
 target outlines (pose control). Lengths in m, times in s.
@@ -32,6 +32,7 @@ from matplotlib.colors import LinearSegmentedColormap  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Polygon as PolygonPatch  # noqa: E402
 
+from .layout import cell_outlines  # noqa: E402
 from .sim import RunResult  # noqa: E402
 
 SUFFIXES = (".mp4", ".gif")
@@ -157,7 +158,6 @@ def _scene(result: RunResult, data: FrameData, targets=None):
     sc = setup.scenario
     cells = setup.cells
     P = cells.positions
-    U = cells.drive_directions
     pitch = cells.pitch
     xmin, ymin, xmax, ymax = cells.bounds
     for k, pr in enumerate(result.parcels):  # parcels may stick out of the array (entering, leaving)
@@ -170,11 +170,9 @@ def _scene(result: RunResult, data: FrameData, targets=None):
     width_in = 8.0
     height_in = float(np.clip(width_in * (ymax - ymin + 2 * pitch) / (xmax - xmin + 2 * pitch), 3.5, 9.0)) + 1.2
     fig, ax = plt.subplots(figsize=(width_in, 2 * round(height_in * 50) / 100))  # even pixel count for H.264
-    # the cells: squares along their drive directions, coloured by traffic
-    h = 0.47 * pitch
-    corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * h
-    squares = P[:, None, :] + corners[None, :, 0, None] * U[:, None, 0, :] + corners[None, :, 1, None] * U[:, None, 1, :]
-    tiles = PolyCollection(squares, edgecolors="0.75", linewidths=0.5, zorder=1)
+    # the cells: squares (hexagons, belts) along their drive directions, coloured by traffic
+    tiles = PolyCollection(cell_outlines(cells, setup.contact_layer, 0.94), edgecolors="0.75", linewidths=0.5,
+                           zorder=1)
     if data.traffic is not None and data.traffic.max() > 0:
         top = float(data.traffic.max())
         tiles.set_cmap(LinearSegmentedColormap.from_list("traffic", ["white", "#8c6bb1"]))  # pale: arrows on top

@@ -284,6 +284,54 @@ def fault_study_cmd(
     out.print(f"written to {out_dir}/study.json, study.png and summary.parquet")
 
 
+@app.command(name="scale-study")
+def scale_study_cmd(
+    scenario: Optional[str] = typer.Argument(None, help="Scenario TOML file or bundled scenario name (with a "
+                                             "constant [field]); default the 18-cell prototype."),
+    lengths: str = typer.Option("1,0.01,10", help="Comma-separated length factors (the first is the reference)."),
+    masses: Optional[str] = typer.Option(None, help="Comma-separated mass factors, one per length factor "
+                                         "(default: length factor cubed, as for a solid of one material)."),
+    out_dir: Path = typer.Option(Path("results/scale_study"), "--out", "-o", help="Folder for the results."),
+) -> None:
+    """Scalability: run one scenario from micro to large scale (lengths times s, times and speeds times sqrt(s),
+    masses times m) and show that, in units of the pitch and sqrt(pitch / g), the runs are one and the same;
+    writes scale_study.json and scale_study.png."""
+    import json
+
+    from rich.table import Table
+
+    from .io import write_atomic
+    from .scaling import similarity_study
+    from .scenario import load_scenario
+    from .viz import plot_similarity
+
+    try:
+        sc, _ = load_scenario(scenario)
+        try:
+            ls = [float(x) for x in lengths.split(",") if x.strip()]
+            ms = [s ** 3 for s in ls] if masses is None else [float(x) for x in masses.split(",") if x.strip()]
+        except ValueError:
+            raise VirtualVehicleError(f"--lengths / --masses: not a list of numbers: {lengths!r}, {masses!r}") \
+                from None
+        if not ls or len(ms) != len(ls):
+            raise VirtualVehicleError("--masses: give one mass factor per length factor")
+        rows = similarity_study(sc, list(zip(ls, ms)))
+    except VirtualVehicleError as exc:
+        _fail(exc)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    plot_similarity(rows, f"{sc.name}: one run at {len(rows)} scales", out_dir / "scale_study.png")
+    table = Table(title=f"{sc.name}: Froude-similar family")
+    for head in ("length x", "mass x", "pitch (m)", "parcel mass (kg)", "duration (s)", "max dimensionless deviation"):
+        table.add_column(head)
+    for r in rows:
+        table.add_row(f"{r['length_factor']:g}", f"{r['mass_factor']:g}", f"{r['pitch_m']:.3g}",
+                      f"{r['mass_kg']:.3g}", f"{r['duration_s']:.3g}", f"{r['max_deviation']:.2e}")
+    out.print(table)
+    keep = [{k: v for k, v in r.items() if k not in ("tau", "states")} for r in rows]
+    write_atomic(out_dir / "scale_study.json", json.dumps({"scenario": sc.name, "runs": keep}, indent=2))
+    out.print(f"written to {out_dir}/scale_study.json and scale_study.png")
+
+
 @app.command(name="equilibria")
 def equilibria_cmd(
     scenario: Optional[str] = typer.Argument(None, help="Scenario TOML file or bundled scenario name (with a "

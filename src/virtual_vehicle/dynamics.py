@@ -147,6 +147,9 @@ class ParcelModel:
         self._pieces: dict[tuple, Piece] = {}
         self._by_support: dict[tuple[int, ...], list[Piece]] = {}
         self._geometry = _GeometryCache()
+        self.present: np.ndarray | None = None
+        """(n,) False for contacts of cells taken out of the array (reconfiguration): they carry nothing. None: all
+        present. Set by the plant between integrate calls."""
         self.contact_memory: dict = {"lam": {}, "stuck": {}}
         """Stick-slip: each wheel's last impulse and whether it stuck, carried from one integrate call to the next
         (shared with :meth:`with_velocities` copies), so a run split into control ticks is the same run. Use a
@@ -156,8 +159,9 @@ class ParcelModel:
             self._line_dir = np.linalg.svd(cells.positions - cells.positions.mean(axis=0), full_matrices=False)[2][0]
 
     def support_at(self, y) -> np.ndarray:
-        """Ids of the cells under the footprint at state (or pose) ``y``."""
-        return supporting_cells(self.spec, y, self.cells.positions, self.cells.tree)
+        """Ids of the cells under the footprint at state (or pose) ``y`` (those present)."""
+        ids = supporting_cells(self.spec, y, self.cells.positions, self.cells.tree)
+        return ids if self.present is None else ids[self.present[ids]]
 
     def piece_at(self, y) -> Piece:
         """The piece valid at state ``y``. Raises TippingError when the supports cannot carry the parcel."""
@@ -299,8 +303,10 @@ class _Segment:
         spec, cells = model.spec, model.cells
         self.buffer = max(cells.pitch, 0.25 * spec.radius)
         self.center = np.array(y0[:2], dtype=float)
-        ids = cells.tree.query_ball_point(self.center, spec.radius + self.buffer)
-        self.candidates = cells.positions[np.asarray(sorted(ids), dtype=int)] if ids else np.zeros((0, 2))
+        ids = np.asarray(sorted(cells.tree.query_ball_point(self.center, spec.radius + self.buffer)), dtype=int)
+        if model.present is not None:
+            ids = ids[model.present[ids]]
+        self.candidates = cells.positions[ids] if len(ids) else np.zeros((0, 2))
         self.sol = piece.solution
         nc, m, q = len(self.candidates), len(self.sol.points), len(self.sol.hull_offsets)
         self.bounds = np.cumsum([0, nc, m, q, 1])

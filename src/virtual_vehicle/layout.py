@@ -1,10 +1,18 @@
-"""Cell arrays: where the cells are and in which directions their two roller wheels drive.
+"""Cell arrays: where the cells are and in which directions their wheels drive.
 
-Units: metres for positions; drive directions are unit vectors (dimensionless).
+Units: metres for positions, m/s for speeds; drive directions are unit vectors (dimensionless).
 
 Each cell carries two motorised roller wheels with orthogonal drive directions (paper Section 2.1). A wheel pushes
 the parcel along its drive direction and lets it slide freely along its axle. The paper lumps both wheels of a cell
-at the cell centre, which is the model used here.
+at the cell centre, which is the default model here.
+
+Two layers describe an array. The *cell layer* has one entry per controller: its position, its command frame (the
+two orthogonal axes its wheel-speed command is given in, ``drive_directions``) and its network ports. The *contact
+layer* has one entry per point where the parcel rests on the array, each belonging to a cell (``cell_of``) and
+pushing along up to two of that cell's wheel directions. For the paper's lumped cells both layers are the same.
+Other layers: :func:`separate_wheels` (each of the two wheels its own contact), :func:`three_wheels` (hexagonal
+cells with three omni wheels at 120 degrees, as commercial omni-wheel conveyors use) and :func:`with_belts` (plain
+conveyor belts, each one long cell with one drive direction, feeding or leaving the array).
 """
 
 from __future__ import annotations
@@ -28,6 +36,14 @@ class CellArray:
         positions: (n, 2) cell centres, m.
         drive_directions: (n, 2, 2) unit drive direction of wheel k of cell i as ``drive_directions[i, k]``.
         pitch: nominal spacing between neighbouring cells, m (used for plots and search radii).
+        shape: (rows, columns) of a rectangular grid, else None.
+        wheel_active: (n, 2) False where an entry has no wheel along that drive direction (contact layers).
+        cell_of: (n,) the cell (controller) each entry belongs to; ``arange(n)`` on a cell layer.
+        wheel_of: (n, 2) which of its cell's physical wheels drives along each direction, -1 for none.
+        ports: (n,) network ports of each cell: 4 on a square lattice, 6 on a hexagonal one, 0 for a plain conveyor
+            belt (no controller, no messages).
+        belt_speed: (n,) surface speed of a plain conveyor belt along its wheel-0 direction (m/s), NaN for cells that
+            take commands.
     """
 
     positions: np.ndarray
@@ -36,6 +52,9 @@ class CellArray:
     shape: tuple[int, ...] | None = field(default=None)
     wheel_active: np.ndarray | None = field(default=None)
     cell_of: np.ndarray | None = field(default=None)
+    wheel_of: np.ndarray | None = field(default=None)
+    ports: np.ndarray | None = field(default=None)
+    belt_speed: np.ndarray | None = field(default=None)
 
     def __post_init__(self) -> None:
         pos = np.array(self.positions, dtype=float)
@@ -55,19 +74,40 @@ class CellArray:
             raise ScenarioError("array.points", "two cells share the same position")
         if not (np.isfinite(self.pitch) and self.pitch > 0):
             raise ScenarioError("array.pitch", f"pitch must be a positive length in m, got {self.pitch}")
-        active = np.ones((len(pos), 2), bool) if self.wheel_active is None else np.asarray(self.wheel_active, bool)
-        cell_of = np.arange(len(pos)) if self.cell_of is None else np.asarray(self.cell_of, dtype=np.int64)
-        for arr in (pos, dirs, active, cell_of):
+        n = len(pos)
+        active = np.ones((n, 2), bool) if self.wheel_active is None else np.asarray(self.wheel_active, bool)
+        cell_of = np.arange(n) if self.cell_of is None else np.asarray(self.cell_of, dtype=np.int64)
+        wheel_of = (np.tile([0, 1], (n, 1)) if self.wheel_of is None else np.asarray(self.wheel_of, dtype=np.int64))
+        ports = np.full(n, 4, dtype=np.int64) if self.ports is None else np.asarray(self.ports, dtype=np.int64)
+        belt = np.full(n, np.nan) if self.belt_speed is None else np.asarray(self.belt_speed, dtype=float)
+        if active.shape != (n, 2) or cell_of.shape != (n,) or wheel_of.shape != (n, 2) or ports.shape != (n,) \
+                or belt.shape != (n,):
+            raise ValueError("wheel_active, wheel_of: (n, 2); cell_of, ports, belt_speed: (n,)")
+        for name, arr in (("positions", pos), ("drive_directions", dirs), ("wheel_active", active),
+                          ("cell_of", cell_of), ("wheel_of", wheel_of), ("ports", ports), ("belt_speed", belt)):
             arr.setflags(write=False)
-        object.__setattr__(self, "positions", pos)
-        object.__setattr__(self, "drive_directions", dirs)
-        object.__setattr__(self, "wheel_active", active)
-        object.__setattr__(self, "cell_of", cell_of)
+            object.__setattr__(self, name, arr)
 
     @cached_property
     def active_directions(self) -> np.ndarray:
         """(n, 2, 2) drive directions with those of absent wheels set to zero (what friction laws use)."""
         return self.drive_directions * self.wheel_active[:, :, None]
+
+    @property
+    def belts(self) -> np.ndarray:
+        """(n,) True for plain conveyor belts (no controller; they run at ``belt_speed``)."""
+        return np.isfinite(self.belt_speed)
+
+    def belt_commands(self, wheel_speeds: np.ndarray) -> np.ndarray:
+        """``wheel_speeds`` ((n, 2) m/s along each cell's drive directions) with the belts at their own speed: a belt
+        runs along its length and cannot move its surface sideways."""
+        belt = self.belts
+        if not belt.any():
+            return wheel_speeds
+        out = np.array(wheel_speeds, dtype=float)
+        out[belt, 0] = self.belt_speed[belt]
+        out[belt, 1] = 0.0
+        return out
 
     @property
     def separate(self) -> bool:
@@ -177,6 +217,206 @@ def separate_wheels(cells: CellArray, offsets=None) -> CellArray:
         u = U[:, k]
         dirs[:, k, 0] = u
         dirs[:, k, 1] = np.column_stack([-u[:, 1], u[:, 0]])
-    active = np.tile([True, False], (2 * cells.n, 1))
-    return CellArray(pos.reshape(-1, 2), dirs.reshape(-1, 2, 2), cells.pitch, None, active,
-                     np.repeat(np.arange(cells.n), 2))
+    return _one_wheel_contacts(cells, pos.reshape(-1, 2), dirs.reshape(-1, 2, 2), 2)
+
+
+def _one_wheel_contacts(cells: CellArray, pos: np.ndarray, dirs: np.ndarray, k: int) -> CellArray:
+    """A contact layer of ``k`` single-wheel contacts per cell (contact ``k i + w`` is wheel w of cell i)."""
+    n = cells.n
+    active = np.tile([True, False], (k * n, 1))
+    wheel_of = np.column_stack([np.tile(np.arange(k), n), np.full(k * n, -1)])
+    return CellArray(pos, dirs, cells.pitch, None, active, np.repeat(np.arange(n), k), wheel_of)
+
+
+def hexagonal(nx: int, ny: int, pitch: float, origin: tuple[float, float] = (0.0, 0.0),
+              drive_angle: float = 0.0) -> CellArray:
+    """A hexagonal lattice of ``ny`` rows of ``nx`` cells, neighbours ``pitch`` (m) apart: rows ``pitch sqrt(3)/2``
+    apart, odd rows shifted by half a pitch, first cell at ``origin`` (m). Cell ``j * nx + i`` is column i, row j.
+    Each cell has six network ports (at 0, 60, ..., 300 degrees from its wheel-0 drive direction ``drive_angle``,
+    rad) and takes its command as a velocity along two orthogonal axes; its three wheels are the contact layer
+    :func:`three_wheels`.
+
+    >>> hexagonal(2, 2, 0.1).positions.round(4).tolist()
+    [[0.0, 0.0], [0.1, 0.0], [0.05, 0.0866], [0.15, 0.0866]]
+    """
+    if nx < 1 or ny < 1:
+        raise ScenarioError("array.nx", f"a lattice needs at least one column and one row, got {nx} x {ny}")
+    ii, jj = np.meshgrid(np.arange(nx), np.arange(ny))
+    x = (ii + 0.5 * (jj % 2)) * pitch
+    y = jj * pitch * np.sqrt(3) / 2
+    pos = np.column_stack([x.ravel(), y.ravel()]) + np.asarray(origin, dtype=float)
+    return CellArray(pos, _drive_directions(len(pos), drive_angle), float(pitch), ports=np.full(len(pos), 6))
+
+
+def three_wheels(cells: CellArray, radius: float | None = None) -> CellArray:
+    """The contact layer of cells with three omni wheels at 120 degrees (commercial hexagonal omni-wheel
+    conveyors): wheel w sits ``radius`` (m, default pitch/4) from the cell centre at angle -90 + 120 w degrees in the
+    cell frame and drives tangentially, at 120 w degrees from the cell's wheel-0 axis, rolling freely along its
+    axle. A cell commanded to move its surface at velocity V spins wheel w at ``V . u_w`` (m/s), the projection
+    every omni-wheel drive makes; with all three wheels under a parcel any planar force can be produced. Contact
+    ``3 i + w`` is wheel w of cell i.
+    """
+    r = cells.pitch / 4 if radius is None else float(radius)
+    if not (np.isfinite(r) and 0 < r < cells.pitch / 2):
+        raise ScenarioError("array.wheel_radius", f"must lie between 0 and half the pitch ({cells.pitch / 2:g} m), "
+                            f"got {r:g}")
+    phi = -np.pi / 2 + 2 * np.pi * np.arange(3) / 3
+    local_pos = r * np.column_stack([np.cos(phi), np.sin(phi)])  # (3, 2) in the cell frame
+    local_dir = np.column_stack([-np.sin(phi), np.cos(phi)])  # tangential drive directions
+    U = cells.drive_directions  # (n, 2, 2): the cell frame's axes in the world
+    pos = cells.positions[:, None, :] + np.einsum("wk,nkj->nwj", local_pos, U)
+    u = np.einsum("wk,nkj->nwj", local_dir, U)
+    perp = np.stack([-u[..., 1], u[..., 0]], axis=-1)
+    return _one_wheel_contacts(cells, pos.reshape(-1, 2), np.stack([u, perp], axis=2).reshape(-1, 2, 2), 3)
+
+
+@dataclass(frozen=True)
+class Belt:
+    """A plain conveyor belt: its centreline from ``start`` to ``end`` (m), ``width`` (m), surface ``speed`` (m/s,
+    positive from start to end) and the ``spacing`` (m) of the support points that carry a parcel on it."""
+
+    start: tuple[float, float]
+    end: tuple[float, float]
+    width: float
+    speed: float
+    spacing: float
+
+
+def with_belts(cells: CellArray, contacts: CellArray, belts, where: str = "array.belts") -> tuple[CellArray, CellArray]:
+    """``cells`` and their contact layer ``contacts`` with plain conveyor belts (:class:`Belt`) added: each belt is one
+    more cell (no controller, no network ports, always at its own speed along its length, surface held still
+    sideways) whose contacts are support points on a grid over its surface, ``spacing`` apart and including its
+    edges. A belt must not cover a cell of the array. Returns the new (cells, contacts)."""
+    if not belts:
+        return cells, contacts
+    pos, dirs, speed = [], [], []
+    c_pos, c_dirs, c_of = [], [], []
+    for k, b in enumerate(belts):
+        a, e = np.asarray(b.start, dtype=float), np.asarray(b.end, dtype=float)
+        length = float(np.hypot(*(e - a)))
+        if length <= 0:
+            raise ScenarioError(f"{where}[{k}].end", "a belt needs distinct start and end points")
+        u = (e - a) / length
+        v = np.array([-u[1], u[0]])
+        nl = max(2, int(np.ceil(length / b.spacing - 1e-9)) + 1)
+        nw = max(2, int(np.ceil(b.width / b.spacing - 1e-9)) + 1)
+        s, w = np.meshgrid(np.linspace(0.0, length, nl), np.linspace(-b.width / 2, b.width / 2, nw))
+        points = a + s.ravel()[:, None] * u + w.ravel()[:, None] * v
+        along = np.abs((cells.positions - a) @ u - length / 2) <= length / 2 + 1e-12
+        across = np.abs((cells.positions - a) @ v) <= b.width / 2 + 1e-12
+        covered = np.flatnonzero(along & across & ~cells.belts)
+        if len(covered):
+            raise ScenarioError(f"{where}[{k}]", f"the belt covers cell {covered[0]} at "
+                                f"{cells.positions[covered[0]].tolist()} m; belts feed or leave the array from beside it")
+        pos.append((a + e) / 2)
+        dirs.append([u, v])
+        speed.append(b.speed)
+        c_pos.append(points)
+        c_dirs.append(np.broadcast_to([u, v], (len(points), 2, 2)))
+        c_of.append(np.full(len(points), cells.n + k))
+    m = sum(len(p) for p in c_pos)
+    new_cells = CellArray(np.vstack([cells.positions, pos]), np.concatenate([cells.drive_directions, dirs]),
+                          cells.pitch, None, None, None, None, np.concatenate([cells.ports, np.zeros(len(belts), int)]),
+                          np.concatenate([cells.belt_speed, speed]))
+    new_contacts = CellArray(np.vstack([contacts.positions, *c_pos]),
+                             np.concatenate([contacts.drive_directions, *c_dirs]), contacts.pitch, None,
+                             np.concatenate([contacts.wheel_active, np.ones((m, 2), bool)]),
+                             np.concatenate([contacts.cell_of, *c_of]),
+                             np.concatenate([contacts.wheel_of, np.tile([0, 1], (m, 1))]))
+    return new_cells, new_contacts
+
+
+def combine(parts, where: str = "array.parts") -> tuple[CellArray, CellArray | None]:
+    """One array from ``parts``, a list of (cells, contacts or None) pairs that share one pitch (m): cells are
+    numbered part after part, each part keeps its own kind (square, hexagonal, ...) and contact layer. Returns the
+    cells and their contact layer (None when every part is the paper's lumped cells). Raises ScenarioError naming
+    ``where`` for parts with different pitches or cells in the same place."""
+    pitch = parts[0][0].pitch
+    for k, (cells, _) in enumerate(parts):
+        if not np.isclose(cells.pitch, pitch, rtol=1e-9):
+            raise ScenarioError(f"{where}[{k}].pitch", f"the parts of a mixed array share one pitch ({pitch:g} m); "
+                                f"this one has {cells.pitch:g} m")
+    layers = [c if t is None else t for c, t in parts]
+    offsets = np.cumsum([0] + [c.n for c, _ in parts])
+    try:
+        cells = CellArray(np.vstack([c.positions for c, _ in parts]),
+                          np.concatenate([c.drive_directions for c, _ in parts]), pitch,
+                          ports=np.concatenate([c.ports for c, _ in parts]),
+                          belt_speed=np.concatenate([c.belt_speed for c, _ in parts]))
+        if all(t is None for _, t in parts):
+            return cells, None
+        contacts = CellArray(np.vstack([t.positions for t in layers]),
+                             np.concatenate([t.drive_directions for t in layers]), pitch, None,
+                             np.concatenate([t.wheel_active for t in layers]),
+                             np.concatenate([t.cell_of + off for t, off in zip(layers, offsets)]),
+                             np.concatenate([t.wheel_of for t in layers]))
+    except ScenarioError as exc:
+        raise ScenarioError(where, f"the parts overlap: {exc.message}") from None
+    return cells, contacts
+
+
+MAP_HOLES = " ."
+"""Map characters that mean no cell."""
+MAP_CELLS = "o#E0123"
+"""Map characters that mean a cell: ``o`` or ``#`` a plain one, ``E`` an entry cell, ``0``..``3`` a cell of exit k."""
+
+
+def from_map(text: str, pitch: float, origin: tuple[float, float] = (0.0, 0.0), lattice: str = "square",
+             drive_angle: float = 0.0, where: str = "array.map") -> tuple[CellArray, dict[str, np.ndarray]]:
+    """Cells drawn as text, one character per lattice site: the last line is the row at ``origin`` (m), lines
+    above it go up in y, characters go along x at ``pitch`` (m). ``lattice`` "square" or "hex" (odd rows, counted
+    from the bottom, shifted by half a pitch; rows pitch sqrt(3)/2 apart; six ports a cell). Characters: see
+    :data:`MAP_CELLS` and :data:`MAP_HOLES`. Blank lines before and after the map are dropped. Returns the cells
+    (numbered from the bottom row up, left to right) and, for each of ``E 0 1 2 3`` that occurs, the (n,) mask of
+    its cells.
+
+    >>> cells, marks = from_map("oo0\\nE.o", 0.1)
+    >>> cells.positions.tolist(), marks["E"].tolist(), marks["0"].tolist()
+    ([[0.0, 0.0], [0.2, 0.0], [0.0, 0.1], [0.1, 0.1], [0.2, 0.1]], [True, False, False, False, False], [False, False, False, False, True])
+    """
+    lines = text.split("\n")
+    while lines and not lines[0].strip():
+        lines.pop(0)
+    while lines and not lines[-1].strip():
+        lines.pop()
+    xs, ys, chars = [], [], []
+    for j, line in enumerate(reversed(lines)):
+        for i, ch in enumerate(line.rstrip()):
+            if ch in MAP_HOLES:
+                continue
+            if ch not in MAP_CELLS:
+                raise ScenarioError(where, f"unknown character {ch!r} on line {len(lines) - j}, column {i + 1} "
+                                    f"(cells: {MAP_CELLS!r}; no cell: space or '.')")
+            shift = 0.5 * (j % 2) if lattice == "hex" else 0.0
+            xs.append((i + shift) * pitch)
+            ys.append(j * pitch * (np.sqrt(3) / 2 if lattice == "hex" else 1.0))
+            chars.append(ch)
+    if not chars:
+        raise ScenarioError(where, "the map has no cells")
+    pos = np.column_stack([xs, ys]) + np.asarray(origin, dtype=float)
+    chars = np.array(chars)
+    ports = np.full(len(pos), 6 if lattice == "hex" else 4)
+    cells = CellArray(pos, _drive_directions(len(pos), drive_angle), float(pitch), ports=ports)
+    return cells, {m: chars == m for m in "E0123" if (chars == m).any()}
+
+
+def cell_outlines(cells: CellArray, contacts: CellArray | None = None, scale: float = 1.0) -> list[np.ndarray]:
+    """Each cell's outline as a (k, 2) array of corners (m), for pictures: a square of side ``pitch`` along the
+    drive directions (four ports), a hexagon of apothem ``pitch / 2`` (six ports), and for a belt the rectangle its
+    support points span (from ``contacts``, the layer holding them). ``scale`` shrinks cells about their centres
+    (belts keep their size)."""
+    out = []
+    sq = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * cells.pitch / 2
+    a = np.deg2rad(30 + 60 * np.arange(6))
+    hx = np.column_stack([np.cos(a), np.sin(a)]) * cells.pitch / np.sqrt(3)
+    for i in range(cells.n):
+        U = cells.drive_directions[i]
+        if cells.belts[i]:
+            pts = contacts.positions[contacts.cell_of == i] - cells.positions[i]
+            s, w = pts @ U[0], pts @ U[1]
+            local = np.array([[s.min(), w.min()], [s.max(), w.min()], [s.max(), w.max()], [s.min(), w.max()]])
+            out.append(cells.positions[i] + local @ U)
+        else:
+            local = hx if cells.ports[i] == 6 else sq
+            out.append(cells.positions[i] + scale * local @ U)
+    return out

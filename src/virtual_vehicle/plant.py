@@ -106,11 +106,20 @@ class Plant:
             self._models = _Models(self.base, self._velocities)
         return self._models
 
+    def set_present(self, present: np.ndarray | None) -> None:
+        """Take contacts out of the array or put them back (reconfiguration): ``present`` is an (n,) mask over the
+        contact layer (None: all present). Solved geometry stays cached (it depends only on the supports)."""
+        mask = None if present is None else np.asarray(present, dtype=bool).copy()
+        for model in self.base:
+            model.present = mask
+        self._velocities = self._models = None  # models made from the old base are made again
+
     def release(self, i: int) -> None:
         """Forget what parcel ``i``'s model has cached (solved supports, pieces): it has left the array, and a long
         run should hold memory for the parcels on it, not for every parcel it ever carried."""
         fresh = ParcelModel(self.cells, self.specs[i], np.zeros((self.cells.n, 2)), self.law, self.gravity)
         fresh.contact_memory = self.base[i].contact_memory
+        fresh.present = self.base[i].present
         self.base[i] = fresh
         if self._models is not None:
             self._models.made.pop(i, None)

@@ -37,7 +37,24 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
 
-class _Wheels(_Strict):
+class BeltSpec(_Strict):
+    """A plain conveyor belt beside the array (:func:`~virtual_vehicle.layout.with_belts`): centreline from
+    ``start`` to ``end`` (m), ``width`` (m), surface ``speed`` (m/s, from start to end; it never changes: a plain
+    belt has no controller and sends no sentences), support points ``spacing`` (m, default half the pitch) apart.
+    A dead belt (its cell id comes after the array's cells, in order) stands still."""
+
+    start: Point
+    end: Point
+    width: Annotated[float, Field(gt=0, le=1e3)]
+    speed: Speed
+    spacing: Annotated[float, Field(gt=0, le=1e3)] | None = None
+
+
+class _ArrayBase(_Strict):
+    belts: list[BeltSpec] = []
+
+
+class _Wheels(_ArrayBase):
     wheels: Literal["lumped", "separate"] = "lumped"
     wheel_offsets: tuple[Point, Point] | None = None
 
@@ -52,8 +69,9 @@ class GridArray(_Lattice):
     """``nx`` columns by ``ny`` rows at ``pitch`` (m), first cell at ``origin`` (m); wheel 0 drives along
     ``drive_angle`` (rad from +x), wheel 1 at +90 degrees. Every array takes ``wheels = "lumped"`` (the paper: both
     wheels at the cell centre, default) or ``"separate"`` (each wheel its own contact at ``wheel_offsets``, m in the
-    cell frame, default wheel 0 at (0, -pitch/4) and wheel 1 at (-pitch/4, 0); coulomb and stick_slip laws, constant
-    fields only)."""
+    cell frame, default wheel 0 at (0, -pitch/4) and wheel 1 at (-pitch/4, 0); coulomb and stick_slip laws, ideal
+    wheels). Every array may also list ``belts`` ([[array.belts]] tables, :class:`BeltSpec`): plain conveyor belts
+    beside it, feeding parcels in or taking them away."""
 
     kind: Literal["grid"]
     nx: Annotated[int, Field(ge=1, le=100_000)]
@@ -62,7 +80,7 @@ class GridArray(_Lattice):
 
 class RowArray(_Lattice):
     """A single row of ``n`` cells along +x (the paper's 1-D array), spaced and oriented as a grid: ``pitch`` (m),
-    ``origin`` (m), ``drive_angle`` (rad), ``wheels`` and ``wheel_offsets`` (m) as for :class:`GridArray`."""
+    ``origin`` (m), ``drive_angle`` (rad), ``wheels``, ``wheel_offsets`` (m) and ``belts`` as for :class:`GridArray`."""
 
     kind: Literal["row"]
     n: Annotated[int, Field(ge=1, le=1_000_000)]
@@ -70,7 +88,7 @@ class RowArray(_Lattice):
 
 class PointsArray(_Wheels):
     """Cells at explicit ``points`` (m); ``pitch`` (m) defaults to the median nearest-neighbour distance;
-    ``drive_angle`` (rad), ``wheels`` and ``wheel_offsets`` (m) as for :class:`GridArray`."""
+    ``drive_angle`` (rad), ``wheels``, ``wheel_offsets`` (m) and ``belts`` as for :class:`GridArray`."""
 
     kind: Literal["points"]
     points: Annotated[list[Point], Field(min_length=1)]
@@ -162,7 +180,67 @@ class RegionsField(_Strict):
     default: BaseFieldSpec | None = None
 
 
-ArraySpec = Annotated[Union[GridArray, RowArray, PointsArray], Field(discriminator="kind")]
+class HexArray(_ArrayBase):
+    """A hexagonal lattice (:func:`~virtual_vehicle.layout.hexagonal`): ``ny`` rows of ``nx`` cells whose
+    neighbours are ``pitch`` (m) apart, odd rows shifted by half a pitch, first cell at ``origin`` (m), six network
+    ports a cell. Every cell drives three omni wheels at 120 degrees (:func:`~virtual_vehicle.layout.three_wheels`),
+    ``wheel_radius`` (m, default pitch/4) from its centre, wheel 0 along ``drive_angle`` (rad); coulomb and
+    stick_slip laws, ideal wheels, whole-cell faults only. ``belts`` as for :class:`GridArray`."""
+
+    kind: Literal["hex"]
+    nx: Annotated[int, Field(ge=1, le=100_000)]
+    ny: Annotated[int, Field(ge=1, le=100_000)]
+    pitch: Annotated[float, Field(gt=0, le=1e3)]
+    origin: Point = (0.0, 0.0)
+    drive_angle: Annotated[float, Field(ge=-1e3, le=1e3)] = 0.0
+    wheel_radius: Pos | None = None
+
+
+class MapArray(_Lattice):
+    """Cells drawn as text (:func:`~virtual_vehicle.layout.from_map`): ``map`` has one character per lattice site,
+    the last line at ``origin`` (m), lines above it higher in y, ``pitch`` (m) apart, wheel 0 of every cell along
+    ``drive_angle`` (rad); ``o`` or ``#`` is a cell,
+    ``E`` an entry cell, ``0``..``3`` a cell of that exit (program ``"sort"`` takes its entries and exits from
+    these when ``[control]`` names none), space or ``.`` no cell. ``lattice`` is ``"square"`` (four ports a cell;
+    ``wheels`` and ``wheel_offsets`` as for :class:`GridArray`) or ``"hex"`` (six ports, three omni wheels
+    ``wheel_radius`` m from the centre, as for :class:`HexArray`). ``belts`` as for :class:`GridArray`."""
+
+    kind: Literal["map"]
+    map: Annotated[str, Field(min_length=1, max_length=10_000_000)]
+    lattice: Literal["square", "hex"] = "square"
+    wheel_radius: Pos | None = None
+
+    @model_validator(mode="after")
+    def _wheels_fit_lattice(self):
+        if self.lattice == "hex" and (self.wheels != "lumped" or self.wheel_offsets is not None):
+            raise ValueError("hexagonal cells have three omni wheels (set wheel_radius); wheels and wheel_offsets "
+                             "are for square cells")
+        if self.lattice == "square" and self.wheel_radius is not None:
+            raise ValueError("wheel_radius is for hexagonal cells (lattice = \"hex\")")
+        return self
+
+
+PartSpec = Annotated[Union[GridArray, RowArray, PointsArray, HexArray, MapArray], Field(discriminator="kind")]
+
+
+class MixedArray(_ArrayBase):
+    """Several arrays joined into one (:func:`~virtual_vehicle.layout.combine`): ``parts`` is a list of array tables
+    of any other kind (square grids, rows, points, hexagonal lattices, maps) with one pitch; cells are numbered part
+    after part and each keeps its wheels and ports, so square and hexagonal cells that meet talk across the seam.
+    ``belts`` as for :class:`GridArray` (on the whole array, not on its parts)."""
+
+    kind: Literal["mixed"]
+    parts: Annotated[list[PartSpec], Field(min_length=1, max_length=1000)]
+
+    @model_validator(mode="after")
+    def _belts_on_the_whole(self):
+        if any(part.belts for part in self.parts):
+            raise ValueError("belts go on the mixed array itself ([[array.belts]]), not on its parts")
+        return self
+
+
+ArraySpec = Annotated[Union[GridArray, RowArray, PointsArray, HexArray, MapArray, MixedArray],
+                      Field(discriminator="kind")]
 FieldSpec = Annotated[Union[UniformField, InwardField, ReversedEndField, PerCellField, RadialField, SqueezeField,
                             RotationField, TwistField, RegionsField], Field(discriminator="kind")]
 
@@ -240,8 +318,8 @@ class ControlSpec(_Strict):
     lane reaching the edge; parcels leave through the side most of its cells have open);
     parcels ride at ``speed`` keeping ``gap`` free cells ahead, sharing decisions over ``reach`` hops; ``central``
     = true runs the same policies on one central computer instead (:class:`~virtual_vehicle.sorting.CentralSorter`),
-    for comparison. ``dead_links``: [cell id, port] pairs whose link is cut (ports 0..3 = east, north,
-    west, south of the cell)."""
+    for comparison. ``dead_links``: [cell id, port] pairs whose link is cut (square cells: ports 0..3 = east,
+    north, west, south of the cell; hexagonal cells: ports 0..5, every 60 degrees counter-clockwise from east)."""
 
     program: Literal["shuttle", "pose", "diffusion", "sort"]
     period: Annotated[float, Field(gt=0, le=10)] = 0.01
@@ -251,7 +329,7 @@ class ControlSpec(_Strict):
     heartbeat: Annotated[int, Field(ge=1, le=100_000)] = 10
     loss_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
     seed: Annotated[int, Field(ge=0)] = 0
-    dead_links: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=3)]]] = []
+    dead_links: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=5)]]] = []
     wire: WireSpec = WireSpec()
     targets: list[tuple[Coord, Coord, Annotated[float, Field(ge=-1e3, le=1e3)]]] | None = None
     waypoints: list[list[tuple[Coord, Coord, Annotated[float, Field(ge=-1e3, le=1e3)]]]] | None = None
@@ -274,9 +352,6 @@ class ControlSpec(_Strict):
             raise ValueError("targets and waypoints go with program 'pose'")
         if self.waypoints is not None and self.targets is not None and len(self.waypoints) != len(self.targets):
             raise ValueError("waypoints: one list per parcel, like targets")
-        if self.program == "sort" and (not self.exits or not self.entries):
-            raise ValueError("program 'sort' needs exits = [outline, ...] and entries = [outline, ...] "
-                             "(outlines [[x, y], ...] in m)")
         return self
 
 
@@ -335,7 +410,7 @@ class FaultEvent(_Strict):
     t: Annotated[float, Field(gt=0, le=1e7)]
     dead_cells: list[Annotated[int, Field(ge=0)]] = []
     stuck_wheels: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=1)]]] = []
-    dead_links: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=3)]]] = []
+    dead_links: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=5)]]] = []
     stuck_on: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)]]] = []
     stuck_off: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)]]] = []
 
@@ -360,6 +435,27 @@ class FaultSpec(_Strict):
     stuck_sensor_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
     seed: Annotated[int, Field(ge=0)] = 0
     events: list[FaultEvent] = []
+
+
+class CellChange(_Strict):
+    """At time ``t`` (s) of a networked run, the cells ``remove`` (ids) are taken out of the array and the cells
+    ``add`` (ids of cells absent until then) are snapped in."""
+
+    t: Annotated[float, Field(gt=0, le=1e7)]
+    remove: list[Annotated[int, Field(ge=0)]] = []
+    add: list[Annotated[int, Field(ge=0)]] = []
+
+
+class ReconfigurationSpec(_Strict):
+    """Cells taken out of the array and put in while a networked run goes on (paper Section 1: modularity and
+    reconfiguration). ``absent``: cell ids of the array with no cell installed at the start (the array lists every
+    site a cell may ever occupy); ``changes`` ([[reconfiguration.changes]] tables, :class:`CellChange`) remove
+    and add cells at given times. An absent cell carries nothing, drives nothing, senses nothing and has no links;
+    a cell snapped in starts its program from scratch (as a new cell would) and its neighbours' programs
+    re-converge. Distributed programs with ideal delivery and ideal wheels; belts stay where they are."""
+
+    absent: list[Annotated[int, Field(ge=0)]] = []
+    changes: list[CellChange] = []
 
 
 class ParcelEntry(_Strict):
@@ -409,7 +505,8 @@ class Scenario(_Strict):
     ``output_dt`` (s) the spacing of trajectory samples (default duration/500); ``gravity`` in m/s^2. The tables:
     ``array`` (the cells), either ``field`` (constant wheel velocities) or ``control`` (the cells run a program
     over a network), ``friction``, ``integrator``, ``contacts`` (parcel against parcel), ``sensors``, ``wheels``
-    (ideal or motor-driven), ``faults`` (broken hardware) and one ``parcels`` entry per parcel.
+    (ideal or motor-driven), ``faults`` (broken hardware), ``reconfiguration`` (cells taken out and put in during
+    a run) and one ``parcels`` entry per parcel.
     """
 
     name: Annotated[str, Field(min_length=1)] = "scenario"
@@ -426,6 +523,7 @@ class Scenario(_Strict):
     sensors: SensorSpec = SensorSpec()
     wheels: WheelSpec = WheelSpec()
     faults: FaultSpec = FaultSpec()
+    reconfiguration: ReconfigurationSpec = ReconfigurationSpec()
     parcels: Annotated[list[ParcelEntry], Field(min_length=1)]
 
     @model_validator(mode="after")
@@ -440,6 +538,11 @@ class Scenario(_Strict):
                              "not both or neither")
         if self.output_dt is not None and self.output_dt > self.duration:
             raise ValueError(f"output_dt ({self.output_dt} s) is longer than duration ({self.duration} s)")
+        c = self.control
+        maps = self.array.kind == "map" or any(p.kind == "map" for p in getattr(self.array, "parts", ()))
+        if c is not None and c.program == "sort" and (not c.exits or not c.entries) and not maps:
+            raise ValueError("program 'sort' needs exits = [outline, ...] and entries = [outline, ...] "
+                             "(outlines [[x, y], ...] in m), or an [array] map that marks them")
         if self.contacts.slop >= self.contacts.margin:
             raise ValueError(f"contacts.slop ({self.contacts.slop} m) must be below contacts.margin "
                              f"({self.contacts.margin} m)")
@@ -451,17 +554,26 @@ class Scenario(_Strict):
         from .faults import later, resolve
         from .network.topology import from_layout
 
-        cells = _build_array(self.array)
+        cells, contacts, marks = _build_array(self.array)
         velocities = np.zeros((cells.n, 2)) if self.field is None else _build_field(self.field).velocities(cells)
+        if cells.belts.any():  # plain belts run at their own speed whatever the field says
+            dirs = cells.drive_directions
+            velocities = np.einsum("ik,ikj->ij", cells.belt_commands(np.einsum("ij,ikj->ik", velocities, dirs)), dirs)
         sensors = _build_sensors(self.sensors, cells)
         listed_links = self.control.dead_links if self.control is not None else ()
         for k, (cell, port) in enumerate(listed_links):
             if cell >= cells.n:
                 raise ScenarioError(f"control.dead_links[{k}]", f"cell {cell} does not exist (the array has {cells.n})")
+            if port >= cells.ports[cell]:
+                raise ScenarioError(f"control.dead_links[{k}]", f"cell {cell} has ports 0..{cells.ports[cell] - 1}")
         faults = resolve(self.faults, cells, sensors.count, from_layout(cells).neighbor, listed_links)
         if faults.free_wheels.any() and self.friction.law == "viscous":
             raise ScenarioError("faults", "free-spinning wheels need the coulomb or stick_slip law (the paper's "
                                 "viscous law acts on a cell's whole slip vector)")
+        three = contacts is not None and contacts.wheel_of.max() >= 2
+        if three and (faults.stuck_wheels.any() or faults.free_wheels.any()):
+            raise ScenarioError("faults", "stuck and free wheels are modelled for two-wheel cells; a hexagonal cell's "
+                                "three omni wheels take only whole-cell faults (dead_cells) so far")
         velocities = faults.hold_velocities(velocities, cells.drive_directions)
         if self.faults.events:
             if self.control is None or self.control.delivery != "ideal":
@@ -472,22 +584,32 @@ class Scenario(_Strict):
                 if ev.t >= self.duration:
                     raise ScenarioError(f"faults.events[{k}].t", f"{ev.t} s is not before the end of the run "
                                         f"({self.duration} s)")
+                for j, (cell, port) in enumerate(ev.dead_links):
+                    if cell < cells.n and port >= cells.ports[cell]:
+                        raise ScenarioError(f"faults.events[{k}].dead_links[{j}]",
+                                            f"cell {cell} has ports 0..{cells.ports[cell] - 1}")
+                if three and ev.stuck_wheels:
+                    raise ScenarioError(f"faults.events[{k}].stuck_wheels", "hexagonal cells take whole-cell faults "
+                                        "only so far")
         if faults.stuck_on.any() or faults.stuck_off.any():
             sensors = dataclasses.replace(sensors, stuck_on=sensors.stuck_on | faults.stuck_on,
                                           stuck_off=sensors.stuck_off | faults.stuck_off)
-        contacts = cells
-        if self.array.wheels == "separate":
+        if contacts is not None and contacts.separate:
             if self.friction.law == "viscous":
-                raise ScenarioError("array.wheels", "separate wheels push only along their own drive direction: use "
-                                    "the coulomb or stick_slip law (the paper's viscous law is for lumped cells)")
-            if self.control is not None or self.wheels.model == "motor":
-                raise ScenarioError("array.wheels", "separate wheels are supported with a constant [field] and ideal "
-                                    "wheels only, for now")
-            contacts = layout.separate_wheels(cells, self.array.wheel_offsets)
+                raise ScenarioError("array.wheels", "separate and omni wheels push only along their own drive "
+                                    "direction: use the coulomb or stick_slip law (the paper's viscous law is for "
+                                    "lumped cells)")
+        if contacts is not None and self.wheels.model == "motor":
+            raise ScenarioError("wheels.model", "motor-driven wheels are modelled for the paper's lumped cells "
+                                "without belts; use model = \"ideal\" with separate or omni wheels and belts")
+        if contacts is None:
+            contacts = cells
         if faults.free_wheels.any():  # a free wheel gives no traction: its contact loses that drive direction
-            free = faults.free_wheels[contacts.cell_of]
-            contacts = layout.CellArray(contacts.positions, contacts.drive_directions, contacts.pitch, contacts.shape,
-                                        contacts.wheel_active & ~free, contacts.cell_of)
+            w = contacts.wheel_of
+            free = (w >= 0) & faults.free_wheels[contacts.cell_of[:, None], np.maximum(w, 0)]
+            contacts = dataclasses.replace(contacts, wheel_active=contacts.wheel_active & ~free)
+        present, changes = self._reconfiguration(cells)
+        start_layer = contacts if present.all() else _present_layer(contacts, present[contacts.cell_of])
         specs, states = [], []
         for i, p in enumerate(self.parcels):
             where = f"parcels[{i}]"
@@ -499,7 +621,7 @@ class Scenario(_Strict):
             except ScenarioError as exc:
                 raise ScenarioError(f"{where}.{exc.field.rsplit('.', 1)[-1]}", exc.message) from None
             state = np.array([p.x, p.y, p.theta, p.vx, p.vy, p.omega], dtype=float)
-            _check_on_array(contacts, spec, state, where, p.name)
+            _check_on_array(start_layer, spec, state, where, p.name)
             specs.append(spec)
             states.append(state)
         polys = [s.world_polygon(st) for s, st in zip(specs, states)]
@@ -516,12 +638,13 @@ class Scenario(_Strict):
         for i, p in enumerate(self.parcels):
             if p.t_start > 0 and self.control is None:
                 raise ScenarioError(f"parcels[{i}].t_start", "parcels arriving later need [control] (a networked run)")
+            n_exits = len(self.control.exits) or sum(str(k) in marks for k in range(4)) if self.control else 0
             if p.destination is not None and self.control is not None and self.control.program == "sort" \
-                    and p.destination >= len(self.control.exits):
+                    and p.destination >= n_exits:
                 raise ScenarioError(f"parcels[{i}].destination", f"exit {p.destination} does not exist (the "
-                                    f"scenario has {len(self.control.exits)} exits, 0..{len(self.control.exits) - 1})")
+                                    f"scenario has {n_exits} exits, 0..{n_exits - 1})")
         control = None if self.control is None else _build_control(self.control, cells, sensors, specs, states,
-                                                                       faults)
+                                                                       faults, marks)
         if control is None and self.wheels.model == "motor":
             control = _field_control(cells, velocities, self.wheels.period)
         events, now = [], faults
@@ -529,7 +652,49 @@ class Scenario(_Strict):
             now = later(now, ev, cells.n, sensors.count, f"faults.events[{k}]")
             events.append((ev.t, now))
         return Setup(self, cells, velocities, LAWS[self.friction.law], specs, states, control, sensors, contacts,
-                     faults, events)
+                     faults, events, present, changes)
+
+    def _reconfiguration(self, cells: layout.CellArray) -> tuple[np.ndarray, list]:
+        """(cells present at the start, [(t, cells present from then on), ...] in time order), checked."""
+        r = self.reconfiguration
+        present = np.ones(cells.n, dtype=bool)
+        if not (r.absent or r.changes):
+            return present, []
+        c = self.control
+        if c is None or c.delivery != "ideal" or c.central or self.wheels.model == "motor":
+            raise ScenarioError("reconfiguration", "cells taken out and put in during a run need [control] with a "
+                                "distributed program (central = false), delivery = \"ideal\" and ideal wheels")
+
+        def ids(items, where):
+            for k, i in enumerate(items):
+                if i >= cells.n or cells.belts[i]:
+                    raise ScenarioError(f"{where}[{k}]", f"cell {i} is not a cell of the array (it has "
+                                        f"{int((~cells.belts).sum())} cells)")
+            return list(items)
+
+        present[ids(r.absent, "reconfiguration.absent")] = False
+        out, now = [], present.copy()
+        for k, ch in sorted(enumerate(r.changes), key=lambda e: e[1].t):
+            where = f"reconfiguration.changes[{k}]"
+            if ch.t >= self.duration:
+                raise ScenarioError(f"{where}.t", f"{ch.t} s is not before the end of the run ({self.duration} s)")
+            now = now.copy()
+            for j, i in enumerate(ids(ch.remove, f"{where}.remove")):
+                if not now[i]:
+                    raise ScenarioError(f"{where}.remove[{j}]", f"cell {i} is not in the array at {ch.t} s")
+                now[i] = False
+            for j, i in enumerate(ids(ch.add, f"{where}.add")):
+                if now[i]:
+                    raise ScenarioError(f"{where}.add[{j}]", f"cell {i} is already in the array at {ch.t} s")
+                now[i] = True
+            out.append((ch.t, now))
+        return present, out
+
+
+def _present_layer(contacts: layout.CellArray, keep: np.ndarray) -> layout.CellArray:
+    """The contacts in ``keep`` alone (to check where parcels start)."""
+    return layout.CellArray(contacts.positions[keep], contacts.drive_directions[keep], contacts.pitch, None,
+                            contacts.wheel_active[keep], contacts.cell_of[keep], contacts.wheel_of[keep])
 
 
 def _check_on_array(cells, spec, state, where, name):
@@ -547,12 +712,42 @@ def _check_on_array(cells, spec, state, where, name):
         raise ScenarioError(f"{where}.x", f"parcel {name!r} cannot rest where it starts: {exc}") from None
 
 
-def _build_array(a) -> layout.CellArray:
+def _build_array(a) -> tuple[layout.CellArray, layout.CellArray | None, dict]:
+    """The cell layer, the contact layer (None when it is the cell layer: the paper's lumped cells) and the map's
+    marks (entry / exit cells) of array table ``a``, belts included."""
+    if isinstance(a, MixedArray):
+        built = [_build_part(part) for part in a.parts]
+        cells, contacts = layout.combine([(c, t) for c, t, _ in built])
+        marks = {key: np.concatenate([m.get(key, np.zeros(c.n, bool)) for c, _, m in built])
+                 for key in sorted({key for _, _, m in built for key in m})}
+    else:
+        cells, contacts, marks = _build_part(a)
+    belts = [layout.Belt(b.start, b.end, b.width, b.speed, b.spacing or cells.pitch / 2) for b in a.belts]
+    if belts:
+        n = cells.n
+        cells, contacts = layout.with_belts(cells, cells if contacts is None else contacts, belts)
+        marks = {k: np.concatenate([m, np.zeros(cells.n - n, bool)]) for k, m in marks.items()}
+    return cells, contacts, marks
+
+
+def _build_part(a) -> tuple[layout.CellArray, layout.CellArray | None, dict]:
+    """Cells, contact layer (None: lumped) and marks of one array table, without its belts."""
+    marks = {}
     if isinstance(a, GridArray):
-        return layout.grid(a.nx, a.ny, a.pitch, a.origin, a.drive_angle)
-    if isinstance(a, RowArray):
-        return layout.row(a.n, a.pitch, a.origin, a.drive_angle)
-    return layout.from_points(a.points, a.pitch, a.drive_angle)
+        cells = layout.grid(a.nx, a.ny, a.pitch, a.origin, a.drive_angle)
+    elif isinstance(a, RowArray):
+        cells = layout.row(a.n, a.pitch, a.origin, a.drive_angle)
+    elif isinstance(a, HexArray):
+        cells = layout.hexagonal(a.nx, a.ny, a.pitch, a.origin, a.drive_angle)
+    elif isinstance(a, MapArray):
+        cells, marks = layout.from_map(a.map, a.pitch, a.origin, a.lattice, a.drive_angle)
+    else:
+        cells = layout.from_points(a.points, a.pitch, a.drive_angle)
+    if isinstance(a, HexArray) or getattr(a, "lattice", "square") == "hex":
+        return cells, layout.three_wheels(cells, a.wheel_radius), marks
+    if a.wheels == "separate":
+        return cells, layout.separate_wheels(cells, a.wheel_offsets), marks
+    return cells, None, marks
 
 
 def _build_field(f):
@@ -617,7 +812,7 @@ class ControlSetup:
     config: dict
 
 
-def _build_control(c: ControlSpec, cells: layout.CellArray, sensors, specs, states, faults) -> ControlSetup:
+def _build_control(c: ControlSpec, cells: layout.CellArray, sensors, specs, states, faults, marks) -> ControlSetup:
     from .control import PoseControl, Shuttle
     from .network.delivery import IdealRounds
     from .network.topology import from_layout
@@ -641,7 +836,7 @@ def _build_control(c: ControlSpec, cells: layout.CellArray, sensors, specs, stat
         program = Diffusion(c.alpha, max_age=0 if c.delivery == "ideal" else 20)
         return ControlSetup(program, topo, make_delivery, c.delivery, c.period, {"fixed": fixed, "speed": speed})
     if c.program == "sort":
-        return _build_sorter(c, cells, topo, make_delivery)
+        return _build_sorter(c, cells, topo, make_delivery, marks)
     if c.program == "pose":
         program = PoseControl(cells, sensors.points, specs, states, c.targets, gain=c.gain, max_speed=c.speed,
                               tolerance=c.tolerance, period=c.period, waypoints=c.waypoints,
@@ -661,27 +856,45 @@ def _inside(outline, cells: layout.CellArray, where: str) -> np.ndarray:
     return inside
 
 
-def _build_sorter(c: ControlSpec, cells: layout.CellArray, topo, make_delivery) -> ControlSetup:
+def _build_sorter(c: ControlSpec, cells: layout.CellArray, topo, make_delivery, marks) -> ControlSetup:
     from .sorting import Sorter
 
+    if np.any(cells.ports[~cells.belts] != 4):
+        raise ScenarioError("control.program", "the sorter runs on square lattices (four ports a cell)")
     exit_id = np.full(cells.n, -1, dtype=np.int64)
-    for k, outline in enumerate(c.exits):
-        inside = _inside(outline, cells, f"control.exits[{k}]")
-        exit_id[inside & (exit_id < 0)] = k
+    if c.exits:
+        for k, outline in enumerate(c.exits):
+            inside = _inside(outline, cells, f"control.exits[{k}]")
+            exit_id[inside & (exit_id < 0)] = k
+        n_exits = len(c.exits)
+    else:  # from the map
+        n_exits = 0
+        while str(n_exits) in marks:
+            exit_id[marks[str(n_exits)]] = n_exits
+            n_exits += 1
+        if n_exits == 0 or any(str(k) in marks for k in range(n_exits, 4)):
+            raise ScenarioError("array.map", "program 'sort' needs exits: mark them 0, 1, ... in order on the map, "
+                                "or give control.exits")
     exit_port = np.full(cells.n, -1, dtype=np.int64)
-    for k in range(len(c.exits)):
+    for k in range(n_exits):
         region = np.flatnonzero(exit_id == k)
         free = (~topo.connected[region]).sum(axis=0)  # sides of the region's cells with no neighbour, by port
+        where = f"control.exits[{k}]" if c.exits else f"array.map (exit {k})"
         if free.max() == 0:
-            raise ScenarioError(f"control.exits[{k}]", "an exit must reach the edge of the array (parcels leave "
+            raise ScenarioError(where, "an exit must reach the edge of the array (parcels leave "
                                 "through a side with no neighbour)")
         if np.sum(free == free.max()) > 1:
-            raise ScenarioError(f"control.exits[{k}]", "the way out is ambiguous (the exit touches two edges as much; "
+            raise ScenarioError(where, "the way out is ambiguous (the exit touches two edges as much; "
                                 "keep it off the corner)")
         exit_port[region] = int(np.argmax(free))  # the way out: the side most of its cells have open
     entry = np.zeros(cells.n, dtype=bool)
     for k, outline in enumerate(c.entries):
         entry |= _inside(outline, cells, f"control.entries[{k}]")
+    if not c.entries:
+        entry = marks.get("E", entry)
+        if not entry.any():
+            raise ScenarioError("array.map", "program 'sort' needs entries: mark entry cells E on the map, or give "
+                                "control.entries")
     config = {"exit": exit_id, "exit_port": exit_port, "entry": entry,
               "entry_no": np.arange(1, cells.n + 1, dtype=np.int64),  # installation numbers: unique vehicle ids
               "clearance": (c.gap + 1) * cells.pitch}  # the loader waits for this much room around a new parcel
@@ -710,6 +923,10 @@ class Setup:
     faults: object = None
     fault_events: list = dataclasses.field(default_factory=list)
     """(t, :class:`~virtual_vehicle.faults.Faults` from then on) for each fault event, in time order."""
+    present: np.ndarray | None = None
+    """(n,) cells installed at the start (None: all); see :class:`ReconfigurationSpec`."""
+    cell_changes: list = dataclasses.field(default_factory=list)
+    """(t, (n,) cells installed from then on) for each reconfiguration, in time order."""
 
     def plant(self):
         """A fresh :class:`~virtual_vehicle.plant.Plant` for this scenario's parcels on its contact layer."""
@@ -743,8 +960,8 @@ def _format_validation(exc: ValidationError) -> ScenarioError:
             else:
                 loc += ("." if loc else "") + str(part)
         # drop the discriminator tag pydantic adds to union locations
-        for tag in ("grid", "row", "points", "uniform", "inward", "reversed_end", "per_cell", "radial", "squeeze",
-                    "rotation", "twist", "regions"):
+        for tag in ("grid", "row", "points", "hex", "map", "mixed", "uniform", "inward", "reversed_end", "per_cell",
+                    "radial", "squeeze", "rotation", "twist", "regions"):
             loc = loc.replace(f".{tag}.", ".").removesuffix(f".{tag}")
         msg = err["msg"]
         if err["type"] == "extra_forbidden":

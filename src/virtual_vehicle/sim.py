@@ -7,6 +7,7 @@ resolves contact between parcels when it can.
 
 from __future__ import annotations
 
+import dataclasses
 import pickle
 import time
 from dataclasses import dataclass, field, replace
@@ -440,6 +441,23 @@ def resume(checkpoint: str | Path, progress: Callable[[float], None] | None = No
 _CHECKPOINT_MAGIC = b"virtual_vehicle checkpoint 1\n"
 
 
+def _reset_rows(state, fresh, rows: np.ndarray):
+    """``state`` (a program's per-cell arrays, nested in dicts, tuples or dataclasses) with the rows ``rows`` of every
+    per-cell array taken from ``fresh`` (the program's initial state)."""
+    if isinstance(state, dict):
+        return {k: _reset_rows(v, fresh[k], rows) for k, v in state.items()}
+    if isinstance(state, (list, tuple)):
+        return type(state)(_reset_rows(a, b, rows) for a, b in zip(state, fresh))
+    if dataclasses.is_dataclass(state) and not isinstance(state, type):
+        return replace(state, **{f.name: _reset_rows(getattr(state, f.name), getattr(fresh, f.name), rows)
+                                 for f in dataclasses.fields(state) if f.init})
+    if isinstance(state, np.ndarray) and state.ndim >= 1 and state.shape[0] == len(rows):
+        out = state.copy()
+        out[rows] = fresh[rows]
+        return out
+    return state
+
+
 class NetworkRun(_Job):
     """The state of a networked run between control ticks: everything needed to go on (picklable, so that a long
     run can be checkpointed and resumed bit for bit)."""
@@ -483,6 +501,11 @@ class NetworkRun(_Job):
         self.sensors = setup.sensors
         self.next_fault = 0
         self.injected: list[dict] = []
+        self.present = setup.present  # cells installed now (None: all, always)
+        self.next_change = 0
+        self.reconfigured: list[dict] = []
+        if self.present is not None and not self.present.all():
+            self._rewire()
 
     @property
     def done(self) -> bool:
@@ -503,17 +526,21 @@ class NetworkRun(_Job):
         t0 = k * period
         t1 = min(sc.duration, t0 + period)
         self._inject(t0)
+        self._reconfigure(t0)
         topo, cells = self.topology, setup.cells
         ys, active = self.ys, self.active
         self._admit(t0)
         on = self.on
         sensors = self.sensors.read([setup.specs[i] for i in on], [ys[i] for i in on], self.sensor_rng)
+        if self.present is not None:
+            sensors[~self.present] = 0  # a cell taken out senses nothing
         labelled = any(self.destinations[i] is not None for i in on)
         labels = _labels(setup, [ys[i] for i in on], [setup.specs[i] for i in on],
                          [self.destinations[i] for i in on]) if labelled else None
         inputs = CellInputs(t0, sensors, self.inbox, topo.connected, ctl.config, labels)
         self.state, outbox, wheels = ctl.program.step(self.state, inputs)
         command = np.where(topo.alive[:, None], np.asarray(wheels, dtype=float), 0.0)  # a dead cell does not drive
+        command = cells.belt_commands(command)  # plain belts run at their own speed
         if self.drives is None:
             wheels = command
         else:
@@ -523,6 +550,8 @@ class NetworkRun(_Job):
             wheels = self.faults.hold(wheels)  # stuck wheels (and those of dead cells) stay still
         dirs = cells.drive_directions
         velocities = wheels[:, 0:1] * dirs[:, 0] + wheels[:, 1:2] * dirs[:, 1]
+        if setup.contact_layer is not cells:  # separate or omni wheels, belts: each contact's own surface velocity
+            velocities = setup.contact_layer.contact_velocities(velocities)
         self.inbox, stats = self.delivery.exchange(outbox, t0, period)
         if sc.sensors.record:
             self.cell_log.append((t0, sensors.astype(bool), np.array(wheels, dtype=float), command.copy(),
@@ -561,13 +590,41 @@ class NetworkRun(_Job):
             t_event, faults = events[self.next_fault]
             self.next_fault += 1
             self.faults = faults
-            self.topology = from_layout(self.setup.cells).with_faults(
-                dead_cells=np.flatnonzero(faults.dead_cells), dead_links=faults.dead_links)
-            self.delivery.topology = self.topology
+            self._rewire()
             base = self.setup.sensors
             self.sensors = replace(base, stuck_on=base.stuck_on | faults.stuck_on,
                                    stuck_off=(base.stuck_off | faults.stuck_off) & ~(base.stuck_on | faults.stuck_on))
             self.injected.append({"t_s": t_event, "at_tick_s": t, **faults.summary()})
+
+    def _reconfigure(self, t: float) -> None:
+        """Take out and snap in the cells the scenario's changes due by ``t`` (s) name: from this tick on a removed
+        cell carries, drives, senses and says nothing; an added one starts its program afresh."""
+        changes = self.setup.cell_changes
+        while self.next_change < len(changes) and changes[self.next_change][0] <= t + 1e-9 * max(1.0, t):
+            t_change, present = changes[self.next_change]
+            self.next_change += 1
+            added = present & ~self.present
+            removed = self.present & ~present
+            self.present = present
+            self._rewire()
+            ctl = self.setup.control
+            fresh = ctl.program.init(self.topology.n, self.topology.ports, ctl.config)
+            self.state = _reset_rows(self.state, fresh, added)
+            self.reconfigured.append({"t_s": t_change, "at_tick_s": t, "added": np.flatnonzero(added).tolist(),
+                                      "removed": np.flatnonzero(removed).tolist()})
+
+    def _rewire(self) -> None:
+        """The topology, delivery model and plant after faults or a reconfiguration: dead and absent cells have no
+        links; absent cells carry nothing."""
+        from .network.topology import from_layout
+
+        dead = self.faults.dead_cells if self.faults is not None else np.zeros(self.setup.cells.n, dtype=bool)
+        links = self.faults.dead_links if self.faults is not None else ()
+        if self.present is not None:
+            dead = dead | ~self.present
+            self.plant.set_present(self.present[self.setup.contact_layer.cell_of])
+        self.topology = from_layout(self.setup.cells).with_faults(dead_cells=np.flatnonzero(dead), dead_links=links)
+        self.delivery.topology = self.topology
 
     def _admit(self, t: float) -> None:
         """Put on the array the parcels due by ``t``, first come first placed, while their place is free: no active
@@ -600,6 +657,8 @@ class NetworkRun(_Job):
         stats = {"network": record.totals(), "plant": plant_totals(self.plant)}
         if self.injected:
             stats["faults_injected"] = self.injected
+        if self.reconfigured:
+            stats["reconfigured"] = self.reconfigured
         return RunResult(setup, results, self.wall, stats,
                          record, CellLog.stack(self.cell_log) if setup.scenario.sensors.record and self.cell_log else None,
                          self.scenario_text)

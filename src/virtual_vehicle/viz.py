@@ -16,6 +16,7 @@ import numpy as np  # noqa: E402
 from matplotlib.patches import Polygon as PolygonPatch  # noqa: E402
 
 from .io import write_atomic  # noqa: E402
+from .layout import cell_outlines  # noqa: E402
 from .sim import RunResult  # noqa: E402
 
 
@@ -28,7 +29,7 @@ def plot_paths(result: RunResult, path: str | Path | None = None, title: str | N
     cells = setup.cells
     P = cells.positions
     fig, (ax, axt) = plt.subplots(1, 2, figsize=(12, 5.2), dpi=110, gridspec_kw={"width_ratios": [1.35, 1]})
-    ax.scatter(P[:, 0], P[:, 1], s=12, color="0.45", zorder=1, label="cells")
+    draw_cells(ax, setup)
     V = setup.velocities
     speed = np.hypot(V[:, 0], V[:, 1])
     if np.any(speed > 0):
@@ -81,6 +82,18 @@ def plot_paths(result: RunResult, path: str | Path | None = None, title: str | N
                fontsize=8, frameon=False)
     axt.grid(alpha=0.3)
     return _finish(fig, path)
+
+
+def draw_cells(ax, setup) -> None:
+    """Draw the cells of ``setup`` into ``ax``: a dot per cell, and each plain conveyor belt as a shaded outline."""
+    cells = setup.cells
+    P = cells.positions
+    belt = cells.belts
+    ax.scatter(P[~belt, 0], P[~belt, 1], s=12, color="0.45", zorder=1, label="cells")
+    outlines = cell_outlines(cells, setup.contact_layer)
+    for k, i in enumerate(np.flatnonzero(belt)):
+        ax.add_patch(PolygonPatch(outlines[i], closed=True, facecolor="0.9", edgecolor="0.5", hatch="//", lw=0.8,
+                                  zorder=0, label=None if k else "belt"))
 
 
 def plot_sorting(result: RunResult, path: str | Path | None = None):
@@ -235,6 +248,27 @@ def plot_force_field(cells, spec, velocities, law, heading: float, eqs=(), path:
     ax.set_ylabel("centre of mass y (m)")
     ax.set_title(title or f"force and torque on {spec.name} at heading {np.degrees(heading):.1f}°")
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=3, fontsize=8, frameon=False)
+    return _finish(fig, path)
+
+
+def plot_similarity(rows: list[dict], title: str, path: str | Path | None = None):
+    """Overlay the first parcel's dimensionless path of every member of a similarity family (rows of
+    :func:`~virtual_vehicle.scaling.similarity_study`): x / L and y / L against t / sqrt(L / g), one line style per
+    scale, labelled with its pitch (m) and parcel mass (kg). Similar runs draw one curve. Saves a PNG to ``path``
+    if given; returns the figure."""
+    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=110)
+    styles = ["-", "--", ":", "-."]
+    for k, r in enumerate(rows):
+        label = f"pitch {r['pitch_m']:.3g} m, mass {r['mass_kg']:.3g} kg"
+        ax.plot(r["tau"], r["states"][:, 0], styles[k % 4], color="tab:blue", lw=2.5 - 0.5 * (k % 4),
+                label=f"x/L, {label}")
+        ax.plot(r["tau"], r["states"][:, 1], styles[k % 4], color="tab:orange", lw=2.5 - 0.5 * (k % 4),
+                label=f"y/L, {label}")
+    ax.set_xlabel("t / sqrt(L / g)")
+    ax.set_ylabel("position / L")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="best")
     return _finish(fig, path)
 
 

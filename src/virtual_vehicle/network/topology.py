@@ -1,7 +1,8 @@
 """Who can talk to whom: each cell's ports and the neighbour on each (paper Section 2.3).
 
 A cell has one port per neighbour direction (4 on a square layout, east/north/west/south in the cell's own frame,
-counter-clockwise from the drive direction of wheel 0). A port with no neighbour, or whose link or neighbour is dead,
+counter-clockwise from the drive direction of wheel 0; 6 on a hexagonal one, every 60 degrees from it; none on a
+plain conveyor belt). An array mixing kinds has as many port columns as its cells have at most. A port with no neighbour, or whose link or neighbour is dead,
 is simply silent. No cell has an address: a cell knows only its ports, and ids here are the simulator's bookkeeping.
 """
 
@@ -67,10 +68,10 @@ def _cut(up: np.ndarray, topo: Topology, cell: int, port: int) -> None:
         up[j, topo.back_port[cell, port]] = False
 
 
-def from_layout(cells: CellArray, ports: int = 4, reach: float = 1.5) -> Topology:
-    """Neighbour links of ``cells``: on each of ``ports`` directions (evenly spaced, starting at the drive direction
-    of wheel 0), the nearest cell within ``reach`` pitches whose bearing is within half a sector of it; a link exists
-    only where the two cells choose each other.
+def from_layout(cells: CellArray, ports: int | None = None, reach: float = 1.5) -> Topology:
+    """Neighbour links of ``cells``: on each of a cell's ports (``cells.ports``, or ``ports`` for every cell;
+    evenly spaced, starting at the drive direction of wheel 0), the nearest cell within ``reach`` pitches whose
+    bearing is within half a sector of it; a link exists only where the two cells choose each other.
 
     >>> from virtual_vehicle.layout import grid
     >>> t = from_layout(grid(3, 2, 0.1))
@@ -78,23 +79,25 @@ def from_layout(cells: CellArray, ports: int = 4, reach: float = 1.5) -> Topolog
     ([1, 3, -1, -1], [5, -1, 3, 1])
     """
     n = cells.n
-    neighbor = np.full((n, ports), -1, dtype=np.int64)
-    best = np.full((n, ports), np.inf)
+    own = cells.ports if ports is None else np.full(n, int(ports), dtype=np.int64)
+    P = max(1, int(own.max()))
+    neighbor = np.full((n, P), -1, dtype=np.int64)
     pairs = cells.tree.query_pairs(reach * cells.pitch, output_type="ndarray")
     if len(pairs):
         i = np.concatenate([pairs[:, 0], pairs[:, 1]])
         j = np.concatenate([pairs[:, 1], pairs[:, 0]])
+        keep = (own[i] > 0) & (own[j] > 0)
+        i, j = i[keep], j[keep]
         d = cells.positions[j] - cells.positions[i]
         u = cells.drive_directions[i, 0]
         bearing = np.arctan2(u[:, 0] * d[:, 1] - u[:, 1] * d[:, 0], u[:, 0] * d[:, 0] + u[:, 1] * d[:, 1])
-        port = np.round(bearing / (2 * np.pi / ports)).astype(np.int64) % ports
+        port = np.round(bearing / (2 * np.pi / own[i])).astype(np.int64) % own[i]
         dist = np.hypot(d[:, 0], d[:, 1])
         order = np.lexsort((j, dist))  # nearest first; ties by id for determinism
-        for a, b, p, r in zip(i[order], j[order], port[order], dist[order]):
+        for a, b, p in zip(i[order], j[order], port[order]):
             if neighbor[a, p] < 0:
                 neighbor[a, p] = b
-                best[a, p] = r
-    back = np.full((n, ports), -1, dtype=np.int64)
+    back = np.full((n, P), -1, dtype=np.int64)
     for a, p in zip(*np.nonzero(neighbor >= 0)):
         b = neighbor[a, p]
         q = np.flatnonzero(neighbor[b] == a)
