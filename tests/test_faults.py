@@ -174,3 +174,20 @@ def test_a_cell_that_dies_mid_run_goes_silent_and_still_from_then_on(tmp_path):
 def test_bad_fault_events_are_named(name, event, message):
     with pytest.raises(ScenarioError, match=message):
         _inject(load_scenario(name)[0], **event).build()
+
+
+def test_a_parcel_passes_over_a_line_of_dead_cells_and_the_run_reports_it():
+    """Redundancy the other way: under a constant field a parcel is simply carried over broken cells. A dead cell
+    still carries weight and holds its wheels still, so under the viscous law (eq. 30) it brakes the parcel while
+    under it: the parcel arrives, later than on a healthy array."""
+    column = [j * 30 + 10 for j in range(30)]  # x = 1.0 m, every row
+    sc = _with_faults("crossing_30x30", dead_cells=column)
+    broken = run(sc.build())
+    healthy = run(load_scenario("crossing_30x30")[0].build())
+    end, clean = broken.parcels[0].trajectory.states[-1], healthy.parcels[0].trajectory.states[-1]
+    assert end[0] > 1.3 and broken.parcels[0].trajectory.status == "completed"  # passed over the dead column
+    assert clean[0] - end[0] > 1e-3  # held back while the dead cells were under it
+    row = broken.summary()["parcels"][0]
+    assert row["name"] == "carton" and row["status"] == "completed" and row["tipped_at_s"] is None
+    assert row["path_length_m"] > 0.8
+    assert broken.summary()["faults"]["dead_cells"] == column
