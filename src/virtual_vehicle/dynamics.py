@@ -595,7 +595,10 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     events: list[Event] = []
     t, y = float(t0), y0.copy()
     segments = nfev = 0
-    h = None
+    # First step: the whole interval, which the error control shrinks if it must (a few rejected trials for a long
+    # run). Within a piece the motion is smooth, so a short interval, as a control tick, is often one step, where
+    # the solver's own first-step guess took five.
+    h = t1 - t0
     try:
         piece = model.piece_at(y)
     except TippingError as exc:
@@ -610,7 +613,7 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             raise IntegrationError(f"more than {max_segments} support changes: events accumulate near t={t:.9g} s")
         seg = _Segment(model, piece, y_probe)
         g0 = seg.values(y_probe) > 0
-        first = None if h is None else min(h, t1 - t)
+        first = min(h, t1 - t)
         solver = DOP853(piece.rhs, t, y, t1, rtol=rtol, atol=atol, max_step=max_step, first_step=first)
         hit = False
         while solver.status == "running":
