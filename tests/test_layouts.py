@@ -254,3 +254,25 @@ def test_a_free_wheel_of_a_separate_wheel_cell_frees_only_that_wheel():
     assert active[18].tolist() == [False, False]  # wheel 0 of cell 9: no traction left
     assert active[19].tolist() == [True, False]  # wheel 1 of cell 9 still drives
     assert active.sum() == 2 * 64 - 1
+
+
+def test_cell_outlines_tile_the_floor_and_pictures_draw_belts_and_hexagons(tmp_path):
+    import shapely
+
+    from virtual_vehicle.viz import plot_paths
+
+    sc = _scenario({**MIXED, "belts": [{"start": [-1.0, 0.25], "end": [-0.08, 0.25], "width": 0.3, "speed": 0.2}]},
+                   {"kind": "uniform", "velocity": [0.2, 0.0]}, duration=0.2,
+                   parcels=[{"name": "box", "length": 0.3, "width": 0.25, "mass": 2.0, "mu": 0.5, "x": 0.3,
+                             "y": 0.25}])
+    setup = sc.build()
+    outlines = layout.cell_outlines(setup.cells, setup.contact_layer)
+    areas = np.array([shapely.Polygon(o).area for o in outlines])
+    np.testing.assert_allclose(areas[:48], 0.01)  # squares of side pitch
+    np.testing.assert_allclose(areas[48:104], np.sqrt(3) / 2 * 0.01)  # hexagons of apothem pitch / 2
+    np.testing.assert_allclose(areas[104], 0.92 * 0.3)  # the belt: its length by its width
+    hexes = shapely.union_all([shapely.Polygon(o) for o in outlines[48:104]])
+    assert hexes.area == pytest.approx(56 * np.sqrt(3) / 2 * 0.01)  # hexagons tile without overlap
+    fig = plot_paths(run(setup), tmp_path / "paths.png")
+    assert any(p.get_label() == "belt" for p in fig.axes[0].patches)
+    assert (tmp_path / "paths.png").stat().st_size > 10_000

@@ -157,7 +157,6 @@ def _scene(result: RunResult, data: FrameData, targets=None):
     setup = result.setup
     sc = setup.scenario
     cells = setup.cells
-    P = cells.positions
     pitch = cells.pitch
     xmin, ymin, xmax, ymax = cells.bounds
     for k, pr in enumerate(result.parcels):  # parcels may stick out of the array (entering, leaving)

@@ -583,8 +583,6 @@ class NetworkRun(_Job):
     def _inject(self, t: float) -> None:
         """Break what the scenario's fault events due by ``t`` (s) break: from this tick on, dead cells are silent
         and still, stuck wheels held, dead links cut, stuck sensors stuck."""
-        from .network.topology import from_layout
-
         events = self.setup.fault_events
         while self.next_fault < len(events) and events[self.next_fault][0] <= t + 1e-9 * max(1.0, t):
             t_event, faults = events[self.next_fault]
