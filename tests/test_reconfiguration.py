@@ -135,3 +135,14 @@ def test_reconfiguration_needs_distributed_control():
                                     "reconfiguration": ReconfigurationSpec(absent=[3])})
     with pytest.raises(ScenarioError, match="central = false"):
         central.build()
+
+
+def test_a_checkpoint_taken_while_cells_are_out_resumes_to_the_same_run(tmp_path):
+    from virtual_vehicle.sim import resume
+
+    setup = _reconfigured(8.0, changes=[CellChange(t=2.0, remove=WALL), CellChange(t=6.0, add=WALL)]).build()
+    whole = run(setup, checkpoint=tmp_path / "c.ckpt", checkpoint_every=4.0)  # the last checkpoint: wall out
+    again = resume(tmp_path / "c.ckpt")
+    assert again.summary()["reconfigured"] == whole.summary()["reconfigured"]
+    for a, b in zip(whole.parcels, again.parcels):
+        np.testing.assert_array_equal(a.trajectory.states, b.trajectory.states)
