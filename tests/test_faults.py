@@ -169,7 +169,6 @@ def test_a_cell_that_dies_mid_run_goes_silent_and_still_from_then_on(tmp_path):
     ("sorting_junction", {"t": 1.0, "dead_cells": [9999]}, r"faults\.events\[0\]\.dead_cells\[0\]"),
     ("sorting_junction", {"t": 1.0, "stuck_on": [[0, 7]]}, "no sensor 7"),
     ("crossing_30x30", {"t": 1.0, "dead_cells": [1]}, "need \\[control\\]"),
-    ("prototype_18_network", {"t": 1.0, "dead_cells": [1]}, "ideal"),
 ])
 def test_bad_fault_events_are_named(name, event, message):
     with pytest.raises(ScenarioError, match=message):
@@ -191,3 +190,25 @@ def test_a_parcel_passes_over_a_line_of_dead_cells_and_the_run_reports_it():
     assert row["name"] == "carton" and row["status"] == "completed" and row["tipped_at_s"] is None
     assert row["path_length_m"] > 0.8
     assert broken.summary()["faults"]["dead_cells"] == column
+
+
+def test_a_cell_dies_mid_run_over_the_wire_model():
+    """Under the paper's RS232 hardware a cell that dies loses its queue and its transfers; its neighbours' sentences
+    to it time out and are dropped; the rest of the array goes on talking."""
+    sc, _ = load_scenario("prototype_18_network")
+    dead = 8  # middle row
+    sc = _inject(sc.model_copy(update={"duration": 3.0, "sensors": sc.sensors.model_copy(update={"record": True})}),
+                 t=1.0, dead_cells=[dead])
+    res = run(sc.build())
+    log = res.cell_log
+    before, after = log.t < 1.0 - 1e-9, log.t >= 1.0 - 1e-9
+    assert log.sent[before, dead].sum() > 0 and log.received[before, dead].sum() > 0
+    assert log.sent[after, dead].sum() == 0 and log.received[after, dead].sum() == 0
+    assert np.all(log.wheels[after, dead] == 0)
+    alive = np.setdiff1d(np.arange(18), [dead])
+    assert log.received[after][:, alive].sum() > 0
+    net = res.network.per_tick
+    t_net = net["t"]
+    rate = [net["dropped"][m].sum() / m.sum() for m in (t_net < 1.0 - 1e-9, t_net >= 1.0 - 1e-9)]
+    assert rate[1] > rate[0]  # sentences for the dead cell give up
+    assert res.summary()["faults_injected"][0]["dead_cells"] == [dead]

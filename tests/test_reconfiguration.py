@@ -146,3 +146,18 @@ def test_a_checkpoint_taken_while_cells_are_out_resumes_to_the_same_run(tmp_path
     assert again.summary()["reconfigured"] == whole.summary()["reconfigured"]
     for a, b in zip(whole.parcels, again.parcels):
         np.testing.assert_array_equal(a.trajectory.states, b.trajectory.states)
+
+
+def test_cells_leave_and_return_over_the_wire_model():
+    sc, _ = load_scenario("prototype_18_network")
+    cell = 9
+    sc = sc.model_copy(update={"duration": 3.0, "sensors": sc.sensors.model_copy(update={"record": True}),
+                               "reconfiguration": ReconfigurationSpec(changes=[CellChange(t=1.0, remove=[cell]),
+                                                                               CellChange(t=2.0, add=[cell])])})
+    res = run(sc.build())
+    log = res.cell_log
+    out = (log.t >= 1.0 - 1e-9) & (log.t < 2.0 - 1e-9)
+    back = log.t >= 2.0 - 1e-9
+    assert log.sent[out][:, cell].sum() == 0 and log.received[out][:, cell].sum() == 0
+    assert log.sent[back][:, cell].sum() > 0 and log.received[back][:, cell].sum() > 0  # polling again
+    assert [c["removed"] for c in res.summary()["reconfigured"]] == [[cell], []]

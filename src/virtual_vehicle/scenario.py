@@ -423,7 +423,8 @@ class FaultSpec(_Strict):
     ``dead_link_rate`` (per link) and ``stuck_sensor_rate`` (per sensor; stuck on or off with equal chance), from
     ``seed``. Dead links can also be listed as ``[control] dead_links``; stuck sensors as ``[sensors] stuck_on`` /
     ``stuck_off``. ``events`` ([[faults.events]] tables, :class:`FaultEvent`) inject faults at given times of a
-    networked run with ideal delivery."""
+    networked run (either delivery model: under the wire model a dying cell loses its queued sentences and
+    transfers in progress over a cut link are broken off)."""
 
     dead_cells: list[Annotated[int, Field(ge=0)]] = []
     stuck_wheels: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=1)]]] = []
@@ -452,7 +453,7 @@ class ReconfigurationSpec(_Strict):
     site a cell may ever occupy); ``changes`` ([[reconfiguration.changes]] tables, :class:`CellChange`) remove
     and add cells at given times. An absent cell carries nothing, drives nothing, senses nothing and has no links;
     a cell snapped in starts its program from scratch (as a new cell would) and its neighbours' programs
-    re-converge. Distributed programs with ideal delivery and ideal wheels; belts stay where they are."""
+    re-converge. Distributed programs (either delivery model) and ideal wheels; belts stay where they are."""
 
     absent: list[Annotated[int, Field(ge=0)]] = []
     changes: list[CellChange] = []
@@ -576,10 +577,9 @@ class Scenario(_Strict):
                                 "three omni wheels take only whole-cell faults (dead_cells) so far")
         velocities = faults.hold_velocities(velocities, cells.drive_directions)
         if self.faults.events:
-            if self.control is None or self.control.delivery != "ideal":
-                raise ScenarioError("faults.events", "faults injected during a run need [control] with delivery = "
-                                    "\"ideal\" (constant fields have no ticks to inject them at; the wire model's "
-                                    "links in flight are not cut mid-run yet)")
+            if self.control is None:
+                raise ScenarioError("faults.events", "faults injected during a run need [control] (constant fields "
+                                    "have no ticks to inject them at)")
             for k, ev in enumerate(self.faults.events):
                 if ev.t >= self.duration:
                     raise ScenarioError(f"faults.events[{k}].t", f"{ev.t} s is not before the end of the run "
@@ -661,9 +661,9 @@ class Scenario(_Strict):
         if not (r.absent or r.changes):
             return present, []
         c = self.control
-        if c is None or c.delivery != "ideal" or c.central or self.wheels.model == "motor":
+        if c is None or c.central or self.wheels.model == "motor":
             raise ScenarioError("reconfiguration", "cells taken out and put in during a run need [control] with a "
-                                "distributed program (central = false), delivery = \"ideal\" and ideal wheels")
+                                "distributed program (central = false) and ideal wheels")
 
         def ids(items, where):
             for k, i in enumerate(items):

@@ -622,7 +622,7 @@ class NetworkRun(_Job):
             dead = dead | ~self.present
             self.plant.set_present(self.present[self.setup.contact_layer.cell_of])
         self.topology = from_layout(self.setup.cells).with_faults(dead_cells=np.flatnonzero(dead), dead_links=links)
-        self.delivery.topology = self.topology
+        self.delivery.set_topology(self.topology)
 
     def _admit(self, t: float) -> None:
         """Put on the array the parcels due by ``t``, first come first placed, while their place is free: no active

@@ -49,6 +49,9 @@ class Delivery(Protocol):
         """Carry the sentences of ``outbox`` (sent at ``t``, s) over the links for one tick of ``period`` s; returns the
         inbox the cells read at the next tick and the tick's traffic statistics."""
 
+    def set_topology(self, topology: Topology) -> None:
+        """From now on carry sentences over ``topology`` (cells died, were taken out or snapped in, links cut)."""
+
 
 class IdealRounds:
     """Every sentence sent on a connected port arrives at the next tick; ``loss_rate`` drops each independently.
@@ -62,6 +65,10 @@ class IdealRounds:
         self.topology = topology
         self.loss_rate = loss_rate
         self.rng = np.random.default_rng(seed)
+
+    def set_topology(self, topology: Topology) -> None:
+        """From the next exchange on, deliver over ``topology`` (see :class:`Delivery`)."""
+        self.topology = topology
 
     def exchange(self, outbox: Mailbox, t: float, period: float) -> tuple[Mailbox, TickStats]:
         """Every sentence on a connected port arrives at the next tick (each dropped with ``loss_rate``); see

@@ -137,6 +137,38 @@ class WireLevel:
                                  "queued": sum(len(q) for qs in self.queues for q in qs)})
         return self.inbox, stats
 
+    def set_topology(self, topology: Topology) -> None:
+        """Cells died, were taken out or snapped in, links were cut (see
+        :class:`~virtual_vehicle.network.delivery.Delivery`), now. A cell that goes loses what it had queued (counted
+        as dropped) and any transfer it was part of is broken off (the sender keeps its sentence and tries again); a
+        transfer over a link that is cut likewise; a cell that comes starts polling with empty queues. Sentences
+        queued for a port whose link is gone time out and are dropped as for any silent neighbour."""
+        old, t = self.topology, self.now
+        self.topology = topology
+        P = topology.ports
+        going = np.flatnonzero(old.alive & ~topology.alive)
+        coming = np.flatnonzero(~old.alive & topology.alive)
+        broken = set()
+        for i in np.flatnonzero(self.mode == XFER):
+            q = self.target[i]
+            if q < 0:
+                continue  # a receiver: found from its sender
+            j = old.neighbor[i, q]
+            if not (topology.alive[i] and topology.alive[j] and topology.link_up[i, q]):
+                broken.update((int(i), int(j)))
+        for i in going:
+            self.dropped += sum(len(queue) for queue in self.queues[i])
+            self.queues[i] = [deque() for _ in range(P)]
+            self.target[i] = -1
+            self._set_mode(i, DEAD, t)
+        for i in sorted(broken - set(going.tolist())):
+            self.target[i] = -1
+            self._start_polling(i, t, self.p0[i])
+        for i in coming:
+            self.queues[i] = [deque() for _ in range(P)]
+            self.target[i] = -1
+            self._start_polling(i, t, 0)
+
     # ------------------------------------------------------------------ internals
     def _reset_tick(self, n, P):
         self.sent = np.zeros(n, dtype=np.int64)
