@@ -276,3 +276,17 @@ def test_cell_outlines_tile_the_floor_and_pictures_draw_belts_and_hexagons(tmp_p
     fig = plot_paths(run(setup), tmp_path / "paths.png")
     assert any(p.get_label() == "belt" for p in fig.axes[0].patches)
     assert (tmp_path / "paths.png").stat().st_size > 10_000
+
+
+def test_the_hybrid_junction_sorts_from_a_feed_belt_onto_exit_belts():
+    """The bundled hybrid hall: a plain belt feeds the junction, exit lanes hand parcels to plain belts. A parcel
+    is delivered when its lane hands it over (it then rides the belt to its end and falls off, which is no loss)."""
+    sc, _ = load_scenario("hybrid_junction")
+    res = run(sc.model_copy(update={"duration": 26.0}).build())
+    summary = res.summary()
+    so = summary["sorting"]
+    assert so["correct"] >= 4 and so["misrouted"] == 0 and so["lost"] == 0 and so["collisions"] == 0
+    right, top = res.setup.cells.positions[~res.setup.cells.belts].max(axis=0)
+    handed_over = [p for p, pr in zip(summary["parcels"], res.parcels)  # now beyond the cells, on an exit belt
+                   if pr.trajectory.states[-1, 0] > right + 0.1 or pr.trajectory.states[-1, 1] > top + 0.1]
+    assert len(handed_over) >= 4 and all(p["outcome"] == "delivered" and p["correct"] for p in handed_over)

@@ -141,8 +141,8 @@ def _report(result, out_dir: Path, plot: bool, text: str | None, formats: tuple[
         note = (f"tipped at t={p['tipped_at_s']:.4g} s" if p["tipped_at_s"] is not None else
                 "never put on (its place stayed taken)" if p["status"] == "waiting" else "on the array")
         if p.get("outcome") == "delivered":
-            note = f"left through exit {p['exit']} at t={p['tipped_at_s']:.4g} s" + ("" if p["correct"] else
-                                                                                      " (wrong exit)")
+            left = p["entered_at_s"] + p["delivery_time_s"]
+            note = f"left through exit {p['exit']} at t={left:.4g} s" + ("" if p["correct"] else " (wrong exit)")
         out.print(f"  {p['name']}: end x={end['x']:.4f} m, y={end['y']:.4f} m, theta={end['theta']:.4f} rad, "
                   f"{p['support_changes']} support changes, {note}")
         if "final_error_mm" in p:

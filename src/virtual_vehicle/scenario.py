@@ -474,10 +474,10 @@ class ParcelEntry(_Strict):
     width: Pos | None = None
     vertices: Annotated[list[Point], Field(min_length=3, max_length=1000)] | None = None
     com: Point | None = None
-    mass: Pos
-    mu: Pos
-    mu_static: Pos | None = None
-    inertia: Pos | None = None
+    mass: Annotated[float, Field(gt=0, le=1e7)]  # kg: up to 10 000 t (box cars on truck tyres, paper Section 1)
+    mu: Annotated[float, Field(gt=0, le=1e6)]
+    mu_static: Annotated[float, Field(gt=0, le=1e6)] | None = None
+    inertia: Annotated[float, Field(gt=0, le=1e15)] | None = None
     x: Coord
     y: Coord
     theta: Annotated[float, Field(ge=-1e6, le=1e6)] = 0.0

@@ -17,21 +17,34 @@ def sorting_report(result) -> dict:
     ``"waiting"``: never put on (its place at the entry never came free). Delivery time runs from being put on the
     array to leaving it. ``collisions`` counts pairs of parcels that started pushing each other (must be 0).
     ``throughput_per_hour`` counts correct deliveries.
+
+    With plain conveyor belts, a parcel leaves the array when it last rests on no cell of the array (only on belts,
+    or on nothing), judged at the trajectory's samples: handed to an exit belt by an exit lane, it is delivered
+    there, whether or not it later falls off the belt's far end.
     """
     setup = result.setup
     sc = setup.scenario
     cells = setup.cells
     exit_id = np.asarray(setup.control.config["exit"])
     exit_cells = np.flatnonzero(exit_id >= 0)
+    belts = cells.belts.any()
     rows = []
     for pr, entry in zip(result.parcels, sc.parcels):
         tr = pr.trajectory
         row = {"name": pr.spec.name, "destination": entry.destination, "due_s": entry.t_start,
                "entered_at_s": pr.entered_at, "outcome": "on_array", "exit": None, "correct": False,
                "delivery_time_s": None, "collisions": sum(1 for e in tr.events if e.kind == "contact")}
+        left = _left_the_cells(setup, pr) if belts and pr.entered_at is not None else None
         if pr.entered_at is None:
             row["outcome"] = "waiting"
-        elif tr.status == "tipped":
+        elif left is not None:
+            t_left, k = left
+            if k >= 0:
+                row.update(outcome="delivered", exit=k, delivery_time_s=float(t_left - pr.entered_at))
+                row["correct"] = row["exit"] == entry.destination
+            else:
+                row["outcome"] = "lost"
+        elif tr.status == "tipped" and not belts:
             d = np.hypot(*(cells.positions[exit_cells] - tr.states[-1, :2]).T)
             k = int(np.argmin(d)) if len(d) else -1
             if k >= 0 and d[k] <= 1.5 * cells.pitch:
@@ -56,6 +69,27 @@ def sorting_report(result) -> dict:
         "delivery_time_max_s": float(np.max(times)) if times else None,
         "entry_delay_mean_s": float(np.mean(delays)) if delays else None,
     }
+
+
+def _left_the_cells(setup, pr):
+    """(time s, exit) at which parcel result ``pr`` last came off the array's cells (resting on belts only, or
+    tipped), judged at its trajectory's samples: the exit is that of the last cells it rested on (-1 if none of them
+    belongs to an exit lane). None if it is still on the cells at the end."""
+    from .parcel import supporting_cells
+
+    layer = setup.contact_layer
+    exit_of = np.where(setup.cells.belts, -2, np.asarray(setup.control.config["exit"]))[layer.cell_of]
+    tr = pr.trajectory
+    last, under = None, None
+    for k, y in enumerate(tr.states):
+        ids = exit_of[supporting_cells(pr.spec, y, layer.positions, layer.tree)]
+        on_cells = ids[ids > -2]
+        if len(on_cells) and not (tr.status == "tipped" and k == len(tr.states) - 1):
+            last, under = k, on_cells
+    if last is None or last == len(tr.states) - 1:
+        return None
+    lanes = under[under >= 0]
+    return float(tr.times[last + 1]), int(np.bincount(lanes).argmax()) if len(lanes) else -1
 
 
 def compare_sorting(scenario, progress=None) -> dict:

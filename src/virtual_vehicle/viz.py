@@ -84,12 +84,13 @@ def plot_paths(result: RunResult, path: str | Path | None = None, title: str | N
     return _finish(fig, path)
 
 
-def draw_cells(ax, setup) -> None:
-    """Draw the cells of ``setup`` into ``ax``: a dot per cell, and each plain conveyor belt as a shaded outline."""
+def draw_cells(ax, setup, size: float = 12, color: str = "0.45", label: str | None = "cells") -> None:
+    """Draw the cells of ``setup`` into ``ax``: a dot per cell (``size`` points^2, ``color``, legend ``label``), and
+    each plain conveyor belt as a hatched outline."""
     cells = setup.cells
     P = cells.positions
     belt = cells.belts
-    ax.scatter(P[~belt, 0], P[~belt, 1], s=12, color="0.45", zorder=1, label="cells")
+    ax.scatter(P[~belt, 0], P[~belt, 1], s=size, color=color, zorder=1, label=label)
     outlines = cell_outlines(cells, setup.contact_layer)
     for k, i in enumerate(np.flatnonzero(belt)):
         ax.add_patch(PolygonPatch(outlines[i], closed=True, facecolor="0.9", edgecolor="0.5", hatch="//", lw=0.8,
@@ -110,7 +111,7 @@ def plot_sorting(result: RunResult, path: str | Path | None = None):
     report = sorting_report(result)
     fig, (ax, axt) = plt.subplots(1, 2, figsize=(13, 5.0), dpi=110, gridspec_kw={"width_ratios": [1.5, 1]})
     colors = ["tab:blue", "tab:orange", "tab:green", "tab:purple"]
-    ax.scatter(P[:, 0], P[:, 1], s=8, color="0.75", zorder=1)
+    draw_cells(ax, setup, size=8, color="0.75", label=None)
     ax.scatter(P[cfg["entry"], 0], P[cfg["entry"], 1], s=60, marker="s", color="0.55", zorder=1, label="entry")
     exits = np.asarray(cfg["exit"])
     for k in range(exits.max() + 1):
