@@ -290,3 +290,12 @@ def test_the_hybrid_junction_sorts_from_a_feed_belt_onto_exit_belts():
     handed_over = [p for p, pr in zip(summary["parcels"], res.parcels)  # now beyond the cells, on an exit belt
                    if pr.trajectory.states[-1, 0] > right + 0.1 or pr.trajectory.states[-1, 1] > top + 0.1]
     assert len(handed_over) >= 4 and all(p["outcome"] == "delivered" and p["correct"] for p in handed_over)
+
+
+def test_a_parcel_that_falls_off_the_feed_belt_before_the_cells_is_lost():
+    sc, _ = load_scenario("hybrid_junction")
+    feed = sc.array.belts[0].model_copy(update={"speed": -0.3})  # run the feed backwards: off its far end
+    array = sc.array.model_copy(update={"belts": [feed, *sc.array.belts[1:]]})
+    res = run(sc.model_copy(update={"duration": 3.0, "array": array, "parcels": sc.parcels[:1]}).build())
+    assert res.parcels[0].trajectory.status == "tipped"
+    assert res.summary()["sorting"]["lost"] == 1

@@ -53,6 +53,8 @@ def sorting_report(result) -> dict:
                 row["correct"] = row["exit"] == entry.destination
             else:
                 row["outcome"] = "lost"
+        elif tr.status == "tipped":  # fell off a belt without ever reaching the cells
+            row["outcome"] = "lost"
         rows.append(row)
     times = [r["delivery_time_s"] for r in rows if r["delivery_time_s"] is not None]
     delays = [r["entered_at_s"] - r["due_s"] for r in rows if r["entered_at_s"] is not None]
