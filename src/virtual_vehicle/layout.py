@@ -228,6 +228,15 @@ def _one_wheel_contacts(cells: CellArray, pos: np.ndarray, dirs: np.ndarray, k: 
     return CellArray(pos, dirs, cells.pitch, None, active, np.repeat(np.arange(n), k), wheel_of)
 
 
+def _sites(i, j, pitch: float, hexagonal: bool):
+    """x, y (m) of lattice site column ``i``, row ``j``: square, or hexagonal (odd rows shifted by half a pitch, rows
+    pitch sqrt(3)/2 apart, so that every neighbour is a pitch away)."""
+    i, j = np.asarray(i), np.asarray(j)
+    if not hexagonal:
+        return i * pitch, j * pitch
+    return (i + 0.5 * (j % 2)) * pitch, j * pitch * np.sqrt(3) / 2
+
+
 def hexagonal(nx: int, ny: int, pitch: float, origin: tuple[float, float] = (0.0, 0.0),
               drive_angle: float = 0.0) -> CellArray:
     """A hexagonal lattice of ``ny`` rows of ``nx`` cells, neighbours ``pitch`` (m) apart: rows ``pitch sqrt(3)/2``
@@ -242,9 +251,8 @@ def hexagonal(nx: int, ny: int, pitch: float, origin: tuple[float, float] = (0.0
     if nx < 1 or ny < 1:
         raise ScenarioError("array.nx", f"a lattice needs at least one column and one row, got {nx} x {ny}")
     ii, jj = np.meshgrid(np.arange(nx), np.arange(ny))
-    x = (ii + 0.5 * (jj % 2)) * pitch
-    y = jj * pitch * np.sqrt(3) / 2
-    pos = np.column_stack([x.ravel(), y.ravel()]) + np.asarray(origin, dtype=float)
+    x, y = _sites(ii.ravel(), jj.ravel(), pitch, hexagonal=True)
+    pos = np.column_stack([x, y]) + np.asarray(origin, dtype=float)
     return CellArray(pos, _drive_directions(len(pos), drive_angle), float(pitch), ports=np.full(len(pos), 6))
 
 
@@ -289,8 +297,7 @@ def with_belts(cells: CellArray, contacts: CellArray, belts, where: str = "array
     edges. A belt must not cover a cell of the array. Returns the new (cells, contacts)."""
     if not belts:
         return cells, contacts
-    pos, dirs, speed = [], [], []
-    c_pos, c_dirs, c_of = [], [], []
+    pos, dirs, speed, c_pos, c_dirs, c_of = [], [], [], [], [], []
     for k, b in enumerate(belts):
         a, e = np.asarray(b.start, dtype=float), np.asarray(b.end, dtype=float)
         length = float(np.hypot(*(e - a)))
@@ -313,17 +320,12 @@ def with_belts(cells: CellArray, contacts: CellArray, belts, where: str = "array
         speed.append(b.speed)
         c_pos.append(points)
         c_dirs.append(np.broadcast_to([u, v], (len(points), 2, 2)))
-        c_of.append(np.full(len(points), cells.n + k))
-    m = sum(len(p) for p in c_pos)
-    new_cells = CellArray(np.vstack([cells.positions, pos]), np.concatenate([cells.drive_directions, dirs]),
-                          cells.pitch, None, None, None, None, np.concatenate([cells.ports, np.zeros(len(belts), int)]),
-                          np.concatenate([cells.belt_speed, speed]))
-    new_contacts = CellArray(np.vstack([contacts.positions, *c_pos]),
-                             np.concatenate([contacts.drive_directions, *c_dirs]), contacts.pitch, None,
-                             np.concatenate([contacts.wheel_active, np.ones((m, 2), bool)]),
-                             np.concatenate([contacts.cell_of, *c_of]),
-                             np.concatenate([contacts.wheel_of, np.tile([0, 1], (m, 1))]))
-    return new_cells, new_contacts
+        c_of.append(np.full(len(points), k))
+    n_b = len(belts)
+    belt_cells = CellArray(np.array(pos), np.array(dirs), cells.pitch, ports=np.zeros(n_b, int),
+                           belt_speed=np.array(speed, dtype=float))
+    belt_contacts = CellArray(np.vstack(c_pos), np.concatenate(c_dirs), cells.pitch, cell_of=np.concatenate(c_of))
+    return combine([(cells, contacts), (belt_cells, belt_contacts)], where)
 
 
 def combine(parts, where: str = "array.parts") -> tuple[CellArray, CellArray | None]:
@@ -379,7 +381,7 @@ def from_map(text: str, pitch: float, origin: tuple[float, float] = (0.0, 0.0), 
         lines.pop(0)
     while lines and not lines[-1].strip():
         lines.pop()
-    xs, ys, chars = [], [], []
+    cols, rows, chars = [], [], []
     for j, line in enumerate(reversed(lines)):
         for i, ch in enumerate(line.rstrip()):
             if ch in MAP_HOLES:
@@ -387,13 +389,12 @@ def from_map(text: str, pitch: float, origin: tuple[float, float] = (0.0, 0.0), 
             if ch not in MAP_CELLS:
                 raise ScenarioError(where, f"unknown character {ch!r} on line {len(lines) - j}, column {i + 1} "
                                     f"(cells: {MAP_CELLS!r}; no cell: space or '.')")
-            shift = 0.5 * (j % 2) if lattice == "hex" else 0.0
-            xs.append((i + shift) * pitch)
-            ys.append(j * pitch * (np.sqrt(3) / 2 if lattice == "hex" else 1.0))
+            cols.append(i)
+            rows.append(j)
             chars.append(ch)
     if not chars:
         raise ScenarioError(where, "the map has no cells")
-    pos = np.column_stack([xs, ys]) + np.asarray(origin, dtype=float)
+    pos = np.column_stack(_sites(cols, rows, pitch, lattice == "hex")) + np.asarray(origin, dtype=float)
     chars = np.array(chars)
     ports = np.full(len(pos), 6 if lattice == "hex" else 4)
     cells = CellArray(pos, _drive_directions(len(pos), drive_angle), float(pitch), ports=ports)

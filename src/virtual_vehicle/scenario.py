@@ -609,7 +609,7 @@ class Scenario(_Strict):
             free = (w >= 0) & faults.free_wheels[contacts.cell_of[:, None], np.maximum(w, 0)]
             contacts = dataclasses.replace(contacts, wheel_active=contacts.wheel_active & ~free)
         present, changes = self._reconfiguration(cells)
-        start_layer = contacts if present.all() else _present_layer(contacts, present[contacts.cell_of])
+        start_layer = contacts if present is None else _present_layer(contacts, present[contacts.cell_of])
         specs, states = [], []
         for i, p in enumerate(self.parcels):
             where = f"parcels[{i}]"
@@ -638,13 +638,14 @@ class Scenario(_Strict):
         for i, p in enumerate(self.parcels):
             if p.t_start > 0 and self.control is None:
                 raise ScenarioError(f"parcels[{i}].t_start", "parcels arriving later need [control] (a networked run)")
-            n_exits = len(self.control.exits) or sum(str(k) in marks for k in range(4)) if self.control else 0
-            if p.destination is not None and self.control is not None and self.control.program == "sort" \
-                    and p.destination >= n_exits:
-                raise ScenarioError(f"parcels[{i}].destination", f"exit {p.destination} does not exist (the "
-                                    f"scenario has {n_exits} exits, 0..{n_exits - 1})")
         control = None if self.control is None else _build_control(self.control, cells, sensors, specs, states,
                                                                        faults, marks)
+        if control is not None and self.control.program == "sort":
+            n_exits = int(control.config["exit"].max()) + 1
+            for i, p in enumerate(self.parcels):
+                if p.destination is not None and p.destination >= n_exits:
+                    raise ScenarioError(f"parcels[{i}].destination", f"exit {p.destination} does not exist (the "
+                                        f"scenario has {n_exits} exits, 0..{n_exits - 1})")
         if control is None and self.wheels.model == "motor":
             control = _field_control(cells, velocities, self.wheels.period)
         events, now = [], faults
@@ -655,11 +656,12 @@ class Scenario(_Strict):
                      faults, events, present, changes)
 
     def _reconfiguration(self, cells: layout.CellArray) -> tuple[np.ndarray, list]:
-        """(cells present at the start, [(t, cells present from then on), ...] in time order), checked."""
+        """(cells present at the start, [(t, cells present from then on), ...] in time order), checked; (None, [])
+        for an array that stays as it is."""
         r = self.reconfiguration
-        present = np.ones(cells.n, dtype=bool)
         if not (r.absent or r.changes):
-            return present, []
+            return None, []
+        present = np.ones(cells.n, dtype=bool)
         c = self.control
         if c is None or c.central or self.wheels.model == "motor":
             raise ScenarioError("reconfiguration", "cells taken out and put in during a run need [control] with a "
