@@ -299,3 +299,11 @@ def test_a_parcel_that_falls_off_the_feed_belt_before_the_cells_is_lost():
     res = run(sc.model_copy(update={"duration": 3.0, "array": array, "parcels": sc.parcels[:1]}).build())
     assert res.parcels[0].trajectory.status == "tipped"
     assert res.summary()["sorting"]["lost"] == 1
+
+
+def test_a_destination_beyond_the_maps_exits_is_named():
+    parcels = [{"name": "box", "length": 0.15, "width": 0.15, "mass": 1.0, "mu": 0.5, "x": 0.1, "y": 0.25,
+                "destination": 1}]
+    with pytest.raises(ScenarioError, match=r"parcels\[0\]\.destination.*1 exits, 0\.\.0"):
+        _scenario({"kind": "map", "pitch": 0.1, "map": "oooooo\nEEooo0\nEEooo0\noooooo"}, control={"program": "sort"},
+                  law="viscous", parcels=parcels).build()
