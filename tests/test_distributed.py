@@ -141,9 +141,9 @@ def test_parcels_detour_around_dead_cells():
 
 
 def test_central_and_distributed_sorting_side_by_side():
-    from virtual_vehicle.tasks import compare_sorting
+    from virtual_vehicle.tasks import compare
 
-    both = compare_sorting(sorting())
+    both = compare(sorting())
     for mode in ("distributed", "central"):
         r = both[mode]
         assert r["collisions"] == 0 and r["lost"] == 0 and r["misrouted"] == 0, (mode, r)
@@ -152,13 +152,25 @@ def test_central_and_distributed_sorting_side_by_side():
     assert both["central"]["delivery_time_mean_s"] <= both["distributed"]["delivery_time_mean_s"]
 
 
-def test_compare_command_rejects_a_scenario_that_does_not_sort():
+def test_a_main_line_diverts_each_parcel_to_its_spur_and_lets_the_rest_through():
+    from virtual_vehicle.scenario import load_scenario
+    from virtual_vehicle.tasks import sorting_report
+
+    sc, _ = load_scenario("divert_line")
+    report = sorting_report(run(sc.build()))
+    assert report["collisions"] == 0 and report["lost"] == 0 and report["misrouted"] == 0
+    exits = [p["exit"] for p in report["parcels"]]
+    assert exits == [p.destination for p in sc.parcels]  # every one, each through its own exit
+    assert {0, 1, 2} <= set(exits)
+
+
+def test_compare_command_rejects_a_scenario_that_is_not_a_task():
     from typer.testing import CliRunner
 
     from virtual_vehicle.cli import app
 
     res = CliRunner().invoke(app, ["compare", "prototype_18"])
-    assert res.exit_code == 2 and "sort" in res.output
+    assert res.exit_code == 2 and "sort" in res.output and "pose" in res.output
 
 
 def test_two_streams_merge_oldest_first_without_collisions():

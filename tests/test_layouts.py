@@ -97,9 +97,10 @@ def test_omni_cells_carry_a_parcel_at_the_field_velocity_in_any_direction(deg):
     assert abs(tr.states[-1, 5]) < 1e-9
 
 
-def test_pose_control_from_sensors_on_hexagonal_omni_cells():
+@pytest.mark.parametrize("central", [True, False])
+def test_pose_control_from_sensors_on_hexagonal_omni_cells(central):
     sc = _scenario({"kind": "hex", "nx": 20, "ny": 22, "pitch": 0.05},
-                   control={"program": "pose", "period": 0.02, "speed": 0.2, "gain": 3.0,
+                   control={"program": "pose", "central": central, "period": 0.02, "speed": 0.2, "gain": 3.0,
                             "targets": [[0.62, 0.55, -0.3]]},
                    duration=3.0, parcels=[{"name": "carton", "length": 0.2, "width": 0.15, "mass": 1.0, "mu": 0.8,
                                            "x": 0.3, "y": 0.3, "theta": 0.2}])

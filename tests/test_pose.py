@@ -40,7 +40,8 @@ def pose_scenario(law="viscous", targets=((0.62, 0.55, -0.3),), **control):
     return parse_scenario({
         "name": "pose", "duration": 4.0, "output_dt": 0.01,
         "array": {"kind": "grid", "nx": 20, "ny": 20, "pitch": 0.05},
-        "control": {"program": "pose", "period": 0.02, "speed": 0.2, "gain": 3.0, "targets": [list(t) for t in targets],
+        "control": {"program": "pose", "central": True, "period": 0.02, "speed": 0.2, "gain": 3.0,
+                    "targets": [list(t) for t in targets],
                     **control},
         "friction": {"law": law},
         "parcels": [{"name": "box", "length": 0.2, "width": 0.15, "mass": 1.0, "mu": 0.8, "x": 0.3, "y": 0.3,

@@ -389,29 +389,44 @@ def equilibria_cmd(
               f"written to {out_dir}/equilibria.json and force_field.png")
 
 
+_COMPARED = {
+    "sort": (("correct", "delivered to the right exit"), ("misrouted", "misrouted"), ("lost", "lost"),
+             ("collisions", "collisions"), ("throughput_per_hour", "parcels per hour"),
+             ("delivery_time_mean_s", "mean delivery time (s)"), ("delivery_time_max_s", "longest delivery time (s)"),
+             ("entry_delay_mean_s", "mean wait at the entry (s)"), ("on_array", "still on the array"),
+             ("waiting", "never put on")),
+    "pose": (("settled", "settled within 5 mm and 2 deg"), ("collisions", "collisions"),
+             ("throughput_per_hour", "parcels settled per hour"), ("final_error_mean_mm", "mean final error (mm)"),
+             ("final_error_max_mm", "largest final error (mm)"), ("final_error_mean_deg", "mean final error (deg)"),
+             ("final_error_max_deg", "largest final error (deg)"), ("settle_time_mean_s", "mean time to settle (s)"),
+             ("settle_time_max_s", "longest time to settle (s)"),
+             ("max_path_deviation_mm", "largest deviation from the path (mm)")),
+}
+
+
 @app.command()
 def compare(
-    scenario: str = typer.Argument("sorting_junction", help="A sorting scenario (program \"sort\")."),
+    scenario: str = typer.Argument("sorting_junction", help="A task scenario (program \"sort\" or \"pose\")."),
     out_dir: Path = typer.Option(Path("results/compare"), "--out", "-o", help="Folder for compare.json."),
 ) -> None:
-    """Run a sorting scenario with distributed and with central control and print the metrics side by side."""
+    """Run a task scenario with distributed and with central control and print the metrics side by side."""
     import json
 
     from rich.table import Table
 
     from .io import write_atomic
     from .scenario import load_scenario
-    from .tasks import compare_sorting
+    from .tasks import compare as compare_modes
 
     try:
         sc, _ = load_scenario(scenario)
-        if sc.control is None or sc.control.program != "sort":
-            raise ScenarioError("control.program", "compare needs a sorting scenario (program = \"sort\")")
+        if sc.control is None or sc.control.program not in _COMPARED:
+            raise ScenarioError("control.program", "compare needs a task scenario (program = \"sort\" or \"pose\")")
     except VirtualVehicleError as exc:
         _fail(exc)
     bar = _LazyProgress(f"simulating {sc.name} twice")
     try:
-        both = compare_sorting(sc, progress=bar)
+        both = compare_modes(sc, progress=bar)
     finally:
         bar.close()
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -420,12 +435,7 @@ def compare(
     table.add_column("metric")
     table.add_column("distributed")
     table.add_column("central")
-    for key, label in (("correct", "delivered to the right exit"), ("misrouted", "misrouted"), ("lost", "lost"),
-                       ("collisions", "collisions"), ("throughput_per_hour", "parcels per hour"),
-                       ("delivery_time_mean_s", "mean delivery time (s)"),
-                       ("delivery_time_max_s", "longest delivery time (s)"),
-                       ("entry_delay_mean_s", "mean wait at the entry (s)"), ("on_array", "still on the array"),
-                       ("waiting", "never put on")):
+    for key, label in _COMPARED[sc.control.program]:
         cells = []
         for mode in ("distributed", "central"):
             v = both[mode][key]

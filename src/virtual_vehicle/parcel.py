@@ -142,25 +142,30 @@ def footprint_margins(spec: ParcelSpec, pose, points: np.ndarray) -> np.ndarray:
     pose = np.asarray(pose, dtype=float)
     many = pose.ndim == 2
     P = np.atleast_2d(pose)
-    c, s = np.cos(P[:, 2])[:, None], np.sin(P[:, 2])[:, None]
     pts = np.asarray(points, dtype=float)
-    dx = pts[None, :, 0] - P[:, 0:1]
-    dy = pts[None, :, 1] - P[:, 1:2]
-    # world -> body: rotate by -theta
-    bx = c * dx + s * dy
+    m = pose_margins(spec, P[:, None, :], pts[None])
+    return m if many else m[0]
+
+
+def pose_margins(spec: ParcelSpec, poses, points) -> np.ndarray:
+    """Signed margins (m, as :func:`footprint_margins`) of ``points`` (..., 2) in the footprint at ``poses``
+    (..., >=3), each point against its own pose (the two broadcast against each other)."""
+    P = np.asarray(poses, dtype=float)
+    pts = np.asarray(points, dtype=float)
+    c, s = np.cos(P[..., 2]), np.sin(P[..., 2])
+    dx = pts[..., 0] - P[..., 0]
+    dy = pts[..., 1] - P[..., 1]
+    bx = c * dx + s * dy  # world -> body: rotate by -theta
     by = -s * dx + c * dy
     half = spec.half_extents
     if half is not None:  # rectangle: the minimum over its four half-planes in closed form
-        m = np.minimum(half[0] - np.abs(bx), half[1] - np.abs(by))
-        return m if many else m[0]
+        return np.minimum(half[0] - np.abs(bx), half[1] - np.abs(by))
     if not spec.convex:  # signed Euclidean distance to the boundary: continuous, positive inside
         inside = shapely.contains_xy(spec.polygon, bx, by)
         dist = shapely.distance(spec.polygon.exterior, shapely.points(bx, by))
-        m = np.where(inside, dist, -dist)
-        return m if many else m[0]
+        return np.where(inside, dist, -dist)
     normals, offsets = spec.halfplanes
-    m = np.min(offsets - (bx[..., None] * normals[:, 0] + by[..., None] * normals[:, 1]), axis=-1)
-    return m if many else m[0]
+    return np.min(offsets - (bx[..., None] * normals[:, 0] + by[..., None] * normals[:, 1]), axis=-1)
 
 
 def plate_inertia(vertices: np.ndarray, mass: float, about=(0.0, 0.0)) -> float:

@@ -308,10 +308,12 @@ class ControlSpec(_Strict):
 
     Programs: ``"shuttle"`` passes parcels back and forth along the wheel-0 axis at ``speed`` (m/s), reversing by a
     flood of at most ``hop_limit`` hops started by the end cells that sense a parcel; cells repeat their state
-    every ``heartbeat`` ticks. ``"pose"`` is a central closed loop from the sensors: it drives parcel k to
+    every ``heartbeat`` ticks. ``"pose"`` is a closed loop from the sensors: it drives parcel k to
     ``targets[k]`` = [x, y, theta] (m, m, rad) with twist ``gain`` (1/s) times the estimated error, wheels limited
     to ``speed`` (m/s), stopping within ``tolerance`` = [m, rad]; with ``waypoints`` (one list of [x, y, theta] per
-    parcel) it transports each along that path, passing a waypoint within ``pass_radius`` (m). ``"diffusion"``: every cell's wheel speeds relax
+    parcel) it transports each along that path, passing a waypoint within ``pass_radius`` (m). The cells under each
+    parcel estimate its pose together and drive it (:mod:`~virtual_vehicle.tracking`), or with ``central`` = true
+    one computer reads every sensor and commands every cell (:class:`~virtual_vehicle.control.PoseControl`). ``"diffusion"``: every cell's wheel speeds relax
     toward its neighbours' at rate ``alpha`` per tick (the discrete heat equation); ``sources`` = [[cell, v0, v1],
     ...] hold their wheel speeds (m/s). ``"sort"``: the Virtual Vehicle (:mod:`virtual_vehicle.sorting`): cells
     inside ``entries`` outlines read each arriving parcel's ``destination``, cells inside ``exits[k]`` are exit k (a
@@ -839,10 +841,20 @@ def _build_control(c: ControlSpec, cells: layout.CellArray, sensors, specs, stat
         return ControlSetup(program, topo, make_delivery, c.delivery, c.period, {"fixed": fixed, "speed": speed})
     if c.program == "sort":
         return _build_sorter(c, cells, topo, make_delivery, marks)
-    if c.program == "pose":
+    if c.program == "pose" and c.central:
         program = PoseControl(cells, sensors.points, specs, states, c.targets, gain=c.gain, max_speed=c.speed,
                               tolerance=c.tolerance, period=c.period, waypoints=c.waypoints,
                               pass_radius=c.pass_radius)
+    elif c.program == "pose":
+        from .estimate import sensor_spacing
+        from .tracking import DistributedPose
+
+        program = DistributedPose(specs, states, c.targets, spacing=sensor_spacing(sensors.points), gain=c.gain,
+                                  max_speed=c.speed, tolerance=c.tolerance, period=c.period, waypoints=c.waypoints,
+                                  pass_radius=c.pass_radius, max_age=0 if c.delivery == "ideal" else 20)
+        config = {"position": cells.positions, "directions": cells.active_directions,
+                  "sensor_points": sensors.points}  # what each cell is told when it is installed
+        return ControlSetup(program, topo, make_delivery, c.delivery, c.period, config)
     else:
         program = Shuttle(c.speed, c.hop_limit, c.heartbeat)
     return ControlSetup(program, topo, make_delivery, c.delivery, c.period, {})

@@ -108,20 +108,14 @@ class RunResult:
                 **({"energy_J": {k: tr.stats[k] for k in _ENERGY},
                     "stick_slip_unconverged_steps": tr.stats["unconverged_steps"]} if "wheel_work" in tr.stats else {}),
             })
-        if sc.control is not None and sc.control.program == "pose":
-            from .control import path_deviation, pose_error, settled_at
-
-            ways = sc.control.waypoints or [[] for _ in self.parcels]
-            for entry, pr, target, way in zip(parcels, self.parcels, sc.control.targets, ways):
-                if way:
-                    path = [pr.trajectory.states[0, :3], *way, target]
-                    entry["max_path_deviation_mm"] = path_deviation(pr.trajectory.states, path) * 1e3
-                dist, ang = pose_error(pr.spec, pr.trajectory.states[-1], target)
-                entry.update({"target": dict(zip(("x", "y", "theta"), target)), "final_error_mm": dist * 1e3,
-                              "final_error_deg": float(np.degrees(ang)),
-                              "settled_within_5mm_2deg_at_s": settled_at(pr.spec, pr.trajectory.times,
-                                                                          pr.trajectory.states, target)})
         extra = {}
+        if sc.control is not None and sc.control.program == "pose":
+            from .tasks import pose_report
+
+            report = pose_report(self)
+            for entry, row in zip(parcels, report.pop("parcels")):
+                entry.update({k: v for k, v in row.items() if k != "name"})
+            extra["pose"] = report
         if sc.control is not None and sc.control.program == "sort":
             from .tasks import sorting_report
 

@@ -94,17 +94,63 @@ def _left_the_cells(setup, pr):
     return float(tr.times[last + 1]), int(np.bincount(lanes).argmax()) if len(lanes) else -1
 
 
-def compare_sorting(scenario, progress=None) -> dict:
-    """Run a sorting scenario (program ``"sort"``) twice, with distributed and with central control, and return
-    both reports side by side: {"distributed": report, "central": report} (see :func:`sorting_report`, without the
-    per-parcel rows), each with the run's wall time (s)."""
+def pose_report(result) -> dict:
+    """Outcome of every parcel of a pose run (program ``"pose"``: to a target pose, along waypoints, or turned in
+    place) and the run's totals.
+
+    Per parcel: the final error (mm, degrees; the heading wrapped to the outline's rotational symmetry), the time it
+    settled within 5 mm and 2 degrees of its target for good (None if it never did), and with waypoints the largest
+    distance (mm) of its centre of mass from the path start -> waypoints -> target. Totals: how many settled, the mean
+    and largest final errors and settling times, ``throughput_per_hour`` (settled parcels per hour of the run), and
+    ``collisions`` (pairs of parcels that started pushing each other: must be 0).
+    """
+    from .control import path_deviation, pose_error, settled_at
+
+    sc = result.setup.scenario
+    ways = sc.control.waypoints or [[] for _ in result.parcels]
+    rows = []
+    for pr, target, way in zip(result.parcels, sc.control.targets, ways):
+        tr = pr.trajectory
+        dist, ang = pose_error(pr.spec, tr.states[-1], target)
+        row = {"name": pr.spec.name, "target": dict(zip(("x", "y", "theta"), target)), "final_error_mm": dist * 1e3,
+               "final_error_deg": float(np.degrees(ang)),
+               "settled_within_5mm_2deg_at_s": settled_at(pr.spec, tr.times, tr.states, target)}
+        if way:
+            row["max_path_deviation_mm"] = path_deviation(tr.states, [tr.states[0, :3], *way, target]) * 1e3
+        rows.append(row)
+    settled = [r["settled_within_5mm_2deg_at_s"] for r in rows if r["settled_within_5mm_2deg_at_s"] is not None]
+    paths = [r["max_path_deviation_mm"] for r in rows if "max_path_deviation_mm" in r]
+    return {
+        "parcels": rows,
+        "settled": len(settled),
+        "collisions": int(result.stats.get("plant", {}).get("parcel_contacts", 0)),
+        "throughput_per_hour": len(settled) / sc.duration * 3600.0,
+        "final_error_mean_mm": float(np.mean([r["final_error_mm"] for r in rows])),
+        "final_error_max_mm": float(np.max([r["final_error_mm"] for r in rows])),
+        "final_error_mean_deg": float(np.mean([r["final_error_deg"] for r in rows])),
+        "final_error_max_deg": float(np.max([r["final_error_deg"] for r in rows])),
+        "settle_time_mean_s": float(np.mean(settled)) if settled else None,
+        "settle_time_max_s": float(np.max(settled)) if settled else None,
+        "max_path_deviation_mm": float(np.max(paths)) if paths else None,
+    }
+
+
+REPORTS = {"sort": sorting_report, "pose": pose_report}
+"""Task reports by program: what :func:`compare` puts side by side."""
+
+
+def compare(scenario, progress=None) -> dict:
+    """Run a task scenario (program ``"sort"`` or ``"pose"``) twice, with distributed and with central control, and
+    return both reports side by side: {"distributed": report, "central": report} (see :func:`sorting_report` and
+    :func:`pose_report`, without the per-parcel rows), each with the run's wall time (s)."""
     from .sim import run
 
+    report_of = REPORTS[scenario.control.program]
     out = {}
     for mode in ("distributed", "central"):
         control = scenario.control.model_copy(update={"central": mode == "central"})
         result = run(scenario.model_copy(update={"control": control}).build(), progress)
-        report = sorting_report(result)
+        report = report_of(result)
         report.pop("parcels")
         report["wall_time_s"] = result.wall_time
         out[mode] = report

@@ -188,10 +188,12 @@ class Flood:
 
 # --------------------------------------------------------------------------- contract checker
 
-def check_program(program: CellProgram, topology, config: dict, ticks: int = 5, seed: int = 0) -> None:
+def check_program(program: CellProgram, topology, config: dict, ticks: int = 5, seed: int = 0,
+                  sensors: np.ndarray | None = None) -> None:
     """Check a program against the cell-program contract on ``topology`` (ideal rounds): the output shapes and
     dtypes are right, the program is deterministic, and it is local: relabelling the cells (permuting ids, and the
-    topology and configuration with them) relabels its outputs exactly. Raises AssertionError."""
+    topology, configuration and ``sensors`` readings with them) relabels its outputs exactly. ``sensors``: (n, S)
+    readings held for every tick (default: nothing seen). Raises AssertionError."""
     from .delivery import IdealRounds
     from .topology import Topology
 
@@ -203,14 +205,15 @@ def check_program(program: CellProgram, topology, config: dict, ticks: int = 5, 
     relabelled = Topology(np.where(nb >= 0, inv[np.maximum(nb, 0)], -1), topology.back_port[perm],
                           topology.link_up[perm], topology.alive[perm])
     pconfig = {k: np.asarray(v)[perm] for k, v in config.items()}
+    seen = np.zeros((n, 1), bool) if sensors is None else np.asarray(sensors, dtype=bool)
 
-    def run(topo, cfg):
+    def run(topo, cfg, seen):
         state = program.init(n, P, cfg)
         inbox = Mailbox.empty(program.schema, n, P)
         delivery = IdealRounds(topo)
         trace = []
         for k in range(ticks):
-            inputs = CellInputs(k * 0.01, np.zeros((n, 1), bool), inbox, topo.connected, cfg)
+            inputs = CellInputs(k * 0.01, seen, inbox, topo.connected, cfg)
             state, out, wheels = program.step(state, inputs)
             assert out.present.shape == (n, P) and wheels.shape == (n, 2), "outputs must be (n, P) and (n, 2)"
             for f in program.schema.fields:
@@ -219,9 +222,9 @@ def check_program(program: CellProgram, topology, config: dict, ticks: int = 5, 
             inbox, _ = delivery.exchange(out, k * 0.01, 0.01)
         return trace
 
-    a = run(topology, config)
-    again = run(topology, config)
-    b = run(relabelled, pconfig)
+    a = run(topology, config, seen)
+    again = run(topology, config, seen)
+    b = run(relabelled, pconfig, seen[perm])
     for (pa, va, wa), (pa2, va2, wa2), (pb, vb, wb) in zip(a, again, b):
         assert np.array_equal(pa, pa2) and np.array_equal(wa, wa2), "the program is not deterministic"
         assert np.array_equal(pa[perm], pb), "sending depends on cell ids: the program is not local"
