@@ -394,7 +394,7 @@ _COMPARED = {
              ("collisions", "collisions"), ("throughput_per_hour", "parcels per hour"),
              ("delivery_time_mean_s", "mean delivery time (s)"), ("delivery_time_max_s", "longest delivery time (s)"),
              ("entry_delay_mean_s", "mean wait at the entry (s)"), ("on_array", "still on the array"),
-             ("waiting", "never put on")),
+             ("waiting", "never put on"), ("order_inversions", "pairs left out of sequence")),
     "pose": (("settled", "settled within 5 mm and 2 deg"), ("collisions", "collisions"),
              ("throughput_per_hour", "parcels settled per hour"), ("final_error_mean_mm", "mean final error (mm)"),
              ("final_error_max_mm", "largest final error (mm)"), ("final_error_mean_deg", "mean final error (deg)"),

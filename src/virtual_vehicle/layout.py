@@ -359,8 +359,12 @@ def combine(parts, where: str = "array.parts") -> tuple[CellArray, CellArray | N
 
 MAP_HOLES = " ."
 """Map characters that mean no cell."""
-MAP_CELLS = "o#E0123"
-"""Map characters that mean a cell: ``o`` or ``#`` a plain one, ``E`` an entry cell, ``0``..``3`` a cell of exit k."""
+MAP_CELLS = "o#E0123P><^v"
+"""Map characters that mean a cell: ``o`` or ``#`` a plain one, ``E`` an entry cell, ``0``..``3`` a cell of exit k,
+``P`` a parking cell (where a sorted parcel waits for its turn), ``>`` ``<`` ``^`` ``v`` a one-way cell (a parcel
+on it may not move against the arrow: east, west, north, south; square lattices)."""
+MAP_MARKS = "E0123P><^v"
+"""Map characters whose cells :func:`from_map` reports."""
 
 
 def from_map(text: str, pitch: float, origin: tuple[float, float] = (0.0, 0.0), lattice: str = "square",
@@ -369,8 +373,8 @@ def from_map(text: str, pitch: float, origin: tuple[float, float] = (0.0, 0.0), 
     above it go up in y, characters go along x at ``pitch`` (m). ``lattice`` "square" or "hex" (odd rows, counted
     from the bottom, shifted by half a pitch; rows pitch sqrt(3)/2 apart; six ports a cell). Characters: see
     :data:`MAP_CELLS` and :data:`MAP_HOLES`. Blank lines before and after the map are dropped. Returns the cells
-    (numbered from the bottom row up, left to right) and, for each of ``E 0 1 2 3`` that occurs, the (n,) mask of
-    its cells.
+    (numbered from the bottom row up, left to right) and, for each of :data:`MAP_MARKS` that occurs, the (n,) mask
+    of its cells.
 
     >>> cells, marks = from_map("oo0\\nE.o", 0.1)
     >>> cells.positions.tolist(), marks["E"].tolist(), marks["0"].tolist()
@@ -398,7 +402,9 @@ def from_map(text: str, pitch: float, origin: tuple[float, float] = (0.0, 0.0), 
     chars = np.array(chars)
     ports = np.full(len(pos), 6 if lattice == "hex" else 4)
     cells = CellArray(pos, _drive_directions(len(pos), drive_angle), float(pitch), ports=ports)
-    return cells, {m: chars == m for m in "E0123" if (chars == m).any()}
+    if lattice == "hex" and np.isin(chars, list("><^v")).any():
+        raise ScenarioError(where, "one-way arrows (> < ^ v) are for square lattices")
+    return cells, {m: chars == m for m in MAP_MARKS if (chars == m).any()}
 
 
 def cell_outlines(cells: CellArray, contacts: CellArray | None = None, scale: float = 1.0) -> list[np.ndarray]:

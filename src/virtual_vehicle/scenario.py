@@ -318,7 +318,10 @@ class ControlSpec(_Strict):
     ...] hold their wheel speeds (m/s). ``"sort"``: the Virtual Vehicle (:mod:`virtual_vehicle.sorting`): cells
     inside ``entries`` outlines read each arriving parcel's ``destination``, cells inside ``exits[k]`` are exit k (a
     lane reaching the edge; parcels leave through the side most of its cells have open);
-    parcels ride at ``speed`` keeping ``gap`` free cells ahead, sharing decisions over ``reach`` hops; ``central``
+    parcels ride at ``speed`` keeping ``gap`` free cells ahead, sharing decisions over ``reach`` hops. Parcels
+    with a ``sequence`` number leave in that order: one whose number is not yet due parks where one of its carrying
+    cells is a parking cell (inside a ``parking`` outline, or ``P`` on a map) and waits there (at most three exits
+    then). ``central``
     = true runs the same policies on one central computer instead (:class:`~virtual_vehicle.sorting.CentralSorter`),
     for comparison. ``dead_links``: [cell id, port] pairs whose link is cut (square cells: ports 0..3 = east,
     north, west, south of the cell; hexagonal cells: ports 0..5, every 60 degrees counter-clockwise from east)."""
@@ -342,6 +345,7 @@ class ControlSpec(_Strict):
     sources: list[tuple[Annotated[int, Field(ge=0)], Speed, Speed]] = []
     exits: Annotated[list[Annotated[list[Point], Field(min_length=3)]], Field(max_length=4)] = []
     entries: list[Annotated[list[Point], Field(min_length=3)]] = []
+    parking: list[Annotated[list[Point], Field(min_length=3)]] = []
     gap: Annotated[int, Field(ge=1, le=50)] = 2
     reach: Annotated[int, Field(ge=1, le=62)] = 8
     central: bool = False
@@ -469,7 +473,9 @@ class ParcelEntry(_Strict):
     default uniform plate), and its initial
     state: centre of mass ``x``, ``y`` (m), heading ``theta`` (rad), ``vx``, ``vy`` (m/s), ``omega`` (rad/s).
     ``t_start`` (s): when the parcel is put on the array (networked runs; it waits while its place is taken);
-    ``destination``: the exit (0..3) its label names, read by the cells at an entry (program ``"sort"``)."""
+    ``destination``: the exit (0..3) its label names, read by the cells at an entry (program ``"sort"``);
+    ``sequence``: its place in the order in which parcels must leave (0, 1, 2, ... over the parcels that have one:
+    a parcel whose number is not yet due waits on a parking cell)."""
 
     name: Annotated[str, Field(min_length=1, max_length=64)]
     length: Pos | None = None
@@ -488,6 +494,7 @@ class ParcelEntry(_Strict):
     omega: Annotated[float, Field(ge=-1e4, le=1e4)] = 0.0
     t_start: Annotated[float, Field(ge=0, le=1e7)] = 0.0
     destination: Annotated[int, Field(ge=0, le=3)] | None = None
+    sequence: Annotated[int, Field(ge=0, le=8000)] | None = None
 
     @model_validator(mode="after")
     def _one_shape(self):
@@ -640,6 +647,8 @@ class Scenario(_Strict):
         for i, p in enumerate(self.parcels):
             if p.t_start > 0 and self.control is None:
                 raise ScenarioError(f"parcels[{i}].t_start", "parcels arriving later need [control] (a networked run)")
+            if p.sequence is not None and (self.control is None or self.control.program != "sort"):
+                raise ScenarioError(f"parcels[{i}].sequence", "sequence numbers are for sorting (program \"sort\")")
         control = None if self.control is None else _build_control(self.control, cells, sensors, specs, states,
                                                                        faults, marks)
         if control is not None and self.control.program == "sort":
@@ -648,6 +657,7 @@ class Scenario(_Strict):
                 if p.destination is not None and p.destination >= n_exits:
                     raise ScenarioError(f"parcels[{i}].destination", f"exit {p.destination} does not exist (the "
                                         f"scenario has {n_exits} exits, 0..{n_exits - 1})")
+            self._check_sequence(control.config["park"])
         if control is None and self.wheels.model == "motor":
             control = _field_control(cells, velocities, self.wheels.period)
         events, now = [], faults
@@ -656,6 +666,25 @@ class Scenario(_Strict):
             events.append((ev.t, now))
         return Setup(self, cells, velocities, LAWS[self.friction.law], specs, states, control, sensors, contacts,
                      faults, events, present, changes)
+
+    def _check_sequence(self, park: np.ndarray) -> None:
+        """Sequence numbers, where given, must be 0, 1, 2, ... (each once), on labelled parcels, with parking."""
+        numbered = [(i, p) for i, p in enumerate(self.parcels) if p.sequence is not None]
+        if not numbered:
+            return
+        for i, p in numbered:
+            if p.destination is None:
+                raise ScenarioError(f"parcels[{i}].sequence", "a sequence number goes with a destination (the "
+                                    "label carries both)")
+        got = sorted(p.sequence for _, p in numbered)
+        if got != list(range(len(got))):
+            missing = sorted(set(range(len(got))) - set(got))
+            raise ScenarioError(f"parcels[{numbered[0][0]}].sequence", "sequence numbers must be 0, 1, 2, ... each "
+                                f"once over the parcels that have one (missing {missing[:5]}): a number never "
+                                "delivered would hold the rest forever")
+        if not park.any():
+            raise ScenarioError("control.parking", "parcels with sequence numbers need parking cells (P on the "
+                                "map, or control.parking outlines) to wait on")
 
     def _reconfiguration(self, cells: layout.CellArray) -> tuple[np.ndarray, list]:
         """(cells present at the start, [(t, cells present from then on), ...] in time order), checked; (None, [])
@@ -871,7 +900,7 @@ def _inside(outline, cells: layout.CellArray, where: str) -> np.ndarray:
 
 
 def _build_sorter(c: ControlSpec, cells: layout.CellArray, topo, make_delivery, marks) -> ControlSetup:
-    from .sorting import Sorter
+    from .sorting import PARK, Sorter
 
     if np.any(cells.ports[~cells.belts] != 4):
         raise ScenarioError("control.program", "the sorter runs on square lattices (four ports a cell)")
@@ -904,12 +933,23 @@ def _build_sorter(c: ControlSpec, cells: layout.CellArray, topo, make_delivery, 
     entry = np.zeros(cells.n, dtype=bool)
     for k, outline in enumerate(c.entries):
         entry |= _inside(outline, cells, f"control.entries[{k}]")
+    park = np.zeros(cells.n, dtype=bool)
+    for k, outline in enumerate(c.parking):
+        park |= _inside(outline, cells, f"control.parking[{k}]")
+    if not c.parking:
+        park = marks.get("P", park)
+    if park.any() and n_exits > PARK:
+        raise ScenarioError("control.parking", f"with parking cells a sorter has at most {PARK} exits (the "
+                            "fourth gradient leads to the parking cells)")
     if not c.entries:
         entry = marks.get("E", entry)
         if not entry.any():
             raise ScenarioError("array.map", "program 'sort' needs entries: mark entry cells E on the map, or give "
                                 "control.entries")
-    config = {"exit": exit_id, "exit_port": exit_port, "entry": entry,
+    forbid = np.full(cells.n, -1, dtype=np.int64)  # one-way cells: the port a parcel may not move toward
+    for arrow, against in ((">", 2), ("<", 0), ("^", 3), ("v", 1)):
+        forbid[marks.get(arrow, np.zeros(cells.n, bool))] = against
+    config = {"exit": exit_id, "exit_port": exit_port, "entry": entry, "park": park, "forbid": forbid,
               "entry_no": np.arange(1, cells.n + 1, dtype=np.int64),  # installation numbers: unique vehicle ids
               "clearance": (c.gap + 1) * cells.pitch}  # the loader waits for this much room around a new parcel
     if c.central:

@@ -26,6 +26,7 @@ from .hardware import WheelDrives
 from .network.programs import CellInputs
 from .parcel import ParcelSpec, supporting_cells
 from .scenario import Setup
+from .sorting import encode_goal
 
 
 _ENERGY = ("kinetic_start", "kinetic_end", "wheel_work", "friction_dissipation", "step_dissipation", "contact_work")
@@ -479,7 +480,8 @@ class NetworkRun(_Job):
         self.on = [i for i, a in enumerate(self.active) if a]  # the active parcels, in order
         self.queue = sorted((i for i, t in enumerate(self.arrive) if t > 0), key=lambda i: (self.arrive[i], i))
         self.entered = [0.0 if t == 0 else None for t in self.arrive]
-        self.destinations = [p.destination for p in sc.parcels]
+        self.destinations = [None if p.destination is None else encode_goal(p.destination, p.sequence)
+                             for p in sc.parcels]  # what each parcel's label says
         self.plant = setup.plant()
         self.tracks = [_Track() for _ in self.ys]
         keys = ("sent", "received", "bytes_sent", "bytes_received")

@@ -28,6 +28,16 @@ what its neighbours said last tick (:mod:`virtual_vehicle.network.programs` cont
   within the lane (no cell beside it, across the way out, is under the vehicle without belonging to the lane);
   until then such cells move the vehicle sideways into the lane. Nowhere else may a vehicle move over the edge: a
   front cell with no neighbour ahead stops it.
+- *One-way cells* (config ``forbid``: the port a parcel on the cell may not move toward): gradients are not
+  followed against the arrow, and a side against an arrow under any carrying cell is closed to the whole vehicle.
+  Aisles drawn one-way cannot have two parcels meet head on, which hold-based traffic cannot undo.
+- *Sequencing* (parcels whose label carries a sequence number, :func:`encode_goal`): the number due next spreads
+  through the array as the highest heard (word ``nxt``); the exit cell that lets a sequenced parcel out raises it
+  to that parcel's number plus one. A parcel whose number is not yet due follows gradient :data:`PARK` to a parking
+  cell (config ``park``) whose centre no parcel covers, and parks once a cell carrying it is one: it stops, asks
+  for no cells, and it and the cells beside it tell their neighbours there is no way through (so others route
+  around it). When its number is due it heads for its exit. Parcels therefore leave in sequence, as long as there
+  are enough parking cells for those that arrive early.
 """
 
 from __future__ import annotations
@@ -39,6 +49,8 @@ from .network.programs import UNREACHABLE, CellInputs
 from .network.sentence import WordType
 
 MAX_EXITS = 4
+PARK = MAX_EXITS - 1
+"""In a sequenced run (parcels with sequence numbers), gradient PARK leads to a free parking cell, not to exit 3."""
 _NONE = -1
 _BIG = 1 << 20  # above any direction key
 _HUGE = 1 << 40  # above any vehicle id
@@ -51,6 +63,29 @@ def _weighted_gradient(dist_in, present, is_source, cost, cap: int = UNREACHABLE
     heard = np.where(present, dist_in.astype(np.int64), cap)
     best = heard.min(axis=1) if heard.shape[1] else np.full(len(is_source), cap)
     return np.where(is_source, 0, np.minimum(best + cost, cap)).astype(np.int64)
+
+
+def decode_goal(goal):
+    """(exit, sequence number) of goal words: ``exit + 4 (sequence + 1)``; sequence -1 for an unsequenced parcel."""
+    goal = np.asarray(goal, dtype=np.int64)
+    return goal % 4, goal // 4 - 1
+
+
+def encode_goal(exit: int, sequence: int | None) -> int:
+    """The label a reader at the entry sees: the exit, and the sequence number when the parcel has one."""
+    return int(exit) + (0 if sequence is None else 4 * (int(sequence) + 1))
+
+
+def _pack(values, bits: int = 8) -> np.ndarray:
+    """Small non-negative integers (n, k), each below 2**bits, packed into one signed 32-bit word per row."""
+    v = np.asarray(values, dtype=np.int64)
+    word = sum(v[:, q] << (bits * q) for q in range(v.shape[1]))
+    return np.where(word >= 1 << 31, word - (1 << 32), word)
+
+
+def _unpack(words, q: int, bits: int = 8) -> np.ndarray:
+    """Field q of words packed by :func:`_pack`."""
+    return ((np.asarray(words, dtype=np.int64) & 0xFFFFFFFF) >> (bits * q)) & ((1 << bits) - 1)
 
 
 def _key(dist, same, port, hops):
@@ -75,15 +110,19 @@ class Sorter:
 
     Config (per cell): ``exit`` exit id or -1; ``exit_port`` the way out of the array for an exit cell (the
     side through which its exit lane leaves);
-    ``entry`` bool; ``entry_no`` an entry cell's installation number. Inputs: ``labels`` (goal exit read at entry
-    cells, -1 for none).
+    ``entry`` bool; ``entry_no`` an entry cell's installation number; ``park`` bool, a parking cell (optional);
+    ``forbid`` the port a parcel on a one-way cell may not move toward, -1 for none (optional). Inputs: ``labels``
+    (the label read at entry cells, :func:`encode_goal`; -1 for none).
     """
 
-    schema = Schema.of(d0=(1, WordType.U8), d1=(2, WordType.U8), d2=(3, WordType.U8), d3=(4, WordType.U8),
+    schema = Schema.of(d=(1, WordType.I32), nxt=(4, WordType.I16),
                        vid=(5, WordType.I32), goal=(6, WordType.I16), key=(7, WordType.I32),
-                       stop=(8, WordType.U8), req=(9, WordType.I32), rdep=(10, WordType.U8),
+                       stop=(8, WordType.U16), req=(9, WordType.I32), rdep=(10, WordType.U8),
                        hold=(11, WordType.I32), ack=(12, WordType.U8), ex=(13, WordType.I16),
                        blk=(14, WordType.I32))
+    """Words: ``d`` the four gradients' hop distances (one byte each), ``nxt`` the sequence number due next at the
+    exits, ``stop`` the hops to the nearest stopping cell of the vehicle (low byte) and to its parking cell (high
+    byte), the rest as their names say (see the module notes)."""
 
     def __init__(self, speed: float, gap: int = 2, reach: int = 8, max_age: int = 0, edge_cost: int = 3,
                  period: float = 0.01):
@@ -111,7 +150,8 @@ class Sorter:
                 "dir": np.full(n, _NONE, dtype=np.int64), "key": np.full(n, _BIG, dtype=np.int64),
                 "stop": np.full(n, 255, dtype=np.int64), "hold": np.full(n, _NONE, dtype=np.int64),
                 "hdep": np.zeros(n, dtype=np.int64), "hport": np.full(n, _NONE, dtype=np.int64),
-                "ack": np.zeros(n, dtype=np.int64)}
+                "ack": np.zeros(n, dtype=np.int64), "nxt": np.zeros(n, dtype=np.int64),
+                "park": np.full(n, 255, dtype=np.int64)}
 
     def step(self, state, inputs: CellInputs):
         """One control tick for every cell at once: new state, the sentences to send, and the (n, 2) wheel speeds (m/s
@@ -123,6 +163,9 @@ class Sorter:
         exit_port = np.asarray(cfg.get("exit_port", np.full(n, _NONE)), dtype=np.int64)
         entry = np.asarray(cfg.get("entry", np.zeros(n, bool)), dtype=bool)
         entry_no = np.asarray(cfg.get("entry_no", np.zeros(n)), dtype=np.int64)
+        park_cell = np.asarray(cfg.get("park", np.zeros(n, bool)), dtype=bool)
+        forbid = np.asarray(cfg.get("forbid", np.full(n, _NONE)), dtype=np.int64)
+        allowed = np.arange(P)[None, :] != forbid[:, None]  # one-way cells: not against the arrow
         labels = np.full(n, _NONE) if getattr(inputs, "labels", None) is None else np.asarray(inputs.labels)
         rows = np.arange(n)
         # -- what the neighbours said (last heard, trusted while fresh)
@@ -132,11 +175,17 @@ class Sorter:
         # -- routing: one gradient per exit
         # A cell at the edge of the array (a side with no neighbour) costs more, so parcels travel inside it and
         # meet the edge only at their exit.
-        cost = np.where(inputs.connected.all(axis=1) | (exit_id >= 0), 1, 1 + self.edge_cost)
-        dist = np.stack([_weighted_gradient(heard[f"d{e}"], trusted, exit_id == e, cost) for e in range(MAX_EXITS)],
-                        axis=1)
-        # -- tracking
+        # In a sequenced run gradient PARK leads to a parking cell that no parcel covers.
         lit = np.asarray(inputs.sensors, dtype=bool).any(axis=1)
+        cost = np.where(inputs.connected.all(axis=1) | (exit_id >= 0), 1, 1 + self.edge_cost)
+        source = [exit_id == e for e in range(MAX_EXITS)]
+        if park_cell.any():  # free while no parcel covers its centre (a parcel parks once it does)
+            source[PARK] = park_cell & ~np.asarray(inputs.sensors, dtype=bool)[:, 0]
+        dist = np.stack([_weighted_gradient(_unpack(heard["d"], e), trusted & allowed, source[e], cost)
+                         for e in range(MAX_EXITS)], axis=1)
+        # -- sequencing: the number due next at the exits, the highest any neighbour knows
+        nxt = np.maximum(state["nxt"], np.where(trusted, heard["nxt"], 0).max(axis=1) if P else 0)
+        # -- tracking
         vid, goal = state["vid"].copy(), state["goal"].copy()
         vid[~lit] = _NONE
         goal[~lit] = _NONE
@@ -164,21 +213,25 @@ class Sorter:
         tick = int(round(inputs.t / self.period)) if self.period else 0
         vid[fresh] = tick * 1024 + entry_no[fresh] % 1024
         goal[fresh] = labels[fresh]
-        on = lit & (vid >= 0) & (goal >= 0) & (goal < MAX_EXITS)
+        on = lit & (vid >= 0) & (goal >= 0)
         same_nb = trusted & (heard["vid"] == vid[:, None]) & on[:, None]
+        # A sequenced parcel whose number is not yet due heads for a free parking cell instead of its exit.
+        goal_exit, seq = decode_goal(np.maximum(goal, 0))
+        turn = (seq < 0) | (seq <= nxt)
+        target = np.where(turn, goal_exit, -99)  # the exit it heads for now (none while it must wait)
         # -- direction: own proposal, then the smallest heard from the same vehicle (hop-limited)
-        g = np.clip(goal, 0, MAX_EXITS - 1)
-        nb_d = np.stack([heard[f"d{e}"] for e in range(MAX_EXITS)], axis=-1)[rows, :, g]  # (n, P)
+        g = np.where(turn, goal_exit, PARK)
+        nb_d = np.stack([_unpack(heard["d"], e) for e in range(MAX_EXITS)], axis=-1)[rows, :, g]  # (n, P)
         # At its exit a vehicle leaves through the edge once it lies within the exit's band: no cell beside an exit
         # cell (across the way out) is under the same vehicle without being part of that exit. Until then the exit
         # cells that see such a neighbour move the vehicle away from it, into the band. These proposals come first
         # (distance 0: into the band; 1: out), then the gradient's (the chosen neighbour's distance + 3).
         side = np.stack([(exit_port + 1) % 4, (exit_port + 3) % 4], axis=1)
-        mine = on & (exit_id == goal) & (exit_port >= 0)
+        mine = on & (exit_id == target) & (exit_port >= 0)
         into_band = np.full(n, _NONE)
         for c in range(2):
             sp = side[:, c]
-            beside = mine & same_nb[rows, sp] & (heard["ex"][rows, sp] != goal)
+            beside = mine & same_nb[rows, sp] & (heard["ex"][rows, sp] != target)
             into_band = np.where(beside & (into_band < 0), (sp + 2) % 4, into_band)
         at_exit = mine & (into_band < 0)
         # The vehicle is a body, not a point: a side on which any cell carrying it (centre sensor lit) has no
@@ -187,9 +240,9 @@ class Sorter:
         # nearest the goal, ranked by that neighbour's distance: the front's proposals win, and a vehicle that
         # cannot go on sidesteps.
         core = on & np.asarray(inputs.sensors, dtype=bool)[:, 0]  # the cell carries the parcel (centre sensor lit)
-        own_block = core[:, None] & ~inputs.connected
+        own_block = core[:, None] & (~inputs.connected | ~allowed)
         own_block &= ~(at_exit[:, None] & (np.arange(P)[None, :] == exit_port[:, None]))
-        nb_block = np.stack([(heard["blk"] >> (6 * q)) & 63 for q in range(P)], axis=-1)  # (n, from port, side)
+        nb_block = np.stack([_unpack(heard["blk"], q, 6) for q in range(P)], axis=-1)  # (n, from port, side)
         relayed = np.where(same_nb[:, :, None] & (nb_block < self.reach), nb_block + 1, 63).min(axis=1)
         block = np.where(own_block, 0, relayed)
         block = np.where(on[:, None], block, 63)
@@ -210,9 +263,14 @@ class Sorter:
         ahead_ok_port = (direction >= 0)
         dp = np.maximum(direction, 0)
         ahead_is_mine = same_nb[rows, dp] & ahead_ok_port
-        front = on & ahead_ok_port & ~ahead_is_mine
+        # a waiting parcel parks where a cell that carries it is a parking cell; parked, it asks for nothing and is
+        # an obstacle to the others
+        own_park = np.where(on & ~turn & core & park_cell, 0, 255)
+        park = self._spread(own_park, _unpack(heard["stop"], 1), same_nb, on)
+        parked = on & (park <= self.reach)
+        front = on & ahead_ok_port & ~ahead_is_mine & ~parked
         # leaving the array: only out of an exit cell of the goal (anywhere else the edge stops the vehicle)
-        off_array = front & ~inputs.connected[rows, dp] & (exit_id == goal) & (dp == exit_port)
+        off_array = front & ~inputs.connected[rows, dp] & (exit_id == target) & (dp == exit_port)
         # requests that arrived: from a neighbour's front cell or a held cell passing it on
         req = np.where(inbox.present & trusted & (inbox.values["req"] >= 0), inbox.values["req"].astype(np.int64),
                        _HUGE)  # requests are events: only what arrived this tick
@@ -237,23 +295,27 @@ class Sorter:
         # a cell that only sees the parcel's edge may hang over the array's edge or a dead cell: only cells that
         # carry the parcel, or that have a neighbour ahead to ask, can stop it
         own_stop = np.where(front & ~go_front & (core | inputs.connected[rows, dp]), 0, 255)
-        nb_stop = np.where(same_nb & (heard["stop"] < self.reach), heard["stop"] + 1, 255)
-        stop = np.minimum(own_stop, nb_stop.min(axis=1)) if P else own_stop
-        stop = np.where(on, stop, 255)
+        stop = self._spread(np.where(own_park == 0, 0, own_stop), _unpack(heard["stop"], 0), same_nb, on)
         moving = on & (direction >= 0) & (stop > self.reach)
         # -- outputs
         wheels = np.zeros((n, 2))
         sign = np.array([1.0, 1.0, -1.0, -1.0])
         axis = np.array([0, 1, 0, 1])
         wheels[rows[moving], axis[dp[moving]]] = sign[dp[moving]] * self.speed
+        # the exit cell that lets a sequenced parcel out makes the next number due
+        leaving = off_array & go_front & (seq >= 0)
+        nxt = np.where(leaving, np.maximum(nxt, seq + 1), nxt)
         send = np.ones(n, dtype=bool)
-        words = {f"d{e}": np.minimum(dist[:, e], UNREACHABLE) for e in range(MAX_EXITS)}
-        out = Mailbox.broadcast(self.schema, send, P, **words, vid=np.where(on, vid, _NONE),
+        # no way through a parked parcel, nor through a gap of one cell beside it (too narrow for a parcel)
+        beside_parked = (trusted & (_unpack(heard["stop"], 1) <= self.reach)).any(axis=1) & ~(on & ~parked)
+        said = np.where((parked | beside_parked)[:, None], UNREACHABLE, np.minimum(dist, UNREACHABLE))
+        out = Mailbox.broadcast(self.schema, send, P, d=_pack(said), nxt=nxt, vid=np.where(on, vid, _NONE),
                                 goal=np.where(on, goal, _NONE), key=np.minimum(key, 2**31 - 1),
-                                stop=np.minimum(stop, 255), req=np.full(n, _NONE), rdep=np.zeros(n),
+                                stop=np.minimum(stop, 255) + (np.minimum(park, 255) << 8), req=np.full(n, _NONE),
+                                rdep=np.zeros(n),
                                 hold=np.where(lit & on, vid, new_hold), ack=np.minimum(ack, 255),
                                 ex=np.where(entry, _ENTRY, exit_id),
-                                blk=sum(np.minimum(block[:, q], 63) << (6 * q) for q in range(P)))
+                                blk=_pack(np.minimum(block, 63), 6))
         # requests: front cells ask the cell ahead (depth 1); held cells pass it on until gap deep
         ask = front & inputs.connected[rows, dp]
         out.values["req"][rows[ask], dp[ask]] = vid[ask]
@@ -263,8 +325,14 @@ class Sorter:
         out.values["rdep"][rows[pass_on], fwd[pass_on]] = hdep[pass_on] + 1
         new_state = {"dist": dist, "heard": heard, "age": age, "vid": vid, "goal": goal,
                      "dir": np.where(moving | (direction >= 0), direction, _NONE), "key": key, "stop": stop,
-                     "hold": new_hold, "hdep": hdep, "hport": hport, "ack": ack}
+                     "hold": new_hold, "hdep": hdep, "hport": hport, "ack": ack, "nxt": nxt, "park": park}
         return new_state, out, wheels
+
+    def _spread(self, own, heard, same_nb, on):
+        """Hops to the nearest cell of the same vehicle that said 0 (``own`` 0 here), forgotten beyond ``reach``."""
+        nb = np.where(same_nb & (heard < self.reach), heard + 1, 255)
+        out = np.minimum(own, nb.min(axis=1)) if nb.shape[1] else own
+        return np.where(on, out, 255)
 
 
 class CentralSorter:
@@ -277,6 +345,10 @@ class CentralSorter:
     closest to the exit on average), never moves a parcel over the edge or a dead cell except
     out of its exit lane, moves it sideways into the lane at its exit, and grants cells ahead to the oldest parcel
     first, ``gap + 1`` deep (a parcel moves when ``gap`` are free ahead of every front cell).
+
+    Sequencing and one-way cells as the cells do: the number due next rises when a sequenced parcel leaves through
+    its exit; a parcel not yet due heads (shortest path) for a parking cell whose centre is free and parks on it;
+    shortest paths avoid parked parcels and the cells beside them, and never run against a one-way arrow.
 
     Config and inputs as for :class:`Sorter`, plus the topology (neighbours and live links) given at construction.
     """
@@ -293,22 +365,33 @@ class CentralSorter:
     def init(self, n, ports, config):
         """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each (see
         :class:`~virtual_vehicle.network.programs.CellProgram`)."""
+        exit_id = np.asarray(config["exit"])
+        self.forbid = np.asarray(config.get("forbid", np.full(n, _NONE)), dtype=np.int64)
+        dist = self._distances([exit_id == e for e in range(MAX_EXITS)], exit_id, np.zeros(n, bool))
+        return {"dist": dist, "vehicles": {}, "owner": np.full(n, _NONE, dtype=np.int64), "next": 0}
+
+    def _distances(self, sources, exit_id, blocked) -> np.ndarray:
+        """(len(sources), n) weighted hop distances to each mask of source cells (edge cells cost ``1 +
+        edge_cost``, as in the cells' gradients), never through a ``blocked`` cell (a parked parcel's) nor against
+        a one-way cell's arrow."""
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import dijkstra
 
         topo = self.topo
-        exit_id = np.asarray(config["exit"])
+        n = len(exit_id)
         conn = topo.connected
         cost = np.where(conn.all(axis=1) | (exit_id >= 0), 1.0, 1.0 + self.edge_cost)
-        a, p = np.nonzero(conn)
+        a, p = np.nonzero(conn & ~blocked[:, None] & (np.arange(conn.shape[1])[None, :] != self.forbid[:, None]))
         b = topo.neighbor[a, p]
+        keep = ~blocked[b]
+        a, b = a[keep], b[keep]
         graph = coo_matrix((cost[a], (b, a)), shape=(n, n)).tocsr()  # stepping from b into a costs a's cost
-        dist = np.full((MAX_EXITS, n), np.inf)
-        for e in range(MAX_EXITS):
-            src = np.flatnonzero(exit_id == e)
+        dist = np.full((len(sources), n), np.inf)
+        for e, src in enumerate(sources):
+            src = np.flatnonzero(src)
             if len(src):
                 dist[e] = dijkstra(graph, indices=src, min_only=True)
-        return {"dist": dist, "vehicles": {}, "owner": np.full(n, _NONE, dtype=np.int64)}
+        return dist
 
     def step(self, state, inputs: CellInputs):
         """One control tick for every cell at once: new state, the sentences to send, and the (n, 2) wheel speeds (m/s
@@ -357,20 +440,45 @@ class CentralSorter:
         held = np.zeros(n, dtype=bool)
         sign = np.array([1.0, 1.0, -1.0, -1.0])
         axis = np.array([0, 1, 0, 1])
+        # sequencing, as the cells do: a parcel whose number is not yet due heads for a free parking cell and parks
+        # where a cell carrying it is one; other parcels route around parked ones
+        park_cell = np.asarray(cfg.get("park", np.zeros(n, bool)), dtype=bool)
+        nxt = state.get("next", 0)
+        blocked = np.zeros(n, dtype=bool)
+        moving = np.zeros(n, dtype=bool)
+        for vid, v in vehicles.items():
+            goal_exit, seq = (int(x) for x in decode_goal(v["goal"]))
+            v["turn"] = seq < 0 or seq <= nxt
+            v["parked"] = not v["turn"] and bool(np.any(park_cell[v["cells"]] & core[v["cells"]]))
+            (blocked if v["parked"] else moving)[v["cells"]] = True
+        nb = self.topo.neighbor  # and the cells beside a parked parcel: a gap of one cell is too narrow for a parcel
+        blocked |= ((nb >= 0) & blocked[np.maximum(nb, 0)] & inputs.connected).any(axis=1) & ~moving
+        dist = state["dist"]
+        if park_cell.any():
+            dist = self._distances([exit_id == e for e in range(PARK)] + [park_cell & ~core], exit_id, blocked)
         for vid in sorted(vehicles):
             v = vehicles[vid]
-            cells, goal = v["cells"], v["goal"]
+            if v["parked"]:
+                v["dir"] = _NONE
+                continue
+            cells = v["cells"]
+            goal_exit, seq = (int(x) for x in decode_goal(v["goal"]))
+            target = goal_exit if v["turn"] else -99  # no exit while it must wait
             body = cells[core[cells]] if core[cells].any() else cells
-            direction = self._direction(state["dist"][goal], cells, body, goal, exit_id, exit_port, inputs, v["dir"])
+            direction = self._direction(dist[goal_exit if v["turn"] else PARK], cells, body, target, exit_id,
+                                        exit_port, inputs, v["dir"])
             v["dir"] = direction
             if direction < 0:
                 continue
-            go, claim = self._ahead(cells, body, direction, vid, owner, held, goal, exit_id, exit_port, inputs)
+            go, claim = self._ahead(cells, body, direction, vid, owner, held, target, exit_id, exit_port, inputs)
             if go:
                 held[claim] = True
                 wheels[cells, axis[direction]] = sign[direction] * self.speed
+                out = (exit_id[cells] == target) & (exit_port[cells] == direction) & ~inputs.connected[cells, direction]
+                if seq >= 0 and out.any():  # it leaves through its exit: the next number is due
+                    nxt = max(nxt, seq + 1)
         return ({"dist": state["dist"], "vehicles": {k: {"goal": v["goal"], "dir": v["dir"]} for k, v in
-                                                      vehicles.items()}, "owner": owner},
+                                                      vehicles.items()}, "owner": owner, "next": nxt},
                 Mailbox.empty(self.schema, n, P), wheels)
 
     def _direction(self, dist, cells, body, goal, exit_id, exit_port, inputs, current):
@@ -387,8 +495,8 @@ class CentralSorter:
             return out
         best, best_score = _NONE, np.inf
         for q in range(4):
-            if not inputs.connected[body, q].all():
-                continue  # a cell carrying the parcel has no neighbour that way: closed
+            if not inputs.connected[body, q].all() or np.any(self.forbid[body] == q):
+                continue  # a cell carrying the parcel has no neighbour that way, or a one-way arrow: closed
             score = float(np.mean(dist[topo.neighbor[body, q]]))  # where the carrying cells would be, on average
             if not np.isfinite(score):
                 continue

@@ -16,7 +16,8 @@ def sorting_report(result) -> dict:
     destination. ``"lost"``: it left the array anywhere else; ``"on_array"``: still there at the end;
     ``"waiting"``: never put on (its place at the entry never came free). Delivery time runs from being put on the
     array to leaving it. ``collisions`` counts pairs of parcels that started pushing each other (must be 0).
-    ``throughput_per_hour`` counts correct deliveries.
+    ``throughput_per_hour`` counts correct deliveries. With sequence numbers, ``order_inversions`` counts the pairs of
+    delivered parcels that left in the wrong order (must be 0); None when no parcel has a sequence number.
 
     With plain conveyor belts, a parcel leaves the array when it last rests on no cell of the array (only on belts,
     or on nothing), judged at the trajectory's samples: handed to an exit belt by an exit lane, it is delivered
@@ -31,7 +32,8 @@ def sorting_report(result) -> dict:
     rows = []
     for pr, entry in zip(result.parcels, sc.parcels):
         tr = pr.trajectory
-        row = {"name": pr.spec.name, "destination": entry.destination, "due_s": entry.t_start,
+        row = {"name": pr.spec.name, "destination": entry.destination, "sequence": entry.sequence,
+               "due_s": entry.t_start,
                "entered_at_s": pr.entered_at, "outcome": "on_array", "exit": None, "correct": False,
                "delivery_time_s": None, "collisions": sum(1 for e in tr.events if e.kind == "contact")}
         left = _left_the_cells(setup, pr) if belts and pr.entered_at is not None else None
@@ -57,6 +59,10 @@ def sorting_report(result) -> dict:
             row["outcome"] = "lost"
         rows.append(row)
     times = [r["delivery_time_s"] for r in rows if r["delivery_time_s"] is not None]
+    out = sorted((r["entered_at_s"] + r["delivery_time_s"], r["sequence"]) for r in rows
+                 if r["sequence"] is not None and r["outcome"] == "delivered")
+    order = [q for _, q in out]
+    inversions = sum(a > b for k, a in enumerate(order) for b in order[k + 1:])
     delays = [r["entered_at_s"] - r["due_s"] for r in rows if r["entered_at_s"] is not None]
     correct = sum(r["correct"] for r in rows)
     count = {k: sum(r["outcome"] == k for r in rows) for k in ("delivered", "lost", "on_array", "waiting")}
@@ -70,6 +76,7 @@ def sorting_report(result) -> dict:
         "delivery_time_mean_s": float(np.mean(times)) if times else None,
         "delivery_time_max_s": float(np.max(times)) if times else None,
         "entry_delay_mean_s": float(np.mean(delays)) if delays else None,
+        "order_inversions": inversions if order else None,
     }
 
 
