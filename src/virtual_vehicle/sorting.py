@@ -23,7 +23,9 @@ what its neighbours said last tick (:mod:`virtual_vehicle.network.programs` cont
   vehicles never wait for each other) and passes the request on, ``gap + 1`` cells deep. A held cell reports back
   how many held cells run ahead of it; a vehicle moves when the run ahead of every front cell is at least ``gap``
   long (or leads off the array at its exit), else all its cells stop. Stopping and going spread through the
-  vehicle like its direction. Parcels therefore keep ``gap`` free cells between them and do not collide.
+  vehicle like its direction. Parcels therefore keep ``gap`` free cells between them and do not collide. A hold
+  lasts ``max_age`` ticks after the last request that renewed it (one tick on ideal rounds), so on a network that
+  delivers a sentence only every few ticks the chain of holds ahead of a vehicle does not fall apart between them.
 - *Exits*: a cell of the goal's exit lane drives the vehicle out through the lane's open side once the vehicle lies
   within the lane (no cell beside it, across the way out, is under the vehicle without belonging to the lane);
   until then such cells move the vehicle sideways into the lane. Nowhere else may a vehicle move over the edge: a
@@ -150,6 +152,7 @@ class Sorter:
                 "dir": np.full(n, _NONE, dtype=np.int64), "key": np.full(n, _BIG, dtype=np.int64),
                 "stop": np.full(n, 255, dtype=np.int64), "hold": np.full(n, _NONE, dtype=np.int64),
                 "hdep": np.zeros(n, dtype=np.int64), "hport": np.full(n, _NONE, dtype=np.int64),
+                "hage": np.zeros(n, dtype=np.int64),
                 "ack": np.zeros(n, dtype=np.int64), "nxt": np.zeros(n, dtype=np.int64),
                 "park": np.full(n, 255, dtype=np.int64)}
 
@@ -278,6 +281,13 @@ class Sorter:
         new_hold = np.where(req[rows, choice] < _HUGE, req[rows, choice], _NONE)
         hport = np.where(new_hold >= 0, choice, _NONE)
         hdep = np.where(new_hold >= 0, inbox.values["rdep"].astype(np.int64)[rows, np.maximum(hport, 0)], 0)
+        # On a slow network a request does not arrive every tick: a hold lasts max_age ticks after it was last asked
+        # for (on ideal rounds, one tick), unless an older vehicle asks meanwhile.
+        keep = (state["hold"] >= 0) & (state["hage"] < self.max_age) & ((new_hold < 0) | (state["hold"] < new_hold))
+        new_hold = np.where(keep, state["hold"], new_hold)
+        hport = np.where(keep, state["hport"], hport)
+        hdep = np.where(keep, state["hdep"], hdep)
+        hage = np.where(keep, state["hage"] + 1, 0)
         new_hold = np.where(lit, _NONE, new_hold)  # a cell under a parcel is that parcel's, not anyone's to hold
         hport = np.where(new_hold >= 0, hport, _NONE)
         # acknowledgement: how many held cells run ahead from here (the whole chain when it reaches the edge)
@@ -325,7 +335,8 @@ class Sorter:
         out.values["rdep"][rows[pass_on], fwd[pass_on]] = hdep[pass_on] + 1
         new_state = {"dist": dist, "heard": heard, "age": age, "vid": vid, "goal": goal,
                      "dir": np.where(moving | (direction >= 0), direction, _NONE), "key": key, "stop": stop,
-                     "hold": new_hold, "hdep": hdep, "hport": hport, "ack": ack, "nxt": nxt, "park": park}
+                     "hold": new_hold, "hdep": hdep, "hport": hport, "hage": hage, "ack": ack, "nxt": nxt,
+                     "park": park}
         return new_state, out, wheels
 
     def _spread(self, own, heard, same_nb, on):
