@@ -17,7 +17,7 @@ def sorting_report(result) -> dict:
     ``"waiting"``: never put on (its place at the entry never came free). Delivery time runs from being put on the
     array to leaving it. ``collisions`` counts pairs of parcels that started pushing each other (must be 0).
     ``throughput_per_hour`` counts correct deliveries. With sequence numbers, ``order_inversions`` counts the pairs of
-    delivered parcels that left in the wrong order (must be 0); None when no parcel has a sequence number.
+    delivered parcels that left in the wrong order (must be 0); None when no parcel with a sequence number left.
 
     With plain conveyor belts, a parcel leaves the array when it last rests on no cell of the array (only on belts,
     or on nothing), judged at the trajectory's samples: handed to an exit belt by an exit lane, it is delivered

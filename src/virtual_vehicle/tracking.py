@@ -12,8 +12,10 @@ outline, the pose the loader puts it down at, its target and its waypoints. No c
 - *Record*: a cell that sees a parcel (any sensor lit) holds a record: the job k, its estimate of the parcel's pose
   and the waypoint leg. A cell that starts seeing a parcel adopts the record of the neighbour whose estimated
   footprint covers its lit sensors best; when no neighbour's does (within a sensor spacing), the parcel has just
-  been put down and the cell takes the job whose loading pose covers its lit sensors. A cell that sees nothing drops
-  its record. So the record travels with the parcel, handed from cell to cell.
+  been put down and the cell takes the job whose loading pose covers its lit sensors. A dark cell next to a cell
+  that sees the parcel holds the same record as a watcher: its dark sensors also tell where the parcel is not, but
+  it does not drive. Any other cell that sees nothing drops its record. So the record travels with the parcel,
+  handed from cell to cell.
 - *Estimate*: every tick each cell (1) moves its estimate by the twist it commanded last tick, (2) averages it
   with the estimates of its neighbours that hold the same job (consensus), (3) takes one gradient step on its own
   share of the central estimator's cost (:mod:`virtual_vehicle.estimate`): each of its own lit sensors pulls the
