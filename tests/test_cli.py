@@ -267,3 +267,16 @@ def test_progress_bar_appears_only_after_its_delay():
     slow(0.5)
     assert slow.bar is not None and slow.bar.tasks[0].completed == 0.5
     slow.close()
+
+
+def test_compare_prints_pose_tasks_side_by_side(tmp_path):
+    text = load_scenario("pose_tasks")[1].replace("duration = 8.0", "duration = 1.0")
+    path = tmp_path / "short_pose_tasks.toml"
+    path.write_text(text)
+    result = runner.invoke(app, ["compare", str(path), "--out", str(tmp_path / "cmp")])
+    assert result.exit_code == 0, result.output
+    assert "largest final error (mm)" in result.output and "distributed" in result.output
+    both = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert both["scenario"] == "pose_tasks"
+    for mode in ("distributed", "central"):
+        assert both[mode]["collisions"] == 0 and both[mode]["final_error_max_mm"] > 0
