@@ -99,3 +99,18 @@ def test_parking_leaves_room_for_three_exits_only():
 def test_one_way_arrows_are_for_square_lattices():
     with pytest.raises(ScenarioError, match="square"):
         parse_scenario(scenario([{"destination": 0}], map_text="o>0\no>0\nEoo\nEoo", lattice="hex")).build()
+
+
+from hypothesis import given, strategies as st  # noqa: E402
+
+
+@given(st.lists(st.lists(st.integers(0, 255), min_size=4, max_size=4), min_size=1, max_size=20),
+       st.sampled_from([6, 8]))
+def test_packed_words_fit_a_signed_32_bit_word_and_unpack_exactly(rows, bits):
+    from virtual_vehicle.sorting import _pack, _unpack
+
+    values = np.array(rows) % (1 << bits)
+    words = _pack(values, bits)
+    assert np.all(words >= -(1 << 31)) and np.all(words < 1 << 31)  # travels as an I32 word
+    for q in range(4):
+        np.testing.assert_array_equal(_unpack(words, q, bits), values[:, q])
