@@ -3,12 +3,14 @@ bays until their turn; one-way aisles keep parcels from meeting head on. Distrib
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.network.programs import check_program
 from virtual_vehicle.scenario import load_scenario, parse_scenario
 from virtual_vehicle.sim import run
-from virtual_vehicle.sorting import Sorter, decode_goal, encode_goal
+from virtual_vehicle.sorting import Sorter, _pack, _unpack, decode_goal, encode_goal
 from virtual_vehicle.tasks import sorting_report
 
 
@@ -101,14 +103,9 @@ def test_one_way_arrows_are_for_square_lattices():
         parse_scenario(scenario([{"destination": 0}], map_text="o>0\no>0\nEoo\nEoo", lattice="hex")).build()
 
 
-from hypothesis import given, strategies as st  # noqa: E402
-
-
 @given(st.lists(st.lists(st.integers(0, 255), min_size=4, max_size=4), min_size=1, max_size=20),
        st.sampled_from([6, 8]))
 def test_packed_words_fit_a_signed_32_bit_word_and_unpack_exactly(rows, bits):
-    from virtual_vehicle.sorting import _pack, _unpack
-
     values = np.array(rows) % (1 << bits)
     words = _pack(values, bits)
     assert np.all(words >= -(1 << 31)) and np.all(words < 1 << 31)  # travels as an I32 word
