@@ -2,6 +2,7 @@
 network) against the heat equation, under ideal rounds and the wire-level network."""
 
 import numpy as np
+import pytest
 
 from virtual_vehicle import layout
 from virtual_vehicle.control import Diffusion
@@ -204,3 +205,30 @@ def test_two_streams_merge_oldest_first_without_collisions():
     assert so["correct"] >= 8
     delivered = [p["name"] for p in s["parcels"] if p["outcome"] == "delivered"]
     assert any(n.startswith("s") for n in delivered) and any(n.startswith("n") for n in delivered)
+
+
+def opposite_streams() -> dict:
+    """Entries at both ends of an aisle, one exit lane leaving north from its middle: the two streams meet head on."""
+    lane = "." * 11 + "{}" + "." * 11
+    rows = [lane.format("0000")] * 2 + [lane.format("oooo")] * 3 + ["o" * 26, "EEE" + "o" * 20 + "EEE",
+                                                                   "EEE" + "o" * 20 + "EEE", "o" * 26]
+    parcels = [{"name": f"{'w' if k % 2 == 0 else 'e'}{k}", "length": 0.25, "width": 0.22, "mass": 1.0, "mu": 2.0,
+                "x": 0.13 if k % 2 == 0 else 2.47, "y": 0.15, "t_start": 2.0 * (k // 2), "destination": 0}
+               for k in range(6)]
+    return {"name": "opposite_streams", "duration": 22.0, "output_dt": 0.05,
+            "array": {"kind": "map", "pitch": 0.1, "map": "\n".join(rows)},
+            "control": {"program": "sort", "period": 0.01, "speed": 0.3, "gap": 2},
+            "friction": {"law": "viscous"}, "parcels": parcels}
+
+
+@pytest.mark.parametrize("central", [False, True])
+def test_two_streams_meeting_head_on_give_way_instead_of_deadlocking(central):
+    """The first parcel from each side sidesteps toward the lane's middle and they meet head on, one free cell
+    apart; each holds what the other needs. The younger backs off, the older goes into the lane, and so on."""
+    from virtual_vehicle.tasks import sorting_report
+
+    sc = parse_scenario(opposite_streams())
+    sc = sc.model_copy(update={"control": sc.control.model_copy(update={"central": central})})
+    report = sorting_report(run(sc.build()))
+    assert report["collisions"] == 0 and report["lost"] == 0 and report["misrouted"] == 0
+    assert report["correct"] == 6, report  # every one, none left waiting

@@ -957,7 +957,8 @@ def _build_sorter(c: ControlSpec, cells: layout.CellArray, topo, make_delivery, 
 
         program = CentralSorter(topo, c.speed, c.gap, period=c.period)
     else:
-        program = Sorter(c.speed, c.gap, c.reach, max_age=0 if c.delivery == "ideal" else 20, period=c.period)
+        program = Sorter(c.speed, c.gap, c.reach, max_age=0 if c.delivery == "ideal" else 20, period=c.period,
+                         pitch=cells.pitch)
     return ControlSetup(program, topo, make_delivery, c.delivery, c.period, config)
 
 

@@ -23,7 +23,10 @@ what its neighbours said last tick (:mod:`virtual_vehicle.network.programs` cont
   vehicles never wait for each other) and passes the request on, ``gap + 1`` cells deep. A held cell reports back
   how many held cells run ahead of it; a vehicle moves when the run ahead of every front cell is at least ``gap``
   long (or leads off the array at its exit), else all its cells stop. Stopping and going spread through the
-  vehicle like its direction. Parcels therefore keep ``gap`` free cells between them and do not collide. A hold
+  vehicle like its direction. Parcels therefore keep ``gap`` free cells between them and do not collide. Two
+  vehicles that meet head on would each hold what the other needs; a front cell that sees the cell ahead held for
+  an older vehicle that asked from the far side (the held cell tells through which port it was asked), or carrying
+  an older vehicle coming this way, makes its vehicle back off for as long as ``gap + 1`` cells take. A hold
   lasts ``max_age`` ticks after the last request that renewed it (one tick on ideal rounds), so on a network that
   delivers a sentence only every few ticks the chain of holds ahead of a vehicle does not fall apart between them.
 - *Exits*: a cell of the goal's exit lane drives the vehicle out through the lane's open side once the vehicle lies
@@ -32,7 +35,7 @@ what its neighbours said last tick (:mod:`virtual_vehicle.network.programs` cont
   front cell with no neighbour ahead stops it.
 - *One-way cells* (config ``forbid``: the port a parcel on the cell may not move toward): gradients are not
   followed against the arrow, and a side against an arrow under any carrying cell is closed to the whole vehicle.
-  Aisles drawn one-way cannot have two parcels meet head on, which hold-based traffic cannot undo.
+  Aisles drawn one-way cannot have two parcels meet head on (nor can a parcel back off against an arrow).
 - *Sequencing* (parcels whose label carries a sequence number, :func:`encode_goal`): the number due next spreads
   through the array as the highest heard (word ``nxt``); the exit cell that lets a sequenced parcel out raises it
   to that parcel's number plus one. A parcel whose number is not yet due follows gradient :data:`PARK` to a parking
@@ -106,6 +109,8 @@ class Sorter:
         edge_cost: extra hops a cell on the edge of the array (not an exit) counts in the gradients.
         period: the control period (s): a vehicle's id is the tick it was made (times 1024, plus its entry cell's
             installation number modulo 1024), so smaller ids are older vehicles.
+        pitch: the cell pitch (m), known to every cell: a vehicle that meets an older one head on backs off for the
+            time it takes to travel ``gap + 1`` pitches.
 
     Sensor 0 of every cell must be its centre (the default layout): a cell whose centre is covered carries the
     parcel; the others only see its edge.
@@ -120,14 +125,15 @@ class Sorter:
     schema = Schema.of(d=(1, WordType.I32), nxt=(4, WordType.I16),
                        vid=(5, WordType.I32), goal=(6, WordType.I16), key=(7, WordType.I32),
                        stop=(8, WordType.U16), req=(9, WordType.I32), rdep=(10, WordType.U8),
-                       hold=(11, WordType.I32), ack=(12, WordType.U8), ex=(13, WordType.I16),
+                       hold=(11, WordType.I32), ack=(12, WordType.U16), ex=(13, WordType.I16),
                        blk=(14, WordType.I32))
     """Words: ``d`` the four gradients' hop distances (one byte each), ``nxt`` the sequence number due next at the
     exits, ``stop`` the hops to the nearest stopping cell of the vehicle (low byte) and to its parking cell (high
+    byte), ``ack`` the run of held cells ahead (low byte) and the port the hold was asked through plus one (high
     byte), the rest as their names say (see the module notes)."""
 
     def __init__(self, speed: float, gap: int = 2, reach: int = 8, max_age: int = 0, edge_cost: int = 3,
-                 period: float = 0.01):
+                 period: float = 0.01, pitch: float = 0.1):
         if not speed > 0:
             raise ValueError("speed must be positive (m/s)")
         if not 1 <= reach <= 62:
@@ -138,6 +144,8 @@ class Sorter:
         self.max_age = int(max_age)
         self.edge_cost = int(edge_cost)
         self.period = float(period)
+        self.back_ticks = int(np.ceil((self.gap + 1) * pitch / (self.speed * self.period)))
+        """Ticks a vehicle backs off for when it meets an older one head on: the gap and one more cell."""
 
     def init(self, n, ports, config):
         """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each (see
@@ -152,7 +160,8 @@ class Sorter:
                 "dir": np.full(n, _NONE, dtype=np.int64), "key": np.full(n, _BIG, dtype=np.int64),
                 "stop": np.full(n, 255, dtype=np.int64), "hold": np.full(n, _NONE, dtype=np.int64),
                 "hdep": np.zeros(n, dtype=np.int64), "hport": np.full(n, _NONE, dtype=np.int64),
-                "hage": np.zeros(n, dtype=np.int64),
+                "hage": np.zeros(n, dtype=np.int64), "back": np.zeros(n, dtype=np.int64),
+                "bdir": np.full(n, _NONE, dtype=np.int64),
                 "ack": np.zeros(n, dtype=np.int64), "nxt": np.zeros(n, dtype=np.int64),
                 "park": np.full(n, 255, dtype=np.int64)}
 
@@ -255,6 +264,22 @@ class Sorter:
         movable = cand[rows, port] < UNREACHABLE
         prop_port = np.where(into_band >= 0, into_band, np.where(at_exit, exit_port, np.where(movable, port, _NONE)))
         prop_d = np.where(into_band >= 0, 0, np.where(at_exit, 1, cand[rows, port] + 3))
+        # Head on: the cell ahead (in last tick's direction) is held for an older vehicle that asked for it from the
+        # far side, or carries an older vehicle heading this way. Hold-based traffic alone would wait forever: the
+        # younger vehicle backs off, for long enough to clear the other's gap and one more cell.
+        pd = np.maximum(state["dir"], 0)
+        ahead_vid = np.where(trusted[rows, pd], heard["hold"][rows, pd], _NONE)
+        ahead_from = (heard["ack"][rows, pd] >> 8) - 1
+        coming = ((heard["key"][rows, pd] < _BIG) & ((heard["key"][rows, pd] // 64) % 8 == (pd + 2) % 4)
+                  & (heard["vid"][rows, pd] == ahead_vid))
+        head_on = (on & (state["dir"] >= 0) & (ahead_vid >= 0) & (ahead_vid < vid) & ~same_nb[rows, pd]
+                   & ((ahead_from == pd) | coming))
+        back = np.where(on, np.maximum(state["back"] - 1, 0), 0)
+        bdir = np.where(head_on, (pd + 2) % 4, state["bdir"])
+        back = np.where(head_on, self.back_ticks, back)
+        backing = (back > 0) & open_side[rows, np.maximum(bdir, 0)] & (bdir >= 0)
+        prop_port = np.where(backing, bdir, prop_port)
+        prop_d = np.where(backing, 0, prop_d)
         own_key = np.where(on & (prop_port >= 0), _key(prop_d, prop_port == state["dir"], np.maximum(prop_port, 0), 0),
                            _BIG)
         nb_key = np.where(same_nb, heard["key"], _BIG)
@@ -296,11 +321,11 @@ class Sorter:
         fp = np.maximum(fwd, 0)
         succ = (new_hold >= 0) & trusted[rows, fp] & (heard["hold"][rows, fp] == new_hold)
         edge = (new_hold >= 0) & ~inputs.connected[rows, fp]
-        ack = np.where(new_hold >= 0, np.where(edge, L, np.minimum(L, 1 + np.where(succ, heard["ack"][rows, fp], 0))),
+        ack = np.where(new_hold >= 0, np.where(edge, L, np.minimum(L, 1 + np.where(succ, heard["ack"][rows, fp] & 255, 0))),
                        0)
         # a front cell may go when the cell ahead is held for its vehicle with a full free run, or at the exit edge
         ahead_hold = heard["hold"][rows, dp]
-        ahead_ack = heard["ack"][rows, dp]
+        ahead_ack = heard["ack"][rows, dp] & 255
         go_front = off_array | (trusted[rows, dp] & (ahead_hold == vid) & (ahead_ack >= self.gap))
         # a cell that only sees the parcel's edge may hang over the array's edge or a dead cell: only cells that
         # carry the parcel, or that have a neighbour ahead to ask, can stop it
@@ -323,7 +348,8 @@ class Sorter:
                                 goal=np.where(on, goal, _NONE), key=np.minimum(key, 2**31 - 1),
                                 stop=np.minimum(stop, 255) + (np.minimum(park, 255) << 8), req=np.full(n, _NONE),
                                 rdep=np.zeros(n),
-                                hold=np.where(lit & on, vid, new_hold), ack=np.minimum(ack, 255),
+                                hold=np.where(lit & on, vid, new_hold),
+                                ack=np.minimum(ack, 255) + ((hport + 1) << 8),
                                 ex=np.where(entry, _ENTRY, exit_id),
                                 blk=_pack(np.minimum(block, 63), 6))
         # requests: front cells ask the cell ahead (depth 1); held cells pass it on until gap deep
@@ -336,7 +362,7 @@ class Sorter:
         new_state = {"dist": dist, "heard": heard, "age": age, "vid": vid, "goal": goal,
                      "dir": np.where(moving | (direction >= 0), direction, _NONE), "key": key, "stop": stop,
                      "hold": new_hold, "hdep": hdep, "hport": hport, "hage": hage, "ack": ack, "nxt": nxt,
-                     "park": park}
+                     "park": park, "back": back, "bdir": bdir}
         return new_state, out, wheels
 
     def _spread(self, own, heard, same_nb, on):
@@ -359,7 +385,8 @@ class CentralSorter:
 
     Sequencing and one-way cells as the cells do: the number due next rises when a sequenced parcel leaves through
     its exit; a parcel not yet due heads (shortest path) for a parking cell whose centre is free and parks on it;
-    shortest paths avoid parked parcels and the cells beside them, and never run against a one-way arrow.
+    shortest paths avoid parked parcels and the cells beside them, and never run against a one-way arrow. A parcel
+    blocked head on by an older one that cannot move either backs off for as long as ``gap + 1`` cells take.
 
     Config and inputs as for :class:`Sorter`, plus the topology (neighbours and live links) given at construction.
     """
@@ -448,7 +475,7 @@ class CentralSorter:
             vehicles[vid] = {**record, "cells": blob}
             owner[blob] = vid
         wheels = np.zeros((n, 2))
-        held = np.zeros(n, dtype=bool)
+        held = np.full(n, _NONE, dtype=np.int64)  # the vehicle each cell is held for this tick
         sign = np.array([1.0, 1.0, -1.0, -1.0])
         axis = np.array([0, 1, 0, 1])
         # sequencing, as the cells do: a parcel whose number is not yet due heads for a free parking cell and parks
@@ -481,15 +508,29 @@ class CentralSorter:
             v["dir"] = direction
             if direction < 0:
                 continue
-            go, claim = self._ahead(cells, body, direction, vid, owner, held, target, exit_id, exit_port, inputs)
+            if v.get("back", 0) > 0:  # backing away from an older parcel met head on
+                v["back"] -= 1
+                direction = v["back_dir"]
+            go, claim, blocker = self._ahead(cells, body, direction, vid, owner, held, target, exit_id, exit_port,
+                                             inputs)
+            other = vehicles.get(blocker)
+            if (not go and other is not None and blocker < vid and other["dir"] == (direction + 2) % 4
+                    and not other.get("moving", False) and not np.any(self.forbid[body] == (direction + 2) % 4)):
+                # head on with an older parcel that cannot move either: give way, back off far enough for its gap
+                back = (direction + 2) % 4
+                v["back"], v["back_dir"] = self._back_ticks(cfg), back
+                direction = back
+                go, claim, _ = self._ahead(cells, body, back, vid, owner, held, target, exit_id, exit_port, inputs)
+            v["dir"], v["moving"] = direction, go
             if go:
-                held[claim] = True
+                held[claim] = vid
                 wheels[cells, axis[direction]] = sign[direction] * self.speed
                 out = (exit_id[cells] == target) & (exit_port[cells] == direction) & ~inputs.connected[cells, direction]
                 if seq >= 0 and out.any():  # it leaves through its exit: the next number is due
                     nxt = max(nxt, seq + 1)
-        return ({"dist": state["dist"], "vehicles": {k: {"goal": v["goal"], "dir": v["dir"]} for k, v in
-                                                      vehicles.items()}, "owner": owner, "next": nxt},
+        return ({"dist": state["dist"], "vehicles": {k: {"goal": v["goal"], "dir": v["dir"], "back": v.get("back", 0),
+                                                          "back_dir": v.get("back_dir", _NONE)}
+                                                      for k, v in vehicles.items()}, "owner": owner, "next": nxt},
                 Mailbox.empty(self.schema, n, P), wheels)
 
     def _direction(self, dist, cells, body, goal, exit_id, exit_port, inputs, current):
@@ -516,8 +557,12 @@ class CentralSorter:
                 best, best_score = q, score
         return best
 
+    def _back_ticks(self, cfg) -> int:
+        """Ticks a parcel backs off for: long enough to clear the gap and one more cell (config ``clearance``)."""
+        return int(np.ceil(float(cfg.get("clearance", 0.3)) / (self.speed * self.period)))
+
     def _ahead(self, cells, body, q, vid, owner, held, goal, exit_id, exit_port, inputs):
-        """Whether the vehicle may move toward port q, and the cells it then holds."""
+        """Whether the vehicle may move toward port q, the cells it then holds, and the vehicle in its way (None)."""
         topo = self.topo
         member = np.zeros(len(owner), dtype=bool)
         member[cells] = True
@@ -530,17 +575,17 @@ class CentralSorter:
                 if exit_id[c] == goal and exit_port[c] == q:
                     continue  # leaving through its exit
                 if c in body:
-                    return False, []
+                    return False, [], None
                 continue  # only its edge hangs over
             run = c
             for depth in range(self.gap + 1):
                 nxt = topo.neighbor[run, q] if inputs.connected[run, q] else -1
                 if nxt < 0:
                     break
-                if (owner[nxt] >= 0 and owner[nxt] != vid) or held[nxt]:
+                if (owner[nxt] >= 0 and owner[nxt] != vid) or held[nxt] >= 0:
                     if depth < self.gap:
-                        return False, []
+                        return False, [], int(owner[nxt] if owner[nxt] >= 0 else held[nxt])
                     break
                 claim.append(nxt)
                 run = nxt
-        return True, claim
+        return True, claim, None
