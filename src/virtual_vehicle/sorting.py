@@ -321,8 +321,8 @@ class Sorter:
         fp = np.maximum(fwd, 0)
         succ = (new_hold >= 0) & trusted[rows, fp] & (heard["hold"][rows, fp] == new_hold)
         edge = (new_hold >= 0) & ~inputs.connected[rows, fp]
-        ack = np.where(new_hold >= 0, np.where(edge, L, np.minimum(L, 1 + np.where(succ, heard["ack"][rows, fp] & 255, 0))),
-                       0)
+        run_ahead = np.where(succ, heard["ack"][rows, fp] & 255, 0)
+        ack = np.where(new_hold >= 0, np.where(edge, L, np.minimum(L, 1 + run_ahead)), 0)
         # a front cell may go when the cell ahead is held for its vehicle with a full free run, or at the exit edge
         ahead_hold = heard["hold"][rows, dp]
         ahead_ack = heard["ack"][rows, dp] & 255

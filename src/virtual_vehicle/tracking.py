@@ -118,7 +118,7 @@ class DistributedPose:
         njob = np.where(trusted, heard["job"], _NONE).astype(np.int64)
         nleg = heard["leg"].astype(np.int64)
         npose = np.stack([heard["x"], heard["y"], heard["th"]], axis=-1)  # (n, P, 3) as they were sent
-        for j in np.unique(njob[njob >= 0]):  # moved since, by the twist each neighbour drove (a function of its record)
+        for j in np.unique(njob[njob >= 0]):  # moved since, by the twist each neighbour drove (from its record)
             at = njob == j
             npose[at] += ((age[at] + 1) * self.period)[:, None] * self._twist(j, npose[at], nleg[at].copy())
         sees = lit.any(axis=1)
