@@ -363,6 +363,9 @@ MAP_CELLS = "o#E0123P><^v"
 """Map characters that mean a cell: ``o`` or ``#`` a plain one, ``E`` an entry cell, ``0``..``3`` a cell of exit k,
 ``P`` a parking cell (where a sorted parcel waits for its turn), ``>`` ``<`` ``^`` ``v`` a one-way cell (a parcel
 on it may not move against the arrow: east, west, north, south; square lattices)."""
+ONE_WAY = {">": 2, "<": 0, "^": 3, "v": 1}
+"""One-way map arrows and the port (square cells: 0..3 = east, north, west, south) a parcel on the cell may not
+move toward."""
 MAP_MARKS = "E0123P><^v"
 """Map characters whose cells :func:`from_map` reports."""
 
@@ -402,7 +405,7 @@ def from_map(text: str, pitch: float, origin: tuple[float, float] = (0.0, 0.0), 
     chars = np.array(chars)
     ports = np.full(len(pos), 6 if lattice == "hex" else 4)
     cells = CellArray(pos, _drive_directions(len(pos), drive_angle), float(pitch), ports=ports)
-    if lattice == "hex" and np.isin(chars, list("><^v")).any():
+    if lattice == "hex" and np.isin(chars, list(ONE_WAY)).any():
         raise ScenarioError(where, "one-way arrows (> < ^ v) are for square lattices")
     return cells, {m: chars == m for m in MAP_MARKS if (chars == m).any()}
 

@@ -947,7 +947,7 @@ def _build_sorter(c: ControlSpec, cells: layout.CellArray, topo, make_delivery, 
             raise ScenarioError("array.map", "program 'sort' needs entries: mark entry cells E on the map, or give "
                                 "control.entries")
     forbid = np.full(cells.n, -1, dtype=np.int64)  # one-way cells: the port a parcel may not move toward
-    for arrow, against in ((">", 2), ("<", 0), ("^", 3), ("v", 1)):
+    for arrow, against in layout.ONE_WAY.items():
         forbid[marks.get(arrow, np.zeros(cells.n, bool))] = against
     config = {"exit": exit_id, "exit_port": exit_port, "entry": entry, "park": park, "forbid": forbid,
               "entry_no": np.arange(1, cells.n + 1, dtype=np.int64),  # installation numbers: unique vehicle ids
