@@ -270,6 +270,24 @@ def point_reach(spec: ParcelSpec, y, window: float, *, law: str, mu_max: float, 
     return float(s0 * window + 0.5 * k * window * window), float(s0 + k * window)
 
 
+def reach_bounds(s0: np.ndarray, lever_mu: np.ndarray, window: float, *, law: str, gravity: float,
+                 wheel_speed: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`point_reach` for many parcels at once: ``s0`` (m/s) their fastest point speeds now and ``lever_mu``
+    their ``mu_max (1 + m R^2 / I)``; returns the distance (m) and speed (m/s) bounds, arrays. (The same formulas
+    as :func:`point_reach`, which stays scalar because the planner calls it inside root finding.)"""
+    s0 = np.asarray(s0, dtype=float)
+    if law == "viscous":
+        k = np.asarray(lever_mu, dtype=float) * gravity
+        kt = k * window
+        slow = kt < 1e-12
+        k = np.where(slow, 1.0, k)
+        dist = np.where(slow, s0 * window, (s0 + wheel_speed) * np.expm1(kt) / k - wheel_speed * window)
+        speed = np.where(slow, s0, (s0 + wheel_speed) * np.exp(kt) - wheel_speed)
+        return dist, speed
+    k = 2.0 * np.asarray(lever_mu, dtype=float) * gravity
+    return s0 * window + 0.5 * k * window * window, s0 + k * window
+
+
 def push_gain(spec: ParcelSpec) -> float:
     """How much faster than the contact point any point of the parcel can move after an inelastic push:
     ``1 + R / k`` with R the footprint radius and ``k = sqrt(I / m)`` the radius of gyration (a push at lever

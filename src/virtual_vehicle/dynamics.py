@@ -84,39 +84,50 @@ def _rebuild_piece(support, solution, constants, mass, inertia) -> "Piece":
     return Piece(support, solution, constants, _make_rhs(constants, solution.origin, mass, inertia), mass, inertia)
 
 
+def constants_row(k: FrictionConstants, origin: np.ndarray, mass: float, inertia: float) -> tuple[float, ...]:
+    """A piece's constants as plain floats, in the order :func:`accelerations` takes them: local origin (m), the
+    force and torque constants of eqs. 23 and 29, the viscous coefficient and weight, the moments of eqs. 33 and 38,
+    then 1 / mass and 1 / inertia."""
+    return (float(origin[0]), float(origin[1]), *map(float, k.a.ravel()), float(k.b[0]), float(k.b[1]),
+            *map(float, k.c.ravel()), float(k.d[0] + k.e[0]), float(k.d[1] + k.e[1]), float(k.f), float(k.damping),
+            float(k.weight), *map(float, k.moment_lin.ravel()), float(k.moment_const[0]), float(k.moment_const[1]),
+            float(k.second_lin[0]), float(k.second_lin[1]), float(k.second_const), 1.0 / mass, 1.0 / inertia)
+
+
+ROW_LENGTH = 28
+"""Length of :func:`constants_row`."""
+
+
+def accelerations(row, x, y, vx, vy, om):
+    """Linear and angular acceleration (m/s^2, m/s^2, rad/s^2) at centre of mass (x, y) (m) moving at (vx, vy) (m/s)
+    and spinning at ``om`` (rad/s), from a piece's :func:`constants_row`. Works on floats (one parcel) and on arrays
+    (one entry per parcel, ``row`` a sequence of arrays), with the same arithmetic."""
+    (ox, oy, a11, a12, a21, a22, b1, b2, c11, c12, c21, c22, e1, e2, f0, mu, W, K11, K12, K21, K22, k1, k2,
+     s1, s2, s0, inv_m, inv_i) = row
+    X1 = x - ox
+    X2 = y - oy
+    fx = a11 * X1 + a12 * X2 + b1  # eq. 23
+    fy = a21 * X1 + a22 * X2 + b2
+    tau = X1 * (c11 * X1 + c12 * X2) + X2 * (c21 * X1 + c22 * X2) + e1 * X1 + e2 * X2 + f0  # eq. 29
+    # Viscous damping (zero for Coulomb, mu = 0): sum N_i (X_i - X_c) is zero unless a row holds the parcel laterally
+    S1x = K11 * X1 + K12 * X2 + k1
+    S1y = K21 * X1 + K22 * X2 + k2
+    Dx = S1x - W * X1
+    Dy = S1y - W * X2
+    fx = fx + mu * (-W * vx + om * Dy)  # eqs. 32-33
+    fy = fy + mu * (-W * vy - om * Dx)
+    second = (s1 * X1 + s2 * X2 + s0) - 2.0 * (X1 * S1x + X2 * S1y) + W * (X1 * X1 + X2 * X2)
+    tau = tau - mu * ((Dx * vy - Dy * vx) + om * second)  # eq. 38
+    return fx * inv_m, fy * inv_m, tau * inv_i
+
+
 def _make_rhs(k: FrictionConstants, origin: np.ndarray, mass: float, inertia: float):
     """State derivative from the constants (eqs. 23, 29, 33, 38), in plain floats for speed."""
-    ox, oy = float(origin[0]), float(origin[1])
-    a11, a12, a21, a22 = (float(v) for v in k.a.ravel())
-    b1, b2 = float(k.b[0]), float(k.b[1])
-    c11, c12, c21, c22 = (float(v) for v in k.c.ravel())
-    e1, e2 = float(k.d[0] + k.e[0]), float(k.d[1] + k.e[1])
-    f0 = float(k.f)
-    mu = float(k.damping)
-    W = float(k.weight)
-    K11, K12, K21, K22 = (float(v) for v in k.moment_lin.ravel())
-    k1, k2 = float(k.moment_const[0]), float(k.moment_const[1])
-    s1, s2 = float(k.second_lin[0]), float(k.second_lin[1])
-    s0 = float(k.second_const)
-    inv_m, inv_i = 1.0 / mass, 1.0 / inertia
+    row = constants_row(k, origin, mass, inertia)
 
     def rhs(t, y):
         x, yy, _th, vx, vy, om = y.tolist()
-        X1 = x - ox
-        X2 = yy - oy
-        fx = a11 * X1 + a12 * X2 + b1  # eq. 23
-        fy = a21 * X1 + a22 * X2 + b2
-        tau = X1 * (c11 * X1 + c12 * X2) + X2 * (c21 * X1 + c22 * X2) + e1 * X1 + e2 * X2 + f0  # eq. 29
-        if mu:
-            S1x = K11 * X1 + K12 * X2 + k1
-            S1y = K21 * X1 + K22 * X2 + k2
-            Dx = S1x - W * X1  # sum N_i (x_i - x_c): zero unless a row holds the parcel laterally
-            Dy = S1y - W * X2
-            fx += mu * (-W * vx + om * Dy)  # eqs. 32-33
-            fy += mu * (-W * vy - om * Dx)
-            second = (s1 * X1 + s2 * X2 + s0) - 2.0 * (X1 * S1x + X2 * S1y) + W * (X1 * X1 + X2 * X2)
-            tau -= mu * ((Dx * vy - Dy * vx) + om * second)  # eq. 38
-        return np.array((vx, vy, om, fx * inv_m, fy * inv_m, tau * inv_i))
+        return np.array((vx, vy, om, *accelerations(row, x, yy, vx, vy, om)))
 
     return rhs
 
@@ -210,14 +221,18 @@ class ParcelModel:
             sol = solve_support(pts, X, self.weight, lateral_support=self.cells.is_line, line_direction=self._line_dir)
             self._geometry.solves += 1
             self._geometry.solutions.setdefault(gkey, []).append(sol)
-        k = self.law.constants(sol, self.velocities[support], self.cells.active_directions[support], self.spec.mu)
-        piece = self._make_piece(support, sol, k)
+        piece = self._make_piece(support, sol, self.constants_for(support, sol, self.velocities[support]))
         existing = self._pieces.get(piece.key)
         if existing is not None:
             return existing
         self._pieces[piece.key] = piece
         self._by_support.setdefault(skey, []).append(piece)
         return piece
+
+    def constants_for(self, support: np.ndarray, sol: SupportSolution, velocities: np.ndarray) -> FrictionConstants:
+        """The friction law's constants for the cells ``support`` solved as ``sol``, whose surfaces move at
+        ``velocities`` ((len(support), 2), m/s)."""
+        return self.law.constants(sol, velocities, self.cells.active_directions[support], self.spec.mu)
 
     def _make_piece(self, support: np.ndarray, sol: SupportSolution, k: FrictionConstants) -> Piece:
         return _rebuild_piece(support, sol, k, self.spec.mass, self.spec.inertia)

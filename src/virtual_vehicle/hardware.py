@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 
 from .errors import ScenarioError
 from .layout import CellArray
-from .parcel import ParcelSpec, footprint_margins
+from .parcel import ParcelSpec, covered_pairs
 
 MAX_SENSORS = 5
 
@@ -86,13 +86,10 @@ class Sensors:
         """(n, S) True where a (active) parcel's footprint covers the sensor point: the noiseless truth."""
         n, S = self.cells.n, self.count
         out = np.zeros(n * S, dtype=bool)
-        flat = self.points.reshape(-1, 2)
-        for k, (spec, y) in enumerate(zip(specs, states)):
-            if active is not None and not active[k]:
-                continue
-            idx = np.asarray(self._tree.query_ball_point(np.asarray(y[:2], float), spec.radius * (1 + 1e-9)), int)
-            if len(idx):
-                out[idx[footprint_margins(spec, y, flat[idx]) > 0]] = True
+        on = [k for k in range(len(specs)) if active is None or active[k]]
+        point = covered_pairs([specs[k] for k in on], [states[k] for k in on], self.points.reshape(-1, 2),
+                              self._tree)[1]
+        out[point] = True
         return out.reshape(n, S)
 
     def read(self, specs: list[ParcelSpec], states, rng: np.random.Generator, active=None) -> np.ndarray:

@@ -6,6 +6,8 @@ origin is the centre of mass; the pose (x, y, theta) places that frame in the wo
 
 from __future__ import annotations
 
+import itertools
+
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -228,3 +230,33 @@ def supporting_cells(spec: ParcelSpec, pose, positions: np.ndarray, tree=None) -
         return idx
     m = footprint_margins(spec, pose, positions[idx])
     return idx[m > 0]
+
+
+def covered_pairs(specs: list[ParcelSpec], states, points: np.ndarray, tree) -> tuple[np.ndarray, np.ndarray]:
+    """Every (parcel k, point j) with point j strictly under parcel k's footprint (margin > 0), for many parcels at
+    once: ``states`` their poses (m, rad), ``points`` (n, 2) in m and ``tree`` a KD-tree over them. Returns the two
+    index arrays, grouped by parcel in order.
+
+    >>> import numpy as np
+    >>> from scipy.spatial import cKDTree
+    >>> pts = np.array([[0.0, 0.0], [1.0, 0.0], [0.2, 0.0]])
+    >>> k, j = covered_pairs([rectangle(0.3, 0.3, 1.0, 0.5)] * 2, [(0, 0, 0), (1, 0, 0)], pts, cKDTree(pts))
+    >>> k.tolist(), j.tolist()
+    ([0, 1], [0, 1])
+    """
+    if not len(specs):
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    poses = np.array([np.asarray(y[:3], dtype=float) for y in states])
+    reach = np.array([spec.radius for spec in specs]) * (1 + 1e-9) + 1e-12
+    found = tree.query_ball_point(poses[:, :2], reach)
+    counts = np.fromiter(map(len, found), dtype=int, count=len(found))
+    point = np.fromiter(itertools.chain.from_iterable(found), dtype=int, count=int(counts.sum()))
+    owner = np.repeat(np.arange(len(specs)), counts)
+    keep = np.zeros(len(point), dtype=bool)
+    shapes: dict[bytes, tuple[ParcelSpec, list[int]]] = {}
+    for k, spec in enumerate(specs):  # margins depend on the outline only: one call per distinct outline
+        shapes.setdefault(spec.footprint.tobytes(), (spec, []))[1].append(k)
+    for spec, members in shapes.values():
+        sel = slice(None) if len(shapes) == 1 else np.isin(owner, members)
+        keep[sel] = pose_margins(spec, poses[owner[sel]], points[point[sel]]) > 0
+    return owner[keep], point[keep]

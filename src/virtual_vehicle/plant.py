@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse import coo_matrix
 
+from .batch import QuietStepper
 from .collide import ContactParams, Rows, place, overlap_area, pair_contacts, point_reach, push_gain, solve_rows
 from .dynamics import Event, ParcelModel, Trajectory, _diff_event, _sampled, integrate, sample_grid
 from .errors import TippingError
@@ -41,13 +42,16 @@ _ADDITIVE = ("wheel_work", "friction_dissipation", "step_dissipation", "contact_
 @dataclass(frozen=True)
 class Integration:
     """How single parcels are integrated (see :func:`~virtual_vehicle.dynamics.integrate`) and the step ``dt`` (s)
-    of fixed-step, stick-slip and grouped parcels."""
+    of fixed-step, stick-slip and grouped parcels. ``batch``: in event mode (Coulomb or viscous law, no
+    ``max_step``), windows proven quiet are stepped for all parcels at once (:mod:`virtual_vehicle.batch`: the same
+    single DOP853 step the event-driven engine would take, vectorised)."""
 
     mode: str = "event"
     rtol: float = 1e-10
     atol: float = 1e-12
     max_step: float = np.inf
     dt: float = 1e-3
+    batch: bool = True
 
 
 @dataclass
@@ -56,7 +60,8 @@ class PlantRecord:
     ``max_penetration_m`` (deepest overlap between two parcels seen at a step, m), ``undetected_overlaps``
     (window ends where two separately integrated parcels overlapped: must stay 0), ``grouped_steps`` (time steps
     taken by groups of parcels in contact range), ``unconverged_contact_steps`` (steps whose contact problem did not
-    reach its tolerance within ``max_sweeps``), ``windows``."""
+    reach its tolerance within ``max_sweeps``), ``windows``, ``quiet_steps`` (parcel windows proven quiet and
+    stepped together, :mod:`virtual_vehicle.batch`)."""
 
     parcel_contacts: int = 0
     max_penetration_m: float = 0.0
@@ -64,6 +69,7 @@ class PlantRecord:
     grouped_steps: int = 0
     unconverged_contact_steps: int = 0
     windows: int = 0
+    quiet_steps: int = 0
     contacts_per_parcel: list[int] = field(default_factory=list)
 
 
@@ -97,6 +103,11 @@ class Plant:
         self._mu_max = [max(s.mu, s.mu_static or 0.0) for s in specs]
         self._gain = [push_gain(s) for s in specs]
         self._radius = np.array([s.radius for s in specs])
+        self._quiet = None
+        if (integration.batch and integration.mode == "event" and np.isinf(integration.max_step)
+                and not isinstance(law, StickSlipLaw)):
+            self._quiet = QuietStepper(self.specs, self._law_name, self._mu_max, gravity, integration.rtol,
+                                       integration.atol)
 
     def models(self, velocities: np.ndarray) -> "_Models":
         """The parcels' models under contact-layer velocities ``velocities`` (m/s), sharing solved geometry; each is
@@ -112,6 +123,8 @@ class Plant:
         mask = None if present is None else np.asarray(present, dtype=bool).copy()
         for model in self.base:
             model.present = mask
+        if self._quiet is not None:
+            self._quiet.forget()
         self._velocities = self._models = None  # models made from the old base are made again
 
     def release(self, i: int) -> None:
@@ -123,6 +136,8 @@ class Plant:
         self.base[i] = fresh
         if self._models is not None:
             self._models.made.pop(i, None)
+        if self._quiet is not None:
+            self._quiet.forget(i)
 
     # -- planning ----------------------------------------------------------------------------------------------
     def _reach(self, i, y, T, wmax, floor=0.0):
@@ -237,11 +252,20 @@ class Plant:
             samples = np.concatenate([[t], inside, [te]])
             grouped = {i for g in groups for i in g}
             integ = self.integration
-            for i in was_active:
-                if not active[i] or i in grouped:
-                    continue
+            solo = [i for i in was_active if active[i] and i not in grouped]
+            rest = solo
+            if self._quiet is not None:
+                for i in grouped:
+                    self._quiet.forget(i)
+                done, rest = self._quiet.step(models, self.base, solo, ys, velocities, t, te, samples)
+                self.record.quiet_steps += len(done)
+                for i, tr in done.items():
+                    self._take(i, tr, ys, active, parts)
+            for i in rest:
                 tr = integrate(models[i], ys[i], t, te, mode=integ.mode, rtol=integ.rtol, atol=integ.atol,
                                max_step=integ.max_step, dt=integ.dt, sample_times=samples)
+                if self._quiet is not None and (tr.events or tr.status != "completed"):
+                    self._quiet.forget(i)  # its anchor's piece may no longer hold
                 self._take(i, tr, ys, active, parts)
             for g in groups:
                 for i, tr in self._step_group(g, models, ys, t, te, samples).items():
@@ -432,9 +456,15 @@ class _Models:
         return len(self.base)
 
 
+def on_grid(times: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """(len(times),) bool: which of the increasing ``times`` are points of the increasing ``grid`` (exactly)."""
+    at = np.searchsorted(grid, times)
+    return (at < len(grid)) & (grid[np.minimum(at, len(grid) - 1)] == times) if len(grid) else np.zeros(len(times), bool)
+
+
 def _on_grid(tr: Trajectory, grid: np.ndarray) -> Trajectory:
     """Keep the samples on the output grid and the last one (window ends are integration restarts, not output)."""
-    keep = np.isin(tr.times, grid)
+    keep = on_grid(tr.times, grid)
     keep[-1] = True
     if keep.all():
         return tr
@@ -444,13 +474,21 @@ def _on_grid(tr: Trajectory, grid: np.ndarray) -> Trajectory:
 def join(segs: list[Trajectory]) -> Trajectory:
     """One trajectory from consecutive pieces (the shared instants appear once). Energy flows and solver counts add
     up; the kinetic energy at the start is the first piece's, at the end the last's."""
+    if len(segs) == 1:
+        return segs[0]
     times, states, events = [segs[0].times], [segs[0].states], list(segs[0].events)
     for s in segs[1:]:
         times.append(s.times[1:])
         states.append(s.states[1:])
         events.extend(s.events)
     last = segs[-1]
-    stats = dict(last.stats)
+    return Trajectory(np.concatenate(times), np.concatenate(states), events, last.status, last.t_end,
+                      sum(s.segments for s in segs), sum(s.rhs_evals for s in segs), joined_stats(segs))
+
+
+def joined_stats(segs: list[Trajectory]) -> dict:
+    """The stats of consecutive pieces as :func:`join` merges them."""
+    stats = dict(segs[-1].stats)
     for key in _ADDITIVE:
         if any(key in s.stats for s in segs):
             stats[key] = sum(s.stats.get(key, 0) for s in segs)
@@ -458,5 +496,4 @@ def join(segs: list[Trajectory]) -> Trajectory:
         stats["sweeps_max"] = max(s.stats.get("sweeps_max", 0) for s in segs)
     if "kinetic_start" in segs[0].stats:
         stats["kinetic_start"] = segs[0].stats["kinetic_start"]
-    return Trajectory(np.concatenate(times), np.concatenate(states), events, last.status, last.t_end,
-                      sum(s.segments for s in segs), sum(s.rhs_evals for s in segs), stats)
+    return stats

@@ -19,12 +19,12 @@ import shapely
 
 from . import __version__
 from .dynamics import Trajectory, sample_grid
-from .plant import join
+from .plant import join, joined_stats, on_grid
 from .friction import CoulombLaw
 from .network.messages import Mailbox
 from .hardware import WheelDrives
 from .network.programs import CellInputs
-from .parcel import ParcelSpec, supporting_cells
+from .parcel import ParcelSpec, covered_pairs, supporting_cells
 from .scenario import Setup
 from .sorting import encode_goal
 
@@ -285,7 +285,8 @@ def plant_totals(plant) -> dict:
     rec = plant.record
     return {"parcel_contacts": rec.parcel_contacts, "max_penetration_m": rec.max_penetration_m,
             "undetected_overlaps": rec.undetected_overlaps, "grouped_steps": rec.grouped_steps,
-            "unconverged_contact_steps": rec.unconverged_contact_steps, "windows": rec.windows}
+            "unconverged_contact_steps": rec.unconverged_contact_steps, "windows": rec.windows,
+            "quiet_steps": rec.quiet_steps}
 
 
 class LatencyStats:
@@ -678,7 +679,7 @@ class _Track:
         return self.last is not None
 
     def add(self, tr: Trajectory, grid: np.ndarray) -> None:
-        on = np.isin(tr.times, grid)
+        on = on_grid(tr.times, grid)
         for t, y in zip(tr.times[on], tr.states[on]):
             if not self.times or t > self.times[-1]:
                 self.times.append(float(t))
@@ -705,8 +706,8 @@ class _Track:
 def join_stats(pieces: list[Trajectory]) -> list[Trajectory]:
     """The stats of consecutive pieces added up (as :func:`~virtual_vehicle.plant.join` does), as one stand-in
     piece (its samples are not used)."""
-    merged = join(pieces)
-    return [Trajectory(merged.times[:1], merged.states[:1], [], merged.status, merged.t_end, 0, 0, merged.stats)]
+    first, last = pieces[0], pieces[-1]
+    return [Trajectory(first.times[:1], first.states[:1], [], last.status, last.t_end, 0, 0, joined_stats(pieces))]
 
 
 def _labels(setup: Setup, states, specs, destinations) -> np.ndarray:
@@ -714,7 +715,8 @@ def _labels(setup: Setup, states, specs, destinations) -> np.ndarray:
     ``destinations`` of the parcels on the array)."""
     cells = setup.cells
     out = np.full(cells.n, -1, dtype=np.int64)
-    for spec, y, dest in zip(specs, states, destinations):
-        if dest is not None:
-            out[supporting_cells(spec, y, cells.positions, cells.tree)] = dest
+    on = [k for k, dest in enumerate(destinations) if dest is not None]
+    if on:
+        owner, cell = covered_pairs([specs[k] for k in on], [states[k] for k in on], cells.positions, cells.tree)
+        out[cell] = np.array([destinations[k] for k in on], dtype=np.int64)[owner]
     return out

@@ -1,0 +1,186 @@
+"""Quiet windows stepped together (issue 8, performance): the vectorised step is scipy's DOP853 step, a window the
+stepper calls quiet has no event in the event-driven engine either, and runs with and without batching agree."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+from scipy.integrate import DOP853
+
+from virtual_vehicle import friction, layout, parcel
+from virtual_vehicle.batch import QuietStepper, dop853_step
+from virtual_vehicle.collide import point_reach, reach_bounds
+from virtual_vehicle.dynamics import ParcelModel, constants_row, integrate
+from virtual_vehicle.plant import Integration, Plant
+from virtual_vehicle.scenario import parse_scenario
+from virtual_vehicle.sim import run_network
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from bench_scale import scenario as scale_scenario  # noqa: E402
+
+CELLS = layout.grid(12, 12, 0.1)
+SPEC = parcel.rectangle(0.33, 0.24, 1.5, 0.8)
+LAWS = {"viscous": friction.ViscousLaw(), "coulomb": friction.CoulombLaw()}
+
+
+def _field(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.uniform(-0.3, 0.3, (CELLS.n, 2))
+
+
+def _pieces(law, seed, n=20):
+    """n parcels' states and their pieces under a random field, placed at random inside the array."""
+    rng = np.random.default_rng(seed)
+    model = ParcelModel(CELLS, SPEC, _field(seed), law)
+    ys, rows = [], []
+    for _ in range(n):
+        y = np.array([*rng.uniform(0.35, 0.75, 2), rng.uniform(-np.pi, np.pi), *rng.normal(0, 0.1, 2),
+                      rng.normal(0, 0.5)])
+        piece = model.piece_at(y)
+        ys.append(y)
+        rows.append(constants_row(piece.constants, piece.solution.origin, SPEC.mass, SPEC.inertia))
+    return model, np.array(ys), rows
+
+
+@pytest.mark.parametrize("law", ["viscous", "coulomb"])
+def test_vectorised_step_is_scipys_dop853_step(law):
+    model, Y, rows = _pieces(LAWS[law], 3)
+    h = 0.01
+    few = dop853_step(rows[:3], Y[:3], h, 1e-10, 1e-12)  # parcel by parcel in floats
+    y_new, accepted, dense, _ = dop853_step(rows, Y, h, 1e-10, 1e-12)  # on arrays
+    np.testing.assert_allclose(few[0], y_new[:3], rtol=1e-14, atol=1e-16)
+    taus = np.array([0.0, 0.3 * h, 0.77 * h, h])
+    inside = dense(taus)
+    for n, y0 in enumerate(Y):
+        solver = DOP853(model.piece_at(y0).rhs, 0.0, y0, h, rtol=1e-10, atol=1e-12, first_step=h)
+        solver.step()
+        assert accepted[n] == (solver.t == h)  # scipy kept the whole step exactly when its error test passed
+        if solver.t == h:
+            np.testing.assert_allclose(y_new[n], solver.y, rtol=1e-13, atol=1e-15)
+            np.testing.assert_allclose(inside[:, n], solver.dense_output()(taus).T, rtol=1e-13, atol=1e-15)
+    assert accepted.any()
+
+
+def test_a_step_too_long_for_the_tolerance_is_refused():
+    _, Y, rows = _pieces(LAWS["viscous"], 4)
+    assert not dop853_step(rows, Y, 2.0, 1e-10, 1e-12)[1].any()
+
+
+def test_reach_bounds_are_point_reach_for_many_parcels():
+    rng = np.random.default_rng(0)
+    for law in ("viscous", "coulomb"):
+        ys = [np.array([0, 0, 0, *rng.normal(0, 0.3, 3)]) for _ in range(6)]
+        mu = rng.uniform(0, 2, 6)
+        want = np.array([point_reach(SPEC, y, 0.02, law=law, mu_max=m, gravity=9.81, wheel_speed=0.4)
+                         for y, m in zip(ys, mu)])
+        R = SPEC.radius
+        s0 = np.array([np.hypot(y[3], y[4]) + abs(y[5]) * R for y in ys])
+        got = reach_bounds(s0, mu * (1 + SPEC.mass * R * R / SPEC.inertia), 0.02, law=law, gravity=9.81,
+                           wheel_speed=0.4)
+        np.testing.assert_allclose(np.column_stack(got), want, rtol=1e-14)
+
+
+@settings(max_examples=60, deadline=None)
+@given(x=st.floats(0.3, 0.8), y=st.floats(0.3, 0.8), th=st.floats(-np.pi, np.pi), vx=st.floats(-0.4, 0.4),
+       vy=st.floats(-0.4, 0.4), om=st.floats(-2, 2), seed=st.integers(0, 50), window=st.sampled_from([0.002, 0.01]),
+       law=st.sampled_from(["viscous", "coulomb"]))
+def test_a_window_called_quiet_has_no_event(x, y, th, vx, vy, om, seed, window, law):
+    """Soundness: whenever the stepper proves a window quiet and steps it, the event-driven engine over the same
+    window finds no support change and ends where the stepper ended."""
+    model = ParcelModel(CELLS, SPEC, _field(seed), LAWS[law])
+    y0 = np.array([x, y, th, vx, vy, om])
+    stepper = QuietStepper([SPEC], law, [SPEC.mu], 9.81, 1e-10, 1e-12)
+    done, rest = stepper.step([model], [model], [0], [y0], model.velocities, 0.0, window, np.array([0.0, window]))
+    ref = integrate(model, y0, 0.0, window, sample_times=np.array([0.0, window]))
+    if done:
+        assert ref.events == [] and ref.status == "completed"
+        np.testing.assert_allclose(done[0].states[-1], ref.states[-1], rtol=1e-12, atol=1e-14)
+    else:
+        assert rest == [0]
+
+
+def test_a_parcel_at_rest_between_cell_centres_is_quiet():
+    model = ParcelModel(CELLS, SPEC, _field(1), LAWS["viscous"])
+    stepper = QuietStepper([SPEC], "viscous", [SPEC.mu], 9.81, 1e-10, 1e-12)
+    y0 = np.array([0.55, 0.55, 0.0, 0.0, 0.0, 0.0])
+    done, rest = stepper.step([model], [model], [0], [y0], model.velocities, 0.0, 0.01, np.array([0.0, 0.005, 0.01]))
+    assert rest == [] and done[0].times.tolist() == [0.0, 0.005, 0.01]
+    ref = integrate(model, y0, 0.0, 0.01, sample_times=np.array([0.0, 0.005, 0.01]))
+    np.testing.assert_allclose(done[0].states, ref.states, rtol=1e-12, atol=1e-15)
+
+
+def _compare(d: dict):
+    out = {}
+    for batch in (False, True):
+        d = {**d, "integrator": {"batch": batch}}
+        out[batch] = run_network(parse_scenario(d).build())
+    off, on = out[False], out[True]
+    assert off.stats["plant"]["quiet_steps"] == 0
+    for a, b in zip(off.parcels, on.parcels):
+        np.testing.assert_array_equal(a.trajectory.times, b.trajectory.times)
+        np.testing.assert_allclose(a.trajectory.states, b.trajectory.states, rtol=0, atol=1e-12)
+        assert [(e.kind, e.entered, e.left, e.lifted, e.touched) for e in a.trajectory.events] == \
+            [(e.kind, e.entered, e.left, e.lifted, e.touched) for e in b.trajectory.events]
+        np.testing.assert_allclose([e.t for e in a.trajectory.events], [e.t for e in b.trajectory.events],
+                                   rtol=0, atol=1e-12)
+    return on
+
+
+@pytest.mark.parametrize("law", ["viscous", "coulomb"])
+def test_networked_runs_agree_with_and_without_batching(law):
+    d = scale_scenario(30, 25, 0.6)
+    d["friction"] = {"law": law}
+    on = _compare(d)
+    assert on.stats["plant"]["quiet_steps"] > 100
+    assert sum(len(p.trajectory.events) for p in on.parcels) > 0  # events happened and were found by the engine
+
+
+def _ticks(batch: bool, field, ys, seconds: float, period: float = 0.01):
+    """Advance a plant of SPEC parcels tick by tick, as a networked run does; returns the plant and the states."""
+    plant = Plant(CELLS, [SPEC] * len(ys), LAWS["viscous"], integration=Integration(batch=batch))
+    ys, active = [y.copy() for y in ys], [True] * len(ys)
+    trail = []
+    for k in range(int(round(seconds / period))):
+        plant.advance(ys, active, field, k * period, (k + 1) * period, period)
+        trail.append(np.array(ys))
+    return plant, np.array(trail)
+
+
+def test_parcels_pushing_each_other_agree_with_and_without_batching():
+    """A parcel driven into a resting one: quiet windows, then windows stepped as a group, then quiet again."""
+    field = np.where(CELLS.positions[:, :1] < 0.6, [[0.3, 0.0]], [[0.0, 0.0]])
+    ys = [np.array([0.3, 0.55, 0, 0, 0, 0.0]), np.array([0.75, 0.55, 0, 0, 0, 0.0])]
+    off, a = _ticks(False, field, ys, 1.5)
+    on, b = _ticks(True, field, ys, 1.5)
+    np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+    assert on.record.parcel_contacts == off.record.parcel_contacts == 1
+    assert on.record.grouped_steps == off.record.grouped_steps > 0 and on.record.quiet_steps > 50
+    assert b[-1, 1, 0] > 0.8  # the resting parcel was pushed along
+
+
+def test_a_cell_taken_out_from_under_a_quiet_parcel_is_seen():
+    """set_present drops every anchor: the next window is solved on the supports that remain."""
+    field = _field(2)
+    y0 = np.array([0.55, 0.55, 0.0, 0.0, 0.0, 0.0])
+    ends = {}
+    for batch in (False, True):
+        plant = Plant(CELLS, [SPEC], LAWS["viscous"], integration=Integration(batch=batch))
+        ys, active = [y0.copy()], [True]
+        plant.advance(ys, active, field, 0.0, 0.01, 0.01)
+        under = plant.base[0].support_at(ys[0])
+        present = np.ones(CELLS.n, bool)
+        present[under[0]] = False
+        plant.set_present(present)
+        plant.advance(ys, active, field, 0.01, 0.02, 0.01)
+        assert plant.record.quiet_steps == (2 if batch else 0)
+        ends[batch] = ys[0]
+    np.testing.assert_allclose(ends[True], ends[False], rtol=0, atol=1e-15)
+    plant = Plant(CELLS, [SPEC], LAWS["viscous"])
+    ys = [y0.copy()]
+    plant.advance(ys, [True], field, 0.0, 0.01, 0.01)
+    plant.advance(ys, [True], field, 0.01, 0.02, 0.01)
+    assert np.max(np.abs(ys[0] - ends[True])) > 1e-9  # the missing cell changed the motion
