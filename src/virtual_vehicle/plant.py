@@ -458,8 +458,10 @@ class _Models:
 
 def on_grid(times: np.ndarray, grid: np.ndarray) -> np.ndarray:
     """(len(times),) bool: which of the increasing ``times`` are points of the increasing ``grid`` (exactly)."""
+    if not len(grid):
+        return np.zeros(len(times), dtype=bool)
     at = np.searchsorted(grid, times)
-    return (at < len(grid)) & (grid[np.minimum(at, len(grid) - 1)] == times) if len(grid) else np.zeros(len(times), bool)
+    return (at < len(grid)) & (grid[np.minimum(at, len(grid) - 1)] == times)
 
 
 def _on_grid(tr: Trajectory, grid: np.ndarray) -> Trajectory:
