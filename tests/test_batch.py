@@ -92,8 +92,11 @@ def test_a_window_called_quiet_has_no_event(x, y, th, vx, vy, om, seed, window, 
     """Soundness: whenever the stepper proves a window quiet and steps it, the event-driven engine over the same
     window finds no support change and ends where the stepper ended."""
     model = ParcelModel(CELLS, SPEC, _field(seed), LAWS[law])
-    y0 = np.array([x, y, th, vx, vy, om])
-    stepper = QuietStepper([SPEC], law, [SPEC.mu], 9.81, 1e-10, 1e-12)
+    _quiet_matches_engine(model, law, np.array([x, y, th, vx, vy, om]), window)
+
+
+def _quiet_matches_engine(model, law, y0, window):
+    stepper = QuietStepper(CELLS, [SPEC], LAWS[law], [SPEC.mu], 9.81, 1e-10, 1e-12)
     done, rest = stepper.step([model], [model], [0], [y0], model.velocities, 0.0, window, np.array([0.0, window]))
     ref = integrate(model, y0, 0.0, window, sample_times=np.array([0.0, window]))
     if done:
@@ -101,11 +104,25 @@ def test_a_window_called_quiet_has_no_event(x, y, th, vx, vy, om, seed, window, 
         np.testing.assert_allclose(done[0].states[-1], ref.states[-1], rtol=1e-12, atol=1e-14)
     else:
         assert rest == [0]
+    return bool(done)
+
+
+@settings(max_examples=60, deadline=None)
+@given(x=st.floats(0.3, 0.8), y=st.floats(0.3, 0.8), th=st.floats(-np.pi, np.pi), speed=st.floats(0, 0.5),
+       heading=st.floats(-np.pi, np.pi), om=st.floats(-0.5, 0.5), window=st.sampled_from([0.005, 0.01, 0.02]),
+       law=st.sampled_from(["viscous", "coulomb"]))
+def test_tight_bounds_riding_or_coasting_parcels_stay_sound(x, y, th, speed, heading, om, window, law):
+    """Where the piece's bound is much tighter than the law's: a viscous parcel riding wheels that move with it
+    (little slip) and a Coulomb parcel coasting over stopped wheels (no force at all)."""
+    v = speed * np.array([np.cos(heading), np.sin(heading)])
+    field = np.tile(v, (CELLS.n, 1)) if law == "viscous" else np.zeros((CELLS.n, 2))
+    model = ParcelModel(CELLS, SPEC, field, LAWS[law])
+    _quiet_matches_engine(model, law, np.array([x, y, th, *v, om]), window)
 
 
 def test_a_parcel_at_rest_between_cell_centres_is_quiet():
     model = ParcelModel(CELLS, SPEC, _field(1), LAWS["viscous"])
-    stepper = QuietStepper([SPEC], "viscous", [SPEC.mu], 9.81, 1e-10, 1e-12)
+    stepper = QuietStepper(CELLS, [SPEC], LAWS["viscous"], [SPEC.mu], 9.81, 1e-10, 1e-12)
     y0 = np.array([0.55, 0.55, 0.0, 0.0, 0.0, 0.0])
     done, rest = stepper.step([model], [model], [0], [y0], model.velocities, 0.0, 0.01, np.array([0.0, 0.005, 0.01]))
     assert rest == [] and done[0].times.tolist() == [0.0, 0.005, 0.01]

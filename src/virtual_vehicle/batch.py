@@ -9,9 +9,25 @@ DOP853 step over it, but spends most of a millisecond setting that step up. :cla
 quiet and takes that same step (same tableau, same error test, same dense output) for all quiet parcels at once,
 with each parcel's piece constants (:func:`~virtual_vehicle.dynamics.constants_row`) as arrays.
 
-The proof is a bound, not a sample. Let ``r`` bound how far any point of a parcel can move in the window
-(:func:`~virtual_vehicle.collide.reach_bounds`, from the friction law alone; the planner has already ruled out
-pushes from other parcels). At an *anchor* state the stepper measures:
+The proof is a bound, not a sample. Let ``r`` bound how far any point of a parcel can move in the window (the
+planner has already ruled out pushes from other parcels). Two bounds hold, and the smaller is used:
+
+- the friction law's alone (:func:`~virtual_vehicle.collide.reach_bounds`), which also bounds every point's speed
+  by ``S_max`` over the window;
+- the piece's, valid while the piece holds (which is what is being proven: the first moment it would stop holding
+  comes after the window, by continuity). With ``k = mu g (1 + m R^2 / I)``, ``S0 = |v| + |omega| R`` now and
+  ``c = S_max^2 / R`` bounding the centripetal acceleration ``omega^2 R`` and ``|omega| |v|``:
+
+  - viscous (eq. 30): every cell under the parcel pushes with ``mu N_i u_i``, ``u_i`` its slip. The parcel's
+    accelerations are at most ``k sigma`` at its rim (``sigma = max |u_i|``), and ``d sigma / dt <= k sigma + c``
+    (the slip at a fixed cell changes with the parcel's acceleration and, as the parcel moves, with
+    ``omega J v``). So ``r = S0 T + (sigma_0 + c / k)((e^{kT} - 1) / k - T)``: a parcel riding its wheels
+    (``sigma_0`` ~ 0) reaches little further than ``S0 T``.
+  - Coulomb (eqs. 20-21): the cells push with ``mu N_i F_i``, ``F_i`` fixed by the wheels' spins, so a point's
+    acceleration is at most ``k max |F_i| + c``: ``r = S0 T + (k max|F_i| + c) T^2 / 2``, zero acceleration on
+    stopped wheels.
+
+At an *anchor* state the stepper measures:
 
 - ``clear``: the smallest ``|margin|`` of any cell near the footprint (m), at most the search buffer. A margin is
   1-Lipschitz in how far the footprint points move (a cell crosses the outline only where a footprint point passes
@@ -37,6 +53,7 @@ from .collide import reach_bounds
 from .contact import SupportSolution
 from .dynamics import (_NOISE, ROW_LENGTH, ParcelModel, Trajectory, accelerations, constants_row)
 from .errors import TippingError
+from .friction import ViscousLaw
 from .parcel import footprint_margins
 
 
@@ -52,17 +69,18 @@ class _Anchor:
     geometry: object  # the parcel's shared cache of solved supports (for its count of solves)
     velocities: np.ndarray | None = None  # (len(support), 2) m/s the row was made with
     row: tuple[float, ...] | None = None
+    drive: float = 0.0  # Coulomb: the largest |F_i| under the parcel (eq. 21)
 
 
 def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
     """The anchor of ``model``'s parcel at state ``y``; None when it has no piece there (it tips). ``length`` (m) is
     the scale of rounding noise in positions (the array's largest coordinate, at least 1 m)."""
+    support = model.support_at(y)
     try:
-        piece = model.piece_at(y)
+        sol = model.solution_for(support, y[:2])
     except TippingError:
         return None
     spec, cells = model.spec, model.cells
-    sol = piece.solution
     buffer = max(cells.pitch, 0.25 * spec.radius)
     ids = np.asarray(cells.tree.query_ball_point(np.asarray(y[:2], dtype=float), spec.radius + buffer), dtype=int)
     if model.present is not None and len(ids):
@@ -76,7 +94,7 @@ def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
     springs = _room(np.abs(sol.spring_values(xi)) - _NOISE * model.weight, sol.basis @ sol.plane_lin)
     hull = _room(sol.hull_slack(xi) - _NOISE * length * np.linalg.norm(sol.hull_normals, axis=1), sol.hull_normals)
     slack = float(min(np.min(springs, initial=np.inf), np.min(hull, initial=np.inf)))
-    return _Anchor(np.array(y[:3], dtype=float), clear, slack, piece.support, sol, model._geometry)
+    return _Anchor(np.array(y[:3], dtype=float), clear, slack, support, sol, model._geometry)
 
 
 def _room(values: np.ndarray, gradients: np.ndarray) -> np.ndarray:
@@ -90,16 +108,19 @@ class QuietStepper:
     """Steps the quiet windows of separately moving parcels together (see the module docstring).
 
     Args:
+        cells: the contact layer.
         specs: every parcel of the plant.
-        law: ``"viscous"`` or ``"coulomb"`` (for the reach bound).
+        law: the friction law (Coulomb or viscous).
         mu_max: each parcel's largest friction coefficient.
         gravity: m/s^2.
         rtol, atol: the event-driven engine's tolerances, applied to the single step exactly as it applies them.
     """
 
-    def __init__(self, specs, law: str, mu_max, gravity: float, rtol: float, atol: float):
-        self.length: float | None = None  # m, set from the array on first use
+    def __init__(self, cells, specs, law, mu_max, gravity: float, rtol: float, atol: float):
+        self.cells = cells
+        self.length = max(1.0, float(np.max(np.abs(cells.positions)))) if cells.n else 1.0
         self.law = law
+        self.viscous = isinstance(law, ViscousLaw)
         self.gravity = gravity
         self.rtol, self.atol = rtol, atol
         self.radius = np.array([s.radius for s in specs])
@@ -114,8 +135,6 @@ class QuietStepper:
             self.anchors.pop(i, None)
 
     def _anchor(self, i, models, y) -> _Anchor | None:
-        if self.length is None:
-            self.length = max(1.0, float(np.max(np.abs(models[i].cells.positions))))
         a = anchor(models[i], y, self.length)
         if a is None:
             self.anchors.pop(i, None)
@@ -123,16 +142,59 @@ class QuietStepper:
             self.anchors[i] = a
         return a
 
-    def _quiet(self, idx: list[int], Y: np.ndarray, anchors: list[_Anchor], window: float,
-               wheel_speed: float) -> np.ndarray:
+    def _refresh(self, i, a: _Anchor, base, velocities) -> None:
+        """Remake the anchor's constants (and largest Coulomb drive) if the wheels under it changed."""
+        v = velocities[a.support]
+        if a.row is not None and np.array_equal(v, a.velocities):
+            return
+        model = base[i]
+        a.velocities = v.copy()
+        a.row = constants_row(model.constants_for(a.support, a.solution, v), a.solution.origin,
+                              model.spec.mass, model.spec.inertia)
+        if not self.viscous:
+            drive = self.law.drive_vectors(v, self.cells.active_directions[a.support])
+            a.drive = float(np.max(np.hypot(drive[:, 0], drive[:, 1])))
+
+    def reach(self, idx: list[int], Y: np.ndarray, anchors: list[_Anchor], window: float,
+              velocities: np.ndarray, wheel_speed: float) -> np.ndarray:
+        """How far (m) any point of each parcel ``idx`` (states ``Y``, pieces of ``anchors``) can move in ``window``
+        s while its piece holds: the smaller of the law's bound and the piece's (module docstring)."""
+        R = self.radius[idx]
+        k = self.lever_mu[idx] * self.gravity
+        s0 = np.hypot(Y[:, 3], Y[:, 4]) + np.abs(Y[:, 5]) * R
+        r_law, s_max = reach_bounds(s0, self.lever_mu[idx], window, law="viscous" if self.viscous else "coulomb",
+                                    gravity=self.gravity, wheel_speed=wheel_speed)
+        if self.cells.is_line:  # a row may hold the parcel laterally: the law's bound only
+            return r_law
+        c = s_max * s_max / R
+        if self.viscous:
+            ids = np.concatenate([a.support for a in anchors])
+            owner = np.repeat(np.arange(len(anchors)), [len(a.support) for a in anchors])
+            arm = self.cells.positions[ids] - Y[owner, :2]
+            spin = Y[owner, 5]
+            slip = np.hypot(velocities[ids, 0] - Y[owner, 3] + spin * arm[:, 1],
+                            velocities[ids, 1] - Y[owner, 4] - spin * arm[:, 0])
+            sigma = np.zeros(len(anchors))
+            np.maximum.at(sigma, owner, slip)
+            # sigma_0 ((e^{kT} - 1) / k - T) + c ((e^{kT} - 1) / k - T) / k, by its series where kT is small
+            kt = k * window
+            big = kt > 1e-4
+            ks = np.where(big, k, 1.0)
+            g1 = np.where(big, np.expm1(kt) / ks - window, kt * window * (0.5 + kt / 6 + kt * kt / 24))
+            g2 = np.where(big, g1 / ks, window * window * (0.5 + kt / 6 + kt * kt / 24))
+            r_piece = s0 * window + sigma * g1 + c * g2
+        else:
+            drive = np.array([a.drive for a in anchors])
+            r_piece = s0 * window + 0.5 * (k * drive + c) * window ** 2
+        return np.minimum(r_law, r_piece)
+
+    def _quiet(self, idx, Y, anchors, window, velocities, wheel_speed) -> np.ndarray:
         """Which of the parcels ``idx`` at states ``Y`` are proven quiet for ``window`` s from their anchors."""
         R = self.radius[idx]
         P0 = np.array([a.pose for a in anchors])
         moved = np.hypot(Y[:, 0] - P0[:, 0], Y[:, 1] - P0[:, 1])
         swept = moved + np.abs(Y[:, 2] - P0[:, 2]) * R
-        s0 = np.hypot(Y[:, 3], Y[:, 4]) + np.abs(Y[:, 5]) * R
-        r = reach_bounds(s0, self.lever_mu[idx], window, law=self.law, gravity=self.gravity,
-                         wheel_speed=wheel_speed)[0]
+        r = self.reach(idx, Y, anchors, window, velocities, wheel_speed)
         clear = np.array([a.clear for a in anchors])
         slack = np.array([a.slack for a in anchors])
         return (clear > swept + r) & (slack > moved + r)
@@ -153,31 +215,27 @@ class QuietStepper:
         for k, i in enumerate(idx):
             if anchors[k] is None:
                 anchors[k] = self._anchor(i, models, Y[k])
+            if anchors[k] is not None:
+                self._refresh(i, anchors[k], base, velocities)
         have = np.array([a is not None for a in anchors])
         ok = np.zeros(len(idx), dtype=bool)
         if have.any():
             sel = np.flatnonzero(have)
-            ok[sel] = self._quiet([idx[k] for k in sel], Y[sel], [anchors[k] for k in sel], window, wheel_speed)
+            ok[sel] = self._quiet([idx[k] for k in sel], Y[sel], [anchors[k] for k in sel], window, velocities,
+                                  wheel_speed)
         for k in np.flatnonzero(have & ~ok):  # an old anchor may have run out: measure again where the parcel is
             a = anchors[k]
             if not np.array_equal(a.pose, Y[k, :3]):
                 anchors[k] = a = self._anchor(idx[k], models, Y[k])
-                ok[k] = a is not None and bool(self._quiet([idx[k]], Y[k:k + 1], [a], window, wheel_speed)[0])
+                if a is not None:
+                    self._refresh(idx[k], a, base, velocities)
+                    ok[k] = self._quiet([idx[k]], Y[k:k + 1], [a], window, velocities, wheel_speed)[0]
         quiet = np.flatnonzero(ok)
         rest = [idx[k] for k in np.flatnonzero(~ok)]
         if not len(quiet):
             return {}, rest
-        rows = []
-        for k in quiet:
-            a = anchors[k]
-            v = velocities[a.support]
-            if a.row is None or not np.array_equal(v, a.velocities):
-                model = base[idx[k]]
-                a.velocities = v.copy()
-                a.row = constants_row(model.constants_for(a.support, a.solution, v), a.solution.origin,
-                                      model.spec.mass, model.spec.inertia)
-            rows.append(a.row)
-        y_new, accepted, dense, evals = dop853_step(rows, Y[quiet], window, self.rtol, self.atol)
+        y_new, accepted, dense, evals = dop853_step([anchors[k].row for k in quiet], Y[quiet], window, self.rtol,
+                                                    self.atol)
         inside = samples[(samples > t) & (samples < te)]
         states_inside = dense(inside - t) if len(inside) else None
         out = {}

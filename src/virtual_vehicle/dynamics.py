@@ -208,6 +208,19 @@ class ParcelModel:
         for piece in self._by_support.get(skey, ()):
             if _holds(piece.solution, X - piece.solution.origin):
                 return piece
+        sol = self.solution_for(support, X)
+        piece = self._make_piece(support, sol, self.constants_for(support, sol, self.velocities[support]))
+        existing = self._pieces.get(piece.key)
+        if existing is not None:
+            return existing
+        self._pieces[piece.key] = piece
+        self._by_support.setdefault(skey, []).append(piece)
+        return piece
+
+    def solution_for(self, support: np.ndarray, com) -> SupportSolution:
+        """The solved normal forces of the cells ``support`` with the centre of mass at ``com`` (m), from the cache
+        of geometric patterns (shared by all velocities) or solved now. Raises TippingError when there is none."""
+        X = np.asarray(com, dtype=float)
         if len(support) == 0:
             raise TippingError(f"no cell lies under the parcel at ({X[0]:.6g}, {X[1]:.6g}) m")
         pts = self.cells.positions[support]
@@ -216,18 +229,11 @@ class ParcelModel:
         origin = pts.mean(axis=0)
         sol = next((t for t in self._geometry.solutions.get(gkey, ()) if _holds(t, X - origin)), None)
         if sol is not None:
-            sol = replace(sol, origin=origin)
-        else:
-            sol = solve_support(pts, X, self.weight, lateral_support=self.cells.is_line, line_direction=self._line_dir)
-            self._geometry.solves += 1
-            self._geometry.solutions.setdefault(gkey, []).append(sol)
-        piece = self._make_piece(support, sol, self.constants_for(support, sol, self.velocities[support]))
-        existing = self._pieces.get(piece.key)
-        if existing is not None:
-            return existing
-        self._pieces[piece.key] = piece
-        self._by_support.setdefault(skey, []).append(piece)
-        return piece
+            return replace(sol, origin=origin)
+        sol = solve_support(pts, X, self.weight, lateral_support=self.cells.is_line, line_direction=self._line_dir)
+        self._geometry.solves += 1
+        self._geometry.solutions.setdefault(gkey, []).append(sol)
+        return sol
 
     def constants_for(self, support: np.ndarray, sol: SupportSolution, velocities: np.ndarray) -> FrictionConstants:
         """The friction law's constants for the cells ``support`` solved as ``sol``, whose surfaces move at

@@ -106,7 +106,7 @@ class Plant:
         self._quiet = None
         if (integration.batch and integration.mode == "event" and np.isinf(integration.max_step)
                 and not isinstance(law, StickSlipLaw)):
-            self._quiet = QuietStepper(self.specs, self._law_name, self._mu_max, gravity, integration.rtol,
+            self._quiet = QuietStepper(cells, self.specs, law, self._mu_max, gravity, integration.rtol,
                                        integration.atol)
 
     def models(self, velocities: np.ndarray) -> "_Models":
