@@ -6,6 +6,9 @@ Each configuration runs in its own process (so that its peak resident memory is 
 on 10 cm cells, placed on a 0.55 m lattice (25 fit on 30 x 30 with the gaps the sorter keeps), labelled for one exit lane on the east edge (every cell reads labels so
 they get their vehicle records where they stand), simulated for ``--seconds`` (default 1 s).
 
+Each configuration runs twice: with quiet control ticks stepped for all parcels at once (``integrator.batch``, the
+default) and with every parcel integrated on its own, so the table shows what batching buys side by side.
+
 Run: ``python benchmarks/bench_scale.py`` (or ``make bench``).
 """
 
@@ -19,7 +22,7 @@ import sys
 import time
 
 
-def scenario(side: int, parcels: int, seconds: float) -> dict:
+def scenario(side: int, parcels: int, seconds: float, batch: bool = True) -> dict:
     pitch = 0.1
     spacing = 0.55  # m between parcel centres: the sorter keeps two free cells around every parcel
     coords = [0.2 + spacing * k for k in range(int((side * pitch - 0.4) / spacing) + 1)]
@@ -37,42 +40,53 @@ def scenario(side: int, parcels: int, seconds: float) -> dict:
                     "exits": [[[(side - 4) * pitch - 0.05, lane_y0], [side * pitch - 0.05, lane_y0],
                                [side * pitch - 0.05, lane_y0 + 0.4], [(side - 4) * pitch - 0.05, lane_y0 + 0.4]]]},
         "friction": {"law": "viscous"},
+        "integrator": {"batch": batch},
         "parcels": [{"name": f"p{k}", "length": 0.22, "width": 0.22, "mass": 1.5, "mu": 2.0, "x": x, "y": y,
                      "destination": 0} for k, (x, y) in enumerate(spots[:parcels])],
     }
 
 
-def one(side: int, parcels: int, seconds: float) -> dict:
+def one(side: int, parcels: int, seconds: float, batch: bool = True) -> dict:
     """Run one configuration here; return its figures."""
     from virtual_vehicle.scenario import parse_scenario
     from virtual_vehicle.sim import run_network
 
-    setup = parse_scenario(scenario(side, parcels, seconds)).build()
+    setup = parse_scenario(scenario(side, parcels, seconds, batch)).build()
     start = time.perf_counter()
     res = run_network(setup)
     wall = time.perf_counter() - start
     moved = sum(float(abs(p.trajectory.states[-1, 0] - p.trajectory.states[0, 0])) > 0.01 for p in res.parcels)
     return {"cells": side * side, "parcels": parcels, "simulated_s": seconds, "wall_s": wall,
             "real_time_factor": seconds / wall, "peak_rss_MiB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-            "windows": res.stats["plant"]["windows"], "parcels_moving": moved}
+            "windows": res.stats["plant"]["windows"], "quiet_steps": res.stats["plant"]["quiet_steps"],
+            "parcels_moving": moved}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=1.0)
     ap.add_argument("--one", nargs=2, type=int, metavar=("SIDE", "PARCELS"))
+    ap.add_argument("--unbatched", action="store_true", help="with --one: integrate every parcel on its own")
     args = ap.parse_args()
     if args.one:
-        print(json.dumps(one(*args.one, args.seconds)))
+        print(json.dumps(one(*args.one, args.seconds, batch=not args.unbatched)))
         return
     print(f"# Networked runs, 100 Hz distributed control (sorter), ideal rounds, {args.seconds:g} s simulated")
-    print(f"{'array':>9}{'parcels':>9}{'moving':>8}{'wall s':>10}{'x real time':>13}{'peak MiB':>10}")
+    print("# batched: quiet ticks of all parcels in one vectorised step (default); alone: each parcel on its own")
+    print(f"{'array':>9}{'parcels':>9}{'moving':>8}{'quiet %':>9}{'wall s':>9}{'x real time':>13}{'alone x':>9}"
+          f"{'peak MiB':>10}{'alone MiB':>11}")
     for side, parcels in ((30, 1), (30, 25), (100, 1), (100, 50), (100, 200)):
-        out = subprocess.run([sys.executable, __file__, "--one", str(side), str(parcels), "--seconds",
-                              str(args.seconds)], capture_output=True, text=True, check=True)
-        r = json.loads(out.stdout.strip().splitlines()[-1])
-        print(f"{side}x{side:<6}{parcels:>9}{r['parcels_moving']:>8}{r['wall_s']:>10.2f}{r['real_time_factor']:>13.3f}{r['peak_rss_MiB']:>10.0f}",
-              flush=True)
+        r, alone = (_measure(side, parcels, args.seconds, flag) for flag in ([], ["--unbatched"]))
+        quiet = 100 * r["quiet_steps"] / max(1, round(parcels * args.seconds / 0.01))
+        print(f"{side}x{side:<6}{parcels:>9}{r['parcels_moving']:>8}{quiet:>9.0f}{r['wall_s']:>9.2f}"
+              f"{r['real_time_factor']:>13.3f}{alone['real_time_factor']:>9.3f}{r['peak_rss_MiB']:>10.0f}"
+              f"{alone['peak_rss_MiB']:>11.0f}", flush=True)
+
+
+def _measure(side: int, parcels: int, seconds: float, flags: list[str]) -> dict:
+    out = subprocess.run([sys.executable, __file__, "--one", str(side), str(parcels), "--seconds", str(seconds),
+                          *flags], capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ fixed-step mode; contacts add ``"contact"`` (two parcels started pushing each ot
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -37,6 +37,8 @@ from .parcel import ParcelSpec
 from .stickslip import account, masses, new_account, remember, wheel_problem
 
 _ADDITIVE = ("wheel_work", "friction_dissipation", "step_dissipation", "contact_work", "unconverged_steps")
+SUMMED_STATS = (*_ADDITIVE, "sweeps_max", "kinetic_start")
+"""Trajectory stats that :func:`join` does not simply take from the last piece."""
 
 
 @dataclass(frozen=True)
@@ -470,7 +472,8 @@ def _on_grid(tr: Trajectory, grid: np.ndarray) -> Trajectory:
     keep[-1] = True
     if keep.all():
         return tr
-    return replace(tr, times=tr.times[keep], states=tr.states[keep])
+    return Trajectory(tr.times[keep], tr.states[keep], tr.events, tr.status, tr.t_end, tr.segments, tr.rhs_evals,
+                      tr.stats)
 
 
 def join(segs: list[Trajectory]) -> Trajectory:

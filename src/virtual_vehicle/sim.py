@@ -19,7 +19,7 @@ import shapely
 
 from . import __version__
 from .dynamics import Trajectory, sample_grid
-from .plant import join, joined_stats, on_grid
+from .plant import SUMMED_STATS, join, joined_stats, on_grid
 from .friction import CoulombLaw
 from .network.messages import Mailbox
 from .hardware import WheelDrives
@@ -691,7 +691,8 @@ class _Track:
         self.piece = tr
         if tr.stats:
             first = self.stats_pieces[:1]
-            self.stats_pieces = join_stats([*first, tr]) if first else [tr]
+            summed = any(key in piece.stats for piece in (*first, tr) for key in SUMMED_STATS)
+            self.stats_pieces = join_stats([*first, tr]) if first and summed else [tr]  # else the latest stand
 
     def trajectory(self) -> Trajectory:
         times, states = list(self.times), list(self.states)

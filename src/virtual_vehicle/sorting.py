@@ -47,6 +47,8 @@ what its neighbours said last tick (:mod:`virtual_vehicle.network.programs` cont
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from .network.messages import Mailbox, Schema
@@ -62,11 +64,17 @@ _HUGE = 1 << 40  # above any vehicle id
 _ENTRY = -2  # the "ex" word of an entry cell
 
 
+def _across(ufunc, a: np.ndarray) -> np.ndarray:
+    """``ufunc`` reduced over axis 1 (a cell's ports or sensors), column by column: numpy's reductions along a short
+    axis cost about ten times as much. Axis 1 must not be empty."""
+    return functools.reduce(ufunc, [a[:, q] for q in range(a.shape[1])])
+
+
 def _weighted_gradient(dist_in, present, is_source, cost, cap: int = UNREACHABLE):
     """Distance-vector step with a per-cell cost (hops): a source is at 0, any other cell at its cost plus the
     smallest distance it trusts from a neighbour, capped (unreachable)."""
     heard = np.where(present, dist_in.astype(np.int64), cap)
-    best = heard.min(axis=1) if heard.shape[1] else np.full(len(is_source), cap)
+    best = _across(np.minimum, heard) if heard.shape[1] else np.full(len(is_source), cap)
     return np.where(is_source, 0, np.minimum(best + cost, cap)).astype(np.int64)
 
 
@@ -188,15 +196,16 @@ class Sorter:
         # A cell at the edge of the array (a side with no neighbour) costs more, so parcels travel inside it and
         # meet the edge only at their exit.
         # In a sequenced run gradient PARK leads to a parking cell that no parcel covers.
-        lit = np.asarray(inputs.sensors, dtype=bool).any(axis=1)
-        cost = np.where(inputs.connected.all(axis=1) | (exit_id >= 0), 1, 1 + self.edge_cost)
+        lit = _across(np.logical_or, np.asarray(inputs.sensors, dtype=bool))
+        cost = np.where(_across(np.logical_and, inputs.connected) | (exit_id >= 0), 1, 1 + self.edge_cost)
         source = [exit_id == e for e in range(MAX_EXITS)]
         if park_cell.any():  # free while no parcel covers its centre (a parcel parks once it does)
             source[PARK] = park_cell & ~np.asarray(inputs.sensors, dtype=bool)[:, 0]
-        dist = np.stack([_weighted_gradient(_unpack(heard["d"], e), trusted & allowed, source[e], cost)
+        heard_d = [_unpack(heard["d"], e) for e in range(MAX_EXITS)]  # (n, P) each: the neighbours' gradients
+        dist = np.stack([_weighted_gradient(heard_d[e], trusted & allowed, source[e], cost)
                          for e in range(MAX_EXITS)], axis=1)
         # -- sequencing: the number due next at the exits, the highest any neighbour knows
-        nxt = np.maximum(state["nxt"], np.where(trusted, heard["nxt"], 0).max(axis=1) if P else 0)
+        nxt = np.maximum(state["nxt"], _across(np.maximum, np.where(trusted, heard["nxt"], 0)) if P else 0)
         # -- tracking
         vid, goal = state["vid"].copy(), state["goal"].copy()
         vid[~lit] = _NONE
@@ -211,7 +220,7 @@ class Sorter:
         found = score[rows, pick] < 2 * _HUGE
         best_vid = heard["vid"][rows, pick]
         nb_entry = np.where(has & (heard["ex"] == _ENTRY), heard["vid"], _HUGE)
-        entry_min = nb_entry.min(axis=1) if P else np.full(n, _HUGE)
+        entry_min = _across(np.minimum, nb_entry) if P else np.full(n, _HUGE)
         adopt = lit & (vid < 0) & found
         vid[adopt] = best_vid[adopt]
         goal[adopt] = heard["goal"][rows, pick][adopt]
@@ -233,7 +242,7 @@ class Sorter:
         target = np.where(turn, goal_exit, -99)  # the exit it heads for now (none while it must wait)
         # -- direction: own proposal, then the smallest heard from the same vehicle (hop-limited)
         g = np.where(turn, goal_exit, PARK)
-        nb_d = np.stack([_unpack(heard["d"], e) for e in range(MAX_EXITS)], axis=-1)[rows, :, g]  # (n, P)
+        nb_d = np.stack(heard_d)[g, rows]  # (n, P): each cell's neighbours on the gradient it follows
         # At its exit a vehicle leaves through the edge once it lies within the exit's band: no cell beside an exit
         # cell (across the way out) is under the same vehicle without being part of that exit. Until then the exit
         # cells that see such a neighbour move the vehicle away from it, into the band. These proposals come first
@@ -254,8 +263,12 @@ class Sorter:
         core = on & np.asarray(inputs.sensors, dtype=bool)[:, 0]  # the cell carries the parcel (centre sensor lit)
         own_block = core[:, None] & (~inputs.connected | ~allowed)
         own_block &= ~(at_exit[:, None] & (np.arange(P)[None, :] == exit_port[:, None]))
-        nb_block = np.stack([_unpack(heard["blk"], q, 6) for q in range(P)], axis=-1)  # (n, from port, side)
-        relayed = np.where(same_nb[:, :, None] & (nb_block < self.reach), nb_block + 1, 63).min(axis=1)
+        # only cells under a vehicle relay closed sides (the others say 63): computed on those rows alone
+        under = np.flatnonzero(on)
+        nb_block = np.stack([_unpack(heard["blk"][under], q, 6) for q in range(P)], axis=-1)  # (from port, side)
+        relayed = np.full((n, P), 63, dtype=np.int64)
+        relayed[under] = _across(np.minimum, np.where(same_nb[under, :, None] & (nb_block < self.reach),
+                                                      nb_block + 1, 63))
         block = np.where(own_block, 0, relayed)
         block = np.where(on[:, None], block, 63)
         open_side = trusted & (block > self.reach)
@@ -284,7 +297,7 @@ class Sorter:
                            _BIG)
         nb_key = np.where(same_nb, heard["key"], _BIG)
         nb_key = np.where(nb_key % 64 < self.reach, nb_key + 1, _BIG)  # one more hop; forget beyond reach
-        key = np.minimum(own_key, nb_key.min(axis=1)) if P else own_key
+        key = np.minimum(own_key, _across(np.minimum, nb_key)) if P else own_key
         key = np.where(on, key, _BIG)
         direction = np.where(key < _BIG, (key // 64) % 8, _NONE)
         # -- traffic: requests ahead, holds, acknowledgements
@@ -342,7 +355,7 @@ class Sorter:
         nxt = np.where(leaving, np.maximum(nxt, seq + 1), nxt)
         send = np.ones(n, dtype=bool)
         # no way through a parked parcel, nor through a gap of one cell beside it (too narrow for a parcel)
-        beside_parked = (trusted & (_unpack(heard["stop"], 1) <= self.reach)).any(axis=1) & ~(on & ~parked)
+        beside_parked = _across(np.logical_or, trusted & (_unpack(heard["stop"], 1) <= self.reach)) & ~(on & ~parked)
         said = np.where((parked | beside_parked)[:, None], UNREACHABLE, np.minimum(dist, UNREACHABLE))
         out = Mailbox.broadcast(self.schema, send, P, d=_pack(said), nxt=nxt, vid=np.where(on, vid, _NONE),
                                 goal=np.where(on, goal, _NONE), key=np.minimum(key, 2**31 - 1),
@@ -368,7 +381,7 @@ class Sorter:
     def _spread(self, own, heard, same_nb, on):
         """Hops to the nearest cell of the same vehicle that said 0 (``own`` 0 here), forgotten beyond ``reach``."""
         nb = np.where(same_nb & (heard < self.reach), heard + 1, 255)
-        out = np.minimum(own, nb.min(axis=1)) if nb.shape[1] else own
+        out = np.minimum(own, _across(np.minimum, nb)) if nb.shape[1] else own
         return np.where(on, out, 255)
 
 
