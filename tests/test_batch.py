@@ -201,3 +201,14 @@ def test_a_cell_taken_out_from_under_a_quiet_parcel_is_seen():
     plant.advance(ys, [True], field, 0.0, 0.01, 0.01)
     plant.advance(ys, [True], field, 0.01, 0.02, 0.01)
     assert np.max(np.abs(ys[0] - ends[True])) > 1e-9  # the missing cell changed the motion
+
+
+def test_a_plant_pickled_before_batching_goes_on_unbatched():
+    import pickle
+
+    plant = Plant(CELLS, [SPEC], LAWS["viscous"])
+    del plant.__dict__["_quiet"]  # as a checkpoint written by an older version holds it
+    again = pickle.loads(pickle.dumps(plant))
+    ys = [np.array([0.55, 0.55, 0.0, 0.0, 0.0, 0.0])]
+    again.advance(ys, [True], _field(2), 0.0, 0.01, 0.01)
+    assert again.record.quiet_steps == 0 and ys[0][3] != 0.0

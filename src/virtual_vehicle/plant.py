@@ -111,6 +111,10 @@ class Plant:
             self._quiet = QuietStepper(cells, self.specs, law, self._mu_max, gravity, integration.rtol,
                                        integration.atol)
 
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self.__dict__.setdefault("_quiet", None)  # a checkpoint written before batching goes on unbatched
+
     def models(self, velocities: np.ndarray) -> "_Models":
         """The parcels' models under contact-layer velocities ``velocities`` (m/s), sharing solved geometry; each is
         made when first asked for (a long run has many parcels that are not on the array)."""
