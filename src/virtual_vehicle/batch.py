@@ -75,21 +75,20 @@ class _Anchor:
 def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
     """The anchor of ``model``'s parcel at state ``y``; None when it has no piece there (it tips). ``length`` (m) is
     the scale of rounding noise in positions (the array's largest coordinate, at least 1 m)."""
-    support = model.support_at(y)
+    spec, cells = model.spec, model.cells
+    buffer = max(cells.pitch, 0.25 * spec.radius)
+    ids = np.asarray(sorted(cells.tree.query_ball_point(np.asarray(y[:2], dtype=float), spec.radius + buffer)),
+                     dtype=int)
+    if model.present is not None and len(ids):
+        ids = ids[model.present[ids]]
+    margins = footprint_margins(spec, y, cells.positions[ids]) if len(ids) else np.zeros(0)
+    support = ids[margins > 0]  # the cells under the footprint, as model.support_at finds them
     try:
         sol = model.solution_for(support, y[:2])
     except TippingError:
         return None
-    spec, cells = model.spec, model.cells
-    buffer = max(cells.pitch, 0.25 * spec.radius)
-    ids = np.asarray(cells.tree.query_ball_point(np.asarray(y[:2], dtype=float), spec.radius + buffer), dtype=int)
-    if model.present is not None and len(ids):
-        ids = ids[model.present[ids]]
     length = max(length, spec.radius)
-    clear = buffer
-    if len(ids):
-        clear = min(clear, float(np.min(np.abs(footprint_margins(spec, y, cells.positions[ids])))))
-    clear -= _NOISE * length
+    clear = min(buffer, float(np.min(np.abs(margins), initial=np.inf))) - _NOISE * length
     xi = np.asarray(y[:2], dtype=float) - sol.origin
     springs = _room(np.abs(sol.spring_values(xi)) - _NOISE * model.weight, sol.basis @ sol.plane_lin)
     hull = _room(sol.hull_slack(xi) - _NOISE * length * np.linalg.norm(sol.hull_normals, axis=1), sol.hull_normals)
