@@ -16,8 +16,8 @@ from virtual_vehicle.batch import QuietStepper, dop853_step
 from virtual_vehicle.collide import point_reach, reach_bounds
 from virtual_vehicle.dynamics import ParcelModel, constants_row, integrate
 from virtual_vehicle.plant import Integration, Plant
-from virtual_vehicle.scenario import parse_scenario
-from virtual_vehicle.sim import run_network
+from virtual_vehicle.scenario import load_scenario, parse_scenario
+from virtual_vehicle.sim import run, run_network
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from bench_scale import scenario as scale_scenario  # noqa: E402
@@ -156,6 +156,21 @@ def test_networked_runs_agree_with_and_without_batching(law):
     on = _compare(d)
     assert on.stats["plant"]["quiet_steps"] > 100
     assert sum(len(p.trajectory.events) for p in on.parcels) > 0  # events happened and were found by the engine
+
+
+def test_a_hall_with_belts_agrees_with_and_without_batching():
+    """hybrid_junction: plain feed belts (a contact layer of belts) into a sorting floor."""
+    out = {}
+    for batch in (False, True):
+        sc, _ = load_scenario("hybrid_junction")
+        sc = sc.model_copy(update={"duration": 10.0, "integrator": sc.integrator.model_copy(update={"batch": batch})})
+        out[batch] = run(sc.build())
+    assert out[True].stats["plant"]["quiet_steps"] > 1000
+    for a, b in zip(out[False].parcels, out[True].parcels):
+        np.testing.assert_allclose(a.trajectory.states, b.trajectory.states, rtol=0, atol=1e-12)
+        assert [(e.kind, e.entered, e.left, e.lifted, e.touched) for e in a.trajectory.events] == \
+            [(e.kind, e.entered, e.left, e.lifted, e.touched) for e in b.trajectory.events]
+    assert sum(len(p.trajectory.events) for p in out[True].parcels) > 100
 
 
 def _ticks(batch: bool, field, ys, seconds: float, period: float = 0.01):
