@@ -142,10 +142,8 @@ class QuietStepper:
         return a
 
     def _refresh(self, i, a: _Anchor, base, velocities) -> None:
-        """Remake the anchor's constants (and largest Coulomb drive) if the wheels under it changed."""
+        """Remake the anchor's constants (and largest Coulomb drive) for the wheels under it now."""
         v = velocities[a.support]
-        if a.row is not None and np.array_equal(v, a.velocities):
-            return
         model = base[i]
         a.velocities = v.copy()
         a.row = constants_row(model.constants_for(a.support, a.solution, v), a.solution.origin,
@@ -187,6 +185,25 @@ class QuietStepper:
             r_piece = s0 * window + 0.5 * (k * drive + c) * window ** 2
         return np.minimum(r_law, r_piece)
 
+    def _check(self, idx, ks, Y, anchors, window, base, velocities, wheel_speed) -> np.ndarray:
+        """Which of the parcels ``idx[k]`` for k in ``ks`` are proven quiet (False without an anchor), their
+        constants brought up to date with ``velocities`` first."""
+        ok = np.zeros(len(ks), dtype=bool)
+        have = [n for n, k in enumerate(ks) if anchors[k] is not None]
+        if not have:
+            return ok
+        sel = ks[have]
+        mine = [anchors[k] for k in sel]
+        ids = np.concatenate([a.support for a in mine])
+        known = [a.velocities if a.velocities is not None else np.full((len(a.support), 2), np.nan) for a in mine]
+        owner = np.repeat(np.arange(len(mine)), [len(a.support) for a in mine])
+        changed = np.zeros(len(mine), dtype=bool)
+        np.logical_or.at(changed, owner, (velocities[ids] != np.concatenate(known)).any(axis=1))
+        for n in np.flatnonzero(changed):  # the wheels under it changed (or it is new): remake its constants
+            self._refresh(idx[sel[n]], mine[n], base, velocities)
+        ok[have] = self._quiet([idx[k] for k in sel], Y[sel], mine, window, velocities, wheel_speed)
+        return ok
+
     def _quiet(self, idx, Y, anchors, window, velocities, wheel_speed) -> np.ndarray:
         """Which of the parcels ``idx`` at states ``Y`` are proven quiet for ``window`` s from their anchors."""
         R = self.radius[idx]
@@ -214,21 +231,13 @@ class QuietStepper:
         for k, i in enumerate(idx):
             if anchors[k] is None:
                 anchors[k] = self._anchor(i, models, Y[k])
-            if anchors[k] is not None:
-                self._refresh(i, anchors[k], base, velocities)
-        have = np.array([a is not None for a in anchors])
-        ok = np.zeros(len(idx), dtype=bool)
-        if have.any():
-            sel = np.flatnonzero(have)
-            ok[sel] = self._quiet([idx[k] for k in sel], Y[sel], [anchors[k] for k in sel], window, velocities,
-                                  wheel_speed)
-        for k in np.flatnonzero(have & ~ok):  # an old anchor may have run out: measure again where the parcel is
-            a = anchors[k]
-            if not np.array_equal(a.pose, Y[k, :3]):
-                anchors[k] = a = self._anchor(idx[k], models, Y[k])
-                if a is not None:
-                    self._refresh(idx[k], a, base, velocities)
-                    ok[k] = self._quiet([idx[k]], Y[k:k + 1], [a], window, velocities, wheel_speed)[0]
+        ok = self._check(idx, np.arange(len(idx)), Y, anchors, window, base, velocities, wheel_speed)
+        stale = [k for k in np.flatnonzero(~ok) if anchors[k] is not None and not np.array_equal(anchors[k].pose,
+                                                                                                  Y[k, :3])]
+        for k in stale:  # an old anchor may have run out: measure again where the parcel is
+            anchors[k] = self._anchor(idx[k], models, Y[k])
+        if stale:
+            ok[stale] = self._check(idx, np.array(stale), Y, anchors, window, base, velocities, wheel_speed)
         quiet = np.flatnonzero(ok)
         rest = [idx[k] for k in np.flatnonzero(~ok)]
         if not len(quiet):
