@@ -7,7 +7,6 @@ origin is the centre of mass; the pose (x, y, theta) places that frame in the wo
 from __future__ import annotations
 
 import itertools
-
 from dataclasses import dataclass
 from functools import cached_property
 
