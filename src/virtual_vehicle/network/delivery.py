@@ -85,8 +85,9 @@ class IdealRounds:
             keep = self.rng.random(arrives.shape) >= self.loss_rate
             lost += int((arrives & ~keep).sum())
             arrives &= keep
-        inbox = Mailbox(outbox.schema, arrives,
-                        {k: np.where(arrives, v[src, back], np.zeros((), v.dtype)) for k, v in outbox.values.items()})
+        flat = src * outbox.present.shape[1] + back  # where each port's sentence comes from, in the flattened outbox
+        inbox = Mailbox(outbox.schema, arrives, {k: np.where(arrives, np.take(v, flat), np.zeros((), v.dtype))
+                                                 for k, v in outbox.values.items()})
         size = outbox.schema.sentence_bytes
         sent = attempted.sum(axis=1)
         received = arrives.sum(axis=1)
