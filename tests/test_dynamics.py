@@ -332,3 +332,27 @@ def test_fixed_and_event_modes_agree_on_events():
         assert b.t - 1.01e-3 <= a.t <= b.t  # fixed step sees each change at the end of the step it happened in
     np.testing.assert_allclose(ev.states[-1], fx.states[-1], atol=1e-9)
     assert dynamics.Trajectory  # public type
+
+
+def test_chattering_supports_are_crossed_in_fixed_steps_and_converge():
+    """A parcel at rest with two edges exactly on a row and a column of cell centres, under a field that pushes the
+    boundary cells out while they carry and in while they do not: the support set chatters (a sliding mode, events
+    one rounding step apart, which once ran for a million segments). The engine must cross it in fixed steps of
+    ``dt``, count them, go on locating events after it, and agree with fixed mode as ``dt`` shrinks."""
+    cells = layout.grid(12, 12, 0.1)
+    spec = parcel.rectangle(0.33, 0.24, 1.5, 0.8)
+    field = np.random.default_rng(7).uniform(-0.3, 0.3, (cells.n, 2))
+    m = ParcelModel(cells, spec, field, friction.ViscousLaw(), G)
+    y0 = [0.4 + 0.165, 0.4 + 0.12, 0.0, 0.0, 0.0, 0.0]
+    samples = np.linspace(0.0, 0.05, 6)
+    ends = {}
+    for dt in (1e-3, 1e-4, 1e-5):
+        tr = integrate(m, y0, 0.0, 0.05, dt=dt, sample_times=samples)
+        assert tr.status == "completed" and tr.times.tolist() == samples.tolist()
+        assert 0 < tr.stats["chatter_steps"] * dt < 0.05  # events were located again after the boundary
+        if dt >= 1e-4:
+            fixed = integrate(m, y0, 0.0, 0.05, mode="fixed", dt=dt, sample_times=samples)
+            np.testing.assert_allclose(tr.states[:, :3], fixed.states[:, :3], rtol=0, atol=3e-6 if dt > 1e-4 else 3e-7)
+        ends[dt] = tr.states[-1]
+    np.testing.assert_allclose(ends[1e-4][:3], ends[1e-5][:3], rtol=0, atol=1e-7)
+    assert np.abs(ends[1e-3] - ends[1e-5]).max() > np.abs(ends[1e-4] - ends[1e-5]).max()  # it converges

@@ -19,6 +19,7 @@ Two integrators share the model:
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Callable, Literal
 
@@ -437,6 +438,15 @@ Two events closer than the look-ahead are taken as one (the integration itself r
 _PROBE_MAX = 1e-6
 """Longest time (s) past an event that the integrator looks ahead to see every value clear of rounding noise."""
 
+_CHATTER_EVENTS = 50
+_CHATTER_SPAN = 1e-9
+"""A run of ``_CHATTER_EVENTS`` support changes within ``_CHATTER_SPAN`` s (times max(1, |t|)) is chattering: the
+parcel sits on a boundary between support sets whose pieces each drive it back into the other (a sliding mode, as
+a parcel at rest with an edge exactly on a row of cell centres under a field pushing both ways). Events there come
+one rounding step apart and would never reach the end of the interval."""
+_CHATTER_STEPS = 20
+"""Fixed steps of ``dt`` taken across a chattering boundary before events are located again."""
+
 _SUBSAMPLES = 8
 """Points inside every step at which the event predicates are checked, so that two crossings in one long step are
 told apart (intervals where a crossing could hide between samples are refined further)."""
@@ -537,6 +547,11 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
             problem per step), whatever the mode.
         rtol, atol: tolerances of the adaptive integrator (event mode); atol in state units (m, rad, m/s, rad/s).
         max_step: largest step of the adaptive integrator, s.
+        dt: fixed step (s) of fixed mode and of stick-slip. Event mode uses it only where support changes chatter
+            (``_CHATTER_EVENTS`` of them within ``_CHATTER_SPAN`` s: a sliding mode on a boundary between support
+            sets): it crosses ``_CHATTER_STEPS`` such steps as fixed mode would (RK4, the support read at every
+            stage; first order across the boundary), counts them in ``stats["chatter_steps"]`` and then locates
+            events again.
         sample_dt: spacing of the output samples, s (default: 100 samples over the run). Event mode samples the
             integrator's dense output; fixed mode interpolates linearly between its steps.
         sample_times: explicit increasing output times (s) within [t0, t1] instead of ``sample_dt``.
@@ -571,7 +586,7 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
     if isinstance(model.law, StickSlipLaw):
         return run_stick_slip(model, y0, t0, t1, sample_times, progress, dt=dt)
     run = runners[mode]
-    kwargs = dict(rtol=rtol, atol=atol, max_step=max_step) if mode == "event" else dict(dt=dt)
+    kwargs = dict(rtol=rtol, atol=atol, max_step=max_step, dt=dt) if mode == "event" else dict(dt=dt)
     return run(model, y0, t0, t1, sample_times, progress, max_segments, **kwargs)
 
 
@@ -611,11 +626,13 @@ class _Recorder:
         return np.array(self.times), np.array(self.states).reshape(-1, 6)
 
 
-def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol, atol, max_step) -> Trajectory:
+def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol, atol, max_step,
+               dt) -> Trajectory:
     rec = _Recorder(sample_times)
     events: list[Event] = []
     t, y = float(t0), y0.copy()
-    segments = nfev = 0
+    segments = nfev = chatter_steps = 0
+    recent: deque[float] = deque(maxlen=_CHATTER_EVENTS)  # times of the latest support changes
     # First step: the whole interval, which the error control shrinks if it must (a few rejected trials for a long
     # run). Within a piece the motion is smooth, so a short interval, as a control tick, is often one step, where
     # the solver's own first-step guess took five.
@@ -665,6 +682,21 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         if not hit:
             t, y = solver.t, solver.y.copy()
             break
+        recent.append(t)
+        if len(recent) == _CHATTER_EVENTS and t - recent[0] < _CHATTER_SPAN * max(1.0, abs(t)):
+            recent.clear()  # chattering: cross the boundary in fixed steps, then locate events again
+            t_end = min(t1, t + _CHATTER_STEPS * dt)
+            due = rec.pending_until(t_end)
+            times, states, evs, status, t, n = _fixed_steps(model, y, t, t_end, dt, due, progress, _rk4(model))
+            kept = int(np.count_nonzero(due <= t))  # all of them unless it tipped
+            rec.add(times[:kept], states[:kept])
+            events.extend(evs)
+            chatter_steps += n
+            y = y_probe = states[-1]
+            if status == "tipped" or t >= t1:
+                break
+            piece = model.piece_at(y)  # tipping would have ended the fixed steps
+            continue
         try:
             new = model.piece_at(y_probe)
         except TippingError as exc:
@@ -678,8 +710,10 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         if t >= t1:  # the event's restart point is the end of the interval
             break
     rec.final(t, y)
-    return Trajectory(*rec.arrays(), events, status, t, segments, nfev,
-                      {"pieces_cached": model.pieces_cached, "solves": model.solves})
+    stats = {"pieces_cached": model.pieces_cached, "solves": model.solves}
+    if chatter_steps:
+        stats["chatter_steps"] = chatter_steps
+    return Trajectory(*rec.arrays(), events, status, t, segments, nfev + 4 * chatter_steps, stats)
 
 
 def _fixed_steps(model, y0, t0, t1, dt, sample_times, progress, advance):
@@ -716,15 +750,20 @@ def _fixed_steps(model, y0, t0, t1, dt, sample_times, progress, advance):
     return times, states, events, status, t, steps
 
 
-def _run_fixed(model, y0, t0, t1, sample_times, progress, max_segments, *, dt) -> Trajectory:
-    def rk4(piece, t, y, h):  # classical RK4; every stage looks its piece up
+def _rk4(model):
+    """Classical RK4 for :func:`_fixed_steps`; every stage looks its piece up."""
+    def rk4(piece, t, y, h):
         k1 = model.rhs(t, y)
         k2 = model.rhs(t + h / 2, y + h / 2 * k1)
         k3 = model.rhs(t + h / 2, y + h / 2 * k2)
         k4 = model.rhs(t + h, y + h * k3)
         return y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return rk4
 
-    times, states, events, status, t, steps = _fixed_steps(model, y0, t0, t1, dt, sample_times, progress, rk4)
+
+def _run_fixed(model, y0, t0, t1, sample_times, progress, max_segments, *, dt) -> Trajectory:
+    times, states, events, status, t, steps = _fixed_steps(model, y0, t0, t1, dt, sample_times, progress,
+                                                           _rk4(model))
     return Trajectory(times, states, events, status, t, steps, 4 * steps,
                       {"pieces_cached": model.pieces_cached, "solves": model.solves})
 

@@ -36,7 +36,8 @@ from .layout import CellArray
 from .parcel import ParcelSpec
 from .stickslip import account, masses, new_account, remember, wheel_problem
 
-_ADDITIVE = ("wheel_work", "friction_dissipation", "step_dissipation", "contact_work", "unconverged_steps")
+_ADDITIVE = ("wheel_work", "friction_dissipation", "step_dissipation", "contact_work", "unconverged_steps",
+             "chatter_steps")
 SUMMED_STATS = (*_ADDITIVE, "sweeps_max", "kinetic_start")
 """Trajectory stats that :func:`join` does not simply take from the last piece."""
 

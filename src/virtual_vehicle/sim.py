@@ -103,6 +103,7 @@ class RunResult:
                 "contacts_with_parcels": sum(1 for e in tr.events if e.kind == "contact"),
                 "segments": tr.segments,
                 "rhs_evaluations": tr.rhs_evals,
+                "chatter_steps": tr.stats.get("chatter_steps", 0),  # fixed steps across a sliding mode (event mode)
                 "coulomb_sliding_assumption_violated_at_s": pr.sliding_violation[0] if pr.sliding_violation else None,
                 "coulomb_max_reversed_slip_m_per_s": pr.sliding_violation[1] if pr.sliding_violation else None,
                 "coulomb_sliding_checked": pr.sliding_checked and isinstance(self.setup.law, CoulombLaw),
