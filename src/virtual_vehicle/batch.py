@@ -36,7 +36,11 @@ At an *anchor* state the stepper measures:
   supporting half-plane changes sign: ``min(|N_k| / |G_k|, hull slack)``, less rounding noise.
 
 Footprint points have moved at most ``P = |dX_c| + |d theta| R`` since the anchor; the window is quiet when
-``clear > P + r`` and ``slack > |dX_c| + r``. Then the piece holds throughout and the motion is one smooth ODE.
+``slack > |dX_c| + r`` and ``clear > P + r``. Then the piece holds throughout and the motion is one smooth ODE.
+Where ``clear`` is too small (a cell a millimetre behind or beside an edge), a convex footprint gets a second,
+edge-by-edge look (:meth:`QuietStepper._edges_clear`): each edge moves along its normal by the velocity's component
+there, give or take what acceleration and turning add, so only the edges moving toward a cell count against it. It
+needs every cell that could matter in the anchor's list: ``|dX_c| + r`` below the search buffer.
 Windows not proven quiet, and quiet ones whose single step fails the error test, go to the event-driven engine.
 An anchor lasts while its parcel's windows stay quiet; the constants are remade when the wheel velocities under the
 supports change.
@@ -70,6 +74,10 @@ class _Anchor:
     velocities: np.ndarray | None = None  # (len(support), 2) m/s the row was made with
     row: tuple[float, ...] | None = None
     drive: float = 0.0  # Coulomb: the largest |F_i| under the parcel (eq. 21)
+    room: float = 0.0  # m: the buffer less rounding noise; cells further than radius + buffer are not in ``pairs``
+    noise: float = 0.0  # m: rounding noise in positions
+    pairs: tuple[np.ndarray, np.ndarray, np.ndarray, int] | None = None  # convex footprint: every (near cell, edge)
+    # pair as cell ids, body-frame outward normals (., 2) and offsets (cell-major), and the number of edges
 
 
 def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
@@ -93,7 +101,13 @@ def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
     springs = _room(np.abs(sol.spring_values(xi)) - _NOISE * model.weight, sol.basis @ sol.plane_lin)
     hull = _room(sol.hull_slack(xi) - _NOISE * length * np.linalg.norm(sol.hull_normals, axis=1), sol.hull_normals)
     slack = float(min(np.min(springs, initial=np.inf), np.min(hull, initial=np.inf)))
-    return _Anchor(np.array(y[:3], dtype=float), clear, slack, support, sol, model._geometry)
+    pairs = None
+    if spec.convex:
+        normals, offsets = spec.halfplanes
+        pairs = (np.repeat(ids, len(offsets)), np.tile(normals, (len(ids), 1)), np.tile(offsets, len(ids)),
+                 len(offsets))
+    return _Anchor(np.array(y[:3], dtype=float), clear, slack, support, sol, model._geometry,
+                   room=buffer - _NOISE * length, noise=_NOISE * length, pairs=pairs)
 
 
 def _room(values: np.ndarray, gradients: np.ndarray) -> np.ndarray:
@@ -123,7 +137,8 @@ class QuietStepper:
         self.gravity = gravity
         self.rtol, self.atol = rtol, atol
         self.radius = np.array([s.radius for s in specs])
-        self.lever_mu = np.array([m * (1.0 + s.mass * s.radius ** 2 / s.inertia) for s, m in zip(specs, mu_max)])
+        self.lever = np.array([1.0 + s.mass * s.radius ** 2 / s.inertia for s in specs])  # 1 + m R^2 / I
+        self.lever_mu = np.asarray(mu_max, dtype=float) * self.lever
         self.anchors: dict[int, _Anchor] = {}
 
     def forget(self, i: int | None = None) -> None:
@@ -153,16 +168,19 @@ class QuietStepper:
             a.drive = float(np.max(np.hypot(drive[:, 0], drive[:, 1])))
 
     def reach(self, idx: list[int], Y: np.ndarray, anchors: list[_Anchor], window: float,
-              velocities: np.ndarray, wheel_speed: float) -> np.ndarray:
+              velocities: np.ndarray, wheel_speed: float) -> tuple[np.ndarray, np.ndarray]:
         """How far (m) any point of each parcel ``idx`` (states ``Y``, pieces of ``anchors``) can move in ``window``
-        s while its piece holds: the smaller of the law's bound and the piece's (module docstring)."""
+        s while its piece holds: the smaller of the law's bound and the piece's (module docstring). Also returns
+        the part of the piece's bound that acceleration adds to ``S0 T`` (m; inf on line arrays): the double
+        integral of the rim acceleration bound ``|a| + |alpha| R <= k sigma`` (viscous; ``k max|F_i|`` Coulomb),
+        of which ``|a|`` takes at most the share ``1 / (1 + m R^2 / I)`` and ``|alpha| R`` the rest."""
         R = self.radius[idx]
         k = self.lever_mu[idx] * self.gravity
         s0 = np.hypot(Y[:, 3], Y[:, 4]) + np.abs(Y[:, 5]) * R
         r_law, s_max = reach_bounds(s0, self.lever_mu[idx], window, law="viscous" if self.viscous else "coulomb",
                                     gravity=self.gravity, wheel_speed=wheel_speed)
         if self.cells.is_line:  # a row may hold the parcel laterally: the law's bound only
-            return r_law
+            return r_law, np.full(len(idx), np.inf)
         c = s_max * s_max / R
         if self.viscous:
             ids = np.concatenate([a.support for a in anchors])
@@ -179,11 +197,11 @@ class QuietStepper:
             ks = np.where(big, k, 1.0)
             g1 = np.where(big, np.expm1(kt) / ks - window, kt * window * (0.5 + kt / 6 + kt * kt / 24))
             g2 = np.where(big, g1 / ks, window * window * (0.5 + kt / 6 + kt * kt / 24))
-            r_piece = s0 * window + sigma * g1 + c * g2
+            accel = sigma * g1 + c * g2
         else:
             drive = np.array([a.drive for a in anchors])
-            r_piece = s0 * window + 0.5 * (k * drive + c) * window ** 2
-        return np.minimum(r_law, r_piece)
+            accel = 0.5 * (k * drive + c) * window ** 2
+        return np.minimum(r_law, s0 * window + accel), accel
 
     def _check(self, idx, ks, Y, anchors, window, base, velocities, wheel_speed) -> np.ndarray:
         """Which of the parcels ``idx[k]`` for k in ``ks`` are proven quiet (False without an anchor), their
@@ -210,10 +228,55 @@ class QuietStepper:
         P0 = np.array([a.pose for a in anchors])
         moved = np.hypot(Y[:, 0] - P0[:, 0], Y[:, 1] - P0[:, 1])
         swept = moved + np.abs(Y[:, 2] - P0[:, 2]) * R
-        r = self.reach(idx, Y, anchors, window, velocities, wheel_speed)
+        r, accel = self.reach(idx, Y, anchors, window, velocities, wheel_speed)
         clear = np.array([a.clear for a in anchors])
         slack = np.array([a.slack for a in anchors])
-        return (clear > swept + r) & (slack > moved + r)
+        room = np.array([a.room for a in anchors])
+        held = slack > moved + r
+        cells_clear = clear > swept + r
+        look = np.flatnonzero(held & ~cells_clear & (moved + r < room) & np.isfinite(accel)
+                              & np.array([a.pairs is not None for a in anchors]))
+        if len(look):  # too near some cell for one radius: ask which way each edge moves
+            cells_clear[look] = self._edges_clear(Y[look], [anchors[k] for k in look], window, r[look],
+                                                  accel[look], R[look], self.lever[np.asarray(idx)[look]])
+        return held & cells_clear
+
+    def _edges_clear(self, Y, anchors, window, r, accel, R, lever) -> np.ndarray:
+        """Whether no cell near each convex parcel can cross its outline in ``window`` s, edge by edge.
+
+        A cell ``p`` has margin ``h_e = b_e - N_e . (p - X)`` against edge e (world outward normal ``N_e``, offset
+        ``b_e``); it is inside iff every ``h_e > 0``. Moving by ``dX`` and turning by ``dtheta`` changes ``h_e`` by
+        ``N_e . dX - (N_e' - N_e) . (p - X')``, and ``|N_e' - N_e| <= |dtheta|``. Over the window ``N_e . dX`` lies
+        within ``A = accel / (1 + m R^2 / I)`` of ``N_e . v t``, ``|dtheta| <= |omega| T + (accel - A) / R`` and
+        ``|dX| <= min(r, |v| T + A)`` (:meth:`reach`: |a| bounded by mu g sigma, |alpha| by mu m g sigma R / I,
+        eq. 30; the same with ``max|F_i|`` for eq. 21). So with ``B = A + |dtheta| (|p - X| + |dX|)``, every
+        ``h_e`` stays above ``h_e + min(0, N_e . v T) - B`` and below ``h_e + max(0, N_e . v T) + B``: the cell
+        stays inside if the smallest lower bound is positive, outside if the smallest upper bound is negative (an
+        edge it stays beyond). Unlike the one-radius clearance, this lets a parcel run past cells just behind or
+        beside it."""
+        counts = np.array([len(a.pairs[2]) for a in anchors])
+        if not counts.any():  # no cell near any of them
+            return np.ones(len(anchors), dtype=bool)
+        owner = np.repeat(np.arange(len(anchors)), counts)
+        ids = np.concatenate([a.pairs[0] for a in anchors])
+        nb = np.concatenate([a.pairs[1] for a in anchors])
+        off = np.concatenate([a.pairs[2] for a in anchors])
+        c, s = np.cos(Y[:, 2])[owner], np.sin(Y[:, 2])[owner]
+        nx, ny = c * nb[:, 0] - s * nb[:, 1], s * nb[:, 0] + c * nb[:, 1]  # world normals
+        dx = self.cells.positions[ids, 0] - Y[owner, 0]
+        dy = self.cells.positions[ids, 1] - Y[owner, 1]
+        h = off - (nx * dx + ny * dy)
+        toward = (nx * Y[owner, 3] + ny * Y[owner, 4]) * window
+        drift = accel / lever
+        turn = np.abs(Y[:, 5]) * window + (accel - drift) / R
+        shift = np.minimum(r, np.hypot(Y[:, 3], Y[:, 4]) * window + drift)
+        noise = np.array([a.noise for a in anchors])
+        B = (drift + noise + turn * shift)[owner] + turn[owner] * np.hypot(dx, dy)
+        edges = np.repeat([a.pairs[3] for a in anchors], [len(a.pairs[2]) // a.pairs[3] for a in anchors])
+        starts = np.concatenate([[0], np.cumsum(edges)[:-1]])  # each cell's first pair
+        inside = np.minimum.reduceat(h + np.minimum(toward, 0.0) - B, starts) > 0
+        outside = np.minimum.reduceat(h + np.maximum(toward, 0.0) + B, starts) < 0
+        return np.bincount(owner[starts][~(inside | outside)], minlength=len(anchors)) == 0
 
     def step(self, models, base, idx: list[int], ys, velocities: np.ndarray, t: float, te: float,
              samples: np.ndarray) -> tuple[dict[int, Trajectory], list[int]]:
