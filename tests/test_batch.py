@@ -139,7 +139,8 @@ def _edge_decided(model, law, y0, window) -> bool:
     stepper = QuietStepper(CELLS, [SPEC], LAWS[law], [SPEC.mu], 9.81, 1e-10, 1e-12)
     quiet = _quiet_matches_engine(model, law, y0, window)
     a = stepper._anchor(0, [model], y0)
-    r, _ = stepper.reach([0], y0[None], [a], window, model.velocities, float(np.max(np.abs(model.velocities))))
+    wheel_speed = float(np.max(np.hypot(model.velocities[:, 0], model.velocities[:, 1])))
+    r, _ = stepper.reach([0], y0[None], [a], window, model.velocities, wheel_speed)
     return quiet and a.clear <= r[0]
 
 

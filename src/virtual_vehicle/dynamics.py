@@ -440,10 +440,13 @@ _PROBE_MAX = 1e-6
 
 _CHATTER_EVENTS = 50
 _CHATTER_SPAN = 1e-9
-"""A run of ``_CHATTER_EVENTS`` support changes within ``_CHATTER_SPAN`` s (times max(1, |t|)) is chattering: the
-parcel sits on a boundary between support sets whose pieces each drive it back into the other (a sliding mode, as
-a parcel at rest with an edge exactly on a row of cell centres under a field pushing both ways). Events there come
-one rounding step apart and would never reach the end of the interval."""
+"""A run of ``_CHATTER_EVENTS`` support changes within ``_CHATTER_SPAN`` s (times max(1, |t|)) that goes back and
+forth between at most ``_CHATTER_PIECES`` pieces is chattering: the parcel sits on a boundary between support sets
+whose pieces each drive it back into the other (a sliding mode, as a parcel at rest with an edge exactly on a row
+of cell centres under a field pushing both ways). Events there come one rounding step apart and would never reach
+the end of the interval. (An edge sweeping a long row of cells at a grazing angle also makes many changes in a
+short time, but each to a new piece.)"""
+_CHATTER_PIECES = 4
 _CHATTER_STEPS = 20
 """Fixed steps of ``dt`` taken across a chattering boundary before events are located again."""
 
@@ -548,10 +551,10 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
         rtol, atol: tolerances of the adaptive integrator (event mode); atol in state units (m, rad, m/s, rad/s).
         max_step: largest step of the adaptive integrator, s.
         dt: fixed step (s) of fixed mode and of stick-slip. Event mode uses it only where support changes chatter
-            (``_CHATTER_EVENTS`` of them within ``_CHATTER_SPAN`` s: a sliding mode on a boundary between support
-            sets): it crosses ``_CHATTER_STEPS`` such steps as fixed mode would (RK4, the support read at every
-            stage; first order across the boundary), counts them in ``stats["chatter_steps"]`` and then locates
-            events again.
+            (``_CHATTER_EVENTS`` of them within ``_CHATTER_SPAN`` s among a few pieces: a sliding mode on a boundary
+            between support sets). It crosses ``_CHATTER_STEPS`` such steps as fixed mode would (RK4, the support
+            read at every stage; first order across the boundary), counts them in ``stats["chatter_steps"]``, and
+            then locates events again.
         sample_dt: spacing of the output samples, s (default: 100 samples over the run). Event mode samples the
             integrator's dense output; fixed mode interpolates linearly between its steps.
         sample_times: explicit increasing output times (s) within [t0, t1] instead of ``sample_dt``.
@@ -632,7 +635,7 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     events: list[Event] = []
     t, y = float(t0), y0.copy()
     segments = nfev = chatter_steps = 0
-    recent: deque[float] = deque(maxlen=_CHATTER_EVENTS)  # times of the latest support changes
+    recent: deque[tuple[float, tuple]] = deque(maxlen=_CHATTER_EVENTS)  # the latest support changes: time, piece
     # First step: the whole interval, which the error control shrinks if it must (a few rejected trials for a long
     # run). Within a piece the motion is smooth, so a short interval, as a control tick, is often one step, where
     # the solver's own first-step guess took five.
@@ -682,8 +685,9 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         if not hit:
             t, y = solver.t, solver.y.copy()
             break
-        recent.append(t)
-        if len(recent) == _CHATTER_EVENTS and t - recent[0] < _CHATTER_SPAN * max(1.0, abs(t)):
+        recent.append((t, piece.key))
+        if (len(recent) == _CHATTER_EVENTS and t - recent[0][0] < _CHATTER_SPAN * max(1.0, abs(t))
+                and len({key for _, key in recent}) <= _CHATTER_PIECES):
             recent.clear()  # chattering: cross the boundary in fixed steps, then locate events again
             t_end = min(t1, t + _CHATTER_STEPS * dt)
             due = rec.pending_until(t_end)
