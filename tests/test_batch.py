@@ -304,3 +304,20 @@ def test_a_plant_pickled_before_batching_goes_on_unbatched():
     ys = [np.array([0.55, 0.55, 0.0, 0.0, 0.0, 0.0])]
     again.advance(ys, [True], _field(2), 0.0, 0.01, 0.01)
     assert again.record.quiet_steps == 0 and ys[0][3] != 0.0
+
+
+def test_chatter_steps_add_up_across_control_ticks():
+    """A parcel at rest with two edges exactly on cell centres chatters (see test_dynamics): the fixed steps the
+    engine takes across it are counted per tick and summed over the run, as a networked run records them."""
+    from virtual_vehicle.sim import _Track
+
+    hl, hw = SPEC.half_extents
+    field = np.random.default_rng(7).uniform(-0.3, 0.3, (CELLS.n, 2))
+    plant = Plant(CELLS, [SPEC], LAWS["viscous"], integration=Integration(dt=1e-4))
+    ys, active, track, counts = [np.array([0.4 + hl, 0.4 + hw, 0.0, 0.0, 0.0, 0.0])], [True], _Track(), []
+    for k in range(3):
+        tr = plant.advance(ys, active, field, 0.01 * k, 0.01 * (k + 1), 0.01)[0]
+        counts.append(tr.stats.get("chatter_steps", 0))
+        track.add(tr, np.array([0.01 * k, 0.01 * (k + 1)]))
+    assert counts[0] > 0 and plant.record.quiet_steps < 3  # the first tick chatters: never called quiet
+    assert track.trajectory().stats["chatter_steps"] == sum(counts)
