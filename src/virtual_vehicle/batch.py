@@ -55,7 +55,8 @@ from scipy.integrate import DOP853
 
 from .collide import reach_bounds
 from .contact import SupportSolution
-from .dynamics import (_NOISE, ROW_LENGTH, ParcelModel, Trajectory, accelerations, constants_row)
+from ._kernel import accelerations
+from .dynamics import _NOISE, ROW_LENGTH, ParcelModel, Trajectory, constants_row
 from .errors import TippingError
 from .friction import ViscousLaw
 from .parcel import footprint_margins

@@ -11,8 +11,9 @@ cell lifting off or touching down (a zero of its spring force), or the centre of
 Constants are cached per (support set, contact set), so a configuration seen again is not solved again.
 
 Two integrators share the model:
-- ``"event"``: adaptive 8th-order Dormand-Prince (scipy's DOP853) on each smooth piece, events located by root
-  finding on the dense output, restarted with the new constants;
+- ``"event"``: adaptive 8th-order Dormand-Prince (scipy's DOP853 scheme) on each smooth piece, events located by
+  root finding on the dense output, restarted with the new constants. The piece's inner loop (steps, event search
+  and location) is compiled (:mod:`virtual_vehicle._kernel`); the support changes between pieces stay in Python;
 - ``"fixed"``: classical RK4 at a fixed step that looks up the supports at every stage and never locates events,
   for comparison (first-order accurate across support changes).
 """
@@ -25,8 +26,9 @@ from dataclasses import dataclass, field, replace
 from typing import Callable, Literal
 
 import numpy as np
-from scipy.integrate import DOP853
 
+from . import _kernel
+from ._kernel import accelerations
 from .contact import SupportSolution, solve_support
 from .errors import IntegrationError, TippingError
 from .friction import CoulombLaw, FrictionConstants, FrictionLaw, StickSlipLaw
@@ -80,6 +82,8 @@ class Piece:
     rhs: Callable[[float, np.ndarray], np.ndarray]
     mass: float = 1.0
     inertia: float = 1.0
+    row: tuple[float, ...] = ()
+    """The constants as :func:`constants_row` lists them (what the compiled engine integrates)."""
 
     def __reduce__(self):  # the rhs is a closure: pickle the constants and build it again (same floats)
         return _rebuild_piece, (self.support, self.solution, self.constants, self.mass, self.inertia)
@@ -95,11 +99,12 @@ class Piece:
 
 
 def _rebuild_piece(support, solution, constants, mass, inertia) -> "Piece":
-    return Piece(support, solution, constants, _make_rhs(constants, solution.origin, mass, inertia), mass, inertia)
+    row = constants_row(constants, solution.origin, mass, inertia)
+    return Piece(support, solution, constants, _make_rhs(row), mass, inertia, row)
 
 
 def constants_row(k: FrictionConstants, origin: np.ndarray, mass: float, inertia: float) -> tuple[float, ...]:
-    """A piece's constants as plain floats, in the order :func:`accelerations` takes them: local origin (m), the
+    """A piece's constants as plain floats, in the order :func:`~virtual_vehicle._kernel.accelerations` takes them: local origin (m), the
     force and torque constants of eqs. 23 and 29, the viscous coefficient and weight, the moments of eqs. 33 and 38,
     then 1 / mass and 1 / inertia."""
     return (float(origin[0]), float(origin[1]), *map(float, k.a.ravel()), float(k.b[0]), float(k.b[1]),
@@ -112,33 +117,8 @@ ROW_LENGTH = 28
 """Length of :func:`constants_row`."""
 
 
-def accelerations(row, x, y, vx, vy, om):
-    """Linear and angular acceleration (m/s^2, m/s^2, rad/s^2) at centre of mass (x, y) (m) moving at (vx, vy) (m/s)
-    and spinning at ``om`` (rad/s), from a piece's :func:`constants_row`. Works on floats (one parcel) and on arrays
-    (one entry per parcel, ``row`` a sequence of arrays), with the same arithmetic."""
-    (ox, oy, a11, a12, a21, a22, b1, b2, c11, c12, c21, c22, e1, e2, f0, mu, W, K11, K12, K21, K22, k1, k2,
-     s1, s2, s0, inv_m, inv_i) = row
-    X1 = x - ox
-    X2 = y - oy
-    fx = a11 * X1 + a12 * X2 + b1  # eq. 23
-    fy = a21 * X1 + a22 * X2 + b2
-    tau = X1 * (c11 * X1 + c12 * X2) + X2 * (c21 * X1 + c22 * X2) + e1 * X1 + e2 * X2 + f0  # eq. 29
-    # Viscous damping (zero for Coulomb, mu = 0): sum N_i (X_i - X_c) is zero unless a row holds the parcel laterally
-    S1x = K11 * X1 + K12 * X2 + k1
-    S1y = K21 * X1 + K22 * X2 + k2
-    Dx = S1x - W * X1
-    Dy = S1y - W * X2
-    fx = fx + mu * (-W * vx + om * Dy)  # eqs. 32-33
-    fy = fy + mu * (-W * vy - om * Dx)
-    second = (s1 * X1 + s2 * X2 + s0) - 2.0 * (X1 * S1x + X2 * S1y) + W * (X1 * X1 + X2 * X2)
-    tau = tau - mu * ((Dx * vy - Dy * vx) + om * second)  # eq. 38
-    return fx * inv_m, fy * inv_m, tau * inv_i
-
-
-def _make_rhs(k: FrictionConstants, origin: np.ndarray, mass: float, inertia: float):
-    """State derivative from the constants (eqs. 23, 29, 33, 38), in plain floats for speed."""
-    row = constants_row(k, origin, mass, inertia)
-
+def _make_rhs(row: tuple[float, ...]):
+    """State derivative from the constants row (eqs. 23, 29, 33, 38), in plain floats for speed."""
     def rhs(t, y):
         x, yy, _th, vx, vy, om = y.tolist()
         return np.array((vx, vy, om, *accelerations(row, x, yy, vx, vy, om)))
@@ -346,29 +326,26 @@ class _Segment:
 
     The values are, in order: the footprint margin of every candidate cell near the parcel (m), the spring force
     of every supporting cell (N; its sign is contact), the slack of the centre of mass in the supports' hull (m),
-    and the distance left before the candidate list must be refreshed (m).
+    and the distance left before the candidate list must be refreshed (m). The compiled engine
+    (:mod:`virtual_vehicle._kernel`) evaluates them from :attr:`arrays`.
     """
 
     def __init__(self, model: ParcelModel, piece: Piece, y0: np.ndarray):
-        self.model = model
-        self.piece = piece
         spec, cells = model.spec, model.cells
         self.buffer = max(cells.pitch, 0.25 * spec.radius)
-        self.center = np.array(y0[:2], dtype=float)
-        ids = np.asarray(sorted(cells.tree.query_ball_point(self.center, spec.radius + self.buffer)), dtype=int)
+        center = np.array(y0[:2], dtype=float)
+        ids = np.asarray(sorted(cells.tree.query_ball_point(center, spec.radius + self.buffer)), dtype=int)
         if model.present is not None:
             ids = ids[model.present[ids]]
         self.ids = ids
-        self.candidates = cells.positions[ids] if len(ids) else np.zeros((0, 2))
-        self.sol = piece.solution
-        nc, m, q = len(self.candidates), len(self.sol.points), len(self.sol.hull_offsets)
+        sol = piece.solution
+        nc, m, q = len(ids), len(sol.points), len(sol.hull_offsets)
         self.bounds = (0, nc, nc + m, nc + m + q, nc + m + q + 1)
-        self.spring_dirs = self.sol.basis @ self.sol.plane_lin  # d(spring force)/d(centre of mass), N/m
-        self.spring_gradient = np.linalg.norm(self.spring_dirs, axis=1)
         length = max(1.0, cells.extent, spec.radius)
         # Rounding noise of each event value: below it a sign is not to be trusted.
-        self.noise = np.concatenate([np.full(nc, _NOISE * length), np.full(m, _NOISE * model.weight),
-                                     np.full(q + 1, _NOISE * length)])
+        noise = np.concatenate([np.full(nc, _NOISE * length), np.full(m, _NOISE * model.weight),
+                                np.full(q + 1, _NOISE * length)])
+        self.arrays = _kernel.make_segment(spec, cells.positions[ids], sol, center, self.buffer, noise)
 
     def support(self, g: np.ndarray | None) -> np.ndarray | None:
         """The cells under the footprint (as :meth:`ParcelModel.support_at` finds them) from event values ``g`` at
@@ -379,104 +356,15 @@ class _Segment:
 
     def values(self, y) -> np.ndarray:
         """Event values at state ``y`` ((6,) -> (n,)), or at many states ((k, 6) -> (k, n))."""
-        Y = np.asarray(y, dtype=float)
-        many = Y.ndim == 2
-        Y = np.atleast_2d(Y)
-        xi = Y[:, :2] - self.sol.origin
-        out = np.concatenate([
-            footprint_margins(self.model.spec, Y, self.candidates),
-            (self.sol.basis @ (self.sol.plane_lin @ xi.T + self.sol.plane_const[:, None])).T,
-            self.sol.hull_offsets - xi @ self.sol.hull_normals.T,
-            self.buffer - np.hypot(Y[:, 0] - self.center[0], Y[:, 1] - self.center[1])[:, None],
-        ], axis=1)
-        return out if many else out[0]
-
-    def may_hide_crossing(self, Y, vals, dt, acc, spin_acc) -> np.ndarray:
-        """For consecutive states ``Y`` (k+1, 6), ``dt`` seconds apart (a number, or (k,) one per interval), with
-        event values ``vals`` (k+1, n): which values (k, n) could have crossed zero and come back between two samples
-        without changing sign at them, given bounds on the parcel's acceleration (m/s^2) and angular acceleration
-        (rad/s^2). Each interval's answer depends on its own two samples and length only.
-
-        A footprint margin changes no faster than a body point at the candidates' distance moves, and for a convex
-        footprint a cell can slip in and out unseen only by cutting a corner or if its edge distance turns around; a
-        spring force is affine in the centre of mass, so it can dip through zero only if its rate ``G . v`` changes
-        sign, which needs ``|G . v_a| + |G . v_b| <= |G| acc dt``. Hull slacks and the refresh distance are not
-        searched (tipping shows up as a lift-off; a late refresh is harmless)."""
-        col = dt[:, None] if isinstance(dt, np.ndarray) else dt  # against (k, .) arrays
-        speeds = np.hypot(Y[:, 3], Y[:, 4])
-        spins = np.abs(Y[:, 5])
-        speed = np.maximum(speeds[:-1], speeds[1:]) + acc * dt / 2
-        spin = np.maximum(spins[:-1], spins[1:]) + spin_acc * dt / 2
-        b = self.bounds
-        a_abs, b_abs = np.abs(vals[:-1]), np.abs(vals[1:])
-        small = a_abs + b_abs
-        out = np.zeros(small.shape, dtype=bool)
-        reach = self.model.spec.radius + 2 * self.buffer
-        out[:, :b[1]] = small[:, :b[1]] <= ((speed + spin * reach) * dt)[:, None]
-        if self.model.spec.convex and out[:, :b[1]].any():
-            out[:, :b[1]] &= self._corner_or_turn(Y, col, acc, spin_acc, spin)
-        d = Y[:, 3:5] @ self.spring_dirs.T
-        norm = self.spring_gradient
-        turn = (np.sign(d[:-1]) != np.sign(d[1:])) | (np.abs(d[:-1]) + np.abs(d[1:]) <= norm * acc * col)
-        out[:, b[1]:b[2]] = turn & (small[:, b[1]:b[2]] <= norm * speed[:, None] * col)
-        return out & (a_abs > self.noise) & (b_abs > self.noise)
-
-    def _edges_and_rates(self, Y, points):
-        """For a convex footprint at states ``Y`` (k, 6): each point's nearest (most violated) edge and that edge
-        distance's rate of change (m/s), from the point's velocity relative to the parcel in the body frame;
-        arrays (k, len(points))."""
-        Y = np.atleast_2d(Y)
-        c, s = np.cos(Y[:, 2])[:, None], np.sin(Y[:, 2])[:, None]
-        dx = points[None, :, 0] - Y[:, 0:1]
-        dy = points[None, :, 1] - Y[:, 1:2]
-        bx, by = c * dx + s * dy, -s * dx + c * dy
-        normals, offsets = self.model.spec.halfplanes
-        h = offsets - (bx[..., None] * normals[:, 0] + by[..., None] * normals[:, 1])
-        edge = np.argmin(h, axis=-1)
-        om = Y[:, 5:6]
-        wx, wy = -(Y[:, 3:4] - om * dy), -(Y[:, 4:5] + om * dx)  # cell velocity relative to the parcel point
-        pbx, pby = c * wx + s * wy, -s * wx + c * wy
-        n = normals[edge]
-        return edge, -(n[..., 0] * pbx + n[..., 1] * pby)
-
-    def _corner_or_turn(self, Y, dt, acc, spin_acc, spin) -> np.ndarray:
-        """(k-1, nc) for consecutive states: whether a candidate could enter and leave between them unseen by a
-        convex footprint: it cuts a corner (different nearest edges) or its edge distance's rate turns around."""
-        reach = self.model.spec.radius + 2 * self.buffer
-        edge, rate = self._edges_and_rates(Y, self.candidates)
-        point_acc = (acc + spin_acc * reach + spin * spin * reach)[:, None]
-        turn = (np.sign(rate[:-1]) != np.sign(rate[1:])) | (np.abs(rate[:-1]) + np.abs(rate[1:]) <= point_acc * dt)
-        return (edge[:-1] != edge[1:]) | turn
-
-    def values_at(self, y, idx: np.ndarray) -> np.ndarray:
-        """Only the event values at positions ``idx`` (sorted), for one state: the root finder's cheap path."""
-        b = self.bounds
-        sol = self.sol
-        xi0, xi1 = float(y[0]) - sol.origin[0], float(y[1]) - sol.origin[1]
-        parts = []
-        margin_idx = idx[idx < b[1]]
-        spring_idx = idx[(idx >= b[1]) & (idx < b[2])]
-        hull_idx = idx[(idx >= b[2]) & (idx < b[3])]
-        if len(margin_idx):
-            parts.append(footprint_margins(self.model.spec, y, self.candidates[margin_idx]))
-        if len(spring_idx):
-            plane = sol.plane_lin[:, 0] * xi0 + sol.plane_lin[:, 1] * xi1 + sol.plane_const
-            parts.append(sol.basis[spring_idx - b[1]] @ plane)
-        if len(hull_idx):
-            h = hull_idx - b[2]
-            parts.append(sol.hull_offsets[h] - sol.hull_normals[h, 0] * xi0 - sol.hull_normals[h, 1] * xi1)
-        if idx[-1] == b[3]:
-            parts.append(np.array([self.buffer - np.hypot(float(y[0]) - self.center[0], float(y[1]) - self.center[1])]))
-        return np.concatenate(parts)
+        Y = np.atleast_2d(np.asarray(y, dtype=float))
+        out = np.empty((len(Y), self.bounds[-1]))
+        for state, row in zip(Y, out):
+            _kernel.values(self.arrays, np.ascontiguousarray(state), row)
+        return out if np.ndim(y) == 2 else out[0]
 
 
 _NOISE = 1e-11
 """Relative size below which an event value is treated as zero (rounding noise)."""
-_PROBE_FIRST = 1e-9
-"""First look-ahead (s) past a located event, to read the new piece where no value is within rounding noise of zero.
-Two events closer than the look-ahead are taken as one (the integration itself restarts at the root)."""
-_PROBE_MAX = 1e-6
-"""Longest time (s) past an event that the integrator looks ahead to see every value clear of rounding noise."""
 
 _CHATTER_EVENTS = 50
 _CHATTER_SPAN = 1e-9
@@ -489,144 +377,8 @@ short time, but each to a new piece.)"""
 _CHATTER_PIECES = 4
 _CHATTER_STEPS = 20
 """Fixed steps of ``dt`` taken across a chattering boundary before events are located again."""
-
-_SUBSAMPLES = 8
-"""Points inside every step at which the event predicates are checked, so that two crossings in one long step are
-told apart (intervals where a crossing could hide between samples are refined further)."""
-_RATE_SAFETY = 2.0
-"""Factor on the acceleration bounds, which are taken from the two ends of a step (smooth within a piece)."""
-_MIN_BRACKET = 1e-9
-"""Shortest interval (s) the search for a hidden crossing bisects to: a graze shallower than speed x 1e-9 s / 2
-(about 1e-10 m at 0.2 m/s) is not resolved."""
-
-
-def _first_change(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float, f_lo: np.ndarray,
-                  f_hi: np.ndarray):
-    """The earliest bracket (t_a, t_b) in (t_lo, t_hi] across which the event predicate leaves ``g0``, with the
-    components changed at t_b and the event values at both ends: (t_a, t_b, changed, g_a, g_b); None if there is
-    none.
-
-    The step is sampled at ``_SUBSAMPLES`` points. Between two samples an event function can cross zero and come
-    back (a cell grazing the footprint's edge) only if it could reach zero in that time
-    (:meth:`_Segment.may_hide_crossing`); such intervals are bisected, earliest first, until the crossing is found
-    or ruled out (down to ``_MIN_BRACKET`` seconds). A bracket is returned only once no other component could hide
-    an earlier crossing inside it. ``f_lo``, ``f_hi`` are the state derivatives at the step's ends (the solver's),
-    from which the acceleration bounds are taken with a safety factor.
-    """
-    ts = np.linspace(t_lo, t_hi, _SUBSAMPLES + 1)
-    Y = dense(ts).T
-    vals = seg.values(Y)
-    bounds = (_RATE_SAFETY * max(float(np.hypot(*f_lo[3:5])), float(np.hypot(*f_hi[3:5]))),
-              _RATE_SAFETY * max(abs(float(f_lo[5])), abs(float(f_hi[5]))))
-    changed = (vals[1:] > 0) != g0
-    hidden = seg.may_hide_crossing(Y, vals, np.diff(ts), *bounds) & ~changed  # each interval as _search sees it
-    look = changed.any(axis=1) | hidden.any(axis=1)
-    for j in np.flatnonzero(look):  # only intervals with a change or a possible hidden crossing
-        found = _search(seg, dense, g0, bounds, ts[j], ts[j + 1], Y[j], Y[j + 1], vals[j], vals[j + 1], hidden[j])
-        if found is not None:
-            return found
-    return None
-
-
-def _search(seg, dense, g0, bounds, a, b, ya, yb, ga, gb, hidden=None):
-    """The earliest bracket in [a, b] (states ``ya``, ``yb``, event values ``ga``, ``gb``), bisecting while a
-    crossing could hide; ``hidden`` is the interval's hidden-crossing predicate when the caller has it."""
-    changed = (gb > 0) != g0
-    if hidden is None:
-        hidden = seg.may_hide_crossing(np.vstack([ya, yb]), np.vstack([ga, gb]), b - a, *bounds)[0] & ~changed
-    if not hidden.any() or b - a <= _MIN_BRACKET:
-        return (a, b, changed, ga, gb) if changed.any() else None
-    m = 0.5 * (a + b)
-    ym = dense(m)
-    gm = seg.values(ym)
-    return (_search(seg, dense, g0, bounds, a, m, ya, ym, ga, gm)
-            or _search(seg, dense, g0, bounds, m, b, ym, yb, gm, gb))
-
-
-def _locate(seg: _Segment, dense, g0: np.ndarray, t_lo: float, t_hi: float, changed: np.ndarray, g_lo: np.ndarray,
-            g_hi: np.ndarray):
-    """The earliest event in (t_lo, t_hi], whose ends have event values ``g_lo``, ``g_hi``: returns the (restart,
-    probe) times and the event values at the probe (None when it was not clear of rounding noise there).
-
-    The earliest crossing is the first zero of ``min_k s_k g_k(t)`` over the changed event functions, with ``s_k``
-    the sign that makes each positive before its crossing; it is bracketed by the caller and found by Brent's method.
-    ``restart`` is just past that root: the integration continues from there with the new piece. ``probe`` is a
-    little later, where every event value is clear of rounding noise: the new piece and its event baseline are read
-    there, so that cells crossing together by symmetry all cross and no tie at the root decides the piece.
-    """
-    idx = np.flatnonzero(changed)
-    sgn = np.where(g0[idx], 1.0, -1.0)
-
-    def phi(t):
-        return float(np.min(sgn * seg.values_at(dense(t), idx)))
-
-    eps = np.finfo(float).eps
-    xtol = max(4 * eps * abs(t_hi), 1e-13)
-    phi_lo, phi_hi = float(np.min(sgn * g_lo[idx])), float(np.min(sgn * g_hi[idx]))
-    if phi_lo <= 0.0:
-        t_ev = t_lo
-    elif phi_hi > 0.0:  # the change was a sign flip through an exact zero at t_hi
-        t_ev = t_hi
-    else:
-        t_ev = _brent(phi, t_lo, t_hi, phi_lo, phi_hi, xtol, 4 * eps)
-    step = _PROBE_FIRST
-    t_star = min(t_hi, t_ev + xtol)
-    first = None
-    while True:
-        g = seg.values(dense(t_star))
-        if np.any((g > 0) != g0):
-            if first is None:
-                first = t_star
-            if np.all(np.abs(g) > seg.noise):
-                return min(t_ev + xtol, t_star), t_star, g
-        if t_star >= t_hi or t_star - t_ev > _PROBE_MAX:
-            probe = t_hi if first is None else first
-            return min(t_ev + xtol, probe), probe, None
-        t_star = min(t_hi, t_ev + step)
-        step *= 4
-
-
-def _brent(f, xa: float, xb: float, fa: float, fb: float, xtol: float, rtol: float, maxiter: int = 100) -> float:
-    """A root of ``f`` between ``xa`` and ``xb``, whose values there, ``fa`` and ``fb``, have opposite signs (or one
-    is zero), to within ``xtol + rtol |x|``: Brent's method as ``scipy.optimize.brentq`` runs it (C. Harris's
-    variant, with the same steps and the same arithmetic, so the same root), without evaluating the two ends again:
-    the event engine knows them."""
-    xpre, xcur, fpre, fcur = xa, xb, fa, fb
-    if fpre == 0:
-        return xpre
-    if fcur == 0:
-        return xcur
-    xblk = fblk = spre = scur = 0.0
-    for _ in range(maxiter):
-        if fpre != 0 and fcur != 0 and math.copysign(1.0, fpre) != math.copysign(1.0, fcur):
-            xblk, fblk = xpre, fpre  # the root lies between xcur and xblk
-            spre = scur = xcur - xpre
-        if abs(fblk) < abs(fcur):
-            xpre, xcur, xblk = xcur, xblk, xcur
-            fpre, fcur, fblk = fcur, fblk, fcur
-        delta = (xtol + rtol * abs(xcur)) / 2
-        sbis = (xblk - xcur) / 2
-        if fcur == 0 or abs(sbis) < delta:
-            return xcur
-        if abs(spre) > delta and abs(fcur) < abs(fpre):
-            if xpre == xblk:  # secant
-                stry = -fcur * (xcur - xpre) / (fcur - fpre)
-            else:  # inverse quadratic extrapolation
-                dpre = (fpre - fcur) / (xpre - xcur)
-                dblk = (fblk - fcur) / (xblk - xcur)
-                stry = -fcur * (fblk * dblk - fpre * dpre) / (dblk * dpre * (fblk - fpre))
-            if 2 * abs(stry) < min(abs(spre), 3 * abs(sbis) - delta):
-                spre, scur = scur, stry
-            else:
-                spre = scur = sbis
-        else:
-            spre = scur = sbis
-        xpre, fpre = xcur, fcur
-        xcur += scur if abs(scur) > delta else (delta if sbis > 0 else -delta)
-        fcur = f(xcur)
-        if not math.isfinite(fcur):
-            raise IntegrationError(f"an event function is not finite at t={xcur:.9g} s")
-    raise IntegrationError(f"locating an event between t={xa:.9g} s and {xb:.9g} s did not converge")
+_PAUSE_STEPS = 64
+"""With a progress callback, the compiled engine hands control back after this many steps within one piece."""
 
 
 def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "event", rtol: float = 1e-10,
@@ -694,11 +446,13 @@ def sample_grid(t0: float, t1: float, sample_dt: float) -> np.ndarray:
 
 
 class _Recorder:
+    """Output samples at ``sample_times`` (filled in order, also by the compiled engine), then the last state."""
+
     def __init__(self, sample_times):
-        self.sample_times = sample_times
+        self.sample_times = np.ascontiguousarray(sample_times, dtype=float)
+        self.samples = np.empty((len(self.sample_times), 6))
         self.next = 0
-        self.times: list[float] = []
-        self.states: list[np.ndarray] = []
+        self.last: tuple[float, np.ndarray] | None = None
 
     def pending_until(self, t) -> np.ndarray:
         """Sample times not yet recorded that are <= t."""
@@ -706,18 +460,18 @@ class _Recorder:
         return self.sample_times[self.next:j]
 
     def add(self, ts, ys) -> None:
-        for t, y in zip(ts, ys):
-            self.times.append(float(t))
-            self.states.append(np.asarray(y, dtype=float))
+        self.samples[self.next:self.next + len(ts)] = np.reshape(ys, (-1, 6))
         self.next += len(ts)
 
     def final(self, t, y) -> None:
-        if not self.times or t > self.times[-1]:
-            self.times.append(float(t))
-            self.states.append(np.asarray(y, dtype=float))
+        if self.next == 0 or t > self.sample_times[self.next - 1]:
+            self.last = float(t), np.array(y, dtype=float)
 
     def arrays(self):
-        return np.array(self.times), np.array(self.states).reshape(-1, 6)
+        times, states = self.sample_times[:self.next], self.samples[:self.next]
+        if self.last is None:
+            return times.copy(), states.copy()
+        return np.append(times, self.last[0]), np.vstack([states, self.last[1]])
 
 
 def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol, atol, max_step,
@@ -739,45 +493,33 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         return Trajectory(*rec.arrays(), events, "tipped", t)
     status = "completed"
     y_probe = y
+    max_steps = _PAUSE_STEPS if progress is not None else np.iinfo(np.int64).max
     while True:
         segments += 1
         if segments > max_segments:
             raise IntegrationError(f"more than {max_segments} support changes: events accumulate near t={t:.9g} s")
         seg = _Segment(model, piece, y_probe)
         g0 = seg.values(y_probe) > 0
-        first = min(h, t1 - t)
-        solver = DOP853(piece.rhs, t, y, t1, rtol=rtol, atol=atol, max_step=max_step, first_step=first)
-        hit = False
-        while solver.status == "running":
-            t_prev = solver.t
-            f_prev = solver.f
-            # A trial step far too long (the first one spans the whole interval) may overflow in its stages; its
-            # error norm is then not finite and the error control rejects it and shrinks the step.
-            with np.errstate(over="ignore", invalid="ignore"):
-                solver.step()
-            if solver.status == "failed":
-                raise IntegrationError(f"integrator failed at t={solver.t:.9g} s")
-            if solver.step_size:
-                h = solver.step_size
-            dense = solver.dense_output()
-            found = _first_change(seg, dense, g0, t_prev, solver.t, f_prev, solver.f)
-            if found is not None:
-                t_restart, t_probe, g_probe = _locate(seg, dense, g0, *found)
-                due = rec.pending_until(t_restart)
-                if len(due):
-                    rec.add(due, dense(due).T)
-                t, y = t_restart, dense(t_restart)
-                y_probe = dense(t_probe)
-                hit = True
-                break
-            due = rec.pending_until(solver.t)
-            if len(due):
-                rec.add(due, dense(due).T)
+        first, h_abs = min(h, t1 - t), 0.0
+        while True:  # DOP853 on this piece until its first event (kernel.run_piece), handing back now and then
+            (outcome, t, y, h_abs, last, evals, rec.next, t_probe, y_probe, g_probe,
+             clear) = _kernel.run_piece(piece.row, seg.arrays, g0, t, y, t1, h_abs, first, rtol, atol, max_step,
+                                        max_steps, rec.sample_times, rec.next, rec.samples)
+            nfev += evals
+            first = 0.0
+            if last:
+                h = last
+            if outcome == _kernel.FAILED:
+                raise IntegrationError(f"integrator failed at t={t:.9g} s")
+            if outcome == _kernel.NOT_FINITE:
+                raise IntegrationError(f"an event function is not finite at t={t:.9g} s")
+            if outcome == _kernel.NO_CONVERGENCE:
+                raise IntegrationError(f"locating an event near t={t:.9g} s did not converge")
             if progress is not None:
-                progress(solver.t)
-        nfev += solver.nfev
-        if not hit:
-            t, y = solver.t, solver.y.copy()
+                progress(t)
+            if outcome != _kernel.PAUSED:
+                break
+        if outcome == _kernel.REACHED:
             break
         recent.append((t, piece.key))
         if (len(recent) == _CHATTER_EVENTS and t - recent[0][0] < _CHATTER_SPAN * max(1.0, abs(t))
@@ -796,7 +538,7 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             piece = model.piece_at(y)  # tipping would have ended the fixed steps
             continue
         try:  # the cells under it are known from the probe's event values, when those tell
-            support = seg.support(g_probe)
+            support = seg.support(g_probe if clear else None)
             new = model.piece_at(y_probe) if support is None else model.piece_for(support, y_probe)
         except TippingError as exc:
             events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
