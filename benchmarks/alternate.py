@@ -3,8 +3,8 @@ asserts nothing about time.
 
 This VM runs the same code up to ~1.5x apart from one process launch to the next, so two tables taken minutes
 apart cannot tell a 10 % change from the machine's mood. This runs one case in fresh processes, alternating the two
-commits round by round (each commit's source checked out once into a temporary git worktree), and prints every
-wall time and the medians.
+commits round by round (each commit's source checked out once into a temporary git worktree, and run once unmeasured
+so that numba's compiled code is cached), and prints every wall time and the medians.
 
 Cases (the figures of ``RESULTS.md``):
 - ``scale200``: ``run_network`` on 100 x 100 cells with 200 parcels, 1 s simulated (``bench_scale.py``'s largest);
@@ -83,6 +83,8 @@ def main() -> None:
                 trees[rev] = path
             walls: dict[str, list[float]] = {rev: [] for rev in trees}
             ends: dict[str, list] = {}
+            for path in trees.values():  # unmeasured: compiles and caches what numba compiles (from f2d8583)
+                _run(path / "src", args.case)
             print(f"# {args.case}: {args.rounds} rounds, {args.a} and {args.b} alternated, wall s")
             print(f"{'round':>5}{args.a:>14}{args.b:>14}")
             for k in range(args.rounds):

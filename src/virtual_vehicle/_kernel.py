@@ -134,18 +134,17 @@ def make_segment(spec, candidates: np.ndarray, sol, center: np.ndarray, buffer: 
 
 
 @njit(cache=True)
-def _margin(seg, bx, by):
+def _margin(kind, half, normals, offsets, v, bx, by):
     """Signed margin (m) of body-frame point (bx, by): positive inside (the distance to the nearest edge for a convex
     footprint), negative outside (the most violated edge's distance; for a polygon, minus the distance to it)."""
-    if seg.kind == RECTANGLE:
-        return min(seg.half[0] - abs(bx), seg.half[1] - abs(by))
-    if seg.kind == CONVEX:
+    if kind == RECTANGLE:
+        return min(half[0] - abs(bx), half[1] - abs(by))
+    if kind == CONVEX:
         m = np.inf
-        for k in range(seg.offsets.shape[0]):
-            m = min(m, seg.offsets[k] - (bx * seg.normals[k, 0] + by * seg.normals[k, 1]))
+        for k in range(offsets.shape[0]):
+            m = min(m, offsets[k] - (bx * normals[k, 0] + by * normals[k, 1]))
         return m
-    # simple polygon: distance to the boundary, signed by the even-odd rule
-    v = seg.vertices
+    # simple polygon (vertices v): distance to the boundary, signed by the even-odd rule
     nv = v.shape[0]
     d2 = np.inf
     inside = False
@@ -171,7 +170,8 @@ def values(seg, y, out):
     for i in range(nc):
         dx = cand[i, 0] - y[0]
         dy = cand[i, 1] - y[1]
-        out[i] = _margin(seg, c * dx + s * dy, -s * dx + c * dy)  # world -> body: rotate by -theta
+        out[i] = _margin(seg.kind, seg.half, seg.normals, seg.offsets, seg.vertices, c * dx + s * dy,
+                         -s * dx + c * dy)  # world -> body: rotate by -theta
     xi0, xi1 = y[0] - seg.origin[0], y[1] - seg.origin[1]
     m, r = seg.basis.shape
     for k in range(m):
