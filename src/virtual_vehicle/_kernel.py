@@ -83,14 +83,13 @@ accelerations_compiled = njit(cache=True)(accelerations)
 class Segment(NamedTuple):
     """One segment's arrays, as the compiled functions take them (a numba named tuple). Lengths in m.
 
-    The parcel's outline (:func:`outline_arrays`): ``kind`` a footprint kind, ``convex`` whether it is convex,
-    ``half`` (2,) a rectangle's half extents, ``normals`` (k, 2) and ``offsets`` (k,) a convex footprint's outward
-    half-planes (also a rectangle's: the hidden-crossing test uses them), ``vertices`` (k, 2) the outline itself.
-    The segment's own: ``candidates`` (nc, 2) the cells near the parcel, gathered within ``spec.radius + buffer`` of
-    ``center``; ``reach`` bounds a candidate's distance from the centre of mass while they cover the footprint;
-    ``noise`` (n,) is each event value's rounding noise. The piece's support solution (:func:`support_arrays`):
-    ``origin`` .. ``hull_offsets`` as in :class:`~virtual_vehicle.contact.SupportSolution`, ``spring_dirs`` (m, 2)
-    the gradients of the spring forces in the centre of mass (N/m) and ``spring_gradient`` (m,) their norms.
+    ``kind`` is a footprint kind, with ``half`` (2,) the rectangle's half extents, ``normals`` (k, 2) and
+    ``offsets`` (k,) a convex footprint's outward half-planes (also a rectangle's: the hidden-crossing test uses
+    them), ``vertices`` (k, 2) a polygon's outline. ``candidates`` (nc, 2) are the cells near the parcel;
+    ``origin`` .. ``hull_offsets`` the piece's support solution (:class:`~virtual_vehicle.contact.SupportSolution`);
+    ``center`` and ``buffer`` bound where the candidates cover the footprint; ``reach`` bounds a candidate's distance
+    from the centre of mass while they do; ``noise`` (n,) is each event value's rounding noise; ``spring_dirs``
+    (m, 2) the gradients of the spring forces in the centre of mass (N/m) and ``spring_gradient`` (m,) their norms.
     """
 
     kind: int
@@ -100,49 +99,38 @@ class Segment(NamedTuple):
     offsets: np.ndarray
     vertices: np.ndarray
     candidates: np.ndarray
-    center: np.ndarray
-    buffer: float
-    reach: float
-    noise: np.ndarray
     origin: np.ndarray
     basis: np.ndarray
     plane_lin: np.ndarray
     plane_const: np.ndarray
     hull_normals: np.ndarray
     hull_offsets: np.ndarray
+    center: np.ndarray
+    buffer: float
+    reach: float
+    noise: np.ndarray
     spring_dirs: np.ndarray
     spring_gradient: np.ndarray
 
 
-def _floats(a, shape=None) -> np.ndarray:
-    a = np.ascontiguousarray(a, dtype=np.float64)
-    return a if shape is None else a.reshape(shape)
+def make_segment(spec, candidates: np.ndarray, sol, center: np.ndarray, buffer: float, noise: np.ndarray) -> Segment:
+    """The :class:`Segment` of parcel ``spec`` (:class:`~virtual_vehicle.parcel.ParcelSpec`) with candidate cells
+    ``candidates`` (m) on support solution ``sol``, its candidates gathered within ``spec.radius + buffer`` of
+    ``center`` (m)."""
+    def arr(a, shape=None):
+        a = np.ascontiguousarray(a, dtype=np.float64)
+        return a if shape is None else a.reshape(shape)
 
-
-def outline_arrays(spec) -> tuple:
-    """The outline part of a :class:`Segment` for parcel ``spec`` (:class:`~virtual_vehicle.parcel.ParcelSpec`)."""
     convex = bool(spec.convex)
     half = spec.half_extents
     normals, offsets = spec.halfplanes if convex else (np.zeros((0, 2)), np.zeros(0))
     kind = RECTANGLE if half is not None else CONVEX if convex else POLYGON
-    return (kind, convex, _floats(half if half is not None else (0.0, 0.0)), _floats(normals, (-1, 2)),
-            _floats(offsets), _floats(spec.footprint, (-1, 2)))
-
-
-def support_arrays(sol) -> tuple:
-    """The support part of a :class:`Segment` for support solution ``sol``."""
-    spring_dirs = _floats(sol.basis @ sol.plane_lin, (-1, 2))
-    return (_floats(sol.origin), _floats(sol.basis), _floats(sol.plane_lin, (-1, 2)), _floats(sol.plane_const),
-            _floats(sol.hull_normals, (-1, 2)), _floats(sol.hull_offsets), spring_dirs,
-            np.sqrt(np.sum(spring_dirs * spring_dirs, axis=1)))
-
-
-def make_segment(outline: tuple, support: tuple, candidates: np.ndarray, center: np.ndarray, buffer: float,
-                 reach: float, noise: np.ndarray) -> Segment:
-    """The :class:`Segment` of an outline (:func:`outline_arrays`) on a support (:func:`support_arrays`) with
-    candidate cells ``candidates`` (m) gathered around ``center`` (m)."""
-    return Segment(*outline, _floats(candidates, (-1, 2)), _floats(center), float(buffer), float(reach),
-                   _floats(noise), *support)
+    spring_dirs = arr(sol.basis @ sol.plane_lin, (-1, 2))
+    return Segment(kind, convex, arr(half if half is not None else (0.0, 0.0)), arr(normals, (-1, 2)), arr(offsets),
+                   arr(spec.footprint, (-1, 2)), arr(candidates, (-1, 2)), arr(sol.origin), arr(sol.basis),
+                   arr(sol.plane_lin, (-1, 2)), arr(sol.plane_const), arr(sol.hull_normals, (-1, 2)),
+                   arr(sol.hull_offsets), arr(center), float(buffer), float(spec.radius + 2 * buffer), arr(noise),
+                   spring_dirs, np.sqrt(np.sum(spring_dirs * spring_dirs, axis=1)))
 
 
 @njit(cache=True)

@@ -23,7 +23,6 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field, replace
-from functools import cached_property
 from typing import Callable, Literal
 
 import numpy as np
@@ -97,11 +96,6 @@ class Piece:
     def normal_forces(self, y) -> np.ndarray:
         """Normal forces (N) of the supporting cells at state ``y``."""
         return self.solution.forces(np.asarray(y[:2], dtype=float))
-
-    @cached_property
-    def arrays(self) -> tuple:
-        """The support solution as the compiled engine takes it (:func:`~virtual_vehicle._kernel.support_arrays`)."""
-        return _kernel.support_arrays(self.solution)
 
 
 def _rebuild_piece(support, solution, constants, mass, inertia) -> "Piece":
@@ -191,11 +185,6 @@ class ParcelModel:
         other._pieces = {}
         other._by_support = {}
         return other
-
-    @cached_property
-    def outline(self) -> tuple:
-        """The parcel's outline as the compiled engine takes it (:func:`~virtual_vehicle._kernel.outline_arrays`)."""
-        return _kernel.outline_arrays(self.spec)
 
     @property
     def solves(self) -> int:
@@ -356,8 +345,7 @@ class _Segment:
         # Rounding noise of each event value: below it a sign is not to be trusted.
         noise = np.concatenate([np.full(nc, _NOISE * length), np.full(m, _NOISE * model.weight),
                                 np.full(q + 1, _NOISE * length)])
-        self.arrays = _kernel.make_segment(model.outline, piece.arrays, cells.positions[ids], center, self.buffer,
-                                           spec.radius + 2 * self.buffer, noise)
+        self.arrays = _kernel.make_segment(spec, cells.positions[ids], sol, center, self.buffer, noise)
 
     def support(self, g: np.ndarray | None) -> np.ndarray | None:
         """The cells under the footprint (as :meth:`ParcelModel.support_at` finds them) from event values ``g`` at
