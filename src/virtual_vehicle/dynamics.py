@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Callable, Literal
 
 import numpy as np
@@ -88,7 +89,7 @@ class Piece:
     def __reduce__(self):  # the rhs is a closure: pickle the constants and build it again (same floats)
         return _rebuild_piece, (self.support, self.solution, self.constants, self.mass, self.inertia)
 
-    @property
+    @cached_property
     def key(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
         """(supporting cell ids, ids of those in contact)."""
         return tuple(self.support.tolist()), tuple(self.support[self.solution.in_contact].tolist())
