@@ -1,4 +1,5 @@
-# Set-up happens on first use: a virtual environment in .venv with the package and its test tools.
+# Set-up happens on first use: a virtual environment in .venv with the package and its test tools, and the event
+# engine's compiled code (numba, cached).
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -11,6 +12,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/python -c "from virtual_vehicle.dynamics import warm_up; print(f'event engine compiled (numba) in {warm_up():.1f} s')"
 	touch $(STAMP)
 
 run: $(STAMP)

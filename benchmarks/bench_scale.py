@@ -48,11 +48,12 @@ def scenario(side: int, parcels: int, seconds: float, batch: bool = True) -> dic
 
 def one(side: int, parcels: int, seconds: float, batch: bool = True) -> dict:
     """Run one configuration here; return its figures."""
+    from virtual_vehicle.dynamics import warm_up
     from virtual_vehicle.scenario import parse_scenario
     from virtual_vehicle.sim import run_network
 
     setup = parse_scenario(scenario(side, parcels, seconds, batch)).build()
-    load = _load_engine()
+    load = warm_up()  # numba's cached code, loaded outside the timed run as the imports are
     start = time.perf_counter()
     res = run_network(setup)
     wall = time.perf_counter() - start
@@ -61,22 +62,6 @@ def one(side: int, parcels: int, seconds: float, batch: bool = True) -> dict:
             "real_time_factor": seconds / wall, "peak_rss_MiB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
             "windows": res.stats["plant"]["windows"], "quiet_steps": res.stats["plant"]["quiet_steps"],
             "parcels_moving": moved, "engine_load_s": load}
-
-
-def _load_engine() -> float:
-    """Load the event engine's compiled code (numba's cache; compiled on the very first run) outside the timed run,
-    as the imports are: one short run of one parcel. Returns the seconds it took."""
-    import numpy as np
-
-    from virtual_vehicle import fields, friction, layout, parcel
-    from virtual_vehicle.dynamics import ParcelModel, integrate
-
-    start = time.perf_counter()
-    cells = layout.grid(4, 4, 0.1)
-    model = ParcelModel(cells, parcel.rectangle(0.25, 0.22, 1.0, 0.5), fields.Uniform((0.1, 0.0)).velocities(cells),
-                        friction.ViscousLaw())
-    integrate(model, np.array([0.15, 0.15, 0.0, 0.0, 0.0, 0.0]), 0.0, 0.01)
-    return time.perf_counter() - start
 
 
 def main() -> None:

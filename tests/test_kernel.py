@@ -8,7 +8,7 @@ from hypothesis import given, settings, strategies as st
 from scipy.integrate import DOP853
 
 from virtual_vehicle import _kernel as kernel, dynamics, fields, friction, layout, parcel
-from virtual_vehicle.dynamics import ParcelModel, integrate
+from virtual_vehicle.dynamics import ParcelModel, integrate, warm_up
 
 CELLS = layout.grid(30, 30, 0.1)
 SHAPES = {
@@ -82,3 +82,10 @@ def test_a_run_handed_back_for_progress_is_the_same_run(monkeypatch):
     np.testing.assert_array_equal(told.times, quiet.times)
     assert [e.t for e in told.events] == [e.t for e in quiet.events]
     assert len(seen) > 3 * told.segments and np.all(np.diff(seen) >= 0) and seen[-1] == 20.0
+
+
+def test_warming_up_leaves_the_engine_compiled():
+    """warm_up() runs a real integration, after which the engine's entry points hold compiled code (loaded from the
+    cache or compiled now), so the next integration does not wait."""
+    assert warm_up() > 0
+    assert kernel.run_piece.signatures and kernel.values.signatures

@@ -21,6 +21,7 @@ Two integrators share the model:
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -380,6 +381,22 @@ _CHATTER_STEPS = 20
 """Fixed steps of ``dt`` taken across a chattering boundary before events are located again."""
 _PAUSE_STEPS = 64
 """With a progress callback, the compiled engine hands control back after this many steps within one piece."""
+
+
+def warm_up() -> float:
+    """Compile the event engine's inner loop (:mod:`virtual_vehicle._kernel`; about 20 s, the first time on a
+    machine) or load it from numba's cache (a fraction of a second), by integrating one parcel on a 4 x 4 array for
+    10 ms. The first integration of a process does this anyway; call it to do it at a time of your choosing (the
+    set-up of ``make`` does, so that no later run waits). Returns the seconds it took."""
+    from .fields import Uniform
+    from .layout import grid
+    from .parcel import rectangle
+
+    start = time.perf_counter()
+    cells = grid(4, 4, 0.1)
+    model = ParcelModel(cells, rectangle(0.25, 0.22, 1.0, 0.5), Uniform((0.1, 0.0)).velocities(cells), CoulombLaw())
+    integrate(model, np.array([0.15, 0.15, 0.0, 0.0, 0.0, 0.0]), 0.0, 0.01)
+    return time.perf_counter() - start
 
 
 def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "event", rtol: float = 1e-10,
