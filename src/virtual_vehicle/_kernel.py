@@ -6,13 +6,15 @@ Units: SI (m, s, kg, N, rad). State ``[x, y, theta, vx, vy, omega]``.
 :func:`~virtual_vehicle.dynamics.constants_row`) with scipy's DOP853 scheme (same tableau, error norm and step-size
 rule as ``scipy.integrate.DOP853``; sums taken in plain loops, so results agree with scipy's to rounding, not to the
 last bit), samples every step's dense output for the first sign change of an event value, locates it by Brent's
-method and probes past it, as :mod:`virtual_vehicle.dynamics` documents. In Python each of the ~500 support changes
+method and probes past it, as :mod:`virtual_vehicle.dynamics` documents. In Python each of the ~100 support changes
 a second of an oscillating Coulomb parcel cost about a millisecond, mostly in array calls on a handful of numbers;
-compiled, the piece's own work is a few microseconds and what remains is the Python between pieces.
+compiled, a piece's own work takes a few tens of microseconds, and most of what remains is the Python between
+pieces (which cells, the support solve, the friction constants).
 
 Event values of a segment (:class:`~virtual_vehicle.dynamics._Segment`), in order: the footprint margin of every
 candidate cell (m), the spring force of every supporting cell (N), the slack of the centre of mass in the supports'
-hull (m) and the distance left before the candidate list must be refreshed (m). A segment is passed as a :class:`Segment`.
+hull (m) and the distance left before the candidate list must be refreshed (m). A segment is passed as a
+:class:`Segment`.
 """
 
 from __future__ import annotations
@@ -578,9 +580,10 @@ def run_piece(row, seg, g0, t, y, t_bound, h_abs, first_step, rtol, atol, max_st
               sample_times, next_sample, samples):
     """Integrate one piece from (t, y) towards ``t_bound`` until its first event, ``max_steps`` steps, or the end.
 
-    ``row`` is the piece's constants row, ``seg`` its :class:`Segment`, ``g0`` the signs of the event values at the piece's start. The first step tried is
-    ``first_step`` when positive (a new piece), else ``h_abs`` (the same piece resumed after a pause). Output samples
-    ``sample_times[next_sample:]`` reached are written into ``samples``.
+    ``row`` is the piece's constants row, ``seg`` its :class:`Segment`, ``g0`` the signs of the event values at the
+    piece's start. The first step tried is ``first_step`` when positive (a new piece), else ``h_abs`` (the same piece
+    resumed after a pause). Output samples ``sample_times[next_sample:]`` reached are written into ``samples``.
+    Times in s, states in SI units.
 
     Returns (outcome, t, y, h_abs, last step, evaluations, next_sample, probe time, probe state, probe values,
     whether those are clear of rounding noise). On ``EVENT`` (t, y) is the restart point just past it.

@@ -20,7 +20,6 @@ Two integrators share the model:
 
 from __future__ import annotations
 
-import math
 import time
 from collections import deque
 from dataclasses import dataclass, field, replace
@@ -35,7 +34,7 @@ from .contact import SupportSolution, solve_support
 from .errors import IntegrationError, TippingError
 from .friction import CoulombLaw, FrictionConstants, FrictionLaw, StickSlipLaw
 from .layout import CellArray, _collinear
-from .parcel import ParcelSpec, footprint_margins, supporting_cells
+from .parcel import ParcelSpec, supporting_cells
 
 Mode = Literal["event", "fixed"]
 
@@ -106,9 +105,9 @@ def _rebuild_piece(support, solution, constants, mass, inertia) -> "Piece":
 
 
 def constants_row(k: FrictionConstants, origin: np.ndarray, mass: float, inertia: float) -> tuple[float, ...]:
-    """A piece's constants as plain floats, in the order :func:`~virtual_vehicle._kernel.accelerations` takes them: local origin (m), the
-    force and torque constants of eqs. 23 and 29, the viscous coefficient and weight, the moments of eqs. 33 and 38,
-    then 1 / mass and 1 / inertia."""
+    """A piece's constants as plain floats, in the order :func:`~virtual_vehicle._kernel.accelerations` takes them:
+    local origin (m), the force and torque constants of eqs. 23 and 29, the viscous coefficient and weight, the
+    moments of eqs. 33 and 38, then 1 / mass and 1 / inertia."""
     return (float(origin[0]), float(origin[1]), *map(float, k.a.ravel()), float(k.b[0]), float(k.b[1]),
             *map(float, k.c.ravel()), float(k.d[0] + k.e[0]), float(k.d[1] + k.e[1]), float(k.f), float(k.damping),
             float(k.weight), *map(float, k.moment_lin.ravel()), float(k.moment_const[0]), float(k.moment_const[1]),
