@@ -85,8 +85,8 @@ def main() -> None:
               f"{r['real_time_factor']:>13.3f}{alone['real_time_factor']:>9.3f}{r['peak_rss_MiB']:>10.0f}"
               f"{alone['peak_rss_MiB']:>11.0f}", flush=True)
         loads.extend((r["engine_load_s"], alone["engine_load_s"]))
-    print(f"(each process first loads the event engine's compiled code, {min(loads):.2f}-{max(loads):.2f} s, outside the "
-          "timed run as its imports are; peak memory includes numba's, about 100 MiB)")
+    print(f"(each process first loads the event engine's compiled code, {min(loads):.2f}-{max(loads):.2f} s, "
+          "outside the timed run as its imports are; peak memory includes numba's, about 100 MiB)")
 
 
 def _measure(side: int, parcels: int, seconds: float, flags: list[str]) -> dict:

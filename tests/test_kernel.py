@@ -24,7 +24,8 @@ SHAPES = {
 @given(st.floats(1.0, 2.0), st.floats(1.0, 2.0), st.floats(-3.2, 3.2))
 def test_compiled_margins_are_the_footprint_margins_of_every_outline(name, x, y, th):
     """The engine's event values start with the footprint margins of the candidate cells: the same numbers as
-    parcel.footprint_margins (closed form, half-planes, or shapely's signed distance for the L), to rounding."""
+    parcel.footprint_margins (closed form, half-planes, or shapely's signed distance for the L), to rounding, so the
+    same cells support the parcel wherever that is not a matter of rounding."""
     spec = SHAPES[name]
     m = ParcelModel(CELLS, spec, np.zeros((CELLS.n, 2)), friction.CoulombLaw())
     y0 = np.array([x, y, th, 0.0, 0.0, 0.0])
@@ -41,7 +42,8 @@ def test_compiled_dop853_takes_scipys_steps():
     """From the same state and trial step, the compiled DOP853 lands where scipy's DOP853 lands (the same tableau,
     to rounding: scipy sums stages with BLAS, the kernel in plain loops), accepts or rejects the same trial steps,
     proposes the same next step (to the error estimate's own sensitivity to rounding: it is a small difference of
-    large stages) and has the same dense output; here on a viscous piece in steps that grow from 1 ms, up to the bound."""
+    large stages) and has the same dense output; here on a viscous piece in steps that grow from 1 ms, up to the
+    bound."""
     spec = SHAPES["rectangle"]
     m = ParcelModel(CELLS, spec, fields.Inward((1.5, 1.5), 0.2).velocities(CELLS), friction.ViscousLaw())
     y0 = np.array([1.52, 1.47, 0.3, 0.3, -0.2, 1.0])
