@@ -91,3 +91,16 @@ def test_warming_up_leaves_the_engine_compiled():
     cache or compiled now), so the next integration does not wait."""
     assert warm_up() > 0
     assert kernel.run_piece.signatures and kernel.values.signatures
+
+
+def test_max_step_bounds_every_compiled_step():
+    """``max_step`` caps the compiled integrator's steps (scipy's rule): a viscous piece that one long step would
+    cross takes at least one step per ``max_step``, and ends where the uncapped run ends (to the tolerance)."""
+    spec = SHAPES["rectangle"]
+    m = ParcelModel(CELLS, spec, fields.Inward((1.5, 1.5), 0.2).velocities(CELLS), friction.ViscousLaw())
+    y0 = np.array([1.52, 1.47, 0.3, 0.0, 0.0, 0.0])
+    free = integrate(m, y0, 0.0, 0.2, sample_dt=0.2)
+    capped = integrate(m, y0, 0.0, 0.2, sample_dt=0.2, max_step=1e-3)
+    steps_at_least = 200 * (DOP853.n_stages + 3)  # stages and dense output per step
+    assert free.rhs_evals < steps_at_least <= capped.rhs_evals
+    np.testing.assert_allclose(capped.states[-1], free.states[-1], rtol=0, atol=1e-8)
