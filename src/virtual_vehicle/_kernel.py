@@ -135,7 +135,7 @@ def make_segment(spec, candidates: np.ndarray, sol, center: np.ndarray, buffer: 
                    spring_dirs, np.sqrt(np.sum(spring_dirs * spring_dirs, axis=1)))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # called per candidate and sample: a call costs more than the margin
 def _margin(kind, half, normals, offsets, v, bx, by):
     """Signed margin (m) of body-frame point (bx, by): positive inside (the distance to the nearest edge for a convex
     footprint), negative outside (the most violated edge's distance; for a polygon, minus the distance to it)."""
