@@ -4,11 +4,12 @@ run is handed back to Python and resumed."""
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import assume, example, given, settings, strategies as st
 from scipy.integrate import DOP853
 
 from virtual_vehicle import _kernel as kernel, dynamics, fields, friction, layout, parcel
 from virtual_vehicle.dynamics import ParcelModel, integrate, warm_up
+from virtual_vehicle.errors import TippingError
 
 CELLS = layout.grid(30, 30, 0.1)
 SHAPES = {
@@ -22,6 +23,7 @@ SHAPES = {
 @pytest.mark.parametrize("name", SHAPES)
 @settings(max_examples=60, deadline=None)
 @given(st.floats(1.0, 2.0), st.floats(1.0, 2.0), st.floats(-3.2, 3.2))
+@example(1.49609375, 1.25, -0.75)  # the L tips here (found by CI)
 def test_compiled_margins_are_the_footprint_margins_of_every_outline(name, x, y, th):
     """The engine's event values start with the footprint margins of the candidate cells: the same numbers as
     parcel.footprint_margins (closed form, half-planes, or shapely's signed distance for the L), to rounding, so the
@@ -29,7 +31,11 @@ def test_compiled_margins_are_the_footprint_margins_of_every_outline(name, x, y,
     spec = SHAPES[name]
     m = ParcelModel(CELLS, spec, np.zeros((CELLS.n, 2)), friction.CoulombLaw())
     y0 = np.array([x, y, th, 0.0, 0.0, 0.0])
-    seg = dynamics._Segment(m, m.piece_at(y0), y0)
+    try:
+        piece = m.piece_at(y0)
+    except TippingError:  # the L's centre of mass sits near its inner corner: some poses leave it unsupported
+        assume(False)
+    seg = dynamics._Segment(m, piece, y0)
     assert seg.arrays.kind == {"rectangle": kernel.RECTANGLE, "convex": kernel.CONVEX, "L": kernel.POLYGON}[name]
     mine = seg.values(y0)[:seg.bounds[1]]
     ref = parcel.footprint_margins(spec, y0, CELLS.positions[seg.ids])
