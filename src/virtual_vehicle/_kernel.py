@@ -277,6 +277,17 @@ def _changed(g, g0, out):
 
 
 @njit(cache=True)
+def _unchanged(hidden, changed, out):
+    """``hidden`` where the value did not already change sign (a change is found, not hidden), into ``out`` (may
+    be ``hidden`` itself); whether any."""
+    anyh = False
+    for i in range(out.shape[0]):
+        out[i] = hidden[i] and not changed[i]
+        anyh = anyh or out[i]
+    return anyh
+
+
+@njit(cache=True)
 def _search(seg, F, y_old, t_old, h, g0, acc, spin_acc, t0, t1, y0, y1, g0v, g1v, hidden0):
     """The earliest bracket in [t0, t1] (states ``y0``, ``y1``, event values ``g0v``, ``g1v``) across which the event
     predicate leaves ``g0``, bisecting while a crossing could hide (``hidden0``: the whole interval's predicate):
@@ -301,17 +312,11 @@ def _search(seg, F, y_old, t_old, h, g0, acc, spin_acc, t0, t1, y0, y1, g0v, g1v
         a, b = stack[depth, 0], stack[depth, 1]
         anyc = _changed(G[b], g0, changed)
         if first:
-            anyh = False
-            for i in range(n):
-                hidden[i] = hidden0[i] and not changed[i]
-                anyh = anyh or hidden[i]
+            anyh = _unchanged(hidden0, changed, hidden)
             first = False
         else:
             may_hide(seg, Y[a], Y[b], G[a], G[b], T[b] - T[a], acc, spin_acc, hidden)
-            anyh = False
-            for i in range(n):
-                hidden[i] = hidden[i] and not changed[i]
-                anyh = anyh or hidden[i]
+            anyh = _unchanged(hidden, changed, hidden)
         if not anyh or T[b] - T[a] <= MIN_BRACKET:
             if anyc:
                 return True, T[a], T[b], changed.copy(), G[a].copy(), G[b].copy()
@@ -475,10 +480,7 @@ def _first_change(seg, F, y_old, t_old, h, g0, t_lo, t_hi, f_lo, f_hi):
     for j in range(SUBSAMPLES):
         anyc = _changed(G[j + 1], g0, changed)
         may_hide(seg, Y[j], Y[j + 1], G[j], G[j + 1], ts[j + 1] - ts[j], acc, spin_acc, hidden)
-        anyh = False
-        for i in range(n):
-            hidden[i] = hidden[i] and not changed[i]
-            anyh = anyh or hidden[i]
+        anyh = _unchanged(hidden, changed, hidden)
         if anyc or anyh:
             found = _search(seg, F, y_old, t_old, h, g0, acc, spin_acc, ts[j], ts[j + 1], Y[j], Y[j + 1],
                             G[j], G[j + 1], hidden)
