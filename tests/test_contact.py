@@ -178,3 +178,43 @@ def test_load_on_the_line_of_a_collinear_contact_set():
                       [1.0, 0.1499999999999997, 0.033333333333333215]])
     rhs = np.array([19.431085680226758, 1.123081983536839e-11, 0.6477028560094978])
     assert contact_set(basis, rhs).tolist() == [False, False, True, True, True, True]
+
+
+def _halfplanes(normals, offsets):
+    rows = np.column_stack([normals, offsets])
+    return rows[np.lexsort(np.round(rows, 9).T[::-1])]  # ordered as rounded, so that ulps do not reorder ties
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(0, 10_000), st.integers(3, 40), st.booleans())
+def test_hull_matches_qhull(seed, m, lattice):
+    """The compiled hull's half-planes are Qhull's (scipy), also on a lattice, where cells lie on the hull's edges
+    between its corners and must not make edges of their own."""
+    from virtual_vehicle.contact import _hull
+
+    rng = np.random.default_rng(seed)
+    if lattice:
+        P = 0.1 * rng.integers(0, 6, size=(m, 2)).astype(float)
+        assume(np.linalg.matrix_rank(P - P[0]) == 2)
+    else:
+        P = rng.uniform(-1, 1, size=(m, 2))
+    hull = ConvexHull(P)
+    ours = _halfplanes(*_hull(P, 1e-12))
+    qhull = _halfplanes(hull.equations[:, :2], -hull.equations[:, 2])
+    assert ours.shape == qhull.shape
+    np.testing.assert_allclose(ours, qhull, atol=1e-12)
+
+
+def test_collinear_compiled_matches_svd():
+    """The compiled collinearity test decides as numpy's SVD of the centred points does, on both sides of the
+    tolerance."""
+    from virtual_vehicle.layout import _COLLINEAR_TOL, _collinear
+
+    rng = np.random.default_rng(3)
+    for off in (0.0, 0.3e-9, 3e-9, 1e-3):
+        s = rng.uniform(-1, 1, 9)
+        P = np.column_stack([s, 0.5 * s + off * rng.standard_normal(9)])
+        centred = P - P.mean(axis=0)
+        rms = np.linalg.svd(centred, compute_uv=False)[-1] / np.sqrt(len(P))
+        assert _collinear(P) == (rms <= _COLLINEAR_TOL)
+    assert _collinear(np.zeros((1, 2))) and _collinear([[0, 0], [1, 2]])

@@ -25,13 +25,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
+from numba import njit
 
 from .errors import IntegrationError, TippingError
 from .layout import _collinear
 
 _REL_TOL = 1e-12  # relative tolerance for geometric ties (hull boundary, zero forces)
 _SLAB = 1e-9  # relative half-width of the band in which a load counts as on the line of its contacts
+_MAX_ITER = 200  # contact-set iterations before giving up
+_PLANE_LIN = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])  # load [W, W x_c, W y_c] = W (r_lin @ xi + r_const)
+_PLANE_CONST = np.array([1.0, 0.0, 0.0])
 
 
 @dataclass(frozen=True, eq=False)
@@ -124,21 +127,50 @@ def solve_support(points, com, weight: float, *, lateral_support: bool = False,
     if _collinear(pts):
         return _solve_line(origin, local, xi, weight, tol, lateral_support, line_direction)
 
-    try:
-        hull = ConvexHull(local)
-    except QhullError as exc:  # pragma: no cover - guarded by the collinearity test above
-        raise TippingError(f"degenerate support set: {exc}") from exc
-    h_normals = hull.equations[:, :2]
-    h_offsets = -hull.equations[:, 2]
+    h_normals, h_offsets = _hull(local, tol * scale)
     outside = float(np.max(h_normals @ xi - h_offsets))
     if outside > tol:
         raise TippingError(
             f"centre of mass at ({com[0]:.6g}, {com[1]:.6g}) m is {outside:.3g} m outside the convex hull of its "
             f"{len(pts)} supporting cells: the parcel tips")
     basis = np.column_stack([np.ones(len(local)), local])
-    r_lin = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
-    r_const = np.array([1.0, 0.0, 0.0])
-    return _finish(origin, local, xi, basis, r_lin, r_const, weight, h_normals, h_offsets, one_d=False)
+    return _finish(origin, local, xi, basis, _PLANE_LIN, _PLANE_CONST, weight, h_normals, h_offsets, one_d=False)
+
+
+@njit(cache=True)
+def _hull(points, tol):
+    """Convex hull of points ((m, 2), m; not all on one line) as half-planes: unit outward normals (k, 2) and offsets
+    (k,), the hull being ``normals @ x <= offsets``. Andrew's monotone chain; a vertex that turns by less than
+    ``tol`` (m^2, a cross product: the distance it sticks out times an edge) is dropped, as Qhull merges nearly
+    coplanar facets, so that no edge is rounding-short with a meaningless normal."""
+    m = points.shape[0]
+    order = np.argsort(points[:, 1], kind="mergesort")
+    order = order[np.argsort(points[order, 0], kind="mergesort")]  # by x, ties by y
+    chain = np.empty(2 * m, np.int64)
+    k = 0
+    for sweep in range(2):  # lower hull left to right, then upper hull right to left
+        start = k + 1
+        for j in range(m) if sweep == 0 else range(m - 2, -1, -1):
+            i = order[j]
+            while k >= max(start, 2):
+                a, b = chain[k - 2], chain[k - 1]
+                cross = ((points[b, 0] - points[a, 0]) * (points[i, 1] - points[a, 1])
+                         - (points[b, 1] - points[a, 1]) * (points[i, 0] - points[a, 0]))
+                if cross > tol:
+                    break
+                k -= 1
+            chain[k] = i
+            k += 1
+    n = k - 1  # the chain ends where it began: n counter-clockwise vertices
+    normals = np.empty((n, 2))
+    offsets = np.empty(n)
+    for e in range(n):
+        a, b = chain[e], chain[e + 1]
+        dx, dy = points[b, 0] - points[a, 0], points[b, 1] - points[a, 1]
+        length = np.hypot(dx, dy)
+        normals[e, 0], normals[e, 1] = dy / length, -dx / length  # the interior is on the left
+        offsets[e] = normals[e, 0] * points[a, 0] + normals[e, 1] * points[a, 1]
+    return normals, offsets
 
 
 def _solve_line(origin, local, xi, weight, tol, lateral_support, line_direction) -> SupportSolution:
@@ -177,12 +209,9 @@ def _solve_line(origin, local, xi, weight, tol, lateral_support, line_direction)
 
 
 def _finish(origin, local, xi, basis, r_lin, r_const, weight, h_normals, h_offsets, *, one_d) -> SupportSolution:
-    rhs = weight * (r_lin @ xi + r_const)
-    in_contact = contact_set(basis, rhs)
-    ba = basis[in_contact]
-    minv = np.linalg.pinv(ba.T @ ba)
-    plane_lin = weight * minv @ r_lin  # eq. 19: theta = W (M^T A M)^-1 (W_x X_c + W_c), reduced to the moment system
-    plane_const = weight * minv @ r_const
+    in_contact, converged, plane_lin, plane_const = _affine_map(basis, r_lin, r_const, float(weight), xi, _MAX_ITER)
+    if not converged:
+        raise IntegrationError("the normal-force contact-set iteration did not converge")
     if not one_d and _collinear(local[in_contact]):
         plane_const, h_normals, h_offsets = _on_contact_line(local, xi, basis, in_contact, plane_lin, plane_const,
                                                              weight, h_normals, h_offsets)
@@ -192,6 +221,46 @@ def _finish(origin, local, xi, basis, r_lin, r_const, weight, h_normals, h_offse
         arr.setflags(write=False)
     return SupportSolution(origin, local, in_contact, basis, plane_lin, plane_const, force_lin, force_const,
                            h_normals, h_offsets, one_d, float(weight))
+
+
+@njit(cache=True)
+def _affine_map(basis, r_lin, r_const, weight, xi, max_iter):
+    """The contact set and spring plane of supports with rows ``basis`` under the load ``weight (r_lin @ xi +
+    r_const)``: (contact mask, converged, plane_lin, plane_const)."""
+    load = np.empty(r_const.shape[0])
+    for i in range(load.shape[0]):
+        load[i] = weight * (r_lin[i, 0] * xi[0] + r_lin[i, 1] * xi[1] + r_const[i])
+    in_contact, converged = _contact_set(basis, load, max_iter)
+    ba = _rows(basis, in_contact)
+    minv = np.linalg.pinv(ba.T @ ba)
+    plane_lin = weight * minv @ r_lin  # eq. 19: theta = W (M^T A M)^-1 (W_x X_c + W_c), reduced to the moment system
+    plane_const = weight * minv @ r_const
+    return in_contact, converged, plane_lin, plane_const
+
+
+@njit(cache=True)
+def _rows(a, mask):
+    """The rows of ``a`` where ``mask``, as a new contiguous array."""
+    out = np.empty((np.count_nonzero(mask), a.shape[1]))
+    k = 0
+    for i in range(a.shape[0]):
+        if mask[i]:
+            out[k] = a[i]
+            k += 1
+    return out
+
+
+@njit(cache=True)
+def _null_space(a):
+    """Orthonormal rows spanning the null space of the rows of ``a`` ((k, d) -> (d - rank, d))."""
+    _, sv, vt = np.linalg.svd(a, full_matrices=True)
+    return vt[np.sum(sv > 1e-12 * max(sv.max(), 1e-300)):]
+
+
+@njit(cache=True)
+def _lstsq(a, b):
+    """Least-squares solution of ``a x = b``, cut off as numpy's ``lstsq(a, b, rcond=None)``."""
+    return np.linalg.lstsq(a, b, rcond=np.finfo(np.float64).eps * max(a.shape[0], a.shape[1]))[0]
 
 
 def _on_contact_line(local, xi, basis, in_contact, plane_lin, plane_const, weight, h_normals, h_offsets):
@@ -212,8 +281,7 @@ def _on_contact_line(local, xi, basis, in_contact, plane_lin, plane_const, weigh
     rows = [d * sign for d in dirs for sign in (1.0, -1.0)]
     h_normals = np.vstack([h_normals, rows])
     h_offsets = np.concatenate([h_offsets, [float(r @ centre) + tol for r in rows]])
-    _, sv, vt = np.linalg.svd(basis[in_contact], full_matrices=True)
-    null = vt[int(np.sum(sv > 1e-12 * max(sv.max(), 1e-300))):]
+    null = _null_space(np.ascontiguousarray(basis[in_contact]))
     if len(null) == 1:
         p, q = basis[~in_contact] @ (plane_lin @ xi + plane_const), basis[~in_contact] @ null[0]
         for margin in (_SLAB * 1e3 * weight, 0.0):  # each other spring clearly slack, else at most 0
@@ -226,17 +294,16 @@ def _on_contact_line(local, xi, basis, in_contact, plane_lin, plane_const, weigh
     return plane_const, h_normals, h_offsets
 
 
+@njit(cache=True)
 def _tilt_clear(active: np.ndarray, inactive: np.ndarray, theta: np.ndarray, tie: float) -> bool:
     """Whether a degenerate (collinear) contact set's solution ``theta`` can be moved along its null space, which
     leaves the active springs unchanged, so that every inactive spring is slack (a load exactly on the line of the
     contacts; otherwise rounding decides which side the plate tilts to)."""
-    _, sv, vt = np.linalg.svd(active, full_matrices=True)
-    rank = int(np.sum(sv > 1e-12 * max(sv.max(), 1e-300)))
-    null = vt[rank:]
-    if len(null) != 1:
+    null = _null_space(active)
+    if null.shape[0] != 1:
         return False
     p = inactive @ theta
-    q = inactive @ null[0]
+    q = inactive @ np.ascontiguousarray(null[0])
     lo, hi = -np.inf, np.inf
     for pk, qk in zip(p, q):
         if abs(qk) <= 1e-15:
@@ -249,7 +316,7 @@ def _tilt_clear(active: np.ndarray, inactive: np.ndarray, theta: np.ndarray, tie
     return lo <= hi
 
 
-def contact_set(basis: np.ndarray, rhs: np.ndarray, max_iter: int = 200) -> np.ndarray:
+def contact_set(basis: np.ndarray, rhs: np.ndarray, max_iter: int = _MAX_ITER) -> np.ndarray:
     """Contact set of tensionless springs: minimise ``phi(theta) = 1/2 sum max(0, B_i theta)^2 - rhs . theta``.
 
     The gradient of ``phi`` is the equilibrium residual ``B^T max(0, B theta) - rhs``, so its minimiser gives forces
@@ -257,51 +324,72 @@ def contact_set(basis: np.ndarray, rhs: np.ndarray, max_iter: int = 200) -> np.n
     lies strictly inside the supports. A full Newton step on the current contact set is the paper's solve with that
     set's mask (the fast path, usually exact in one or two steps). When that step is not an exact solution (the set
     would cycle, or is degenerate), a damped Newton step with backtracking line search on ``phi`` is taken, which
-    converges for this convex function.
+    converges for this convex function. Compiled (numba): a support solve is a few 3 x 3 problems, where numpy's
+    per-call cost was most of the time.
 
     Returns the boolean contact mask.
     """
-    scale = max(abs(float(rhs[0])), 1e-300)
+    act, converged = _contact_set(np.ascontiguousarray(basis, dtype=np.float64),
+                                  np.ascontiguousarray(rhs, dtype=np.float64), max_iter)
+    if not converged:
+        raise IntegrationError("the normal-force contact-set iteration did not converge")
+    return act
+
+
+@njit(cache=True)
+def _phi(basis, rhs, theta):
+    p = np.maximum(basis @ theta, 0.0)
+    return 0.5 * (p @ p) - rhs @ theta
+
+
+@njit(cache=True)
+def _contact_set(basis, rhs, max_iter):
+    """:func:`contact_set`, compiled: (contact mask, converged)."""
+    m, d = basis.shape
+    scale = max(abs(rhs[0]), 1e-300)
     tie = _REL_TOL * scale
-    res_tol = 1e-9 * scale * max(1.0, float(np.max(np.abs(basis))))
-    d = basis.shape[1]
-
-    def phi(theta):
-        p = np.maximum(basis @ theta, 0.0)
-        return 0.5 * float(p @ p) - float(rhs @ theta)
-
-    def residual(act, theta):
-        return basis[act].T @ (basis[act] @ theta) - rhs
-
-    theta = np.linalg.lstsq(basis.T @ basis, rhs, rcond=None)[0]
-    seen: set[bytes] = set()
+    res_tol = 1e-9 * scale * max(1.0, np.max(np.abs(basis)))
+    theta = _lstsq(basis.T @ basis, rhs)
+    seen = np.zeros((max_iter, m), np.bool_)
+    n_seen = 0
+    act = np.zeros(m, np.bool_)
     for _ in range(max_iter):
         p = basis @ theta
         act = p > tie
         if not act.any():
             act = p >= p.max()
-        ba = basis[act]
+        ba = _rows(basis, act)
         hess = ba.T @ ba
-        full = np.linalg.lstsq(hess, rhs, rcond=None)[0]
+        full = _lstsq(hess, rhs)
         p_full = basis @ full
-        exact = np.max(np.abs(residual(act, full))) <= res_tol
-        if exact and np.all(p_full[act] > -tie) and np.all(p_full[~act] <= tie):
-            return act
-        if exact and np.all(p_full[act] > -tie) and _tilt_clear(basis[act], basis[~act], full, tie):
-            return act  # a collinear contact set carrying the load on its line: the plate tilts about it
-        key = act.tobytes()
-        if exact and key not in seen:
-            seen.add(key)
+        exact = np.max(np.abs(ba.T @ (ba @ full) - rhs)) <= res_tol
+        if exact and np.all(p_full[act] > -tie):
+            if np.all(p_full[~act] <= tie):
+                return act, True
+            if _tilt_clear(ba, _rows(basis, ~act), full, tie):
+                return act, True  # a collinear contact set carrying the load on its line: the plate tilts about it
+        if exact and not _contains(seen[:n_seen], act):
+            seen[n_seen] = act
+            n_seen += 1
             theta = full
             continue
         # Damped Newton step on the convex function phi (regularised where the contact set is degenerate).
         grad = basis.T @ np.maximum(p, 0.0) - rhs
         reg = 1e-12 * (np.trace(hess) + 1.0)
         step = -np.linalg.solve(hess + reg * np.eye(d), grad)
-        slope = float(grad @ step)
-        f0 = phi(theta)
+        slope = grad @ step
+        f0 = _phi(basis, rhs, theta)
         t = 1.0
-        while t > 1e-14 and phi(theta + t * step) > f0 + 1e-4 * t * slope:
+        while t > 1e-14 and _phi(basis, rhs, theta + t * step) > f0 + 1e-4 * t * slope:
             t *= 0.5
         theta = theta + t * step
-    raise IntegrationError("the normal-force contact-set iteration did not converge")
+    return act, False
+
+
+@njit(cache=True)
+def _contains(rows, row):
+    """Whether ``row`` is one of ``rows``."""
+    for i in range(rows.shape[0]):
+        if np.array_equal(rows[i], row):
+            return True
+    return False

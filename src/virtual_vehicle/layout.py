@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 from .errors import ScenarioError
@@ -151,13 +152,22 @@ class CellArray:
 
 
 def _collinear(points: np.ndarray, tol: float = _COLLINEAR_TOL) -> bool:
-    """True if the points lie within ``tol`` metres of one straight line (or are a single point)."""
-    if len(points) < 3:
+    """True if the points ((n, 2), m) lie within ``tol`` metres of one straight line (or are a single point)."""
+    return bool(collinear(np.ascontiguousarray(points, dtype=np.float64), tol))
+
+
+@njit(cache=True)
+def collinear(points, tol):
+    """:func:`_collinear` compiled, for float64 points (also called from the compiled support solve)."""
+    n = points.shape[0]
+    if n < 3:
         return True
-    centred = points - points.mean(axis=0)
+    centred = np.empty((n, 2))
+    for j in range(2):
+        centred[:, j] = points[:, j] - points[:, j].mean()
     # The smallest singular value / sqrt(n) is the RMS distance from the best-fit line.
-    s = np.linalg.svd(centred, compute_uv=False)
-    return bool(s[-1] <= tol * np.sqrt(len(points)))
+    s = np.linalg.svd(centred, full_matrices=False)[1]
+    return s[-1] <= tol * np.sqrt(n)
 
 
 def _drive_directions(n: int, drive_angle: float) -> np.ndarray:
