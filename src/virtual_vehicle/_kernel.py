@@ -90,7 +90,8 @@ class Segment(NamedTuple):
     them), ``vertices`` (k, 2) a polygon's outline. ``candidates`` (nc, 2) are the cells near the parcel;
     ``origin`` .. ``hull_offsets`` the piece's support solution (:class:`~virtual_vehicle.contact.SupportSolution`);
     ``center`` and ``buffer`` bound where the candidates cover the footprint; ``reach`` bounds a candidate's distance
-    from the centre of mass while they do; ``noise`` (n,) is each event value's rounding noise; ``spring_dirs``
+    from the centre of mass while they do; ``noise_length`` (m) and ``noise_force`` (N) are the rounding noise of
+    the lengths and of the spring forces among the event values (:func:`_noise`); ``spring_dirs``
     (m, 2) the gradients of the spring forces in the centre of mass (N/m) and ``spring_gradient`` (m,) their norms.
     """
 
@@ -110,15 +111,17 @@ class Segment(NamedTuple):
     center: np.ndarray
     buffer: float
     reach: float
-    noise: np.ndarray
+    noise_length: float
+    noise_force: float
     spring_dirs: np.ndarray
     spring_gradient: np.ndarray
 
 
-def make_segment(spec, candidates: np.ndarray, sol, center: np.ndarray, buffer: float, noise: np.ndarray) -> Segment:
+def make_segment(spec, candidates: np.ndarray, sol, center: np.ndarray, buffer: float, noise_length: float,
+                 noise_force: float) -> Segment:
     """The :class:`Segment` of parcel ``spec`` (:class:`~virtual_vehicle.parcel.ParcelSpec`) with candidate cells
     ``candidates`` (m) on support solution ``sol``, its candidates gathered within ``spec.radius + buffer`` of
-    ``center`` (m)."""
+    ``center`` (m); event values below ``noise_length`` (m) or ``noise_force`` (N) are rounding noise."""
     def arr(a, shape=None):
         a = np.ascontiguousarray(a, dtype=np.float64)
         return a if shape is None else a.reshape(shape)
@@ -131,7 +134,8 @@ def make_segment(spec, candidates: np.ndarray, sol, center: np.ndarray, buffer: 
     return Segment(kind, convex, arr(half if half is not None else (0.0, 0.0)), arr(normals, (-1, 2)), arr(offsets),
                    arr(spec.footprint, (-1, 2)), arr(candidates, (-1, 2)), arr(sol.origin), arr(sol.basis),
                    arr(sol.plane_lin, (-1, 2)), arr(sol.plane_const), arr(sol.hull_normals, (-1, 2)),
-                   arr(sol.hull_offsets), arr(center), float(buffer), float(spec.radius + 2 * buffer), arr(noise),
+                   arr(sol.hull_offsets), arr(center), float(buffer), float(spec.radius + 2 * buffer),
+                   float(noise_length), float(noise_force),
                    spring_dirs, np.sqrt(np.sum(spring_dirs * spring_dirs, axis=1)))
 
 
@@ -187,6 +191,13 @@ def values(seg, y, out):
     out[nc + m + q] = seg.buffer - math.hypot(y[0] - seg.center[0], y[1] - seg.center[1])
 
 
+@njit(cache=True, inline="always")
+def _noise(seg, i):
+    """Rounding noise of event value ``i``: below it its sign is not to be trusted."""
+    nc = seg.candidates.shape[0]
+    return seg.noise_force if nc <= i < nc + seg.basis.shape[0] else seg.noise_length
+
+
 @njit(cache=True)
 def _sign(v):
     return (v > 0) - (v < 0)
@@ -222,7 +233,7 @@ def may_hide(seg, ya, yb, ga, gb, dt, acc, spin_acc, out):
     spring force is affine in the centre of mass, so it can dip through zero only if its rate ``G . v`` changes
     sign, which needs ``|G . v_a| + |G . v_b| <= |G| acc dt``. Hull slacks and the refresh distance are not
     searched (tipping shows up as a lift-off; a late refresh is harmless)."""
-    cand, reach, noise, dirs, grad = seg.candidates, seg.reach, seg.noise, seg.spring_dirs, seg.spring_gradient
+    cand, reach, dirs, grad = seg.candidates, seg.reach, seg.spring_dirs, seg.spring_gradient
     nc, m = cand.shape[0], dirs.shape[0]
     speed = max(math.hypot(ya[3], ya[4]), math.hypot(yb[3], yb[4])) + acc * dt / 2
     spin = max(abs(ya[5]), abs(yb[5])) + spin_acc * dt / 2
@@ -246,7 +257,8 @@ def may_hide(seg, ya, yb, ga, gb, dt, acc, spin_acc, out):
         turn = _sign(da) != _sign(db) or abs(da) + abs(db) <= grad[k] * acc * dt
         out[nc + k] = turn and abs(ga[nc + k]) + abs(gb[nc + k]) <= grad[k] * speed * dt
     for i in range(nc + m):
-        out[i] = out[i] and abs(ga[i]) > noise[i] and abs(gb[i]) > noise[i]
+        noise = _noise(seg, i)
+        out[i] = out[i] and abs(ga[i]) > noise and abs(gb[i]) > noise
         any_hidden = any_hidden or out[i]
     return any_hidden
 
@@ -431,7 +443,6 @@ def _locate(seg, F, y_old, t_old, h, g0, t_lo, t_hi, changed, g_lo, g_hi):
         t_ev, outcome = _brent(ctx, t_lo, t_hi, phi_lo, phi_hi, xtol, 4 * eps, 100)
         if outcome != REACHED:
             return outcome, t_ev, t_ev, g, False
-    noise = seg.noise
     step = PROBE_FIRST
     t_star = min(t_hi, t_ev + xtol)
     first = -1.0
@@ -442,7 +453,7 @@ def _locate(seg, F, y_old, t_old, h, g0, t_lo, t_hi, changed, g_lo, g_hi):
         clear = True
         for i in range(n):
             differs = differs or (g[i] > 0) != g0[i]
-            clear = clear and abs(g[i]) > noise[i]
+            clear = clear and abs(g[i]) > _noise(seg, i)
         if differs:
             if first < 0:
                 first = t_star
@@ -578,18 +589,21 @@ def _dense(row, t_old, y_old, f_old, y_new, f_new, h, K, F, work):
 
 
 @njit(cache=True)
-def run_piece(row, seg, g0, t, y, t_bound, h_abs, first_step, rtol, atol, max_step, max_steps,
+def run_piece(row, seg, y_base, t, y, t_bound, h_abs, first_step, rtol, atol, max_step, max_steps,
               sample_times, next_sample, samples):
     """Integrate one piece from (t, y) towards ``t_bound`` until its first event, ``max_steps`` steps, or the end.
 
-    ``row`` is the piece's constants row, ``seg`` its :class:`Segment`, ``g0`` the signs of the event values at the
-    piece's start. The first step tried is ``first_step`` when positive (a new piece), else ``h_abs`` (the same piece
+    ``row`` is the piece's constants row, ``seg`` its :class:`Segment`, ``y_base`` the state at which the event
+    values' signs are the baseline (the piece's start, or the probe just past the event that began it). The first step tried is ``first_step`` when positive (a new piece), else ``h_abs`` (the same piece
     resumed after a pause). Output samples ``sample_times[next_sample:]`` reached are written into ``samples``.
     Times in s, states in SI units.
 
     Returns (outcome, t, y, h_abs, last step, evaluations, next_sample, probe time, probe state, probe values,
     whether those are clear of rounding noise). On ``EVENT`` (t, y) is the restart point just past it.
     """
+    g0 = np.empty(seg.candidates.shape[0] + seg.basis.shape[0] + seg.hull_offsets.shape[0] + 1)
+    values(seg, y_base, g0)
+    g0 = g0 > 0
     n = g0.shape[0]
     K = np.empty((_N_EXTENDED, 6))
     F = np.empty((_D.shape[0] + 3, 6))

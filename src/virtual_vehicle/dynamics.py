@@ -331,22 +331,22 @@ class _Segment:
     (:mod:`virtual_vehicle._kernel`) evaluates them from :attr:`arrays`.
     """
 
-    def __init__(self, model: ParcelModel, piece: Piece, y0: np.ndarray):
+    def __init__(self, model: ParcelModel, piece: Piece, y0: np.ndarray, previous: "_Segment | None" = None):
         spec, cells = model.spec, model.cells
         self.buffer = max(cells.pitch, 0.25 * spec.radius)
-        center = np.array(y0[:2], dtype=float)
-        ids = np.asarray(sorted(cells.tree.query_ball_point(center, spec.radius + self.buffer)), dtype=int)
-        if model.present is not None:
-            ids = ids[model.present[ids]]
-        self.ids = ids
+        if previous is not None and np.hypot(*(y0[:2] - previous.center)) <= previous.buffer / 2:
+            self.ids, self.center = previous.ids, previous.center  # still cover the footprint for buffer / 2 more
+        else:
+            self.center = np.array(y0[:2], dtype=float)
+            ids = np.asarray(sorted(cells.tree.query_ball_point(self.center, spec.radius + self.buffer)), dtype=int)
+            self.ids = ids if model.present is None else ids[model.present[ids]]
         sol = piece.solution
-        nc, m, q = len(ids), len(sol.points), len(sol.hull_offsets)
+        nc, m, q = len(self.ids), len(sol.points), len(sol.hull_offsets)
         self.bounds = (0, nc, nc + m, nc + m + q, nc + m + q + 1)
-        length = max(1.0, cells.extent, spec.radius)
-        # Rounding noise of each event value: below it a sign is not to be trusted.
-        noise = np.concatenate([np.full(nc, _NOISE * length), np.full(m, _NOISE * model.weight),
-                                np.full(q + 1, _NOISE * length)])
-        self.arrays = _kernel.make_segment(spec, cells.positions[ids], sol, center, self.buffer, noise)
+        # Rounding noise of the lengths and forces among the event values: below it a sign is not to be trusted.
+        noise_length = _NOISE * max(1.0, cells.extent, spec.radius)
+        self.arrays = _kernel.make_segment(spec, cells.positions[self.ids], sol, self.center, self.buffer,
+                                           noise_length, _NOISE * model.weight)
 
     def support(self, g: np.ndarray | None) -> np.ndarray | None:
         """The cells under the footprint (as :meth:`ParcelModel.support_at` finds them) from event values ``g`` at
@@ -510,17 +510,18 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         return Trajectory(*rec.arrays(), events, "tipped", t)
     status = "completed"
     y_probe = y
+    seg = None
     max_steps = _PAUSE_STEPS if progress is not None else np.iinfo(np.int64).max
     while True:
         segments += 1
         if segments > max_segments:
             raise IntegrationError(f"more than {max_segments} support changes: events accumulate near t={t:.9g} s")
-        seg = _Segment(model, piece, y_probe)
-        g0 = seg.values(y_probe) > 0
+        seg = _Segment(model, piece, y_probe, seg)
+        base = y_probe  # the event values' signs here are the piece's baseline
         first, h_abs = min(h, t1 - t), 0.0
         while True:  # DOP853 on this piece until its first event (kernel.run_piece), handing back now and then
             (outcome, t, y, h_abs, last, evals, rec.next, t_probe, y_probe, g_probe,
-             clear) = _kernel.run_piece(piece.row, seg.arrays, g0, t, y, t1, h_abs, first, rtol, atol, max_step,
+             clear) = _kernel.run_piece(piece.row, seg.arrays, base, t, y, t1, h_abs, first, rtol, atol, max_step,
                                         max_steps, rec.sample_times, rec.next, rec.samples)
             nfev += evals
             first = 0.0
