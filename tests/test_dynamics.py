@@ -464,5 +464,7 @@ def test_chattering_supports_are_crossed_in_fixed_steps_and_converge():
             fixed = integrate(m, y0, 0.0, 0.05, mode="fixed", dt=dt, sample_times=samples)
             np.testing.assert_allclose(tr.states[:, :3], fixed.states[:, :3], rtol=0, atol=3e-6 if dt > 1e-4 else 3e-7)
         ends[dt] = tr.states[-1]
-    np.testing.assert_allclose(ends[1e-4][:3], ends[1e-5][:3], rtol=0, atol=1e-7)
+    # Where the chatter is detected and crossed depends on rounding: scaling the field by 1 + 1e-15 moves the end at
+    # dt = 1e-4 by up to ~1.5e-7 (measured), against ~3e-7 at dt = 1e-3.
+    np.testing.assert_allclose(ends[1e-4][:3], ends[1e-5][:3], rtol=0, atol=3e-7)
     assert np.abs(ends[1e-3] - ends[1e-5]).max() > np.abs(ends[1e-4] - ends[1e-5]).max()  # it converges

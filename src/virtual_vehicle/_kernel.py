@@ -136,7 +136,7 @@ def make_segment(spec, candidates: np.ndarray, sol, center: np.ndarray, buffer: 
                    arr(sol.plane_lin, (-1, 2)), arr(sol.plane_const), arr(sol.hull_normals, (-1, 2)),
                    arr(sol.hull_offsets), arr(center), float(buffer), float(spec.radius + 2 * buffer),
                    float(noise_length), float(noise_force),
-                   spring_dirs, np.sqrt(np.sum(spring_dirs * spring_dirs, axis=1)))
+                   spring_dirs, np.hypot(spring_dirs[:, 0], spring_dirs[:, 1]))
 
 
 @njit(cache=True, inline="always")  # called per candidate and sample: a call costs more than the margin
@@ -594,9 +594,10 @@ def run_piece(row, seg, y_base, t, y, t_bound, h_abs, first_step, rtol, atol, ma
     """Integrate one piece from (t, y) towards ``t_bound`` until its first event, ``max_steps`` steps, or the end.
 
     ``row`` is the piece's constants row, ``seg`` its :class:`Segment`, ``y_base`` the state at which the event
-    values' signs are the baseline (the piece's start, or the probe just past the event that began it). The first step tried is ``first_step`` when positive (a new piece), else ``h_abs`` (the same piece
-    resumed after a pause). Output samples ``sample_times[next_sample:]`` reached are written into ``samples``.
-    Times in s, states in SI units.
+    values' signs are the baseline (the piece's start, or the probe just past the event that began it). The first step
+    tried is ``first_step`` when positive (a new piece), else ``h_abs`` (the same piece resumed after a pause).
+    Output samples ``sample_times[next_sample:]`` reached are written into ``samples``. Times in s, states in SI
+    units.
 
     Returns (outcome, t, y, h_abs, last step, evaluations, next_sample, probe time, probe state, probe values,
     whether those are clear of rounding noise). On ``EVENT`` (t, y) is the restart point just past it.

@@ -83,6 +83,31 @@ class SupportSolution:
         """Distance (m) of the local centre of mass inside each supporting half-plane (negative = tipping)."""
         return self.hull_offsets - self.hull_normals @ xi
 
+    def holds(self, xi: np.ndarray) -> bool:
+        """Whether this contact set and hull hold at local centre of mass ``xi`` (m): every contact's spring
+        compressed, every lifted cell's slack, the centre of mass inside the hull."""
+        return _holds(self.basis, self.plane_lin, self.plane_const, self.in_contact, self.hull_normals,
+                      self.hull_offsets, float(xi[0]), float(xi[1]))
+
+
+@njit(cache=True)
+def _holds(basis, plane_lin, plane_const, in_contact, hull_normals, hull_offsets, x, y):
+    """:meth:`SupportSolution.holds`, compiled (the pattern cache asks it of every candidate solution)."""
+    r = basis.shape[1]
+    plane = np.empty(r)
+    for j in range(r):
+        plane[j] = plane_lin[j, 0] * x + plane_lin[j, 1] * y + plane_const[j]
+    for i in range(basis.shape[0]):
+        spring = 0.0
+        for j in range(r):
+            spring += basis[i, j] * plane[j]
+        if (spring > 0) != in_contact[i]:
+            return False
+    for k in range(hull_offsets.shape[0]):
+        if hull_offsets[k] - (hull_normals[k, 0] * x + hull_normals[k, 1] * y) < 0:
+            return False
+    return True
+
 
 def normal_forces(points, com, weight: float, *, lateral_support: bool = False) -> np.ndarray:
     """Normal forces (N) of the cells at ``points`` ((m, 2), m) supporting a parcel of weight ``weight`` (N) whose

@@ -20,6 +20,7 @@ Two integrators share the model:
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from dataclasses import dataclass, field, replace
@@ -63,13 +64,6 @@ class _GeometryCache:
         self.__dict__.update(state)
 
 
-def _holds(sol: SupportSolution, xi: np.ndarray) -> bool:
-    """Whether ``sol``'s contact set and hull hold at local centre of mass ``xi``."""
-    vals = sol.spring_values(xi)
-    return bool(np.all(vals[sol.in_contact] > 0) and np.all(vals[~sol.in_contact] <= 0)
-                and np.all(sol.hull_slack(xi) >= 0))
-
-
 @dataclass(frozen=True, eq=False)
 class Piece:
     """One smooth piece of the dynamics: a support set, its contact set, the normal-force map and the constants.
@@ -93,6 +87,11 @@ class Piece:
     def key(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
         """(supporting cell ids, ids of those in contact)."""
         return tuple(self.support.tolist()), tuple(self.support[self.solution.in_contact].tolist())
+
+    @cached_property
+    def sets(self) -> tuple[frozenset[int], frozenset[int]]:
+        """:attr:`key` as sets: (supporting cell ids, ids of those in contact)."""
+        return frozenset(self.key[0]), frozenset(self.key[1])
 
     def normal_forces(self, y) -> np.ndarray:
         """Normal forces (N) of the supporting cells at state ``y``."""
@@ -203,7 +202,7 @@ class ParcelModel:
         X = np.asarray(y[:2], dtype=float)
         skey = tuple(support.tolist())
         for piece in self._by_support.get(skey, ()):
-            if _holds(piece.solution, X - piece.solution.origin):
+            if piece.solution.holds(X - piece.solution.origin):
                 return piece
         sol = self.solution_for(support, X)
         piece = self._make_piece(support, sol, self.constants_for(support, sol, self.velocities[support]))
@@ -229,7 +228,7 @@ class ParcelModel:
         xi = X - origin
         geometry = self._geometry
         for store in (geometry.shared, geometry.own):
-            sol = next((t for t in store.get(gkey, ()) if _holds(t, xi)), None)
+            sol = next((t for t in store.get(gkey, ()) if t.holds(xi)), None)
             if sol is not None:
                 return replace(sol, origin=origin)
         try:  # in the pattern's own coordinates (see _GeometryCache), its first cell at the local origin
@@ -310,13 +309,11 @@ class Trajectory:
 
 
 def _diff_event(t, y, old: Piece, new: Piece) -> Event | None:
-    old_s, new_s = set(old.key[0]), set(new.key[0])
-    old_c, new_c = set(old.key[1]), set(new.key[1])
+    (old_s, old_c), (new_s, new_c) = old.sets, new.sets
     entered = tuple(sorted(new_s - old_s))
     left = tuple(sorted(old_s - new_s))
-    both = old_s & new_s
-    lifted = tuple(sorted(i for i in both if i in old_c and i not in new_c))
-    touched = tuple(sorted(i for i in both if i not in old_c and i in new_c))
+    lifted = tuple(sorted((old_c - new_c) & new_s))
+    touched = tuple(sorted((new_c - old_c) & old_s))
     if not (entered or left or lifted or touched):
         return None
     return Event(float(t), "support", tuple(float(v) for v in y), entered, left, lifted, touched)
@@ -334,7 +331,7 @@ class _Segment:
     def __init__(self, model: ParcelModel, piece: Piece, y0: np.ndarray, previous: "_Segment | None" = None):
         spec, cells = model.spec, model.cells
         self.buffer = max(cells.pitch, 0.25 * spec.radius)
-        if previous is not None and np.hypot(*(y0[:2] - previous.center)) <= previous.buffer / 2:
+        if previous is not None and math.dist(y0[:2], previous.center) <= self.buffer / 2:
             self.ids, self.center = previous.ids, previous.center  # still cover the footprint for buffer / 2 more
         else:
             self.center = np.array(y0[:2], dtype=float)
