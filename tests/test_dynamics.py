@@ -346,7 +346,7 @@ def test_the_event_root_finder_is_scipys_brentq_without_evaluating_the_ends_agai
     assume(len(changed))
     sgn = np.where(g0[changed] > 0, 1.0, -1.0)
     calls = np.zeros(1, np.int64)
-    ctx = (seg.arrays, F, y0, 0.0, h, changed, sgn, np.empty(6), np.empty(len(g0)), calls)
+    ctx = (seg.arrays, F, y0, 0.0, h, changed, sgn, np.empty(6), calls)
     fa, fb = float(np.min(sgn * g0[changed])), float(np.min(sgn * g1[changed]))
     assume(fa > 0 > fb)
     eps = np.finfo(float).eps

@@ -42,6 +42,10 @@ def test_compiled_margins_are_the_footprint_margins_of_every_outline(name, x, y,
     np.testing.assert_allclose(mine, ref, rtol=0, atol=1e-13)
     clear = np.abs(ref) > 1e-12  # a cell on the outline (to rounding) may fall either way
     assert np.all((mine > 0)[clear] == (ref > 0)[clear])
+    # One value alone (as Brent's method asks for the changed ones) is the same number as in the whole vector.
+    y1 = y0 + np.array([0.013, -0.007, 0.05, 0.0, 0.0, 0.0])
+    every = seg.values(y1)
+    assert [kernel.value(seg.arrays, y1, i) for i in range(len(every))] == every.tolist()
 
 
 def test_compiled_dop853_takes_scipys_steps():
