@@ -18,7 +18,7 @@ import time
 import numpy as np
 
 from virtual_vehicle import fields, friction, layout, parcel
-from virtual_vehicle.dynamics import ParcelModel, integrate
+from virtual_vehicle.dynamics import ParcelModel, integrate, warm_up
 from virtual_vehicle.parcel import supporting_cells
 from virtual_vehicle.reference import paper_normal_forces
 
@@ -116,8 +116,10 @@ def part_b(seconds: float = 5.0) -> None:
 
 
 def main() -> None:
+    load = warm_up()  # numba's compiled code (compiled here if its source changed), outside the timed runs
     print(f"# virtual_vehicle performance — {platform.machine()}, Python {platform.python_version()}, "
           f"numpy {np.__version__}")
+    print(f"(the compiled engine loaded in {load:.2f} s before the timed runs)")
     print()
     part_a()
     part_b()

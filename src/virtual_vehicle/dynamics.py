@@ -387,10 +387,12 @@ _PAUSE_STEPS = 64
 
 
 def warm_up() -> float:
-    """Compile the event engine's inner loop (:mod:`virtual_vehicle._kernel`; about 20 s, the first time on a
-    machine) or load it from numba's cache (a fraction of a second), by integrating one parcel on a 4 x 4 array for
-    10 ms. The first integration of a process does this anyway; call it to do it at a time of your choosing (the
-    set-up of ``make`` does, so that no later run waits). Returns the seconds it took."""
+    """Compile the event engine's inner loop (:mod:`virtual_vehicle._kernel`) and the support solve's compiled
+    parts (:mod:`virtual_vehicle.contact`, :mod:`virtual_vehicle.friction`; about 40 s together, the first time on a
+    machine) or load them from numba's cache (a fraction of a second), by integrating one parcel on a 4 x 4 array
+    for 10 ms and looking its last piece up again. The first integration of a process does this anyway; call it to
+    do it at a time of your choosing (the set-up of ``make`` does, so that no later run waits). Returns the seconds
+    it took."""
     from .fields import Uniform
     from .layout import grid
     from .parcel import rectangle
@@ -398,7 +400,8 @@ def warm_up() -> float:
     start = time.perf_counter()
     cells = grid(4, 4, 0.1)
     model = ParcelModel(cells, rectangle(0.25, 0.22, 1.0, 0.5), Uniform((0.1, 0.0)).velocities(cells), CoulombLaw())
-    integrate(model, np.array([0.15, 0.15, 0.0, 0.0, 0.0, 0.0]), 0.0, 0.01)
+    end = integrate(model, np.array([0.15, 0.15, 0.0, 0.0, 0.0, 0.0]), 0.0, 0.01).states[-1]
+    model.piece_at(end)  # found again: the cache's test of a solution
     return time.perf_counter() - start
 
 
