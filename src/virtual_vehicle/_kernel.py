@@ -117,26 +117,31 @@ class Segment(NamedTuple):
     spring_gradient: np.ndarray
 
 
-def make_segment(spec, candidates: np.ndarray, sol, center: np.ndarray, buffer: float, noise_length: float,
-                 noise_force: float) -> Segment:
-    """The :class:`Segment` of parcel ``spec`` (:class:`~virtual_vehicle.parcel.ParcelSpec`) with candidate cells
-    ``candidates`` (m) on support solution ``sol``, its candidates gathered within ``spec.radius + buffer`` of
-    ``center`` (m); event values below ``noise_length`` (m) or ``noise_force`` (N) are rounding noise."""
-    def arr(a, shape=None):
-        a = np.ascontiguousarray(a, dtype=np.float64)
-        return a if shape is None else a.reshape(shape)
+def outline(spec) -> tuple:
+    """The footprint of parcel ``spec`` (:class:`~virtual_vehicle.parcel.ParcelSpec`) as :class:`Segment` holds it:
+    (kind, convex, half, normals, offsets, vertices), lengths in m."""
+    def arr(a, shape):
+        return np.ascontiguousarray(a, dtype=np.float64).reshape(shape)
 
     convex = bool(spec.convex)
     half = spec.half_extents
     normals, offsets = spec.halfplanes if convex else (np.zeros((0, 2)), np.zeros(0))
     kind = RECTANGLE if half is not None else CONVEX if convex else POLYGON
-    spring_dirs = arr(sol.basis @ sol.plane_lin, (-1, 2))
-    return Segment(kind, convex, arr(half if half is not None else (0.0, 0.0)), arr(normals, (-1, 2)), arr(offsets),
-                   arr(spec.footprint, (-1, 2)), arr(candidates, (-1, 2)), arr(sol.origin), arr(sol.basis),
-                   arr(sol.plane_lin, (-1, 2)), arr(sol.plane_const), arr(sol.hull_normals, (-1, 2)),
-                   arr(sol.hull_offsets), arr(center), float(buffer), float(spec.radius + 2 * buffer),
-                   float(noise_length), float(noise_force),
-                   spring_dirs, np.hypot(spring_dirs[:, 0], spring_dirs[:, 1]))
+    return (kind, convex, arr(half if half is not None else (0.0, 0.0), 2), arr(normals, (-1, 2)), arr(offsets, -1),
+            arr(spec.footprint, (-1, 2)))
+
+
+def make_segment(spec, candidates: np.ndarray, sol, center: np.ndarray, buffer: float, noise_length: float,
+                 noise_force: float, footprint: tuple | None = None) -> Segment:
+    """The :class:`Segment` of parcel ``spec`` (:class:`~virtual_vehicle.parcel.ParcelSpec`; ``footprint`` its
+    :func:`outline`, if known) with candidate cells ``candidates`` ((nc, 2) float64, m) on support solution ``sol``
+    (whose arrays are float64 and contiguous, as :mod:`virtual_vehicle.contact` makes them), its candidates gathered
+    within ``spec.radius + buffer`` of ``center`` (m); event values below ``noise_length`` (m) or ``noise_force``
+    (N) are rounding noise."""
+    return Segment(*(outline(spec) if footprint is None else footprint), candidates, sol.origin, sol.basis,
+                   sol.plane_lin, sol.plane_const, sol.hull_normals, sol.hull_offsets, center, float(buffer),
+                   float(spec.radius + 2 * buffer), float(noise_length), float(noise_force), sol.spring_lin,
+                   sol.spring_gradient)
 
 
 @njit(cache=True, inline="always")  # called per candidate and sample: a call costs more than the margin

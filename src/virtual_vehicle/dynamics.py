@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Callable, Literal
 
@@ -232,7 +232,7 @@ class ParcelModel:
         for store in (geometry.shared, geometry.own):
             sol = next((t for t in store.get(gkey, ()) if t.holds(xi)), None)
             if sol is not None:
-                return replace(sol, origin=origin)
+                return sol.at(origin)
         try:  # in the pattern's own coordinates (see _GeometryCache), its first cell at the local origin
             sol = solve_support(rel * unit, X - pts[0], self.weight, lateral_support=self.cells.is_line,
                                 line_direction=self._line_dir)
@@ -246,7 +246,7 @@ class ParcelModel:
         geometry.solves += 1
         store = geometry.own if sol.one_d or _collinear(sol.points[sol.in_contact]) else geometry.shared
         store.setdefault(gkey, []).append(sol)
-        return replace(sol, origin=origin)
+        return sol.at(origin)
 
     def constants_for(self, support: np.ndarray, sol: SupportSolution, velocities: np.ndarray) -> FrictionConstants:
         """The friction law's constants for the cells ``support`` solved as ``sol``, whose surfaces move at
@@ -349,8 +349,11 @@ class _Segment:
         self.bounds = (0, nc, nc + m, nc + m + q, nc + m + q + 1)
         # Rounding noise of the lengths and forces among the event values: below it a sign is not to be trusted.
         noise_length = _NOISE * max(1.0, cells.extent, spec.radius)
+        footprint = model.__dict__.get("_outline")  # once a model (and its copies); old checkpoints have none
+        if footprint is None:
+            footprint = model._outline = _kernel.outline(spec)
         self.arrays = _kernel.make_segment(spec, cells.positions[self.ids], sol, self.center, self.buffer,
-                                           noise_length, _NOISE * model.weight)
+                                           noise_length, _NOISE * model.weight, footprint)
 
     def support(self, g: np.ndarray | None) -> np.ndarray | None:
         """The cells under the footprint (as :meth:`ParcelModel.support_at` finds them) from event values ``g`` at
