@@ -131,17 +131,15 @@ def outline(spec) -> tuple:
             arr(spec.footprint, (-1, 2)))
 
 
-def make_segment(spec, candidates: np.ndarray, sol, center: np.ndarray, buffer: float, noise_length: float,
-                 noise_force: float, footprint: tuple | None = None) -> Segment:
-    """The :class:`Segment` of parcel ``spec`` (:class:`~virtual_vehicle.parcel.ParcelSpec`; ``footprint`` its
-    :func:`outline`, if known) with candidate cells ``candidates`` ((nc, 2) float64, m) on support solution ``sol``
-    (whose arrays are float64 and contiguous, as :mod:`virtual_vehicle.contact` makes them), its candidates gathered
-    within ``spec.radius + buffer`` of ``center`` (m); event values below ``noise_length`` (m) or ``noise_force``
-    (N) are rounding noise."""
-    return Segment(*(outline(spec) if footprint is None else footprint), candidates, sol.origin, sol.basis,
-                   sol.plane_lin, sol.plane_const, sol.hull_normals, sol.hull_offsets, center, float(buffer),
-                   float(spec.radius + 2 * buffer), float(noise_length), float(noise_force), sol.spring_lin,
-                   sol.spring_gradient)
+def make_segment(footprint: tuple, radius: float, candidates: np.ndarray, sol, center: np.ndarray, buffer: float,
+                 noise_length: float, noise_force: float) -> Segment:
+    """The :class:`Segment` of a parcel of footprint ``footprint`` (its :func:`outline`) and ``radius`` (m) with
+    candidate cells ``candidates`` ((nc, 2) float64, m) on support solution ``sol`` (whose arrays are float64 and
+    contiguous, as :mod:`virtual_vehicle.contact` makes them), its candidates gathered within ``radius + buffer`` of
+    ``center`` (m); event values below ``noise_length`` (m) or ``noise_force`` (N) are rounding noise."""
+    return Segment(*footprint, candidates, sol.origin, sol.basis, sol.plane_lin, sol.plane_const, sol.hull_normals,
+                   sol.hull_offsets, center, float(buffer), float(radius + 2 * buffer), float(noise_length),
+                   float(noise_force), sol.spring_lin, sol.spring_gradient)
 
 
 @njit(cache=True, inline="always")  # called per candidate and sample: a call costs more than the margin

@@ -188,6 +188,12 @@ class ParcelModel:
         other._by_support = {}
         return other
 
+    @cached_property
+    def outline(self) -> tuple:
+        """The parcel's footprint as the compiled engine takes it (:func:`~virtual_vehicle._kernel.outline`), made
+        once a model and shared by its :meth:`with_velocities` copies (lazily: old checkpoints lack it)."""
+        return _kernel.outline(self.spec)
+
     @property
     def solves(self) -> int:
         """Normal-force problems solved so far (shared by models made with :meth:`with_velocities`)."""
@@ -349,11 +355,8 @@ class _Segment:
         self.bounds = (0, nc, nc + m, nc + m + q, nc + m + q + 1)
         # Rounding noise of the lengths and forces among the event values: below it a sign is not to be trusted.
         noise_length = _NOISE * max(1.0, cells.extent, spec.radius)
-        footprint = model.__dict__.get("_outline")  # once a model (and its copies); old checkpoints have none
-        if footprint is None:
-            footprint = model._outline = _kernel.outline(spec)
-        self.arrays = _kernel.make_segment(spec, cells.positions[self.ids], sol, self.center, self.buffer,
-                                           noise_length, _NOISE * model.weight, footprint)
+        self.arrays = _kernel.make_segment(model.outline, spec.radius, cells.positions[self.ids], sol, self.center,
+                                           self.buffer, noise_length, _NOISE * model.weight)
 
     def support(self, g: np.ndarray | None) -> np.ndarray | None:
         """The cells under the footprint (as :meth:`ParcelModel.support_at` finds them) from event values ``g`` at
