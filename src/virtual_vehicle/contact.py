@@ -33,7 +33,7 @@ import numpy as np
 from numba import njit
 
 from .errors import IntegrationError, TippingError
-from .layout import _COLLINEAR_TOL, _collinear, collinear
+from .layout import _collinear
 
 _REL_TOL = 1e-12  # relative tolerance for geometric ties (hull boundary, zero forces)
 _SLAB = 1e-9  # relative half-width of the band in which a load counts as on the line of its contacts
@@ -202,9 +202,9 @@ def _planar(local, xi, weight, tol, scale, max_iter):
     basis[:, 0] = 1.0
     basis[:, 1:] = local
     if outside > tol:
-        mapped = (np.zeros(m, np.bool_), True, np.zeros((3, 2)), np.zeros(3), False)
+        mapped = (np.zeros(m, np.bool_), True, np.zeros((3, 2)), np.zeros(3))
     else:
-        mapped = _affine_map(basis, _PLANE_LIN, _PLANE_CONST, weight, xi, local, max_iter)
+        mapped = _affine_map(basis, _PLANE_LIN, _PLANE_CONST, weight, xi, max_iter)
     return outside, h_normals, h_offsets, basis, mapped
 
 
@@ -276,16 +276,16 @@ def _solve_line(origin, local, xi, weight, tol, lateral_support, line_direction)
     basis = np.column_stack([np.ones(m), s])
     r_lin = np.vstack([[0.0, 0.0], u])
     r_const = np.array([1.0, 0.0])
-    mapped = _affine_map(basis, r_lin, r_const, float(weight), xi, local, _MAX_ITER)
+    mapped = _affine_map(basis, r_lin, r_const, float(weight), xi, _MAX_ITER)
     return _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, one_d=True)
 
 
 def _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, *, one_d) -> SupportSolution:
     """The :class:`SupportSolution` from the results of :func:`_affine_map` (``mapped``)."""
-    in_contact, converged, plane_lin, plane_const, contacts_collinear = mapped
+    in_contact, converged, plane_lin, plane_const = mapped
     if not converged:
         raise IntegrationError("the normal-force contact-set iteration did not converge")
-    if not one_d and contacts_collinear:
+    if not one_d and _collinear(local[in_contact]):
         plane_const, h_normals, h_offsets = _on_contact_line(local, xi, basis, in_contact, plane_lin, plane_const,
                                                              weight, h_normals, h_offsets)
     force_lin = np.where(in_contact[:, None], basis @ plane_lin, 0.0)
@@ -297,10 +297,13 @@ def _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, *, o
 
 
 @njit(cache=True)
-def _affine_map(basis, r_lin, r_const, weight, xi, local, max_iter):
-    """The contact set and spring plane of the supports at ``local`` (m) with rows ``basis`` under the load
-    ``weight (r_lin @ xi + r_const)``: (contact mask, converged, plane_lin, plane_const, whether the cells in
-    contact are collinear)."""
+def _affine_map(basis, r_lin, r_const, weight, xi, max_iter):
+    """The contact set and spring plane of supports with rows ``basis`` under the load ``weight (r_lin @ xi +
+    r_const)``: (contact mask, converged, plane_lin, plane_const).
+
+    Compiled code here calls only compiled code of this file: numba's cache does not notice edits to a compiled
+    function in another file from its callers (a documented limitation), so a call into, say, layout's collinearity
+    test would keep running the old version after an edit there."""
     load = np.empty(r_const.shape[0])
     for i in range(load.shape[0]):
         load[i] = weight * (r_lin[i, 0] * xi[0] + r_lin[i, 1] * xi[1] + r_const[i])
@@ -309,7 +312,7 @@ def _affine_map(basis, r_lin, r_const, weight, xi, local, max_iter):
     minv = np.linalg.pinv(ba.T @ ba)
     plane_lin = weight * minv @ r_lin  # eq. 19: theta = W (M^T A M)^-1 (W_x X_c + W_c), reduced to the moment system
     plane_const = weight * minv @ r_const
-    return in_contact, converged, plane_lin, plane_const, collinear(_rows(local, in_contact), _COLLINEAR_TOL)
+    return in_contact, converged, plane_lin, plane_const
 
 
 @njit(cache=True)
