@@ -218,3 +218,28 @@ def test_collinear_compiled_matches_svd():
         rms = np.linalg.svd(centred, compute_uv=False)[-1] / np.sqrt(len(P))
         assert _collinear(P) == (rms <= _COLLINEAR_TOL)
     assert _collinear(np.zeros((1, 2))) and _collinear([[0, 0], [1, 2]])
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000), st.integers(3, 20))
+def test_a_solution_holds_where_its_springs_and_hull_say_so(seed, m):
+    """The pattern cache's compiled test (``SupportSolution.holds``) is the definition written with the solution's
+    own spring values and hull slacks: the cells in contact compressed, the others slack, the centre of mass inside
+    the hull; here near and far from where the solution was solved, with and without lift-off."""
+    rng = np.random.default_rng(seed)
+    P = rng.uniform(-1, 1, size=(m, 2))
+    com = P.mean(axis=0) + 0.4 * rng.standard_normal(2) * np.std(P, axis=0)
+    try:
+        sol = solve_support(P, com, W)
+    except TippingError:
+        assume(False)
+    outcomes = set()
+    for scale in (0.0, 0.01, 0.1, 0.5):
+        for _ in range(5):
+            xi = com - sol.origin + scale * rng.standard_normal(2)
+            s = sol.spring_values(xi)
+            expected = bool(np.all(s[sol.in_contact] > 0) and np.all(s[~sol.in_contact] <= 0)
+                            and np.all(sol.hull_slack(xi) >= 0))
+            assert sol.holds(xi) == expected
+            outcomes.add(expected)
+    assert True in outcomes  # at least where it was solved

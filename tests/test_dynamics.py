@@ -322,6 +322,26 @@ def test_a_segment_reads_the_supports_off_its_event_values_while_its_candidates_
     assert 50 < told < 200 and seg.support(None) is None
 
 
+def test_a_segment_keeps_its_predecessors_candidates_only_within_half_the_buffer():
+    """A segment that starts within half the refresh buffer of where its predecessor gathered its candidates keeps
+    them, and their centre, so that its refresh value still counts from there; a segment starting farther gathers
+    new ones. Either way it reads the supports off its event values as support_at finds them."""
+    cells = layout.grid(30, 30, 0.1)
+    spec = parcel.rectangle(0.4, 0.3, 2.0, 1.0)
+    m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), friction.CoulombLaw())
+    y0 = np.array([1.12, 1.47, 0.3, 0, 0, 0])
+    first = dynamics._Segment(m, m.piece_at(y0), y0)
+    near = y0 + np.array([0.03, -0.03, 0.4, 0, 0, 0])  # 0.042 m away: within half of the 0.1 m buffer
+    kept = dynamics._Segment(m, m.piece_at(near), near, first)
+    assert kept.ids is first.ids and kept.center is first.center
+    np.testing.assert_array_equal(kept.support(kept.values(near)), m.support_at(near))
+    assert kept.values(near)[-1] == pytest.approx(kept.buffer - np.hypot(0.03, 0.03), abs=1e-15)
+    far = y0 + np.array([0.06, 0.0, -0.2, 0, 0, 0])
+    fresh = dynamics._Segment(m, m.piece_at(far), far, first)
+    assert fresh.ids is not first.ids and fresh.center.tolist() == far[:2].tolist()
+    np.testing.assert_array_equal(fresh.support(fresh.values(far)), m.support_at(far))
+
+
 @settings(max_examples=300, deadline=None)
 @given(st.floats(1.0, 2.0), st.floats(1.0, 2.0), st.floats(-3.2, 3.2), st.floats(-0.1, 0.1), st.floats(-0.1, 0.1),
        st.floats(-0.5, 0.5), st.sampled_from([1e-3, 1e-2, 0.1]))
