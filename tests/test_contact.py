@@ -243,3 +243,30 @@ def test_a_solution_holds_where_its_springs_and_hull_say_so(seed, m):
             assert sol.holds(xi) == expected
             outcomes.add(expected)
     assert True in outcomes  # at least where it was solved
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000), st.integers(3, 12), st.floats(0.0, 1.0))
+def test_a_solution_knows_whether_its_contacts_are_collinear(seed, m, lift):
+    """``contact_collinear``, filled in by the solve, is what the definition computes from the solution's contacts,
+    with and without lift-off; some draws leave collinear contacts (a corner cell carrying everything, or a row)."""
+    from virtual_vehicle.layout import _collinear
+
+    rng = np.random.default_rng(seed)
+    P = 0.1 * rng.integers(0, 4, size=(m, 2)).astype(float)
+    assume(not _collinear(P))
+    corner = P[np.argmax(P.sum(axis=1))]
+    com = P.mean(axis=0) + lift * (corner - P.mean(axis=0))  # towards a corner: more cells lift off
+    try:
+        sol = solve_support(P, com, W)
+    except TippingError:
+        assume(False)
+    assert sol.contact_collinear == _collinear(sol.points[sol.in_contact])
+    assert sol.contact_collinear == type(sol).contact_collinear.func(sol)  # the filled-in value, recomputed
+    # the regression of test_load_on_the_line_of_a_collinear_contact_set: a row of four carries it all
+    P = np.array([[-0.05, -0.2 / 3], [0.05, -0.2 / 3], [-0.15, 0.1 / 3], [-0.05, 0.1 / 3], [0.05, 0.1 / 3],
+                  [0.15, 0.1 / 3]])
+    on_row = solve_support(P, [5.8e-13, 0.1 / 3], W)
+    assert on_row.in_contact.tolist() == [False, False, True, True, True, True] and on_row.contact_collinear
+    row = solve_support([[0.0, 0.0], [0.1, 0.0], [0.2, 0.0]], [0.05, 0.0], W, lateral_support=True)
+    assert row.one_d and row.contact_collinear  # the 1-D model

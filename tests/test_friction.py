@@ -90,3 +90,17 @@ def test_viscous_damping_only_dissipates(seed):
     r = P - com
     slip = -(v + omega * np.column_stack([-r[:, 1], r[:, 0]]))
     np.testing.assert_allclose(power, -0.7 * np.sum(sol.forces(com) * np.sum(slip**2, axis=1)), rtol=1e-9, atol=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000), st.integers(1, 30))
+def test_compiled_coulomb_drive_vectors_are_eq21(seed, m):
+    """The compiled drive vectors are eq. 21 as numpy writes it, on wheels at any angle, with stopped wheels (zero
+    velocity component along them) and wheels at right angles to their cell's velocity."""
+    rng = np.random.default_rng(seed)
+    angles = rng.uniform(-np.pi, np.pi, size=(m, 2))
+    U = np.stack([np.cos(angles), np.sin(angles)], axis=-1)  # (m, 2 wheels, 2)
+    V = rng.standard_normal((m, 2)) * rng.integers(0, 2, size=(m, 1))  # some cells stopped
+    V[0] = [-U[0, 0, 1], U[0, 0, 0]]  # cell 0's first wheel at right angles to its velocity
+    expected = np.einsum("ik,ikj->ij", np.sign(np.einsum("ij,ikj->ik", V, U)), U)
+    np.testing.assert_array_equal(CoulombLaw().drive_vectors(V, U), expected)

@@ -114,3 +114,25 @@ def test_max_step_bounds_every_compiled_step():
     steps_at_least = 200 * (DOP853.n_stages + 3)  # stages and dense output per step
     assert free.rhs_evals < steps_at_least <= capped.rhs_evals
     np.testing.assert_allclose(capped.states[-1], free.states[-1], rtol=0, atol=1e-8)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000), st.integers(1, 20), st.integers(-50, 50), st.integers(-50, 50))
+def test_the_compiled_pattern_is_numpys_and_sees_whole_cell_translations(seed, m, dx, dy):
+    """The pattern cache's key (offsets from the first cell in whole resolution units) and origin are numpy's
+    round and mean of the cells' positions; a copy of the cells moved by whole pitches has the same key."""
+    from virtual_vehicle.dynamics import _PATTERN_RESOLUTION
+
+    pitch = 0.1
+    cells = layout.grid(120, 120, pitch)
+    rng = np.random.default_rng(seed)
+    col, row = rng.integers(50, 70, size=(2, m))
+    support = (row * 120 + col).astype(np.int64)
+    unit = _PATTERN_RESOLUTION * pitch
+    pts, origin, rel = kernel.pattern(cells.positions, support, unit)
+    P = cells.positions[support]
+    np.testing.assert_array_equal(pts, P)
+    np.testing.assert_array_equal(origin, P.mean(axis=0))
+    np.testing.assert_array_equal(rel, np.round((P - P[0]) / unit).astype(np.int64))
+    moved = (row + dy) * 120 + (col + dx)
+    assert kernel.pattern(cells.positions, moved.astype(np.int64), unit)[2].tobytes() == rel.tobytes()

@@ -82,6 +82,24 @@ def accelerations(row, x, y, vx, vy, om):
 accelerations_compiled = njit(cache=True)(accelerations)
 
 
+@njit(cache=True)
+def pattern(positions, support, unit):
+    """Where the cells ``support`` of ``positions`` ((n, 2), m) lie: (their positions (m, 2), their centroid (2,),
+    their offsets from the first of them in whole ``unit`` (m): the key of their geometric pattern, compared by the
+    pattern cache of :mod:`virtual_vehicle.dynamics`)."""
+    m = support.shape[0]
+    pts = np.empty((m, 2))
+    origin = np.zeros(2)
+    rel = np.empty((m, 2), np.int64)
+    for i in range(m):
+        for j in range(2):
+            pts[i, j] = positions[support[i], j]
+            origin[j] += pts[i, j]  # as numpy's mean over axis 0: row by row, then divided
+            rel[i, j] = np.int64(np.rint((pts[i, j] - pts[0, j]) / unit))
+    origin /= m
+    return pts, origin, rel
+
+
 class Segment(NamedTuple):
     """One segment's arrays, as the compiled functions take them (a numba named tuple). Lengths in m.
 

@@ -26,6 +26,7 @@ the ~260 us a solve took; it now takes ~50 us, most of it the Python around it.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -98,6 +99,12 @@ class SupportSolution:
         out.setflags(write=False)
         return out
 
+    @cached_property
+    def contact_collinear(self) -> bool:
+        """Whether the cells in contact lie on one line (or are one cell), as in every solution of the 1-D model:
+        then the solution depends on the centre of mass it was solved at, not only on its pattern."""
+        return self.one_d or _collinear(self.points[self.in_contact])
+
     def forces(self, com) -> np.ndarray:
         """Normal forces (N) of the supporting cells for centre of mass ``com`` (world coordinates, m)."""
         xi = np.asarray(com, dtype=float) - self.origin
@@ -165,39 +172,49 @@ def solve_support(points, com, weight: float, *, lateral_support: bool = False,
         raise ValueError(f"points must have shape (m, 2), got {pts.shape}")
     if com.shape != (2,):
         raise ValueError(f"com must have shape (2,), got {com.shape}")
-    if not (np.isfinite(weight) and weight > 0):
+    if not (math.isfinite(weight) and weight > 0):
         raise ValueError(f"weight must be a positive force in N, got {weight}")
-    if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(com))):
+    if not (np.isfinite(pts).all() and np.isfinite(com).all()):
         raise ValueError("points and com must be finite")
     if len(pts) == 0:
         raise TippingError("no cell supports the parcel")
-    origin = pts.mean(axis=0)
-    local = pts - origin
-    xi = com - origin
-    scale = max(float(np.max(np.abs(local))), float(np.max(np.abs(xi))), 1e-9)
-    tol = _REL_TOL * scale
-
     if _collinear(pts):
-        return _solve_line(origin, local, xi, weight, tol, lateral_support, line_direction)
+        origin = pts.mean(axis=0)
+        local = pts - origin
+        xi = com - origin
+        scale = max(float(np.max(np.abs(local))), float(np.max(np.abs(xi))), 1e-9)
+        return _solve_line(origin, local, xi, weight, _REL_TOL * scale, lateral_support, line_direction)
 
-    outside, h_normals, h_offsets, basis, mapped = _planar(local, xi, float(weight), tol, scale, _MAX_ITER)
+    (outside, tol, origin, local, xi, h_normals, h_offsets, basis, mapped,
+     forces) = _planar(np.ascontiguousarray(pts), com, float(weight), _MAX_ITER)
     if outside > tol:
         raise TippingError(
             f"centre of mass at ({com[0]:.6g}, {com[1]:.6g}) m is {outside:.3g} m outside the convex hull of its "
             f"{len(pts)} supporting cells: the parcel tips")
-    return _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, one_d=False)
+    return _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, one_d=False, forces=forces)
 
 
 @njit(cache=True)
-def _planar(local, xi, weight, tol, scale, max_iter):
-    """The planar model for supports at ``local`` (m, not collinear) and local centre of mass ``xi`` (m), in one
-    compiled call: the hull's half-planes, how far outside them the centre of mass lies (m; > ``tol``: it tips, and
-    the map is not solved), the basis rows ``[1, x_i, y_i]`` and :func:`_affine_map`'s results."""
+def _planar(pts, com, weight, max_iter):
+    """The planar model for supports at ``pts`` ((m, 2), m, not collinear) and centre of mass ``com`` (m), in one
+    compiled call: the tie tolerance ``tol`` (m), the local frame (origin at the supports' centroid; the supports and
+    the centre of mass in it), the hull's half-planes and how far outside them the centre of mass lies (m; > ``tol``:
+    it tips, and the map is not solved), the basis rows ``[1, x_i, y_i]``, :func:`_affine_map`'s results and
+    :func:`_force_map`'s."""
+    m = pts.shape[0]
+    origin = np.zeros(2)
+    for i in range(m):  # as numpy's mean over axis 0: row by row, then divided
+        origin[0] += pts[i, 0]
+        origin[1] += pts[i, 1]
+    origin /= m
+    local = pts - origin
+    xi = com - origin
+    scale = max(np.max(np.abs(local)), np.max(np.abs(xi)), 1e-9)
+    tol = _REL_TOL * scale
     h_normals, h_offsets = _hull(local, tol * scale)
     outside = -np.inf
     for k in range(h_offsets.shape[0]):
         outside = max(outside, h_normals[k, 0] * xi[0] + h_normals[k, 1] * xi[1] - h_offsets[k])
-    m = local.shape[0]
     basis = np.empty((m, 3))
     basis[:, 0] = 1.0
     basis[:, 1:] = local
@@ -205,7 +222,24 @@ def _planar(local, xi, weight, tol, scale, max_iter):
         mapped = (np.zeros(m, np.bool_), True, np.zeros((3, 2)), np.zeros(3))
     else:
         mapped = _affine_map(basis, _PLANE_LIN, _PLANE_CONST, weight, xi, max_iter)
-    return outside, h_normals, h_offsets, basis, mapped
+    forces = _force_map(basis, mapped[0], mapped[2], mapped[3])
+    return outside, tol, origin, local, xi, h_normals, h_offsets, basis, mapped, forces
+
+
+@njit(cache=True)
+def _force_map(basis, in_contact, plane_lin, plane_const):
+    """The normal-force map of eq. 19 from the spring plane: ``force_lin`` (m, 2) and ``force_const`` (m,), the
+    springs' rows ``basis @ plane_lin`` and ``basis @ plane_const`` for cells in contact, zero for lifted ones."""
+    m, r = basis.shape
+    force_lin = np.zeros((m, 2))
+    force_const = np.zeros(m)
+    for i in range(m):
+        if in_contact[i]:
+            for j in range(r):
+                force_lin[i, 0] += basis[i, j] * plane_lin[j, 0]
+                force_lin[i, 1] += basis[i, j] * plane_lin[j, 1]
+                force_const[i] += basis[i, j] * plane_const[j]
+    return force_lin, force_const
 
 
 @njit(cache=True)
@@ -280,20 +314,27 @@ def _solve_line(origin, local, xi, weight, tol, lateral_support, line_direction)
     return _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, one_d=True)
 
 
-def _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, *, one_d) -> SupportSolution:
-    """The :class:`SupportSolution` from the results of :func:`_affine_map` (``mapped``)."""
+def _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, *, one_d,
+            forces=None) -> SupportSolution:
+    """The :class:`SupportSolution` from the results of :func:`_affine_map` (``mapped``) and, when computed, of
+    :func:`_force_map` (``forces``)."""
     in_contact, converged, plane_lin, plane_const = mapped
     if not converged:
         raise IntegrationError("the normal-force contact-set iteration did not converge")
-    if not one_d and _collinear(local[in_contact]):
+    flat = one_d or _collinear(local[in_contact])
+    if flat and not one_d:
         plane_const, h_normals, h_offsets = _on_contact_line(local, xi, basis, in_contact, plane_lin, plane_const,
                                                              weight, h_normals, h_offsets)
-    force_lin = np.where(in_contact[:, None], basis @ plane_lin, 0.0)
-    force_const = np.where(in_contact, basis @ plane_const, 0.0)
+        forces = None
+    force_lin, force_const = forces if forces is not None else _force_map(
+        np.ascontiguousarray(basis), in_contact, np.ascontiguousarray(plane_lin), np.ascontiguousarray(plane_const))
     for arr in (local, basis, plane_lin, plane_const, force_lin, force_const, h_normals, h_offsets, in_contact):
         arr.setflags(write=False)
-    return SupportSolution(origin, local, in_contact, basis, plane_lin, plane_const, force_lin, force_const,
-                           h_normals, h_offsets, one_d, float(weight))
+    sol = SupportSolution(origin, local, in_contact, basis, plane_lin, plane_const, force_lin, force_const,
+                          h_normals, h_offsets, one_d, float(weight))
+    sol.spring_gradient  # computed now (with spring_lin), so that the copies SupportSolution.at makes share them
+    sol.__dict__["contact_collinear"] = flat  # known now: the cached property, filled in
+    return sol
 
 
 @njit(cache=True)

@@ -36,7 +36,7 @@ from ._kernel import accelerations
 from .contact import SupportSolution, solve_support
 from .errors import IntegrationError, TippingError
 from .friction import CoulombLaw, FrictionConstants, FrictionLaw, StickSlipLaw
-from .layout import CellArray, _collinear
+from .layout import CellArray
 from .parcel import ParcelSpec, supporting_cells
 
 Mode = Literal["event", "fixed"]
@@ -228,11 +228,9 @@ class ParcelModel:
         X = np.asarray(com, dtype=float)
         if len(support) == 0:
             raise TippingError(f"no cell lies under the parcel at ({X[0]:.6g}, {X[1]:.6g}) m")
-        pts = self.cells.positions[support]
         unit = _PATTERN_RESOLUTION * self.cells.pitch
-        rel = np.round((pts - pts[0]) / unit).astype(np.int64)
+        pts, origin, rel = _kernel.pattern(self.cells.positions, support, unit)
         gkey = rel.tobytes()
-        origin = pts.mean(axis=0)
         xi = X - origin
         geometry = self._geometry
         for store in (geometry.shared, geometry.own):
@@ -250,7 +248,7 @@ class ParcelModel:
             raise TippingError(f"the centre of mass at ({X[0]:.6g}, {X[1]:.6g}) m is on the edge of the hull of its "
                                f"{len(pts)} supporting cells, outside it to rounding: the parcel tips") from exc
         geometry.solves += 1
-        store = geometry.own if sol.one_d or _collinear(sol.points[sol.in_contact]) else geometry.shared
+        store = geometry.own if sol.contact_collinear else geometry.shared
         store.setdefault(gkey, []).append(sol)
         return sol.at(origin)
 
@@ -324,7 +322,7 @@ def _diff_event(t, y, old: Piece, new: Piece) -> Event | None:
     touched = tuple(sorted((new_c - old_c) & old_s))
     if not (entered or left or lifted or touched):
         return None
-    return Event(float(t), "support", tuple(float(v) for v in y), entered, left, lifted, touched)
+    return Event(float(t), "support", tuple(np.asarray(y, dtype=float).tolist()), entered, left, lifted, touched)
 
 
 class _Segment:
@@ -345,17 +343,19 @@ class _Segment:
         spec, cells = model.spec, model.cells
         self.buffer = max(cells.pitch, 0.25 * spec.radius)
         if previous is not None and math.dist(y0[:2], previous.center) <= self.buffer / 2:
-            self.ids, self.center = previous.ids, previous.center  # still cover the footprint for buffer / 2 more
+            # still cover the footprint for buffer / 2 more
+            self.ids, self.center, self.candidates = previous.ids, previous.center, previous.candidates
         else:
             self.center = np.array(y0[:2], dtype=float)
             ids = np.asarray(sorted(cells.tree.query_ball_point(self.center, spec.radius + self.buffer)), dtype=int)
             self.ids = ids if model.present is None else ids[model.present[ids]]
+            self.candidates = cells.positions[self.ids]
         sol = piece.solution
         nc, m, q = len(self.ids), len(sol.points), len(sol.hull_offsets)
         self.bounds = (0, nc, nc + m, nc + m + q, nc + m + q + 1)
         # Rounding noise of the lengths and forces among the event values: below it a sign is not to be trusted.
         noise_length = _NOISE * max(1.0, cells.extent, spec.radius)
-        self.arrays = _kernel.make_segment(model.outline, spec.radius, cells.positions[self.ids], sol, self.center,
+        self.arrays = _kernel.make_segment(model.outline, spec.radius, self.candidates, sol, self.center,
                                            self.buffer, noise_length, _NOISE * model.weight)
 
     def support(self, g: np.ndarray | None) -> np.ndarray | None:
