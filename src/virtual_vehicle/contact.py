@@ -19,9 +19,10 @@ Beyond the paper:
   layout that is itself a single row the parcel is assumed held laterally (``lateral_support=True``); elsewhere the
   centre of mass must lie on the line of supports, or the parcel tips.
 
-The work of a solve (the supports' convex hull by Andrew's monotone chain, the contact-set iteration, the plane of
-eq. 19) is compiled with numba: it is a few 3 x 3 problems, where numpy's and Qhull's per-call costs were most of
-the ~260 us a solve took; it now takes ~50 us, most of it the Python around it.
+The work of a planar solve (the local frame, the supports' convex hull by Andrew's monotone chain, the contact-set
+iteration, the plane and force map of eq. 19) is one compiled call (numba): it is a few 3 x 3 problems, where
+numpy's and Qhull's per-call costs were most of the ~260 us a solve took; it now takes ~35 us (12 cells, all in
+contact), most of it the checks and the solution object around it.
 """
 
 from __future__ import annotations
