@@ -179,15 +179,13 @@ def solve_support(points, com, weight: float, *, lateral_support: bool = False,
         raise ValueError("points and com must be finite")
     if len(pts) == 0:
         raise TippingError("no cell supports the parcel")
+    pts = np.ascontiguousarray(pts)
     if _collinear(pts):
-        origin = pts.mean(axis=0)
-        local = pts - origin
-        xi = com - origin
-        scale = max(float(np.max(np.abs(local))), float(np.max(np.abs(xi))), 1e-9)
+        origin, local, xi, scale = _frame(pts, com)
         return _solve_line(origin, local, xi, weight, _REL_TOL * scale, lateral_support, line_direction)
 
     (outside, tol, origin, local, xi, h_normals, h_offsets, basis, mapped,
-     forces) = _planar(np.ascontiguousarray(pts), com, float(weight), _MAX_ITER)
+     forces) = _planar(pts, com, float(weight), _MAX_ITER)
     if outside > tol:
         raise TippingError(
             f"centre of mass at ({com[0]:.6g}, {com[1]:.6g}) m is {outside:.3g} m outside the convex hull of its "
@@ -203,14 +201,7 @@ def _planar(pts, com, weight, max_iter):
     it tips, and the map is not solved), the basis rows ``[1, x_i, y_i]``, :func:`_affine_map`'s results and
     :func:`_force_map`'s."""
     m = pts.shape[0]
-    origin = np.zeros(2)
-    for i in range(m):  # as numpy's mean over axis 0: row by row, then divided
-        origin[0] += pts[i, 0]
-        origin[1] += pts[i, 1]
-    origin /= m
-    local = pts - origin
-    xi = com - origin
-    scale = max(np.max(np.abs(local)), np.max(np.abs(xi)), 1e-9)
+    origin, local, xi, scale = _frame(pts, com)
     tol = _REL_TOL * scale
     h_normals, h_offsets = _hull(local, tol * scale)
     outside = -np.inf
@@ -225,6 +216,21 @@ def _planar(pts, com, weight, max_iter):
         mapped = _affine_map(basis, _PLANE_LIN, _PLANE_CONST, weight, xi, max_iter)
     forces = _force_map(basis, mapped[0], mapped[2], mapped[3])
     return outside, tol, origin, local, xi, h_normals, h_offsets, basis, mapped, forces
+
+
+@njit(cache=True)
+def _frame(pts, com):
+    """The local frame of supports at ``pts`` ((m, 2), m) under a centre of mass at ``com`` (m): its origin (the
+    supports' centroid), the supports and the centre of mass relative to it, and their scale (the largest coordinate
+    in it, at least 1e-9 m), to which the tolerances of ties are relative."""
+    origin = np.zeros(2)
+    for i in range(pts.shape[0]):  # as numpy's mean over axis 0: row by row, then divided
+        origin[0] += pts[i, 0]
+        origin[1] += pts[i, 1]
+    origin /= pts.shape[0]
+    local = pts - origin
+    xi = com - origin
+    return origin, local, xi, max(np.max(np.abs(local)), np.max(np.abs(xi)), 1e-9)
 
 
 @njit(cache=True)
