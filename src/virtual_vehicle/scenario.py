@@ -330,7 +330,10 @@ class ControlSpec(_Strict):
     then). ``central``
     = true runs the same policies on one central computer instead (:class:`~virtual_vehicle.sorting.CentralSorter`),
     for comparison. ``dead_links``: [cell id, port] pairs whose link is cut (square cells: ports 0..3 = east,
-    north, west, south of the cell; hexagonal cells: ports 0..5, every 60 degrees counter-clockwise from east)."""
+    north, west, south of the cell; hexagonal cells: ports 0..5, every 60 degrees counter-clockwise from east).
+    ``changed_only`` (default true): on ideal rounds, step the sorter only on the cells whose sensors, sentences or
+    state changed since the last tick (the others would repeat themselves); the run is the same to the last bit,
+    false steps every cell every tick (:class:`~virtual_vehicle.network.programs.ChangedCells`)."""
 
     program: Literal["shuttle", "pose", "diffusion", "sort"]
     period: Annotated[float, Field(gt=0, le=10)] = 0.01
@@ -355,6 +358,7 @@ class ControlSpec(_Strict):
     gap: Annotated[int, Field(ge=1, le=50)] = 2
     reach: Annotated[int, Field(ge=1, le=62)] = 8
     central: bool = False
+    changed_only: bool = True
 
     @model_validator(mode="after")
     def _pose_needs_targets(self):
@@ -657,6 +661,8 @@ class Scenario(_Strict):
                 raise ScenarioError(f"parcels[{i}].sequence", "sequence numbers are for sorting (program \"sort\")")
         control = None if self.control is None else _build_control(self.control, cells, sensors, specs, states,
                                                                        faults, marks)
+        if control is not None and not self.control.changed_only:
+            control = dataclasses.replace(control, changed_only=False)
         if control is not None and self.control.program == "sort":
             n_exits = int(control.config["exit"].max()) + 1
             for i, p in enumerate(self.parcels):
@@ -841,7 +847,8 @@ def _field_control(cells: layout.CellArray, velocities: np.ndarray, period: floa
 @dataclass(frozen=True, eq=False)
 class ControlSetup:
     """The distributed side of a run: program, topology, a factory of fresh delivery models (each run starts from an
-    idle network with its own seeded randomness), period (s), per-cell configuration."""
+    idle network with its own seeded randomness), period (s), per-cell configuration, and whether a stationary
+    program is stepped only on the cells that changed (where the delivery model can tell which)."""
 
     program: object
     topology: object
@@ -849,6 +856,7 @@ class ControlSetup:
     delivery_name: str
     period: float
     config: dict
+    changed_only: bool = True
 
 
 def _build_control(c: ControlSpec, cells: layout.CellArray, sensors, specs, states, faults, marks) -> ControlSetup:

@@ -7,7 +7,6 @@ resolves contact between parcels when it can.
 
 from __future__ import annotations
 
-import dataclasses
 import pickle
 import time
 from dataclasses import dataclass, field, replace
@@ -23,7 +22,7 @@ from .plant import SUMMED_STATS, join, joined_stats, on_grid
 from .friction import CoulombLaw
 from .network.messages import Mailbox
 from .hardware import WheelDrives
-from .network.programs import CellInputs
+from .network.programs import CellInputs, ChangedCells, tree_map
 from .parcel import ParcelSpec, covered_pairs, supporting_cells
 from .scenario import Setup
 from .sorting import encode_goal
@@ -309,8 +308,12 @@ class LatencyStats:
             return
         self.count += len(latencies)
         self.total += float(latencies.sum())
-        self.min = min(self.min, float(latencies.min()))
-        self.max = max(self.max, float(latencies.max()))
+        low, high = float(latencies.min()), float(latencies.max())
+        self.min = min(self.min, low)
+        self.max = max(self.max, high)
+        if low == high:  # all in one bin (on ideal rounds every sentence takes one period)
+            self.counts[min(max(int(np.searchsorted(self.EDGES, low, side="right")) - 1, 0), 511)] += len(latencies)
+            return
         bins = np.clip(np.searchsorted(self.EDGES, latencies, side="right") - 1, 0, 511)
         self.counts += np.bincount(bins, minlength=512)
 
@@ -441,18 +444,15 @@ _CHECKPOINT_MAGIC = b"virtual_vehicle checkpoint 1\n"
 def _reset_rows(state, fresh, rows: np.ndarray):
     """``state`` (a program's per-cell arrays, nested in dicts, tuples or dataclasses) with the rows ``rows`` of every
     per-cell array taken from ``fresh`` (the program's initial state)."""
-    if isinstance(state, dict):
-        return {k: _reset_rows(v, fresh[k], rows) for k, v in state.items()}
-    if isinstance(state, (list, tuple)):
-        return type(state)(_reset_rows(a, b, rows) for a, b in zip(state, fresh))
-    if dataclasses.is_dataclass(state) and not isinstance(state, type):
-        return replace(state, **{f.name: _reset_rows(getattr(state, f.name), getattr(fresh, f.name), rows)
-                                 for f in dataclasses.fields(state) if f.init})
-    if isinstance(state, np.ndarray) and state.ndim >= 1 and state.shape[0] == len(rows):
-        out = state.copy()
-        out[rows] = fresh[rows]
-        return out
-    return state
+
+    def reset(a, b):
+        if isinstance(a, np.ndarray) and a.ndim >= 1 and a.shape[0] == len(rows):
+            out = a.copy()
+            out[rows] = b[rows]
+            return out
+        return a
+
+    return tree_map(reset, state, fresh)
 
 
 class NetworkRun(_Job):
@@ -474,6 +474,11 @@ class NetworkRun(_Job):
         self.state = ctl.program.init(n, P, ctl.config)
         self.inbox = Mailbox.empty(ctl.program.schema, n, P)
         self.delivery = ctl.make_delivery()
+        # step only the cells that changed, where the program allows it and the delivery model tells which inboxes
+        # changed (ideal rounds): the same run to the last bit
+        self.stepper = (ChangedCells(ctl.program) if ctl.changed_only and getattr(ctl.program, "stationary", False)
+                        and hasattr(self.delivery, "exchange_changed") else None)
+        self.inbox_changed: np.ndarray | None = None
         self.sensor_rng = np.random.default_rng(setup.sensors.seed)
         self.drives = WheelDrives(n, sc.wheels.motor()) if sc.wheels.model == "motor" else None
         self.ys = [y.copy() for y in setup.states]
@@ -536,7 +541,10 @@ class NetworkRun(_Job):
         labels = _labels(setup, [ys[i] for i in on], [setup.specs[i] for i in on],
                          [self.destinations[i] for i in on]) if labelled else None
         inputs = CellInputs(t0, sensors, self.inbox, topo.connected, ctl.config, labels)
-        self.state, outbox, wheels = ctl.program.step(self.state, inputs)
+        if self.stepper is None:
+            self.state, outbox, wheels = ctl.program.step(self.state, inputs)
+        else:
+            self.state, outbox, wheels, out_changed = self.stepper.step(self.state, inputs, self.inbox_changed)
         command = np.where(topo.alive[:, None], np.asarray(wheels, dtype=float), 0.0)  # a dead cell does not drive
         command = cells.belt_commands(command)  # plain belts run at their own speed
         if self.drives is None:
@@ -550,7 +558,10 @@ class NetworkRun(_Job):
         velocities = wheels[:, 0:1] * dirs[:, 0] + wheels[:, 1:2] * dirs[:, 1]
         if setup.contact_layer is not cells:  # separate or omni wheels, belts: each contact's own surface velocity
             velocities = setup.contact_layer.contact_velocities(velocities)
-        self.inbox, stats = self.delivery.exchange(outbox, t0, period)
+        if self.stepper is None:
+            self.inbox, stats = self.delivery.exchange(outbox, t0, period)
+        else:
+            self.inbox, stats, self.inbox_changed = self.delivery.exchange_changed(outbox, out_changed, t0, period)
         if sc.sensors.record:
             self.cell_log.append((t0, sensors.astype(bool), np.array(wheels, dtype=float), command.copy(),
                                   stats.sent.copy(), stats.received.copy()))

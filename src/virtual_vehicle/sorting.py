@@ -128,7 +128,13 @@ class Sorter:
     ``entry`` bool; ``entry_no`` an entry cell's installation number; ``park`` bool, a parking cell (optional);
     ``forbid`` the port a parcel on a one-way cell may not move toward, -1 for none (optional). Inputs: ``labels``
     (the label read at entry cells, :func:`encode_goal`; -1 for none).
+
+    Stationary (see :mod:`virtual_vehicle.network.programs`): the tick's time enters only a new vehicle's id, given
+    by a cell whose own id word then changes, so a cell whose state a step left unchanged repeats its outputs when
+    its inputs do.
     """
+
+    stationary = True
 
     schema = Schema.of(d=(1, WordType.I32), nxt=(4, WordType.I16),
                        vid=(5, WordType.I32), goal=(6, WordType.I16), key=(7, WordType.I32),

@@ -65,6 +65,7 @@ class IdealRounds:
         self.topology = topology
         self.loss_rate = loss_rate
         self.rng = np.random.default_rng(seed)
+        self._last: dict | None = None  # what exchange_changed carried last
 
     def set_topology(self, topology: Topology) -> None:
         """From the next exchange on, deliver over ``topology`` (see :class:`Delivery`)."""
@@ -88,9 +89,67 @@ class IdealRounds:
         flat = src * outbox.present.shape[1] + back  # where each port's sentence comes from, in the flattened outbox
         inbox = Mailbox(outbox.schema, arrives, {k: np.where(arrives, np.take(v, flat), np.zeros((), v.dtype))
                                                  for k, v in outbox.values.items()})
-        size = outbox.schema.sentence_bytes
-        sent = attempted.sum(axis=1)
-        received = arrives.sum(axis=1)
-        stats = TickStats(sent, received, sent * size, received * size, np.full(int(received.sum()), period),
-                          lost=lost, unaddressed=int((sending & (topo.neighbor < 0)).sum()))
+        stats = _stats(outbox.schema, attempted.sum(axis=1), arrives.sum(axis=1), period, lost,
+                       int((sending & (topo.neighbor < 0)).sum()))
         return inbox, stats
+
+    def exchange_changed(self, outbox: Mailbox, changed: np.ndarray, t: float,
+                         period: float) -> tuple[Mailbox, TickStats, np.ndarray]:
+        """As :meth:`exchange`, for an outbox that differs from the one of the last call only in the rows ``changed``
+        ((n,) bool): only what those cells sent is carried again, which gives the same inbox and statistics. Returns
+        them and the (n,) cells whose inbox differs from the last call's. The inbox is this object's own and is
+        updated in place by the next call. After the topology changed, at the first call and with random loss (whose
+        draws must stay those of :meth:`exchange`), every sentence is carried and the inboxes are compared."""
+        topo, last = self.topology, self._last
+        if self.loss_rate > 0 or last is None or last["topology"] is not topo or last["schema"] != outbox.schema:
+            inbox, stats = self.exchange(outbox, t, period)
+            before = None if last is None or last["schema"] != outbox.schema else last["inbox"]
+            if before is None or before.present.shape != inbox.present.shape:
+                inbox_changed = np.ones(len(inbox.present), dtype=bool)
+            else:
+                inbox_changed = (before.present != inbox.present).any(axis=1)
+                for k, v in inbox.values.items():
+                    inbox_changed |= (before.values[k] != v).any(axis=1)
+            sending = outbox.present & topo.alive[:, None]
+            attempted = sending & (topo.neighbor >= 0)
+            conn = topo.connected & topo.alive[:, None]
+            self._last = {"topology": topo, "schema": outbox.schema, "inbox": inbox, "sending": sending,
+                          "sent": stats.sent.copy(), "received": stats.received.copy(),
+                          "lost": (attempted & ~topo.connected).sum(axis=1),
+                          "unaddressed": (sending & (topo.neighbor < 0)).sum(axis=1),
+                          "conn": conn, "src": np.where(conn, topo.neighbor, 0)}
+            return inbox, stats, inbox_changed
+        rows = np.flatnonzero(changed)
+        conn, src, inbox = last["conn"], last["src"], last["inbox"]
+        P = inbox.present.shape[1]
+        # the senders' rows first: what they send and attempt
+        sending = last["sending"]
+        sending[rows] = outbox.present[rows] & topo.alive[rows, None]
+        nb = topo.neighbor[rows]
+        last["sent"][rows] = (sending[rows] & (nb >= 0)).sum(axis=1)
+        last["lost"][rows] = (sending[rows] & (nb >= 0) & ~topo.connected[rows]).sum(axis=1)
+        last["unaddressed"][rows] = (sending[rows] & (nb < 0)).sum(axis=1)
+        # then the cells that hear any of them: their whole inbox again, as exchange gathers it
+        hears = changed[src] & conn
+        dest = np.flatnonzero(hears.any(axis=1))
+        s, b = src[dest], np.where(conn[dest], topo.back_port[dest], 0)
+        arrives = conn[dest] & sending[s, b] & topo.alive[s]
+        flat = s * P + b
+        inbox_changed = np.zeros(len(changed), dtype=bool)
+        inbox_changed[dest] = (inbox.present[dest] != arrives).any(axis=1)
+        inbox.present[dest] = arrives
+        for k, v in inbox.values.items():
+            new = np.where(arrives, np.take(outbox.values[k], flat), np.zeros((), v.dtype))
+            inbox_changed[dest] |= (v[dest] != new).any(axis=1)
+            v[dest] = new
+        last["received"][dest] = arrives.sum(axis=1)
+        stats = _stats(outbox.schema, last["sent"].copy(), last["received"].copy(), period, int(last["lost"].sum()),
+                       int(last["unaddressed"].sum()))
+        return inbox, stats, inbox_changed
+
+
+def _stats(schema, sent: np.ndarray, received: np.ndarray, period: float, lost: int, unaddressed: int) -> TickStats:
+    """Ideal rounds' traffic: every sentence delivered took one period."""
+    size = schema.sentence_bytes
+    return TickStats(sent, received, sent * size, received * size, np.full(int(received.sum()), period), lost=lost,
+                     unaddressed=unaddressed)

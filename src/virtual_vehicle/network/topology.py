@@ -9,6 +9,7 @@ is simply silent. No cell has an address: a cell knows only its ports, and ids h
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -43,9 +44,10 @@ class Topology:
         """Links (ports) per cell."""
         return self.neighbor.shape[1]
 
-    @property
+    @cached_property
     def connected(self) -> np.ndarray:
-        """(n, P) True where a message sent on the port can arrive: a neighbour, the link up, both cells alive."""
+        """(n, P) True where a message sent on the port can arrive: a neighbour, the link up, both cells alive
+        (computed once: a topology's arrays are not changed after it is made; faults make a new one)."""
         return self.link_up & (self.neighbor >= 0)
 
     def with_faults(self, dead_cells=(), dead_links=()) -> "Topology":

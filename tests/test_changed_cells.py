@@ -1,0 +1,200 @@
+"""Stepping only the cells that changed (issue 8, performance): a stationary cell program run on the cells whose
+sensors, sentences or state changed since the last tick, and ideal rounds that carry again only what changed, give
+the same run to the last bit as stepping every cell and carrying every sentence."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from virtual_vehicle import layout
+from virtual_vehicle.network.delivery import IdealRounds
+from virtual_vehicle.network.messages import Mailbox, Schema
+from virtual_vehicle.network.programs import CellInputs, ChangedCells, check_program
+from virtual_vehicle.network.sentence import WordType
+from virtual_vehicle.network.topology import from_layout
+from virtual_vehicle.scenario import CellChange, FaultEvent, ReconfigurationSpec, load_scenario
+from virtual_vehicle.sim import LatencyStats, NetworkRun
+
+WALL = [j * 24 + 12 for j in range(2, 10)]  # sorting_junction: a wall across the middle, rows 2..9 of column 12
+
+
+def _scenario(name: str, duration: float, control=None, **update):
+    sc, _ = load_scenario(name)
+    sensors = sc.sensors.model_copy(update={"record": True, **update.pop("sensors", {})})
+    return sc.model_copy(update={"duration": duration, "sensors": sensors,
+                                 "control": sc.control.model_copy(update=control or {}), **update})
+
+
+CASES = {
+    "merge, noisy sensors": lambda: _scenario("merge_two_streams", 6.0, sensors={"false_positive": 0.002,
+                                                                                 "false_negative": 0.01}),
+    "sequencing, parking, one-way cells": lambda: _scenario("reorder_stream", 8.0),
+    "cells taken out and back, faults": lambda: _scenario(
+        "sorting_junction", 5.0,
+        reconfiguration=ReconfigurationSpec(changes=[CellChange(t=1.0, remove=WALL), CellChange(t=3.0, add=WALL)]),
+        faults=load_scenario("sorting_junction")[0].faults.model_copy(update={"events": [
+            FaultEvent(t=2.0, dead_cells=[100], dead_links=[(60, 0)], stuck_on=[(200, 0)])]})),
+    "lossy rounds": lambda: _scenario("sorting_junction", 4.0, control={"loss_rate": 0.002}),
+}
+
+
+def _same_run(a, b) -> None:
+    for p, q in zip(a.parcels, b.parcels, strict=True):
+        np.testing.assert_array_equal(p.trajectory.times, q.trajectory.times)
+        np.testing.assert_array_equal(p.trajectory.states, q.trajectory.states)
+        assert repr(p.trajectory.events) == repr(q.trajectory.events)
+    for k, v in a.network.per_tick.items():
+        np.testing.assert_array_equal(v, b.network.per_tick[k], err_msg=k)
+    for k, v in a.network.per_cell.items():
+        np.testing.assert_array_equal(v, b.network.per_cell[k], err_msg=k)
+    assert a.network.latency == b.network.latency
+    for k, v in vars(a.cell_log).items():
+        np.testing.assert_array_equal(v, vars(b.cell_log)[k], err_msg=k)
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_stepping_only_the_cells_that_changed_gives_the_same_run(case):
+    sc = CASES[case]()
+    jobs = {flag: NetworkRun(sc.model_copy(update={"control": sc.control.model_copy(
+        update={"changed_only": flag})}).build()) for flag in (True, False)}
+    res = {flag: job.run(None) for flag, job in jobs.items()}
+    assert jobs[False].stepper is None
+    some = jobs[True].stepper
+    n = jobs[True].setup.cells.n
+    assert some.ticks == jobs[True].ticks
+    assert some.stepped < 0.5 * n * some.ticks  # most cells were not stepped: the comparison means something
+    _same_run(res[True], res[False])
+    for name, v in jobs[False].state.items():
+        if not isinstance(v, dict):
+            np.testing.assert_array_equal(v, jobs[True].state[name], err_msg=name)
+
+
+def test_a_run_stepping_only_changed_cells_resumes_from_its_checkpoint_to_the_same_run(tmp_path):
+    from virtual_vehicle.sim import resume, run_network
+
+    setup = CASES["merge, noisy sensors"]().build()
+    whole = run_network(setup, checkpoint=tmp_path / "c.ckpt", checkpoint_every=4.0)
+    _same_run(whole, resume(tmp_path / "c.ckpt"))
+
+
+def _topology(draw, nx, ny):
+    topo = from_layout(layout.grid(nx, ny, 0.1))
+    dead = draw(st.lists(st.integers(0, topo.n - 1), max_size=3, unique=True))
+    links = draw(st.lists(st.tuples(st.integers(0, topo.n - 1), st.integers(0, 3)), max_size=4, unique=True))
+    return topo.with_faults(dead_cells=dead, dead_links=[(c, p) for c, p in links if topo.neighbor[c, p] >= 0])
+
+
+SCHEMA = Schema.of(a=(1, WordType.I16), b=(2, WordType.U8))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.data())
+def test_ideal_rounds_carrying_only_what_changed_deliver_what_carrying_everything_does(data):
+    nx, ny = data.draw(st.integers(1, 6)), data.draw(st.integers(1, 6))
+    topo = _topology(data.draw, nx, ny)
+    n = topo.n
+    full, part = IdealRounds(topo), IdealRounds(topo)
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    box = Mailbox.empty(SCHEMA, n, 4)
+    inbox_b = None
+    for tick in range(data.draw(st.integers(1, 8))):
+        if tick == 3:  # the links change: both carry everything once more
+            topo = _topology(data.draw, nx, ny)
+            full.set_topology(topo)
+            part.set_topology(topo)
+        changed = rng.random(n) < data.draw(st.sampled_from([0.0, 0.1, 0.5, 1.0]))
+        box.present[changed] = rng.random((changed.sum(), 4)) < 0.8
+        for k, v in box.values.items():
+            v[changed] = rng.integers(0, 100, (changed.sum(), 4))
+        before = None if inbox_b is None else [a.copy() for a in (inbox_b.present, *inbox_b.values.values())]
+        inbox_a, stats_a = full.exchange(box, 0.01 * tick, 0.01)
+        inbox_b, stats_b, inbox_changed = part.exchange_changed(box, changed, 0.01 * tick, 0.01)
+        np.testing.assert_array_equal(inbox_a.present, inbox_b.present)
+        for k, v in inbox_a.values.items():
+            np.testing.assert_array_equal(v, inbox_b.values[k])
+        for k in ("sent", "received", "bytes_sent", "bytes_received", "latencies"):
+            np.testing.assert_array_equal(getattr(stats_a, k), getattr(stats_b, k))
+        assert (stats_a.lost, stats_a.unaddressed) == (stats_b.lost, stats_b.unaddressed)
+        if before is not None:  # the cells it says heard something new are exactly those that did
+            now = [inbox_b.present, *inbox_b.values.values()]
+            differs = np.zeros(n, bool)
+            for x, y in zip(before, now):
+                differs |= (x != y).any(axis=1)
+            np.testing.assert_array_equal(inbox_changed, differs)
+
+
+class _Clock:
+    """Says the time: its outputs change every tick while its state never does (not stationary)."""
+
+    schema = Schema.of(x=(1, WordType.I16))
+    stationary = True
+
+    def init(self, n, ports, config):
+        return {"seen": np.zeros(n, dtype=np.int64)}
+
+    def step(self, state, inputs):
+        n, P = inputs.connected.shape
+        out = Mailbox.broadcast(self.schema, np.ones(n, bool), P, x=np.zeros(n))
+        return state, out, np.full((n, 2), inputs.t)
+
+
+class _Census(_Clock):
+    """Counts the cells it is stepped with (not local: a cell stepped alone sees other numbers)."""
+
+    def step(self, state, inputs):
+        n, P = inputs.connected.shape
+        out = Mailbox.broadcast(self.schema, np.ones(n, bool), P, x=np.full(n, n))
+        return state, out, np.zeros((n, 2))
+
+
+def test_the_contract_checker_catches_programs_that_are_not_stationary():
+    topo = from_layout(layout.grid(5, 4, 0.1))
+    for cheat in (_Clock(), _Census()):
+        with pytest.raises(AssertionError, match="not stationary"):
+            check_program(cheat, topo, {}, ticks=4)
+
+
+def test_changed_cells_takes_stationary_programs_with_per_cell_arrays_only():
+    from virtual_vehicle.network.programs import Routing
+
+    with pytest.raises(ValueError, match="stationary"):
+        ChangedCells(Routing())
+
+    class Lists(_Clock):
+        def init(self, n, ports, config):
+            return {"names": ["cell"] * n}
+
+    topo = from_layout(layout.grid(3, 3, 0.1))
+    inputs = CellInputs(0.0, np.zeros((9, 1), bool), Mailbox.empty(Lists.schema, 9, 4), topo.connected)
+    with pytest.raises(TypeError, match="per-cell arrays"):
+        ChangedCells(Lists()).step(Lists().init(9, 4, {}), inputs)
+
+
+@pytest.mark.parametrize("value", [0.01, 1e-6, 1e-7, 2e3, float(LatencyStats.EDGES[100]),
+                                   float(LatencyStats.EDGES[101]) * (1 - 1e-16)])
+def test_latencies_all_alike_are_binned_as_any_others(value):
+    one, many = LatencyStats(), LatencyStats()
+    same = np.full(37, value)
+    one.add(same)
+    bins = np.clip(np.searchsorted(LatencyStats.EDGES, same, side="right") - 1, 0, 511)  # the general rule
+    many.counts += np.bincount(bins, minlength=512)
+    np.testing.assert_array_equal(one.counts, many.counts)
+    assert (one.count, one.min, one.max) == (37, value, value)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 30), st.sampled_from([(), (1,), (2,), (3,), (4,), (5,), (8,), (2, 3), (4, 2)]),
+       st.sampled_from([np.int64, np.int16, np.uint8, np.bool_, np.float64]), st.booleans(), st.integers(0, 2**32 - 1))
+def test_rows_that_differ_are_found_in_any_shape_and_layout(m, shape, dtype, fortran, seed):
+    from virtual_vehicle.network.programs import _rows_differ
+
+    rng = np.random.default_rng(seed)
+    x = rng.integers(0, 2, (m, *shape)).astype(dtype)
+    y = np.where(rng.random(x.shape) < 0.05, 1 - x, x).astype(dtype)
+    if fortran:
+        x, y = np.asfortranarray(x), np.asfortranarray(y)
+    expected = np.array([np.any(x[i] != y[i]) for i in range(m)], dtype=bool)
+    np.testing.assert_array_equal(_rows_differ([x, x], [y, x], m), expected)
