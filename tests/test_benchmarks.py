@@ -45,3 +45,14 @@ def test_the_engine_benchmark_crossing_completes():
         _, tr = bench_engine.crossing("event", heading)
         assert tr.status == "completed" and tr.t_end == 5.0
         assert len(tr.events) > 20
+
+
+def test_the_scale_benchmark_reports_the_cells_it_stepped():
+    """bench_scale: by default the sorter is stepped on some of the cells; with --every-cell on all of them, and the
+    parcels end where they end either way."""
+    import bench_scale
+
+    some = bench_scale.one(30, 1, 0.3)
+    every = bench_scale.one(30, 1, 0.3, changed_only=False)
+    assert 0 < some["cells_stepped_%"] < 50 and every["cells_stepped_%"] == 100
+    assert some["simulated_s"] == every["simulated_s"] == 0.3 and some["cells"] == 900

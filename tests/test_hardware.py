@@ -58,6 +58,22 @@ def test_noise_rates_and_stuck_faults():
     assert np.array_equal(r & ~on & ~off, truth & ~on & ~off)
 
 
+def test_noiseless_sensors_read_the_truth_without_drawing_and_stuck_on_wins():
+    cells = layout.grid(6, 5, 0.1)
+    spec = parcel.rectangle(0.3, 0.3, 1.0, 0.5)
+    y = [np.array([0.25, 0.2, 0.3, 0, 0, 0])]
+    truth = Sensors(cells, default_offsets(0.1)).covered([spec], y)
+    rng = np.random.default_rng(3)
+    np.testing.assert_array_equal(Sensors(cells, default_offsets(0.1)).read([spec], y, rng), truth)
+    assert rng.random() == np.random.default_rng(3).random()  # nothing was drawn
+    lit = tuple(np.argwhere(truth)[0])
+    both = np.zeros(truth.shape, bool)
+    both[lit] = both[0, 4] = True
+    r = Sensors(cells, default_offsets(0.1), stuck_on=both, stuck_off=both).read([spec], y, rng)
+    assert r[lit] and r[0, 4]
+    np.testing.assert_array_equal(r & ~both, truth & ~both)
+
+
 def test_same_seed_same_readings_and_validation():
     cells = layout.grid(5, 5, 0.1)
     spec = parcel.rectangle(0.3, 0.3, 1.0, 0.5)

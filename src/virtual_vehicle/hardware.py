@@ -93,12 +93,23 @@ class Sensors:
         return out.reshape(n, S)
 
     def read(self, specs: list[ParcelSpec], states, rng: np.random.Generator, active=None) -> np.ndarray:
-        """(n, S) readings: the truth, flipped at the false-positive/negative rates (drawn from ``rng``), then the
-        stuck faults."""
-        truth = self.covered(specs, states, active)
-        r = rng.random(truth.shape)
-        reading = np.where(truth, r >= self.false_negative, r < self.false_positive)
-        return (reading | self.stuck_on) & ~(self.stuck_off & ~self.stuck_on)
+        """(n, S) readings: the truth, flipped at the false-positive/negative rates (drawn from ``rng``, one number a
+        sensor, only when a rate is not zero), then the stuck faults."""
+        reading = self.covered(specs, states, active)
+        if self.false_positive or self.false_negative:
+            r = rng.random(reading.shape)
+            reading = np.where(reading, r >= self.false_negative, r < self.false_positive)
+        if self._stuck is not None:
+            on, off = self._stuck
+            reading = (reading | on) & ~off
+        return reading
+
+    @cached_property
+    def _stuck(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The readings forced on and off by stuck sensors (stuck on wins), None when no sensor is stuck."""
+        if not (self.stuck_on.any() or self.stuck_off.any()):
+            return None
+        return self.stuck_on, self.stuck_off & ~self.stuck_on
 
 
 @dataclass(frozen=True)

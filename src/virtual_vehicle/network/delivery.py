@@ -16,7 +16,7 @@ from typing import Protocol
 
 import numpy as np
 
-from .messages import Mailbox
+from .messages import Mailbox, rows_any
 from .topology import Topology
 
 
@@ -107,9 +107,9 @@ class IdealRounds:
             if before is None or before.present.shape != inbox.present.shape:
                 inbox_changed = np.ones(len(inbox.present), dtype=bool)
             else:
-                inbox_changed = (before.present != inbox.present).any(axis=1)
+                inbox_changed = rows_any(before.present != inbox.present)
                 for k, v in inbox.values.items():
-                    inbox_changed |= (before.values[k] != v).any(axis=1)
+                    inbox_changed |= rows_any(before.values[k] != v)
             sending = outbox.present & topo.alive[:, None]
             attempted = sending & (topo.neighbor >= 0)
             conn = topo.connected & topo.alive[:, None]
@@ -131,16 +131,16 @@ class IdealRounds:
         last["unaddressed"][rows] = (sending[rows] & (nb < 0)).sum(axis=1)
         # then the cells that hear any of them: their whole inbox again, as exchange gathers it
         hears = changed[src] & conn
-        dest = np.flatnonzero(hears.any(axis=1))
+        dest = np.flatnonzero(rows_any(hears))
         s, b = src[dest], np.where(conn[dest], topo.back_port[dest], 0)
         arrives = conn[dest] & sending[s, b] & topo.alive[s]
         flat = s * P + b
         inbox_changed = np.zeros(len(changed), dtype=bool)
-        inbox_changed[dest] = (inbox.present[dest] != arrives).any(axis=1)
+        inbox_changed[dest] = rows_any(inbox.present[dest] != arrives)
         inbox.present[dest] = arrives
         for k, v in inbox.values.items():
             new = np.where(arrives, np.take(outbox.values[k], flat), np.zeros((), v.dtype))
-            inbox_changed[dest] |= (v[dest] != new).any(axis=1)
+            inbox_changed[dest] |= rows_any(v[dest] != new)
             v[dest] = new
         last["received"][dest] = arrives.sum(axis=1)
         stats = _stats(outbox.schema, last["sent"].copy(), last["received"].copy(), period, int(last["lost"].sum()),

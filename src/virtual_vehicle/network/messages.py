@@ -21,6 +21,20 @@ DTYPE = {WordType.U8: np.uint8, WordType.BOOL: np.bool_, WordType.I16: np.int16,
          WordType.I32: np.int32, WordType.F32: np.float32}
 
 
+def rows_any(d: np.ndarray) -> np.ndarray:
+    """(m,) whether any element of each row of the boolean array ``d`` (m, ...) is set. numpy's any() along a short
+    axis is slow: a row of 1, 2, 4 or 8 booleans is read as one word, a longer one column by column."""
+    m = len(d)
+    d = d.reshape(m, math.prod(d.shape[1:]))  # (m, -1) fails for m = 0
+    k = d.shape[1]
+    if k in (1, 2, 4, 8) and d.flags.c_contiguous and d.dtype == np.bool_:
+        return d.view(f"u{k}")[:, 0] != 0
+    out = np.zeros(m, dtype=bool)
+    for q in range(k):
+        out |= d[:, q]
+    return out
+
+
 @dataclass(frozen=True)
 class Field:
     name: str

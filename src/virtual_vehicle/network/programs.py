@@ -27,7 +27,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from .messages import Mailbox, Schema
+from .messages import Mailbox, Schema, rows_any
 from .sentence import WordType
 
 UNREACHABLE = 255
@@ -225,14 +225,7 @@ def _rows_differ(a: list, b: list, m: int) -> np.ndarray:
     """(m,) which rows differ between the leaf lists ``a`` and ``b`` (arrays with first axis m)."""
     out = np.zeros(m, dtype=bool)
     for x, y in zip(a, b):
-        d = x != y
-        d = d.reshape(m, int(np.prod(d.shape[1:])))  # (m, -1) fails for m = 0
-        k = d.shape[1]
-        if k in (1, 2, 4, 8) and d.flags.c_contiguous:
-            out |= d.view(f"u{k}")[:, 0] != 0  # k booleans read as one word: any() along a short axis is slow
-        else:
-            for q in range(k):
-                out |= d[:, q]
+        out |= rows_any(x != y)
     return out
 
 
@@ -296,25 +289,30 @@ class ChangedCells:
         if not len(rows):
             last["unsettled"] = changed
             return state, outbox, wheels, changed
-        sub_state = tree_map(lambda a: _rows(a, rows), state)
+        leaves = last["leaves"]  # the state's own arrays, updated in place
+        old = [_rows(a, rows) for a in leaves]
+        them = iter(old)
+        sub_state = tree_map(lambda a: next(them), state)
         config = {k: _rows(v, rows) if k in last["per_cell"] else v for k, v in inputs.config.items()}
         sub = CellInputs(inputs.t, _rows(sensors, rows), mailbox_rows(inputs.inbox, rows),
                          _rows(inputs.connected, rows), config, None if labels is None else labels[rows])
         new, out, sub_wheels = self.program.step(sub_state, sub)
+        new_leaves = _leaves(new)
         unsettled = np.zeros(n, dtype=bool)
-        unsettled[rows] = _rows_differ(_leaves(new), _leaves(sub_state), len(rows))
-        old_box = mailbox_rows(outbox, rows)
+        unsettled[rows] = _rows_differ(new_leaves, old, len(rows))
+        boxes = _box_leaves(outbox)
+        new_boxes = _box_leaves(out)
         out_changed = np.zeros(n, dtype=bool)
-        out_changed[rows] = _rows_differ(_box_leaves(out), _box_leaves(old_box), len(rows))
-
-        def put(a, b):
-            a[rows] = b
-
-        tree_map(put, state, new)
-        put(outbox.present, out.present)
-        for k, v in outbox.values.items():
-            put(v, out.values[k])
-        put(wheels, np.asarray(sub_wheels, dtype=float))
+        out_changed[rows] = _rows_differ(new_boxes, [_rows(a, rows) for a in boxes], len(rows))
+        flat: dict[int, np.ndarray] = {}  # by row width: where the rows' elements lie in a flattened array
+        for a, b in zip([*leaves, *boxes, wheels], [*new_leaves, *new_boxes, np.asarray(sub_wheels, dtype=float)]):
+            k = a.size // n
+            if a.ndim == 1 or not a.flags.c_contiguous or not k:
+                a[rows] = b
+                continue
+            if k not in flat:
+                flat[k] = (rows[:, None] * k + np.arange(k)).ravel()
+            a.reshape(-1)[flat[k]] = np.asarray(b).reshape(-1)  # twice as fast as a[rows] = b for 2-d arrays
         last["unsettled"] = unsettled
         return state, outbox, wheels, out_changed
 
@@ -336,8 +334,9 @@ class ChangedCells:
             out_changed = np.ones(n, dtype=bool)
         per_cell = {k for k, v in inputs.config.items() if isinstance(v, np.ndarray) and v.ndim >= 1
                     and v.shape[0] == n}
-        self.last = {"state": new, "connected": inputs.connected, "config": inputs.config, "per_cell": per_cell,
-                     "unsettled": unsettled, "outbox": outbox, "wheels": np.array(wheels, dtype=float)}
+        self.last = {"state": new, "leaves": fresh, "connected": inputs.connected, "config": inputs.config,
+                     "per_cell": per_cell, "unsettled": unsettled, "outbox": outbox,
+                     "wheels": np.array(wheels, dtype=float)}
         self._remember(inputs, sensors, labels, keep_inbox)
         return new, outbox, self.last["wheels"], out_changed
 
