@@ -31,15 +31,18 @@ def scenario(side: int, parcels: int, seconds: float, batch: bool = True, change
     if len(spots) < parcels:
         raise SystemExit(f"a {side} x {side} array holds {len(spots)} parcels this way, not {parcels}")
     lane_y0 = (side // 2 - 2) * pitch - 0.05
+    control = {"program": "sort", "period": 0.01, "speed": 0.3, "gap": 2,
+               # every cell reads labels, so the parcels placed on the floor get their vehicle records
+               "entries": [[[-0.05, -0.05], [(side - 5) * pitch, -0.05], [(side - 5) * pitch, side * pitch],
+                            [-0.05, side * pitch]]],
+               "exits": [[[(side - 4) * pitch - 0.05, lane_y0], [side * pitch - 0.05, lane_y0],
+                          [side * pitch - 0.05, lane_y0 + 0.4], [(side - 4) * pitch - 0.05, lane_y0 + 0.4]]]}
+    if not changed_only:  # named only when off, so that alternate.py runs this on commits from before the option
+        control["changed_only"] = False
     return {
         "name": f"scale_{side}x{side}_{parcels}", "duration": seconds, "output_dt": 0.05,
         "array": {"kind": "grid", "nx": side, "ny": side, "pitch": pitch},
-        "control": {"program": "sort", "period": 0.01, "speed": 0.3, "gap": 2, "changed_only": changed_only,
-                    # every cell reads labels, so the parcels placed on the floor get their vehicle records
-                    "entries": [[[-0.05, -0.05], [(side - 5) * pitch, -0.05], [(side - 5) * pitch, side * pitch],
-                                 [-0.05, side * pitch]]],
-                    "exits": [[[(side - 4) * pitch - 0.05, lane_y0], [side * pitch - 0.05, lane_y0],
-                               [side * pitch - 0.05, lane_y0 + 0.4], [(side - 4) * pitch - 0.05, lane_y0 + 0.4]]]},
+        "control": control,
         "friction": {"law": "viscous"},
         "integrator": {"batch": batch},
         "parcels": [{"name": f"p{k}", "length": 0.22, "width": 0.22, "mass": 1.5, "mu": 2.0, "x": x, "y": y,
