@@ -510,6 +510,12 @@ class NetworkRun(_Job):
         if self.present is not None and not self.present.all():
             self._rewire()
 
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        # a checkpoint written before changed-cell stepping (same version number) goes on stepping every cell
+        self.__dict__.setdefault("stepper", None)
+        self.__dict__.setdefault("inbox_changed", None)
+
     @property
     def done(self) -> bool:
         """True once every control tick has run."""
