@@ -49,6 +49,7 @@ supports change.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.integrate import DOP853
@@ -77,8 +78,18 @@ class _Anchor:
     drive: float = 0.0  # Coulomb: the largest |F_i| under the parcel (eq. 21)
     room: float = 0.0  # m: the buffer less rounding noise; cells further than radius + buffer are not in ``pairs``
     noise: float = 0.0  # m: rounding noise in positions
-    pairs: tuple[np.ndarray, np.ndarray, np.ndarray, int] | None = None  # convex footprint: every (near cell, edge)
-    # pair as cell ids, body-frame outward normals (., 2) and offsets (cell-major), and the number of edges
+    near: np.ndarray | None = None  # convex footprint: the cells within radius + buffer (ids); else None
+    halfplanes: tuple[np.ndarray, np.ndarray] | None = None  # convex footprint: its edges' normals and offsets
+
+    @cached_property
+    def pairs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, int] | None:
+        """Convex footprint: every (near cell, edge) pair as cell ids, body-frame outward normals (., 2) and offsets
+        (cell-major), and the number of edges; None otherwise. Built when first asked: most anchors never are."""
+        if self.halfplanes is None:
+            return None
+        normals, offsets = self.halfplanes
+        return (np.repeat(self.near, len(offsets)), np.tile(normals, (len(self.near), 1)),
+                np.tile(offsets, len(self.near)), len(offsets))
 
 
 def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
@@ -86,8 +97,8 @@ def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
     the scale of rounding noise in positions (the array's largest coordinate, at least 1 m)."""
     spec, cells = model.spec, model.cells
     buffer = max(cells.pitch, 0.25 * spec.radius)
-    ids = np.asarray(sorted(cells.tree.query_ball_point(np.asarray(y[:2], dtype=float), spec.radius + buffer)),
-                     dtype=int)
+    ids = np.asarray(cells.tree.query_ball_point(np.asarray(y[:2], dtype=float), spec.radius + buffer,
+                                                 return_sorted=True), dtype=int)
     if model.present is not None and len(ids):
         ids = ids[model.present[ids]]
     margins = footprint_margins(spec, y, cells.positions[ids]) if len(ids) else np.zeros(0)
@@ -102,13 +113,9 @@ def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
     springs = _room(np.abs(sol.spring_values(xi)) - _NOISE * model.weight, sol.basis @ sol.plane_lin)
     hull = _room(sol.hull_slack(xi) - _NOISE * length * np.linalg.norm(sol.hull_normals, axis=1), sol.hull_normals)
     slack = float(min(np.min(springs, initial=np.inf), np.min(hull, initial=np.inf)))
-    pairs = None
-    if spec.convex:
-        normals, offsets = spec.halfplanes
-        pairs = (np.repeat(ids, len(offsets)), np.tile(normals, (len(ids), 1)), np.tile(offsets, len(ids)),
-                 len(offsets))
     return _Anchor(np.array(y[:3], dtype=float), clear, slack, support, sol, model._geometry,
-                   room=buffer - _NOISE * length, noise=_NOISE * length, pairs=pairs)
+                   room=buffer - _NOISE * length, noise=_NOISE * length, near=ids if spec.convex else None,
+                   halfplanes=spec.halfplanes if spec.convex else None)
 
 
 def _room(values: np.ndarray, gradients: np.ndarray) -> np.ndarray:
@@ -236,7 +243,7 @@ class QuietStepper:
         held = slack > moved + r
         cells_clear = clear > swept + r
         look = np.flatnonzero(held & ~cells_clear & (moved + r < room) & np.isfinite(accel)
-                              & np.array([a.pairs is not None for a in anchors]))
+                              & np.array([a.halfplanes is not None for a in anchors]))
         if len(look):  # too near some cell for one radius: ask which way each edge moves
             cells_clear[look] = self._edges_clear(Y[look], [anchors[k] for k in look], window, r[look],
                                                   accel[look], R[look], self.lever[np.asarray(idx)[look]])
