@@ -93,15 +93,21 @@ class IdealRounds:
                        int((sending & (topo.neighbor < 0)).sum()))
         return inbox, stats
 
-    def exchange_changed(self, outbox: Mailbox, changed: np.ndarray, t: float,
-                         period: float) -> tuple[Mailbox, TickStats, np.ndarray]:
+    def exchange_changed(self, outbox: Mailbox, changed: np.ndarray | None, t: float,
+                         period: float) -> tuple[Mailbox, TickStats, np.ndarray | None]:
         """As :meth:`exchange`, for an outbox that differs from the one of the last call only in the rows ``changed``
         ((n,) bool): only what those cells sent is carried again, which gives the same inbox and statistics. Returns
         them and the (n,) cells whose inbox differs from the last call's. The inbox is this object's own and is
         updated in place by the next call. After the topology changed, at the first call and with random loss (whose
-        draws must stay those of :meth:`exchange`), every sentence is carried and the inboxes are compared."""
+        draws must stay those of :meth:`exchange`), every sentence is carried and the inboxes are compared. With
+        ``changed`` None (not known) every sentence is carried, nothing is compared, and None is returned for it."""
         topo, last = self.topology, self._last
-        if self.loss_rate > 0 or last is None or last["topology"] is not topo or last["schema"] != outbox.schema:
+        if changed is None:  # keep only the inbox, to compare the next call's with
+            inbox, stats = self.exchange(outbox, t, period)
+            self._last = {"topology": topo, "schema": outbox.schema, "inbox": inbox, "stale": True}
+            return inbox, stats, None
+        if (self.loss_rate > 0 or last is None or last["topology"] is not topo or last["schema"] != outbox.schema
+                or "stale" in last):
             inbox, stats = self.exchange(outbox, t, period)
             before = None if last is None or last["schema"] != outbox.schema else last["inbox"]
             if before is None or before.present.shape != inbox.present.shape:

@@ -245,16 +245,23 @@ class ChangedCells:
 
     A cell is stepped when its state changed in its last step, a sentence on any of its ports differs from last
     tick's (``inbox_changed``, or found by comparison when the delivery model cannot tell), or its sensors or label
-    changed. Every cell is stepped when the links or the configuration changed, or when the state passed in is not
-    the one this object returned (the run reset some cells). When more than ``full_share`` of the cells would be
-    stepped, all are, as gathering them costs more than it saves.
+    changed. Every cell is stepped when the links or the configuration changed (other objects: they are not compared
+    element by element), or when the state passed in is not the one this object returned (the run reset some cells).
+
+    When more than ``full_share`` of the cells would be stepped (a lossy network, a floor in turmoil), gathering them
+    costs more than it saves, and so does comparing: every cell is then stepped without comparing anything for
+    1, 2, 4, ... up to ``max_backoff`` ticks in a row (the count doubles each time it happens again, and starts
+    over at 1 once a tick steps fewer), after which one tick compares again.
     """
 
-    def __init__(self, program, full_share: float = 0.5):
+    def __init__(self, program, full_share: float = 0.5, max_backoff: int = 64):
         if not getattr(program, "stationary", False):
             raise ValueError(f"{type(program).__name__} does not declare stationary = True")
         self.program = program
         self.full_share = float(full_share)
+        self.max_backoff = int(max_backoff)
+        self.backoff = 1  # ticks of plain stepping the next time most cells change
+        self.skip = 0  # plain ticks still to go
         self.last: dict | None = None
         self.ticks = 0
         self.stepped = 0
@@ -262,15 +269,19 @@ class ChangedCells:
 
     def step(self, state, inputs: CellInputs, inbox_changed: np.ndarray | None = None):
         """One tick: ``(state, outbox, wheels, outbox_changed)``, the first three as :meth:`CellProgram.step` returns
-        them, then the (n,) cells whose outbox differs from last tick's (all of them at the first tick). The state,
-        outbox and wheels returned are this object's own and are updated in place next tick: copy to keep them."""
+        them, then the (n,) cells whose outbox differs from last tick's (all of them at the first tick), or None
+        when every cell was stepped without comparing (see the class notes). The state, outbox and wheels returned
+        are this object's own and are updated in place next tick: copy to keep them."""
         n = len(inputs.sensors)
+        if self.skip:
+            self.skip -= 1
+            return self._plain(state, inputs, n)
         last = self.last
         sensors = np.asarray(inputs.sensors)
         labels = None if inputs.labels is None else np.asarray(inputs.labels)
         compare = inbox_changed is None  # the delivery model cannot tell: compare with the last inbox
         if (last is None or state is not last["state"] or inputs.connected is not last["connected"]
-                or inputs.config is not last["config"] or (labels is None) != (last["labels"] is None)):
+                or not _same_objects(inputs.config, last["config"]) or (labels is None) != (last["labels"] is None)):
             return self._full(state, inputs, sensors, labels, compare)
         if compare:
             if last["inbox"] is None:  # the last tick's inbox was not kept: its delivery model told what changed
@@ -280,8 +291,11 @@ class ChangedCells:
         if labels is not None:
             changed |= labels != last["labels"]
         rows = np.flatnonzero(changed)
-        if len(rows) > self.full_share * n:
-            return self._full(state, inputs, sensors, labels, compare)
+        if len(rows) > self.full_share * n:  # most cells changed: step them all, and stop comparing for a while
+            self.skip = self.backoff - 1
+            self.backoff = min(2 * self.backoff, self.max_backoff)
+            return self._plain(state, inputs, n)
+        self.backoff = 1
         self.ticks += 1
         self.stepped += len(rows)
         self._remember(inputs, sensors, labels, compare)
@@ -316,6 +330,13 @@ class ChangedCells:
         last["unsettled"] = unsettled
         return state, outbox, wheels, out_changed
 
+    def _plain(self, state, inputs, n: int):
+        """Every cell stepped, nothing compared nor kept: the next tick that compares again steps every cell."""
+        self.last = None
+        self.ticks += 1
+        self.stepped += n
+        return (*self.program.step(state, inputs), None)
+
     def _full(self, state, inputs, sensors, labels, keep_inbox: bool):
         n = len(sensors)
         self.ticks += 1
@@ -345,6 +366,11 @@ class ChangedCells:
         last["sensors"] = sensors.copy()
         last["labels"] = None if labels is None else labels.copy()
         last["inbox"] = [a.copy() for a in _box_leaves(inputs.inbox)] if keep_inbox else None
+
+
+def _same_objects(a: dict, b: dict) -> bool:
+    """Whether two configurations hold the same objects (a configuration is set once; arrays are not compared)."""
+    return a is b or (a.keys() == b.keys() and all(a[k] is b[k] for k in a))
 
 
 def _box_leaves(box: Mailbox) -> list:
