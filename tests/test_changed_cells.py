@@ -195,7 +195,7 @@ def test_latencies_all_alike_are_binned_as_any_others(value):
 @given(st.integers(0, 30), st.sampled_from([(), (1,), (2,), (3,), (4,), (5,), (8,), (2, 3), (4, 2)]),
        st.sampled_from([np.int64, np.int16, np.uint8, np.bool_, np.float64]), st.booleans(), st.integers(0, 2**32 - 1))
 def test_rows_that_differ_are_found_in_any_shape_and_layout(m, shape, dtype, fortran, seed):
-    from virtual_vehicle.network.programs import _rows_differ
+    from virtual_vehicle.network.messages import rows_differ
 
     rng = np.random.default_rng(seed)
     x = rng.integers(0, 2, (m, *shape)).astype(dtype)
@@ -203,7 +203,7 @@ def test_rows_that_differ_are_found_in_any_shape_and_layout(m, shape, dtype, for
     if fortran:
         x, y = np.asfortranarray(x), np.asfortranarray(y)
     expected = np.array([np.any(x[i] != y[i]) for i in range(m)], dtype=bool)
-    np.testing.assert_array_equal(_rows_differ([x, x], [y, x], m), expected)
+    np.testing.assert_array_equal(rows_differ([x, x], [y, x], m), expected)
 
 
 def test_a_checkpoint_from_before_changed_cell_stepping_resumes_stepping_every_cell():

@@ -16,7 +16,7 @@ from typing import Protocol
 
 import numpy as np
 
-from .messages import Mailbox, rows_any
+from .messages import Mailbox, rows_any, rows_differ
 from .topology import Topology
 
 
@@ -113,9 +113,7 @@ class IdealRounds:
             if before is None or before.present.shape != inbox.present.shape:
                 inbox_changed = np.ones(len(inbox.present), dtype=bool)
             else:
-                inbox_changed = rows_any(before.present != inbox.present)
-                for k, v in inbox.values.items():
-                    inbox_changed |= rows_any(before.values[k] != v)
+                inbox_changed = rows_differ(before.arrays, inbox.arrays, len(inbox.present))
             sending = outbox.present & topo.alive[:, None]
             attempted = sending & (topo.neighbor >= 0)
             conn = topo.connected & topo.alive[:, None]

@@ -35,6 +35,14 @@ def rows_any(d: np.ndarray) -> np.ndarray:
     return out
 
 
+def rows_differ(a: list, b: list, m: int) -> np.ndarray:
+    """(m,) which rows differ between the arrays of ``a`` and the same arrays of ``b`` (each with first axis m)."""
+    out = np.zeros(m, dtype=bool)
+    for x, y in zip(a, b):
+        out |= rows_any(x != y)
+    return out
+
+
 @dataclass(frozen=True)
 class Field:
     name: str
@@ -125,11 +133,20 @@ class Mailbox:
     @classmethod
     def broadcast(cls, schema: Schema, send: np.ndarray, ports: int, **values) -> "Mailbox":
         """Each cell with ``send[i]`` sends the same sentence on every port; values are (n,) arrays by name."""
-        n = len(send)
         present = np.repeat(np.asarray(send, dtype=bool)[:, None], ports, axis=1)
         vals = {f.name: np.repeat(np.asarray(values[f.name]).astype(DTYPE[f.type])[:, None], ports, axis=1)
                 for f in schema.fields}
         return cls(schema, present, vals)
+
+    @property
+    def arrays(self) -> list[np.ndarray]:
+        """``present`` and every word's values, in the schema's order: the arrays two mailboxes differ in."""
+        return [self.present, *self.values.values()]
+
+    def take(self, rows: np.ndarray) -> "Mailbox":
+        """The sentences of the cells ``rows`` (indices) only."""
+        return Mailbox(self.schema, np.take(self.present, rows, axis=0),
+                       {k: np.take(v, rows, axis=0) for k, v in self.values.items()})
 
     def count(self) -> int:
         """Number of sentences held."""

@@ -27,7 +27,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from .messages import Mailbox, Schema, rows_any
+from .messages import Mailbox, Schema, rows_differ
 from .sentence import WordType
 
 UNREACHABLE = 255
@@ -221,21 +221,21 @@ def _cell_array(a, n: int) -> np.ndarray:
     return a
 
 
-def _rows_differ(a: list, b: list, m: int) -> np.ndarray:
-    """(m,) which rows differ between the leaf lists ``a`` and ``b`` (arrays with first axis m)."""
-    out = np.zeros(m, dtype=bool)
-    for x, y in zip(a, b):
-        out |= rows_any(x != y)
-    return out
-
-
 def _rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return np.take(a, rows, axis=0)  # a few times faster than a[rows] for a 2-d array
 
 
-def mailbox_rows(box: Mailbox, rows: np.ndarray) -> Mailbox:
-    """The sentences of the cells ``rows`` (indices) only."""
-    return Mailbox(box.schema, _rows(box.present, rows), {k: _rows(v, rows) for k, v in box.values.items()})
+def _put_rows(targets: list, values: list, rows: np.ndarray, n: int) -> None:
+    """Write ``values[j]`` into the rows ``rows`` of ``targets[j]`` (arrays with first axis n), in place."""
+    flat: dict[int, np.ndarray] = {}  # by row width: where the rows' elements lie in a flattened array
+    for a, b in zip(targets, values):
+        k = a.size // n
+        if a.ndim == 1 or not a.flags.c_contiguous or not k:
+            a[rows] = b
+            continue
+        if k not in flat:
+            flat[k] = (rows[:, None] * k + np.arange(k)).ravel()
+        a.reshape(-1)[flat[k]] = np.asarray(b).reshape(-1)  # twice as fast as a[rows] = b for 2-d arrays
 
 
 class ChangedCells:
@@ -286,8 +286,8 @@ class ChangedCells:
         if compare:
             if last["inbox"] is None:  # the last tick's inbox was not kept: its delivery model told what changed
                 return self._full(state, inputs, sensors, labels, compare)
-            inbox_changed = _rows_differ(_box_leaves(inputs.inbox), last["inbox"], n)
-        changed = last["unsettled"] | inbox_changed | _rows_differ([sensors], [last["sensors"]], n)
+            inbox_changed = rows_differ(inputs.inbox.arrays, last["inbox"], n)
+        changed = last["unsettled"] | inbox_changed | rows_differ([sensors], [last["sensors"]], n)
         if labels is not None:
             changed |= labels != last["labels"]
         rows = np.flatnonzero(changed)
@@ -308,25 +308,18 @@ class ChangedCells:
         them = iter(old)
         sub_state = tree_map(lambda a: next(them), state)
         config = {k: _rows(v, rows) if k in last["per_cell"] else v for k, v in inputs.config.items()}
-        sub = CellInputs(inputs.t, _rows(sensors, rows), mailbox_rows(inputs.inbox, rows),
+        sub = CellInputs(inputs.t, _rows(sensors, rows), inputs.inbox.take(rows),
                          _rows(inputs.connected, rows), config, None if labels is None else labels[rows])
         new, out, sub_wheels = self.program.step(sub_state, sub)
         new_leaves = _leaves(new)
         unsettled = np.zeros(n, dtype=bool)
-        unsettled[rows] = _rows_differ(new_leaves, old, len(rows))
-        boxes = _box_leaves(outbox)
-        new_boxes = _box_leaves(out)
+        unsettled[rows] = rows_differ(new_leaves, old, len(rows))
+        boxes = outbox.arrays
+        new_boxes = out.arrays
         out_changed = np.zeros(n, dtype=bool)
-        out_changed[rows] = _rows_differ(new_boxes, [_rows(a, rows) for a in boxes], len(rows))
-        flat: dict[int, np.ndarray] = {}  # by row width: where the rows' elements lie in a flattened array
-        for a, b in zip([*leaves, *boxes, wheels], [*new_leaves, *new_boxes, np.asarray(sub_wheels, dtype=float)]):
-            k = a.size // n
-            if a.ndim == 1 or not a.flags.c_contiguous or not k:
-                a[rows] = b
-                continue
-            if k not in flat:
-                flat[k] = (rows[:, None] * k + np.arange(k)).ravel()
-            a.reshape(-1)[flat[k]] = np.asarray(b).reshape(-1)  # twice as fast as a[rows] = b for 2-d arrays
+        out_changed[rows] = rows_differ(new_boxes, [_rows(a, rows) for a in boxes], len(rows))
+        _put_rows([*leaves, *boxes, wheels], [*new_leaves, *new_boxes, np.asarray(sub_wheels, dtype=float)], rows,
+                  n)
         last["unsettled"] = unsettled
         return state, outbox, wheels, out_changed
 
@@ -346,11 +339,11 @@ class ChangedCells:
         old = _leaves(state)
         fresh = _leaves(new)
         same_shape = len(old) == len(fresh) and all(np.shape(a) == np.shape(b) for a, b in zip(old, fresh))
-        unsettled = _rows_differ(fresh, old, n) if same_shape else np.ones(n, dtype=bool)
+        unsettled = rows_differ(fresh, old, n) if same_shape else np.ones(n, dtype=bool)
         outbox = Mailbox(out.schema, out.present.copy(), {k: v.copy() for k, v in out.values.items()})
         before = None if self.last is None else self.last["outbox"]
         if before is not None and before.schema == outbox.schema and before.present.shape == outbox.present.shape:
-            out_changed = _rows_differ(_box_leaves(outbox), _box_leaves(before), n)
+            out_changed = rows_differ(outbox.arrays, before.arrays, n)
         else:
             out_changed = np.ones(n, dtype=bool)
         per_cell = {k for k, v in inputs.config.items() if isinstance(v, np.ndarray) and v.ndim >= 1
@@ -365,16 +358,12 @@ class ChangedCells:
         last = self.last
         last["sensors"] = sensors.copy()
         last["labels"] = None if labels is None else labels.copy()
-        last["inbox"] = [a.copy() for a in _box_leaves(inputs.inbox)] if keep_inbox else None
+        last["inbox"] = [a.copy() for a in inputs.inbox.arrays] if keep_inbox else None
 
 
 def _same_objects(a: dict, b: dict) -> bool:
     """Whether two configurations hold the same objects (a configuration is set once; arrays are not compared)."""
     return a is b or (a.keys() == b.keys() and all(a[k] is b[k] for k in a))
-
-
-def _box_leaves(box: Mailbox) -> list:
-    return [box.present, *box.values.values()]
 
 
 # --------------------------------------------------------------------------- contract checker
@@ -446,7 +435,7 @@ def _check_stationary(program, topology, config: dict, seen: np.ndarray, ticks: 
         for j, run in enumerate(runs):
             inputs = CellInputs(k * 0.01, sensors, run[1], topology.connected, config)
             run[0], out, wheels, *_ = some.step(run[0], inputs) if j else program.step(run[0], inputs)
-            outputs.append((_box_leaves(out), np.array(wheels)))
+            outputs.append((out.arrays, np.array(wheels)))
             run[1], _ = run[2].exchange(out, k * 0.01, 0.01)
         (box_a, wheels_a), (box_b, wheels_b) = outputs
         assert np.array_equal(wheels_a, wheels_b) and all(np.array_equal(a, b) for a, b in zip(box_a, box_b)), \
