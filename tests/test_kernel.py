@@ -48,6 +48,57 @@ def test_compiled_margins_are_the_footprint_margins_of_every_outline(name, x, y,
     assert [kernel.value(seg.arrays, y1, i) for i in range(len(every))] == every.tolist()
 
 
+def _room(values, gradients):
+    """The distance to the zero of affine functions, in numpy (the reference for the compiled support_slack)."""
+    norm = np.linalg.norm(gradients, axis=1)
+    return np.where(norm > 0, values / np.where(norm > 0, norm, 1.0), np.where(values > 0, np.inf, -np.inf))
+
+
+@pytest.mark.parametrize("name", SHAPES)
+@settings(max_examples=40, deadline=None)
+@given(st.floats(1.0, 2.0), st.floats(1.0, 2.0), st.floats(-3.2, 3.2))
+def test_anchor_measures_are_the_event_values_and_their_distances_to_zero(name, x, y, th):
+    """What a quiet-step anchor measures (virtual_vehicle.batch): cell_margins gives the event values' margins to
+    the last bit and the smallest |margin|; support_slack gives how far the centre of mass can move before a spring
+    force or a hull half-plane reaches zero (each less its noise), as numpy computes it from the solution."""
+    spec = SHAPES[name]
+    m = ParcelModel(CELLS, spec, np.zeros((CELLS.n, 2)), friction.CoulombLaw())
+    y0 = np.array([x, y, th, 0.0, 0.0, 0.0])
+    try:
+        piece = m.piece_at(y0)
+    except TippingError:
+        assume(False)
+    seg = dynamics._Segment(m, piece, y0)
+    kind, _, half, normals, offsets, vertices = m.outline
+    margins, nearest = kernel.cell_margins(kind, half, normals, offsets, vertices, CELLS.positions[seg.ids], y0)
+    assert margins.tolist() == seg.values(y0)[:seg.bounds[1]].tolist()
+    assert nearest == np.abs(margins).min()
+    assert kernel.cell_margins(kind, half, normals, offsets, vertices, np.zeros((0, 2)), y0)[1] == np.inf
+    sol = piece.solution
+    xi = y0[:2] - sol.origin
+    noise_force, noise_length = 1e-11 * m.weight, 1e-11 * 3.0
+    springs = _room(np.abs(sol.spring_values(xi)) - noise_force, sol.basis @ sol.plane_lin)
+    hull = _room(sol.hull_slack(xi) - noise_length * np.linalg.norm(sol.hull_normals, axis=1), sol.hull_normals)
+    ref = min(springs.min(initial=np.inf), hull.min(initial=np.inf))
+    got = kernel.support_slack(sol.basis, sol.plane_lin, sol.plane_const, sol.spring_lin, sol.hull_normals,
+                               sol.hull_offsets, xi[0], xi[1], noise_force, noise_length)
+    assert got == pytest.approx(ref, rel=1e-12, abs=1e-15)
+
+
+def test_support_slack_of_constant_functions_is_unbounded_or_none():
+    """A spring force that does not depend on the centre of mass (zero gradient) bounds nothing while it is clear of
+    its noise, and allows no move at all when it is not; with nothing to bound, the slack is infinite."""
+    basis, lin, none2 = np.eye(1), np.zeros((1, 2)), np.zeros((0, 2))
+    clear = kernel.support_slack(basis, lin, np.array([5.0]), lin, none2, np.zeros(0), 0.3, 0.1, 1e-9, 1e-11)
+    lifted = kernel.support_slack(basis, lin, np.array([1e-12]), lin, none2, np.zeros(0), 0.3, 0.1, 1e-9, 1e-11)
+    assert clear == np.inf and lifted == -np.inf
+    assert kernel.support_slack(np.zeros((0, 0)), none2, np.zeros(0), none2, none2, np.zeros(0), 0, 0, 0, 0) == np.inf
+    # one half-plane x <= 0.5 with the centre of mass at x = 0.2: 0.3 m to go, less the noise
+    half = kernel.support_slack(np.zeros((0, 0)), none2, np.zeros(0), none2, np.array([[2.0, 0.0]]), np.array([1.0]),
+                                0.2, 7.0, 0.0, 0.01)
+    assert half == pytest.approx((1.0 - 0.4 - 0.02) / 2.0)
+
+
 def test_compiled_dop853_takes_scipys_steps():
     """From the same state and trial step, the compiled DOP853 lands where scipy's DOP853 lands (the same tableau,
     to rounding: scipy sums stages with BLAS, the kernel in plain loops), accepts or rejects the same trial steps,

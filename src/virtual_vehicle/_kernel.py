@@ -261,6 +261,56 @@ def _refresh(seg, y):
     return seg.buffer - math.hypot(y[0] - seg.center[0], y[1] - seg.center[1])
 
 
+@njit(cache=True)
+def cell_margins(kind, half, normals, offsets, vertices, cells, y):
+    """Footprint margins (m) of the cells at ``cells`` ((nc, 2), m) with the parcel at pose ``y`` (x, y, theta, ...),
+    as the event values compute them; also the smallest ``|margin|`` (inf for no cell). The footprint is a
+    :func:`outline`'s first five entries less ``convex``."""
+    c, s = math.cos(y[2]), math.sin(y[2])
+    nc = cells.shape[0]
+    out = np.empty(nc)
+    if kind == RECTANGLE:  # one loop per kind, as in values()
+        for i in range(nc):
+            out[i] = _candidate_margin(cells, RECTANGLE, half, normals, offsets, vertices, i, y, c, s)
+    elif kind == CONVEX:
+        for i in range(nc):
+            out[i] = _candidate_margin(cells, CONVEX, half, normals, offsets, vertices, i, y, c, s)
+    else:
+        for i in range(nc):
+            out[i] = _candidate_margin(cells, POLYGON, half, normals, offsets, vertices, i, y, c, s)
+    smallest = np.inf
+    for i in range(nc):
+        smallest = min(smallest, abs(out[i]))
+    return out, smallest
+
+
+@njit(cache=True, inline="always")
+def _room(value, gx, gy):
+    """How far (m) the centre of mass can move before an affine function of it with ``value`` here (> 0 is clear) and
+    gradient (gx, gy) reaches zero: inf for a constant one that is clear, -inf for one that is not."""
+    norm = math.sqrt(gx * gx + gy * gy)
+    if norm > 0:
+        return value / norm
+    return np.inf if value > 0 else -np.inf
+
+
+@njit(cache=True)
+def support_slack(basis, plane_lin, plane_const, spring_lin, hull_normals, hull_offsets, xi0, xi1, noise_force,
+                  noise_length):
+    """How far (m) the local centre of mass (xi0, xi1) (m) can move before any spring force (eq. 19, gradient rows
+    ``spring_lin`` in N/m) or any supporting half-plane of a solution changes sign, each less its rounding noise
+    (``noise_force`` in N; ``noise_length`` m per unit of a half-plane normal's length); inf when nothing bounds it."""
+    out = np.inf
+    for k in range(basis.shape[0]):
+        force = abs(_spring(basis, plane_lin, plane_const, k, xi0, xi1)) - noise_force
+        out = min(out, _room(force, spring_lin[k, 0], spring_lin[k, 1]))
+    for k in range(hull_offsets.shape[0]):
+        nx, ny = hull_normals[k, 0], hull_normals[k, 1]
+        slack = _slack(hull_normals, hull_offsets, k, xi0, xi1) - noise_length * math.sqrt(nx * nx + ny * ny)
+        out = min(out, _room(slack, nx, ny))
+    return out
+
+
 @njit(cache=True, inline="always")
 def _noise(nc, m, noise_length, noise_force, i):
     """Rounding noise of event value ``i`` of a segment with ``nc`` candidates and ``m`` supports (see

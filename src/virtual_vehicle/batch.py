@@ -56,11 +56,11 @@ from scipy.integrate import DOP853
 
 from .collide import reach_bounds
 from .contact import SupportSolution
+from . import _kernel
 from ._kernel import accelerations
 from .dynamics import _NOISE, ROW_LENGTH, ParcelModel, Trajectory, constants_row
 from .errors import TippingError
 from .friction import ViscousLaw
-from .parcel import footprint_margins
 
 
 @dataclass
@@ -101,28 +101,22 @@ def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
                                                  return_sorted=True), dtype=int)
     if model.present is not None and len(ids):
         ids = ids[model.present[ids]]
-    margins = footprint_margins(spec, y, cells.positions[ids]) if len(ids) else np.zeros(0)
-    support = ids[margins > 0]  # the cells under the footprint, as model.support_at finds them
+    kind, _, half, normals, offsets, vertices = model.outline
+    y = np.ascontiguousarray(y, dtype=float)
+    margins, nearest = _kernel.cell_margins(kind, half, normals, offsets, vertices, cells.positions[ids], y)
+    support = ids[margins > 0]  # the cells under the footprint, as the event values find them
     try:
         sol = model.solution_for(support, y[:2])
     except TippingError:
         return None
     length = max(length, spec.radius)
-    clear = min(buffer, float(np.min(np.abs(margins), initial=np.inf))) - _NOISE * length
-    xi = np.asarray(y[:2], dtype=float) - sol.origin
-    springs = _room(np.abs(sol.spring_values(xi)) - _NOISE * model.weight, sol.basis @ sol.plane_lin)
-    hull = _room(sol.hull_slack(xi) - _NOISE * length * np.linalg.norm(sol.hull_normals, axis=1), sol.hull_normals)
-    slack = float(min(np.min(springs, initial=np.inf), np.min(hull, initial=np.inf)))
+    clear = min(buffer, nearest) - _NOISE * length
+    xi = y[:2] - sol.origin
+    slack = _kernel.support_slack(sol.basis, sol.plane_lin, sol.plane_const, sol.spring_lin, sol.hull_normals,
+                                  sol.hull_offsets, xi[0], xi[1], _NOISE * model.weight, _NOISE * length)
     return _Anchor(np.array(y[:3], dtype=float), clear, slack, support, sol, model._geometry,
                    room=buffer - _NOISE * length, noise=_NOISE * length, near=ids if spec.convex else None,
                    halfplanes=spec.halfplanes if spec.convex else None)
-
-
-def _room(values: np.ndarray, gradients: np.ndarray) -> np.ndarray:
-    """How far (m) the centre of mass can move before affine functions with these ``values`` (> 0 is clear) and
-    ``gradients`` (k, 2) reach zero: inf for a constant one that is clear, -inf for one that is not."""
-    norm = np.linalg.norm(gradients, axis=1)
-    return np.where(norm > 0, values / np.where(norm > 0, norm, 1.0), np.where(values > 0, np.inf, -np.inf))
 
 
 class QuietStepper:
