@@ -8,6 +8,8 @@ so that numba's compiled code is cached), and prints every wall time and the med
 
 Cases (the figures of ``RESULTS.md``):
 - ``scale200``: ``run_network`` on 100 x 100 cells with 200 parcels, 1 s simulated (``bench_scale.py``'s largest);
+- ``steady200``: the same for 4 s, in which the exit gradient has crossed the hall and all 200 parcels move (the
+  first second is mostly routing set-up);
 - ``scale1``: the same hall with one parcel (mostly empty floor);
 - ``coulomb1``: one Coulomb parcel oscillating in the inward field for 5 s (``bench_perf.py`` (b)), the fastest of
   five runs in each process.
@@ -34,7 +36,7 @@ sys.path.insert(0, {bench!r})
 import bench_scale
 from virtual_vehicle.scenario import parse_scenario
 from virtual_vehicle.sim import run_network
-setup = parse_scenario(bench_scale.scenario(100, {parcels}, 1.0)).build()
+setup = parse_scenario(bench_scale.scenario(100, {parcels}, {seconds})).build()
 try:  # load the compiled engine outside the timed run, as the imports are (from 580daa9)
     from virtual_vehicle.dynamics import warm_up
     warm_up()
@@ -47,8 +49,9 @@ print(json.dumps({{{{"wall": wall, "end": res.parcels[-1].trajectory.states[-1].
 """
 
 CASES = {
-    "scale200": _SCALE.format(parcels=200, bench="{bench}"),
-    "scale1": _SCALE.format(parcels=1, bench="{bench}"),
+    "scale200": _SCALE.format(parcels=200, seconds=1.0, bench="{bench}"),
+    "steady200": _SCALE.format(parcels=200, seconds=4.0, bench="{bench}"),
+    "scale1": _SCALE.format(parcels=1, seconds=1.0, bench="{bench}"),
     "coulomb1": """
 import json, sys, time
 sys.path.insert(0, {bench!r})
