@@ -5,6 +5,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from scipy.spatial import cKDTree
+
 from virtual_vehicle import layout, parcel
 from virtual_vehicle.errors import ScenarioError
 
@@ -78,3 +80,61 @@ def test_supporting_cells_tree_matches_brute_force():
         a = parcel.supporting_cells(spec, pose, cells.positions, cells.tree)
         b = parcel.supporting_cells(spec, pose, cells.positions)
         assert a.tolist() == b.tolist()
+
+
+LAYOUTS = {
+    "grid": lambda rng: layout.grid(20, 20, 0.1).positions,
+    "scattered": lambda rng: rng.uniform(-1.0, 3.0, size=(300, 2)),
+    "row": lambda rng: layout.row(40, 0.05).positions,
+    "thin": lambda rng: np.column_stack([rng.uniform(0, 2, 200), rng.uniform(0, 1e-9, 200)]),
+    "clusters": lambda rng: np.concatenate([rng.uniform(0, 0.3, (100, 2)), rng.uniform(50, 50.3, (100, 2))]),
+    "one": lambda rng: np.array([[0.4, -0.2]]),
+    "none": lambda rng: np.zeros((0, 2)),
+}
+
+
+@pytest.mark.parametrize("kind", LAYOUTS)
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), count=st.integers(0, 30), reach=st.floats(0.0, 0.6))
+def test_point_grid_gathers_every_point_within_reach(kind, seed, count, reach):
+    """Every point within ``reach`` of a centre (as a KD-tree finds them) is among those the grid gathers for it,
+    and each gathered point lies in a bucket that meets the centre's square: a superset, never a miss, once each;
+    the bucket count stays linear in the points (thin and clustered layouts too)."""
+    rng = np.random.default_rng(seed)
+    pts = LAYOUTS[kind](rng)
+    grid = parcel.PointGrid(pts)
+    assert np.prod(grid.shape) <= 3 * max(len(pts), 1) + 2 * np.sqrt(max(len(pts), 1)) + 1
+    lo, hi = (pts.min(axis=0), pts.max(axis=0)) if len(pts) else (np.zeros(2), np.ones(2))
+    centres = rng.uniform(lo - 0.5, hi + 0.5, size=(count, 2))
+    radii = rng.uniform(0.0, reach, size=count)
+    owner, point = grid.near(centres, radii)
+    assert np.all(np.diff(owner) >= 0)  # grouped by centre
+    for k in range(count):
+        mine = point[owner == k]
+        assert len(set(mine.tolist())) == len(mine)
+        expected = cKDTree(pts).query_ball_point(centres[k], radii[k]) if len(pts) else []
+        assert set(expected) <= set(mine.tolist())
+        slack = grid.size * (1 + 1e-9)  # a gathered point's bucket meets the square
+        assert np.all(np.abs(pts[mine] - centres[k]) <= radii[k] + slack)
+
+
+def test_point_grid_refuses_what_it_cannot_bin():
+    with pytest.raises(ValueError, match="finite"):
+        parcel.PointGrid([[0.0, 0.0], [np.nan, 1.0]])
+    with pytest.raises(ValueError, match="finite"):
+        parcel.PointGrid([[0.0, 0.0], [1.0, 1.0]]).near([[0.0, np.inf]], 0.1)
+
+
+def test_covered_pairs_are_the_points_strictly_under_each_footprint():
+    """Many parcels of several outlines at once: exactly the points whose margin is positive, parcel by parcel."""
+    rng = np.random.default_rng(7)
+    pts = rng.uniform(0.0, 3.0, size=(4000, 2))
+    specs = [parcel.rectangle(0.4, 0.3, 1.0, 0.5), parcel.rectangle(0.2, 0.2, 1.0, 0.5),
+             parcel.polygon([[0, 0], [0.4, 0], [0.5, 0.2], [0.2, 0.35], [-0.05, 0.2]], 2.0, 1.0),
+             parcel.polygon([[0, 0], [0.4, 0], [0.4, 0.12], [0.12, 0.12], [0.12, 0.4], [0, 0.4]], 2.0, 1.0,
+                            com=(0.1, 0.1))] * 3
+    states = [np.concatenate([rng.uniform([0.3, 0.3, -3], [2.7, 2.7, 3]), np.zeros(3)]) for _ in specs]
+    owner, point = parcel.covered_pairs(specs, states, parcel.PointGrid(pts))
+    for k, (spec, y) in enumerate(zip(specs, states)):
+        assert sorted(point[owner == k].tolist()) == np.flatnonzero(parcel.footprint_margins(spec, y, pts) > 0).tolist()
+    assert [len(a) for a in parcel.covered_pairs([], [], parcel.PointGrid(pts))] == [0, 0]

@@ -14,11 +14,10 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .errors import ScenarioError
 from .layout import CellArray
-from .parcel import ParcelSpec, covered_pairs
+from .parcel import ParcelSpec, PointGrid, covered_pairs
 
 MAX_SENSORS = 5
 
@@ -79,16 +78,15 @@ class Sensors:
             + self.offsets[None, :, 1, None] * u[:, None, 1, :]
 
     @cached_property
-    def _tree(self) -> cKDTree:
-        return cKDTree(self.points.reshape(-1, 2))
+    def _grid(self) -> PointGrid:
+        return PointGrid(self.points)
 
     def covered(self, specs: list[ParcelSpec], states, active=None) -> np.ndarray:
         """(n, S) True where a (active) parcel's footprint covers the sensor point: the noiseless truth."""
         n, S = self.cells.n, self.count
         out = np.zeros(n * S, dtype=bool)
         on = [k for k in range(len(specs)) if active is None or active[k]]
-        point = covered_pairs([specs[k] for k in on], [states[k] for k in on], self.points.reshape(-1, 2),
-                              self._tree)[1]
+        point = covered_pairs([specs[k] for k in on], [states[k] for k in on], self._grid)[1]
         out[point] = True
         return out.reshape(n, S)
 

@@ -25,6 +25,7 @@ from numba import njit
 from scipy.spatial import cKDTree
 
 from .errors import ScenarioError
+from .parcel import PointGrid
 
 _COLLINEAR_TOL = 1e-9  # m: largest distance of a cell from the best-fit line for a layout to count as a row
 
@@ -131,6 +132,11 @@ class CellArray:
     def tree(self) -> cKDTree:
         """KD-tree over the cell centres, for radius queries."""
         return cKDTree(self.positions)
+
+    @cached_property
+    def grid(self) -> PointGrid:
+        """The cell centres in buckets, for gathering the cells near many parcels at once."""
+        return PointGrid(self.positions)
 
     @cached_property
     def is_line(self) -> bool:

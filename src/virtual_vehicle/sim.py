@@ -740,6 +740,6 @@ def _labels(setup: Setup, states, specs, destinations) -> np.ndarray:
     out = np.full(cells.n, -1, dtype=np.int64)
     on = [k for k, dest in enumerate(destinations) if dest is not None]
     if on:
-        owner, cell = covered_pairs([specs[k] for k in on], [states[k] for k in on], cells.positions, cells.tree)
+        owner, cell = covered_pairs([specs[k] for k in on], [states[k] for k in on], cells.grid)
         out[cell] = np.array([destinations[k] for k in on], dtype=np.int64)[owner]
     return out
