@@ -774,3 +774,31 @@ def run_piece(row, seg, y_base, t, y, t_bound, h_abs, first_step, rtol, atol, ma
         f[:] = f_new
         h_abs = h_next
     return REACHED, t, y, h_abs, last, nfev, next_sample, t, y_probe, g_probe, False
+
+
+@njit(cache=True)
+def edges_clear(positions, near, normals, offsets, y, window, reach, accel, radius, lever, noise):
+    """Whether no cell ``near`` (ids into ``positions``, (n, 2) m) of a convex parcel at state ``y`` can cross its
+    outline (body-frame outward unit ``normals`` (k, 2), ``offsets`` (k,) m) within ``window`` s, edge by edge: the
+    bound of :meth:`virtual_vehicle.batch.QuietStepper._edges_clear`, which documents it, for one parcel (``reach``
+    and ``accel`` in m, ``radius`` m, ``lever`` = 1 + m R^2 / I, ``noise`` m)."""
+    c, s = math.cos(y[2]), math.sin(y[2])
+    drift = accel / lever
+    turn = abs(y[5]) * window + (accel - drift) / radius
+    shift = min(reach, math.hypot(y[3], y[4]) * window + drift)
+    base = drift + noise + turn * shift
+    for i in range(near.shape[0]):
+        dx = positions[near[i], 0] - y[0]
+        dy = positions[near[i], 1] - y[1]
+        bound = base + turn * math.hypot(dx, dy)
+        low, high = np.inf, np.inf
+        for e in range(offsets.shape[0]):
+            nx = c * normals[e, 0] - s * normals[e, 1]  # world normals
+            ny = s * normals[e, 0] + c * normals[e, 1]
+            h = offsets[e] - (nx * dx + ny * dy)
+            toward = (nx * y[3] + ny * y[4]) * window
+            low = min(low, h + min(toward, 0.0) - bound)
+            high = min(high, h + max(toward, 0.0) + bound)
+        if not (low > 0 or high < 0):  # neither surely inside nor surely beyond an edge
+            return False
+    return True

@@ -49,7 +49,6 @@ supports change.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 from scipy.integrate import DOP853
@@ -76,20 +75,10 @@ class _Anchor:
     velocities: np.ndarray | None = None  # (len(support), 2) m/s the row was made with
     row: tuple[float, ...] | None = None
     drive: float = 0.0  # Coulomb: the largest |F_i| under the parcel (eq. 21)
-    room: float = 0.0  # m: the buffer less rounding noise; cells further than radius + buffer are not in ``pairs``
+    room: float = 0.0  # m: the buffer less rounding noise; cells further than radius + buffer are not in ``near``
     noise: float = 0.0  # m: rounding noise in positions
     near: np.ndarray | None = None  # convex footprint: the cells within radius + buffer (ids); else None
     halfplanes: tuple[np.ndarray, np.ndarray] | None = None  # convex footprint: its edges' normals and offsets
-
-    @cached_property
-    def pairs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, int] | None:
-        """Convex footprint: every (near cell, edge) pair as cell ids, body-frame outward normals (., 2) and offsets
-        (cell-major), and the number of edges; None otherwise. Built when first asked: most anchors never are."""
-        if self.halfplanes is None:
-            return None
-        normals, offsets = self.halfplanes
-        return (np.repeat(self.near, len(offsets)), np.tile(normals, (len(self.near), 1)),
-                np.tile(offsets, len(self.near)), len(offsets))
 
 
 def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
@@ -97,13 +86,8 @@ def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
     the scale of rounding noise in positions (the array's largest coordinate, at least 1 m)."""
     spec, cells = model.spec, model.cells
     buffer = max(cells.pitch, 0.25 * spec.radius)
-    ids = np.asarray(cells.tree.query_ball_point(np.asarray(y[:2], dtype=float), spec.radius + buffer,
-                                                 return_sorted=True), dtype=int)
-    if model.present is not None and len(ids):
-        ids = ids[model.present[ids]]
-    kind, _, half, normals, offsets, vertices = model.outline
     y = np.ascontiguousarray(y, dtype=float)
-    margins, nearest = _kernel.cell_margins(kind, half, normals, offsets, vertices, cells.positions[ids], y)
+    ids, margins, nearest = model.margins_near(y, spec.radius + buffer)
     support = ids[margins > 0]  # the cells under the footprint, as the event values find them
     try:
         sol = model.solution_for(support, y[:2])
@@ -256,29 +240,10 @@ class QuietStepper:
         stays inside if the smallest lower bound is positive, outside if the smallest upper bound is negative (an
         edge it stays beyond). Unlike the one-radius clearance, this lets a parcel run past cells just behind or
         beside it."""
-        counts = np.array([len(a.pairs[2]) for a in anchors])
-        if not counts.any():  # no cell near any of them
-            return np.ones(len(anchors), dtype=bool)
-        owner = np.repeat(np.arange(len(anchors)), counts)
-        ids = np.concatenate([a.pairs[0] for a in anchors])
-        nb = np.concatenate([a.pairs[1] for a in anchors])
-        off = np.concatenate([a.pairs[2] for a in anchors])
-        c, s = np.cos(Y[:, 2])[owner], np.sin(Y[:, 2])[owner]
-        nx, ny = c * nb[:, 0] - s * nb[:, 1], s * nb[:, 0] + c * nb[:, 1]  # world normals
-        dx = self.cells.positions[ids, 0] - Y[owner, 0]
-        dy = self.cells.positions[ids, 1] - Y[owner, 1]
-        h = off - (nx * dx + ny * dy)
-        toward = (nx * Y[owner, 3] + ny * Y[owner, 4]) * window
-        drift = accel / lever
-        turn = np.abs(Y[:, 5]) * window + (accel - drift) / R
-        shift = np.minimum(r, np.hypot(Y[:, 3], Y[:, 4]) * window + drift)
-        noise = np.array([a.noise for a in anchors])
-        B = (drift + noise + turn * shift)[owner] + turn[owner] * np.hypot(dx, dy)
-        edges = np.repeat([a.pairs[3] for a in anchors], [len(a.pairs[2]) // a.pairs[3] for a in anchors])
-        starts = np.concatenate([[0], np.cumsum(edges)[:-1]])  # each cell's first pair
-        inside = np.minimum.reduceat(h + np.minimum(toward, 0.0) - B, starts) > 0
-        outside = np.minimum.reduceat(h + np.maximum(toward, 0.0) + B, starts) < 0
-        return np.bincount(owner[starts][~(inside | outside)], minlength=len(anchors)) == 0
+        positions = self.cells.positions
+        return np.array([_kernel.edges_clear(positions, a.near, *a.halfplanes, y, window, r[n], accel[n], R[n],
+                                             lever[n], a.noise)
+                         for n, (a, y) in enumerate(zip(anchors, Y))], dtype=bool)
 
     def step(self, models, base, idx: list[int], ys, velocities: np.ndarray, t: float, te: float,
              samples: np.ndarray) -> tuple[dict[int, Trajectory], list[int]]:

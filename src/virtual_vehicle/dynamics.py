@@ -37,7 +37,7 @@ from .contact import SupportSolution, solve_support
 from .errors import IntegrationError, TippingError
 from .friction import CoulombLaw, FrictionConstants, FrictionLaw, StickSlipLaw
 from .layout import CellArray
-from .parcel import ParcelSpec, supporting_cells
+from .parcel import ParcelSpec
 
 Mode = Literal["event", "fixed"]
 
@@ -167,10 +167,21 @@ class ParcelModel:
         if cells.is_line and cells.n > 1:
             self._line_dir = np.linalg.svd(cells.positions - cells.positions.mean(axis=0), full_matrices=False)[2][0]
 
+    def margins_near(self, y, reach: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """The cells present within ``reach`` (m) of the centre of mass at state (or pose) ``y`` (ids, sorted), their
+        footprint margins (m, as the event values compute them) and the smallest ``|margin|`` (inf for none)."""
+        y = np.ascontiguousarray(y, dtype=float)
+        ids = np.asarray(self.cells.tree.query_ball_point(y[:2], reach, return_sorted=True), dtype=int)
+        if self.present is not None and len(ids):
+            ids = ids[self.present[ids]]
+        kind, _, half, normals, offsets, vertices = self.outline
+        margins, nearest = _kernel.cell_margins(kind, half, normals, offsets, vertices, self.cells.positions[ids], y)
+        return ids, margins, nearest
+
     def support_at(self, y) -> np.ndarray:
         """Ids of the cells under the footprint at state (or pose) ``y`` (those present)."""
-        ids = supporting_cells(self.spec, y, self.cells.positions, self.cells.tree)
-        return ids if self.present is None else ids[self.present[ids]]
+        ids, margins, _ = self.margins_near(y, self.spec.radius * (1 + 1e-9) + 1e-12)
+        return ids[margins > 0]
 
     def piece_at(self, y) -> Piece:
         """The piece valid at state ``y``. Raises TippingError when the supports cannot carry the parcel."""
@@ -347,7 +358,8 @@ class _Segment:
             self.ids, self.center, self.candidates = previous.ids, previous.center, previous.candidates
         else:
             self.center = np.array(y0[:2], dtype=float)
-            ids = np.asarray(sorted(cells.tree.query_ball_point(self.center, spec.radius + self.buffer)), dtype=int)
+            ids = np.asarray(cells.tree.query_ball_point(self.center, spec.radius + self.buffer, return_sorted=True),
+                             dtype=int)
             self.ids = ids if model.present is None else ids[model.present[ids]]
             self.candidates = cells.positions[self.ids]
         sol = piece.solution
