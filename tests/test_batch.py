@@ -318,6 +318,18 @@ def test_a_cell_taken_out_from_under_a_quiet_parcel_is_seen():
     assert np.max(np.abs(ys[0] - ends[True])) > 1e-9  # the missing cell changed the motion
 
 
+def test_a_plant_refuses_wheel_velocities_it_cannot_use():
+    """Velocities are checked once a tick for the whole array (the per-parcel copies trust that check)."""
+    plant = Plant(CELLS, [SPEC], LAWS["viscous"])
+    ys = [np.array([0.55, 0.55, 0.0, 0.0, 0.0, 0.0])]
+    bad = _field(2)
+    bad[3, 1] = np.nan
+    for velocities in (bad, _field(2)[:-1], _field(2)[:, :1]):
+        with pytest.raises(ValueError, match="finite floats with shape"):
+            plant.advance(ys, [True], velocities, 0.0, 0.01, 0.01)
+    assert ys[0][3] == 0.0  # nothing moved
+
+
 def test_a_plant_pickled_before_batching_goes_on_unbatched():
     import pickle
 

@@ -190,11 +190,17 @@ class ParcelModel:
     def with_velocities(self, velocities: np.ndarray) -> "ParcelModel":
         """The same parcel on the same array under other wheel velocities (m/s), sharing the solved support
         geometry (normal forces do not depend on the wheels), so a controller may change the field every tick."""
+        velocities = np.asarray(velocities, dtype=float)
+        if velocities.shape != (self.cells.n, 2) or not np.all(np.isfinite(velocities)):
+            raise ValueError(f"velocities must be finite with shape ({self.cells.n}, 2)")
+        return self._rewheeled(velocities)
+
+    def _rewheeled(self, velocities: np.ndarray) -> "ParcelModel":
+        """:meth:`with_velocities` for ``velocities`` already checked ((n, 2) finite float array, m/s)."""
+        self.outline  # made here once, so that every copy shares it
         other = ParcelModel.__new__(ParcelModel)
         other.__dict__.update(self.__dict__)
-        other.velocities = np.asarray(velocities, dtype=float)
-        if other.velocities.shape != (self.cells.n, 2) or not np.all(np.isfinite(other.velocities)):
-            raise ValueError(f"velocities must be finite with shape ({self.cells.n}, 2)")
+        other.velocities = velocities
         other._pieces = {}
         other._by_support = {}
         return other

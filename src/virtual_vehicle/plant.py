@@ -460,8 +460,9 @@ class _Models:
     """Models of every parcel under one set of velocities, made on first use."""
 
     def __init__(self, base: list[ParcelModel], velocities: np.ndarray):
-        if velocities.ndim != 2 or not np.all(np.isfinite(velocities)):
-            raise ValueError("velocities must be finite, shape (n, 2)")
+        n = base[0].cells.n if base else len(velocities)
+        if velocities.dtype != float or velocities.shape != (n, 2) or not np.all(np.isfinite(velocities)):
+            raise ValueError(f"velocities must be finite floats with shape ({n}, 2)")
         self.base = base
         self.velocities = velocities
         self.made: dict[int, ParcelModel] = {}
@@ -469,7 +470,7 @@ class _Models:
     def __getitem__(self, i: int) -> ParcelModel:
         model = self.made.get(i)
         if model is None:
-            model = self.made[i] = self.base[i].with_velocities(self.velocities)
+            model = self.made[i] = self.base[i]._rewheeled(self.velocities)  # checked once, above
         return model
 
     def __len__(self) -> int:
