@@ -84,6 +84,28 @@ def test_reach_bounds_are_point_reach_for_many_parcels():
         np.testing.assert_allclose(np.column_stack(got), want, rtol=1e-14)
 
 
+
+@pytest.mark.parametrize("law", ["viscous", "coulomb", "stick_slip"])
+def test_point_reaches_are_point_reach_to_the_last_bit(law):
+    """The planner's bounds for every parcel at once are the scalar bounds, the same numbers (its windows, and so
+    the runs, must not change with how many parcels are planned together): several outlines, speed floors, and
+    parcels whose wheels give them nothing (mu = 0, the slow branch of the viscous bound)."""
+    from virtual_vehicle.collide import lever_of, point_reaches
+
+    rng = np.random.default_rng(1)
+    specs = [SPEC, parcel.rectangle(0.5, 0.2, 3.0, 0.4), parcel.polygon([[0, 0], [0.3, 0], [0.1, 0.25]], 1.5, 0.8)]
+    specs = [specs[k] for k in rng.integers(0, 3, 40)]
+    Y = np.column_stack([rng.uniform(0, 1, (40, 3)), rng.normal(0, 0.3, (40, 3))])
+    mu = np.where(rng.random(40) < 0.2, 0.0, rng.uniform(0, 2, 40))
+    floor = np.where(rng.random(40) < 0.5, 0.0, rng.uniform(0, 1, 40))
+    for window in (0.01, 1e-15):
+        want = [point_reach(s, y, window, law=law, mu_max=m, gravity=9.81, wheel_speed=0.4, speed_floor=f)
+                for s, y, m, f in zip(specs, Y, mu, floor)]
+        got = point_reaches(np.array([s.radius for s in specs]), np.array([lever_of(s) for s in specs]), Y, window,
+                            law=law, mu_max=mu, gravity=9.81, wheel_speed=0.4, speed_floor=floor)
+        assert np.column_stack(got).tolist() == [list(w) for w in want]
+
+
 @settings(max_examples=60, deadline=None)
 @given(x=st.floats(0.3, 0.8), y=st.floats(0.3, 0.8), th=st.floats(-np.pi, np.pi), vx=st.floats(-0.4, 0.4),
        vy=st.floats(-0.4, 0.4), om=st.floats(-2, 2), seed=st.integers(0, 50), window=st.sampled_from([0.002, 0.01]),

@@ -259,15 +259,36 @@ def point_reach(spec: ParcelSpec, y, window: float, *, law: str, mu_max: float, 
     """
     R = spec.radius
     s0 = max(float(np.hypot(y[3], y[4]) + abs(y[5]) * R), speed_floor)
-    lever = 1.0 + spec.mass * R * R / spec.inertia
+    dist, speed = _reach_from(s0, lever_of(spec), window, law, mu_max, gravity, wheel_speed)
+    return float(dist), float(speed)
+
+
+def lever_of(spec: ParcelSpec) -> float:
+    """``1 + m R^2 / I`` of parcel ``spec``: how much faster its rim can speed up than its centre of mass."""
+    return 1.0 + spec.mass * spec.radius * spec.radius / spec.inertia
+
+
+def point_reaches(radius, lever, Y, window: float, *, law: str, mu_max, gravity: float, wheel_speed: float,
+                  speed_floor=0.0) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`point_reach` of many parcels, by the same operations elementwise (so the same numbers): ``radius``
+    (m), ``lever`` (:func:`lever_of`), ``mu_max`` and ``speed_floor`` (m/s) one value each, ``Y`` (k, 6) their
+    states."""
+    Y = np.asarray(Y, dtype=float).reshape(-1, 6)
+    s0 = np.maximum(np.hypot(Y[:, 3], Y[:, 4]) + np.abs(Y[:, 5]) * radius, speed_floor)
+    return _reach_from(s0, np.asarray(lever, dtype=float), window, law, np.asarray(mu_max, dtype=float), gravity,
+                       wheel_speed)
+
+
+def _reach_from(s0, lever, window, law, mu_max, gravity, wheel_speed):
+    """The bounds of :func:`point_reach` from the fastest point speed ``s0`` (m/s), on floats or arrays."""
     if law == "viscous":
         k = mu_max * gravity * lever
-        if k * window < 1e-12:
-            return s0 * window, s0
-        return (float((s0 + wheel_speed) * np.expm1(k * window) / k - wheel_speed * window),
-                float((s0 + wheel_speed) * np.exp(k * window) - wheel_speed))
+        slow = k * window < 1e-12
+        safe = np.where(slow, 1.0, k)
+        return (np.where(slow, s0 * window, (s0 + wheel_speed) * np.expm1(k * window) / safe - wheel_speed * window),
+                np.where(slow, s0, (s0 + wheel_speed) * np.exp(k * window) - wheel_speed))
     k = 2.0 * mu_max * gravity * lever
-    return float(s0 * window + 0.5 * k * window * window), float(s0 + k * window)
+    return s0 * window + 0.5 * k * window * window, s0 + k * window
 
 
 def reach_bounds(s0: np.ndarray, lever_mu: np.ndarray, window: float, *, law: str, gravity: float,

@@ -18,6 +18,7 @@ fixed-step mode; contacts add ``"contact"`` (two parcels started pushing each ot
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Callable
 
 import numpy as np
@@ -28,7 +29,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse import coo_matrix
 
 from .batch import QuietStepper
-from .collide import ContactParams, Rows, place, overlap_area, pair_contacts, point_reach, push_gain, solve_rows
+from .collide import (ContactParams, Rows, lever_of, overlap_area, pair_contacts, place, point_reach, point_reaches,
+                      push_gain, solve_rows)
 from .dynamics import Event, ParcelModel, Trajectory, _diff_event, _sampled, integrate, sample_grid
 from .errors import TippingError
 from .friction import FrictionLaw, StickSlipLaw, ViscousLaw
@@ -160,6 +162,14 @@ class Plant:
             self._quiet.forget(i)
 
     # -- planning ----------------------------------------------------------------------------------------------
+    @cached_property
+    def _lever(self) -> np.ndarray:
+        return np.array([lever_of(s) for s in self.specs])
+
+    @cached_property
+    def _mu_max_arr(self) -> np.ndarray:
+        return np.array(self._mu_max, dtype=float)
+
     def _reach(self, i, y, T, wmax, floor=0.0):
         return point_reach(self.specs[i], y, T, law=self._law_name, mu_max=self._mu_max[i], gravity=self.gravity,
                            wheel_speed=wmax, speed_floor=floor)
@@ -194,8 +204,14 @@ class Plant:
         tree = cKDTree(centres)
         radius = self._radius[live]
 
+        Y = np.array([ys[i] for i in live], dtype=float)
+
+        def reaches(T, floor):  # self._reach of every live parcel
+            return point_reaches(radius, self._lever[live], Y, T, law=self._law_name, mu_max=self._mu_max_arr[live],
+                                 gravity=self.gravity, wheel_speed=wmax, speed_floor=floor[live])
+
         def candidates(T, floor):
-            reach = np.array([self._reach(i, ys[i], T, wmax, floor[i])[0] for i in live])
+            reach = reaches(T, floor)[0]
             ext = radius + reach
             pairs = tree.query_pairs(2 * float(ext.max()) + cp.margin, output_type="ndarray")
             if not len(pairs):
@@ -220,8 +236,7 @@ class Plant:
             return horizon, []
         H = min(horizon, cp.window)
         own = np.zeros(len(self.specs))  # fastest point speed each parcel's wheels alone can give it within H
-        for i in live:
-            own[i] = self._reach(i, ys[i], H, wmax)[1]
+        own[live] = reaches(H, np.zeros(len(self.specs)))[1]
         labels = np.arange(len(live))
         for _ in range(len(live)):  # components only grow, so this ends
             pairs, gaps = candidates(H, floor)
