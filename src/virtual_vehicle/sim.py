@@ -713,8 +713,10 @@ class _Track:
         self.piece = tr
         if tr.stats:
             first = self.stats_pieces[:1]
-            summed = any(not _SUMMED.isdisjoint(piece.stats) for piece in (*first, tr))
-            self.stats_pieces = join_stats([*first, tr]) if first and summed else [tr]  # else the latest stand
+            if first and not (_SUMMED.isdisjoint(tr.stats) and _SUMMED.isdisjoint(first[0].stats)):
+                self.stats_pieces = join_stats([*first, tr])
+            else:
+                self.stats_pieces = [tr]  # the latest stands
 
     def trajectory(self) -> Trajectory:
         times, states = list(self.times), list(self.states)
