@@ -324,5 +324,6 @@ def covered_pairs(specs: list[ParcelSpec], states, grid: PointGrid) -> tuple[np.
     for spec, members in shapes.values():
         sel = slice(None) if len(shapes) == 1 else np.isin(owner, members)
         mine, at = owner[sel], grid.points[point[sel]]
-        keep[sel] = _turned_margins(spec, cos[mine], sin[mine], at[:, 0] - poses[mine, 0], at[:, 1] - poses[mine, 1]) > 0
+        dx, dy = at[:, 0] - poses[mine, 0], at[:, 1] - poses[mine, 1]
+        keep[sel] = _turned_margins(spec, cos[mine], sin[mine], dx, dy) > 0
     return owner[keep], point[keep]
