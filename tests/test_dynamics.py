@@ -345,19 +345,12 @@ def test_a_segment_keeps_its_predecessors_candidates_only_within_half_the_buffer
 @settings(max_examples=300, deadline=None)
 @given(st.floats(1.0, 2.0), st.floats(1.0, 2.0), st.floats(-3.2, 3.2), st.floats(-0.1, 0.1), st.floats(-0.1, 0.1),
        st.floats(-0.5, 0.5), st.sampled_from([1e-3, 1e-2, 0.1]))
-def test_the_event_root_finder_is_scipys_brentq_without_evaluating_the_ends_again(x, y, th, dx, dy, dth, h):
+def test_the_event_root_finder_is_scipys_brentq_without_evaluating_the_ends_again(segment_at, x, y, th, dx, dy, dth,
+                                                                                 h):
     """Events are located by Brent's method as scipy runs it, on the engine's own event function (the earliest of the
     changed footprint margins along a step's dense output), given the bracket's end values: the same root to the
     last bit, two evaluations fewer."""
-    cells = layout.grid(30, 30, 0.1)
-    spec = parcel.rectangle(0.4, 0.3, 2.0, 1.0)
-    m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), friction.CoulombLaw())
-    y0 = np.array([x, y, th, 0.0, 0.0, 0.0])
-    try:
-        piece = m.piece_at(y0)
-    except TippingError:
-        assume(False)
-    seg = dynamics._Segment(m, piece, y0)
+    m, piece, seg, y0 = segment_at(layout.grid(30, 30, 0.1), parcel.rectangle(0.4, 0.3, 2.0, 1.0), x, y, th)
     delta = np.array([dx, dy, dth, 0.0, 0.0, 0.0])
     F = np.zeros((7, 6))
     F[0] = delta  # a dense output moving the parcel uniformly by delta over the step [0, h]

@@ -4,12 +4,11 @@ run is handed back to Python and resumed."""
 
 import numpy as np
 import pytest
-from hypothesis import assume, example, given, settings, strategies as st
+from hypothesis import example, given, settings, strategies as st
 from scipy.integrate import DOP853
 
 from virtual_vehicle import _kernel as kernel, dynamics, fields, friction, layout, parcel
 from virtual_vehicle.dynamics import ParcelModel, integrate, warm_up
-from virtual_vehicle.errors import TippingError
 
 CELLS = layout.grid(30, 30, 0.1)
 SHAPES = {
@@ -24,18 +23,12 @@ SHAPES = {
 @settings(max_examples=60, deadline=None)
 @given(st.floats(1.0, 2.0), st.floats(1.0, 2.0), st.floats(-3.2, 3.2))
 @example(1.49609375, 1.25, -0.75)  # the L tips here (found by CI)
-def test_compiled_margins_are_the_footprint_margins_of_every_outline(name, x, y, th):
+def test_compiled_margins_are_the_footprint_margins_of_every_outline(name, segment_at, x, y, th):
     """The engine's event values start with the footprint margins of the candidate cells: the same numbers as
     parcel.footprint_margins (closed form, half-planes, or shapely's signed distance for the L), to rounding, so the
     same cells support the parcel wherever that is not a matter of rounding."""
     spec = SHAPES[name]
-    m = ParcelModel(CELLS, spec, np.zeros((CELLS.n, 2)), friction.CoulombLaw())
-    y0 = np.array([x, y, th, 0.0, 0.0, 0.0])
-    try:
-        piece = m.piece_at(y0)
-    except TippingError:  # the L's centre of mass sits near its inner corner: some poses leave it unsupported
-        assume(False)
-    seg = dynamics._Segment(m, piece, y0)
+    m, piece, seg, y0 = segment_at(CELLS, spec, x, y, th)
     assert seg.arrays.kind == {"rectangle": kernel.RECTANGLE, "convex": kernel.CONVEX, "L": kernel.POLYGON}[name]
     mine = seg.values(y0)[:seg.bounds[1]]
     ref = parcel.footprint_margins(spec, y0, CELLS.positions[seg.ids])
@@ -57,18 +50,11 @@ def _room(values, gradients):
 @pytest.mark.parametrize("name", SHAPES)
 @settings(max_examples=40, deadline=None)
 @given(st.floats(1.0, 2.0), st.floats(1.0, 2.0), st.floats(-3.2, 3.2))
-def test_anchor_measures_are_the_event_values_and_their_distances_to_zero(name, x, y, th):
+def test_anchor_measures_are_the_event_values_and_their_distances_to_zero(name, segment_at, x, y, th):
     """What a quiet-step anchor measures (virtual_vehicle.batch): cell_margins gives the event values' margins to
     the last bit and the smallest |margin|; support_slack gives how far the centre of mass can move before a spring
     force or a hull half-plane reaches zero (each less its noise), as numpy computes it from the solution."""
-    spec = SHAPES[name]
-    m = ParcelModel(CELLS, spec, np.zeros((CELLS.n, 2)), friction.CoulombLaw())
-    y0 = np.array([x, y, th, 0.0, 0.0, 0.0])
-    try:
-        piece = m.piece_at(y0)
-    except TippingError:
-        assume(False)
-    seg = dynamics._Segment(m, piece, y0)
+    m, piece, seg, y0 = segment_at(CELLS, SHAPES[name], x, y, th)
     kind, _, half, normals, offsets, vertices = m.outline
     margins, nearest = kernel.cell_margins(kind, half, normals, offsets, vertices, CELLS.positions[seg.ids], y0)
     assert margins.tolist() == seg.values(y0)[:seg.bounds[1]].tolist()
