@@ -5,10 +5,10 @@ Invariants: no collisions, no overlap between separately integrated parcels, no 
 state finite, deliveries keep pace with arrivals (at most 5% still waiting at the entry at the end), and the same
 seed gives the same result (the first 60 s are run twice and compared bit for bit).
 
-Run: ``python benchmarks/long_run.py [--minutes 60] [--checkpoint FILE [--resume]]`` (about 20 min of wall time
-for an hour since the sorter is stepped only on the cells that changed: 10 minutes took 182 s at fd5a7d3, 35 min an
-hour before); ``--resume`` continues an interrupted run from its checkpoint (the wall time printed is then only the
-resumed part's).
+Run: ``python benchmarks/long_run.py [--minutes 60] [--checkpoint FILE [--resume]]`` (about 15 min of wall time
+for an hour: 10 minutes took 146 s at the sixth session's ffa58fa and 182 s at fd5a7d3, both with the test suite
+running beside it; 35 min an hour before the sorter was stepped only on the cells that changed); ``--resume``
+continues an interrupted run from its checkpoint (the wall time printed is then only the resumed part's).
 """
 
 from __future__ import annotations
