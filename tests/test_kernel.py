@@ -2,6 +2,8 @@
 footprint margins of parcel.py (shapely for non-convex outlines), scipy's DOP853 step by step, and itself when a
 run is handed back to Python and resumed."""
 
+import json
+
 import numpy as np
 import pytest
 from hypothesis import example, given, settings, strategies as st
@@ -137,7 +139,44 @@ def test_warming_up_leaves_the_engine_compiled():
     """warm_up() runs a real integration, after which the engine's entry points hold compiled code (loaded from the
     cache or compiled now), so the next integration does not wait."""
     assert warm_up() > 0
-    assert kernel.run_piece.signatures and kernel.values.signatures
+    assert kernel.run_piece.signatures and kernel.pattern.signatures and kernel.cell_margins.signatures
+
+
+def test_warming_up_compiles_what_networked_runs_call():
+    """In a fresh process, warm_up() leaves the engine's compiled entry points, the quiet step's checks among them,
+    with the very signatures a networked run (25 parcels on 30 x 30, batched quiet ticks) then calls them with, so a
+    user's first networked run does not stop to compile: each is called, and none gains a signature."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = """
+import collections, json, sys
+sys.path.insert(0, %r)
+import bench_scale
+from virtual_vehicle import _kernel as k
+from virtual_vehicle.dynamics import warm_up
+from virtual_vehicle.scenario import parse_scenario
+from virtual_vehicle.sim import run_network
+warm_up()
+names = ("run_piece", "pattern", "cell_margins", "support_slack", "edges_clear")
+before = {n: len(getattr(k, n).signatures) for n in names}
+calls = collections.Counter()
+def counted(n, f):
+    def call(*args):
+        calls[n] += 1
+        return f(*args)
+    return call
+kernels = {n: getattr(k, n) for n in names}
+for n in names:
+    setattr(k, n, counted(n, kernels[n]))
+run_network(parse_scenario(bench_scale.scenario(30, 25, 0.5)).build())
+print(json.dumps([before, {n: len(kernels[n].signatures) for n in names}, calls]))
+""" % str(Path(__file__).resolve().parents[1] / "benchmarks")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    before, after, calls = json.loads(out.stdout.strip().splitlines()[-1])
+    assert before == after and min(before.values()) > 0, (before, after)
+    assert set(calls) == set(before) and min(calls.values()) > 0, calls
 
 
 def test_max_step_bounds_every_compiled_step():

@@ -411,21 +411,29 @@ _PAUSE_STEPS = 64
 
 
 def warm_up() -> float:
-    """Compile the event engine's inner loop (:mod:`virtual_vehicle._kernel`) and the support solve's compiled
-    parts (:mod:`virtual_vehicle.contact`, :mod:`virtual_vehicle.friction`; about 40 s together, the first time on a
-    machine) or load them from numba's cache (a fraction of a second), by integrating one parcel on a 4 x 4 array
-    for 10 ms and looking its last piece up again. The first integration of a process does this anyway; call it to
+    """Compile the event engine's inner loop (:mod:`virtual_vehicle._kernel`), the support solve's compiled parts
+    (:mod:`virtual_vehicle.contact`, :mod:`virtual_vehicle.friction`) and the quiet step's checks
+    (:mod:`virtual_vehicle.batch`; about 40 s together, the first time on a machine) or load them from numba's cache
+    (a fraction of a second), by integrating one parcel on a 4 x 4 array for 10 ms, looking its last piece up again
+    and checking it as a quiet step would. The first integration of a process does this anyway; call it to
     do it at a time of your choosing (the set-up of ``make`` does, so that no later run waits). Returns the seconds
     it took."""
     from .fields import Uniform
     from .layout import grid
     from .parcel import rectangle
 
+    from .batch import QuietStepper, anchor
+
     start = time.perf_counter()
     cells = grid(4, 4, 0.1)
-    model = ParcelModel(cells, rectangle(0.25, 0.22, 1.0, 0.5), Uniform((0.1, 0.0)).velocities(cells), CoulombLaw())
+    spec = rectangle(0.25, 0.22, 1.0, 0.5)
+    model = ParcelModel(cells, spec, Uniform((0.1, 0.0)).velocities(cells), CoulombLaw())
     end = integrate(model, np.array([0.15, 0.15, 0.0, 0.0, 0.0, 0.0]), 0.0, 0.01).states[-1]
     model.piece_at(end)  # found again: the cache's test of a solution
+    # the quiet step's compiled checks, with the argument types networked runs give them
+    stepper = QuietStepper(cells, [spec], model.law, [spec.mu], model.weight / spec.mass, 1e-10, 1e-12)
+    stepper._edges_clear(end[None], [anchor(model, end, 1.0)], 0.01, np.zeros(1), np.zeros(1),
+                         stepper.radius, stepper.lever)
     return time.perf_counter() - start
 
 
