@@ -418,11 +418,10 @@ def warm_up() -> float:
     and checking it as a quiet step would. The first integration of a process does this anyway; call it to
     do it at a time of your choosing (the set-up of ``make`` does, so that no later run waits). Returns the seconds
     it took."""
+    from .batch import QuietStepper, anchor  # here: batch imports this module
     from .fields import Uniform
     from .layout import grid
     from .parcel import rectangle
-
-    from .batch import QuietStepper, anchor
 
     start = time.perf_counter()
     cells = grid(4, 4, 0.1)
