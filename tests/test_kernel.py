@@ -143,9 +143,10 @@ def test_warming_up_leaves_the_engine_compiled():
 
 
 def test_warming_up_compiles_what_networked_runs_call():
-    """In a fresh process, warm_up() leaves the engine's compiled entry points, the quiet step's checks among them,
-    with the very signatures a networked run (25 parcels on 30 x 30, batched quiet ticks) then calls them with, so a
-    user's first networked run does not stop to compile: each is called, and none gains a signature."""
+    """In a fresh process, warm_up() leaves the engine's compiled entry points, the quiet step's checks and the cell
+    query among them, with the very signatures a networked run (25 parcels on 30 x 30, batched quiet ticks) then
+    calls them with, so a user's first networked run does not stop to compile: each is called, and none gains a
+    signature."""
     import subprocess
     import sys
     from pathlib import Path
@@ -154,22 +155,24 @@ def test_warming_up_compiles_what_networked_runs_call():
 import collections, json, sys
 sys.path.insert(0, %r)
 import bench_scale
-from virtual_vehicle import _kernel as k
+from virtual_vehicle import _kernel, parcel
 from virtual_vehicle.dynamics import warm_up
 from virtual_vehicle.scenario import parse_scenario
 from virtual_vehicle.sim import run_network
 warm_up()
-names = ("run_piece", "pattern", "cell_margins", "support_slack", "edges_clear")
-before = {n: len(getattr(k, n).signatures) for n in names}
+home = {n: _kernel for n in ("run_piece", "pattern", "cell_margins", "support_slack", "edges_clear")}
+home["_within"] = parcel
+names = tuple(home)
+before = {n: len(getattr(home[n], n).signatures) for n in names}
 calls = collections.Counter()
 def counted(n, f):
     def call(*args):
         calls[n] += 1
         return f(*args)
     return call
-kernels = {n: getattr(k, n) for n in names}
+kernels = {n: getattr(home[n], n) for n in names}
 for n in names:
-    setattr(k, n, counted(n, kernels[n]))
+    setattr(home[n], n, counted(n, kernels[n]))
 run_network(parse_scenario(bench_scale.scenario(30, 25, 0.5)).build())
 print(json.dumps([before, {n: len(kernels[n].signatures) for n in names}, calls]))
 """ % str(Path(__file__).resolve().parents[1] / "benchmarks")

@@ -118,11 +118,35 @@ def test_point_grid_gathers_every_point_within_reach(kind, seed, count, reach):
         assert np.all(np.abs(pts[mine] - centres[k]) <= radii[k] + slack)
 
 
+@pytest.mark.parametrize("kind", LAYOUTS)
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), reach=st.floats(0.0, 0.6), far=st.floats(0.0, 60.0))
+def test_point_grid_within_is_a_ball_query(kind, seed, reach, far):
+    """``within`` gives exactly the ids a KD-tree's sorted ball query gives, for centres on, near and far off the
+    layout (the bucket range clipped on every side), and of those only the ones ``present``."""
+    rng = np.random.default_rng(seed)
+    pts = LAYOUTS[kind](rng)
+    grid = parcel.PointGrid(pts)
+    lo, hi = (pts.min(axis=0), pts.max(axis=0)) if len(pts) else (np.zeros(2), np.ones(2))
+    present = rng.random(len(pts)) < 0.7
+    for centre in [*rng.uniform(lo - 0.5, hi + 0.5, size=(10, 2)), lo - far, hi + far, [lo[0] - far, hi[1]],
+                   [hi[0] + far, lo[1]], *(pts[:3] if len(pts) else [])]:
+        r = rng.uniform(0.0, reach)
+        expected = np.asarray(cKDTree(pts).query_ball_point(centre, r, return_sorted=True) if len(pts) else [],
+                              dtype=int)
+        got = grid.within(centre[0], centre[1], r)
+        assert got.tolist() == expected.tolist()
+        assert grid.within(centre[0], centre[1], r, present).tolist() == expected[present[expected]].tolist()
+
+
 def test_point_grid_refuses_what_it_cannot_bin():
     with pytest.raises(ValueError, match="finite"):
         parcel.PointGrid([[0.0, 0.0], [np.nan, 1.0]])
     with pytest.raises(ValueError, match="finite"):
         parcel.PointGrid([[0.0, 0.0], [1.0, 1.0]]).near([[0.0, np.inf]], 0.1)
+    for x, reach in ((np.nan, 0.1), (0.0, -0.1), (0.0, np.inf)):
+        with pytest.raises(ValueError, match="finite"):
+            parcel.PointGrid([[0.0, 0.0], [1.0, 1.0]]).within(x, 0.0, reach)
 
 
 def test_covered_pairs_are_the_points_strictly_under_each_footprint():

@@ -171,9 +171,7 @@ class ParcelModel:
         """The cells present within ``reach`` (m) of the centre of mass at state (or pose) ``y`` (ids, sorted), their
         footprint margins (m, as the event values compute them) and the smallest ``|margin|`` (inf for none)."""
         y = np.ascontiguousarray(y, dtype=float)
-        ids = np.asarray(self.cells.tree.query_ball_point(y[:2], reach, return_sorted=True), dtype=int)
-        if self.present is not None and len(ids):
-            ids = ids[self.present[ids]]
+        ids = self.cells.grid.within(y[0], y[1], reach, self.present)
         kind, _, half, normals, offsets, vertices = self.outline
         margins, nearest = _kernel.cell_margins(kind, half, normals, offsets, vertices, self.cells.positions[ids], y)
         return ids, margins, nearest
@@ -364,9 +362,7 @@ class _Segment:
             self.ids, self.center, self.candidates = previous.ids, previous.center, previous.candidates
         else:
             self.center = np.array(y0[:2], dtype=float)
-            ids = np.asarray(cells.tree.query_ball_point(self.center, spec.radius + self.buffer, return_sorted=True),
-                             dtype=int)
-            self.ids = ids if model.present is None else ids[model.present[ids]]
+            self.ids = cells.grid.within(self.center[0], self.center[1], spec.radius + self.buffer, model.present)
             self.candidates = cells.positions[self.ids]
         sol = piece.solution
         nc, m, q = len(self.ids), len(sol.points), len(sol.hull_offsets)

@@ -6,11 +6,13 @@ origin is the centre of mass; the pose (x, y, theta) places that frame in the wo
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
 import shapely
+from numba import njit
 from shapely import affinity
 
 from .errors import ScenarioError
@@ -294,6 +296,47 @@ class PointGrid:
         first = self.start[row * self.shape[0] + x0[owner]]
         counts = self.start[row * self.shape[0] + x1[owner] + 1] - first
         return np.repeat(owner, counts), self.order[_ranges(counts) + np.repeat(first, counts)]
+
+    def within(self, x: float, y: float, reach: float, present: np.ndarray | None = None) -> np.ndarray:
+        """Indices (ascending) of the points within ``reach`` (m) of (``x``, ``y``) (m): ``|p - c|^2 <= reach^2``, as
+        a KD-tree's ball query tests them; of those ``present`` ((n,) bool) only, when given. One compiled call over
+        the buckets the square about the centre meets (a KD-tree query took ~15 us, a quarter of a quiet-step
+        anchor; this takes ~2)."""
+        x, y, reach = float(x), float(y), float(reach)
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(reach) and reach >= 0):
+            raise ValueError(f"the centre must be finite and the reach finite and >= 0, got ({x}, {y}), {reach}")
+        keep = _ALL if present is None else present
+        return _within(self.points, self.order, self.start, self.lo[0], self.lo[1], self.size, self.shape[0],
+                       self.shape[1], keep, x, y, reach)
+
+
+_ALL = np.zeros(0, dtype=bool)
+"""An empty ``present`` mask for :func:`_within`: every point."""
+
+
+@njit(cache=True)
+def _within(points, order, start, lo0, lo1, size, nx, ny, present, x, y, reach):
+    """:meth:`PointGrid.within`, compiled; ``present`` empty for every point."""
+    # bucket columns and rows of the square, clipped to the grid in floats (no integer overflow far off it)
+    first_x = min(max(math.floor((x - reach - lo0) / size), 0.0), nx - 1.0)
+    last_x = min(max(math.floor((x + reach - lo0) / size), -1.0), nx - 1.0)
+    first_y = min(max(math.floor((y - reach - lo1) / size), 0.0), ny - 1.0)
+    last_y = min(max(math.floor((y + reach - lo1) / size), -1.0), ny - 1.0)
+    x0, x1, y0, y1 = int(first_x), int(last_x), int(first_y), int(last_y)  # x1 or y1 is -1 below or left of it
+    count = 0
+    for row in range(y0, y1 + 1):
+        count += start[row * nx + x1 + 1] - start[row * nx + x0]
+    out = np.empty(count, dtype=np.int64)
+    n = 0
+    r2 = reach * reach
+    for row in range(y0, y1 + 1):
+        for k in range(start[row * nx + x0], start[row * nx + x1 + 1]):
+            j = order[k]
+            dx, dy = points[j, 0] - x, points[j, 1] - y
+            if dx * dx + dy * dy <= r2 and (present.shape[0] == 0 or present[j]):
+                out[n] = j
+                n += 1
+    return np.sort(out[:n])
 
 
 def _ranges(counts: np.ndarray) -> np.ndarray:
