@@ -190,7 +190,8 @@ def solve_support(points, com, weight: float, *, lateral_support: bool = False,
         raise TippingError(
             f"centre of mass at ({com[0]:.6g}, {com[1]:.6g}) m is {outside:.3g} m outside the convex hull of its "
             f"{len(pts)} supporting cells: the parcel tips")
-    return _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, one_d=False, forces=forces)
+    return _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, one_d=False, forces=forces,
+                   planar=True)
 
 
 @njit(cache=True)
@@ -321,14 +322,15 @@ def _solve_line(origin, local, xi, weight, tol, lateral_support, line_direction)
     return _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, one_d=True)
 
 
-def _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, *, one_d,
-            forces=None) -> SupportSolution:
+def _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, *, one_d, forces=None,
+            planar: bool = False) -> SupportSolution:
     """The :class:`SupportSolution` from the results of :func:`_affine_map` (``mapped``) and, when computed, of
-    :func:`_force_map` (``forces``)."""
+    :func:`_force_map` (``forces``). ``planar``: the supports at ``local`` are known not to lie on one line."""
     in_contact, converged, plane_lin, plane_const = mapped
     if not converged:
         raise IntegrationError("the normal-force contact-set iteration did not converge")
-    flat = one_d or _collinear(local[in_contact])
+    # the contacts lie on one line only if some have lifted off, when the supports do not (most new solutions)
+    flat = one_d or (not (planar and in_contact.all()) and _collinear(local[in_contact]))
     if flat and not one_d:
         plane_const, h_normals, h_offsets = _on_contact_line(local, xi, basis, in_contact, plane_lin, plane_const,
                                                              weight, h_normals, h_offsets)
