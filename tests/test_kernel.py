@@ -143,10 +143,10 @@ def test_warming_up_leaves_the_engine_compiled():
 
 
 def test_warming_up_compiles_what_networked_runs_call():
-    """In a fresh process, warm_up() leaves the engine's compiled entry points, the quiet step's checks and the cell
-    query among them, with the very signatures a networked run (25 parcels on 30 x 30, batched quiet ticks) then
-    calls them with, so a user's first networked run does not stop to compile: each is called, and none gains a
-    signature."""
+    """In a fresh process, warm_up() leaves the engine's compiled entry points, the quiet step's checks and step and
+    the cell query among them, with the very signatures a networked run (25 parcels on 30 x 30, batched quiet
+    ticks) then calls them with, so a user's first networked run does not stop to compile: each is called, and none
+    gains a signature."""
     import subprocess
     import sys
     from pathlib import Path
@@ -160,7 +160,8 @@ from virtual_vehicle.dynamics import warm_up
 from virtual_vehicle.scenario import parse_scenario
 from virtual_vehicle.sim import run_network
 warm_up()
-home = {n: _kernel for n in ("run_piece", "pattern", "cell_margins", "support_slack", "edges_clear")}
+home = {n: _kernel for n in ("run_piece", "pattern", "cell_margins", "support_slack", "edges_clear",
+                                      "quiet_steps")}
 home["_within"] = parcel
 names = tuple(home)
 before = {n: len(getattr(home[n], n).signatures) for n in names}

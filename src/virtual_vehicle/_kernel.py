@@ -640,6 +640,35 @@ def _stage(row, y, h, K, a, s, work):
 
 
 @njit(cache=True)
+def _trial(row, y, f, h, rtol, atol, K, y_new, f_new, work):
+    """A trial step of DOP853 of length ``h`` from ``y`` with derivative ``f`` (scipy's ``rk_step``): fills the
+    stages ``K``, ``y_new`` and ``f_new``; returns the error norm (scipy's ``_estimate_error_norm``), below 1 for a
+    step DOP853 accepts."""
+    K[0] = f
+    for s in range(1, _N_STAGES):
+        _stage(row, y, h, K, _A[s], s, work)
+    for j in range(6):
+        acc = 0.0
+        for i in range(_N_STAGES):
+            acc += K[i, j] * _B[i]
+        y_new[j] = y[j] + h * acc
+    _rhs(row, y_new, f_new)
+    K[_N_STAGES] = f_new
+    err5 = err3 = 0.0
+    for j in range(6):
+        scale = atol + max(abs(y[j]), abs(y_new[j])) * rtol
+        e5 = e3 = 0.0
+        for i in range(_N_STAGES + 1):
+            e5 += K[i, j] * _E5[i]
+            e3 += K[i, j] * _E3[i]
+        err5 += (e5 / scale) ** 2
+        err3 += (e3 / scale) ** 2
+    if err5 == 0 and err3 == 0:
+        return 0.0
+    return abs(h) * err5 / math.sqrt((err5 + 0.01 * err3) * 6)
+
+
+@njit(cache=True)
 def _dop853_step(row, t, y, f, t_bound, h_abs, rtol, atol, max_step, K, y_new, f_new, work):
     """One accepted step of scipy's DOP853 (``RungeKutta._step_impl``) from (t, y) with derivative f: fills
     ``y_new``, ``f_new`` and the stages ``K``; returns (ok, t_new, h_abs for the next step, evaluations)."""
@@ -658,30 +687,8 @@ def _dop853_step(row, t, y, f, t_bound, h_abs, rtol, atol, max_step, K, y_new, f
             t_new = t_bound
         h = t_new - t
         h_abs = abs(h)
-        K[0] = f
-        for s in range(1, _N_STAGES):  # rk_step
-            _stage(row, y, h, K, _A[s], s, work)
-        for j in range(6):
-            acc = 0.0
-            for i in range(_N_STAGES):
-                acc += K[i, j] * _B[i]
-            y_new[j] = y[j] + h * acc
-        _rhs(row, y_new, f_new)
-        K[_N_STAGES] = f_new
+        norm = _trial(row, y, f, h, rtol, atol, K, y_new, f_new, work)
         nfev += _N_STAGES
-        err5 = err3 = 0.0
-        for j in range(6):
-            scale = atol + max(abs(y[j]), abs(y_new[j])) * rtol
-            e5 = e3 = 0.0
-            for i in range(_N_STAGES + 1):
-                e5 += K[i, j] * _E5[i]
-                e3 += K[i, j] * _E3[i]
-            err5 += (e5 / scale) ** 2
-            err3 += (e3 / scale) ** 2
-        if err5 == 0 and err3 == 0:
-            norm = 0.0
-        else:
-            norm = abs(h) * err5 / math.sqrt((err5 + 0.01 * err3) * 6)
         if norm < 1:
             factor = _MAX_FACTOR if norm == 0 else min(_MAX_FACTOR, _SAFETY * norm ** _ERROR_EXPONENT)
             if rejected:
@@ -708,6 +715,41 @@ def _dense(row, t_old, y_old, f_old, y_new, f_new, h, K, F, work):
                 acc += _D[r, i] * K[i, j]
             F[3 + r, j] = h * acc
     return _A_EXTRA.shape[0]
+
+
+@njit(cache=True)
+def quiet_steps(rows, Y, t, t_bound, rtol, atol, sample_times, out):
+    """For each parcel k, with constants ``rows[k]`` (:func:`~virtual_vehicle.dynamics.constants_row`, (n, 28)) at
+    state ``Y[k]`` (n, 6), the first step :func:`run_piece` takes from ``t`` to ``t_bound`` (s) on a new piece, when
+    that step reaches ``t_bound`` and DOP853 accepts it whole: then ``out[k, j]`` is its dense output at
+    ``sample_times[j]`` (in [t, t_bound]), as :func:`run_piece` samples it. The same code as :func:`run_piece`'s,
+    so a window with no event ends where the event engine ends it, to the last bit. Returns which parcels' steps
+    were accepted and the right-hand-side evaluations each took."""
+    n = Y.shape[0]
+    accepted = np.zeros(n, np.bool_)
+    K = np.empty((_N_EXTENDED, 6))
+    F = np.empty((_D.shape[0] + 3, 6))
+    f = np.empty(6)
+    y_new = np.empty(6)
+    f_new = np.empty(6)
+    work = np.empty(6)
+    min_step = 10 * abs(np.nextafter(t, np.inf) - t)
+    h_abs = max(t_bound - t, min_step)  # _dop853_step's first trial from run_piece's first step
+    t_new = t + h_abs
+    if t_new - t_bound > 0:
+        t_new = t_bound
+    h = t_new - t
+    if t_new != t_bound:  # rounding left a sliver: run_piece would take a second step
+        return accepted, 0
+    for k in range(n):
+        y = Y[k]
+        _rhs(rows[k], y, f)
+        if _trial(rows[k], y, f, h, rtol, atol, K, y_new, f_new, work) < 1:
+            accepted[k] = True
+            _dense(rows[k], t, y, f, y_new, f_new, h, K, F, work)
+            for j in range(sample_times.shape[0]):
+                dense_at(F, y, t, h, sample_times[j], out[k, j])
+    return accepted, 1 + _N_STAGES + _A_EXTRA.shape[0]
 
 
 @njit(cache=True)

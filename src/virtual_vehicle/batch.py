@@ -1,4 +1,4 @@
-"""Quiet windows stepped together: many separately moving parcels in one vectorised Dormand-Prince step.
+"""Quiet windows stepped together: many separately moving parcels in one compiled call of Dormand-Prince steps.
 
 Units: SI (m, s, kg, N, rad).
 
@@ -6,8 +6,9 @@ A networked run advances the plant one control tick at a time, and most ticks of
 enters or leaves the footprint, none lifts off or touches down, and the centre of mass stays inside the supports. For
 such a window the event-driven engine (:func:`~virtual_vehicle.dynamics.integrate`) finds no event and takes one
 DOP853 step over it, but spends most of a millisecond setting that step up. :class:`QuietStepper` proves windows
-quiet and takes that same step (same tableau, same error test, same dense output) for all quiet parcels at once,
-with each parcel's piece constants (:func:`~virtual_vehicle.dynamics.constants_row`) as arrays.
+quiet and takes that same step for all quiet parcels in one call (:func:`~virtual_vehicle._kernel.quiet_steps`, the
+engine's own compiled step and dense output, so the states are the engine's to the last bit), with each parcel's
+piece constants (:func:`~virtual_vehicle.dynamics.constants_row`) as the rows of an array.
 
 The proof is a bound, not a sample. Let ``r`` bound how far any point of a parcel can move in the window (the
 planner has already ruled out pushes from other parcels). Two bounds hold, and the smaller is used:
@@ -51,13 +52,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.integrate import DOP853
 
 from .collide import reach_bounds
 from .contact import SupportSolution
 from . import _kernel
-from ._kernel import accelerations
-from .dynamics import _NOISE, ROW_LENGTH, ParcelModel, Trajectory, constants_row
+from .dynamics import _NOISE, ParcelModel, Trajectory, constants_row
 from .errors import TippingError
 from .friction import ViscousLaw
 
@@ -272,16 +271,10 @@ class QuietStepper:
         rest = [idx[k] for k in np.flatnonzero(~ok)]
         if not len(quiet):
             return {}, rest
-        y_new, accepted, dense, evals = dop853_step([anchors[k].row for k in quiet], Y[quiet], window, self.rtol,
-                                                    self.atol)
-        inside = samples[(samples > t) & (samples < te)]
-        Yq = Y[quiet]
-        end = Yq + (y_new - Yq)  # the dense output at the step's end, as the event engine samples it
-        parts = [Yq[:, None], end[:, None]]
-        if len(inside):
-            parts.insert(1, np.swapaxes(dense(inside - t), 0, 1))
-        states = np.concatenate(parts, axis=1)  # (quiet parcels, samples, 6): each parcel's samples are a view
-        times = np.concatenate([[t], inside, [te]])
+        times = np.concatenate([[t], samples[(samples > t) & (samples < te)], [te]])
+        states = np.empty((len(quiet), len(times), 6))  # each parcel's samples are a view of it
+        accepted, evals = _kernel.quiet_steps(np.array([anchors[k].row for k in quiet]), Y[quiet], t, te, self.rtol,
+                                              self.atol, times, states)
         for shared in (states, times):
             shared.setflags(write=False)  # one array behind many trajectories
         out = {}
@@ -290,70 +283,7 @@ class QuietStepper:
             if not accepted[n]:
                 rest.append(i)
                 continue
-            out[i] = Trajectory(times, states[n], [], "completed", te, 1, evals + (3 if len(inside) else 0),
+            out[i] = Trajectory(times, states[n], [], "completed", te, 1, evals,
                                 {"solves": anchors[k].geometry.solves})
         return out, rest
 
-
-_FEW = 12
-"""Up to this many parcels the right-hand side is evaluated parcel by parcel in plain floats (cheaper than array
-operations on a handful of entries); above it, on arrays."""
-
-
-def _derivatives(rows, columns, Y: np.ndarray) -> np.ndarray:
-    """(n, 6) state derivatives of n parcels at states ``Y`` (n, 6): ``rows`` their constants, ``columns`` the same
-    as arrays (None below ``_FEW`` parcels)."""
-    if columns is None:
-        return np.array([(y[3], y[4], y[5], *accelerations(row, y[0], y[1], y[3], y[4], y[5]))
-                         for row, y in zip(rows, Y.tolist())])
-    ax, ay, alpha = accelerations(columns, Y[:, 0], Y[:, 1], Y[:, 3], Y[:, 4], Y[:, 5])
-    return np.column_stack((Y[:, 3], Y[:, 4], Y[:, 5], ax, ay, alpha))
-
-
-def _combine(a: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """sum_s a[s] K[s] for stages K (s, n, 6)."""
-    return (a @ K.reshape(len(a), -1)).reshape(K.shape[1:])
-
-
-def dop853_step(rows, Y: np.ndarray, h: float, rtol: float, atol: float):
-    """One step of length ``h`` (s) of scipy's DOP853 for n independent parcels at once.
-
-    ``rows`` are the parcels' :func:`~virtual_vehicle.dynamics.constants_row` tuples, ``Y`` (n, 6) their states.
-    Returns the new states (n, 6), which parcels pass DOP853's error test (its norm, per parcel, below 1: then
-    scipy, started with this step, takes exactly it), a function giving the dense output at times ``tau`` (s, from
-    the step's start) as (len(tau), n, 6), and the evaluations made per parcel.
-    """
-    if any(len(row) != ROW_LENGTH for row in rows):
-        raise ValueError(f"every row of constants must have {ROW_LENGTH} entries")
-    columns = tuple(np.array(rows).T) if len(rows) > _FEW else None
-    n_stages = DOP853.n_stages
-    K = np.empty((DOP853.D.shape[1], len(Y), 6))
-    K[0] = _derivatives(rows, columns, Y)
-    for s in range(1, n_stages):
-        K[s] = _derivatives(rows, columns, Y + _combine(DOP853.A[s, :s], K[:s]) * h)
-    y_new = Y + h * _combine(DOP853.B, K[:n_stages])
-    K[n_stages] = _derivatives(rows, columns, y_new)
-    scale = atol + np.maximum(np.abs(Y), np.abs(y_new)) * rtol
-    err5 = np.sum((_combine(DOP853.E5, K[:n_stages + 1]) / scale) ** 2, axis=1)
-    err3 = np.sum((_combine(DOP853.E3, K[:n_stages + 1]) / scale) ** 2, axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        norm = np.where((err5 == 0) & (err3 == 0), 0.0, abs(h) * err5 / np.sqrt((err5 + 0.01 * err3) * 6))
-    accepted = norm < 1
-
-    def dense(tau_abs):
-        for s, a in enumerate(DOP853.A_EXTRA, start=n_stages + 1):
-            K[s] = _derivatives(rows, columns, Y + _combine(a[:s], K[:s]) * h)
-        delta = y_new - Y
-        F = [delta, h * K[0] - delta, 2 * delta - h * (K[n_stages] + K[0]),
-             *(h * _combine(row, K) for row in DOP853.D)]
-        out = []
-        for tau in np.atleast_1d(tau_abs):
-            x = tau / h
-            y = np.zeros_like(Y)
-            for j, f in enumerate(reversed(F)):
-                y += f
-                y *= x if j % 2 == 0 else 1 - x
-            out.append(y + Y)
-        return np.array(out)
-
-    return y_new, accepted, dense, n_stages + 1

@@ -408,10 +408,10 @@ _PAUSE_STEPS = 64
 
 def warm_up() -> float:
     """Compile the event engine's inner loop (:mod:`virtual_vehicle._kernel`), the support solve's compiled parts
-    (:mod:`virtual_vehicle.contact`, :mod:`virtual_vehicle.friction`) and the quiet step's checks
+    (:mod:`virtual_vehicle.contact`, :mod:`virtual_vehicle.friction`) and the quiet step's checks and step
     (:mod:`virtual_vehicle.batch`; about 40 s together, the first time on a machine) or load them from numba's cache
     (a fraction of a second), by integrating one parcel on a 4 x 4 array for 10 ms, looking its last piece up again
-    and checking it as a quiet step would. The first integration of a process does this anyway; call it to
+    and checking and stepping it as a quiet step would. The first integration of a process does this anyway; call it to
     do it at a time of your choosing (the set-up of ``make`` does, so that no later run waits). Returns the seconds
     it took."""
     from .batch import QuietStepper, anchor  # here: batch imports this module
@@ -429,6 +429,8 @@ def warm_up() -> float:
     stepper = QuietStepper(cells, [spec], model.law, [spec.mu], model.weight / spec.mass, 1e-10, 1e-12)
     stepper._edges_clear(end[None], [anchor(model, end, 1.0)], 0.01, np.zeros(1), np.zeros(1),
                          stepper.radius, stepper.lever)
+    _kernel.quiet_steps(np.array([model.piece_at(end).row]), end[None], 0.01, 0.02, 1e-10, 1e-12,
+                        np.array([0.01, 0.02]), np.empty((1, 2, 6)))
     return time.perf_counter() - start
 
 
