@@ -6,7 +6,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from virtual_vehicle.contact import solve_support
-from virtual_vehicle.friction import CoulombLaw, ViscousLaw, coulomb_constants, viscous_constants
+from virtual_vehicle._kernel import accelerations
+from virtual_vehicle.dynamics import constants_row
+from virtual_vehicle.friction import LAWS, CoulombLaw, ViscousLaw, coulomb_constants, viscous_constants
 
 D = 0.1
 X2x2 = np.array([[-D / 2, -D / 2], [D / 2, -D / 2], [-D / 2, D / 2], [D / 2, D / 2]])  # eq. 20
@@ -37,7 +39,7 @@ def test_coulomb_law_derives_eq21_from_wheel_velocities():
 
 
 @settings(max_examples=80, deadline=None)
-@given(st.integers(0, 10_000), st.sampled_from(["coulomb", "viscous"]))
+@given(st.integers(0, 10_000), st.sampled_from(["coulomb", "viscous", "stick_slip"]))
 def test_constants_equal_direct_per_cell_sums(seed, law_name):
     """f = a X + b and tau = X^T c X + (d + e) X + f (eqs. 23, 29, 33, 38) against the sums of eqs. 22/24, 30/34."""
     rng = np.random.default_rng(seed)
@@ -48,7 +50,7 @@ def test_constants_equal_direct_per_cell_sums(seed, law_name):
     U = np.broadcast_to(np.array([[c, s], [-s, c]]), (m, 2, 2))
     V = rng.uniform(-1, 1, size=(m, 2))
     W, mu = 15.0, 0.4
-    law = CoulombLaw() if law_name == "coulomb" else ViscousLaw()
+    law = LAWS[law_name]  # stick-slip: the sliding regime's, Coulomb's
     com = P.mean(axis=0) + 0.3 * (P[0] - P.mean(axis=0))
     sol = solve_support(P, com, W)
     k = law.constants(sol, V, U, mu)
@@ -58,6 +60,16 @@ def test_constants_equal_direct_per_cell_sums(seed, law_name):
     xi = com - sol.origin
     np.testing.assert_allclose(k.force(xi, state[3:5], state[5]), [fx, fy], atol=1e-10 * W)
     np.testing.assert_allclose(k.torque(xi, state[3:5], state[5]), tau, atol=1e-10 * W)
+    # the law's compiled constants and row: the same constants to the last bit, and a row whose accelerations are
+    # the direct sums over the mass and inertia
+    mass, inertia = 2.5, 0.3
+    k2, row = law.constants_and_row(sol, V, U, mu, mass, inertia)
+    for name in ("a", "b", "c", "d", "e", "f", "damping", "weight", "moment_lin", "moment_const", "second_lin",
+                 "second_const"):
+        assert np.array_equal(getattr(k2, name), getattr(k, name)), name
+    assert row == constants_row(k, sol.origin, mass, inertia) and all(type(v) is float for v in row)
+    np.testing.assert_allclose(accelerations(row, *com, *state[3:]), [fx / mass, fy / mass, tau / inertia],
+                               atol=1e-10 * W / min(mass, inertia))
 
 
 def test_viscous_translation_is_coulomb_form_plus_damping():

@@ -56,7 +56,7 @@ import numpy as np
 from .collide import reach_bounds
 from .contact import SupportSolution
 from . import _kernel
-from .dynamics import _NOISE, ParcelModel, Trajectory, constants_row
+from .dynamics import _NOISE, ParcelModel, Trajectory
 from .errors import TippingError
 from .friction import ViscousLaw
 
@@ -146,8 +146,7 @@ class QuietStepper:
         v = velocities[a.support]
         model = base[i]
         a.velocities = v.copy()
-        a.row = constants_row(model.constants_for(a.support, a.solution, v), a.solution.origin,
-                              model.spec.mass, model.spec.inertia)
+        a.row = model.constants_and_row(a.support, a.solution, v)[1]
         if not self.viscous:
             drive = self.law.drive_vectors(v, self.cells.active_directions[a.support])
             a.drive = float(np.max(np.hypot(drive[:, 0], drive[:, 1])))

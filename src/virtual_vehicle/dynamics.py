@@ -35,7 +35,7 @@ from . import _kernel
 from ._kernel import accelerations
 from .contact import SupportSolution, solve_support
 from .errors import IntegrationError, TippingError
-from .friction import CoulombLaw, FrictionConstants, FrictionLaw, StickSlipLaw
+from .friction import CoulombLaw, FrictionConstants, FrictionLaw, StickSlipLaw, ViscousLaw, _row
 from .layout import CellArray
 from .parcel import ParcelSpec
 
@@ -100,19 +100,22 @@ class Piece:
         return self.solution.forces(np.asarray(y[:2], dtype=float))
 
 
-def _rebuild_piece(support, solution, constants, mass, inertia) -> "Piece":
-    row = constants_row(constants, solution.origin, mass, inertia)
+def _rebuild_piece(support, solution, constants, mass, inertia, row=None) -> "Piece":
+    """The piece of these parts; ``row`` is :func:`constants_row` of them, computed here when not given."""
+    if row is None:
+        row = constants_row(constants, solution.origin, mass, inertia)
     return Piece(support, solution, constants, _make_rhs(row), mass, inertia, row)
 
 
 def constants_row(k: FrictionConstants, origin: np.ndarray, mass: float, inertia: float) -> tuple[float, ...]:
     """A piece's constants as plain floats, in the order :func:`~virtual_vehicle._kernel.accelerations` takes them:
     local origin (m), the force and torque constants of eqs. 23 and 29, the viscous coefficient and weight, the
-    moments of eqs. 33 and 38, then 1 / mass and 1 / inertia."""
-    return (float(origin[0]), float(origin[1]), *map(float, k.a.ravel()), float(k.b[0]), float(k.b[1]),
-            *map(float, k.c.ravel()), float(k.d[0] + k.e[0]), float(k.d[1] + k.e[1]), float(k.f), float(k.damping),
-            float(k.weight), *map(float, k.moment_lin.ravel()), float(k.moment_const[0]), float(k.moment_const[1]),
-            float(k.second_lin[0]), float(k.second_lin[1]), float(k.second_const), 1.0 / mass, 1.0 / inertia)
+    moments of eqs. 33 and 38, then 1 / mass and 1 / inertia. (A law's ``constants_and_row`` makes the same row
+    with its constants, in one compiled call.)"""
+    f64 = np.ascontiguousarray
+    return tuple(_row(*(f64(v, dtype=float) for v in (k.a, k.b, k.c, k.d, k.e)), float(k.f), float(k.damping),
+                      float(k.weight), *(f64(v, dtype=float) for v in (k.moment_lin, k.moment_const, k.second_lin)),
+                      float(k.second_const), f64(origin, dtype=float), 1.0 / mass, 1.0 / inertia).tolist())
 
 
 ROW_LENGTH = 28
@@ -228,7 +231,8 @@ class ParcelModel:
             if piece.solution.holds(X - piece.solution.origin):
                 return piece
         sol = self.solution_for(support, X)
-        piece = self._make_piece(support, sol, self.constants_for(support, sol, self.velocities[support]))
+        k, row = self.constants_and_row(support, sol, self.velocities[support])
+        piece = _rebuild_piece(support, sol, k, self.spec.mass, self.spec.inertia, row)
         existing = self._pieces.get(piece.key)
         if existing is not None:
             return existing
@@ -272,8 +276,12 @@ class ParcelModel:
         ``velocities`` ((len(support), 2), m/s)."""
         return self.law.constants(sol, velocities, self.cells.active_directions[support], self.spec.mu)
 
-    def _make_piece(self, support: np.ndarray, sol: SupportSolution, k: FrictionConstants) -> Piece:
-        return _rebuild_piece(support, sol, k, self.spec.mass, self.spec.inertia)
+    def constants_and_row(self, support: np.ndarray, sol: SupportSolution,
+                          velocities: np.ndarray) -> tuple[FrictionConstants, tuple[float, ...]]:
+        """:meth:`constants_for` and the piece's constants row (:func:`constants_row`) in one compiled call."""
+        spec = self.spec
+        return self.law.constants_and_row(sol, velocities, self.cells.active_directions[support], spec.mu, spec.mass,
+                                          spec.inertia)
 
     @property
     def pieces_cached(self) -> int:
@@ -410,8 +418,8 @@ def warm_up() -> float:
     """Compile the event engine's inner loop (:mod:`virtual_vehicle._kernel`), the support solve's compiled parts
     (:mod:`virtual_vehicle.contact`, :mod:`virtual_vehicle.friction`) and the quiet step's checks and step
     (:mod:`virtual_vehicle.batch`; about 40 s together, the first time on a machine) or load them from numba's cache
-    (a fraction of a second), by integrating one parcel on a 4 x 4 array for 10 ms, looking its last piece up again
-    and checking and stepping it as a quiet step would. The first integration of a process does this anyway; call it to
+    (a fraction of a second), by integrating one parcel on a 4 x 4 array for 10 ms, looking its last piece up again,
+    making its constants under the viscous law too, and checking and stepping it as a quiet step would. The first integration of a process does this anyway; call it to
     do it at a time of your choosing (the set-up of ``make`` does, so that no later run waits). Returns the seconds
     it took."""
     from .batch import QuietStepper, anchor  # here: batch imports this module
@@ -424,12 +432,15 @@ def warm_up() -> float:
     spec = rectangle(0.25, 0.22, 1.0, 0.5)
     model = ParcelModel(cells, spec, Uniform((0.1, 0.0)).velocities(cells), CoulombLaw())
     end = integrate(model, np.array([0.15, 0.15, 0.0, 0.0, 0.0, 0.0]), 0.0, 0.01).states[-1]
-    model.piece_at(end)  # found again: the cache's test of a solution
+    piece = model.piece_at(end)  # found again: the cache's test of a solution
+    ViscousLaw().constants_and_row(piece.solution, model.velocities[piece.support],
+                                   cells.active_directions[piece.support], 0.5, spec.mass, spec.inertia)
+    constants_row(piece.constants, piece.solution.origin, spec.mass, spec.inertia)  # as unpickling a piece does
     # the quiet step's compiled checks, with the argument types networked runs give them
     stepper = QuietStepper(cells, [spec], model.law, [spec.mu], model.weight / spec.mass, 1e-10, 1e-12)
     stepper._edges_clear(end[None], [anchor(model, end, 1.0)], 0.01, np.zeros(1), np.zeros(1),
                          stepper.radius, stepper.lever)
-    _kernel.quiet_steps(np.array([model.piece_at(end).row]), end[None], 0.01, 0.02, 1e-10, 1e-12,
+    _kernel.quiet_steps(np.array([piece.row]), end[None], 0.01, 0.02, 1e-10, 1e-12,
                         np.array([0.01, 0.02]), np.empty((1, 2, 6)))
     return time.perf_counter() - start
 

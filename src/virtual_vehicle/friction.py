@@ -86,13 +86,18 @@ class FrictionConstants:
         return tau
 
 
+def _f64(a) -> np.ndarray:
+    """``a`` as a contiguous float64 array (no copy when it is one), as the compiled sums take it."""
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
 def drive_constants(points, drive, force_lin, force_const, weight: float, mu: float, damping: float = 0.0) -> FrictionConstants:
     """Constants for per-cell driving vectors ``drive`` ((m, 2)) and the affine normal-force map
     ``N = force_lin @ X_c + force_const`` over the cells at ``points`` ((m, 2), m), all in one frame.
 
     The driving force of cell i is ``mu N_i drive_i``: ``drive`` is the paper's F (Coulomb) or V (viscous).
     """
-    P, D, G, h = (np.ascontiguousarray(v, dtype=np.float64) for v in (points, drive, force_lin, force_const))
+    P, D, G, h = (_f64(v) for v in (points, drive, force_lin, force_const))
     a, b, c, d, e, f, moment_lin, moment_const, second_lin, second_const = _drive_terms(P, D, G, h, float(mu))
     return FrictionConstants(a, b, c, d, e, f, float(damping), float(weight), moment_lin, moment_const, second_lin,
                              second_const)
@@ -120,6 +125,44 @@ def _drive_terms(P, D, G, h, mu):
     c[0], c[1] = -a[1], a[0]
     d = np.array([-b[1], b[0]])  # eq. 28, term pre-multiplied by X_c^T: d = -J b
     return a, b, c, d, e, f, moment_lin, moment_const, second_lin, second_const
+
+
+@njit(cache=True)
+def _row(a, b, c, d, e, f, damping, weight, moment_lin, moment_const, second_lin, second_const, origin, inv_mass,
+         inv_inertia):
+    """A piece's constants as one array, in the order :func:`~virtual_vehicle._kernel.accelerations` takes them
+    (documented at :func:`~virtual_vehicle.dynamics.constants_row`, which calls this)."""
+    return np.array([origin[0], origin[1], a[0, 0], a[0, 1], a[1, 0], a[1, 1], b[0], b[1],
+                     c[0, 0], c[0, 1], c[1, 0], c[1, 1], d[0] + e[0], d[1] + e[1], f, damping, weight,
+                     moment_lin[0, 0], moment_lin[0, 1], moment_lin[1, 0], moment_lin[1, 1],
+                     moment_const[0], moment_const[1], second_lin[0], second_lin[1], second_const,
+                     inv_mass, inv_inertia])
+
+
+@njit(cache=True)
+def _terms_and_row(P, D, G, h, mu, damping, weight, origin, inv_mass, inv_inertia):
+    """:func:`_drive_terms` and the row of the piece they make (:func:`_row`), in one compiled call."""
+    a, b, c, d, e, f, moment_lin, moment_const, second_lin, second_const = _drive_terms(P, D, G, h, mu)
+    return a, b, c, d, e, f, moment_lin, moment_const, second_lin, second_const, _row(
+        a, b, c, d, e, f, damping, weight, moment_lin, moment_const, second_lin, second_const, origin, inv_mass,
+        inv_inertia)
+
+
+@njit(cache=True)
+def _coulomb_terms_and_row(V, U, P, G, h, mu, weight, origin, inv_mass, inv_inertia):
+    """:func:`_terms_and_row` of the Coulomb drive vectors of velocities ``V`` and directions ``U`` (eq. 21)."""
+    return _terms_and_row(P, _coulomb_drive(V, U), G, h, mu, 0.0, weight, origin, inv_mass, inv_inertia)
+
+
+def _unpack_terms(terms, damping: float, weight: float) -> tuple[FrictionConstants, tuple[float, ...]]:
+    """The :class:`FrictionConstants` and the row from the results of :func:`_terms_and_row`."""
+    *k, row = terms
+    return FrictionConstants(*k[:6], float(damping), float(weight), *k[6:]), tuple(row.tolist())
+
+
+def _solution_arrays(solution):
+    """The supports and normal-force map of a solved support set, as the compiled sums take them."""
+    return solution.points, solution.force_lin, solution.force_const
 
 
 @njit(cache=True)
@@ -181,6 +224,11 @@ class FrictionLaw(Protocol):
         """The per-support-set constants (eqs. 20-29 Coulomb, 30-38 viscous) of a solved support set: the parcel's
         wrench is then affine in its state."""
 
+    def constants_and_row(self, solution: SupportSolution, velocities: np.ndarray, drive_directions: np.ndarray,
+                          mu: float, mass: float, inertia: float) -> tuple[FrictionConstants, tuple[float, ...]]:
+        """:meth:`constants` and the piece's constants row (:func:`~virtual_vehicle.dynamics.constants_row`) for a
+        parcel of ``mass`` (kg) and ``inertia`` (kg m^2), in one compiled call (a new piece needs both)."""
+
     def wrench(self, points, normal, velocities, drive_directions, mu: float, state) -> tuple[float, float, float]:
         """The net horizontal force (N, N) and torque (N m) on the parcel by direct summation over the cells at
         ``points`` with normal forces ``normal`` (N); ``state`` = (x, y, theta, vx, vy, omega)."""
@@ -203,13 +251,18 @@ class CoulombLaw:
 
     def drive_vectors(self, velocities, drive_directions) -> np.ndarray:
         """Per-cell F (eq. 21): ``sum_k sign(V_i . u_k) u_k``."""
-        return _coulomb_drive(np.ascontiguousarray(velocities, dtype=np.float64),
-                              np.ascontiguousarray(drive_directions, dtype=np.float64))
+        return _coulomb_drive(_f64(velocities), _f64(drive_directions))
 
     def constants(self, solution, velocities, drive_directions, mu) -> FrictionConstants:
         """Per-support-set constants (eqs. 20-29) from the drive vectors of eq. 21."""
         F = self.drive_vectors(velocities, drive_directions)
         return drive_constants(solution.points, F, solution.force_lin, solution.force_const, solution.weight, mu)
+
+    def constants_and_row(self, solution, velocities, drive_directions, mu, mass, inertia):
+        """See :meth:`FrictionLaw.constants_and_row`."""
+        terms = _coulomb_terms_and_row(_f64(velocities), _f64(drive_directions), *_solution_arrays(solution),
+                                       float(mu), float(solution.weight), solution.origin, 1.0 / mass, 1.0 / inertia)
+        return _unpack_terms(terms, 0.0, solution.weight)
 
     def wrench(self, points, normal, velocities, drive_directions, mu, state):
         """Direct per-cell sum (eqs. 22, 24) for checking the constants; ``state`` = (x, y, theta, vx, vy, omega)."""
@@ -232,6 +285,13 @@ class ViscousLaw:
         """Per-support-set constants (eqs. 30-38): the wrench is linear in the parcel's twist."""
         return drive_constants(solution.points, velocities, solution.force_lin, solution.force_const,
                                solution.weight, mu, damping=mu)
+
+    def constants_and_row(self, solution, velocities, drive_directions, mu, mass, inertia):
+        """See :meth:`FrictionLaw.constants_and_row`."""
+        P, G, h = _solution_arrays(solution)
+        terms = _terms_and_row(P, _f64(velocities), G, h, float(mu), float(mu), float(solution.weight),
+                               solution.origin, 1.0 / mass, 1.0 / inertia)
+        return _unpack_terms(terms, mu, solution.weight)
 
     def wrench(self, points, normal, velocities, drive_directions, mu, state):
         """Direct per-cell sum of eq. 30 and its torque (eq. 34)."""
@@ -261,6 +321,10 @@ class StickSlipLaw:
     def constants(self, solution, velocities, drive_directions, mu) -> FrictionConstants:
         """Per-support-set geometry (the law's wrench is solved per step, not affine in the state)."""
         return CoulombLaw().constants(solution, velocities, drive_directions, mu)
+
+    def constants_and_row(self, solution, velocities, drive_directions, mu, mass, inertia):
+        """See :meth:`FrictionLaw.constants_and_row` (the sliding regime's, as :meth:`constants`)."""
+        return CoulombLaw().constants_and_row(solution, velocities, drive_directions, mu, mass, inertia)
 
     def wrench(self, points, normal, velocities, drive_directions, mu, state):
         """The sliding-regime wrench (every wheel at its kinetic bound in its direction of spin)."""
