@@ -3,8 +3,9 @@ asserts nothing about time.
 
 This VM runs the same code up to ~1.5x apart from one process launch to the next, so two tables taken minutes
 apart cannot tell a 10 % change from the machine's mood. This runs one case in fresh processes, alternating the two
-commits round by round (each commit's source checked out once into a temporary git worktree, and run once unmeasured
-so that numba's compiled code is cached), and prints every wall time and the medians.
+commits round by round and which goes first (a machine that drifts over the rounds would otherwise favour one), each
+commit's source checked out once into a temporary git worktree and run once unmeasured so that numba's compiled
+code is cached, and prints every wall time and the medians.
 
 Cases (the figures of ``RESULTS.md``):
 - ``scale200``: ``run_network`` on 100 x 100 cells with 200 parcels, 1 s simulated (``bench_scale.py``'s largest);
@@ -100,13 +101,15 @@ def main() -> None:
             print(f"# {args.case}: {args.rounds} rounds, {args.a} and {args.b} alternated, wall s")
             print(f"{'round':>5}{args.a:>14}{args.b:>14}")
             for k in range(args.rounds):
-                row = []
-                for rev, path in trees.items():
+                row = {}
+                # a, b in even rounds and b, a in odd ones: a machine that speeds up or slows down over the
+                # rounds would otherwise favour whichever commit always runs first
+                for rev, path in list(trees.items())[::1 if k % 2 == 0 else -1]:
                     r = _run(path / "src", args.case)
                     walls[rev].append(r["wall"])
                     ends[rev] = r["end"]
-                    row.append(r["wall"])
-                print(f"{k + 1:>5}{row[0]:>14.3f}{row[1]:>14.3f}")
+                    row[rev] = r["wall"]
+                print(f"{k + 1:>5}{row[args.a]:>14.3f}{row[args.b]:>14.3f}")
             med = [statistics.median(walls[rev]) for rev in trees]
             gain = (med[0] - med[1]) / med[0] * 100
             print(f"{'median':>5}{med[0]:>14.3f}{med[1]:>14.3f}   ({args.b} {abs(gain):.1f} % "
