@@ -35,7 +35,7 @@ from . import _kernel
 from ._kernel import accelerations
 from .contact import SupportSolution, solve_support
 from .errors import IntegrationError, TippingError
-from .friction import CoulombLaw, FrictionConstants, FrictionLaw, StickSlipLaw, ViscousLaw, _row
+from .friction import CoulombLaw, FrictionConstants, FrictionLaw, StickSlipLaw, ViscousLaw, _f64, _row
 from .layout import CellArray
 from .parcel import ParcelSpec
 
@@ -112,14 +112,9 @@ def constants_row(k: FrictionConstants, origin: np.ndarray, mass: float, inertia
     local origin (m), the force and torque constants of eqs. 23 and 29, the viscous coefficient and weight, the
     moments of eqs. 33 and 38, then 1 / mass and 1 / inertia. (A law's ``constants_and_row`` makes the same row
     with its constants, in one compiled call.)"""
-    f64 = np.ascontiguousarray
-    return tuple(_row(*(f64(v, dtype=float) for v in (k.a, k.b, k.c, k.d, k.e)), float(k.f), float(k.damping),
-                      float(k.weight), *(f64(v, dtype=float) for v in (k.moment_lin, k.moment_const, k.second_lin)),
-                      float(k.second_const), f64(origin, dtype=float), 1.0 / mass, 1.0 / inertia).tolist())
-
-
-ROW_LENGTH = 28
-"""Length of :func:`constants_row`."""
+    return tuple(_row(*map(_f64, (k.a, k.b, k.c, k.d, k.e)), float(k.f), float(k.damping), float(k.weight),
+                      *map(_f64, (k.moment_lin, k.moment_const, k.second_lin)), float(k.second_const), _f64(origin),
+                      1.0 / mass, 1.0 / inertia).tolist())
 
 
 def _make_rhs(row: tuple[float, ...]):
@@ -419,9 +414,9 @@ def warm_up() -> float:
     (:mod:`virtual_vehicle.contact`, :mod:`virtual_vehicle.friction`) and the quiet step's checks and step
     (:mod:`virtual_vehicle.batch`; about 40 s together, the first time on a machine) or load them from numba's cache
     (a fraction of a second), by integrating one parcel on a 4 x 4 array for 10 ms, looking its last piece up again,
-    making its constants under the viscous law too, and checking and stepping it as a quiet step would. The first integration of a process does this anyway; call it to
-    do it at a time of your choosing (the set-up of ``make`` does, so that no later run waits). Returns the seconds
-    it took."""
+    making its constants under the viscous law too, and checking and stepping it as a quiet step would. The first
+    integration of a process does this anyway; call it to do it at a time of your choosing (the set-up of ``make``
+    does, so that no later run waits). Returns the seconds it took."""
     from .batch import QuietStepper, anchor  # here: batch imports this module
     from .fields import Uniform
     from .layout import grid
