@@ -270,6 +270,19 @@ def test_networked_runs_agree_with_and_without_batching(law):
     assert sum(len(p.trajectory.events) for p in on.parcels) > 0  # events happened and were found by the engine
 
 
+def test_networked_trajectories_hold_the_output_grid_and_the_end():
+    """A networked run keeps of each parcel the samples on the output grid (every ``output_dt`` s) while it is on the
+    array and its last state: not the 100 Hz control ticks, nor the plant's restarts within a tick (the plant hands
+    its tracks the untrimmed trajectory of each tick)."""
+    res = run_network(parse_scenario(scale_scenario(30, 5, 0.32)).build())  # output_dt 0.05 s
+    grid = np.round(np.arange(0.0, 0.32, 0.05), 12)
+    for p in res.parcels:
+        times = p.trajectory.times
+        on = np.isin(np.round(times, 12), grid)
+        assert on[:-1].all() and times[-1] == pytest.approx(0.32)
+        assert times[on].tolist() == pytest.approx(grid[grid >= times[0] - 1e-12].tolist())
+
+
 def test_a_hall_with_belts_agrees_with_and_without_batching():
     """hybrid_junction: plain feed belts (a contact layer of belts) into a sorting floor."""
     out = {}

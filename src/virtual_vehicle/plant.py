@@ -265,12 +265,15 @@ class Plant:
     # -- advancing ---------------------------------------------------------------------------------------------
     def advance(self, ys: list[np.ndarray], active: list[bool], velocities: np.ndarray, t0: float, t1: float,
                 sample_dt: float, progress: Callable[[float], None] | None = None,
-                sample_times: np.ndarray | None = None) -> list[Trajectory | None]:
+                sample_times: np.ndarray | None = None, trim: bool = True) -> list[Trajectory | None]:
         """Move every active parcel from ``t0`` to ``t1`` (s) under constant contact-layer ``velocities`` (m/s).
 
         ``ys`` and ``active`` are updated in place (a parcel that tips becomes inactive). Returns each parcel's
         :class:`Trajectory` over the interval, sampled every ``sample_dt`` s from ``t0`` (or at ``sample_times``,
-        s, within the interval) and at its end (None for a parcel that was inactive at ``t0``).
+        s, within the interval) and at its end (None for a parcel that was inactive at ``t0``). With ``trim=False``
+        it also keeps the states where the plant restarted its integration (``t0`` among them), for a caller that
+        keeps only the samples on its grid anyway (a networked run's tracks: most ticks hold no output sample, and
+        trimming each parcel's trajectory cost a few microseconds a tick).
         """
         models = self.models(velocities)
         was_active = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
@@ -313,7 +316,7 @@ class Plant:
         out: list[Trajectory | None] = [None] * len(ys)
         for i, p in parts.items():
             if p:
-                out[i] = _on_grid(join(p), grid)
+                out[i] = _on_grid(join(p), grid) if trim else join(p)
         return out
 
     @staticmethod

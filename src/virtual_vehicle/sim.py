@@ -585,7 +585,7 @@ class NetworkRun(_Job):
             window = self.grid[np.searchsorted(self.grid, t0 - eps, side="left"):
                                np.searchsorted(self.grid, t1 + eps, side="right")]  # output samples in this tick
             for i, tr in enumerate(self.plant.advance(ys, active, velocities, t0, t1, self.period,
-                                                      sample_times=window)):
+                                                      sample_times=window, trim=False)):  # tracks keep the grid
                 if tr is not None:
                     self.tracks[i].add(tr, window)
             gone = [i for i in self.on if not active[i]]
@@ -700,6 +700,8 @@ class _Track:
         return self.last is not None
 
     def add(self, tr: Trajectory, grid: np.ndarray) -> None:
+        """Take in the parcel's trajectory over one tick (as the plant returns it untrimmed): of its samples, those
+        on the output ``grid`` (s) and its last state."""
         if len(grid):  # most control ticks hold no output sample
             on = on_grid(tr.times, grid)
             for t, y in zip(tr.times[on], tr.states[on]):
