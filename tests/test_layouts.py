@@ -29,6 +29,17 @@ def _scenario(array: dict, field=None, control=None, law="stick_slip", duration=
     return parse_scenario(data)
 
 
+@pytest.mark.parametrize("cells", [layout.grid(7, 5, 0.1, drive_angle=0.3), layout.hexagonal(4, 3, 0.1)])
+def test_surface_velocities_sum_each_wheel_along_its_direction(cells):
+    """A cell's surface velocity is the sum over its wheels of speed times drive direction, on a turned grid and on
+    hexagonal cells (whose wheel directions differ cell to cell)."""
+    speeds = np.random.default_rng(0).uniform(-0.5, 0.5, (cells.n, 2))
+    got = cells.surface_velocities(speeds)
+    u = cells.drive_directions
+    assert np.array_equal(got, speeds[:, 0:1] * u[:, 0] + speeds[:, 1:2] * u[:, 1])  # as it was written in place
+    np.testing.assert_allclose(got, np.einsum("ik,ikj->ij", speeds, u), rtol=1e-15, atol=1e-17)
+
+
 def test_hexagonal_lattice_has_six_mutual_neighbours_a_pitch_away_one_per_60_degrees():
     cells = layout.hexagonal(7, 6, 0.1)
     topo = from_layout(cells)

@@ -119,8 +119,7 @@ class Episode:
         zero = np.zeros(self.n, dtype=np.int64)
         self.log.append((self.t, self.readings.astype(bool), wheels.copy(), wheels.copy(),
                          zero if sent is None else sent, zero if received is None else received))
-        dirs = setup.cells.drive_directions
-        velocities = setup.contact_layer.contact_velocities(wheels[:, 0:1] * dirs[:, 0] + wheels[:, 1:2] * dirs[:, 1])
+        velocities = setup.contact_layer.contact_velocities(setup.cells.surface_velocities(wheels))
         t1 = self.period * (self.k + 1)
         was = list(self.active)
         for i, tr in enumerate(self.plant.advance(self.ys, self.active, velocities, self.t, t1, self.period)):

@@ -560,8 +560,7 @@ class NetworkRun(_Job):
             wheels = self.drives.step(command, load, period)
         if self.faults is not None:
             wheels = self.faults.hold(wheels)  # stuck wheels (and those of dead cells) stay still
-        dirs = cells.drive_directions
-        velocities = wheels[:, 0:1] * dirs[:, 0] + wheels[:, 1:2] * dirs[:, 1]
+        velocities = cells.surface_velocities(wheels)
         if setup.contact_layer is not cells:  # separate or omni wheels, belts: each contact's own surface velocity
             velocities = setup.contact_layer.contact_velocities(velocities)
         if self.stepper is None:
