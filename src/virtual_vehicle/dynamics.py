@@ -414,13 +414,13 @@ def warm_up() -> float:
     (:mod:`virtual_vehicle.contact`, :mod:`virtual_vehicle.friction`) and the quiet step's checks and step
     (:mod:`virtual_vehicle.batch`; about 40 s together, the first time on a machine) or load them from numba's cache
     (a fraction of a second), by integrating one parcel on a 4 x 4 array for 10 ms, looking its last piece up again,
-    making its constants under the viscous law too, and checking and stepping it as a quiet step would. The first
-    integration of a process does this anyway; call it to do it at a time of your choosing (the set-up of ``make``
-    does, so that no later run waits). Returns the seconds it took."""
+    making its constants under the viscous law too, checking and stepping it as a quiet step would, and gathering
+    the cells under it as sensing does. The first integration of a process does this anyway; call it to do it at a
+    time of your choosing (the set-up of ``make`` does, so that no later run waits). Returns the seconds it took."""
     from .batch import QuietStepper, anchor  # here: batch imports this module
     from .fields import Uniform
     from .layout import grid
-    from .parcel import rectangle
+    from .parcel import covered_pairs, rectangle
 
     start = time.perf_counter()
     cells = grid(4, 4, 0.1)
@@ -437,6 +437,7 @@ def warm_up() -> float:
                          stepper.radius, stepper.lever)
     _kernel.quiet_steps(np.array([piece.row]), end[None], 0.01, 0.02, 1e-10, 1e-12,
                         np.array([0.01, 0.02]), np.empty((1, 2, 6)))
+    covered_pairs([spec], [end], cells.grid)  # as sensing and destination labels gather cells
     return time.perf_counter() - start
 
 
