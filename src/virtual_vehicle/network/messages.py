@@ -70,9 +70,9 @@ class Schema:
         """``Schema.of(dist=(1, WordType.U8), speed=(2, WordType.F32))``."""
         return cls(tuple(Field(name, label, WordType(t)) for name, (label, t) in words.items()))
 
-    @property
+    @cached_property
     def sentence_bytes(self) -> int:
-        """Bytes on the wire of one sentence."""
+        """Bytes on the wire of one sentence (worked out once: every tick's traffic counts ask for it)."""
         return wire_size([f.type for f in self.fields])
 
     def to_bytes(self, values: dict) -> bytes:
