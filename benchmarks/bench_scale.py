@@ -81,7 +81,7 @@ def main() -> None:
         print(json.dumps(one(*args.one, args.seconds, batch=not args.unbatched, changed_only=not args.every_cell)))
         return
     print(f"# Networked runs, 100 Hz distributed control (sorter), ideal rounds, {args.seconds:g} s simulated")
-    print("# default: quiet ticks of all parcels in one vectorised step, the sorter stepped on the cells that changed;")
+    print("# default: quiet ticks of all parcels in one compiled call, the sorter stepped on the cells that changed;")
     print("# alone: each parcel integrated on its own; every cell: the sorter stepped on every cell every tick")
     print(f"{'array':>9}{'parcels':>9}{'moving':>8}{'quiet %':>9}{'cells %':>9}{'wall s':>9}{'x real time':>13}"
           f"{'alone x':>9}{'every cell x':>14}{'peak MiB':>10}{'alone MiB':>11}")

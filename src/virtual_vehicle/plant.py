@@ -49,7 +49,7 @@ class Integration:
     """How single parcels are integrated (see :func:`~virtual_vehicle.dynamics.integrate`) and the step ``dt`` (s)
     of fixed-step, stick-slip and grouped parcels. ``batch``: in event mode (Coulomb or viscous law, no
     ``max_step``), windows proven quiet are stepped for all parcels at once (:mod:`virtual_vehicle.batch`: the same
-    single DOP853 step the event-driven engine would take, vectorised)."""
+    single DOP853 step the event-driven engine would take, all in one compiled call)."""
 
     mode: str = "event"
     rtol: float = 1e-10

@@ -257,10 +257,10 @@ class IntegratorSpec(_Strict):
     """``mode``: ``"event"`` (piecewise, support changes located; default) or ``"fixed"`` (RK4 at step ``dt``, s).
     ``rtol``/``atol`` (state units) and ``max_step`` (s) tune the event-driven integrator. ``batch`` (default true):
     in event mode without ``max_step``, control ticks proven free of support changes are stepped for all parcels at
-    once (the same single DOP853 step, vectorised; see :mod:`virtual_vehicle.batch`); false integrates every parcel
-    on its own. Where support changes chatter (a sliding mode: a parcel held on a boundary between support sets whose
-    pieces each push it into the other), event mode crosses that boundary in fixed RK4 steps of ``dt`` and counts
-    them as the parcel's ``chatter_steps``."""
+    once (the event engine's own single DOP853 step, in one compiled call; see :mod:`virtual_vehicle.batch`); false
+    integrates every parcel on its own. Where support changes chatter (a sliding mode: a parcel held on a boundary
+    between support sets whose pieces each push it into the other), event mode crosses that boundary in fixed RK4
+    steps of ``dt`` and counts them as the parcel's ``chatter_steps``."""
 
     mode: Literal["event", "fixed"] = "event"
     rtol: Annotated[float, Field(gt=0, lt=1)] = 1e-10
