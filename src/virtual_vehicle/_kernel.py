@@ -718,6 +718,14 @@ def _dense(row, t_old, y_old, f_old, y_new, f_new, h, K, F, work):
 
 
 @njit(cache=True)
+def _workspace():
+    """Scratch arrays of a DOP853 step: the stages K, the dense-output coefficients F, and four states (the
+    derivative at the start, the new state and its derivative, a stage's argument)."""
+    return (np.empty((_N_EXTENDED, 6)), np.empty((_D.shape[0] + 3, 6)), np.empty(6), np.empty(6), np.empty(6),
+            np.empty(6))
+
+
+@njit(cache=True)
 def quiet_steps(rows, Y, t, t_bound, rtol, atol, sample_times, out):
     """For each parcel k, with constants ``rows[k]`` (:func:`~virtual_vehicle.dynamics.constants_row`, (n, 28)) at
     state ``Y[k]`` (n, 6), the first step :func:`run_piece` takes from ``t`` to ``t_bound`` (s) on a new piece, when
@@ -727,12 +735,7 @@ def quiet_steps(rows, Y, t, t_bound, rtol, atol, sample_times, out):
     were accepted and the right-hand-side evaluations each took."""
     n = Y.shape[0]
     accepted = np.zeros(n, np.bool_)
-    K = np.empty((_N_EXTENDED, 6))
-    F = np.empty((_D.shape[0] + 3, 6))
-    f = np.empty(6)
-    y_new = np.empty(6)
-    f_new = np.empty(6)
-    work = np.empty(6)
+    K, F, f, y_new, f_new, work = _workspace()
     min_step = 10 * abs(np.nextafter(t, np.inf) - t)
     h_abs = max(t_bound - t, min_step)  # _dop853_step's first trial from run_piece's first step
     t_new = t + h_abs
@@ -770,12 +773,7 @@ def run_piece(row, seg, y_base, t, y, t_bound, h_abs, first_step, rtol, atol, ma
     values(seg, y_base, g0)
     g0 = g0 > 0
     n = g0.shape[0]
-    K = np.empty((_N_EXTENDED, 6))
-    F = np.empty((_D.shape[0] + 3, 6))
-    f = np.empty(6)
-    y_new = np.empty(6)
-    f_new = np.empty(6)
-    work = np.empty(6)
+    K, F, f, y_new, f_new, work = _workspace()
     y = y.copy()
     _rhs(row, y, f)
     nfev = 1
