@@ -5,7 +5,8 @@ This VM runs the same code up to ~1.5x apart from one process launch to the next
 apart cannot tell a 10 % change from the machine's mood. This runs one case in fresh processes, alternating the two
 commits round by round and which goes first (a machine that drifts over the rounds would otherwise favour one), each
 commit's source checked out once into a temporary git worktree and run once unmeasured so that numba's compiled
-code is cached, and prints every wall time and the medians.
+code is cached, and prints every wall time, the medians and in how many rounds the second commit was faster (the
+same code against itself reads a few per cent either way, in 3 of 3 rounds one time in four: use many rounds).
 
 Cases (the figures of ``RESULTS.md``):
 - ``scale200``: ``run_network`` on 100 x 100 cells with 200 parcels, 1 s simulated (``bench_scale.py``'s largest);
@@ -114,6 +115,9 @@ def main() -> None:
             gain = (med[0] - med[1]) / med[0] * 100
             print(f"{'median':>5}{med[0]:>14.3f}{med[1]:>14.3f}   ({args.b} {abs(gain):.1f} % "
                   f"{'faster' if gain >= 0 else 'slower'})")
+            # how many rounds agree with the medians: on this VM a few per cent between medians can be its phases
+            wins = sum(b < a for a, b in zip(walls[args.a], walls[args.b]))
+            print(f"{args.b} faster in {wins} of {args.rounds} rounds")
             same = ends[args.a] == ends[args.b]
             print("final states " + ("identical" if same else "differ: " + json.dumps(ends)))
         finally:
