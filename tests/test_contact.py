@@ -248,7 +248,7 @@ def test_a_solution_holds_where_its_springs_and_hull_say_so(seed, m):
 @settings(max_examples=60, deadline=None)
 @given(st.integers(0, 10_000), st.integers(3, 12), st.floats(0.0, 1.0))
 def test_a_solution_knows_whether_its_contacts_are_collinear(seed, m, lift):
-    """``contact_collinear``, filled in by the solve, is what the definition computes from the solution's contacts,
+    """``contact_collinear`` (and the springs' gradients), filled in by the solve, is what the definition computes from the solution's contacts,
     with and without lift-off. Random draws seldom leave collinear contacts (2 in 291 of these), so a row of four
     cells carrying everything, and the 1-D model, are checked by name."""
     from virtual_vehicle.layout import _collinear
@@ -264,6 +264,10 @@ def test_a_solution_knows_whether_its_contacts_are_collinear(seed, m, lift):
         assume(False)
     assert sol.contact_collinear == _collinear(sol.points[sol.in_contact])
     assert sol.contact_collinear == type(sol).contact_collinear.func(sol)  # the filled-in value, recomputed
+    # the springs' gradients, filled in by the compiled planar solve: the properties' own floats, bit for bit
+    spring_lin = sol.basis @ sol.plane_lin
+    assert np.array_equal(sol.spring_lin, spring_lin)
+    assert np.array_equal(sol.spring_gradient, np.hypot(spring_lin[:, 0], spring_lin[:, 1]))
     # the regression of test_load_on_the_line_of_a_collinear_contact_set: a row of four carries it all
     P = np.array([[-0.05, -0.2 / 3], [0.05, -0.2 / 3], [-0.15, 0.1 / 3], [-0.05, 0.1 / 3], [0.05, 0.1 / 3],
                   [0.15, 0.1 / 3]])

@@ -179,19 +179,25 @@ def solve_support(points, com, weight: float, *, lateral_support: bool = False,
         raise ValueError("points and com must be finite")
     if len(pts) == 0:
         raise TippingError("no cell supports the parcel")
-    pts = np.ascontiguousarray(pts)
+    return _solve(np.ascontiguousarray(pts), com, weight, lateral_support, line_direction)
+
+
+def _solve(pts, com, weight: float, lateral_support: bool, line_direction) -> SupportSolution:
+    """:func:`solve_support` for inputs known to be valid: ``pts`` a contiguous (m, 2) float array of finite
+    positions (m >= 1), ``com`` (2,) finite, ``weight`` positive (the event engine's new pieces, whose cells and
+    states are checked where they come in)."""
     if _collinear(pts):
         origin, local, xi, scale = _frame(pts, com)
         return _solve_line(origin, local, xi, weight, _REL_TOL * scale, lateral_support, line_direction)
 
-    (outside, tol, origin, local, xi, h_normals, h_offsets, basis, mapped,
-     forces) = _planar(pts, com, float(weight), _MAX_ITER)
+    (outside, tol, origin, local, xi, h_normals, h_offsets, basis, mapped, forces,
+     springs) = _planar(pts, com, float(weight), _MAX_ITER)
     if outside > tol:
         raise TippingError(
             f"centre of mass at ({com[0]:.6g}, {com[1]:.6g}) m is {outside:.3g} m outside the convex hull of its "
             f"{len(pts)} supporting cells: the parcel tips")
     return _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, one_d=False, forces=forces,
-                   planar=True)
+                   planar=True, springs=springs)
 
 
 @njit(cache=True)
@@ -199,8 +205,9 @@ def _planar(pts, com, weight, max_iter):
     """The planar model for supports at ``pts`` ((m, 2), m, not collinear) and centre of mass ``com`` (m), in one
     compiled call: the tie tolerance ``tol`` (m), the local frame (origin at the supports' centroid; the supports and
     the centre of mass in it), the hull's half-planes and how far outside them the centre of mass lies (m; > ``tol``:
-    it tips, and the map is not solved), the basis rows ``[1, x_i, y_i]``, :func:`_affine_map`'s results and
-    :func:`_force_map`'s."""
+    it tips, and the map is not solved), the basis rows ``[1, x_i, y_i]``, :func:`_affine_map`'s results,
+    :func:`_force_map`'s, and the springs' gradients and their norms (:attr:`SupportSolution.spring_lin`,
+    :attr:`SupportSolution.spring_gradient`, the same floats: numba's ``np.dot`` calls the BLAS numpy's ``@`` does)."""
     m = pts.shape[0]
     origin, local, xi, scale = _frame(pts, com)
     tol = _REL_TOL * scale
@@ -216,7 +223,9 @@ def _planar(pts, com, weight, max_iter):
     else:
         mapped = _affine_map(basis, _PLANE_LIN, _PLANE_CONST, weight, xi, max_iter)
     forces = _force_map(basis, mapped[0], mapped[2], mapped[3])
-    return outside, tol, origin, local, xi, h_normals, h_offsets, basis, mapped, forces
+    spring_lin = np.dot(basis, mapped[2])
+    springs = (spring_lin, np.hypot(spring_lin[:, 0], spring_lin[:, 1]))
+    return outside, tol, origin, local, xi, h_normals, h_offsets, basis, mapped, forces, springs
 
 
 @njit(cache=True)
@@ -323,9 +332,10 @@ def _solve_line(origin, local, xi, weight, tol, lateral_support, line_direction)
 
 
 def _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, *, one_d, forces=None,
-            planar: bool = False) -> SupportSolution:
+            planar: bool = False, springs=None) -> SupportSolution:
     """The :class:`SupportSolution` from the results of :func:`_affine_map` (``mapped``) and, when computed, of
-    :func:`_force_map` (``forces``). ``planar``: the supports at ``local`` are known not to lie on one line."""
+    :func:`_force_map` (``forces``) and the springs' gradients and norms (``springs``). ``planar``: the supports at
+    ``local`` are known not to lie on one line."""
     in_contact, converged, plane_lin, plane_const = mapped
     if not converged:
         raise IntegrationError("the normal-force contact-set iteration did not converge")
@@ -337,10 +347,13 @@ def _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, *, o
         forces = None
     force_lin, force_const = forces if forces is not None else _force_map(
         np.ascontiguousarray(basis), in_contact, np.ascontiguousarray(plane_lin), np.ascontiguousarray(plane_const))
-    for arr in (local, basis, plane_lin, plane_const, force_lin, force_const, h_normals, h_offsets, in_contact):
+    for arr in (local, basis, plane_lin, plane_const, force_lin, force_const, h_normals, h_offsets, in_contact,
+                *(springs or ())):
         arr.setflags(write=False)
     sol = SupportSolution(origin, local, in_contact, basis, plane_lin, plane_const, force_lin, force_const,
                           h_normals, h_offsets, one_d, float(weight))
+    if springs is not None:  # the cached properties, filled in
+        sol.__dict__["spring_lin"], sol.__dict__["spring_gradient"] = springs
     sol.spring_gradient  # computed now (with spring_lin), so that the copies SupportSolution.at makes share them
     sol.__dict__["contact_collinear"] = flat  # known now: the cached property, filled in
     return sol

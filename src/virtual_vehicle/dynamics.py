@@ -33,7 +33,7 @@ import numpy as np
 
 from . import _kernel
 from ._kernel import accelerations
-from .contact import SupportSolution, solve_support
+from .contact import SupportSolution, _solve
 from .errors import IntegrationError, TippingError
 from .friction import CoulombLaw, FrictionConstants, FrictionLaw, StickSlipLaw, ViscousLaw, _f64, _row
 from .layout import CellArray
@@ -252,11 +252,10 @@ class ParcelModel:
             if sol is not None:
                 return sol.at(origin)
         try:  # in the pattern's own coordinates (see _GeometryCache), its first cell at the local origin
-            sol = solve_support(rel * unit, X - pts[0], self.weight, lateral_support=self.cells.is_line,
-                                line_direction=self._line_dir)
+            sol = _solve(rel * unit, X - pts[0], self.weight, self.cells.is_line, self._line_dir)
         except TippingError as exc:  # say where, in the array's coordinates
             try:
-                solve_support(pts, X, self.weight, lateral_support=self.cells.is_line, line_direction=self._line_dir)
+                _solve(pts, X, self.weight, self.cells.is_line, self._line_dir)
             except TippingError as world:
                 raise world from None
             raise TippingError(f"the centre of mass at ({X[0]:.6g}, {X[1]:.6g}) m is on the edge of the hull of its "
