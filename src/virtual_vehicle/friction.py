@@ -141,11 +141,17 @@ def _row(a, b, c, d, e, f, damping, weight, moment_lin, moment_const, second_lin
 
 @njit(cache=True)
 def _terms_and_row(P, D, G, h, mu, damping, weight, origin, inv_mass, inv_inertia):
-    """:func:`_drive_terms` and the row of the piece they make (:func:`_row`), in one compiled call."""
+    """:func:`_drive_terms` and the row of the piece they make (:func:`_row`), in one compiled call, packed into one
+    array (handing back eleven objects took ~3.5 us of a ~5 us call): the terms as :func:`_unpack_terms` reads them,
+    then the row."""
     a, b, c, d, e, f, moment_lin, moment_const, second_lin, second_const = _drive_terms(P, D, G, h, mu)
-    return a, b, c, d, e, f, moment_lin, moment_const, second_lin, second_const, _row(
-        a, b, c, d, e, f, damping, weight, moment_lin, moment_const, second_lin, second_const, origin, inv_mass,
-        inv_inertia)
+    row = _row(a, b, c, d, e, f, damping, weight, moment_lin, moment_const, second_lin, second_const, origin,
+               inv_mass, inv_inertia)
+    out = np.empty(24 + row.shape[0])
+    out[0:4], out[4:6], out[6:10], out[10:12], out[12:14], out[14] = a.ravel(), b, c.ravel(), d, e, f
+    out[15:19], out[19:21], out[21:23], out[23] = moment_lin.ravel(), moment_const, second_lin, second_const
+    out[24:] = row
+    return out
 
 
 @njit(cache=True)
@@ -154,10 +160,12 @@ def _coulomb_terms_and_row(V, U, P, G, h, mu, weight, origin, inv_mass, inv_iner
     return _terms_and_row(P, _coulomb_drive(V, U), G, h, mu, 0.0, weight, origin, inv_mass, inv_inertia)
 
 
-def _unpack_terms(terms, damping: float, weight: float) -> tuple[FrictionConstants, tuple[float, ...]]:
-    """The :class:`FrictionConstants` and the row from the results of :func:`_terms_and_row`."""
-    *k, row = terms
-    return FrictionConstants(*k[:6], float(damping), float(weight), *k[6:]), tuple(row.tolist())
+def _unpack_terms(out, damping: float, weight: float) -> tuple[FrictionConstants, tuple[float, ...]]:
+    """The :class:`FrictionConstants` (its arrays views of ``out``) and the row from :func:`_terms_and_row`."""
+    t = out.tolist()
+    return FrictionConstants(out[0:4].reshape(2, 2), out[4:6], out[6:10].reshape(2, 2), out[10:12], out[12:14], t[14],
+                             float(damping), float(weight), out[15:19].reshape(2, 2), out[19:21], out[21:23],
+                             t[23]), tuple(t[24:])
 
 
 def _solution_arrays(solution):
