@@ -387,6 +387,31 @@ def test_a_plant_pickled_before_batching_goes_on_unbatched():
     assert again.record.quiet_steps == 0 and ys[0][3] != 0.0
 
 
+def test_a_quiet_stepper_pickled_before_its_columns_measures_again():
+    """A checkpoint whose stepper kept its anchors' measures only in the anchors (before the columns by parcel)
+    drops them and measures every parcel again: it goes on batched, exactly as the same run checkpointed now."""
+    import pickle
+
+    plant = Plant(CELLS, [SPEC], LAWS["viscous"])
+    ys = [np.array([0.55, 0.55, 0.0, 0.0, 0.0, 0.0])]
+    plant.advance(ys, [True], _field(2), 0.0, 0.01, 0.01)
+    assert plant.record.quiet_steps == 1 and 0 in plant._quiet.anchors
+    now = pickle.loads(pickle.dumps(plant))
+    columns = ("_pose", "_clear", "_slack", "_room", "_convex", "_support", "_made", "_rows", "_changes",
+               "_changed_at", "_seen")
+    for name in columns:
+        del plant._quiet.__dict__[name]
+    old = pickle.loads(pickle.dumps(plant))
+    assert old._quiet.anchors == {} and all(hasattr(old._quiet, name) for name in columns)
+    ends = []
+    for again in (now, old):
+        ys_again = [ys[0].copy()]
+        again.advance(ys_again, [True], _field(3), 0.01, 0.02, 0.01)  # other wheels: every row is made again
+        assert again.record.quiet_steps == 2
+        ends.append(ys_again[0].tolist())
+    assert ends[0] == ends[1]
+
+
 def test_chatter_steps_add_up_across_control_ticks():
     """A parcel at rest with two edges exactly on cell centres chatters (see test_dynamics): the fixed steps the
     engine takes across it are counted per tick and summed over the run, as a networked run records them."""

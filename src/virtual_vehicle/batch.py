@@ -71,8 +71,6 @@ class _Anchor:
     support: np.ndarray  # cell ids
     solution: SupportSolution
     geometry: object  # the parcel's shared cache of solved supports (for its count of solves)
-    velocities: np.ndarray | None = None  # (len(support), 2) m/s the row was made with
-    row: tuple[float, ...] | None = None
     drive: float = 0.0  # Coulomb: the largest |F_i| under the parcel (eq. 21)
     room: float = 0.0  # m: the buffer less rounding noise; cells further than radius + buffer are not in ``near``
     noise: float = 0.0  # m: rounding noise in positions
@@ -125,6 +123,27 @@ class QuietStepper:
         self.lever = np.array([1.0 + s.mass * s.radius ** 2 / s.inertia for s in specs])  # 1 + m R^2 / I
         self.lever_mu = np.asarray(mu_max, dtype=float) * self.lever
         self.anchors: dict[int, _Anchor] = {}
+        self._columns(len(specs))
+
+    def _columns(self, n: int) -> None:
+        """The anchors' measures as columns by parcel (``n`` parcels), which the checks read for all parcels at once
+        (lists of ~200 anchors' attributes took ~0.2 ms a tick), and when the wheels under each last changed."""
+        self._pose = np.zeros((n, 3))  # each anchor's pose, clearance, slack, room and convexity
+        self._clear, self._slack, self._room = np.zeros(n), np.zeros(n), np.zeros(n)
+        self._convex = np.zeros(n, dtype=bool)
+        self._support = np.zeros((n, 0), dtype=np.int64)  # each anchor's cells, padded with the sentinel cell
+        self._made = np.full(n, -1, dtype=np.int64)  # the wheel change its row was made after (-1: none yet)
+        self._rows = np.zeros((n, 0))  # each anchor's piece's constants row (dynamics.constants_row)
+        self._changes = 0  # wheel changes seen: each tick whose velocities differ from the last seen
+        self._changed_at = np.zeros(self.cells.n + 1, dtype=np.int64)  # each cell's latest; the last, a sentinel
+        self._changed_at[-1] = -1
+        self._seen: np.ndarray | None = None  # the velocities last seen
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        if "_made" not in state:  # a checkpoint from before the columns: measure every parcel again
+            self.anchors.clear()
+            self._columns(len(self.radius))
 
     def forget(self, i: int | None = None) -> None:
         """Drop parcel ``i``'s anchor (all anchors when None): it was moved another way, or the array changed."""
@@ -137,16 +156,43 @@ class QuietStepper:
         a = anchor(models[i], y, self.length)
         if a is None:
             self.anchors.pop(i, None)
-        else:
-            self.anchors[i] = a
+            return None
+        self.anchors[i] = a
+        self._pose[i] = a.pose
+        self._clear[i], self._slack[i], self._room[i] = a.clear, a.slack, a.room
+        self._convex[i] = a.halfplanes is not None
+        m = len(a.support)
+        if m > self._support.shape[1]:  # a parcel on more cells than any before: widen the padding
+            wider = np.full((len(self._support), m), self.cells.n, dtype=np.int64)
+            wider[:, :self._support.shape[1]] = self._support
+            self._support = wider
+        self._support[i, :m] = a.support
+        self._support[i, m:] = self.cells.n
+        self._made[i] = -1
         return a
+
+    def _see(self, velocities: np.ndarray) -> None:
+        """Note the cells whose wheel velocities differ from those last seen (all of them the first time)."""
+        seen = self._seen
+        if seen is not None and seen.shape == velocities.shape:
+            diff = (velocities != seen).any(axis=1)
+            if not diff.any():
+                return
+        else:
+            diff = slice(None)
+        self._changes += 1
+        self._changed_at[:-1][diff] = self._changes
+        self._seen = np.array(velocities, dtype=float)
 
     def _refresh(self, i, a: _Anchor, base, velocities) -> None:
         """Remake the anchor's constants (and largest Coulomb drive) for the wheels under it now."""
         v = velocities[a.support]
         model = base[i]
-        a.velocities = v.copy()
-        a.row = model.constants_and_row(a.support, a.solution, v)[1]
+        self._made[i] = self._changes
+        row = model.constants_and_row(a.support, a.solution, v)[1]
+        if self._rows.shape[1] != len(row):  # made at the first refresh: the row's length is the law's
+            self._rows = np.zeros((len(self._rows), len(row)))
+        self._rows[i] = row
         if not self.viscous:
             drive = self.law.drive_vectors(v, self.cells.active_directions[a.support])
             a.drive = float(np.max(np.hypot(drive[:, 0], drive[:, 1])))
@@ -196,30 +242,24 @@ class QuietStepper:
             return ok
         sel = ks[have]
         mine = [anchors[k] for k in sel]
-        ids = np.concatenate([a.support for a in mine])
-        known = [a.velocities if a.velocities is not None else np.full((len(a.support), 2), np.nan) for a in mine]
-        owner = np.repeat(np.arange(len(mine)), [len(a.support) for a in mine])
-        changed = np.zeros(len(mine), dtype=bool)
-        np.logical_or.at(changed, owner, (velocities[ids] != np.concatenate(known)).any(axis=1))
+        parcels = np.asarray(idx)[sel]
+        changed = self._changed_at[self._support[parcels]].max(axis=1) > self._made[parcels]
         for n in np.flatnonzero(changed):  # the wheels under it changed (or it is new): remake its constants
             self._refresh(idx[sel[n]], mine[n], base, velocities)
-        ok[have] = self._quiet([idx[k] for k in sel], Y[sel], mine, window, velocities, wheel_speed)
+        ok[have] = self._quiet(parcels, Y[sel], mine, window, velocities, wheel_speed)
         return ok
 
     def _quiet(self, idx, Y, anchors, window, velocities, wheel_speed) -> np.ndarray:
         """Which of the parcels ``idx`` at states ``Y`` are proven quiet for ``window`` s from their anchors."""
         R = self.radius[idx]
-        P0 = np.array([a.pose for a in anchors])
+        P0 = self._pose[idx]  # the anchors' measures, as _anchor keeps them
         moved = np.hypot(Y[:, 0] - P0[:, 0], Y[:, 1] - P0[:, 1])
         swept = moved + np.abs(Y[:, 2] - P0[:, 2]) * R
         r, accel = self.reach(idx, Y, anchors, window, velocities, wheel_speed)
-        clear = np.array([a.clear for a in anchors])
-        slack = np.array([a.slack for a in anchors])
-        room = np.array([a.room for a in anchors])
-        held = slack > moved + r
-        cells_clear = clear > swept + r
-        look = np.flatnonzero(held & ~cells_clear & (moved + r < room) & np.isfinite(accel)
-                              & np.array([a.halfplanes is not None for a in anchors]))
+        held = self._slack[idx] > moved + r
+        cells_clear = self._clear[idx] > swept + r
+        look = np.flatnonzero(held & ~cells_clear & (moved + r < self._room[idx]) & np.isfinite(accel)
+                              & self._convex[idx])
         if len(look):  # too near some cell for one radius: ask which way each edge moves
             cells_clear[look] = self._edges_clear(Y[look], [anchors[k] for k in look], window, r[look],
                                                   accel[look], R[look], self.lever[np.asarray(idx)[look]])
@@ -255,13 +295,15 @@ class QuietStepper:
         wheel_speed = float(np.max(np.hypot(velocities[:, 0], velocities[:, 1]))) if len(velocities) else 0.0
         Y = np.array([ys[i] for i in idx], dtype=float)
         Y = np.where(np.abs(Y) < 1e-100, 0.0, Y)  # as integrate() does
+        self._see(velocities)
         anchors = [self.anchors.get(i) for i in idx]
         for k, i in enumerate(idx):
             if anchors[k] is None:
                 anchors[k] = self._anchor(i, models, Y[k])
         ok = self._check(idx, np.arange(len(idx)), Y, anchors, window, base, velocities, wheel_speed)
-        stale = [k for k in np.flatnonzero(~ok) if anchors[k] is not None and not np.array_equal(anchors[k].pose,
-                                                                                                  Y[k, :3])]
+        failed = np.flatnonzero(~ok)
+        moved = failed[(self._pose[np.asarray(idx)[failed]] != Y[failed, :3]).any(axis=1)].tolist()
+        stale = [k for k in moved if anchors[k] is not None]
         for k in stale:  # an old anchor may have run out: measure again where the parcel is
             anchors[k] = self._anchor(idx[k], models, Y[k])
         if stale:
@@ -272,7 +314,7 @@ class QuietStepper:
             return {}, rest
         times = np.concatenate([[t], samples[(samples > t) & (samples < te)], [te]])
         states = np.empty((len(quiet), len(times), 6))  # each parcel's samples are a view of it
-        accepted, evals = _kernel.quiet_steps(np.array([anchors[k].row for k in quiet]), Y[quiet], t, te, self.rtol,
+        accepted, evals = _kernel.quiet_steps(self._rows[np.asarray(idx)[quiet]], Y[quiet], t, te, self.rtol,
                                               self.atol, times, states)
         for shared in (states, times):
             shared.setflags(write=False)  # one array behind many trajectories
