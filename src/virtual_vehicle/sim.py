@@ -583,10 +583,14 @@ class NetworkRun(_Job):
             eps = 1e-12 * max(1.0, t1)
             window = self.grid[np.searchsorted(self.grid, t0 - eps, side="left"):
                                np.searchsorted(self.grid, t1 + eps, side="right")]  # output samples in this tick
-            for i, tr in enumerate(self.plant.advance(ys, active, velocities, t0, t1, self.period,
-                                                      sample_times=window, trim=False)):  # tracks keep the grid
+            trajectories = self.plant.advance(ys, active, velocities, t0, t1, self.period, sample_times=window,
+                                              trim=False)  # the tracks keep the grid
+            on: dict[int, np.ndarray] = {}  # by times array: the parcels stepped together share theirs
+            for i, tr in enumerate(trajectories):
                 if tr is not None:
-                    self.tracks[i].add(tr, window)
+                    if len(window) and id(tr.times) not in on:
+                        on[id(tr.times)] = on_grid(tr.times, window)
+                    self.tracks[i].add(tr, window, on.get(id(tr.times)))
             gone = [i for i in self.on if not active[i]]
             for i in gone:  # those that left the array are gone, and so is what was cached for them
                 self.plant.release(i)
@@ -688,26 +692,25 @@ class _Track:
         self.times: list[float] = []
         self.states: list[np.ndarray] = []
         self.events: list = []
-        self.last = None
-        self.piece = None  # the latest piece, whose status, end and stats carry on
+        self.piece = None  # the latest piece, whose last state, status, end and stats carry on
         self.segments = 0
         self.rhs_evals = 0
         self.stats_pieces: list[dict] = []
 
     @property
     def started(self) -> bool:
-        return self.last is not None
+        return self.piece is not None
 
-    def add(self, tr: Trajectory, grid: np.ndarray) -> None:
+    def add(self, tr: Trajectory, grid: np.ndarray, on: np.ndarray | None = None) -> None:
         """Take in the parcel's trajectory over one tick (as the plant returns it untrimmed): of its samples, those
-        on the output ``grid`` (s) and its last state."""
+        on the output ``grid`` (s) and its last state. ``on``: which of its times lie on the grid, when known."""
         if len(grid):  # most control ticks hold no output sample
-            on = on_grid(tr.times, grid)
+            if on is None:
+                on = on_grid(tr.times, grid)
             for t, y in zip(tr.times[on], tr.states[on]):
                 if not self.times or t > self.times[-1]:
                     self.times.append(float(t))
                     self.states.append(y.copy())
-        self.last = (float(tr.times[-1]), tr.states[-1].copy())
         self.events.extend(tr.events)
         self.segments += tr.segments
         self.rhs_evals += tr.rhs_evals
@@ -721,9 +724,10 @@ class _Track:
 
     def trajectory(self) -> Trajectory:
         times, states = list(self.times), list(self.states)
-        if not times or self.last[0] > times[-1]:
-            times.append(self.last[0])
-            states.append(self.last[1])
+        end = float(self.piece.times[-1])
+        if not times or end > times[-1]:
+            times.append(end)
+            states.append(self.piece.states[-1].copy())
         stats = self.stats_pieces[0].stats if self.stats_pieces else dict(self.piece.stats)
         return Trajectory(np.array(times), np.array(states).reshape(-1, 6), self.events, self.piece.status,
                           self.piece.t_end, self.segments, self.rhs_evals, stats)
