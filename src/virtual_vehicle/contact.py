@@ -122,25 +122,40 @@ class SupportSolution:
     def holds(self, xi: np.ndarray) -> bool:
         """Whether this contact set and hull hold at local centre of mass ``xi`` (m): every contact's spring
         compressed, every lifted cell's slack, the centre of mass inside the hull."""
-        return _holds(self.basis, self.plane_lin, self.plane_const, self.in_contact, self.hull_normals,
-                      self.hull_offsets, float(xi[0]), float(xi[1]))
+        return _holds(self._holding, float(xi[0]), float(xi[1]))
+
+    @cached_property
+    def _holding(self) -> np.ndarray:
+        """What :meth:`holds` reads, packed in one array: ``[m, r, q]``, then the (m, r) basis, the (r, 2)
+        ``plane_lin``, the (r,) ``plane_const``, the (m,) contact mask (1.0 in contact), the (q, 2) hull normals and
+        the (q,) offsets, row by row. A compiled call costs by the argument, and the pattern cache asks this of every
+        candidate solution. Filled in by the solve, so that the copies :meth:`at` makes share it."""
+        (m, r), q = self.basis.shape, len(self.hull_offsets)
+        out = np.concatenate([(m, r, q), self.basis.ravel(), self.plane_lin.ravel(), self.plane_const,
+                              self.in_contact, self.hull_normals.ravel(), self.hull_offsets]).astype(np.float64)
+        out.setflags(write=False)
+        return out
 
 
 @njit(cache=True)
-def _holds(basis, plane_lin, plane_const, in_contact, hull_normals, hull_offsets, x, y):
-    """:meth:`SupportSolution.holds`, compiled (the pattern cache asks it of every candidate solution)."""
-    r = basis.shape[1]
+def _holds(p, x, y):
+    """:meth:`SupportSolution.holds` on its packed arrays ``p`` (:attr:`SupportSolution._holding`), compiled."""
+    m, r, q = int(p[0]), int(p[1]), int(p[2])
+    basis, plane_lin = 3, 3 + m * r
+    plane_const, in_contact = plane_lin + 2 * r, plane_lin + 3 * r
+    hull_normals = in_contact + m
+    hull_offsets = hull_normals + 2 * q
     plane = np.empty(r)
     for j in range(r):
-        plane[j] = plane_lin[j, 0] * x + plane_lin[j, 1] * y + plane_const[j]
-    for i in range(basis.shape[0]):
+        plane[j] = p[plane_lin + 2 * j] * x + p[plane_lin + 2 * j + 1] * y + p[plane_const + j]
+    for i in range(m):
         spring = 0.0
         for j in range(r):
-            spring += basis[i, j] * plane[j]
-        if (spring > 0) != in_contact[i]:
+            spring += p[basis + r * i + j] * plane[j]
+        if (spring > 0) != (p[in_contact + i] > 0.5):
             return False
-    for k in range(hull_offsets.shape[0]):
-        if hull_offsets[k] - (hull_normals[k, 0] * x + hull_normals[k, 1] * y) < 0:
+    for k in range(q):
+        if p[hull_offsets + k] - (p[hull_normals + 2 * k] * x + p[hull_normals + 2 * k + 1] * y) < 0:
             return False
     return True
 
@@ -355,6 +370,7 @@ def _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, *, o
     if springs is not None:  # the cached properties, filled in
         sol.__dict__["spring_lin"], sol.__dict__["spring_gradient"] = springs
     sol.spring_gradient  # computed now (with spring_lin), so that the copies SupportSolution.at makes share them
+    sol._holding  # likewise
     sol.__dict__["contact_collinear"] = flat  # known now: the cached property, filled in
     return sol
 
