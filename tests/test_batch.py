@@ -376,6 +376,22 @@ def test_a_plant_refuses_wheel_velocities_it_cannot_use():
     assert ys[0][3] == 0.0  # nothing moved
 
 
+@pytest.mark.parametrize("batch", [True, False])
+def test_a_plant_refuses_states_and_modes_it_cannot_use(batch):
+    """The states of the active parcels are checked once a call (the engine behind the plant trusts that check,
+    batched or not), and an integration mode when it is made."""
+    plant = Plant(CELLS, [SPEC, SPEC], LAWS["viscous"], integration=Integration(batch=batch))
+    good = np.array([0.55, 0.55, 0.0, 0.0, 0.0, 0.0])
+    for bad in (np.array([0.55, np.nan, 0.0, 0.0, 0.0, 0.0]), np.array([0.55, 0.55, 0.0, 0.0, 0.0])):
+        ys = [good.copy(), bad]
+        with pytest.raises(ValueError, match="six finite numbers"):
+            plant.advance(ys, [True, True], _field(2), 0.0, 0.01, 0.01)
+        assert ys[0].tolist() == good.tolist()  # nothing moved
+        plant.advance(ys, [True, False], _field(2), 0.0, 0.01, 0.01)  # an inactive parcel's state is not read
+    with pytest.raises(ValueError, match="mode must be 'event' or 'fixed'"):
+        Integration(mode="rk45")
+
+
 def test_a_plant_pickled_before_batching_goes_on_unbatched():
     import pickle
 

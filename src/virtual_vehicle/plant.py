@@ -31,7 +31,7 @@ from scipy.sparse import coo_matrix
 from .batch import QuietStepper
 from .collide import (ContactParams, Rows, lever_of, overlap_area, pair_contacts, place, point_reach, point_reaches,
                       push_gain, solve_rows)
-from .dynamics import Event, ParcelModel, Trajectory, _diff_event, _sampled, integrate, sample_grid
+from .dynamics import Event, ParcelModel, Trajectory, _diff_event, _integrate, _sampled, sample_grid
 from .errors import TippingError
 from .friction import FrictionLaw, StickSlipLaw, ViscousLaw
 from .layout import CellArray
@@ -57,6 +57,10 @@ class Integration:
     max_step: float = np.inf
     dt: float = 1e-3
     batch: bool = True
+
+    def __post_init__(self):
+        if self.mode not in ("event", "fixed"):
+            raise ValueError(f"mode must be 'event' or 'fixed', got {self.mode!r}")
 
 
 @dataclass
@@ -277,6 +281,13 @@ class Plant:
         """
         models = self.models(velocities)
         was_active = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
+        if was_active:  # checked here once: the engine takes them as they are
+            try:
+                Y = np.array([ys[i] for i in was_active], dtype=float)
+            except ValueError:  # states of different lengths
+                Y = None
+            if Y is None or Y.shape != (len(was_active), 6) or not np.all(np.isfinite(Y)):
+                raise ValueError("the active parcels' states must be six finite numbers [x, y, theta, vx, vy, omega]")
         parts: dict[int, list[Trajectory]] = {i: [] for i in was_active}
         grid = sample_grid(t0, t1, sample_dt) if sample_times is None else np.asarray(sample_times, dtype=float)
         t = float(t0)
@@ -300,8 +311,8 @@ class Plant:
                 for i, tr in done.items():
                     self._take(i, tr, ys, active, parts)
             for i in rest:
-                tr = integrate(models[i], ys[i], t, te, mode=integ.mode, rtol=integ.rtol, atol=integ.atol,
-                               max_step=integ.max_step, dt=integ.dt, sample_times=samples)
+                tr = _integrate(models[i], ys[i], t, te, samples, mode=integ.mode, rtol=integ.rtol, atol=integ.atol,
+                                max_step=integ.max_step, dt=integ.dt)  # all of them checked where they come in
                 if self._quiet is not None and (tr.events or tr.status != "completed"):
                     self._quiet.forget(i)  # its anchor's piece may no longer hold
                 self._take(i, tr, ys, active, parts)
