@@ -403,6 +403,28 @@ def test_a_plant_pickled_before_batching_goes_on_unbatched():
     assert again.record.quiet_steps == 0 and ys[0][3] != 0.0
 
 
+@pytest.mark.parametrize("law", ["viscous", "coulomb"])
+def test_a_parcel_handed_to_the_engine_brings_its_anchors_piece(law):
+    """A parcel that goes to the event engine brings its anchor's piece (support, solution and constants made for
+    the wheels under it now), which the engine looks up instead of making again: the very piece it would make. A
+    parcel whose wheels changed since its constants were made brings nothing."""
+    model = ParcelModel(CELLS, SPEC, _field(1), LAWS[law])
+    stepper = QuietStepper(CELLS, [SPEC], LAWS[law], [SPEC.mu], 9.81, 1e-10, 1e-12)
+    y0 = np.array([0.55, 0.52, 0.3, 0.05, 0.0, 0.1])
+    stepper.step([model], [model], [0], [y0], model.velocities, 0.0, 0.01, np.array([0.0, 0.01]))
+    a = stepper.anchors[0]
+    engine = model.with_velocities(model.velocities)  # a copy with nothing cached, as a plant makes each tick
+    stepper.hand_over(0, engine)
+    piece = engine.piece_at(y0)
+    assert piece.constants is a.constants and piece.solution is a.solution and engine.pieces_cached == 1
+    made = ParcelModel(CELLS, SPEC, _field(1), LAWS[law]).piece_at(y0)  # made afresh
+    assert piece.key == made.key and piece.row == made.row
+    stepper._see(_field(2))  # new wheels, before the checks remake the anchor's constants
+    later = model.with_velocities(_field(2))
+    stepper.hand_over(0, later)
+    assert later.pieces_cached == 0
+
+
 def test_a_quiet_stepper_pickled_before_its_columns_measures_again():
     """A checkpoint whose stepper kept its anchors' measures only in the anchors (before the columns by parcel)
     drops them and measures every parcel again: it goes on batched, exactly as the same run checkpointed now."""

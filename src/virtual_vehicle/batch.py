@@ -58,7 +58,7 @@ from .contact import SupportSolution
 from . import _kernel
 from .dynamics import _NOISE, ParcelModel, Trajectory
 from .errors import TippingError
-from .friction import ViscousLaw
+from .friction import FrictionConstants, ViscousLaw
 
 
 @dataclass
@@ -76,6 +76,8 @@ class _Anchor:
     noise: float = 0.0  # m: rounding noise in positions
     near: np.ndarray | None = None  # convex footprint: the cells within radius + buffer (ids); else None
     halfplanes: tuple[np.ndarray, np.ndarray] | None = None  # convex footprint: its edges' normals and offsets
+    constants: FrictionConstants | None = None  # the piece's, for the wheels last seen under it (None: not yet)
+    row: tuple[float, ...] = ()  # and its constants row
 
 
 def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
@@ -171,6 +173,15 @@ class QuietStepper:
         self._made[i] = -1
         return a
 
+    def hand_over(self, i: int, model: ParcelModel) -> None:
+        """Give ``model`` (parcel ``i``'s, under the wheels last seen) its anchor's piece, when the anchor's constants
+        are those of these wheels (the checks remake them first): the support, solution and constants the event
+        engine would find for those cells, which it then looks up as it looks up its own pieces (by the cells, and
+        only where the solution holds) instead of making it again."""
+        a = self.anchors.get(i)
+        if a is not None and a.constants is not None and self._changed_at[self._support[i]].max() <= self._made[i]:
+            model._adopt(a.support, a.solution, a.constants, a.row)
+
     def _see(self, velocities: np.ndarray) -> None:
         """Note the cells whose wheel velocities differ from those last seen (all of them the first time)."""
         seen = self._seen
@@ -189,7 +200,8 @@ class QuietStepper:
         v = velocities[a.support]
         model = base[i]
         self._made[i] = self._changes
-        row = model.constants_and_row(a.support, a.solution, v)[1]
+        a.constants, a.row = model.constants_and_row(a.support, a.solution, v)
+        row = a.row
         if self._rows.shape[1] != len(row):  # made at the first refresh: the row's length is the law's
             self._rows = np.zeros((len(self._rows), len(row)))
         self._rows[i] = row

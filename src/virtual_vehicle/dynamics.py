@@ -235,6 +235,16 @@ class ParcelModel:
         self._by_support.setdefault(skey, []).append(piece)
         return piece
 
+    def _adopt(self, support: np.ndarray, solution: SupportSolution, constants: FrictionConstants,
+               row: tuple[float, ...]) -> None:
+        """Cache the piece of the cells ``support`` made elsewhere from ``solution`` and ``constants`` for this
+        model's wheels (a quiet stepper's anchor), unless a piece of those cells is cached already."""
+        skey = tuple(support.tolist())
+        if skey not in self._by_support:
+            piece = _rebuild_piece(support, solution, constants, self.spec.mass, self.spec.inertia, row)
+            self._pieces[piece.key] = piece
+            self._by_support[skey] = [piece]
+
     def solution_for(self, support: np.ndarray, com) -> SupportSolution:
         """The solved normal forces of the cells ``support`` with the centre of mass at ``com`` (m), from the cache
         of geometric patterns (shared by all velocities, and by parcels of the same weight) or solved now. Raises

@@ -311,6 +311,8 @@ class Plant:
                 for i, tr in done.items():
                     self._take(i, tr, ys, active, parts)
             for i in rest:
+                if self._quiet is not None:
+                    self._quiet.hand_over(i, models[i])
                 tr = _integrate(models[i], ys[i], t, te, samples, mode=integ.mode, rtol=integ.rtol, atol=integ.atol,
                                 max_step=integ.max_step, dt=integ.dt)  # all of them checked where they come in
                 if self._quiet is not None and (tr.events or tr.status != "completed"):
