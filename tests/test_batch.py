@@ -177,7 +177,7 @@ def _edge_decided(model, law, y0, window) -> bool:
     quiet = _quiet_matches_engine(model, law, y0, window)
     a = stepper._anchor(0, [model], y0)
     wheel_speed = float(np.max(np.hypot(model.velocities[:, 0], model.velocities[:, 1])))
-    r, _ = stepper.reach([0], y0[None], [a], window, model.velocities, wheel_speed)
+    r, _ = stepper.reach([0], y0[None], window, model.velocities, wheel_speed)
     return quiet and a.clear <= r[0]
 
 
@@ -401,6 +401,26 @@ def test_a_plant_pickled_before_batching_goes_on_unbatched():
     ys = [np.array([0.55, 0.55, 0.0, 0.0, 0.0, 0.0])]
     again.advance(ys, [True], _field(2), 0.0, 0.01, 0.01)
     assert again.record.quiet_steps == 0 and ys[0][3] != 0.0
+
+
+@pytest.mark.parametrize("law", ["viscous", "coulomb"])
+def test_the_reach_of_many_parcels_at_once_is_each_parcels_own(law):
+    """The checks bound many parcels' reach in one go, their anchors' cells padded to the widest: the same floats as
+    for each parcel alone, anchored by a stepper of its own (no padding)."""
+    model, Y, _ = _pieces(LAWS[law], seed=3, n=12)
+    Y[:, 2] = np.linspace(0.0, np.pi / 2, len(Y))  # turned: supports of different sizes, so some are padded
+    stepper = QuietStepper(CELLS, [SPEC] * len(Y), LAWS[law], [SPEC.mu] * len(Y), 9.81, 1e-10, 1e-12)
+    models = [model] * len(Y)
+    for i, y in enumerate(Y):
+        stepper._refresh(i, stepper._anchor(i, models, y), models, model.velocities)
+    sizes = {len(a.support) for a in stepper.anchors.values()}
+    assert len(sizes) > 1
+    together = stepper.reach(list(range(len(Y))), Y, 0.01, model.velocities, 0.3)
+    for i, y in enumerate(Y):
+        alone = QuietStepper(CELLS, [SPEC], LAWS[law], [SPEC.mu], 9.81, 1e-10, 1e-12)
+        alone._refresh(0, alone._anchor(0, [model], y), [model], model.velocities)
+        r, accel = alone.reach([0], y[None], 0.01, model.velocities, 0.3)
+        assert (r[0], accel[0]) == (together[0][i], together[1][i])
 
 
 @pytest.mark.parametrize("law", ["viscous", "coulomb"])

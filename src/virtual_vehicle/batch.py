@@ -131,7 +131,7 @@ class QuietStepper:
         """The anchors' measures as columns by parcel (``n`` parcels), which the checks read for all parcels at once
         (lists of ~200 anchors' attributes took ~0.2 ms a tick), and when the wheels under each last changed."""
         self._pose = np.zeros((n, 3))  # each anchor's pose, clearance, slack, room and convexity
-        self._clear, self._slack, self._room = np.zeros(n), np.zeros(n), np.zeros(n)
+        self._clear, self._slack, self._room, self._drive = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
         self._convex = np.zeros(n, dtype=bool)
         self._support = np.zeros((n, 0), dtype=np.int64)  # each anchor's cells, padded with the sentinel cell
         self._made = np.full(n, -1, dtype=np.int64)  # the wheel change its row was made after (-1: none yet)
@@ -161,7 +161,7 @@ class QuietStepper:
             return None
         self.anchors[i] = a
         self._pose[i] = a.pose
-        self._clear[i], self._slack[i], self._room[i] = a.clear, a.slack, a.room
+        self._clear[i], self._slack[i], self._room[i], self._drive[i] = a.clear, a.slack, a.room, a.drive
         self._convex[i] = a.halfplanes is not None
         m = len(a.support)
         if m > self._support.shape[1]:  # a parcel on more cells than any before: widen the padding
@@ -186,7 +186,8 @@ class QuietStepper:
         """Note the cells whose wheel velocities differ from those last seen (all of them the first time)."""
         seen = self._seen
         if seen is not None and seen.shape == velocities.shape:
-            diff = (velocities != seen).any(axis=1)
+            # each cell's two velocities as one complex number: one comparison a cell (equal iff both are)
+            diff = np.ascontiguousarray(velocities).view(np.complex128)[:, 0] != seen.view(np.complex128)[:, 0]
             if not diff.any():
                 return
         else:
@@ -207,13 +208,13 @@ class QuietStepper:
         self._rows[i] = row
         if not self.viscous:
             drive = self.law.drive_vectors(v, self.cells.active_directions[a.support])
-            a.drive = float(np.max(np.hypot(drive[:, 0], drive[:, 1])))
+            a.drive = self._drive[i] = float(np.max(np.hypot(drive[:, 0], drive[:, 1])))
 
-    def reach(self, idx: list[int], Y: np.ndarray, anchors: list[_Anchor], window: float,
-              velocities: np.ndarray, wheel_speed: float) -> tuple[np.ndarray, np.ndarray]:
-        """How far (m) any point of each parcel ``idx`` (states ``Y``, pieces of ``anchors``) can move in ``window``
-        s while its piece holds: the smaller of the law's bound and the piece's (module docstring). Also returns
-        the part of the piece's bound that acceleration adds to ``S0 T`` (m; inf on line arrays): the double
+    def reach(self, idx, Y: np.ndarray, window: float, velocities: np.ndarray,
+              wheel_speed: float) -> tuple[np.ndarray, np.ndarray]:
+        """How far (m) any point of each parcel ``idx`` (states ``Y``, pieces of their anchors) can move in
+        ``window`` s while its piece holds: the smaller of the law's bound and the piece's (module docstring). Also
+        returns the part of the piece's bound that acceleration adds to ``S0 T`` (m; inf on line arrays): the double
         integral of the rim acceleration bound ``|a| + |alpha| R <= k sigma`` (viscous; ``k max|F_i|`` Coulomb),
         of which ``|a|`` takes at most the share ``1 / (1 + m R^2 / I)`` and ``|alpha| R`` the rest."""
         R = self.radius[idx]
@@ -225,14 +226,13 @@ class QuietStepper:
             return r_law, np.full(len(idx), np.inf)
         c = s_max * s_max / R
         if self.viscous:
-            ids = np.concatenate([a.support for a in anchors])
-            owner = np.repeat(np.arange(len(anchors)), [len(a.support) for a in anchors])
-            arm = self.cells.positions[ids] - Y[owner, :2]
-            spin = Y[owner, 5]
-            slip = np.hypot(velocities[ids, 0] - Y[owner, 3] + spin * arm[:, 1],
-                            velocities[ids, 1] - Y[owner, 4] - spin * arm[:, 0])
-            sigma = np.zeros(len(anchors))
-            np.maximum.at(sigma, owner, slip)
+            ids = self._support[idx]  # (parcels, cells), padded with the sentinel cell: read as any, then masked
+            arm = np.take(self.cells.positions, ids, axis=0, mode="clip") - Y[:, None, :2]
+            spin = Y[:, 5, None]
+            v = np.take(velocities, ids, axis=0, mode="clip")
+            slip = np.hypot(v[..., 0] - Y[:, 3, None] + spin * arm[..., 1],
+                            v[..., 1] - Y[:, 4, None] - spin * arm[..., 0])
+            sigma = np.where(ids < self.cells.n, slip, 0.0).max(axis=1, initial=0.0)
             # sigma_0 ((e^{kT} - 1) / k - T) + c ((e^{kT} - 1) / k - T) / k, by its series where kT is small
             kt = k * window
             big = kt > 1e-4
@@ -241,8 +241,7 @@ class QuietStepper:
             g2 = np.where(big, g1 / ks, window * window * (0.5 + kt / 6 + kt * kt / 24))
             accel = sigma * g1 + c * g2
         else:
-            drive = np.array([a.drive for a in anchors])
-            accel = 0.5 * (k * drive + c) * window ** 2
+            accel = 0.5 * (k * self._drive[idx] + c) * window ** 2
         return np.minimum(r_law, s0 * window + accel), accel
 
     def _check(self, idx, ks, Y, anchors, window, base, velocities, wheel_speed) -> np.ndarray:
@@ -267,7 +266,7 @@ class QuietStepper:
         P0 = self._pose[idx]  # the anchors' measures, as _anchor keeps them
         moved = np.hypot(Y[:, 0] - P0[:, 0], Y[:, 1] - P0[:, 1])
         swept = moved + np.abs(Y[:, 2] - P0[:, 2]) * R
-        r, accel = self.reach(idx, Y, anchors, window, velocities, wheel_speed)
+        r, accel = self.reach(idx, Y, window, velocities, wheel_speed)
         held = self._slack[idx] > moved + r
         cells_clear = self._clear[idx] > swept + r
         look = np.flatnonzero(held & ~cells_clear & (moved + r < self._room[idx]) & np.isfinite(accel)
