@@ -207,6 +207,15 @@ class ParcelModel:
         once a model and shared by its :meth:`with_velocities` copies (lazily: old checkpoints lack it)."""
         return _kernel.outline(self.spec)
 
+    @cached_property
+    def _segment_scales(self) -> tuple[float, float, float, float]:
+        """What every :class:`_Segment` of this parcel takes: its radius, the candidates' search buffer (m) and the
+        rounding noise of the lengths (m) and of the forces (N) among the event values, below which a sign is not to
+        be trusted."""
+        spec, cells = self.spec, self.cells
+        return (spec.radius, max(cells.pitch, 0.25 * spec.radius), _NOISE * max(1.0, cells.extent, spec.radius),
+                _NOISE * self.weight)
+
     @property
     def solves(self) -> int:
         """Normal-force problems solved so far (shared by models made with :meth:`with_velocities`)."""
@@ -367,22 +376,23 @@ class _Segment:
     """
 
     def __init__(self, model: ParcelModel, piece: Piece, y0: np.ndarray, previous: "_Segment | None" = None):
-        spec, cells = model.spec, model.cells
-        self.buffer = max(cells.pitch, 0.25 * spec.radius)
-        if previous is not None and math.dist(y0[:2], previous.center) <= self.buffer / 2:
+        radius, buffer, noise_length, noise_force = model._segment_scales
+        self.buffer = buffer
+        x, y = y0[:2].tolist()
+        if previous is not None and math.hypot(x - previous.xy[0], y - previous.xy[1]) <= buffer / 2:
             # still cover the footprint for buffer / 2 more
-            self.ids, self.center, self.candidates = previous.ids, previous.center, previous.candidates
+            self.ids, self.center, self.xy = previous.ids, previous.center, previous.xy
+            self.candidates = previous.candidates
         else:
             self.center = np.array(y0[:2], dtype=float)
-            self.ids = cells.grid.within(self.center[0], self.center[1], spec.radius + self.buffer, model.present)
-            self.candidates = cells.positions[self.ids]
+            self.xy = (x, y)
+            self.ids = model.cells.grid.within(x, y, radius + buffer, model.present)
+            self.candidates = model.cells.positions[self.ids]
         sol = piece.solution
         nc, m, q = len(self.ids), len(sol.points), len(sol.hull_offsets)
         self.bounds = (0, nc, nc + m, nc + m + q, nc + m + q + 1)
-        # Rounding noise of the lengths and forces among the event values: below it a sign is not to be trusted.
-        noise_length = _NOISE * max(1.0, cells.extent, spec.radius)
-        self.arrays = _kernel.make_segment(model.outline, spec.radius, self.candidates, sol, self.center,
-                                           self.buffer, noise_length, _NOISE * model.weight)
+        self.arrays = _kernel.make_segment(model.outline, radius, self.candidates, sol, self.center, buffer,
+                                           noise_length, noise_force)
 
     def support(self, g: np.ndarray | None) -> np.ndarray | None:
         """The cells under the footprint (as :meth:`ParcelModel.support_at` finds them) from event values ``g`` at
