@@ -423,6 +423,25 @@ def test_the_reach_of_many_parcels_at_once_is_each_parcels_own(law):
         assert (r[0], accel[0]) == (together[0][i], together[1][i])
 
 
+def test_an_anchor_measured_again_on_the_same_cells_keeps_its_constants():
+    """Measured again where its clearances ran out, an anchor on the same cells and solved pattern keeps the
+    constants made for them (the wheels have not changed); on other cells it has none until the checks make them."""
+    model = ParcelModel(CELLS, SPEC, _field(1), LAWS["viscous"])
+    stepper = QuietStepper(CELLS, [SPEC], LAWS["viscous"], [SPEC.mu], 9.81, 1e-10, 1e-12)
+    y0 = np.array([0.55, 0.52, 0.3, 0.05, 0.0, 0.1])
+    first = stepper._anchor(0, [model], y0)
+    stepper._see(model.velocities)
+    stepper._refresh(0, first, [model], model.velocities)
+    nudged = y0 + np.array([1e-4, 0.0, 0.0, 0.0, 0.0, 0.0])  # the same cells under it
+    again = stepper._anchor(0, [model], nudged)
+    assert np.array_equal(again.support, first.support)
+    assert again.constants is first.constants and again.row == first.row and stepper._made[0] == stepper._changes
+    moved = y0 + np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0])  # a pitch along: other cells
+    elsewhere = stepper._anchor(0, [model], moved)
+    assert not np.array_equal(elsewhere.support, first.support)
+    assert elsewhere.constants is None and stepper._made[0] == -1
+
+
 @pytest.mark.parametrize("law", ["viscous", "coulomb"])
 def test_a_parcel_handed_to_the_engine_brings_its_anchors_piece(law):
     """A parcel that goes to the event engine brings its anchor's piece (support, solution and constants made for

@@ -155,11 +155,19 @@ class QuietStepper:
             self.anchors.pop(i, None)
 
     def _anchor(self, i, models, y) -> _Anchor | None:
+        old = self.anchors.get(i)
         a = anchor(models[i], y, self.length)
         if a is None:
             self.anchors.pop(i, None)
             return None
         self.anchors[i] = a
+        if (old is not None and old.constants is not None and old.solution.force_lin is a.solution.force_lin
+                and np.array_equal(old.support, a.support)):
+            # measured again on the same cells and the same solved pattern (so the same origin): the constants
+            # stand while the wheels under them turn as they did (the stamps tell), and are not remade
+            a.constants, a.row, a.drive = old.constants, old.row, old.drive
+        else:
+            self._made[i] = -1
         self._pose[i] = a.pose
         self._clear[i], self._slack[i], self._room[i], self._drive[i] = a.clear, a.slack, a.room, a.drive
         self._convex[i] = a.halfplanes is not None
@@ -170,7 +178,6 @@ class QuietStepper:
             self._support = wider
         self._support[i, :m] = a.support
         self._support[i, m:] = self.cells.n
-        self._made[i] = -1
         return a
 
     def hand_over(self, i: int, model: ParcelModel) -> None:
