@@ -426,6 +426,8 @@ _CHATTER_STEPS = 20
 """Fixed steps of ``dt`` taken across a chattering boundary before events are located again."""
 _PAUSE_STEPS = 64
 """With a progress callback, the compiled engine hands control back after this many steps within one piece."""
+_NO_PAUSE = int(np.iinfo(np.int64).max)
+"""Steps within one piece without a progress callback: no limit (worked out once: np.iinfo took ~5 us a call)."""
 
 
 def warm_up() -> float:
@@ -587,7 +589,7 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     status = "completed"
     y_probe = y
     seg = None
-    max_steps = _PAUSE_STEPS if progress is not None else np.iinfo(np.int64).max
+    max_steps = _PAUSE_STEPS if progress is not None else _NO_PAUSE
     while True:
         segments += 1
         if segments > max_segments:
