@@ -300,6 +300,20 @@ def test_a_parcel_tipping_off_a_pattern_is_told_where_in_the_arrays_coordinates(
         m.solution_for(m.support_at(y), y[:2])
 
 
+def test_a_piece_made_by_the_engine_knows_its_key():
+    """piece_for fills in each new piece's key from the cells it looked up: what Piece.key computes, with lift-off."""
+    cells = layout.grid(30, 30, 0.1)
+    model = ParcelModel(cells, parcel.rectangle(0.4, 0.3, 2.0, 1.0), fields.Inward((1.5, 1.5), 3.0).velocities(cells),
+                        friction.CoulombLaw())
+    integrate(model, np.array([1.12, 1.47, 0.3, 0.0, 0.0, 0.0]), 0.0, 1.0)
+    for x in np.linspace(0.005, 0.03, 6):  # over the array's edge, the centre of mass near its first column: lift-off
+        model.piece_at(np.array([x, 1.47, 0.1, 0.0, 0.0, 0.0]))
+    pieces = list(model._pieces.values())
+    assert len(pieces) > 50 and any(not p.solution.in_contact.all() for p in pieces)
+    for piece in pieces:
+        assert piece.key == type(piece).key.func(piece)
+
+
 def test_a_segment_reads_the_supports_off_its_event_values_while_its_candidates_reach():
     """After an event the engine takes the cells under the parcel from the probe's footprint margins, not from a new
     search: the same cells as ``support_at`` wherever the candidate list still covers the footprint, and no answer

@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
+from itertools import compress
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Callable, Literal
@@ -237,6 +238,7 @@ class ParcelModel:
         sol = self.solution_for(support, X)
         k, row = self.constants_and_row(support, sol, self.velocities[support])
         piece = _rebuild_piece(support, sol, k, self.spec.mass, self.spec.inertia, row)
+        piece.__dict__["key"] = skey, tuple(compress(skey, sol.in_contact.tolist()))  # Piece.key, from skey
         existing = self._pieces.get(piece.key)
         if existing is not None:
             return existing
