@@ -266,7 +266,7 @@ def test_a_solution_holds_where_its_springs_and_hull_say_so(seed, m):
 @settings(max_examples=60, deadline=None)
 @given(st.integers(0, 10_000), st.integers(3, 12), st.floats(0.0, 1.0))
 def test_a_solution_knows_whether_its_contacts_are_collinear(seed, m, lift):
-    """``contact_collinear`` (and the springs' gradients), filled in by the solve, is what the definition computes from the solution's contacts,
+    """``contact_collinear`` (and the springs' gradients and the packed holds arrays), filled in by the solve, is what the definition computes from the solution's contacts,
     with and without lift-off. Random draws seldom leave collinear contacts (2 in 291 of these), so a row of four
     cells carrying everything, and the 1-D model, are checked by name."""
     from virtual_vehicle.layout import _collinear
@@ -286,10 +286,13 @@ def test_a_solution_knows_whether_its_contacts_are_collinear(seed, m, lift):
     spring_lin = sol.basis @ sol.plane_lin
     assert np.array_equal(sol.spring_lin, spring_lin)
     assert np.array_equal(sol.spring_gradient, np.hypot(spring_lin[:, 0], spring_lin[:, 1]))
+    assert np.array_equal(sol._holding, type(sol)._holding.func(sol))  # what holds reads, packed by the solve
     # the regression of test_load_on_the_line_of_a_collinear_contact_set: a row of four carries it all
     P = np.array([[-0.05, -0.2 / 3], [0.05, -0.2 / 3], [-0.15, 0.1 / 3], [-0.05, 0.1 / 3], [0.05, 0.1 / 3],
                   [0.15, 0.1 / 3]])
     on_row = solve_support(P, [5.8e-13, 0.1 / 3], W)
     assert on_row.in_contact.tolist() == [False, False, True, True, True, True] and on_row.contact_collinear
+    assert np.array_equal(on_row._holding, type(on_row)._holding.func(on_row))  # with the slab added to the hull
+    assert len(on_row._holding) == 3 + 6 * 3 + 3 * 3 + 6 + 3 * len(on_row.hull_offsets)
     row = solve_support([[0.0, 0.0], [0.1, 0.0], [0.2, 0.0]], [0.05, 0.0], W, lateral_support=True)
     assert row.one_d and row.contact_collinear  # the 1-D model

@@ -130,11 +130,39 @@ class SupportSolution:
         ``plane_lin``, the (r,) ``plane_const``, the (m,) contact mask (1.0 in contact), the (q, 2) hull normals and
         the (q,) offsets, row by row. A compiled call costs by the argument, and the pattern cache asks this of every
         candidate solution. Filled in by the solve, so that the copies :meth:`at` makes share it."""
-        (m, r), q = self.basis.shape, len(self.hull_offsets)
-        out = np.concatenate([(m, r, q), self.basis.ravel(), self.plane_lin.ravel(), self.plane_const,
-                              self.in_contact, self.hull_normals.ravel(), self.hull_offsets]).astype(np.float64)
+        out = _pack_holding(*(np.array(a) for a in (self.basis, self.plane_lin, self.plane_const, self.in_contact,
+                                                     self.hull_normals, self.hull_offsets)))  # as _planar's types
         out.setflags(write=False)
         return out
+
+
+@njit(cache=True)
+def _pack_holding(basis, plane_lin, plane_const, in_contact, hull_normals, hull_offsets):
+    """:attr:`SupportSolution._holding` of these arrays, compiled (np.concatenate of them took ~8 us a solve)."""
+    (m, r), q = basis.shape, hull_offsets.shape[0]
+    out = np.empty(3 + m * r + 3 * r + m + 3 * q)
+    out[0], out[1], out[2] = m, r, q
+    k = 3
+    for i in range(m):
+        for j in range(r):
+            out[k] = basis[i, j]
+            k += 1
+    for j in range(r):
+        out[k], out[k + 1] = plane_lin[j, 0], plane_lin[j, 1]
+        k += 2
+    for j in range(r):
+        out[k] = plane_const[j]
+        k += 1
+    for i in range(m):
+        out[k] = 1.0 if in_contact[i] else 0.0
+        k += 1
+    for e in range(q):
+        out[k], out[k + 1] = hull_normals[e, 0], hull_normals[e, 1]
+        k += 2
+    for e in range(q):
+        out[k] = hull_offsets[e]
+        k += 1
+    return out
 
 
 @njit(cache=True)
@@ -222,7 +250,8 @@ def _planar(pts, com, weight, max_iter):
     the centre of mass in it), the hull's half-planes and how far outside them the centre of mass lies (m; > ``tol``:
     it tips, and the map is not solved), the basis rows ``[1, x_i, y_i]``, :func:`_affine_map`'s results,
     :func:`_force_map`'s, and the springs' gradients and their norms (:attr:`SupportSolution.spring_lin`,
-    :attr:`SupportSolution.spring_gradient`, the same floats: numba's ``np.dot`` calls the BLAS numpy's ``@`` does)."""
+    :attr:`SupportSolution.spring_gradient`, the same floats: numba's ``np.dot`` calls the BLAS numpy's ``@`` does)
+    with what its holds test reads (:attr:`SupportSolution._holding`)."""
     m = pts.shape[0]
     origin, local, xi, scale = _frame(pts, com)
     tol = _REL_TOL * scale
@@ -239,7 +268,8 @@ def _planar(pts, com, weight, max_iter):
         mapped = _affine_map(basis, _PLANE_LIN, _PLANE_CONST, weight, xi, max_iter)
     forces = _force_map(basis, mapped[0], mapped[2], mapped[3])
     spring_lin = np.dot(basis, mapped[2])
-    springs = (spring_lin, np.hypot(spring_lin[:, 0], spring_lin[:, 1]))
+    springs = (spring_lin, np.hypot(spring_lin[:, 0], spring_lin[:, 1]),
+               _pack_holding(basis, mapped[2], mapped[3], mapped[0], h_normals, h_offsets))
     return outside, tol, origin, local, xi, h_normals, h_offsets, basis, mapped, forces, springs
 
 
@@ -367,8 +397,10 @@ def _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, *, o
         arr.setflags(write=False)
     sol = SupportSolution(origin, local, in_contact, basis, plane_lin, plane_const, force_lin, force_const,
                           h_normals, h_offsets, one_d, float(weight))
-    if springs is not None:  # the cached properties, filled in
-        sol.__dict__["spring_lin"], sol.__dict__["spring_gradient"] = springs
+    if springs is not None:  # the cached properties, filled in (what holds reads, unless the hull was changed)
+        sol.__dict__["spring_lin"], sol.__dict__["spring_gradient"] = springs[:2]
+        if not flat:
+            sol.__dict__["_holding"] = springs[2]
     sol.spring_gradient  # computed now (with spring_lin), so that the copies SupportSolution.at makes share them
     sol._holding  # likewise
     sol.__dict__["contact_collinear"] = flat  # known now: the cached property, filled in
