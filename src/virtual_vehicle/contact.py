@@ -138,31 +138,25 @@ class SupportSolution:
 
 @njit(cache=True)
 def _pack_holding(basis, plane_lin, plane_const, in_contact, hull_normals, hull_offsets):
-    """:attr:`SupportSolution._holding` of these arrays, compiled (np.concatenate of them took ~8 us a solve)."""
+    """:attr:`SupportSolution._holding` of these arrays (C-contiguous), compiled (np.concatenate of them took ~8 us
+    a solve)."""
     (m, r), q = basis.shape, hull_offsets.shape[0]
     out = np.empty(3 + m * r + 3 * r + m + 3 * q)
     out[0], out[1], out[2] = m, r, q
-    k = 3
-    for i in range(m):
-        for j in range(r):
-            out[k] = basis[i, j]
-            k += 1
-    for j in range(r):
-        out[k], out[k + 1] = plane_lin[j, 0], plane_lin[j, 1]
-        k += 2
-    for j in range(r):
-        out[k] = plane_const[j]
-        k += 1
-    for i in range(m):
-        out[k] = 1.0 if in_contact[i] else 0.0
-        k += 1
-    for e in range(q):
-        out[k], out[k + 1] = hull_normals[e, 0], hull_normals[e, 1]
-        k += 2
-    for e in range(q):
-        out[k] = hull_offsets[e]
-        k += 1
+    k = _put(out, 3, basis.ravel())
+    k = _put(out, k, plane_lin.ravel())
+    k = _put(out, k, plane_const)
+    k = _put(out, k, in_contact.astype(np.float64))
+    k = _put(out, k, hull_normals.ravel())
+    _put(out, k, hull_offsets)
     return out
+
+
+@njit(cache=True, inline="always")
+def _put(out, k, flat):
+    """Copy ``flat`` into ``out`` from index ``k``; the index after it."""
+    out[k:k + flat.shape[0]] = flat
+    return k + flat.shape[0]
 
 
 @njit(cache=True)
