@@ -266,9 +266,10 @@ def test_a_solution_holds_where_its_springs_and_hull_say_so(seed, m):
 @settings(max_examples=60, deadline=None)
 @given(st.integers(0, 10_000), st.integers(3, 12), st.floats(0.0, 1.0))
 def test_a_solution_knows_whether_its_contacts_are_collinear(seed, m, lift):
-    """``contact_collinear`` (and the springs' gradients and the packed holds arrays), filled in by the solve, is what the definition computes from the solution's contacts,
-    with and without lift-off. Random draws seldom leave collinear contacts (2 in 291 of these), so a row of four
-    cells carrying everything, and the 1-D model, are checked by name."""
+    """``contact_collinear`` (and the springs' gradients and the packed holds arrays), filled in by the solve, is
+    what the definition computes from the solution's contacts, with and without lift-off. Random draws seldom leave
+    collinear contacts (2 in 291 of these), so a row of four cells carrying everything, and the 1-D model, are
+    checked by name."""
     from virtual_vehicle.layout import _collinear
 
     rng = np.random.default_rng(seed)

@@ -130,7 +130,7 @@ class QuietStepper:
     def _columns(self, n: int) -> None:
         """The anchors' measures as columns by parcel (``n`` parcels), which the checks read for all parcels at once
         (lists of ~200 anchors' attributes took ~0.2 ms a tick), and when the wheels under each last changed."""
-        self._pose = np.zeros((n, 3))  # each anchor's pose, clearance, slack, room and convexity
+        self._pose = np.zeros((n, 3))  # each anchor's pose, clearance, slack, room, Coulomb drive, convexity
         self._clear, self._slack, self._room, self._drive = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
         self._convex = np.zeros(n, dtype=bool)
         self._support = np.zeros((n, 0), dtype=np.int64)  # each anchor's cells, padded with the sentinel cell

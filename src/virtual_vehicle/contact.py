@@ -373,8 +373,8 @@ def _solve_line(origin, local, xi, weight, tol, lateral_support, line_direction)
 def _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, *, one_d, forces=None,
             planar: bool = False, springs=None) -> SupportSolution:
     """The :class:`SupportSolution` from the results of :func:`_affine_map` (``mapped``) and, when computed, of
-    :func:`_force_map` (``forces``) and the springs' gradients and norms (``springs``). ``planar``: the supports at
-    ``local`` are known not to lie on one line."""
+    :func:`_force_map` (``forces``) and of :func:`_planar`'s last (``springs``: the springs' gradients, their norms
+    and the packed holds arrays). ``planar``: the supports at ``local`` are known not to lie on one line."""
     in_contact, converged, plane_lin, plane_const = mapped
     if not converged:
         raise IntegrationError("the normal-force contact-set iteration did not converge")

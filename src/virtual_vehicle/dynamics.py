@@ -25,9 +25,9 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from itertools import compress
 from dataclasses import dataclass, field
 from functools import cached_property
+from itertools import compress
 from typing import Callable, Literal
 
 import numpy as np

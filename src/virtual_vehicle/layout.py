@@ -180,8 +180,8 @@ def collinear(points, tol):
     """:func:`_collinear` compiled, for float64 points, without an SVD (LAPACK's took ~10-25 us on the ~12 points of
     a support set, and every new support pattern asks): the RMS distance of the centred points from the best-fit line
     is that of their components across its direction, the principal axis of their 2 x 2 scatter matrix. The axis is
-    found to rounding (~1e-16 rad), so the distances are too (the smallest singular value's own square root of the
-    eigenvalue would lose them to cancellation far above ``tol``)."""
+    found to rounding (~1e-16 rad), so the distances are too; the square root of the matrix's smaller eigenvalue (the
+    smallest singular value) would lose them to cancellation far above ``tol``."""
     n = points.shape[0]
     if n < 3:
         return True

@@ -275,7 +275,8 @@ class Plant:
         s, within the interval) and at its end (None for a parcel that was inactive at ``t0``). With ``trim=False``
         it also keeps the states where the plant restarted its integration (``t0`` among them), for a caller that
         keeps only the samples on its grid anyway (a networked run's tracks: most ticks hold no output sample, and
-        trimming each parcel's trajectory cost a few microseconds a tick).
+        trimming each parcel's trajectory cost a few microseconds a tick). Raises ValueError when an active parcel's
+        state is not six finite numbers.
         """
         models = self.models(velocities)
         was_active = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
