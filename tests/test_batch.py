@@ -423,6 +423,29 @@ def test_the_reach_of_many_parcels_at_once_is_each_parcels_own(law):
         assert (r[0], accel[0]) == (together[0][i], together[1][i])
 
 
+def test_the_stepper_sees_wheels_change_in_place_and_keeps_a_read_only_array():
+    """Which cells' wheels changed: found in an array changed in place (the stepper keeps a copy of a writable one),
+    and not looked for again in the same read-only array (a plant's, kept as it is)."""
+    stepper = QuietStepper(CELLS, [SPEC], LAWS["viscous"], [SPEC.mu], 9.81, 1e-10, 1e-12)
+    v = _field(1)
+    stepper._see(v)
+    first = stepper._changes
+    v[5, 1] += 0.1  # in place
+    stepper._see(v)
+    assert stepper._changes == first + 1 and stepper._changed_at[5] == first + 1
+    assert stepper._changed_at[4] == first and stepper._changed_at[-1] == -1  # the sentinel stays
+    frozen = v.copy()
+    frozen.setflags(write=False)
+    stepper._see(frozen)  # the same values: nothing changed, and the array itself is kept
+    assert stepper._changes == first + 1 and stepper._seen is frozen
+    stepper._see(frozen)
+    assert stepper._changes == first + 1
+    other = _field(2)
+    other.setflags(write=False)
+    stepper._see(other)
+    assert stepper._changes == first + 2 and stepper._seen is other
+
+
 def test_an_anchor_measured_again_on_the_same_cells_keeps_its_constants():
     """Measured again where its clearances ran out, an anchor on the same cells and solved pattern keeps the
     constants made for them (the wheels have not changed); on other cells it has none until the checks make them."""

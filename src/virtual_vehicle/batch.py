@@ -190,18 +190,25 @@ class QuietStepper:
             model._adopt(a.support, a.solution, a.constants, a.row)
 
     def _see(self, velocities: np.ndarray) -> None:
-        """Note the cells whose wheel velocities differ from those last seen (all of them the first time)."""
+        """Note the cells whose wheel velocities differ from those last seen (all of them the first time). A
+        read-only array is kept as it is (a plant's, the same object while its wheels stay: nothing to compare);
+        any other is copied."""
         seen = self._seen
+        if velocities is seen and not seen.flags.writeable:
+            return
         if seen is not None and seen.shape == velocities.shape:
             # each cell's two velocities as one complex number: one comparison a cell (equal iff both are)
             diff = np.ascontiguousarray(velocities).view(np.complex128)[:, 0] != seen.view(np.complex128)[:, 0]
-            if not diff.any():
-                return
+            changed = bool(diff.any())
         else:
-            diff = slice(None)
-        self._changes += 1
-        self._changed_at[:-1][diff] = self._changes
-        self._seen = np.array(velocities, dtype=float)
+            diff, changed = slice(None), True
+        if changed:
+            self._changes += 1
+            self._changed_at[:-1][diff] = self._changes
+        if not velocities.flags.writeable and velocities.flags.c_contiguous and velocities.dtype == np.float64:
+            self._seen = velocities
+        elif changed:
+            self._seen = np.array(velocities, dtype=float)
 
     def _refresh(self, i, a: _Anchor, base, velocities) -> None:
         """Remake the anchor's constants (and largest Coulomb drive) for the wheels under it now."""

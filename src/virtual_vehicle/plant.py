@@ -135,6 +135,7 @@ class Plant:
         made when first asked for (a long run has many parcels that are not on the array)."""
         if self._velocities is None or not np.array_equal(velocities, self._velocities):
             self._velocities = np.array(velocities, dtype=float)
+            self._velocities.setflags(write=False)  # the models' own, shared by them and the quiet stepper
             self._models = _Models(self.base, self._velocities)
         return self._models
 
@@ -305,7 +306,7 @@ class Plant:
             if self._quiet is not None:
                 for i in grouped:
                     self._quiet.forget(i)
-                done, rest = self._quiet.step(models, self.base, solo, ys, velocities, t, te, samples)
+                done, rest = self._quiet.step(models, self.base, solo, ys, models.velocities, t, te, samples)
                 self.record.quiet_steps += len(done)
                 for i, tr in done.items():
                     self._take(i, tr, ys, active, parts)
