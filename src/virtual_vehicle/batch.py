@@ -198,7 +198,8 @@ class QuietStepper:
             return
         if seen is not None and seen.shape == velocities.shape:
             # each cell's two velocities as one complex number: one comparison a cell (equal iff both are)
-            diff = np.ascontiguousarray(velocities).view(np.complex128)[:, 0] != seen.view(np.complex128)[:, 0]
+            now = np.ascontiguousarray(velocities, dtype=np.float64)
+            diff = now.view(np.complex128)[:, 0] != seen.view(np.complex128)[:, 0]
             changed = bool(diff.any())
         else:
             diff, changed = slice(None), True
