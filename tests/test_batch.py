@@ -446,23 +446,28 @@ def test_the_stepper_sees_wheels_change_in_place_and_keeps_a_read_only_array():
     assert stepper._changes == first + 2 and stepper._seen is other
 
 
-def test_an_anchor_measured_again_on_the_same_cells_keeps_its_constants():
+@pytest.mark.parametrize("law", ["viscous", "coulomb"])
+def test_an_anchor_measured_again_on_the_same_cells_keeps_its_constants(law):
     """Measured again where its clearances ran out, an anchor on the same cells and solved pattern keeps the
-    constants made for them (the wheels have not changed); on other cells it has none until the checks make them."""
-    model = ParcelModel(CELLS, SPEC, _field(1), LAWS["viscous"])
-    stepper = QuietStepper(CELLS, [SPEC], LAWS["viscous"], [SPEC.mu], 9.81, 1e-10, 1e-12)
+    constants made for them (the wheels have not changed), and under Coulomb the largest drive they bound its reach
+    with; on other cells it has none until the checks make them."""
+    model = ParcelModel(CELLS, SPEC, _field(1), LAWS[law])
+    stepper = QuietStepper(CELLS, [SPEC], LAWS[law], [SPEC.mu], 9.81, 1e-10, 1e-12)
     y0 = np.array([0.55, 0.52, 0.3, 0.05, 0.0, 0.1])
     first = stepper._anchor(0, [model], y0)
     stepper._see(model.velocities)
     stepper._refresh(0, first, [model], model.velocities)
+    drive = stepper._drive[0]
+    assert (drive > 0) == (law == "coulomb")
     nudged = y0 + np.array([1e-4, 0.0, 0.0, 0.0, 0.0, 0.0])  # the same cells under it
     again = stepper._anchor(0, [model], nudged)
     assert np.array_equal(again.support, first.support)
     assert again.constants is first.constants and again.row == first.row and stepper._made[0] == stepper._changes
+    assert stepper._drive[0] == drive
     moved = y0 + np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0])  # a pitch along: other cells
     elsewhere = stepper._anchor(0, [model], moved)
     assert not np.array_equal(elsewhere.support, first.support)
-    assert elsewhere.constants is None and stepper._made[0] == -1
+    assert elsewhere.constants is None and stepper._made[0] == -1 and stepper._drive[0] == 0.0
 
 
 @pytest.mark.parametrize("law", ["viscous", "coulomb"])

@@ -71,7 +71,6 @@ class _Anchor:
     support: np.ndarray  # cell ids
     solution: SupportSolution
     geometry: object  # the parcel's shared cache of solved supports (for its count of solves)
-    drive: float = 0.0  # Coulomb: the largest |F_i| under the parcel (eq. 21)
     room: float = 0.0  # m: the buffer less rounding noise; cells further than radius + buffer are not in ``near``
     noise: float = 0.0  # m: rounding noise in positions
     near: np.ndarray | None = None  # convex footprint: the cells within radius + buffer (ids); else None
@@ -165,11 +164,11 @@ class QuietStepper:
                 and np.array_equal(old.support, a.support)):
             # measured again on the same cells and the same solved pattern (so the same origin): the constants
             # stand while the wheels under them turn as they did (the stamps tell), and are not remade
-            a.constants, a.row, a.drive = old.constants, old.row, old.drive
+            a.constants, a.row = old.constants, old.row  # (and the column keeps the Coulomb drive they make)
         else:
-            self._made[i] = -1
+            self._made[i], self._drive[i] = -1, 0.0  # none yet: the checks make them
         self._pose[i] = a.pose
-        self._clear[i], self._slack[i], self._room[i], self._drive[i] = a.clear, a.slack, a.room, a.drive
+        self._clear[i], self._slack[i], self._room[i] = a.clear, a.slack, a.room
         self._convex[i] = a.halfplanes is not None
         m = len(a.support)
         if m > self._support.shape[1]:  # a parcel on more cells than any before: widen the padding
@@ -223,7 +222,7 @@ class QuietStepper:
         self._rows[i] = row
         if not self.viscous:
             drive = self.law.drive_vectors(v, self.cells.active_directions[a.support])
-            a.drive = self._drive[i] = float(np.max(np.hypot(drive[:, 0], drive[:, 1])))
+            self._drive[i] = float(np.max(np.hypot(drive[:, 0], drive[:, 1])))  # the largest |F_i| (eq. 21)
 
     def reach(self, idx, Y: np.ndarray, window: float, velocities: np.ndarray,
               wheel_speed: float) -> tuple[np.ndarray, np.ndarray]:

@@ -28,7 +28,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from functools import cached_property
 from itertools import compress
-from typing import Callable, Literal
+from typing import Callable, Literal, get_args
 
 import numpy as np
 
@@ -41,6 +41,8 @@ from .layout import CellArray
 from .parcel import ParcelSpec
 
 Mode = Literal["event", "fixed"]
+MODES = get_args(Mode)
+"""The modes of :func:`integrate` (and of a plant's :class:`~virtual_vehicle.plant.Integration`)."""
 
 _PATTERN_RESOLUTION = 1e-9
 """Relative positions of supporting cells are compared to this fraction of the pitch when matching patterns."""
@@ -504,7 +506,7 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
         if not sample_dt > 0:
             raise ValueError("sample_dt must be positive")
         sample_times = sample_grid(t0, t1, sample_dt)
-    if mode not in _RUNNERS:
+    if mode not in MODES:
         raise ValueError(f"mode must be 'event' or 'fixed', got {mode!r}")
     return _integrate(model, y0, t0, t1, sample_times, mode=mode, rtol=rtol, atol=atol, max_step=max_step, dt=dt,
                       progress=progress, max_segments=max_segments)
@@ -527,10 +529,6 @@ def _integrate(model: ParcelModel, y0: np.ndarray, t0: float, t1: float, sample_
         return _run_event(model, y0, t0, t1, sample_times, progress, max_segments, rtol=rtol, atol=atol,
                           max_step=max_step, dt=dt)
     return _run_fixed(model, y0, t0, t1, sample_times, progress, max_segments, dt=dt)
-
-
-_RUNNERS = ("event", "fixed")
-"""The modes of :func:`integrate`."""
 
 
 def sample_grid(t0: float, t1: float, sample_dt: float) -> np.ndarray:

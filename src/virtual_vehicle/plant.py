@@ -31,7 +31,7 @@ from scipy.sparse import coo_matrix
 from .batch import QuietStepper
 from .collide import (ContactParams, Rows, lever_of, overlap_area, pair_contacts, place, point_reach, point_reaches,
                       push_gain, solve_rows)
-from .dynamics import Event, ParcelModel, Trajectory, _diff_event, _integrate, _sampled, sample_grid
+from .dynamics import MODES, Event, ParcelModel, Trajectory, _diff_event, _integrate, _sampled, sample_grid
 from .errors import TippingError
 from .friction import FrictionLaw, StickSlipLaw, ViscousLaw
 from .layout import CellArray
@@ -59,7 +59,7 @@ class Integration:
     batch: bool = True
 
     def __post_init__(self):
-        if self.mode not in ("event", "fixed"):
+        if self.mode not in MODES:
             raise ValueError(f"mode must be 'event' or 'fixed', got {self.mode!r}")
 
 
