@@ -150,12 +150,13 @@ def outline(spec) -> tuple:
 
 
 def make_segment(footprint: tuple, radius: float, candidates: np.ndarray, sol, center: np.ndarray, buffer: float,
-                 noise_length: float, noise_force: float) -> Segment:
-    """The :class:`Segment` of a parcel of footprint ``footprint`` (its :func:`outline`) and ``radius`` (m) with
+                 noise_length: float, noise_force: float) -> tuple:
+    """The fields of the :class:`Segment` (in its order, as a plain tuple: numba types a plain tuple in compiled
+    code, a named one in Python, ~1.5 us more a call; :func:`run_piece` names them again) of a parcel of footprint ``footprint`` (its :func:`outline`) and ``radius`` (m) with
     candidate cells ``candidates`` ((nc, 2) float64, m) on support solution ``sol`` (whose arrays are float64 and
     contiguous, as :mod:`virtual_vehicle.contact` makes them), its candidates gathered within ``radius + buffer`` of
     ``center`` (m); event values below ``noise_length`` (m) or ``noise_force`` (N) are rounding noise."""
-    return Segment(*footprint, candidates, sol.origin, sol.basis, sol.plane_lin, sol.plane_const, sol.hull_normals,
+    return (*footprint, candidates, sol.origin, sol.basis, sol.plane_lin, sol.plane_const, sol.hull_normals,
                    sol.hull_offsets, center, float(buffer), float(radius + 2 * buffer), float(noise_length),
                    float(noise_force), sol.spring_lin, sol.spring_gradient)
 
@@ -756,11 +757,11 @@ def quiet_steps(rows, Y, t, t_bound, rtol, atol, sample_times, out):
 
 
 @njit(cache=True)
-def run_piece(row, seg, y_base, t, y, t_bound, h_abs, first_step, rtol, atol, max_step, max_steps,
+def run_piece(row, fields, y_base, t, y, t_bound, h_abs, first_step, rtol, atol, max_step, max_steps,
               sample_times, next_sample, samples):
     """Integrate one piece from (t, y) towards ``t_bound`` until its first event, ``max_steps`` steps, or the end.
 
-    ``row`` is the piece's constants row, ``seg`` its :class:`Segment`, ``y_base`` the state at which the event
+    ``row`` is the piece's constants row, ``fields`` its :class:`Segment`'s (:func:`make_segment`), ``y_base`` the state at which the event
     values' signs are the baseline (the piece's start, or the probe just past the event that began it). The first step
     tried is ``first_step`` when positive (a new piece), else ``h_abs`` (the same piece resumed after a pause).
     Output samples ``sample_times[next_sample:]`` reached are written into ``samples``. Times in s, states in SI
@@ -769,6 +770,7 @@ def run_piece(row, seg, y_base, t, y, t_bound, h_abs, first_step, rtol, atol, ma
     Returns (outcome, t, y, h_abs, last step, evaluations, next_sample, probe time, probe state, probe values,
     whether those are clear of rounding noise). On ``EVENT`` (t, y) is the restart point just past it.
     """
+    seg = Segment(*fields)
     g0 = np.empty(seg.candidates.shape[0] + seg.basis.shape[0] + seg.hull_offsets.shape[0] + 1)
     values(seg, y_base, g0)
     g0 = g0 > 0

@@ -371,7 +371,7 @@ class _Segment:
     The values are, in order: the footprint margin of every candidate cell near the parcel (m), the spring force
     of every supporting cell (N; its sign is contact), the slack of the centre of mass in the supports' hull (m),
     and the distance left before the candidate list must be refreshed (m). The compiled engine
-    (:mod:`virtual_vehicle._kernel`) evaluates them from :attr:`arrays`.
+    (:mod:`virtual_vehicle._kernel`) evaluates them from :attr:`fields`.
 
     The candidates are the cells within the parcel's radius plus ``buffer`` of ``center``, where they were gathered:
     they cover the footprint while its centre stays within ``buffer`` of there. A segment that starts within half
@@ -395,8 +395,13 @@ class _Segment:
         sol = piece.solution
         nc, m, q = len(self.ids), len(sol.points), len(sol.hull_offsets)
         self.bounds = (0, nc, nc + m, nc + m + q, nc + m + q + 1)
-        self.arrays = _kernel.make_segment(model.outline, radius, self.candidates, sol, self.center, buffer,
+        self.fields = _kernel.make_segment(model.outline, radius, self.candidates, sol, self.center, buffer,
                                            noise_length, noise_force)
+
+    @cached_property
+    def arrays(self) -> _kernel.Segment:
+        """:attr:`fields` named (what the compiled functions other than ``run_piece`` take)."""
+        return _kernel.Segment(*self.fields)
 
     def support(self, g: np.ndarray | None) -> np.ndarray | None:
         """The cells under the footprint (as :meth:`ParcelModel.support_at` finds them) from event values ``g`` at
@@ -599,7 +604,7 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         first, h_abs = min(h, t1 - t), 0.0
         while True:  # DOP853 on this piece until its first event (kernel.run_piece), handing back now and then
             (outcome, t, y, h_abs, last, evals, rec.next, t_probe, y_probe, g_probe,
-             clear) = _kernel.run_piece(piece.row, seg.arrays, base, t, y, t1, h_abs, first, rtol, atol, max_step,
+             clear) = _kernel.run_piece(piece.row, seg.fields, base, t, y, t1, h_abs, first, rtol, atol, max_step,
                                         max_steps, rec.sample_times, rec.next, rec.samples)
             nfev += evals
             first = 0.0
