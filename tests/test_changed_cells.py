@@ -206,6 +206,30 @@ def test_rows_that_differ_are_found_in_any_shape_and_layout(m, shape, dtype, for
     np.testing.assert_array_equal(rows_differ([x, x], [y, x], m), expected)
 
 
+@settings(max_examples=80, deadline=None)
+@given(st.integers(1, 40), st.sampled_from([(), (1,), (2,), (3,), (4,), (5,), (8,), (2, 3), (4, 2)]),
+       st.sampled_from([np.int64, np.int32, np.int16, np.uint16, np.uint8, np.bool_, np.float64, np.float32]),
+       st.sampled_from([None, np.int64, np.float64, np.int8]), st.booleans(), st.integers(0, 2**32 - 1))
+def test_rows_are_written_back_as_assigning_them_would(n, shape, dtype, given_as, fortran, seed):
+    """_put_rows copies rows as whole units of their bytes: the result is a[rows] = b, bit for bit (a NaN's payload,
+    -0.0), also for values of another dtype (cast as assignment casts them) and targets that are not contiguous."""
+    from virtual_vehicle.network.programs import _put_rows
+
+    rng = np.random.default_rng(seed)
+    rows = np.sort(rng.choice(n, rng.integers(0, n + 1), replace=False))
+    a = rng.integers(0, 200, (n, *shape)).astype(dtype)
+    b = rng.integers(0, 200, (len(rows), *shape)).astype(dtype if given_as is None else given_as)
+    if np.dtype(dtype).kind == "f" and b.dtype == dtype and b.size:
+        b.reshape(-1)[0] = -0.0
+        b.reshape(-1)[-1] = np.array(0x7FF4000000000ABC, np.uint64).view(np.float64).astype(dtype)  # a NaN payload
+    if fortran:
+        a = np.asfortranarray(a)
+    expected = a.copy()
+    expected[rows] = b
+    _put_rows([a], [b], rows, n)
+    assert a.tobytes() == expected.tobytes() and a.dtype == expected.dtype
+
+
 def test_a_checkpoint_from_before_changed_cell_stepping_resumes_stepping_every_cell():
     import pickle
 

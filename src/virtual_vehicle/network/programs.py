@@ -226,16 +226,31 @@ def _rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
 
 
 def _put_rows(targets: list, values: list, rows: np.ndarray, n: int) -> None:
-    """Write ``values[j]`` into the rows ``rows`` of ``targets[j]`` (arrays with first axis n), in place."""
-    flat: dict[int, np.ndarray] = {}  # by row width: where the rows' elements lie in a flattened array
+    """Write ``values[j]`` into the rows ``rows`` of ``targets[j]`` (arrays with first axis n), in place.
+
+    A row of a contiguous 2-d array is copied as whole units of its bytes (16, 8, 4, 2 or 1 of them, the largest
+    that divides the row: a complex128, an integer), one unit per element of a flat index, bit for bit: numpy
+    copies a few large elements far faster than many small ones (an (n, 4) int16 row as one int64: 1.6 against 6.6
+    us for 1268 rows; a[rows] = b took 15-20 us)."""
+    flat: dict[int, np.ndarray] = {}  # by units a row: where the rows' units lie in a flattened array
     for a, b in zip(targets, values):
+        b = np.asarray(b)
         k = a.size // n
         if a.ndim == 1 or not a.flags.c_contiguous or not k:
             a[rows] = b
             continue
-        if k not in flat:
-            flat[k] = (rows[:, None] * k + np.arange(k)).ravel()
-        a.reshape(-1)[flat[k]] = np.asarray(b).reshape(-1)  # twice as fast as a[rows] = b for 2-d arrays
+        if b.dtype != a.dtype or not b.flags.c_contiguous or b.shape != (len(rows), *a.shape[1:]):
+            b = np.ascontiguousarray(np.broadcast_to(b, (len(rows), *a.shape[1:])), dtype=a.dtype)  # as a[rows] = b
+        size = a.itemsize * k
+        unit = next(u for u in _UNITS if size % u.itemsize == 0)
+        m = size // unit.itemsize
+        if m not in flat:
+            flat[m] = rows if m == 1 else (rows[:, None] * m + np.arange(m)).ravel()
+        a.reshape(n, k).view(unit).reshape(-1)[flat[m]] = b.reshape(len(rows), k).view(unit).reshape(-1)
+
+
+_UNITS = tuple(np.dtype(t) for t in (np.complex128, np.int64, np.int32, np.int16, np.uint8))
+"""What :func:`_put_rows` copies a row as: the largest of these whose size divides the row's."""
 
 
 class ChangedCells:
