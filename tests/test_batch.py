@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import example, given, settings, strategies as st
 from scipy.integrate import DOP853
 
 from virtual_vehicle import _kernel, friction, layout, parcel
@@ -139,8 +139,8 @@ def _quiet_matches_engine(model, law, y0, window):
     if 0 in stepper.anchors:  # measured where the parcel is: its supports are the engine's
         np.testing.assert_array_equal(stepper.anchors[0].support, model.support_at(y0))
     if done:
-        assert ref.events == [] and ref.status == "completed"
-        assert done[0].states.tolist() == ref.states.tolist()  # the engine's own step: the same to the last bit
+        assert done.idx == [0] and ref.events == [] and ref.status == "completed"
+        assert done.trajectory(0).states.tolist() == ref.states.tolist()  # the engine's own step, to the last bit
     else:
         assert rest == [0]
     return bool(done)
@@ -239,9 +239,10 @@ def test_a_parcel_at_rest_between_cell_centres_is_quiet():
     stepper = QuietStepper(CELLS, [SPEC], LAWS["viscous"], [SPEC.mu], 9.81, 1e-10, 1e-12)
     y0 = np.array([0.55, 0.55, 0.0, 0.0, 0.0, 0.0])
     done, rest = stepper.step([model], [model], [0], [y0], model.velocities, 0.0, 0.01, np.array([0.0, 0.005, 0.01]))
-    assert rest == [] and done[0].times.tolist() == [0.0, 0.005, 0.01]
+    tr = done.trajectory(0)
+    assert rest == [] and done.idx == [0] and tr.times.tolist() == [0.0, 0.005, 0.01]
     ref = integrate(model, y0, 0.0, 0.01, sample_times=np.array([0.0, 0.005, 0.01]))
-    assert done[0].states.tolist() == ref.states.tolist()
+    assert tr.states.tolist() == ref.states.tolist() and done.last().tolist() == [ref.states[-1].tolist()]
 
 
 def _compare(d: dict):
@@ -532,3 +533,77 @@ def test_chatter_steps_add_up_across_control_ticks():
         track.add(tr, np.array([0.01 * k, 0.01 * (k + 1)]))
     assert counts[0] > 0 and plant.record.quiet_steps < 3  # the first tick chatters: never called quiet
     assert track.trajectory().stats["chatter_steps"] == sum(counts)
+
+
+def _piece(kind: str, t: float, n: int, rng) -> "Trajectory":
+    """A tick's piece as the plant returns it: an event piece (its stats plain, with counts the run sums, or none)."""
+    from virtual_vehicle.dynamics import Event, Trajectory
+
+    times = np.array([t, t + 0.005, t + 0.01])
+    states = rng.normal(size=(3, 6))
+    stats = {"plain": {"solves": n, "pieces_cached": 2}, "summed": {"solves": n, "chatter_steps": n + 1,
+                                                                    "kinetic_start": 0.5 * n},
+             "none": {}}[kind]
+    events = [Event(t + 0.004, "support", tuple(states[1].tolist()), entered=(n,))] if kind != "none" else []
+    return Trajectory(times, states, events, "completed", t + 0.01, 2, 30 + n, stats)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.sampled_from(["quiet", "plain", "summed", "none"]), min_size=1, max_size=12),
+       st.lists(st.booleans(), min_size=12, max_size=12), st.integers(0, 2**32 - 1))
+@example(["quiet", "none"], [False] * 12, 0)  # a piece without stats leaves the quiet step's standing
+@example(["summed", "quiet", "none", "plain"], [True] * 12, 1)  # summed counts carried across a quiet step
+@example(["quiet", "summed", "quiet"], [False, True] * 6, 2)
+def test_a_track_takes_quiet_steps_from_their_block_as_it_takes_their_trajectories(kinds, sampled, seed):
+    """A networked run takes a tick the quiet stepper alone took straight from the stepper's block
+    (_Track.add_quiet), without making its Trajectory: the parcel's trajectory at the end is the same in every
+    field as when each tick's Trajectory is taken in (samples on the grid, events, counts, the stats the run sums
+    and those the latest piece sets), whatever pieces come before and after."""
+    from virtual_vehicle.batch import QuietSteps
+    from virtual_vehicle.sim import _Track
+
+    rng = np.random.default_rng(seed)
+    by_block, by_piece = _Track(), _Track()
+    for k, kind in enumerate(kinds):
+        t = 0.01 * k
+        grid = np.array([t + 0.005]) if sampled[k] else np.empty(0)
+        if kind == "quiet":
+            times = np.array([t, t + 0.005, t + 0.01])
+            states = rng.normal(size=(3, 3, 6))
+            steps = QuietSteps([7, 4], times, states, [2, 0], 11, [k, k + 5])
+            by_block.add_quiet(steps, 1, grid)
+            by_piece.add(steps.trajectory(1), grid)
+        else:
+            tr = _piece(kind, t, k, rng)
+            by_block.add(tr, grid)
+            by_piece.add(tr, grid)
+        assert by_block.started and by_block.piece.states.tolist() == by_piece.piece.states.tolist()
+    mine, ref = by_block.trajectory(), by_piece.trajectory()
+    assert mine.times.tolist() == ref.times.tolist() and mine.states.tolist() == ref.states.tolist()
+    assert (mine.events, mine.status, mine.t_end, mine.segments, mine.rhs_evals, mine.stats) == \
+        (ref.events, ref.status, ref.t_end, ref.segments, ref.rhs_evals, ref.stats)
+
+
+def test_a_track_from_a_checkpoint_before_quiet_blocks_goes_on():
+    """A track pickled before quiet steps were taken from their block (its latest piece under ``piece``) loads and
+    goes on as one that never was pickled."""
+    import pickle
+
+    from virtual_vehicle.batch import QuietSteps
+    from virtual_vehicle.sim import _Track
+
+    rng = np.random.default_rng(3)
+    old = _Track()
+    old.add(_piece("summed", 0.0, 1, rng), np.empty(0))
+    state = dict(old.__dict__)
+    state["piece"] = state.pop("_piece")
+    del state["_quiet"]
+    loaded = _Track.__new__(_Track)
+    loaded.__setstate__(pickle.loads(pickle.dumps(state)))
+    steps = QuietSteps([0], np.array([0.01, 0.02]), rng.normal(size=(1, 2, 6)), [0], 11, [4])
+    for track in (old, loaded):
+        track.add_quiet(steps, 0, np.empty(0))
+    a, b = old.trajectory(), loaded.trajectory()
+    assert a.states.tolist() == b.states.tolist() and (a.stats, a.segments, a.rhs_evals) == (b.stats, b.segments,
+                                                                                           b.rhs_evals)
+    assert a.stats["chatter_steps"] == 2 and a.stats["solves"] == 4  # summed across; the latest piece's solves

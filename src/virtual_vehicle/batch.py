@@ -101,6 +101,38 @@ def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
                    halfplanes=spec.halfplanes if spec.convex else None)
 
 
+class QuietSteps:
+    """Parcels stepped together over one quiet window, kept as the one block the step wrote (a networked run takes
+    them in as they are; :meth:`trajectory` makes each one's :class:`~virtual_vehicle.dynamics.Trajectory`).
+
+    Attributes:
+        idx: the parcels (the plant's indices), in order.
+        times: (T,) the samples (s), the window's start and end among them, shared by all.
+        states: (q, T, 6) read-only; parcel ``idx[k]``'s samples are ``states[rows[k]]``.
+        rows: where each parcel's samples lie in ``states``.
+        evals: right-hand-side evaluations each parcel's step took.
+        solves: each parcel's count of solved supports when it was stepped.
+    """
+
+    __slots__ = ("idx", "times", "states", "rows", "evals", "solves")
+
+    def __init__(self, idx: list[int], times: np.ndarray, states: np.ndarray, rows: list[int], evals: int,
+                 solves: list[int]):
+        self.idx, self.times, self.states, self.rows, self.evals, self.solves = idx, times, states, rows, evals, solves
+
+    def __len__(self) -> int:
+        return len(self.idx)
+
+    def trajectory(self, k: int) -> Trajectory:
+        """Parcel ``idx[k]``'s trajectory over the window: one step, no events, completed."""
+        return Trajectory(self.times, self.states[self.rows[k]], [], "completed", float(self.times[-1]), 1, self.evals,
+                          {"solves": self.solves[k]})
+
+    def last(self) -> np.ndarray:
+        """(q, 6) each parcel's state at the window's end, a new array."""
+        return self.states[self.rows, -1]
+
+
 class QuietStepper:
     """Steps the quiet windows of separately moving parcels together (see the module docstring).
 
@@ -309,13 +341,14 @@ class QuietStepper:
                          for n, (a, y) in enumerate(zip(anchors, Y))], dtype=bool)
 
     def step(self, models, base, idx: list[int], ys, velocities: np.ndarray, t: float, te: float,
-             samples: np.ndarray) -> tuple[dict[int, Trajectory], list[int]]:
+             samples: np.ndarray) -> tuple[QuietSteps, list[int]]:
         """Advance the parcels ``idx`` (states ``ys[i]``, no other parcel within reach) from ``t`` to ``te`` (s)
-        under contact-layer ``velocities`` (m/s): returns the trajectories (sampled at ``samples``) of those stepped
-        here and the parcels left for the event-driven engine. ``models[i]`` is parcel i's model under these
+        under contact-layer ``velocities`` (m/s): returns those stepped here (sampled at ``samples``, the window's
+        ends among them) and the parcels left for the event-driven engine. ``models[i]`` is parcel i's model under these
         velocities (asked for only to make an anchor), ``base[i]`` any model of it (for the friction constants)."""
+        times = np.concatenate([[t], samples[(samples > t) & (samples < te)], [te]])
         if not idx:
-            return {}, []
+            return QuietSteps([], times, np.empty((0, len(times), 6)), [], 0, []), []
         window = te - t
         wheel_speed = float(np.max(np.hypot(velocities[:, 0], velocities[:, 1]))) if len(velocities) else 0.0
         Y = np.array([ys[i] for i in idx], dtype=float)
@@ -335,21 +368,16 @@ class QuietStepper:
             ok[stale] = self._check(idx, np.array(stale), Y, anchors, window, base, velocities, wheel_speed)
         quiet = np.flatnonzero(ok)
         rest = [idx[k] for k in np.flatnonzero(~ok)]
-        if not len(quiet):
-            return {}, rest
-        times = np.concatenate([[t], samples[(samples > t) & (samples < te)], [te]])
         states = np.empty((len(quiet), len(times), 6))  # each parcel's samples are a view of it
+        if not len(quiet):
+            return QuietSteps([], times, states, [], 0, []), rest
         accepted, evals = _kernel.quiet_steps(self._rows[np.asarray(idx)[quiet]], Y[quiet], t, te, self.rtol,
                                               self.atol, times, states)
         for shared in (states, times):
             shared.setflags(write=False)  # one array behind many trajectories
-        out = {}
-        for n, k in enumerate(quiet):
-            i = idx[k]
-            if not accepted[n]:
-                rest.append(i)
-                continue
-            out[i] = Trajectory(times, states[n], [], "completed", te, 1, evals,
-                                {"solves": anchors[k].geometry.solves})
-        return out, rest
+        rows = np.flatnonzero(accepted).tolist()
+        rest.extend(idx[k] for k in quiet[~accepted].tolist())
+        kept = quiet[rows].tolist()
+        return QuietSteps([idx[k] for k in kept], times, states, rows, evals,
+                          [anchors[k].geometry.solves for k in kept]), rest
 

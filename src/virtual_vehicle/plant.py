@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse import coo_matrix
 
-from .batch import QuietStepper
+from .batch import QuietStepper, QuietSteps
 from .collide import (ContactParams, Rows, lever_of, overlap_area, pair_contacts, place, point_reach, point_reaches,
                       push_gain, solve_rows)
 from .dynamics import MODES, Event, ParcelModel, Trajectory, _diff_event, _integrate, _sampled, sample_grid
@@ -279,6 +279,22 @@ class Plant:
         trimming each parcel's trajectory cost a few microseconds a tick). Raises ValueError when an active parcel's
         state is not six finite numbers.
         """
+        out, quiet = self._advance(ys, active, velocities, t0, t1, sample_dt, progress, sample_times)
+        for i, steps, k in quiet:
+            out[i] = steps.trajectory(k)
+        if trim:
+            grid = sample_grid(t0, t1, sample_dt) if sample_times is None else np.asarray(sample_times, dtype=float)
+            out = [None if tr is None else _on_grid(tr, grid) for tr in out]
+        return out
+
+    def _advance(self, ys: list[np.ndarray], active: list[bool], velocities: np.ndarray, t0: float, t1: float,
+                 sample_dt: float, progress: Callable[[float], None] | None = None,
+                 sample_times: np.ndarray | None = None) -> tuple[list[Trajectory | None],
+                                                                  list[tuple[int, QuietSteps, int]]]:
+        """:meth:`advance` untrimmed, with the parcels stepped only by the quiet stepper left as it stepped them: a
+        networked run takes them in from the stepper's block (a Trajectory per parcel and tick cost more than the
+        step). Returns the trajectories, None for those parcels and the inactive ones, and ``(i, steps, k)`` for
+        each of those parcels ``i``: its window is ``steps.trajectory(k)``."""
         models = self.models(velocities)
         was_active = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
         if was_active:  # checked here once: the engine takes them as they are
@@ -288,7 +304,7 @@ class Plant:
                 Y = None
             if Y is None or Y.shape != (len(was_active), 6) or not np.all(np.isfinite(Y)):
                 raise ValueError("the active parcels' states must be six finite numbers [x, y, theta, vx, vy, omega]")
-        parts: dict[int, list[Trajectory]] = {i: [] for i in was_active}
+        parts: dict[int, list] = {i: [] for i in was_active}  # each window's Trajectory, or (steps, k) if quiet
         grid = sample_grid(t0, t1, sample_dt) if sample_times is None else np.asarray(sample_times, dtype=float)
         t = float(t0)
         end = t1 - 1e-12 * max(1.0, abs(t1))
@@ -308,8 +324,11 @@ class Plant:
                     self._quiet.forget(i)
                 done, rest = self._quiet.step(models, self.base, solo, ys, models.velocities, t, te, samples)
                 self.record.quiet_steps += len(done)
-                for i, tr in done.items():
-                    self._take(i, tr, ys, active, parts)
+                if len(done):
+                    last = done.last()
+                    for k, i in enumerate(done.idx):  # a quiet step completes: nothing tips
+                        parts[i].append((done, k))
+                        ys[i] = last[k]
             for i in rest:
                 if self._quiet is not None:
                     self._quiet.hand_over(i, models[i])
@@ -327,10 +346,13 @@ class Plant:
             if progress is not None:
                 progress(t)
         out: list[Trajectory | None] = [None] * len(ys)
+        quiet: list[tuple[int, QuietSteps, int]] = []
         for i, p in parts.items():
-            if p:
-                out[i] = _on_grid(join(p), grid) if trim else join(p)
-        return out
+            if len(p) == 1 and type(p[0]) is tuple:
+                quiet.append((i, *p[0]))
+            elif p:
+                out[i] = join([q[0].trajectory(q[1]) if type(q) is tuple else q for q in p])
+        return out, quiet
 
     @staticmethod
     def _take(i, tr, ys, active, parts):

@@ -583,14 +583,18 @@ class NetworkRun(_Job):
             eps = 1e-12 * max(1.0, t1)
             window = self.grid[np.searchsorted(self.grid, t0 - eps, side="left"):
                                np.searchsorted(self.grid, t1 + eps, side="right")]  # output samples in this tick
-            trajectories = self.plant.advance(ys, active, velocities, t0, t1, self.period, sample_times=window,
-                                              trim=False)  # the tracks keep the grid
+            trajectories, quiet = self.plant._advance(ys, active, velocities, t0, t1, self.period,
+                                                      sample_times=window)  # untrimmed: the tracks keep the grid
             on: dict[int, np.ndarray] = {}  # by times array: the parcels stepped together share theirs
             for i, tr in enumerate(trajectories):
                 if tr is not None:
                     if len(window) and id(tr.times) not in on:
                         on[id(tr.times)] = on_grid(tr.times, window)
                     self.tracks[i].add(tr, window, on.get(id(tr.times)))
+            for i, steps, k in quiet:  # those the quiet stepper alone moved, from its block
+                if len(window) and id(steps.times) not in on:
+                    on[id(steps.times)] = on_grid(steps.times, window)
+                self.tracks[i].add_quiet(steps, k, window, on.get(id(steps.times)))
             gone = [i for i in self.on if not active[i]]
             for i in gone:  # those that left the array are gone, and so is what was cached for them
                 self.plant.release(i)
@@ -692,35 +696,76 @@ class _Track:
         self.times: list[float] = []
         self.states: list[np.ndarray] = []
         self.events: list = []
-        self.piece = None  # the latest piece, whose last state, status, end and stats carry on
+        self._piece = None  # the latest piece, whose last state, status, end and stats carry on
+        self._quiet = None  # or (steps, k): the latest piece was a quiet step, not yet made a Trajectory
         self.segments = 0
         self.rhs_evals = 0
         self.stats_pieces: list[dict] = []
 
+    def __setstate__(self, state):
+        if "piece" in state:  # a checkpoint written before quiet steps were taken in from their block
+            state["_piece"] = state.pop("piece")
+        state.setdefault("_quiet", None)
+        self.__dict__.update(state)
+
+    @property
+    def piece(self) -> Trajectory | None:
+        """The latest piece (None before the first)."""
+        if self._quiet is not None:
+            steps, k = self._quiet
+            self._piece, self._quiet = steps.trajectory(k), None
+        return self._piece
+
     @property
     def started(self) -> bool:
-        return self.piece is not None
+        return self._piece is not None or self._quiet is not None
+
+    def _sample(self, times: np.ndarray, states: np.ndarray, grid: np.ndarray, on: np.ndarray | None) -> None:
+        """Keep the samples at ``times`` (s) on the output ``grid``; ``on``: which those are, when known."""
+        if on is None:
+            on = on_grid(times, grid)
+        for t, y in zip(times[on], states[on]):
+            if not self.times or t > self.times[-1]:
+                self.times.append(float(t))
+                self.states.append(y.copy())
 
     def add(self, tr: Trajectory, grid: np.ndarray, on: np.ndarray | None = None) -> None:
         """Take in the parcel's trajectory over one tick (as the plant returns it untrimmed): of its samples, those
         on the output ``grid`` (s) and its last state. ``on``: which of its times lie on the grid, when known."""
         if len(grid):  # most control ticks hold no output sample
-            if on is None:
-                on = on_grid(tr.times, grid)
-            for t, y in zip(tr.times[on], tr.states[on]):
-                if not self.times or t > self.times[-1]:
-                    self.times.append(float(t))
-                    self.states.append(y.copy())
+            self._sample(tr.times, tr.states, grid, on)
         self.events.extend(tr.events)
         self.segments += tr.segments
         self.rhs_evals += tr.rhs_evals
-        self.piece = tr
+        self._piece, self._quiet = tr, None
         if tr.stats:
-            first = self.stats_pieces[:1]
+            first = self._stats_first()
             if first and not (_SUMMED.isdisjoint(tr.stats) and _SUMMED.isdisjoint(first[0].stats)):
                 self.stats_pieces = join_stats([*first, tr])
             else:
                 self.stats_pieces = [tr]  # the latest stands
+
+    def add_quiet(self, steps, k: int, grid: np.ndarray, on: np.ndarray | None = None) -> None:
+        """:meth:`add` for a tick the quiet stepper alone took, as ``steps.trajectory(k)`` (one step, no events, the
+        stats the count of solves only), without making that Trajectory unless it is asked for."""
+        if len(grid):
+            self._sample(steps.times, steps.states[steps.rows[k]], grid, on)
+        self.segments += 1
+        self.rhs_evals += steps.evals
+        self._quiet = ref = steps, k
+        head = self.stats_pieces[0] if self.stats_pieces else None
+        if head is not None and type(head) is not tuple and not _SUMMED.isdisjoint(head.stats):
+            self.stats_pieces = join_stats([head, self.piece])  # (a quiet step's own stats hold nothing summed)
+        else:
+            self.stats_pieces = [ref]  # the latest stands, made a Trajectory when it is read
+
+    def _stats_first(self) -> list:
+        """``stats_pieces[:1]``, a quiet step there made its Trajectory."""
+        first = self.stats_pieces[:1]
+        if first and type(first[0]) is tuple:
+            steps, k = first[0]
+            first = self.stats_pieces = [steps.trajectory(k)]
+        return first
 
     def trajectory(self) -> Trajectory:
         times, states = list(self.times), list(self.states)
@@ -728,7 +773,7 @@ class _Track:
         if not times or end > times[-1]:
             times.append(end)
             states.append(self.piece.states[-1].copy())
-        stats = self.stats_pieces[0].stats if self.stats_pieces else dict(self.piece.stats)
+        stats = self._stats_first()[0].stats if self.stats_pieces else dict(self.piece.stats)
         return Trajectory(np.array(times), np.array(states).reshape(-1, 6), self.events, self.piece.status,
                           self.piece.t_end, self.segments, self.rhs_evals, stats)
 
