@@ -162,7 +162,7 @@ from virtual_vehicle.sim import run_network
 warm_up()
 home = {n: _kernel for n in ("run_piece", "pattern", "cell_margins", "support_slack", "edges_clear",
                                       "quiet_steps")}
-home["_within"] = home["_near"] = parcel
+home["_within"] = home["_covered"] = parcel
 home["_terms_and_row"] = friction  # the bench_scale hall is viscous
 names = tuple(home)
 before = {n: len(getattr(home[n], n).signatures) for n in names}
