@@ -720,20 +720,21 @@ class _Track:
     def started(self) -> bool:
         return self._piece is not None or self._quiet is not None
 
-    def _sample(self, times: np.ndarray, states: np.ndarray, grid: np.ndarray, on: np.ndarray | None) -> None:
-        """Keep the samples at ``times`` (s) on the output ``grid``; ``on``: which those are, when known."""
-        if on is None:
-            on = on_grid(times, grid)
-        for t, y in zip(times[on], states[on]):
+    def _sample(self, times: np.ndarray, states: np.ndarray) -> None:
+        """Keep the samples at ``times`` (s, on the output grid) with their ``states`` (an array of this track's own,
+        whose rows it keeps) after the last kept."""
+        for t, y in zip(times.tolist(), states):
             if not self.times or t > self.times[-1]:
-                self.times.append(float(t))
-                self.states.append(y.copy())
+                self.times.append(t)
+                self.states.append(y)
 
     def add(self, tr: Trajectory, grid: np.ndarray, on: np.ndarray | None = None) -> None:
         """Take in the parcel's trajectory over one tick (as the plant returns it untrimmed): of its samples, those
         on the output ``grid`` (s) and its last state. ``on``: which of its times lie on the grid, when known."""
         if len(grid):  # most control ticks hold no output sample
-            self._sample(tr.times, tr.states, grid, on)
+            if on is None:
+                on = on_grid(tr.times, grid)
+            self._sample(tr.times[on], tr.states[on])
         self.events.extend(tr.events)
         self.segments += tr.segments
         self.rhs_evals += tr.rhs_evals
@@ -749,7 +750,9 @@ class _Track:
         """:meth:`add` for a tick the quiet stepper alone took, as ``steps.trajectory(k)`` (one step, no events, the
         stats the count of solves only), without making that Trajectory unless it is asked for."""
         if len(grid):
-            self._sample(steps.times, steps.states[steps.rows[k]], grid, on)
+            if on is None:
+                on = on_grid(steps.times, grid)
+            self._sample(steps.times[on], steps.states[steps.rows[k], on])
         self.segments += 1
         self.rhs_evals += steps.evals
         self._quiet = ref = steps, k
