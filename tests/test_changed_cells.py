@@ -295,3 +295,118 @@ def test_changed_cells_gives_up_comparing_in_turmoil_and_comes_back_when_it_calm
     # and once calm again, stepped few cells every tick but one (the tick that compares again after giving up)
     assert len(partial_after) >= 10 and sum(c >= n // 2 for c in partial_after) <= 1
     assert some.backoff == 1  # the next turmoil starts with one tick of giving up again
+
+
+def _same_step(mine, ref) -> None:
+    """Two sorter steps' outputs are the same: state (keys in order, dtypes, values), sentences, wheel speeds."""
+    (s1, o1, w1), (s2, o2, w2) = mine, ref
+    assert list(s1) == list(s2) and list(s1["heard"]) == list(s2["heard"])
+    for k in s1:
+        for a, b in ([(s1[k][w], s2[k][w]) for w in s1[k]] if k == "heard" else [(s1[k], s2[k])]):
+            assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b), k
+    assert list(o1.values) == list(o2.values) and o1.present.tolist() == o2.present.tolist()
+    for w in o1.values:
+        assert o1.values[w].dtype == o2.values[w].dtype and np.array_equal(o1.values[w], o2.values[w]), w
+    assert np.asarray(w1).dtype == np.asarray(w2).dtype and np.asarray(w1).tobytes() == np.asarray(w2).tobytes()
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_the_compiled_sorter_steps_as_its_array_statement_in_whole_runs(case):
+    """Every tick of a whole run, the compiled sorter (Sorter.step) and its statement in array operations
+    (Sorter._step_arrays) give the same state, sentences and wheel speeds from the same inputs, on all the cells
+    or on those that changed: merging under noisy sensors, sequencing with parking and one-way cells, cells taken
+    out and back with faults, lossy rounds (where neighbours' words age and holds outlive a tick)."""
+    setup = CASES[case]().build()
+    program = setup.control.program
+    assert program.compiled
+    steps = [0]
+    compiled = program.step
+
+    def both(state, inputs):
+        out = compiled(state, inputs)
+        _same_step(out, program._step_arrays(state, inputs))
+        steps[0] += 1
+        return out
+
+    program.step = both
+    NetworkRun(setup).run(None)
+    assert steps[0] > 100
+
+
+def _keys(rng, shape) -> np.ndarray:
+    """Direction keys as sorters say them (sorting._key: distance, keeping the direction, a port, hops), or none."""
+    key = ((rng.integers(0, 260, shape) * 2 + rng.integers(0, 2, shape)) * 8 + rng.integers(0, 4, shape)) * 64 \
+        + rng.integers(0, 64, shape)
+    return np.where(rng.random(shape) < 0.3, 1 << 20, key)
+
+
+def _said(rng, shape) -> dict[str, np.ndarray]:
+    """Words as sorters say them where a word packs two fields: a direction key, ``stop`` (hops to a stopping cell,
+    then to a parking cell; 255 for none) and ``ack`` (a run of held cells, then the port asked through plus one)."""
+    hops = lambda: np.where(rng.random(shape) < 0.4, 255, rng.integers(0, 10, shape))  # noqa: E731
+    return {"key": _keys(rng, shape), "stop": hops() + (hops() << 8),
+            "ack": rng.integers(0, 5, shape) + (rng.integers(0, 5, shape) << 8)}
+
+
+_WORDS = {"d": (-2**31, 2**31 - 1), "nxt": (0, 6), "vid": (-1, 8), "goal": (-1, 40), "key": (0, 1 << 20),
+          "stop": (0, 2**16 - 1), "req": (-1, 8), "rdep": (0, 4), "hold": (-1, 8), "ack": (0, 2**16 - 1),
+          "ex": (-2, 3), "blk": (-2**31, 2**31 - 1)}
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([0, 3]), st.booleans(), st.booleans())
+def test_the_compiled_sorter_steps_as_its_array_statement_on_any_inputs(seed, max_age, parking, labelled):
+    """The same on random inputs a run may never give: any words heard or arriving (within their types; vehicle
+    ids from a handful, so that neighbours share them), any sensors, links, labels, exits, entries, parking and
+    one-way cells, and any state, stale or fresh."""
+    from virtual_vehicle.network.messages import DTYPE
+    from virtual_vehicle.sorting import Sorter
+
+    rng = np.random.default_rng(seed)
+    n, P = 40, 4
+    program = Sorter(0.3, gap=int(rng.integers(1, 4)), reach=int(rng.integers(2, 9)), max_age=max_age)
+    state = program.init(n, P, {})
+    for w, (lo, hi) in _WORDS.items():
+        state["heard"][w] = rng.integers(lo, hi + 1, (n, P))
+    state["heard"].update(_said(rng, (n, P)))
+    state["age"] = rng.choice([0, 1, 2, 5, 2**31 - 1], (n, P))
+    for k, (lo, hi) in {"vid": (-1, 8), "goal": (-1, 40), "dir": (-1, 3), "back": (0, 6), "bdir": (-1, 3),
+                        "hold": (-1, 8), "hage": (0, 4), "hport": (-1, 3), "hdep": (0, 4), "nxt": (0, 6)}.items():
+        state[k] = rng.integers(lo, hi + 1, n)
+    inbox = Mailbox.empty(program.schema, n, P)
+    inbox.present[:] = rng.random((n, P)) < 0.7
+    for f in program.schema.fields:
+        lo, hi = _WORDS[f.name]
+        info = np.iinfo(DTYPE[f.type])
+        inbox.values[f.name][:] = rng.integers(max(lo, info.min), min(hi, info.max) + 1, (n, P))
+    for w, v in _said(rng, (n, P)).items():
+        inbox.values[w][:] = v
+    config = {"exit": rng.choice([-1, -1, -1, 0, 1, 2, 3], n), "exit_port": rng.integers(-1, 4, n),
+              "entry": rng.random(n) < 0.2, "entry_no": rng.integers(0, 3000, n),
+              "forbid": rng.choice([-1, -1, 0, 1, 2, 3], n)}
+    if parking:
+        config["park"] = rng.random(n) < 0.2
+    labels = rng.integers(-1, 40, n) if labelled else None
+    inputs = CellInputs(float(rng.integers(0, 10**5)) * 0.01, rng.random((n, 5)) < 0.4, inbox,
+                        rng.random((n, P)) < 0.85, config, labels)
+    _same_step(program.step(state, inputs), program._step_arrays(state, inputs))
+
+
+def test_a_direction_key_naming_no_port_fails_in_both_sorters():
+    """A key word no sorter says (its port field beyond the cell's four ports) fails the compiled step as it fails
+    the array one, instead of reading past the cell's ports."""
+    from virtual_vehicle.sorting import Sorter
+
+    n, P = 3, 4
+    for compiled in (True, False):
+        program = Sorter(0.3, compiled=compiled)
+        state = program.init(n, P, {})
+        state["vid"][:] = 7
+        state["goal"][:] = 0
+        inbox = Mailbox.empty(program.schema, n, P)
+        inbox.present[:] = True
+        inbox.values["vid"][:] = 7
+        inbox.values["key"][:] = (5 * 8 + 6) * 64  # port 6
+        inputs = CellInputs(0.0, np.ones((n, 5), bool), inbox, np.ones((n, P), bool), {}, None)
+        with pytest.raises(IndexError):
+            program.step(state, inputs)

@@ -155,7 +155,7 @@ def test_warming_up_compiles_what_networked_runs_call():
 import collections, json, sys
 sys.path.insert(0, %r)
 import bench_scale
-from virtual_vehicle import _kernel, friction, parcel
+from virtual_vehicle import _kernel, friction, parcel, sorting
 from virtual_vehicle.dynamics import warm_up
 from virtual_vehicle.scenario import parse_scenario
 from virtual_vehicle.sim import run_network
@@ -164,6 +164,7 @@ home = {n: _kernel for n in ("run_piece", "pattern", "cell_margins", "support_sl
                                       "quiet_steps")}
 home["_within"] = home["_covered"] = parcel
 home["_terms_and_row"] = friction  # the bench_scale hall is viscous
+home["_step_cells"] = sorting
 names = tuple(home)
 before = {n: len(getattr(home[n], n).signatures) for n in names}
 calls = collections.Counter()

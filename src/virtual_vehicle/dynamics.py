@@ -441,16 +441,21 @@ _NO_PAUSE = int(np.iinfo(np.int64).max)
 
 def warm_up() -> float:
     """Compile the event engine's inner loop (:mod:`virtual_vehicle._kernel`), the support solve's compiled parts
-    (:mod:`virtual_vehicle.contact`, :mod:`virtual_vehicle.friction`) and the quiet step's checks and step
-    (:mod:`virtual_vehicle.batch`; about 40 s together, the first time on a machine) or load them from numba's cache
-    (a fraction of a second), by integrating one parcel on a 4 x 4 array for 10 ms, looking its last piece up again,
-    making its constants under the viscous law too, checking and stepping it as a quiet step would, and gathering
-    the cells under it as sensing does. The first integration of a process does this anyway; call it to do it at a
-    time of your choosing (the set-up of ``make`` does, so that no later run waits). Returns the seconds it took."""
+    (:mod:`virtual_vehicle.contact`, :mod:`virtual_vehicle.friction`), the quiet step's checks and step
+    (:mod:`virtual_vehicle.batch`) and the sorter's cell program (:mod:`virtual_vehicle.sorting`; about a minute
+    together, the first time on a machine) or load them from numba's cache (a fraction of a second), by integrating
+    one parcel on a 4 x 4 array for 10 ms, looking its last piece up again, making its constants under the viscous
+    law too, checking and stepping it as a quiet step would, gathering the cells under it as sensing does, and
+    stepping the sorter once. The first integration of a process does this anyway (but for the sorter); call it to
+    do it at a time of your choosing (the set-up of ``make`` does, so that no later run waits). Returns the seconds
+    it took."""
     from .batch import QuietStepper, anchor  # here: batch imports this module
     from .fields import Uniform
     from .layout import grid
+    from .network.messages import Mailbox
+    from .network.programs import CellInputs
     from .parcel import covered_pairs, rectangle
+    from .sorting import Sorter
 
     start = time.perf_counter()
     cells = grid(4, 4, 0.1)
@@ -468,6 +473,9 @@ def warm_up() -> float:
     _kernel.quiet_steps(np.array([piece.row]), end[None], 0.01, 0.02, 1e-10, 1e-12,
                         np.array([0.01, 0.02]), np.empty((1, 2, 6)))
     covered_pairs([spec], [end], cells.grid)  # as sensing and destination labels gather cells
+    sorter = Sorter(0.3)  # the sorter's compiled cell program, as a networked run steps it
+    sorter.step(sorter.init(4, 4, {}), CellInputs(0.0, np.zeros((4, 5), bool), Mailbox.empty(sorter.schema, 4, 4),
+                                                  np.ones((4, 4), bool), {}, None))
     return time.perf_counter() - start
 
 

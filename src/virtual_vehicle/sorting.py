@@ -50,8 +50,9 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+from numba import njit
 
-from .network.messages import Mailbox, Schema
+from .network.messages import DTYPE, Mailbox, Schema
 from .network.programs import UNREACHABLE, CellInputs
 from .network.sentence import WordType
 
@@ -119,6 +120,8 @@ class Sorter:
             installation number modulo 1024), so smaller ids are older vehicles.
         pitch: the cell pitch (m), known to every cell: a vehicle that meets an older one head on backs off for the
             time it takes to travel ``gap + 1`` pitches.
+        compiled: step in compiled code (the default), or in array operations (the same numbers, slower; the
+            readable statement of the rules).
 
     Sensor 0 of every cell must be its centre (the default layout): a cell whose centre is covered carries the
     parcel; the others only see its edge.
@@ -147,7 +150,7 @@ class Sorter:
     byte), the rest as their names say (see the module notes)."""
 
     def __init__(self, speed: float, gap: int = 2, reach: int = 8, max_age: int = 0, edge_cost: int = 3,
-                 period: float = 0.01, pitch: float = 0.1):
+                 period: float = 0.01, pitch: float = 0.1, compiled: bool = True):
         if not speed > 0:
             raise ValueError("speed must be positive (m/s)")
         if not 1 <= reach <= 62:
@@ -160,6 +163,12 @@ class Sorter:
         self.period = float(period)
         self.back_ticks = int(np.ceil((self.gap + 1) * pitch / (self.speed * self.period)))
         """Ticks a vehicle backs off for when it meets an older one head on: the gap and one more cell."""
+        self.compiled = bool(compiled)
+        """Step in compiled code (:func:`_step_cells`); False: in array operations (:meth:`_step_arrays`)."""
+
+    def __setstate__(self, state):
+        state.setdefault("compiled", True)  # a checkpoint from before the compiled step
+        self.__dict__.update(state)
 
     def init(self, n, ports, config):
         """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each (see
@@ -181,7 +190,44 @@ class Sorter:
 
     def step(self, state, inputs: CellInputs):
         """One control tick for every cell at once: new state, the sentences to send, and the (n, 2) wheel speeds (m/s
-        along each drive direction); see :class:`~virtual_vehicle.network.programs.CellProgram`."""
+        along each drive direction); see :class:`~virtual_vehicle.network.programs.CellProgram`. Compiled
+        (:func:`_step_cells`), or in array operations (:meth:`_step_arrays`, the same numbers) with
+        ``compiled=False``."""
+        if not self.compiled:
+            return self._step_arrays(state, inputs)
+        inbox = inputs.inbox
+        n, P = inbox.present.shape
+        if P != 4:
+            raise ValueError("the sorter runs on square lattices (four ports a cell)")
+        cfg = inputs.config
+
+        def cells(name, default, dtype):
+            return _arg(cfg[name] if name in cfg else default, dtype)
+
+        words = [f.name for f in self.schema.fields]
+        heard = state["heard"]
+        labels = np.full(n, _NONE) if getattr(inputs, "labels", None) is None else inputs.labels
+        tick = int(round(inputs.t / self.period)) if self.period else 0
+        new, sent, wheels = _step_cells(
+            _arg(inbox.present, bool), *(_arg(inbox.values[w], DTYPE[f.type]) for w, f in zip(words, self.schema.fields)),
+            *(_arg(heard[w], np.int64) for w in words),
+            *(_arg(state[k], np.int64) for k in ("age", "nxt", "vid", "goal", "dir", "back", "bdir", "hold", "hage",
+                                                 "hport", "hdep")),
+            _arg(inputs.sensors, bool), _arg(inputs.connected, bool), cells("exit", np.full(n, _NONE), np.int64),
+            cells("exit_port", np.full(n, _NONE), np.int64), cells("entry", np.zeros(n, bool), bool),
+            cells("entry_no", np.zeros(n), np.int64), cells("park", np.zeros(n, bool), bool),
+            cells("forbid", np.full(n, _NONE), np.int64), _arg(labels, np.int64), tick, self.max_age, self.edge_cost,
+            self.reach, self.gap, self.back_ticks, self.speed)
+        dist, new_heard, age, *rest = new
+        by_word = dict(zip(words, new_heard))
+        new_state = {"dist": dist, "heard": {k: by_word[k] for k in heard}, "age": age,
+                     **dict(zip(("vid", "goal", "dir", "key", "stop", "hold", "hdep", "hport", "hage", "ack", "nxt",
+                                 "park", "back", "bdir"), rest))}
+        return new_state, Mailbox(self.schema, np.ones((n, P), dtype=bool), dict(zip(words, sent))), wheels
+
+    def _step_arrays(self, state, inputs: CellInputs):
+        """:meth:`step` in array operations: the readable statement of the rules (see the module notes), which the
+        compiled step mirrors line by line and is tested against."""
         inbox = inputs.inbox
         n, P = inbox.present.shape
         cfg = inputs.config
@@ -389,6 +435,309 @@ class Sorter:
         nb = np.where(same_nb & (heard < self.reach), heard + 1, 255)
         out = np.minimum(own, _across(np.minimum, nb)) if nb.shape[1] else own
         return np.where(on, out, 255)
+
+
+# --------------------------------------------------------------------------- the step, compiled
+
+def _arg(a, dtype) -> np.ndarray:
+    """``a`` as :func:`_step_cells` takes it: C-contiguous, writeable (a read-only array is another compiled
+    signature), of ``dtype``; copied only when it is not so already."""
+    a = np.ascontiguousarray(a, dtype=dtype)
+    return a if a.flags.writeable else a.copy()
+
+
+_INT32_MAX = int(np.iinfo(np.int32).max)
+
+
+@njit(cache=True)
+def _unpacked(word, q, bits):
+    """Field q of a word packed by :func:`_pack` (one value)."""
+    return ((word & 0xFFFFFFFF) >> (bits * q)) & ((1 << bits) - 1)
+
+
+@njit(cache=True)
+def _first_min(a):
+    """The index of the first smallest of ``a`` (numpy's argmin)."""
+    best = 0
+    for q in range(1, a.shape[0]):
+        if a[q] < a[best]:
+            best = q
+    return best
+
+
+@njit(cache=True)
+def _spread_one(own, stop_word, field, same, on, reach):
+    """:meth:`Sorter._spread` of one cell: ``stop_word`` its neighbours' packed ``stop`` words, ``same`` which of
+    them carry its vehicle."""
+    out = own
+    for q in range(same.shape[0]):
+        v = _unpacked(stop_word[q], field, 8)
+        nb = v + 1 if same[q] and v < reach else 255
+        out = min(out, nb)
+    return out if on else 255
+
+
+@njit(cache=True)
+def _step_cells(present, w_d, w_nxt, w_vid, w_goal, w_key, w_stop, w_req, w_rdep, w_hold, w_ack, w_ex, w_blk,
+                h_d, h_nxt, h_vid, h_goal, h_key, h_stop, h_req, h_rdep, h_hold, h_ack, h_ex, h_blk,
+                s_age, s_nxt, s_vid, s_goal, s_dir, s_back, s_bdir, s_hold, s_hage, s_hport, s_hdep,
+                sensors, connected, exit_id, exit_port, entry, entry_no, park_cell, forbid, labels,
+                tick, max_age, edge_cost, reach, gap, back_ticks, speed):
+    """:meth:`Sorter.step` cell by cell, compiled: the same integers and wheel speeds as the array version
+    (:meth:`Sorter._step_arrays`, which the tests hold it to), each line of which is mirrored here in order. ``w_*``
+    are the words that arrived (``present``), ``h_*`` the words last heard, ``s_*`` the rest of the state read."""
+    n, P = present.shape
+    park_any = False
+    for i in range(n):
+        park_any = park_any or park_cell[i]
+    heard = (np.empty((n, P), np.int64), np.empty((n, P), np.int64), np.empty((n, P), np.int64),
+             np.empty((n, P), np.int64), np.empty((n, P), np.int64), np.empty((n, P), np.int64),
+             np.empty((n, P), np.int64), np.empty((n, P), np.int64), np.empty((n, P), np.int64),
+             np.empty((n, P), np.int64), np.empty((n, P), np.int64), np.empty((n, P), np.int64))
+    hd, hnxt, hvid, hgoal, hkey, hstop, hreq, hrdep, hhold, hack, hex_, hblk = heard
+    age = np.empty((n, P), np.int64)
+    dist = np.empty((n, MAX_EXITS), np.int64)
+    vid_out, goal_out, dir_out, key_out = (np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64),
+                                           np.empty(n, np.int64))
+    stop_out, hold_out, hdep_out, hport_out = (np.empty(n, np.int64), np.empty(n, np.int64),
+                                               np.empty(n, np.int64), np.empty(n, np.int64))
+    hage_out, ack_out, nxt_out, park_out = (np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64),
+                                            np.empty(n, np.int64))
+    back_out, bdir_out = np.empty(n, np.int64), np.empty(n, np.int64)
+    o_d, o_nxt, o_vid, o_goal = (np.empty((n, P), np.int32), np.empty((n, P), np.int16),
+                                 np.empty((n, P), np.int32), np.empty((n, P), np.int16))
+    o_key, o_stop, o_req, o_rdep = (np.empty((n, P), np.int32), np.empty((n, P), np.uint16),
+                                    np.empty((n, P), np.int32), np.empty((n, P), np.uint8))
+    o_hold, o_ack, o_ex, o_blk = (np.empty((n, P), np.int32), np.empty((n, P), np.uint16),
+                                  np.empty((n, P), np.int16), np.empty((n, P), np.int32))
+    wheels = np.zeros((n, 2))
+    trusted = np.empty(P, np.bool_)
+    allowed = np.empty(P, np.bool_)
+    same_nb = np.empty(P, np.bool_)
+    open_side = np.empty(P, np.bool_)
+    score = np.empty(P, np.int64)
+    nb_entry = np.empty(P, np.int64)
+    cand = np.empty(P, np.int64)
+    req = np.empty(P, np.int64)
+    block = np.empty(P, np.int64)
+    said = np.empty(MAX_EXITS, np.int64)
+    for i in range(n):
+        # -- what the neighbours said (last heard, trusted while fresh)
+        for q in range(P):
+            p = present[i, q]
+            hd[i, q] = np.int64(w_d[i, q]) if p else h_d[i, q]
+            hnxt[i, q] = np.int64(w_nxt[i, q]) if p else h_nxt[i, q]
+            hvid[i, q] = np.int64(w_vid[i, q]) if p else h_vid[i, q]
+            hgoal[i, q] = np.int64(w_goal[i, q]) if p else h_goal[i, q]
+            hkey[i, q] = np.int64(w_key[i, q]) if p else h_key[i, q]
+            hstop[i, q] = np.int64(w_stop[i, q]) if p else h_stop[i, q]
+            hreq[i, q] = np.int64(w_req[i, q]) if p else h_req[i, q]
+            hrdep[i, q] = np.int64(w_rdep[i, q]) if p else h_rdep[i, q]
+            hhold[i, q] = np.int64(w_hold[i, q]) if p else h_hold[i, q]
+            hack[i, q] = np.int64(w_ack[i, q]) if p else h_ack[i, q]
+            hex_[i, q] = np.int64(w_ex[i, q]) if p else h_ex[i, q]
+            hblk[i, q] = np.int64(w_blk[i, q]) if p else h_blk[i, q]
+            age[i, q] = 0 if p else min(s_age[i, q] + 1, _INT32_MAX)
+            trusted[q] = (age[i, q] <= max_age) and connected[i, q]
+            allowed[q] = q != forbid[i]
+        # -- routing: one gradient per exit
+        lit = False
+        for s in range(sensors.shape[1]):
+            lit = lit or sensors[i, s]
+        linked = True
+        for q in range(P):
+            linked = linked and connected[i, q]
+        cost = 1 if (linked or exit_id[i] >= 0) else 1 + edge_cost
+        for e in range(MAX_EXITS):
+            source = exit_id[i] == e
+            if e == PARK and park_any:
+                source = park_cell[i] and not sensors[i, 0]
+            best = UNREACHABLE
+            for q in range(P):
+                best = min(best, _unpacked(hd[i, q], e, 8) if (trusted[q] and allowed[q]) else UNREACHABLE)
+            dist[i, e] = 0 if source else min(best + cost, UNREACHABLE)
+        # -- sequencing
+        most = hnxt[i, 0] if trusted[0] else 0
+        for q in range(1, P):
+            most = max(most, hnxt[i, q] if trusted[q] else 0)
+        nxt = max(s_nxt[i], most)
+        # -- tracking
+        vid, goal = s_vid[i], s_goal[i]
+        if not lit:
+            vid, goal = _NONE, _NONE
+        for q in range(P):
+            toward = (hkey[i, q] < _BIG) and ((hkey[i, q] // 64) % 8 == (q + 2) % 4)
+            has = trusted[q] and hvid[i, q] >= 0
+            score[q] = ((0 if toward else _HUGE) + hvid[i, q]) if has else 2 * _HUGE
+            nb_entry[q] = hvid[i, q] if (has and hex_[i, q] == _ENTRY) else _HUGE
+        pick = _first_min(score)
+        found = score[pick] < 2 * _HUGE
+        best_vid = hvid[i, pick]
+        entry_min = nb_entry[0]
+        for q in range(1, P):
+            entry_min = min(entry_min, nb_entry[q])
+        if lit and vid < 0 and found:
+            vid = best_vid
+            goal = hgoal[i, pick]
+        if lit and vid >= 0 and entry_min < vid:
+            k = _first_min(nb_entry)
+            vid = entry_min
+            goal = hgoal[i, k]
+        if lit and vid < 0 and entry[i] and labels[i] >= 0:
+            vid = tick * 1024 + entry_no[i] % 1024
+            goal = labels[i]
+        on = lit and vid >= 0 and goal >= 0
+        for q in range(P):
+            same_nb[q] = trusted[q] and hvid[i, q] == vid and on
+        g0 = max(goal, 0)
+        goal_exit, seq = g0 % 4, g0 // 4 - 1
+        turn = seq < 0 or seq <= nxt
+        target = goal_exit if turn else -99
+        # -- direction
+        g = goal_exit if turn else PARK
+        ep = exit_port[i]
+        mine = on and exit_id[i] == target and ep >= 0
+        into_band = _NONE
+        for c in range(2):
+            sp = (ep + 1) % 4 if c == 0 else (ep + 3) % 4
+            beside = mine and same_nb[sp] and hex_[i, sp] != target
+            if beside and into_band < 0:
+                into_band = (sp + 2) % 4
+        at_exit = mine and into_band < 0
+        core = on and sensors[i, 0]
+        for q in range(P):
+            own_block = core and (not connected[i, q] or not allowed[q])
+            own_block = own_block and not (at_exit and q == ep)
+            relayed = 63
+            if on:
+                for p in range(P):
+                    b = _unpacked(hblk[i, p], q, 6)
+                    relayed = min(relayed, b + 1 if (same_nb[p] and b < reach) else 63)
+            block[q] = 0 if own_block else relayed
+            if not on:
+                block[q] = 63
+            open_side[q] = trusted[q] and block[q] > reach
+            cand[q] = _unpacked(hd[i, q], g, 8) if open_side[q] else _BIG
+        port = _first_min(cand)
+        movable = cand[port] < UNREACHABLE
+        if into_band >= 0:
+            prop_port, prop_d = into_band, 0
+        elif at_exit:
+            prop_port, prop_d = ep, 1
+        else:
+            prop_port, prop_d = (port if movable else _NONE), cand[port] + 3
+        # head on: back off
+        sdir = s_dir[i]
+        pd = max(sdir, 0)
+        ahead_vid = hhold[i, pd] if trusted[pd] else _NONE
+        ahead_from = (hack[i, pd] >> 8) - 1
+        coming = ((hkey[i, pd] < _BIG) and ((hkey[i, pd] // 64) % 8 == (pd + 2) % 4)
+                  and hvid[i, pd] == ahead_vid)
+        head_on = (on and sdir >= 0 and ahead_vid >= 0 and ahead_vid < vid and not same_nb[pd]
+                   and (ahead_from == pd or coming))
+        back = max(s_back[i] - 1, 0) if on else 0
+        bdir = (pd + 2) % 4 if head_on else s_bdir[i]
+        if head_on:
+            back = back_ticks
+        backing = back > 0 and open_side[max(bdir, 0)] and bdir >= 0
+        if backing:
+            prop_port, prop_d = bdir, 0
+        own_key = _BIG
+        if on and prop_port >= 0:
+            own_key = ((prop_d * 2 + (1 - (1 if prop_port == sdir else 0))) * 8 + max(prop_port, 0)) * 64 + 0
+        least = 0
+        for q in range(P):  # one more hop; forget beyond reach
+            nk = hkey[i, q] if same_nb[q] else _BIG
+            nk = nk + 1 if nk % 64 < reach else _BIG
+            least = nk if q == 0 else min(least, nk)
+        key = min(own_key, least)
+        if not on:
+            key = _BIG
+        direction = (key // 64) % 8 if key < _BIG else _NONE
+        if direction >= P:  # (the array version fails here too: a key word from no sorter)
+            raise IndexError("a direction key names a port the cell does not have")
+        # -- traffic
+        ahead_ok_port = direction >= 0
+        dp = max(direction, 0)
+        ahead_is_mine = same_nb[dp] and ahead_ok_port
+        own_park = 0 if (on and not turn and core and park_cell[i]) else 255
+        park = _spread_one(own_park, hstop[i], 1, same_nb, on, reach)
+        parked = on and park <= reach
+        front = on and ahead_ok_port and not ahead_is_mine and not parked
+        off_array = front and not connected[i, dp] and exit_id[i] == target and dp == ep
+        for q in range(P):
+            req[q] = np.int64(w_req[i, q]) if (present[i, q] and trusted[q] and w_req[i, q] >= 0) else _HUGE
+        choice = _first_min(req)
+        new_hold = req[choice] if req[choice] < _HUGE else _NONE
+        hport = choice if new_hold >= 0 else _NONE
+        hdep = np.int64(w_rdep[i, max(hport, 0)]) if new_hold >= 0 else 0
+        keep = s_hold[i] >= 0 and s_hage[i] < max_age and (new_hold < 0 or s_hold[i] < new_hold)
+        if keep:
+            new_hold, hport, hdep = s_hold[i], s_hport[i], s_hdep[i]
+        hage = s_hage[i] + 1 if keep else 0
+        if lit:
+            new_hold = _NONE
+        if new_hold < 0:
+            hport = _NONE
+        L = gap + 1
+        fwd = (hport + 2) % 4
+        fp = max(fwd, 0)
+        succ = new_hold >= 0 and trusted[fp] and hhold[i, fp] == new_hold
+        edge = new_hold >= 0 and not connected[i, fp]
+        run_ahead = hack[i, fp] & 255 if succ else 0
+        ack = (L if edge else min(L, 1 + run_ahead)) if new_hold >= 0 else 0
+        ahead_hold = hhold[i, dp]
+        ahead_ack = hack[i, dp] & 255
+        go_front = off_array or (trusted[dp] and ahead_hold == vid and ahead_ack >= gap)
+        own_stop = 0 if (front and not go_front and (core or connected[i, dp])) else 255
+        stop = _spread_one(0 if own_park == 0 else own_stop, hstop[i], 0, same_nb, on, reach)
+        moving = on and direction >= 0 and stop > reach
+        # -- outputs
+        if moving:
+            wheels[i, dp % 2] = (1.0 if dp < 2 else -1.0) * speed
+        if off_array and go_front and seq >= 0:
+            nxt = max(nxt, seq + 1)
+        beside_parked = False
+        for q in range(P):
+            beside_parked = beside_parked or (trusted[q] and _unpacked(hstop[i, q], 1, 8) <= reach)
+        beside_parked = beside_parked and not (on and not parked)
+        word = 0
+        for e in range(MAX_EXITS):
+            said[e] = UNREACHABLE if (parked or beside_parked) else min(dist[i, e], UNREACHABLE)
+            word += said[e] << (8 * e)
+        if word >= 1 << 31:
+            word -= 1 << 32
+        blk = 0
+        for q in range(P):
+            blk += min(block[q], 63) << (6 * q)
+        if blk >= 1 << 31:
+            blk -= 1 << 32
+        for q in range(P):
+            o_d[i, q] = word
+            o_nxt[i, q] = nxt
+            o_vid[i, q] = vid if on else _NONE
+            o_goal[i, q] = goal if on else _NONE
+            o_key[i, q] = min(key, 2**31 - 1)
+            o_stop[i, q] = min(stop, 255) + (min(park, 255) << 8)
+            o_req[i, q] = _NONE
+            o_rdep[i, q] = 0
+            o_hold[i, q] = vid if (lit and on) else new_hold
+            o_ack[i, q] = min(ack, 255) + ((hport + 1) << 8)
+            o_ex[i, q] = _ENTRY if entry[i] else exit_id[i]
+            o_blk[i, q] = blk
+        if front and connected[i, dp]:  # requests: front cells ask the cell ahead
+            o_req[i, dp] = vid
+            o_rdep[i, dp] = 1
+        if new_hold >= 0 and hdep < L and connected[i, fp]:  # held cells pass it on until gap deep
+            o_req[i, fwd] = new_hold
+            o_rdep[i, fwd] = hdep + 1
+        vid_out[i], goal_out[i] = vid, goal
+        dir_out[i] = direction if (moving or direction >= 0) else _NONE
+        key_out[i], stop_out[i], hold_out[i], hdep_out[i], hport_out[i] = key, stop, new_hold, hdep, hport
+        hage_out[i], ack_out[i], nxt_out[i], park_out[i], back_out[i], bdir_out[i] = hage, ack, nxt, park, back, bdir
+    state = (dist, heard, age, vid_out, goal_out, dir_out, key_out, stop_out, hold_out, hdep_out, hport_out,
+             hage_out, ack_out, nxt_out, park_out, back_out, bdir_out)
+    return state, (o_d, o_nxt, o_vid, o_goal, o_key, o_stop, o_req, o_rdep, o_hold, o_ack, o_ex, o_blk), wheels
 
 
 class CentralSorter:
