@@ -195,6 +195,41 @@ class Sorter:
         ``compiled=False``."""
         if not self.compiled:
             return self._step_arrays(state, inputs)
+        n, P = inputs.inbox.present.shape
+        heard = state["heard"]
+        words = [f.name for f in self.schema.fields]
+        dtypes = [DTYPE[f.type] for f in self.schema.fields]
+        new_heard = tuple(np.empty((n, P), np.int64) for _ in words)
+        new = {"dist": np.empty((n, MAX_EXITS), np.int64), "heard": dict(zip(words, new_heard)),
+               "age": np.empty((n, P), np.int64), **{k: np.empty(n, np.int64) for k in _STATE}}
+        out = Mailbox(self.schema, np.empty((n, P), bool), {w: np.empty((n, P), t) for w, t in zip(words, dtypes)})
+        wheels = np.zeros((n, 2))
+        self._run(state, inputs, np.arange(n), new, out, wheels)
+        return {"dist": new["dist"], "heard": {k: new["heard"][k] for k in heard}, "age": new["age"],
+                **{k: new[k] for k in _STATE}}, out, wheels
+
+    def step_rows(self, state, inputs: CellInputs, rows: np.ndarray, outbox: Mailbox, wheels: np.ndarray):
+        """Step only the cells ``rows`` (indices into the full inputs), writing their new state, sentences and wheel
+        speeds into ``state``, ``outbox`` and ``wheels`` in place (as :class:`~virtual_vehicle.network.programs.
+        ChangedCells` keeps them): what :meth:`step` gives those rows when given their rows of everything, with
+        no rows gathered nor written back. Returns two (n,) masks, the rows whose state and whose sentences changed
+        (False for the others), or None when the arrays are not the sorter's own kinds (int64 state, the schema's
+        word types, C-contiguous, writeable), to step the rows the general way."""
+        if not self.compiled:
+            return None
+        n, P = inputs.inbox.present.shape
+        words = [f.name for f in self.schema.fields]
+        kept = [state["dist"], *state["heard"].values(), state["age"], *(state[k] for k in _STATE)]
+        if (list(state["heard"]) != words or any(a.dtype != np.int64 for a in kept)
+                or any(outbox.values[w].dtype != DTYPE[f.type] for w, f in zip(words, self.schema.fields))
+                or outbox.present.dtype != bool or wheels.dtype != np.float64
+                or not all(a.flags.c_contiguous and a.flags.writeable for a in (*kept, wheels, *outbox.arrays))):
+            return None
+        return self._run(state, inputs, np.asarray(rows, dtype=np.int64), state, outbox, wheels)
+
+    def _run(self, state, inputs, rows, new, out, wheels):
+        """Call :func:`_step_cells` for ``rows``, the new state into ``new`` (a state dict), the sentences into
+        ``out`` and the wheel speeds into ``wheels``; returns its (unsettled, out_changed) masks."""
         inbox = inputs.inbox
         n, P = inbox.present.shape
         if P != 4:
@@ -205,25 +240,22 @@ class Sorter:
             return _arg(cfg[name] if name in cfg else default, dtype)
 
         words = [f.name for f in self.schema.fields]
-        heard = state["heard"]
         labels = np.full(n, _NONE) if getattr(inputs, "labels", None) is None else inputs.labels
         tick = int(round(inputs.t / self.period)) if self.period else 0
-        new, sent, wheels = _step_cells(
-            _arg(inbox.present, bool), *(_arg(inbox.values[w], DTYPE[f.type]) for w, f in zip(words, self.schema.fields)),
-            *(_arg(heard[w], np.int64) for w in words),
-            *(_arg(state[k], np.int64) for k in ("age", "nxt", "vid", "goal", "dir", "back", "bdir", "hold", "hage",
-                                                 "hport", "hdep")),
-            _arg(inputs.sensors, bool), _arg(inputs.connected, bool), cells("exit", np.full(n, _NONE), np.int64),
-            cells("exit_port", np.full(n, _NONE), np.int64), cells("entry", np.zeros(n, bool), bool),
-            cells("entry_no", np.zeros(n), np.int64), cells("park", np.zeros(n, bool), bool),
-            cells("forbid", np.full(n, _NONE), np.int64), _arg(labels, np.int64), tick, self.max_age, self.edge_cost,
-            self.reach, self.gap, self.back_ticks, self.speed)
-        dist, new_heard, age, *rest = new
-        by_word = dict(zip(words, new_heard))
-        new_state = {"dist": dist, "heard": {k: by_word[k] for k in heard}, "age": age,
-                     **dict(zip(("vid", "goal", "dir", "key", "stop", "hold", "hdep", "hport", "hage", "ack", "nxt",
-                                 "park", "back", "bdir"), rest))}
-        return new_state, Mailbox(self.schema, np.ones((n, P), dtype=bool), dict(zip(words, sent))), wheels
+        unsettled, out_changed = np.zeros(n, bool), np.zeros(n, bool)
+        _step_cells(rows, _arg(inbox.present, bool),
+                    tuple(_arg(inbox.values[w], DTYPE[f.type]) for w, f in zip(words, self.schema.fields)),
+                    tuple(_arg(state["heard"][w], np.int64) for w in words), _arg(state["age"], np.int64),
+                    _arg(state["dist"], np.int64), tuple(_arg(state[k], np.int64) for k in _STATE),
+                    _arg(inputs.sensors, bool), _arg(inputs.connected, bool),
+                    cells("exit", np.full(n, _NONE), np.int64), cells("exit_port", np.full(n, _NONE), np.int64),
+                    cells("entry", np.zeros(n, bool), bool), cells("entry_no", np.zeros(n), np.int64),
+                    cells("park", np.zeros(n, bool), bool), cells("forbid", np.full(n, _NONE), np.int64),
+                    _arg(labels, np.int64), tuple(new["heard"][w] for w in words), new["age"], new["dist"],
+                    tuple(new[k] for k in _STATE), out.present, tuple(out.values[w] for w in words), wheels,
+                    unsettled, out_changed, tick, self.max_age, self.edge_cost, self.reach, self.gap,
+                    self.back_ticks, self.speed)
+        return unsettled, out_changed
 
     def _step_arrays(self, state, inputs: CellInputs):
         """:meth:`step` in array operations: the readable statement of the rules (see the module notes), which the
@@ -478,39 +510,26 @@ def _spread_one(own, stop_word, field, same, on, reach):
 
 
 @njit(cache=True)
-def _step_cells(present, w_d, w_nxt, w_vid, w_goal, w_key, w_stop, w_req, w_rdep, w_hold, w_ack, w_ex, w_blk,
-                h_d, h_nxt, h_vid, h_goal, h_key, h_stop, h_req, h_rdep, h_hold, h_ack, h_ex, h_blk,
-                s_age, s_nxt, s_vid, s_goal, s_dir, s_back, s_bdir, s_hold, s_hage, s_hport, s_hdep,
-                sensors, connected, exit_id, exit_port, entry, entry_no, park_cell, forbid, labels,
-                tick, max_age, edge_cost, reach, gap, back_ticks, speed):
-    """:meth:`Sorter.step` cell by cell, compiled: the same integers and wheel speeds as the array version
-    (:meth:`Sorter._step_arrays`, which the tests hold it to), each line of which is mirrored here in order. ``w_*``
-    are the words that arrived (``present``), ``h_*`` the words last heard, ``s_*`` the rest of the state read."""
+def _step_cells(rows, present, words, heard_in, age_in, dist_in, state_in, sensors, connected, exit_id, exit_port,
+                entry, entry_no, park_cell, forbid, labels, heard_out, age_out, dist_out, state_out, sent_present,
+                sent, wheels, unsettled, out_changed, tick, max_age, edge_cost, reach, gap, back_ticks, speed):
+    """:meth:`Sorter.step` for the cells ``rows``, one at a time, compiled: the same integers, sentences and wheel
+    speeds as the array version (:meth:`Sorter._step_arrays`, which the tests hold it to), each line of which is
+    mirrored here in order. ``words`` are the words that arrived (``present``), ``heard_in`` those last heard,
+    ``age_in``, ``dist_in`` and ``state_in`` (:data:`_STATE`'s order) the rest of the state; the new state, the
+    sentences and the wheel speeds of each row stepped go to the ``*_out`` arrays, ``sent_present``, ``sent`` (the
+    schema's order) and ``wheels``, which may be the very arrays read (a row reads and writes only its own row,
+    each value read before it is written): then only those rows change. ``unsettled[i]`` and ``out_changed[i]``
+    say whether row i's state and sentences differ from what the outputs held before."""
     n, P = present.shape
-    park_any = False
-    for i in range(n):
+    w_d, w_nxt, w_vid, w_goal, w_key, w_stop, w_req, w_rdep, w_hold, w_ack, w_ex, w_blk = words
+    hd, hnxt, hvid, hgoal, hkey, hstop, hreq, hrdep, hhold, hack, hex_, hblk = heard_out
+    s_vid, s_goal, s_dir, s_key, s_stop, s_hold, s_hdep, s_hport, s_hage, s_ack, s_nxt, s_park, s_back, s_bdir = \
+        state_in
+    o_d, o_nxt, o_vid, o_goal, o_key, o_stop, o_req, o_rdep, o_hold, o_ack, o_ex, o_blk = sent
+    park_any = False  # over the cells stepped, as the array version sees them
+    for i in rows:
         park_any = park_any or park_cell[i]
-    heard = (np.empty((n, P), np.int64), np.empty((n, P), np.int64), np.empty((n, P), np.int64),
-             np.empty((n, P), np.int64), np.empty((n, P), np.int64), np.empty((n, P), np.int64),
-             np.empty((n, P), np.int64), np.empty((n, P), np.int64), np.empty((n, P), np.int64),
-             np.empty((n, P), np.int64), np.empty((n, P), np.int64), np.empty((n, P), np.int64))
-    hd, hnxt, hvid, hgoal, hkey, hstop, hreq, hrdep, hhold, hack, hex_, hblk = heard
-    age = np.empty((n, P), np.int64)
-    dist = np.empty((n, MAX_EXITS), np.int64)
-    vid_out, goal_out, dir_out, key_out = (np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64),
-                                           np.empty(n, np.int64))
-    stop_out, hold_out, hdep_out, hport_out = (np.empty(n, np.int64), np.empty(n, np.int64),
-                                               np.empty(n, np.int64), np.empty(n, np.int64))
-    hage_out, ack_out, nxt_out, park_out = (np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64),
-                                            np.empty(n, np.int64))
-    back_out, bdir_out = np.empty(n, np.int64), np.empty(n, np.int64)
-    o_d, o_nxt, o_vid, o_goal = (np.empty((n, P), np.int32), np.empty((n, P), np.int16),
-                                 np.empty((n, P), np.int32), np.empty((n, P), np.int16))
-    o_key, o_stop, o_req, o_rdep = (np.empty((n, P), np.int32), np.empty((n, P), np.uint16),
-                                    np.empty((n, P), np.int32), np.empty((n, P), np.uint8))
-    o_hold, o_ack, o_ex, o_blk = (np.empty((n, P), np.int32), np.empty((n, P), np.uint16),
-                                  np.empty((n, P), np.int16), np.empty((n, P), np.int32))
-    wheels = np.zeros((n, 2))
     trusted = np.empty(P, np.bool_)
     allowed = np.empty(P, np.bool_)
     same_nb = np.empty(P, np.bool_)
@@ -520,25 +539,29 @@ def _step_cells(present, w_d, w_nxt, w_vid, w_goal, w_key, w_stop, w_req, w_rdep
     cand = np.empty(P, np.int64)
     req = np.empty(P, np.int64)
     block = np.empty(P, np.int64)
-    said = np.empty(MAX_EXITS, np.int64)
-    for i in range(n):
+    to_req = np.empty(P, np.int64)
+    to_rdep = np.empty(P, np.int64)
+    for i in rows:
         # -- what the neighbours said (last heard, trusted while fresh)
+        changed = False
         for q in range(P):
             p = present[i, q]
-            hd[i, q] = np.int64(w_d[i, q]) if p else h_d[i, q]
-            hnxt[i, q] = np.int64(w_nxt[i, q]) if p else h_nxt[i, q]
-            hvid[i, q] = np.int64(w_vid[i, q]) if p else h_vid[i, q]
-            hgoal[i, q] = np.int64(w_goal[i, q]) if p else h_goal[i, q]
-            hkey[i, q] = np.int64(w_key[i, q]) if p else h_key[i, q]
-            hstop[i, q] = np.int64(w_stop[i, q]) if p else h_stop[i, q]
-            hreq[i, q] = np.int64(w_req[i, q]) if p else h_req[i, q]
-            hrdep[i, q] = np.int64(w_rdep[i, q]) if p else h_rdep[i, q]
-            hhold[i, q] = np.int64(w_hold[i, q]) if p else h_hold[i, q]
-            hack[i, q] = np.int64(w_ack[i, q]) if p else h_ack[i, q]
-            hex_[i, q] = np.int64(w_ex[i, q]) if p else h_ex[i, q]
-            hblk[i, q] = np.int64(w_blk[i, q]) if p else h_blk[i, q]
-            age[i, q] = 0 if p else min(s_age[i, q] + 1, _INT32_MAX)
-            trusted[q] = (age[i, q] <= max_age) and connected[i, q]
+            changed |= _heard(p, w_d[i, q], heard_in[0], hd, i, q)
+            changed |= _heard(p, w_nxt[i, q], heard_in[1], hnxt, i, q)
+            changed |= _heard(p, w_vid[i, q], heard_in[2], hvid, i, q)
+            changed |= _heard(p, w_goal[i, q], heard_in[3], hgoal, i, q)
+            changed |= _heard(p, w_key[i, q], heard_in[4], hkey, i, q)
+            changed |= _heard(p, w_stop[i, q], heard_in[5], hstop, i, q)
+            changed |= _heard(p, w_req[i, q], heard_in[6], hreq, i, q)
+            changed |= _heard(p, w_rdep[i, q], heard_in[7], hrdep, i, q)
+            changed |= _heard(p, w_hold[i, q], heard_in[8], hhold, i, q)
+            changed |= _heard(p, w_ack[i, q], heard_in[9], hack, i, q)
+            changed |= _heard(p, w_ex[i, q], heard_in[10], hex_, i, q)
+            changed |= _heard(p, w_blk[i, q], heard_in[11], hblk, i, q)
+            old = age_in[i, q]
+            age_out[i, q] = 0 if p else min(old + 1, _INT32_MAX)
+            changed |= age_out[i, q] != old
+            trusted[q] = (age_out[i, q] <= max_age) and connected[i, q]
             allowed[q] = q != forbid[i]
         # -- routing: one gradient per exit
         lit = False
@@ -555,7 +578,9 @@ def _step_cells(present, w_d, w_nxt, w_vid, w_goal, w_key, w_stop, w_req, w_rdep
             best = UNREACHABLE
             for q in range(P):
                 best = min(best, _unpacked(hd[i, q], e, 8) if (trusted[q] and allowed[q]) else UNREACHABLE)
-            dist[i, e] = 0 if source else min(best + cost, UNREACHABLE)
+            old = dist_in[i, e]
+            dist_out[i, e] = 0 if source else min(best + cost, UNREACHABLE)
+            changed |= dist_out[i, e] != old
         # -- sequencing
         most = hnxt[i, 0] if trusted[0] else 0
         for q in range(1, P):
@@ -693,6 +718,7 @@ def _step_cells(present, w_d, w_nxt, w_vid, w_goal, w_key, w_stop, w_req, w_rdep
         stop = _spread_one(0 if own_park == 0 else own_stop, hstop[i], 0, same_nb, on, reach)
         moving = on and direction >= 0 and stop > reach
         # -- outputs
+        wheels[i, 0] = wheels[i, 1] = 0.0
         if moving:
             wheels[i, dp % 2] = (1.0 if dp < 2 else -1.0) * speed
         if off_array and go_front and seq >= 0:
@@ -703,8 +729,8 @@ def _step_cells(present, w_d, w_nxt, w_vid, w_goal, w_key, w_stop, w_req, w_rdep
         beside_parked = beside_parked and not (on and not parked)
         word = 0
         for e in range(MAX_EXITS):
-            said[e] = UNREACHABLE if (parked or beside_parked) else min(dist[i, e], UNREACHABLE)
-            word += said[e] << (8 * e)
+            said = UNREACHABLE if (parked or beside_parked) else min(dist_out[i, e], UNREACHABLE)
+            word += said << (8 * e)
         if word >= 1 << 31:
             word -= 1 << 32
         blk = 0
@@ -712,32 +738,73 @@ def _step_cells(present, w_d, w_nxt, w_vid, w_goal, w_key, w_stop, w_req, w_rdep
             blk += min(block[q], 63) << (6 * q)
         if blk >= 1 << 31:
             blk -= 1 << 32
+        for q in range(P):  # requests: front cells ask the cell ahead, held cells pass it on until gap deep
+            to_req[q], to_rdep[q] = _NONE, 0
+        if front and connected[i, dp]:
+            to_req[dp], to_rdep[dp] = vid, 1
+        if new_hold >= 0 and hdep < L and connected[i, fp]:
+            to_req[fwd], to_rdep[fwd] = new_hold, hdep + 1
+        sent_new = False
         for q in range(P):
-            o_d[i, q] = word
-            o_nxt[i, q] = nxt
-            o_vid[i, q] = vid if on else _NONE
-            o_goal[i, q] = goal if on else _NONE
-            o_key[i, q] = min(key, 2**31 - 1)
-            o_stop[i, q] = min(stop, 255) + (min(park, 255) << 8)
-            o_req[i, q] = _NONE
-            o_rdep[i, q] = 0
-            o_hold[i, q] = vid if (lit and on) else new_hold
-            o_ack[i, q] = min(ack, 255) + ((hport + 1) << 8)
-            o_ex[i, q] = _ENTRY if entry[i] else exit_id[i]
-            o_blk[i, q] = blk
-        if front and connected[i, dp]:  # requests: front cells ask the cell ahead
-            o_req[i, dp] = vid
-            o_rdep[i, dp] = 1
-        if new_hold >= 0 and hdep < L and connected[i, fp]:  # held cells pass it on until gap deep
-            o_req[i, fwd] = new_hold
-            o_rdep[i, fwd] = hdep + 1
-        vid_out[i], goal_out[i] = vid, goal
-        dir_out[i] = direction if (moving or direction >= 0) else _NONE
-        key_out[i], stop_out[i], hold_out[i], hdep_out[i], hport_out[i] = key, stop, new_hold, hdep, hport
-        hage_out[i], ack_out[i], nxt_out[i], park_out[i], back_out[i], bdir_out[i] = hage, ack, nxt, park, back, bdir
-    state = (dist, heard, age, vid_out, goal_out, dir_out, key_out, stop_out, hold_out, hdep_out, hport_out,
-             hage_out, ack_out, nxt_out, park_out, back_out, bdir_out)
-    return state, (o_d, o_nxt, o_vid, o_goal, o_key, o_stop, o_req, o_rdep, o_hold, o_ack, o_ex, o_blk), wheels
+            sent_new |= not sent_present[i, q]
+            sent_present[i, q] = True
+            sent_new |= _put(o_d, i, q, word)
+            sent_new |= _put(o_nxt, i, q, nxt)
+            sent_new |= _put(o_vid, i, q, vid if on else _NONE)
+            sent_new |= _put(o_goal, i, q, goal if on else _NONE)
+            sent_new |= _put(o_key, i, q, min(key, 2**31 - 1))
+            sent_new |= _put(o_stop, i, q, min(stop, 255) + (min(park, 255) << 8))
+            sent_new |= _put(o_req, i, q, to_req[q])
+            sent_new |= _put(o_rdep, i, q, to_rdep[q])
+            sent_new |= _put(o_hold, i, q, vid if (lit and on) else new_hold)
+            sent_new |= _put(o_ack, i, q, min(ack, 255) + ((hport + 1) << 8))
+            sent_new |= _put(o_ex, i, q, _ENTRY if entry[i] else exit_id[i])
+            sent_new |= _put(o_blk, i, q, blk)
+        out_changed[i] = sent_new
+        changed |= _put1(state_out[0], s_vid, i, vid)  # in _STATE's order
+        changed |= _put1(state_out[1], s_goal, i, goal)
+        changed |= _put1(state_out[2], s_dir, i, direction if (moving or direction >= 0) else _NONE)
+        changed |= _put1(state_out[3], s_key, i, key)
+        changed |= _put1(state_out[4], s_stop, i, stop)
+        changed |= _put1(state_out[5], s_hold, i, new_hold)
+        changed |= _put1(state_out[6], s_hdep, i, hdep)
+        changed |= _put1(state_out[7], s_hport, i, hport)
+        changed |= _put1(state_out[8], s_hage, i, hage)
+        changed |= _put1(state_out[9], s_ack, i, ack)
+        changed |= _put1(state_out[10], s_nxt, i, nxt)
+        changed |= _put1(state_out[11], s_park, i, park)
+        changed |= _put1(state_out[12], s_back, i, back)
+        changed |= _put1(state_out[13], s_bdir, i, bdir)
+        unsettled[i] = changed
+
+
+@njit(cache=True, inline="always")
+def _heard(present, word, heard_in, heard_out, i, q):
+    """Port q of cell i hears ``word`` if it arrived, else what it heard last; whether that changed."""
+    old = heard_in[i, q]
+    heard_out[i, q] = np.int64(word) if present else old
+    return heard_out[i, q] != old
+
+
+@njit(cache=True, inline="always")
+def _put(out, i, q, value):
+    """Write ``value`` (as ``out``'s type) at (i, q); whether it differs from what was there."""
+    old = out[i, q]
+    out[i, q] = value
+    return out[i, q] != old
+
+
+@njit(cache=True, inline="always")
+def _put1(out, before, i, value):
+    """Write ``value`` at ``out[i]``; whether it differs from ``before[i]`` (read first: it may be ``out``)."""
+    old = before[i]
+    out[i] = value
+    return value != old
+
+
+_STATE = ("vid", "goal", "dir", "key", "stop", "hold", "hdep", "hport", "hage", "ack", "nxt", "park", "back", "bdir")
+"""The sorter's per-cell state words that :func:`_step_cells` takes and makes as one tuple, in the order the state
+holds them after ``dist``, ``heard`` and ``age``."""
 
 
 class CentralSorter:
