@@ -91,7 +91,8 @@ def _topology(draw, nx, ny):
     return topo.with_faults(dead_cells=dead, dead_links=[(c, p) for c, p in links if topo.neighbor[c, p] >= 0])
 
 
-SCHEMA = Schema.of(a=(1, WordType.I16), b=(2, WordType.U8))
+SCHEMA = Schema.of(a=(1, WordType.I16), b=(2, WordType.U8), c=(3, WordType.BOOL), d=(4, WordType.U16),
+                   e=(5, WordType.I32), f=(6, WordType.F32))  # every word type
 
 
 @settings(max_examples=40, deadline=None)

@@ -156,6 +156,7 @@ import collections, json, sys
 sys.path.insert(0, %r)
 import bench_scale
 from virtual_vehicle import _kernel, friction, parcel, sorting
+from virtual_vehicle.network import delivery
 from virtual_vehicle.dynamics import warm_up
 from virtual_vehicle.scenario import parse_scenario
 from virtual_vehicle.sim import run_network
@@ -165,6 +166,7 @@ home = {n: _kernel for n in ("run_piece", "pattern", "cell_margins", "support_sl
 home["_within"] = home["_covered"] = parcel
 home["_terms_and_row"] = friction  # the bench_scale hall is viscous
 home["_step_cells"] = sorting
+home["_carry"] = delivery
 names = tuple(home)
 before = {n: len(getattr(home[n], n).signatures) for n in names}
 calls = collections.Counter()

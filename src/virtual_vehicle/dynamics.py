@@ -446,14 +446,16 @@ def warm_up() -> float:
     together, the first time on a machine) or load them from numba's cache (a fraction of a second), by integrating
     one parcel on a 4 x 4 array for 10 ms, looking its last piece up again, making its constants under the viscous
     law too, checking and stepping it as a quiet step would, gathering the cells under it as sensing does, and
-    stepping the sorter once. The first integration of a process does this anyway (but for the sorter); call it to
+    stepping the sorter once and carrying its sentences. The first integration of a process does this anyway (but for the sorter); call it to
     do it at a time of your choosing (the set-up of ``make`` does, so that no later run waits). Returns the seconds
     it took."""
     from .batch import QuietStepper, anchor  # here: batch imports this module
     from .fields import Uniform
     from .layout import grid
+    from .network.delivery import IdealRounds
     from .network.messages import Mailbox
     from .network.programs import CellInputs
+    from .network.topology import from_layout
     from .parcel import covered_pairs, rectangle
     from .sorting import Sorter
 
@@ -473,9 +475,14 @@ def warm_up() -> float:
     _kernel.quiet_steps(np.array([piece.row]), end[None], 0.01, 0.02, 1e-10, 1e-12,
                         np.array([0.01, 0.02]), np.empty((1, 2, 6)))
     covered_pairs([spec], [end], cells.grid)  # as sensing and destination labels gather cells
-    sorter = Sorter(0.3)  # the sorter's compiled cell program, as a networked run steps it
-    sorter.step(sorter.init(4, 4, {}), CellInputs(0.0, np.zeros((4, 5), bool), Mailbox.empty(sorter.schema, 4, 4),
-                                                  np.ones((4, 4), bool), {}, None))
+    sorter = Sorter(0.3)  # the sorter's compiled cell program, and its sentences carried, as a networked run goes
+    topology = from_layout(cells)
+    inputs = CellInputs(0.0, np.zeros((cells.n, 5), bool), Mailbox.empty(sorter.schema, cells.n, 4),
+                        topology.connected, {}, None)
+    sent = sorter.step(sorter.init(cells.n, 4, {}), inputs)[1]
+    rounds = IdealRounds(topology)
+    for _ in range(2):  # the first carries everything, the second what changed
+        rounds.exchange_changed(sent, np.ones(cells.n, bool), 0.0, 0.01)
     return time.perf_counter() - start
 
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
+from numba import njit
 
 from .messages import Mailbox, rows_any, rows_differ
 from .topology import Topology
@@ -142,14 +143,27 @@ class IdealRounds:
         inbox_changed = np.zeros(len(changed), dtype=bool)
         inbox_changed[dest] = rows_any(inbox.present[dest] != arrives)
         inbox.present[dest] = arrives
-        for k, v in inbox.values.items():
-            new = np.where(arrives, np.take(outbox.values[k], flat), np.zeros((), v.dtype))
-            inbox_changed[dest] |= rows_any(v[dest] != new)
-            v[dest] = new
+        for k, v in inbox.values.items():  # each word's rows of the cells that hear again (the same dtype)
+            _carry(v, outbox.values[k].reshape(-1), dest, flat, arrives, inbox_changed)
         last["received"][dest] = arrives.sum(axis=1)
         stats = _stats(outbox.schema, last["sent"].copy(), last["received"].copy(), period, int(last["lost"].sum()),
                        int(last["unaddressed"].sum()))
         return inbox, stats, inbox_changed
+
+
+@njit(cache=True)
+def _carry(inbox, sent, dest, flat, arrives, changed):
+    """Port q of cell ``dest[a]`` hears ``sent[flat[a, q]]`` (the senders' words, flattened) where ``arrives[a, q]``,
+    else 0, written into ``inbox`` in place; ``changed[dest[a]]`` set where that differs from what it held. The
+    array operations it replaces (take, where, compare, write back) took ~50 us a word a tick on 10^4 cells."""
+    zero = inbox.dtype.type(0)
+    for a in range(dest.shape[0]):
+        i = dest[a]
+        for q in range(inbox.shape[1]):
+            new = sent[flat[a, q]] if arrives[a, q] else zero
+            if inbox[i, q] != new:
+                changed[i] = True
+            inbox[i, q] = new
 
 
 def _stats(schema, sent: np.ndarray, received: np.ndarray, period: float, lost: int, unaddressed: int) -> TickStats:
