@@ -327,9 +327,11 @@ def test_a_segment_reads_the_supports_off_its_event_values_while_its_candidates_
     told = 0
     for _ in range(200):
         y = y0 + np.r_[rng.uniform(-0.15, 0.15, 2), rng.uniform(-1, 1), 0, 0, 0]
-        found = seg.support(seg.values(y))
+        g = seg.values(y)
+        found = seg.support(g)
         if np.hypot(*(y[:2] - y0[:2])) < seg.buffer:
             np.testing.assert_array_equal(found, m.support_at(y))
+            np.testing.assert_array_equal(kernel._positive(seg.ids, g), found)  # the compiled engine's reading
             told += 1
         else:
             assert found is None

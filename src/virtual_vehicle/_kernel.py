@@ -110,7 +110,8 @@ class Segment(NamedTuple):
     ``center`` and ``buffer`` bound where the candidates cover the footprint; ``reach`` bounds a candidate's distance
     from the centre of mass while they do; ``noise_length`` (m) and ``noise_force`` (N) are the rounding noise of
     the lengths and of the spring forces among the event values (:func:`_noise`); ``spring_dirs``
-    (m, 2) the gradients of the spring forces in the centre of mass (N/m) and ``spring_gradient`` (m,) their norms.
+    (m, 2) the gradients of the spring forces in the centre of mass (N/m) and ``spring_gradient`` (m,) their norms;
+    ``ids`` (nc,) the candidates' cell ids.
     """
 
     kind: int
@@ -133,6 +134,7 @@ class Segment(NamedTuple):
     noise_force: float
     spring_dirs: np.ndarray
     spring_gradient: np.ndarray
+    ids: np.ndarray
 
 
 def outline(spec) -> tuple:
@@ -150,15 +152,16 @@ def outline(spec) -> tuple:
 
 
 def make_segment(footprint: tuple, radius: float, candidates: np.ndarray, sol, center: np.ndarray, buffer: float,
-                 noise_length: float, noise_force: float) -> tuple:
+                 noise_length: float, noise_force: float, ids: np.ndarray) -> tuple:
     """The fields of the :class:`Segment` (in its order, as a plain tuple: numba types a plain tuple in compiled
     code, a named one in Python, ~1.5 us more a call; :func:`run_piece` names them again) of a parcel of footprint ``footprint`` (its :func:`outline`) and ``radius`` (m) with
     candidate cells ``candidates`` ((nc, 2) float64, m) on support solution ``sol`` (whose arrays are float64 and
     contiguous, as :mod:`virtual_vehicle.contact` makes them), its candidates gathered within ``radius + buffer`` of
-    ``center`` (m); event values below ``noise_length`` (m) or ``noise_force`` (N) are rounding noise."""
+    ``center`` (m), whose cell ids are ``ids`` ((nc,) int64); event values below ``noise_length`` (m) or
+    ``noise_force`` (N) are rounding noise."""
     return (*footprint, candidates, sol.origin, sol.basis, sol.plane_lin, sol.plane_const, sol.hull_normals,
                    sol.hull_offsets, center, float(buffer), float(radius + 2 * buffer), float(noise_length),
-                   float(noise_force), sol.spring_lin, sol.spring_gradient)
+                   float(noise_force), sol.spring_lin, sol.spring_gradient, ids)
 
 
 @njit(cache=True, inline="always")  # called per candidate and sample: a call costs more than the margin
@@ -761,14 +764,16 @@ def run_piece(row, fields, y_base, t, y, t_bound, h_abs, first_step, rtol, atol,
               sample_times, next_sample, samples):
     """Integrate one piece from (t, y) towards ``t_bound`` until its first event, ``max_steps`` steps, or the end.
 
-    ``row`` is the piece's constants row, ``fields`` its :class:`Segment`'s (:func:`make_segment`), ``y_base`` the state at which the event
-    values' signs are the baseline (the piece's start, or the probe just past the event that began it). The first step
-    tried is ``first_step`` when positive (a new piece), else ``h_abs`` (the same piece resumed after a pause).
-    Output samples ``sample_times[next_sample:]`` reached are written into ``samples``. Times in s, states in SI
-    units.
+    ``row`` is the piece's constants row, ``fields`` its :class:`Segment`'s (:func:`make_segment`), ``y_base`` the
+    state at which the event values' signs are the baseline (the piece's start, or the probe just past the event that
+    began it). The first step tried is ``first_step`` when positive (a new piece), else ``h_abs`` (the same piece
+    resumed after a pause). Output samples ``sample_times[next_sample:]`` reached are written into ``samples``.
+    Times in s, states in SI units.
 
-    Returns (outcome, t, y, h_abs, last step, evaluations, next_sample, probe time, probe state, probe values,
-    whether those are clear of rounding noise). On ``EVENT`` (t, y) is the restart point just past it.
+    Returns (outcome, t, y, h_abs, last step, evaluations, next_sample, probe time, probe state, the cells under the
+    footprint at the probe (ids, as :meth:`~virtual_vehicle.dynamics._Segment.support` finds them from the probe's
+    event values), whether those tell: the values clear of rounding noise and the probe within the candidates'
+    reach). On ``EVENT`` (t, y) is the restart point just past it.
     """
     seg = Segment(*fields)
     g0 = np.empty(seg.candidates.shape[0] + seg.basis.shape[0] + seg.hull_offsets.shape[0] + 1)
@@ -783,16 +788,16 @@ def run_piece(row, fields, y_base, t, y, t_bound, h_abs, first_step, rtol, atol,
         h_abs = first_step
     last = 0.0
     y_probe = np.empty(6)
-    g_probe = np.empty(n)
+    none = np.empty(0, np.int64)
     steps = 0
     while t < t_bound:
         if steps == max_steps:
-            return PAUSED, t, y, h_abs, last, nfev, next_sample, t, y_probe, g_probe, False
+            return PAUSED, t, y, h_abs, last, nfev, next_sample, t, y_probe, none, False
         ok, t_new, h_next, evals = _dop853_step(row, t, y, f, t_bound, h_abs, rtol, atol, max_step, K, y_new,
                                                 f_new, work)
         nfev += evals
         if not ok:
-            return FAILED, t, y, h_abs, last, nfev, next_sample, t, y_probe, g_probe, False
+            return FAILED, t, y, h_abs, last, nfev, next_sample, t, y_probe, none, False
         steps += 1
         h = t_new - t
         last = h
@@ -802,7 +807,7 @@ def run_piece(row, fields, y_base, t, y, t_bound, h_abs, first_step, rtol, atol,
         if found:
             outcome, t_reach, t_probe, g, clear = _locate(seg, F, y, t, h, g0, t_a, t_b, changed, g_a, g_b)
             if outcome != REACHED:
-                return outcome, t_reach, y, h_next, last, nfev, next_sample, t, y_probe, g_probe, False
+                return outcome, t_reach, y, h_next, last, nfev, next_sample, t, y_probe, none, False
         while next_sample < sample_times.shape[0] and sample_times[next_sample] <= t_reach:
             dense_at(F, y, t, h, sample_times[next_sample], samples[next_sample])
             next_sample += 1
@@ -810,12 +815,29 @@ def run_piece(row, fields, y_base, t, y, t_bound, h_abs, first_step, rtol, atol,
             y_restart = np.empty(6)
             dense_at(F, y, t, h, t_reach, y_restart)
             dense_at(F, y, t, h, t_probe, y_probe)
-            return EVENT, t_reach, y_restart, h_next, last, nfev, next_sample, t_probe, y_probe, g, clear
+            told = clear and g[n - 1] > 0
+            return EVENT, t_reach, y_restart, h_next, last, nfev, next_sample, t_probe, y_probe, \
+                _positive(seg.ids, g) if told else none, told
         t = t_new
         y[:] = y_new
         f[:] = f_new
         h_abs = h_next
-    return REACHED, t, y, h_abs, last, nfev, next_sample, t, y_probe, g_probe, False
+    return REACHED, t, y, h_abs, last, nfev, next_sample, t, y_probe, none, False
+
+
+@njit(cache=True)
+def _positive(ids, g):
+    """The ``ids`` whose value in ``g`` (the candidates' margins first) is positive, in order."""
+    count = 0
+    for i in range(ids.shape[0]):
+        count += g[i] > 0
+    out = np.empty(count, np.int64)
+    k = 0
+    for i in range(ids.shape[0]):
+        if g[i] > 0:
+            out[k] = ids[i]
+            k += 1
+    return out
 
 
 @njit(cache=True)

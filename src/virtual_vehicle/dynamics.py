@@ -396,7 +396,7 @@ class _Segment:
         nc, m, q = len(self.ids), len(sol.points), len(sol.hull_offsets)
         self.bounds = (0, nc, nc + m, nc + m + q, nc + m + q + 1)
         self.fields = _kernel.make_segment(model.outline, radius, self.candidates, sol, self.center, buffer,
-                                           noise_length, noise_force)
+                                           noise_length, noise_force, self.ids)
 
     @cached_property
     def arrays(self) -> _kernel.Segment:
@@ -618,8 +618,8 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         base = y_probe  # the event values' signs here are the piece's baseline
         first, h_abs = min(h, t1 - t), 0.0
         while True:  # DOP853 on this piece until its first event (kernel.run_piece), handing back now and then
-            (outcome, t, y, h_abs, last, evals, rec.next, t_probe, y_probe, g_probe,
-             clear) = _kernel.run_piece(piece.row, seg.fields, base, t, y, t1, h_abs, first, rtol, atol, max_step,
+            (outcome, t, y, h_abs, last, evals, rec.next, t_probe, y_probe, under,
+             told) = _kernel.run_piece(piece.row, seg.fields, base, t, y, t1, h_abs, first, rtol, atol, max_step,
                                         max_steps, rec.sample_times, rec.next, rec.samples)
             nfev += evals
             first = 0.0
@@ -653,9 +653,8 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
                 break
             piece = model.piece_at(y)  # tipping would have ended the fixed steps
             continue
-        try:  # the cells under it are known from the probe's event values, when those tell
-            support = seg.support(g_probe if clear else None)
-            new = model.piece_at(y_probe) if support is None else model.piece_for(support, y_probe)
+        try:  # the cells under it are known from the probe's event values, when those tell (as seg.support)
+            new = model.piece_for(under, y_probe) if told else model.piece_at(y_probe)
         except TippingError as exc:
             events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
             status = "tipped"
