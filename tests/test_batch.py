@@ -15,7 +15,7 @@ from scipy.integrate import DOP853
 from virtual_vehicle import _kernel, friction, layout, parcel
 from virtual_vehicle.batch import QuietStepper
 from virtual_vehicle.collide import point_reach, reach_bounds
-from virtual_vehicle.dynamics import ParcelModel, constants_row, integrate
+from virtual_vehicle.dynamics import Event, ParcelModel, Trajectory, constants_row, integrate
 from virtual_vehicle.plant import Integration, Plant
 from virtual_vehicle.scenario import load_scenario, parse_scenario
 from virtual_vehicle.sim import run, run_network
@@ -535,9 +535,8 @@ def test_chatter_steps_add_up_across_control_ticks():
     assert track.trajectory().stats["chatter_steps"] == sum(counts)
 
 
-def _piece(kind: str, t: float, n: int, rng) -> "Trajectory":
+def _piece(kind: str, t: float, n: int, rng) -> Trajectory:
     """A tick's piece as the plant returns it: an event piece (its stats plain, with counts the run sums, or none)."""
-    from virtual_vehicle.dynamics import Event, Trajectory
 
     times = np.array([t, t + 0.005, t + 0.01])
     states = rng.normal(size=(3, 6))

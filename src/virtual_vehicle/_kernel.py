@@ -154,14 +154,14 @@ def outline(spec) -> tuple:
 def make_segment(footprint: tuple, radius: float, candidates: np.ndarray, sol, center: np.ndarray, buffer: float,
                  noise_length: float, noise_force: float, ids: np.ndarray) -> tuple:
     """The fields of the :class:`Segment` (in its order, as a plain tuple: numba types a plain tuple in compiled
-    code, a named one in Python, ~1.5 us more a call; :func:`run_piece` names them again) of a parcel of footprint ``footprint`` (its :func:`outline`) and ``radius`` (m) with
-    candidate cells ``candidates`` ((nc, 2) float64, m) on support solution ``sol`` (whose arrays are float64 and
-    contiguous, as :mod:`virtual_vehicle.contact` makes them), its candidates gathered within ``radius + buffer`` of
-    ``center`` (m), whose cell ids are ``ids`` ((nc,) int64); event values below ``noise_length`` (m) or
-    ``noise_force`` (N) are rounding noise."""
+    code, a named one in Python, ~1.5 us more a call; :func:`run_piece` names them again) of a parcel of footprint
+    ``footprint`` (its :func:`outline`) and ``radius`` (m) with candidate cells ``candidates`` ((nc, 2) float64, m)
+    on support solution ``sol`` (whose arrays are float64 and contiguous, as :mod:`virtual_vehicle.contact` makes
+    them), its candidates gathered within ``radius + buffer`` of ``center`` (m), whose cell ids are ``ids`` ((nc,)
+    int64); event values below ``noise_length`` (m) or ``noise_force`` (N) are rounding noise."""
     return (*footprint, candidates, sol.origin, sol.basis, sol.plane_lin, sol.plane_const, sol.hull_normals,
-                   sol.hull_offsets, center, float(buffer), float(radius + 2 * buffer), float(noise_length),
-                   float(noise_force), sol.spring_lin, sol.spring_gradient, ids)
+            sol.hull_offsets, center, float(buffer), float(radius + 2 * buffer), float(noise_length),
+            float(noise_force), sol.spring_lin, sol.spring_gradient, ids)
 
 
 @njit(cache=True, inline="always")  # called per candidate and sample: a call costs more than the margin

@@ -446,9 +446,9 @@ def warm_up() -> float:
     together, the first time on a machine) or load them from numba's cache (a fraction of a second), by integrating
     one parcel on a 4 x 4 array for 10 ms, looking its last piece up again, making its constants under the viscous
     law too, checking and stepping it as a quiet step would, gathering the cells under it as sensing does, and
-    stepping the sorter once and carrying its sentences. The first integration of a process does this anyway (but for the sorter); call it to
-    do it at a time of your choosing (the set-up of ``make`` does, so that no later run waits). Returns the seconds
-    it took."""
+    stepping the sorter once and carrying its sentences. The first integration of a process does this anyway (but
+    for the sorter and its sentences); call it to do it at a time of your choosing (the set-up of ``make`` does, so
+    that no later run waits). Returns the seconds it took."""
     from .batch import QuietStepper, anchor  # here: batch imports this module
     from .fields import Uniform
     from .layout import grid
