@@ -487,6 +487,7 @@ def test_a_parcel_handed_to_the_engine_brings_its_anchors_piece(law):
     assert piece.constants is a.constants and piece.solution is a.solution and engine.pieces_cached == 1
     made = ParcelModel(CELLS, SPEC, _field(1), LAWS[law]).piece_at(y0)  # made afresh
     assert piece.key == made.key and piece.row == made.row
+    assert piece.key == (tuple(piece.support.tolist()), tuple(piece.support[piece.solution.in_contact].tolist()))
     stepper._see(_field(2))  # new wheels, before the checks remake the anchor's constants
     later = model.with_velocities(_field(2))
     stepper.hand_over(0, later)

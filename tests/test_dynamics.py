@@ -301,7 +301,8 @@ def test_a_parcel_tipping_off_a_pattern_is_told_where_in_the_arrays_coordinates(
 
 
 def test_a_piece_made_by_the_engine_knows_its_key():
-    """piece_for fills in each new piece's key from the cells it looked up: what Piece.key computes, with lift-off."""
+    """piece_for fills in each new piece's key from the cells it looked up, and so does a piece adopted from a quiet
+    stepper's anchor: what Piece.key computes, with lift-off."""
     cells = layout.grid(30, 30, 0.1)
     model = ParcelModel(cells, parcel.rectangle(0.4, 0.3, 2.0, 1.0), fields.Inward((1.5, 1.5), 3.0).velocities(cells),
                         friction.CoulombLaw())
@@ -312,6 +313,10 @@ def test_a_piece_made_by_the_engine_knows_its_key():
     assert len(pieces) > 50 and any(not p.solution.in_contact.all() for p in pieces)
     for piece in pieces:
         assert piece.key == type(piece).key.func(piece)
+        fresh = model.with_velocities(model.velocities)
+        fresh._adopt(piece.support, piece.solution, piece.constants, piece.row)
+        adopted = fresh._by_support[piece.key[0]][0]
+        assert adopted.key == type(adopted).key.func(adopted) == piece.key
 
 
 def test_a_segment_reads_the_supports_off_its_event_values_while_its_candidates_reach():

@@ -255,6 +255,7 @@ class ParcelModel:
         skey = tuple(support.tolist())
         if skey not in self._by_support:
             piece = _rebuild_piece(support, solution, constants, self.spec.mass, self.spec.inertia, row)
+            piece.__dict__["key"] = skey, tuple(compress(skey, solution.in_contact.tolist()))  # Piece.key, from skey
             self._pieces[piece.key] = piece
             self._by_support[skey] = [piece]
 
