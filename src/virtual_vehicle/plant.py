@@ -283,7 +283,7 @@ class Plant:
         for i, steps, k in quiet:
             out[i] = steps.trajectory(k)
         if trim:
-            grid = sample_grid(t0, t1, sample_dt) if sample_times is None else np.asarray(sample_times, dtype=float)
+            grid = _output_grid(t0, t1, sample_dt, sample_times)
             out = [None if tr is None else _on_grid(tr, grid) for tr in out]
         return out
 
@@ -305,7 +305,7 @@ class Plant:
             if Y is None or Y.shape != (len(was_active), 6) or not np.all(np.isfinite(Y)):
                 raise ValueError("the active parcels' states must be six finite numbers [x, y, theta, vx, vy, omega]")
         parts: dict[int, list] = {i: [] for i in was_active}  # each window's Trajectory, or (steps, k) if quiet
-        grid = sample_grid(t0, t1, sample_dt) if sample_times is None else np.asarray(sample_times, dtype=float)
+        grid = _output_grid(t0, t1, sample_dt, sample_times)
         t = float(t0)
         end = t1 - 1e-12 * max(1.0, abs(t1))
         while t < end:
@@ -528,6 +528,11 @@ class _Models:
 
     def __len__(self) -> int:
         return len(self.base)
+
+
+def _output_grid(t0: float, t1: float, sample_dt: float, sample_times: np.ndarray | None) -> np.ndarray:
+    """The output samples of :meth:`Plant.advance` (s): ``sample_times`` when given, else every ``sample_dt``."""
+    return sample_grid(t0, t1, sample_dt) if sample_times is None else np.asarray(sample_times, dtype=float)
 
 
 def on_grid(times: np.ndarray, grid: np.ndarray) -> np.ndarray:

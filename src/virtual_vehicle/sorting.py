@@ -148,6 +148,9 @@ class Sorter:
     exits, ``stop`` the hops to the nearest stopping cell of the vehicle (low byte) and to its parking cell (high
     byte), ``ack`` the run of held cells ahead (low byte) and the port the hold was asked through plus one (high
     byte), the rest as their names say (see the module notes)."""
+    _words = tuple(f.name for f in schema.fields)
+    _types = tuple(DTYPE[f.type] for f in schema.fields)
+    """The words' names and numpy types, in the schema's order (as the compiled step takes them)."""
 
     def __init__(self, speed: float, gap: int = 2, reach: int = 8, max_age: int = 0, edge_cost: int = 3,
                  period: float = 0.01, pitch: float = 0.1, compiled: bool = True):
@@ -197,12 +200,11 @@ class Sorter:
             return self._step_arrays(state, inputs)
         n, P = inputs.inbox.present.shape
         heard = state["heard"]
-        words = [f.name for f in self.schema.fields]
-        dtypes = [DTYPE[f.type] for f in self.schema.fields]
-        new_heard = tuple(np.empty((n, P), np.int64) for _ in words)
-        new = {"dist": np.empty((n, MAX_EXITS), np.int64), "heard": dict(zip(words, new_heard)),
+        new = {"dist": np.empty((n, MAX_EXITS), np.int64),
+               "heard": {w: np.empty((n, P), np.int64) for w in self._words},
                "age": np.empty((n, P), np.int64), **{k: np.empty(n, np.int64) for k in _STATE}}
-        out = Mailbox(self.schema, np.empty((n, P), bool), {w: np.empty((n, P), t) for w, t in zip(words, dtypes)})
+        out = Mailbox(self.schema, np.empty((n, P), bool),
+                      {w: np.empty((n, P), t) for w, t in zip(self._words, self._types)})
         wheels = np.zeros((n, 2))
         self._run(state, inputs, np.arange(n), new, out, wheels)
         return {"dist": new["dist"], "heard": {k: new["heard"][k] for k in heard}, "age": new["age"],
@@ -218,10 +220,9 @@ class Sorter:
         if not self.compiled:
             return None
         n, P = inputs.inbox.present.shape
-        words = [f.name for f in self.schema.fields]
         kept = [state["dist"], *state["heard"].values(), state["age"], *(state[k] for k in _STATE)]
-        if (list(state["heard"]) != words or any(a.dtype != np.int64 for a in kept)
-                or any(outbox.values[w].dtype != DTYPE[f.type] for w, f in zip(words, self.schema.fields))
+        if (tuple(state["heard"]) != self._words or any(a.dtype != np.int64 for a in kept)
+                or any(outbox.values[w].dtype != t for w, t in zip(self._words, self._types))
                 or outbox.present.dtype != bool or wheels.dtype != np.float64
                 or not all(a.flags.c_contiguous and a.flags.writeable for a in (*kept, wheels, *outbox.arrays))):
             return None
@@ -239,12 +240,12 @@ class Sorter:
         def cells(name, default, dtype):
             return _arg(cfg[name] if name in cfg else default, dtype)
 
-        words = [f.name for f in self.schema.fields]
+        words = self._words
         labels = np.full(n, _NONE) if getattr(inputs, "labels", None) is None else inputs.labels
         tick = int(round(inputs.t / self.period)) if self.period else 0
         unsettled, out_changed = np.zeros(n, bool), np.zeros(n, bool)
         _step_cells(rows, _arg(inbox.present, bool),
-                    tuple(_arg(inbox.values[w], DTYPE[f.type]) for w, f in zip(words, self.schema.fields)),
+                    tuple(_arg(inbox.values[w], t) for w, t in zip(words, self._types)),
                     tuple(_arg(state["heard"][w], np.int64) for w in words), _arg(state["age"], np.int64),
                     _arg(state["dist"], np.int64), tuple(_arg(state[k], np.int64) for k in _STATE),
                     _arg(inputs.sensors, bool), _arg(inputs.connected, bool),
