@@ -586,15 +586,17 @@ class NetworkRun(_Job):
             trajectories, quiet = self.plant._advance(ys, active, velocities, t0, t1, self.period,
                                                       sample_times=window)  # untrimmed: the tracks keep the grid
             on: dict[int, np.ndarray] = {}  # by times array: the parcels stepped together share theirs
+
+            def on_window(times):
+                if len(window) and id(times) not in on:
+                    on[id(times)] = on_grid(times, window)
+                return on.get(id(times))
+
             for i, tr in enumerate(trajectories):
                 if tr is not None:
-                    if len(window) and id(tr.times) not in on:
-                        on[id(tr.times)] = on_grid(tr.times, window)
-                    self.tracks[i].add(tr, window, on.get(id(tr.times)))
+                    self.tracks[i].add(tr, window, on_window(tr.times))
             for i, steps, k in quiet:  # those the quiet stepper alone moved, from its block
-                if len(window) and id(steps.times) not in on:
-                    on[id(steps.times)] = on_grid(steps.times, window)
-                self.tracks[i].add_quiet(steps, k, window, on.get(id(steps.times)))
+                self.tracks[i].add_quiet(steps, k, window, on_window(steps.times))
             gone = [i for i in self.on if not active[i]]
             for i in gone:  # those that left the array are gone, and so is what was cached for them
                 self.plant.release(i)
