@@ -1,7 +1,11 @@
 """Friction laws (paper eqs. 20-38): the paper's worked example, constants against direct per-cell sums, and
 dissipation of the viscous damping terms."""
 
+import dataclasses
+import pickle
+
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -67,6 +71,13 @@ def test_constants_equal_direct_per_cell_sums(seed, law_name):
     for name in ("a", "b", "c", "d", "e", "f", "damping", "weight", "moment_lin", "moment_const", "second_lin",
                  "second_const"):
         assert np.array_equal(getattr(k2, name), getattr(k, name)), name
+    # read out of their packing when first asked for: a pickled copy, and one pickled before any was read, the same
+    k3 = law.constants_and_row(sol, V, U, mu, mass, inertia)[0]
+    for copy in (pickle.loads(pickle.dumps(k2)), pickle.loads(pickle.dumps(k3)), dataclasses.replace(k3)):
+        assert all(np.array_equal(getattr(copy, f.name), getattr(k, f.name)) for f in dataclasses.fields(k))
+    assert type(k3.f) is float and type(k3.second_const) is float
+    with pytest.raises(AttributeError, match="no attribute 'g'"):
+        k3.g
     assert row == constants_row(k, sol.origin, mass, inertia) and all(type(v) is float for v in row)
     np.testing.assert_allclose(accelerations(row, *com, *state[3:]), [fx / mass, fy / mass, tau / inertia],
                                atol=1e-10 * W / min(mass, inertia))

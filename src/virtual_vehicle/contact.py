@@ -379,7 +379,7 @@ def _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, *, o
     if not converged:
         raise IntegrationError("the normal-force contact-set iteration did not converge")
     # the contacts lie on one line only if some have lifted off, when the supports do not (most new solutions)
-    flat = one_d or (not (planar and in_contact.all()) and _collinear(local[in_contact]))
+    flat = one_d or (not (planar and all(in_contact.tolist())) and _collinear(local[in_contact]))  # (.all(): ~1 us)
     if flat and not one_d:
         plane_const, h_normals, h_offsets = _on_contact_line(local, xi, basis, in_contact, plane_lin, plane_const,
                                                              weight, h_normals, h_offsets)
