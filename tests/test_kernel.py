@@ -161,7 +161,7 @@ from virtual_vehicle.dynamics import warm_up
 from virtual_vehicle.scenario import parse_scenario
 from virtual_vehicle.sim import run_network
 warm_up()
-home = {n: _kernel for n in ("run_piece", "pattern", "cell_margins", "support_slack", "edges_clear",
+home = {n: _kernel for n in ("run_piece", "pattern", "cell_margins", "support_slack", "edges_clear_many",
                                       "quiet_steps")}
 home["_within"] = home["_covered"] = parcel
 home["_terms_and_row"] = friction  # the bench_scale hall is viscous

@@ -101,6 +101,13 @@ def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
                    halfplanes=spec.halfplanes if spec.convex else None)
 
 
+def _starts(parts: list[np.ndarray]) -> np.ndarray:
+    """Where each of ``parts`` starts in their concatenation, and where the last ends ((len(parts) + 1,) int64)."""
+    out = np.zeros(len(parts) + 1, dtype=np.int64)
+    np.cumsum([len(p) for p in parts], out=out[1:])
+    return out
+
+
 class QuietSteps:
     """Parcels stepped together over one quiet window, kept as the one block the step wrote (a networked run takes
     them in as they are; :meth:`trajectory` makes each one's :class:`~virtual_vehicle.dynamics.Trajectory`).
@@ -335,10 +342,12 @@ class QuietStepper:
         stays inside if the smallest lower bound is positive, outside if the smallest upper bound is negative (an
         edge it stays beyond). Unlike the one-radius clearance, this lets a parcel run past cells just behind or
         beside it."""
-        positions = self.cells.positions
-        return np.array([_kernel.edges_clear(positions, a.near, *a.halfplanes, y, window, r[n], accel[n], R[n],
-                                             lever[n], a.noise)
-                         for n, (a, y) in enumerate(zip(anchors, Y))], dtype=bool)
+        near, normals, offsets = ([a.near for a in anchors], [a.halfplanes[0] for a in anchors],
+                                  [a.halfplanes[1] for a in anchors])
+        return _kernel.edges_clear_many(self.cells.positions, np.concatenate(near), _starts(near),
+                                        np.concatenate(normals), np.concatenate(offsets), _starts(offsets),
+                                        np.ascontiguousarray(Y), window, r, accel, R, lever,
+                                        np.array([a.noise for a in anchors]))
 
     def step(self, models, base, idx: list[int], ys, velocities: np.ndarray, t: float, te: float,
              samples: np.ndarray) -> tuple[QuietSteps, list[int]]:
