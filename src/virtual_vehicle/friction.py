@@ -21,7 +21,7 @@ plus translational damping ``-mu W Xdot_c`` (eq. 33) and rotational damping ``-m
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Protocol
 
 import numpy as np
@@ -104,8 +104,8 @@ class FrictionConstants:
         return self.__dict__[name]
 
 
-_PACKED_FIELDS = frozenset(("a", "b", "c", "d", "e", "f", "moment_lin", "moment_const", "second_lin", "second_const"))
-"""The fields :meth:`FrictionConstants._packed` leaves in their packing until asked for."""
+_PACKED_FIELDS = frozenset(f.name for f in fields(FrictionConstants)) - {"damping", "weight"}
+"""The fields :meth:`FrictionConstants._packed` leaves in their packing until asked for (:func:`_terms_fields`)."""
 
 
 def _f64(a) -> np.ndarray:
