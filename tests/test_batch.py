@@ -523,7 +523,11 @@ def test_a_parcel_handed_to_the_engine_brings_its_anchors_piece(law):
     stepper.step([model], [model], [0], [y0], model.velocities, 0.0, 0.01, np.array([0.0, 0.01]))
     a = stepper.anchors[0]
     engine = model.with_velocities(model.velocities)  # a copy with nothing cached, as a plant makes each tick
-    stepper.hand_over(0, engine)
+    assert stepper.hand_over(0, engine) is None  # no state: its cells not given
+    cells = stepper.hand_over(0, engine, y0)  # measured at this pose: the cells under it
+    assert cells.tolist() == engine.support_at(y0).tolist()
+    assert stepper.hand_over(0, engine, y0 + np.array([1e-9, 0, 0, 0, 0, 0])) is None  # elsewhere: not given
+    assert stepper.hand_over(0, engine, y0 + np.array([0, 0, 0, 1.0, 0, 0])) is not None  # velocities do not matter
     piece = engine.piece_at(y0)
     assert piece.constants is a.constants and piece.solution is a.solution and engine.pieces_cached == 1
     made = ParcelModel(CELLS, SPEC, _field(1), LAWS[law]).piece_at(y0)  # made afresh

@@ -218,14 +218,20 @@ class QuietStepper:
         self._support[i, m:] = self.cells.n
         return a
 
-    def hand_over(self, i: int, model: ParcelModel) -> None:
+    def hand_over(self, i: int, model: ParcelModel, y: np.ndarray | None = None) -> np.ndarray | None:
         """Give ``model`` (parcel ``i``'s, under the wheels last seen) its anchor's piece, when the anchor's constants
         are those of these wheels (the checks remake them first): the support, solution and constants the event
         engine would find for those cells, which it then looks up as it looks up its own pieces (by the cells, and
-        only where the solution holds) instead of making it again."""
+        only where the solution holds) instead of making it again. Returns the anchor's cells when it was measured
+        at state ``y``'s very pose (most parcels the checks turn away are measured again where they are): the cells
+        :meth:`~virtual_vehicle.dynamics.ParcelModel.support_at` finds there, which the engine then need not find
+        again; else None."""
         a = self.anchors.get(i)
-        if a is not None and a.constants is not None and self._changed_at[self._support[i]].max() <= self._made[i]:
+        if a is None:
+            return None
+        if a.constants is not None and self._changed_at[self._support[i]].max() <= self._made[i]:
             model._adopt(a.support, a.solution, a.constants, a.row)
+        return a.support if y is not None and a.pose.tolist() == y[:3].tolist() else None
 
     def _see(self, velocities: np.ndarray) -> None:
         """Note the cells whose wheel velocities differ from those last seen (all of them the first time). A

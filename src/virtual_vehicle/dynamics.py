@@ -535,10 +535,12 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
 
 def _integrate(model: ParcelModel, y0: np.ndarray, t0: float, t1: float, sample_times: np.ndarray, *, mode: Mode,
                rtol: float, atol: float, max_step: float, dt: float,
-               progress: Callable[[float], None] | None = None, max_segments: int = 1_000_000) -> Trajectory:
+               progress: Callable[[float], None] | None = None, max_segments: int = 1_000_000,
+               support: np.ndarray | None = None) -> Trajectory:
     """:func:`integrate` for arguments known to be valid (``y0`` a finite (6,) float array, ``t1 > t0``,
     ``sample_times`` a float array increasing within [t0, t1], ``mode`` known): a plant's calls, whose checks took
-    ~30 us of a ~250 us control tick with an event."""
+    ~30 us of a ~250 us control tick with an event. ``support``: the cells under the parcel at ``y0`` when the caller
+    has found them as :meth:`ParcelModel.support_at` does (event mode starts from them)."""
     # Flush values below 1e-100 (a velocity decaying for minutes under viscous damping reaches subnormal floats,
     # where the adaptive integrator's error norm underflows to 0/0).
     y0 = np.where(np.abs(y0) < 1e-100, 0.0, y0)
@@ -548,7 +550,7 @@ def _integrate(model: ParcelModel, y0: np.ndarray, t0: float, t1: float, sample_
         return run_stick_slip(model, y0, t0, t1, sample_times, progress, dt=dt)
     if mode == "event":
         return _run_event(model, y0, t0, t1, sample_times, progress, max_segments, rtol=rtol, atol=atol,
-                          max_step=max_step, dt=dt)
+                          max_step=max_step, dt=dt, support=support)
     return _run_fixed(model, y0, t0, t1, sample_times, progress, max_segments, dt=dt)
 
 
@@ -591,7 +593,7 @@ class _Recorder:
 
 
 def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol, atol, max_step,
-               dt) -> Trajectory:
+               dt, support=None) -> Trajectory:
     rec = _Recorder(sample_times)
     events: list[Event] = []
     t, y = float(t0), y0.copy()
@@ -602,7 +604,7 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     # the solver's own first-step guess took five.
     h = t1 - t0
     try:
-        piece = model.piece_at(y)
+        piece = model.piece_at(y) if support is None else model.piece_for(support, y)
     except TippingError as exc:
         rec.final(t, y)
         events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))

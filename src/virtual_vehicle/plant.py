@@ -330,10 +330,9 @@ class Plant:
                         parts[i].append((done, k))
                         ys[i] = last[k]
             for i in rest:
-                if self._quiet is not None:
-                    self._quiet.hand_over(i, models[i])
+                known = None if self._quiet is None else self._quiet.hand_over(i, models[i], ys[i])
                 tr = _integrate(models[i], ys[i], t, te, samples, mode=integ.mode, rtol=integ.rtol, atol=integ.atol,
-                                max_step=integ.max_step, dt=integ.dt)  # all of them checked where they come in
+                                max_step=integ.max_step, dt=integ.dt, support=known)  # all checked where they come in
                 if self._quiet is not None and (tr.events or tr.status != "completed"):
                     self._quiet.forget(i)  # its anchor's piece may no longer hold
                 self._take(i, tr, ys, active, parts)
