@@ -14,7 +14,7 @@ from scipy.integrate import DOP853
 
 from virtual_vehicle import _kernel, friction, layout, parcel
 from virtual_vehicle.batch import QuietStepper
-from virtual_vehicle.collide import point_reach, reach_bounds
+from virtual_vehicle.collide import point_reach, reach_bounds, wheel_speed_of
 from virtual_vehicle.dynamics import Event, ParcelModel, Trajectory, constants_row, integrate
 from virtual_vehicle.plant import Integration, Plant
 from virtual_vehicle.scenario import load_scenario, parse_scenario
@@ -537,6 +537,20 @@ def test_a_parcel_handed_to_the_engine_brings_its_anchors_piece(law):
     later = model.with_velocities(_field(2))
     stepper.hand_over(0, later)
     assert later.pieces_cached == 0
+
+
+def test_the_fastest_wheel_is_found_once_a_set_of_velocities_and_given_to_the_planner_and_the_stepper():
+    """The planner and the quiet stepper take the fastest contact speed the plant found once for these velocities
+    (what each would find), and find it themselves when not given it."""
+    v = _field(4)
+    plant = Plant(CELLS, [SPEC, SPEC], LAWS["viscous"])
+    models = plant.models(v)
+    assert models.wheel_speed == wheel_speed_of(v) == float(np.sqrt((v ** 2).sum(axis=1)).max())
+    assert wheel_speed_of(np.zeros((0, 2))) == 0.0
+    ys = [np.array([0.35, 0.35, 0.0, 0.1, 0.0, 0.0]), np.array([0.75, 0.75, 0.2, 0.0, 0.1, 0.0])]
+    assert plant.plan(ys, [True, True], v, 0.0, 0.5) == plant.plan(ys, [True, True], v, 0.0, 0.5, models.wheel_speed)
+    assert plant.plan(ys, [True, True], v, 0.0, 0.5, 10 * models.wheel_speed)[0] < plant.plan(ys, [True, True], v,
+                                                                                                0.0, 0.5)[0]
 
 
 def test_a_quiet_stepper_pickled_before_its_columns_measures_again():

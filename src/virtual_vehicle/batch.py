@@ -53,7 +53,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .collide import reach_bounds
+from .collide import reach_bounds, wheel_speed_of
 from .contact import SupportSolution
 from . import _kernel
 from .dynamics import _NOISE, ParcelModel, Trajectory
@@ -356,16 +356,19 @@ class QuietStepper:
                                         np.array([a.noise for a in anchors]))
 
     def step(self, models, base, idx: list[int], ys, velocities: np.ndarray, t: float, te: float,
-             samples: np.ndarray) -> tuple[QuietSteps, list[int]]:
+             samples: np.ndarray, wheel_speed: float | None = None) -> tuple[QuietSteps, list[int]]:
         """Advance the parcels ``idx`` (states ``ys[i]``, no other parcel within reach) from ``t`` to ``te`` (s)
         under contact-layer ``velocities`` (m/s): returns those stepped here (sampled at ``samples``, the window's
         ends among them) and the parcels left for the event-driven engine. ``models[i]`` is parcel i's model under these
-        velocities (asked for only to make an anchor), ``base[i]`` any model of it (for the friction constants)."""
+        velocities (asked for only to make an anchor), ``base[i]`` any model of it (for the friction constants).
+        ``wheel_speed``: the fastest of ``velocities`` (m/s, :func:`~virtual_vehicle.collide.wheel_speed_of`), when
+        the caller knows it."""
         times = np.concatenate([[t], samples[(samples > t) & (samples < te)], [te]])
         if not idx:
             return QuietSteps([], times, np.empty((0, len(times), 6)), [], 0, []), []
         window = te - t
-        wheel_speed = float(np.max(np.hypot(velocities[:, 0], velocities[:, 1]))) if len(velocities) else 0.0
+        if wheel_speed is None:
+            wheel_speed = wheel_speed_of(velocities)
         Y = np.array([ys[i] for i in idx], dtype=float)
         Y = np.where(np.abs(Y) < 1e-100, 0.0, Y)  # as integrate() does
         self._see(velocities)

@@ -291,6 +291,12 @@ def _reach_from(s0, lever, window, law, mu_max, gravity, wheel_speed):
     return s0 * window + 0.5 * k * window * window, s0 + k * window
 
 
+def wheel_speed_of(velocities: np.ndarray) -> float:
+    """The fastest contact surface speed (m/s) of ``velocities`` ((n, 2), m/s), 0 for none: what the reach bounds
+    take as ``wheel_speed``."""
+    return float(np.max(np.hypot(velocities[:, 0], velocities[:, 1]))) if len(velocities) else 0.0
+
+
 def reach_bounds(s0: np.ndarray, lever_mu: np.ndarray, window: float, *, law: str, gravity: float,
                  wheel_speed: float) -> tuple[np.ndarray, np.ndarray]:
     """:func:`point_reach` for many parcels at once: ``s0`` (m/s) their fastest point speeds now and ``lever_mu``
