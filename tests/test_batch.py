@@ -236,8 +236,8 @@ def test_a_convex_polygon_runs_past_cells_edge_by_edge():
 
 def test_the_edges_of_many_parcels_at_once_are_each_parcels_own():
     """The edge-by-edge check of many parcels in one compiled call decides each as its own call does: parcels of
-    two outlines (four and five edges) through the stepper, and, for a check that each parcel reads its own cells
-    and edges, parcels with one to three cells near them, each cell deciding."""
+    two outlines (four and five edges) through the stepper's columns, and, for a check that each parcel reads its
+    own cells and edges, parcels with one to three cells near them, each cell deciding."""
     rng = np.random.default_rng(3)
     specs = [SPEC, PENTAGON] * 15
     stepper = QuietStepper(CELLS, specs, LAWS["viscous"], [s.mu for s in specs], 9.81, 1e-10, 1e-12)
@@ -246,32 +246,47 @@ def test_the_edges_of_many_parcels_at_once_are_each_parcels_own():
         v = rng.uniform(0.0, 0.4) * np.array([np.cos(h := rng.uniform(-np.pi, np.pi)), np.sin(h)])
         model = ParcelModel(CELLS, spec, np.tile(v, (CELLS.n, 1)), LAWS["viscous"])
         y = np.array([*rng.uniform(0.35, 0.75, 2), rng.uniform(-np.pi, np.pi), *v, rng.normal(0, 0.2)])
+        first = np.array([*rng.uniform(0.35, 0.75, 2), rng.uniform(-np.pi, np.pi), *v, 0.0])
+        anchors.append(stepper._anchor(i, [model] * len(specs), first))  # measured elsewhere first: written over
         anchors.append(stepper._anchor(i, [model] * len(specs), y))
         Y.append(y)
-    Y, window = np.array(Y), 0.01
+    anchors, Y, window = anchors[1::2], np.array(Y), 0.01
+    for k, a in enumerate(anchors):  # the rows written over hold the latest anchor's cells, padded with the sentinel
+        count = stepper._near_count[k]
+        assert count == len(a.near) and stepper._near[k, :count].tolist() == a.near.tolist()
+        assert set(stepper._near[k, count:].tolist()) <= {CELLS.n}
+        assert stepper._support[k, :len(a.support)].tolist() == a.support.tolist()
+        assert set(stepper._support[k, len(a.support):].tolist()) <= {CELLS.n}
+    assert len({len(a.near) for a in anchors}) > 1 and len({len(a.support) for a in anchors}) > 1
     r, accel = rng.uniform(0.0, 0.004, len(specs)), rng.uniform(0.0, 0.001, len(specs))
-    together = stepper._edges_clear(Y, anchors, window, r, accel, stepper.radius, stepper.lever)
+    together = stepper._edges_clear(np.arange(len(specs)), Y, window, r, accel, stepper.radius, stepper.lever)
     alone = [_kernel.edges_clear(CELLS.positions, a.near, *a.halfplanes, y, window, r[k], accel[k],
                                  stepper.radius[k], stepper.lever[k], a.noise)
              for k, (a, y) in enumerate(zip(anchors, Y))]
     assert together.tolist() == alone and 0 < sum(alone) < len(alone)
+    assert stepper._edges_clear(np.arange(len(specs))[::-1], Y[::-1], window, r[::-1], accel[::-1],
+                                stepper.radius[::-1], stepper.lever[::-1]).tolist() == alone[::-1]
     # few cells a parcel, over a window of 0.1 s that leaves ~40 % undecided: a cell or an edge dropped or
     # borrowed from a neighbour changes decisions
     points = rng.uniform(-0.2, 0.2, (40, 2))
     outlines = [SPEC.halfplanes, PENTAGON.halfplanes]
     near = [rng.choice(len(points), rng.integers(1, 4), replace=False) for _ in range(200)]
     shape = rng.integers(0, 2, len(near))
-    normals, offsets = [outlines[k][0] for k in shape], [outlines[k][1] for k in shape]
+    padded = np.full((len(near), 3), len(points))
+    for k, n in enumerate(near):
+        padded[k, :len(n)] = n
+    normals, offsets = np.zeros((len(near), 5, 2)), np.zeros((len(near), 5))
+    for k, o in enumerate(shape):
+        normals[k, :len(outlines[o][1])], offsets[k, :len(outlines[o][1])] = outlines[o]
+    counts = np.array([len(outlines[o][1]) for o in shape])
     Y = np.column_stack([rng.normal(0, 0.02, (len(near), 2)), rng.uniform(-np.pi, np.pi, len(near)),
                          rng.normal(0, 0.3, (len(near), 2)), rng.normal(0, 0.5, len(near))])
     r, accel = rng.uniform(0, 0.02, len(near)), rng.uniform(0, 0.002, len(near))
     R, lever, noise = np.full(len(near), 0.2), np.full(len(near), 3.0), np.full(len(near), 1e-11)
-    together = _kernel.edges_clear_many(points, np.concatenate(near), np.cumsum([0] + [len(n) for n in near]),
-                                        np.concatenate(normals), np.concatenate(offsets),
-                                        np.cumsum([0] + [len(o) for o in offsets]), Y, 0.1, r, accel, R, lever,
-                                        noise)
-    alone = [_kernel.edges_clear(points, near[k], normals[k], offsets[k], Y[k], 0.1, r[k], accel[k], R[k],
-                                 lever[k], noise[k]) for k in range(len(near))]
+    together = _kernel.edges_clear_many(points, padded, np.array([len(n) for n in near]), normals, offsets, counts,
+                                        Y, 0.1, r, accel, R, lever, noise)
+    alone = [_kernel.edges_clear(points, near[k], *outlines[shape[k]], Y[k], 0.1, r[k], accel[k], R[k], lever[k],
+                                 noise[k]) for k in range(len(near))]
     assert together.tolist() == alone and 0.2 < np.mean(alone) < 0.8
 
 
@@ -553,9 +568,15 @@ def test_the_fastest_wheel_is_found_once_a_set_of_velocities_and_given_to_the_pl
                                                                                                 0.0, 0.5)[0]
 
 
-def test_a_quiet_stepper_pickled_before_its_columns_measures_again():
-    """A checkpoint whose stepper kept its anchors' measures only in the anchors (before the columns by parcel)
-    drops them and measures every parcel again: it goes on batched, exactly as the same run checkpointed now."""
+EDGE_COLUMNS = ("_near", "_near_count", "_edge_normals", "_edge_offsets", "_edge_count", "_noise")
+
+
+@pytest.mark.parametrize("columns", [("_pose", "_clear", "_slack", "_room", "_convex", "_support", "_made", "_rows",
+                                      "_changes", "_changed_at", "_seen", *EDGE_COLUMNS), EDGE_COLUMNS])
+def test_a_quiet_stepper_pickled_before_its_columns_measures_again(columns):
+    """A checkpoint whose stepper kept its anchors' measures only in the anchors (before the columns by parcel), or
+    kept no columns for the edge-by-edge checks, drops them and measures every parcel again: it goes on batched,
+    exactly as the same run checkpointed now."""
     import pickle
 
     plant = Plant(CELLS, [SPEC], LAWS["viscous"])
@@ -563,8 +584,6 @@ def test_a_quiet_stepper_pickled_before_its_columns_measures_again():
     plant.advance(ys, [True], _field(2), 0.0, 0.01, 0.01)
     assert plant.record.quiet_steps == 1 and 0 in plant._quiet.anchors
     now = pickle.loads(pickle.dumps(plant))
-    columns = ("_pose", "_clear", "_slack", "_room", "_convex", "_support", "_made", "_rows", "_changes",
-               "_changed_at", "_seen")
     for name in columns:
         del plant._quiet.__dict__[name]
     old = pickle.loads(pickle.dumps(plant))

@@ -869,15 +869,15 @@ def edges_clear(positions, near, normals, offsets, y, window, reach, accel, radi
 
 
 @njit(cache=True)
-def edges_clear_many(positions, near, near_start, normals, offsets, edge_start, Y, window, reach, accel, radius,
+def edges_clear_many(positions, near, near_count, normals, offsets, edge_count, Y, window, reach, accel, radius,
                      lever, noise):
     """:func:`edges_clear` for many parcels in one call (each call took ~4 us, most of it its eleven arguments):
-    parcel k's cells are ``near[near_start[k]:near_start[k + 1]]``, its edges ``normals`` and ``offsets`` from
-    ``edge_start[k]`` to ``edge_start[k + 1]``, its state ``Y[k]``; ``reach``, ``accel``, ``radius``, ``lever`` and
+    parcel k's cells are ``near[k, :near_count[k]]``, its edges ``normals[k, :edge_count[k]]`` and ``offsets[k,
+    :edge_count[k]]`` (rows padded beyond), its state ``Y[k]``; ``reach``, ``accel``, ``radius``, ``lever`` and
     ``noise`` are arrays by parcel. Returns a bool array by parcel."""
     out = np.empty(Y.shape[0], np.bool_)
     for k in range(Y.shape[0]):
-        e0, e1 = edge_start[k], edge_start[k + 1]
-        out[k] = edges_clear(positions, near[near_start[k]:near_start[k + 1]], normals[e0:e1], offsets[e0:e1], Y[k],
-                             window, reach[k], accel[k], radius[k], lever[k], noise[k])
+        e = edge_count[k]
+        out[k] = edges_clear(positions, near[k, :near_count[k]], normals[k, :e], offsets[k, :e], Y[k], window,
+                             reach[k], accel[k], radius[k], lever[k], noise[k])
     return out

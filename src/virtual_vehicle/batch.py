@@ -101,11 +101,17 @@ def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
                    halfplanes=spec.halfplanes if spec.convex else None)
 
 
-def _starts(parts: list[np.ndarray]) -> np.ndarray:
-    """Where each of ``parts`` starts in their concatenation, and where the last ends ((len(parts) + 1,) int64)."""
-    out = np.zeros(len(parts) + 1, dtype=np.int64)
-    np.cumsum([len(p) for p in parts], out=out[1:])
-    return out
+def _padded_row(column: np.ndarray, i: int, values: np.ndarray, fill) -> np.ndarray:
+    """``column`` (a row by parcel, padded with ``fill``) with row ``i`` set to ``values``, widened first when they
+    are longer than any row before (then a new array): the column."""
+    m = len(values)
+    if m > column.shape[1]:
+        wider = np.full((len(column), m, *column.shape[2:]), fill, dtype=column.dtype)
+        wider[:, :column.shape[1]] = column
+        column = wider
+    column[i, :m] = values
+    column[i, m:] = fill
+    return column
 
 
 class QuietSteps:
@@ -172,6 +178,14 @@ class QuietStepper:
         self._clear, self._slack, self._room, self._drive = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
         self._convex = np.zeros(n, dtype=bool)
         self._support = np.zeros((n, 0), dtype=np.int64)  # each anchor's cells, padded with the sentinel cell
+        # convex footprints, for the edge-by-edge checks of many parcels in one call: the cells within radius +
+        # buffer of the anchor (padded likewise) and how many; each parcel's half-planes (body frame, padded) and
+        # how many (0: not yet written), and its rounding noise in positions (m)
+        self._near = np.zeros((n, 0), dtype=np.int64)
+        self._near_count = np.zeros(n, dtype=np.int64)
+        self._edge_normals, self._edge_offsets = np.zeros((n, 0, 2)), np.zeros((n, 0))
+        self._edge_count = np.zeros(n, dtype=np.int64)
+        self._noise = np.zeros(n)
         self._made = np.full(n, -1, dtype=np.int64)  # the wheel change its row was made after (-1: none yet)
         self._rows = np.zeros((n, 0))  # each anchor's piece's constants row (dynamics.constants_row)
         self._changes = 0  # wheel changes seen: each tick whose velocities differ from the last seen
@@ -181,7 +195,7 @@ class QuietStepper:
 
     def __setstate__(self, state):
         self.__dict__.update(state)
-        if "_made" not in state:  # a checkpoint from before the columns: measure every parcel again
+        if "_near" not in state:  # a checkpoint from before the columns (or some): measure every parcel again
             self.anchors.clear()
             self._columns(len(self.radius))
 
@@ -209,13 +223,15 @@ class QuietStepper:
         self._pose[i] = a.pose
         self._clear[i], self._slack[i], self._room[i] = a.clear, a.slack, a.room
         self._convex[i] = a.halfplanes is not None
-        m = len(a.support)
-        if m > self._support.shape[1]:  # a parcel on more cells than any before: widen the padding
-            wider = np.full((len(self._support), m), self.cells.n, dtype=np.int64)
-            wider[:, :self._support.shape[1]] = self._support
-            self._support = wider
-        self._support[i, :m] = a.support
-        self._support[i, m:] = self.cells.n
+        self._support = _padded_row(self._support, i, a.support, self.cells.n)
+        if a.near is not None:
+            self._near = _padded_row(self._near, i, a.near, self.cells.n)
+            self._near_count[i] = len(a.near)
+            if not self._edge_count[i]:  # the parcel's own outline and scale: written once
+                normals, offsets = a.halfplanes
+                self._edge_normals = _padded_row(self._edge_normals, i, normals, 0.0)
+                self._edge_offsets = _padded_row(self._edge_offsets, i, offsets, 0.0)
+                self._edge_count[i], self._noise[i] = len(offsets), a.noise
         return a
 
     def hand_over(self, i: int, model: ParcelModel, y: np.ndarray | None = None) -> np.ndarray | None:
@@ -311,16 +327,16 @@ class QuietStepper:
         if not have:
             return ok
         sel = ks[have]
-        mine = [anchors[k] for k in sel]
         parcels = np.asarray(idx)[sel]
         changed = self._changed_at[self._support[parcels]].max(axis=1) > self._made[parcels]
         for n in np.flatnonzero(changed):  # the wheels under it changed (or it is new): remake its constants
-            self._refresh(idx[sel[n]], mine[n], base, velocities)
-        ok[have] = self._quiet(parcels, Y[sel], mine, window, velocities, wheel_speed)
+            self._refresh(idx[sel[n]], anchors[sel[n]], base, velocities)
+        ok[have] = self._quiet(parcels, Y[sel], window, velocities, wheel_speed)
         return ok
 
-    def _quiet(self, idx, Y, anchors, window, velocities, wheel_speed) -> np.ndarray:
-        """Which of the parcels ``idx`` at states ``Y`` are proven quiet for ``window`` s from their anchors."""
+    def _quiet(self, idx, Y, window, velocities, wheel_speed) -> np.ndarray:
+        """Which of the parcels ``idx`` (an array) at states ``Y`` are proven quiet for ``window`` s from their
+        anchors (as the columns keep them)."""
         R = self.radius[idx]
         P0 = self._pose[idx]  # the anchors' measures, as _anchor keeps them
         moved = np.hypot(Y[:, 0] - P0[:, 0], Y[:, 1] - P0[:, 1])
@@ -331,12 +347,13 @@ class QuietStepper:
         look = np.flatnonzero(held & ~cells_clear & (moved + r < self._room[idx]) & np.isfinite(accel)
                               & self._convex[idx])
         if len(look):  # too near some cell for one radius: ask which way each edge moves
-            cells_clear[look] = self._edges_clear(Y[look], [anchors[k] for k in look], window, r[look],
-                                                  accel[look], R[look], self.lever[np.asarray(idx)[look]])
+            cells_clear[look] = self._edges_clear(idx[look], Y[look], window, r[look], accel[look], R[look],
+                                                  self.lever[idx[look]])
         return held & cells_clear
 
-    def _edges_clear(self, Y, anchors, window, r, accel, R, lever) -> np.ndarray:
-        """Whether no cell near each convex parcel can cross its outline in ``window`` s, edge by edge.
+    def _edges_clear(self, idx, Y, window, r, accel, R, lever) -> np.ndarray:
+        """Whether no cell near each convex parcel ``idx`` (an array; anchored, as the columns keep them) can cross
+        its outline in ``window`` s, edge by edge.
 
         A cell ``p`` has margin ``h_e = b_e - N_e . (p - X)`` against edge e (world outward normal ``N_e``, offset
         ``b_e``); it is inside iff every ``h_e > 0``. Moving by ``dX`` and turning by ``dtheta`` changes ``h_e`` by
@@ -348,12 +365,9 @@ class QuietStepper:
         stays inside if the smallest lower bound is positive, outside if the smallest upper bound is negative (an
         edge it stays beyond). Unlike the one-radius clearance, this lets a parcel run past cells just behind or
         beside it."""
-        near, normals, offsets = ([a.near for a in anchors], [a.halfplanes[0] for a in anchors],
-                                  [a.halfplanes[1] for a in anchors])
-        return _kernel.edges_clear_many(self.cells.positions, np.concatenate(near), _starts(near),
-                                        np.concatenate(normals), np.concatenate(offsets), _starts(offsets),
-                                        np.ascontiguousarray(Y), window, r, accel, R, lever,
-                                        np.array([a.noise for a in anchors]))
+        return _kernel.edges_clear_many(self.cells.positions, self._near[idx], self._near_count[idx],
+                                        self._edge_normals[idx], self._edge_offsets[idx], self._edge_count[idx],
+                                        np.ascontiguousarray(Y), window, r, accel, R, lever, self._noise[idx])
 
     def step(self, models, base, idx: list[int], ys, velocities: np.ndarray, t: float, te: float,
              samples: np.ndarray, wheel_speed: float | None = None) -> tuple[QuietSteps, list[int]]:

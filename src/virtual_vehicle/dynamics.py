@@ -450,7 +450,7 @@ def warm_up() -> float:
     stepping the sorter once and carrying its sentences. The first integration of a process does this anyway (but
     for the sorter and its sentences); call it to do it at a time of your choosing (the set-up of ``make`` does, so
     that no later run waits). Returns the seconds it took."""
-    from .batch import QuietStepper, anchor  # here: batch imports this module
+    from .batch import QuietStepper  # here: batch imports this module
     from .fields import Uniform
     from .layout import grid
     from .network.delivery import IdealRounds
@@ -471,8 +471,9 @@ def warm_up() -> float:
     constants_row(piece.constants, piece.solution.origin, spec.mass, spec.inertia)  # as unpickling a piece does
     # the quiet step's compiled checks, with the argument types networked runs give them
     stepper = QuietStepper(cells, [spec], model.law, [spec.mu], model.weight / spec.mass, 1e-10, 1e-12)
-    stepper._edges_clear(end[None], [anchor(model, end, 1.0)], 0.01, np.zeros(1), np.zeros(1),
-                         stepper.radius, stepper.lever)
+    stepper._anchor(0, [model], end)
+    stepper._edges_clear(np.zeros(1, dtype=np.int64), end[None], 0.01, np.zeros(1), np.zeros(1), stepper.radius,
+                         stepper.lever)
     _kernel.quiet_steps(np.array([piece.row]), end[None], 0.01, 0.02, 1e-10, 1e-12,
                         np.array([0.01, 0.02]), np.empty((1, 2, 6)))
     covered_pairs([spec], [end], cells.grid)  # as sensing and destination labels gather cells
