@@ -527,6 +527,34 @@ def test_an_anchor_measured_again_on_the_same_cells_keeps_its_constants(law):
     assert elsewhere.constants is None and stepper._made[0] == -1 and stepper._drive[0] == 0.0
 
 
+def test_an_anchor_measured_again_takes_its_solution_again_only_where_the_cache_would_find_it():
+    """Measured again on the same cells, an anchor takes its solution again when it was the first of its pattern's
+    shared solutions and holds there: what the pattern cache finds (the same arrays). Where it does not hold, or was
+    not the first, the cache is asked."""
+    from virtual_vehicle.batch import anchor
+
+    model = ParcelModel(CELLS, SPEC, _field(1), LAWS["viscous"])
+    y0 = np.array([0.55, 0.52, 0.3, 0.05, 0.0, 0.1])
+    first = anchor(model, y0, 1.0)
+    assert first.first and model.solves == 1
+    nudged = y0 + np.array([1e-4, 0.0, 0.0, 0.0, 0.0, 0.0])  # the same cells, the same contacts
+    again = anchor(model, nudged, 1.0, first)
+    assert again.solution is first.solution and again.first
+    found = model.solution_for(again.support, nudged[:2])
+    assert found.force_lin is again.solution.force_lin and np.array_equal(found.origin, again.solution.origin)
+    assert anchor(model, nudged, 1.0).slack == again.slack and anchor(model, nudged, 1.0).clear == again.clear
+    not_first = anchor(model, y0, 1.0)
+    not_first.first = False  # as though another solution of the pattern came before it
+    assert anchor(model, nudged, 1.0, not_first).solution is not not_first.solution  # asked the cache
+    first.solution.__dict__["holds"] = lambda xi: False  # as though its contacts had changed there
+    assert anchor(model, nudged, 1.0, first).solution is not first.solution  # asked the cache
+    (solutions,) = model._geometry.shared.values()
+    decoy = solutions[0].at(solutions[0].origin)
+    decoy.__dict__["holds"] = lambda xi: False
+    solutions.insert(0, decoy)  # another solution of the pattern, tried first
+    assert not anchor(model, nudged, 1.0).first
+
+
 @pytest.mark.parametrize("law", ["viscous", "coulomb"])
 def test_a_parcel_handed_to_the_engine_brings_its_anchors_piece(law):
     """A parcel that goes to the event engine brings its anchor's piece (support, solution and constants made for

@@ -77,20 +77,28 @@ class _Anchor:
     halfplanes: tuple[np.ndarray, np.ndarray] | None = None  # convex footprint: its edges' normals and offsets
     constants: FrictionConstants | None = None  # the piece's, for the wheels last seen under it (None: not yet)
     row: tuple[float, ...] = ()  # and its constants row
+    first: bool = False  # the solution is the first of its pattern's shared solutions (ParcelModel._solution_first)
 
 
-def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
+def anchor(model: ParcelModel, y: np.ndarray, length: float, previous: _Anchor | None = None) -> _Anchor | None:
     """The anchor of ``model``'s parcel at state ``y``; None when it has no piece there (it tips). ``length`` (m) is
-    the scale of rounding noise in positions (the array's largest coordinate, at least 1 m)."""
+    the scale of rounding noise in positions (the array's largest coordinate, at least 1 m). ``previous``: the
+    parcel's last anchor, whose solution is taken again when it lies on the same cells, was the first of its
+    pattern's shared solutions and holds here: the one the pattern cache would find (a parcel measured again where
+    its clearances ran out mostly does, quiet windows having kept its cells and contacts)."""
     spec, cells = model.spec, model.cells
     buffer = max(cells.pitch, 0.25 * spec.radius)
     y = np.ascontiguousarray(y, dtype=float)
     ids, margins, nearest = model.margins_near(y, spec.radius + buffer)
     support = ids[margins > 0]  # the cells under the footprint, as the event values find them
-    try:
-        sol = model.solution_for(support, y[:2])
-    except TippingError:
-        return None
+    if (previous is not None and previous.first and np.array_equal(previous.support, support)
+            and previous.solution.holds(y[:2] - previous.solution.origin)):
+        sol, first = previous.solution, True
+    else:
+        try:
+            sol, first = model._solution_first(support, y[:2])
+        except TippingError:
+            return None
     length = max(length, spec.radius)
     clear = min(buffer, nearest) - _NOISE * length
     xi = y[:2] - sol.origin
@@ -98,7 +106,7 @@ def anchor(model: ParcelModel, y: np.ndarray, length: float) -> _Anchor | None:
                                   sol.hull_offsets, xi[0], xi[1], _NOISE * model.weight, _NOISE * length)
     return _Anchor(np.array(y[:3], dtype=float), clear, slack, support, sol, model._geometry,
                    room=buffer - _NOISE * length, noise=_NOISE * length, near=ids if spec.convex else None,
-                   halfplanes=spec.halfplanes if spec.convex else None)
+                   halfplanes=spec.halfplanes if spec.convex else None, first=first)
 
 
 def _padded_row(column: np.ndarray, i: int, values: np.ndarray, fill) -> np.ndarray:
@@ -208,7 +216,7 @@ class QuietStepper:
 
     def _anchor(self, i, models, y) -> _Anchor | None:
         old = self.anchors.get(i)
-        a = anchor(models[i], y, self.length)
+        a = anchor(models[i], y, self.length, old)
         if a is None:
             self.anchors.pop(i, None)
             return None

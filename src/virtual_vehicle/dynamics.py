@@ -263,6 +263,11 @@ class ParcelModel:
         """The solved normal forces of the cells ``support`` with the centre of mass at ``com`` (m), from the cache
         of geometric patterns (shared by all velocities, and by parcels of the same weight) or solved now. Raises
         TippingError when there is none."""
+        return self._solution_first(support, com)[0]
+
+    def _solution_first(self, support: np.ndarray, com) -> tuple[SupportSolution, bool]:
+        """:meth:`solution_for`, and whether it is the first of its pattern's shared solutions (which the lookup
+        tries before any other: wherever it holds on these cells, it is the one found)."""
         X = np.asarray(com, dtype=float)
         if len(support) == 0:
             raise TippingError(f"no cell lies under the parcel at ({X[0]:.6g}, {X[1]:.6g}) m")
@@ -272,9 +277,9 @@ class ParcelModel:
         xi = X - origin
         geometry = self._geometry
         for store in (geometry.shared, geometry.own):
-            sol = next((t for t in store.get(gkey, ()) if t.holds(xi)), None)
-            if sol is not None:
-                return sol.at(origin)
+            found = next(((k, t) for k, t in enumerate(store.get(gkey, ())) if t.holds(xi)), None)
+            if found is not None:
+                return found[1].at(origin), found[0] == 0 and store is geometry.shared
         try:  # in the pattern's own coordinates (see _GeometryCache), its first cell at the local origin
             sol = _solve(rel * unit, X - pts[0], self.weight, self.cells.is_line, self._line_dir)
         except TippingError as exc:  # say where, in the array's coordinates
@@ -286,8 +291,9 @@ class ParcelModel:
                                f"{len(pts)} supporting cells, outside it to rounding: the parcel tips") from exc
         geometry.solves += 1
         store = geometry.own if sol.contact_collinear else geometry.shared
-        store.setdefault(gkey, []).append(sol)
-        return sol.at(origin)
+        solved = store.setdefault(gkey, [])
+        solved.append(sol)
+        return sol.at(origin), len(solved) == 1 and store is geometry.shared
 
     def constants_for(self, support: np.ndarray, sol: SupportSolution, velocities: np.ndarray) -> FrictionConstants:
         """The friction law's constants for the cells ``support`` solved as ``sol``, whose surfaces move at
