@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from virtual_vehicle import fields, friction, io, layout, parcel
@@ -29,9 +29,15 @@ def simulate(cells, spec, velocities, law, y0, T=0.6):
 @settings(max_examples=12, deadline=None)
 @given(st.sampled_from(sorted(LAWS)), st.floats(-np.pi, np.pi), st.floats(-3, 3), st.floats(-3, 3),
        st.integers(0, 1000))
+@example("coulomb", 0.59375, 0.0, 0.0, 104)  # found on a clean checkout: spin 1.5e-7 rad/s apart after 12 changes
 def test_a_rigidly_moved_scene_gives_the_moved_result(law_name, angle, tx, ty, seed):
     """Rotate and translate the cells (and their wheel directions), the wheel field and the parcel's start by one
-    rigid motion: the trajectory is the same rigid motion of the original one (heading shifted by the angle)."""
+    rigid motion: the trajectory is the same rigid motion of the original one (heading shifted by the angle).
+
+    Not to rounding: the pattern cache solves supports in coordinates rounded to 1e-9 pitches (1e-10 m here), and
+    rounding differs between the frames, so support changes come up to ~1e-8 s apart; under Coulomb friction the
+    accelerations jump at each change, so velocities drift apart by up to ~1e-8 m/s and rad/s a change (measured
+    over 143 scenes: poses within 2e-8, velocities within 8e-8, the worst found 1.5e-7 rad/s)."""
     rng = np.random.default_rng(seed)
     cells = layout.grid(9, 7, 0.1)
     spec = parcel.rectangle(0.33, 0.27, 1.2, 0.6 if law_name != "viscous" else 1.0, mu_static=None)
@@ -47,8 +53,8 @@ def test_a_rigidly_moved_scene_gives_the_moved_result(law_name, angle, tx, ty, s
     assert a.status == b.status and len(a.events) == len(b.events)
     np.testing.assert_allclose(b.states[:, :2], a.states[:, :2] @ R.T + t, atol=1e-7)
     np.testing.assert_allclose(b.states[:, 2], a.states[:, 2] + angle, atol=1e-7)
-    np.testing.assert_allclose(b.states[:, 3:5], a.states[:, 3:5] @ R.T, atol=1e-7)
-    np.testing.assert_allclose(b.states[:, 5], a.states[:, 5], atol=1e-7)
+    np.testing.assert_allclose(b.states[:, 3:5], a.states[:, 3:5] @ R.T, atol=1e-6)
+    np.testing.assert_allclose(b.states[:, 5], a.states[:, 5], atol=1e-6)
 
 
 def test_cell_numbering_does_not_matter():
