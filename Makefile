@@ -27,6 +27,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_network.py
 	$(BIN)/python benchmarks/bench_friction.py
 	$(BIN)/python benchmarks/bench_scale.py
+	$(BIN)/python benchmarks/bench_ceiling.py
 
 fuzz: $(STAMP)
 	$(BIN)/python benchmarks/fuzz_sentences.py

@@ -56,3 +56,29 @@ def test_the_scale_benchmark_reports_the_cells_it_stepped():
     every = bench_scale.one(30, 1, 0.3, changed_only=False)
     assert 0 < some["cells_stepped_%"] < 50 and every["cells_stepped_%"] == 100
     assert some["simulated_s"] == every["simulated_s"] == 0.3 and some["cells"] == 900
+
+
+def test_the_ceiling_benchmark_times_every_piece_and_puts_the_kernels_back():
+    """bench_ceiling: within ``timed_kernels`` every module holding the engine's compiled entry point holds the
+    timing wrapper, which counts one call a piece (a run without a progress callback never pauses); the originals
+    are back afterwards, and a run's figures are ordered as they must be (work within the calls within the wall)."""
+    import bench_ceiling
+
+    from virtual_vehicle import _kernel, dynamics
+
+    original = _kernel.run_piece
+    model = ParcelModel(bench_perf.CELLS, bench_perf.SPEC, bench_perf.FIELDS_B["coulomb"], bench_perf.LAWS["coulomb"])
+    with bench_ceiling.timed_kernels() as stats:
+        assert _kernel.run_piece is not original and _kernel.run_piece.__wrapped__ is original
+        tr = integrate(model, bench_perf.Y0_IN, 0.0, 0.5, sample_dt=0.5)
+    assert _kernel.run_piece is original and dynamics._kernel.run_piece is original
+    entry = stats["virtual_vehicle._kernel.run_piece"]
+    assert entry.calls == tr.segments > 20 and entry.seconds > 0
+    assert bench_ceiling.call_price(entry) > 0
+
+    r = bench_ceiling.run_case("coulomb1", 0.5)
+    assert r["simulated"] == 0.5 and 0 < r["work"] <= r["inside"] < r["wall"]
+    assert r["calls"] == sum(k[1] for k in r["kernels"])
+    assert "virtual_vehicle._kernel.run_piece" in {k[0] for k in r["kernels"]}
+    with pytest.raises(ValueError, match="unknown case"):
+        bench_ceiling.run_case("coulomb2")
