@@ -478,6 +478,26 @@ def test_fixed_and_event_modes_agree_on_events():
     assert dynamics.Trajectory  # public type
 
 
+def test_support_change_records_are_the_dataclass_s_own():
+    """The engine's records of support changes (made without the frozen dataclass's guarded assignments) are equal
+    to, hash as, and hold exactly the fields of the ``Event`` the dataclass makes from the same values; their id
+    lists are sorted whatever order the sets give, empty ones empty tuples."""
+    cells = layout.grid(12, 4, 0.1)
+    spec = parcel.rectangle(0.33, 0.25, 1.0, 1.0)
+    m = model(cells, spec, fields.Uniform((0.6, 0.0)), friction.ViscousLaw())
+    tr = integrate(m, [0.2, 0.15, 0.1, 0, 0, 0], 0, 1.5)
+    support = [e for e in tr.events if e.kind == "support"]
+    assert len(support) > 10
+    for e in support:
+        made = dynamics.Event(e.t, "support", e.state, e.entered, e.left, e.lifted, e.touched)
+        assert e == made and hash(e) == hash(made) and vars(e) == vars(made) and repr(e) == repr(made)
+        for ids in (e.entered, e.left, e.lifted, e.touched):
+            assert type(ids) is tuple and list(ids) == sorted(ids)
+    with pytest.raises(AttributeError):  # still frozen
+        support[0].t = 0.0
+    assert dynamics._ordered(frozenset({40, 3, 17})) == (3, 17, 40) and dynamics._ordered(frozenset()) == ()
+
+
 def test_chattering_supports_are_crossed_in_fixed_steps_and_converge():
     """A parcel at rest with two edges exactly on a row and a column of cell centres, under a field that pushes the
     boundary cells out while they carry and in while they do not: the support set chatters (a sliding mode, events
