@@ -5,9 +5,10 @@ The engine and the plant do their arithmetic in compiled kernels (numba) called 
 target cases of the issue with every compiled entry point of the package timed (each call from Python, with the
 price of passing its arguments in), and prints what share of the wall time they take and the real-time factor
 that their work alone allows: the ceiling of any rewrite that keeps these kernels and removes every line of
-Python around them. The price of a call is measured by calling a compiled function that does nothing with the
-same arguments (numba reads every argument's type on every call: ~2 us for the engine's, whose segment is a
-tuple of 25 arrays).
+Python around them. The price of a call is what passing its arguments in and its results out costs: the first
+measured by calling a compiled function that does nothing with the same arguments (numba reads every argument's
+type on every call: ~2 us for the engine's, whose segment is a tuple of 25 arrays), the second as the arrays
+returned (each made into a numpy array, ~0.4 us) times the measured price of returning one.
 
 - ``coulomb1``: one parcel on 30 x 30 cells under the paper's Coulomb law, oscillating in the inward field for 5 s
   (``bench_perf.py`` (b); target 1000x real time);
@@ -34,6 +35,8 @@ from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 TARGETS = {"coulomb1": 1000.0, "hall200": 50.0}
@@ -41,13 +44,14 @@ TARGETS = {"coulomb1": 1000.0, "hall200": 50.0}
 
 @dataclass
 class EntryPoint:
-    """Calls of one compiled entry point from Python: how many, the seconds inside them, and the arguments of the
-    latest (for pricing a call)."""
+    """Calls of one compiled entry point from Python: how many, the seconds inside them, and the arguments and
+    result of the latest (for pricing a call)."""
 
     calls: int = 0
     seconds: float = 0.0
     args: tuple = field(default=(), repr=False)
     kwargs: dict = field(default_factory=dict, repr=False)
+    result: object = field(default=None, repr=False)
 
 
 def _modules() -> list:
@@ -74,12 +78,11 @@ def timed_kernels():
 
         def timed(*args, **kwargs):
             start = clock()
-            try:
-                return dispatcher(*args, **kwargs)
-            finally:
-                entry.seconds += clock() - start
-                entry.calls += 1
-                entry.args, entry.kwargs = args, kwargs
+            result = dispatcher(*args, **kwargs)
+            entry.seconds += clock() - start
+            entry.calls += 1
+            entry.args, entry.kwargs, entry.result = args, kwargs, result
+            return result
 
         timed.__wrapped__ = dispatcher
         return timed
@@ -110,19 +113,50 @@ def _nothing():
     return nothing
 
 
-def call_price(entry: EntryPoint, repeats: int = 2000) -> float:
-    """Seconds a call with ``entry``'s latest arguments costs before any work is done: the fastest of five rounds
-    of ``repeats`` calls of a compiled function that returns at once."""
-    nothing = _nothing()
-    args = entry.args + tuple(entry.kwargs.values())
-    nothing(*args)  # compile for these types
+def _fastest(fn, args: tuple, repeats: int) -> float:
+    """Seconds a call ``fn(*args)`` takes: the fastest of five rounds of ``repeats`` calls (after one to compile)."""
+    fn(*args)
     best = float("inf")
     for _ in range(5):
         start = time.perf_counter()
         for _ in range(repeats):
-            nothing(*args)
+            fn(*args)
         best = min(best, (time.perf_counter() - start) / repeats)
     return best
+
+
+@cache
+def array_return_price() -> float:
+    """Seconds it costs to return one array made in compiled code to Python (numba makes it a numpy array): a
+    compiled function that makes a small array and returns it, less one that makes it and returns a float."""
+    from numba import njit
+
+    @njit
+    def returned(x):
+        return np.empty(6)
+
+    @njit
+    def kept(x):
+        a = np.empty(6)
+        return a[0] * 0.0
+
+    return max(_fastest(returned, (1.0,), 20000) - _fastest(kept, (1.0,), 20000), 0.0)
+
+
+def arrays_in(value) -> int:
+    """The numpy arrays in ``value``, through nested tuples."""
+    if isinstance(value, np.ndarray):
+        return 1
+    if isinstance(value, tuple):
+        return sum(arrays_in(v) for v in value)
+    return 0
+
+
+def call_price(entry: EntryPoint, repeats: int = 2000) -> float:
+    """Seconds a call like ``entry``'s latest costs besides its work: passing its arguments in (a compiled
+    function that returns at once, called with them) and its arrays out (:func:`array_return_price` each)."""
+    args = entry.args + tuple(entry.kwargs.values())
+    return _fastest(_nothing(), args, repeats) + arrays_in(entry.result) * array_return_price()
 
 
 def run_case(case: str, seconds: float | None = None) -> dict:

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from virtual_vehicle.dynamics import ParcelModel, integrate
@@ -77,7 +78,9 @@ def test_the_ceiling_benchmark_times_every_piece_and_puts_the_kernels_back():
                 if callable(obj) and hasattr(obj, "__wrapped__") and isinstance(obj.__wrapped__, CPUDispatcher)]
     entry = stats["virtual_vehicle._kernel.run_piece"]
     assert entry.calls == tr.segments > 20 and entry.seconds > 0
-    assert bench_ceiling.call_price(entry) > 0
+    assert bench_ceiling.arrays_in(entry.result) == 3  # the restart and probe states, the cells under the probe
+    assert bench_ceiling.arrays_in((np.zeros(2), (1.0, np.zeros(1)), 3, [np.zeros(1)])) == 2
+    assert bench_ceiling.call_price(entry) > 3 * bench_ceiling.array_return_price() > 0
 
     r = bench_ceiling.run_case("coulomb1", 0.5)
     assert r["simulated"] == 0.5 and 0 < r["work"] <= r["inside"] < r["wall"]
