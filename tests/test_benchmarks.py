@@ -88,3 +88,16 @@ def test_the_ceiling_benchmark_times_every_piece_and_puts_the_kernels_back():
     assert "virtual_vehicle._kernel.run_piece" in {k[0] for k in r["kernels"]}
     with pytest.raises(ValueError, match="unknown case"):
         bench_ceiling.run_case("coulomb2")
+
+
+def test_a_call_s_price_is_its_arguments_in_and_each_array_out(monkeypatch):
+    """bench_ceiling.call_price: the do-nothing call with the entry's arguments plus the price of returning one array
+    for each array in its result (timings replaced by fixed figures, so that the sum is exact)."""
+    import bench_ceiling
+
+    monkeypatch.setattr(bench_ceiling, "_fastest", lambda fn, args, repeats: 1e-6 * (1 + len(args)))
+    monkeypatch.setattr(bench_ceiling, "array_return_price", lambda: 0.25e-6)
+    entry = bench_ceiling.EntryPoint(calls=1, args=(1.0, np.zeros(3)), kwargs={"k": 2},
+                                     result=(np.zeros(2), 3.0, (np.zeros(1), np.zeros(1))))
+    assert bench_ceiling.call_price(entry) == 4e-6 + 3 * 0.25e-6
+    assert bench_ceiling.call_price(bench_ceiling.EntryPoint(result=7)) == 1e-6
