@@ -1,12 +1,29 @@
-"""Shared test helpers."""
+"""Shared test helpers, and the hypothesis settings of every run."""
+
+import atexit
+import os
+import shutil
+import tempfile
 
 import numpy as np
 import pytest
-from hypothesis import assume
+from hypothesis import assume, settings
 
 from virtual_vehicle import dynamics, friction
 from virtual_vehicle.dynamics import ParcelModel
 from virtual_vehicle.errors import TippingError
+
+# Every run draws the same examples on any machine: derandomized (examples follow from each test's name), no example
+# database (a failure found once cannot make later runs differ, and no .hypothesis/ folder is written), the failing
+# example printed as a reproduce blob, no deadline (timings vary between machines and numba's first compile).
+# Registered and loaded here, before any test module is imported, so every @settings(...) in tests/ inherits it.
+settings.register_profile("ci", derandomize=True, database=None, print_blob=True, deadline=None)
+settings.load_profile("ci")
+# Hypothesis still caches the constants it reads from our modules under ./.hypothesis/; a run writes nothing into
+# the checkout, so that cache lives in a folder of this run's own (unless HYPOTHESIS_STORAGE_DIRECTORY is set).
+if "HYPOTHESIS_STORAGE_DIRECTORY" not in os.environ:
+    os.environ["HYPOTHESIS_STORAGE_DIRECTORY"] = _storage = tempfile.mkdtemp(prefix="hypothesis-")
+    atexit.register(shutil.rmtree, _storage, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")  # session scope: hypothesis tests may use it
