@@ -143,6 +143,24 @@ class RunResult:
             **extra,
         }
 
+    def to_pandas(self) -> dict:
+        """The run's tables (:func:`virtual_vehicle.tables.build`) as pandas DataFrames, by table name:
+        ``trajectories`` and ``events`` always, ``network`` and ``cell_traffic`` for networked runs, ``cells`` when
+        recorded. Each frame keeps its columns' SI units in ``df.attrs["units"]`` (column -> unit, ``""`` for
+        counts, ids and flags). Needs pandas (an optional dependency; the ``dev`` extra installs it)."""
+        try:
+            import pandas  # noqa: F401  (pyarrow's to_pandas needs it)
+        except ImportError as exc:
+            raise ImportError("RunResult.to_pandas needs pandas, which is not installed: pip install pandas") from exc
+        from . import tables
+
+        frames = {}
+        for name, table in tables.build(self).items():
+            df = table.to_pandas()
+            df.attrs["units"] = {f.name: f.metadata[b"unit"].decode() for f in table.schema}
+            frames[name] = df
+        return frames
+
 
 def coulomb_sliding_check(setup: Setup, spec: ParcelSpec, traj: Trajectory) -> tuple[float, float] | None:
     """Check the paper's Coulomb assumption at every sample: under each supporting cell, each spinning wheel's
