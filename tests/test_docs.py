@@ -55,7 +55,7 @@ def _scripts(page: Path) -> list[tuple[str, str]]:
     return [(f"{page.name}[{ks[0]}{f'-{ks[-1]}' if len(ks) > 1 else ''}]", code) for ks, code in out]
 
 
-SCRIPTS = [(page, sid, code) for page in PAGES for sid, code in _scripts(page)]
+SCRIPTS = [(page, sid, code) for page in (ROOT / "README.md", *PAGES) for sid, code in _scripts(page)]
 
 
 @pytest.fixture(scope="session")
