@@ -1,6 +1,8 @@
 """The ``virtual-vehicle`` command.
 
-Exit codes: 0 success, 2 bad input (the message names the field), 1 an unexpected failure.
+Exit codes: 0 success, 2 bad input (the message names the field), 1 an unexpected failure, or (``sweep``,
+``fault-study``) some runs failed, their table still written; 130 stopped by Ctrl-C (``sweep``, ``fault-study``:
+finished runs kept, run again to resume).
 """
 
 from __future__ import annotations
