@@ -61,6 +61,8 @@ PER_PARCEL_COLUMNS = 10
 MAX_ATTEMPTS = 3
 """Times a run lost to the cluster (worker death, cancelled future, lost data) is tried before it is recorded as
 ``"lost"``."""
+SCATTER_TIMEOUT_S = 60.0
+"""Seconds the cluster has to take the base scenario (it waits for a worker, e.g. one restarting after a crash)."""
 CONNECT_TIMEOUT_S = 5.0
 """Seconds to wait for a ``scheduler`` given by address to answer before giving up with :class:`SweepError`."""
 
@@ -266,6 +268,22 @@ def _lost_to_cluster(exc: BaseException) -> bool:
     return isinstance(exc, (CancelledError, KilledWorker, CommClosedError))
 
 
+def _ignore_sigint_plugin():
+    """A Dask worker plugin that makes the local cluster's worker processes ignore SIGINT, those the nanny restarts
+    after a crash included: Ctrl-C stops the sweep in the process that runs it, which then shuts the workers down."""
+    from distributed import WorkerPlugin
+
+    class IgnoreSigint(WorkerPlugin):
+        """Ignore SIGINT in the worker's process."""
+
+        def setup(self, worker) -> None:
+            """From the worker process's main thread, where its event loop runs (a thread cannot set signals)."""
+            if threading.current_thread() is threading.main_thread():
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    return IgnoreSigint()
+
+
 def _connect(scheduler: str | None, workers: int | None):
     """A Dask client of the scheduler at address ``scheduler`` (SweepError if none answers within
     :data:`CONNECT_TIMEOUT_S`), else of a new local cluster; returns (client, cluster or None)."""
@@ -284,7 +302,9 @@ def _connect(scheduler: str | None, workers: int | None):
             if main:
                 signal.signal(signal.SIGINT, previous)
         try:
-            return Client(cluster), cluster
+            client = Client(cluster)
+            client.register_plugin(_ignore_sigint_plugin(), name="virtual-vehicle-ignore-sigint")  # workers restarted too
+            return client, cluster
         except BaseException:
             cluster.close()
             raise
@@ -305,7 +325,8 @@ def run_sweep(spec: SweepSpec, base: dict, out_dir: str | Path, *, scheduler: st
     ``retry_failed``; finished (``"ok"``) runs never. The variations about to run are checked first
     (:func:`check_variations`; ScenarioError before anything runs). Returns counts: ``runs``, ``ran``, ``skipped``
     (finished before), ``failed`` (rows not ``"ok"``), ``lost`` (of those, lost to the cluster), and ``summary`` (the
-    Parquet path). Raises SweepError when the scheduler does not answer, and :class:`SweepInterrupted` (a
+    Parquet path). Raises SweepError when the scheduler does not answer or its cluster takes no data within
+    :data:`SCATTER_TIMEOUT_S` (no workers), and :class:`SweepInterrupted` (a
     KeyboardInterrupt) on Ctrl-C, after shutting the cluster down; every run finished by then is kept."""
     from dask.distributed import as_completed
 
@@ -329,9 +350,13 @@ def run_sweep(spec: SweepSpec, base: dict, out_dir: str | Path, *, scheduler: st
 
             def scatter():  # a key of this sweep's own: its base's content hash and a random suffix
                 key = f"vv-sweep-base-{digest}-{uuid.uuid4().hex[:8]}"
-                return client.scatter({key: base}, broadcast=True)[key]
+                return client.scatter({key: base}, broadcast=True, timeout=SCATTER_TIMEOUT_S)[key]
 
-            base_future = scatter()
+            try:
+                base_future = scatter()
+            except (TimeoutError, OSError) as exc:  # the scheduler has no workers
+                raise SweepError(f"the Dask cluster took no data within {SCATTER_TIMEOUT_S:g} s (no workers?): "
+                                 f"{exc}") from None
             attempts = {i: 0 for i, _ in todo}
 
             def submit(i, v):
@@ -348,10 +373,13 @@ def run_sweep(spec: SweepSpec, base: dict, out_dir: str | Path, *, scheduler: st
                 except Exception as exc:  # noqa: BLE001 -- a failed task is a row, not a failed sweep
                     lost = _lost_to_cluster(exc)
                     if lost and attempts[i] < MAX_ATTEMPTS:
-                        if base_future.status != "finished":  # the cluster lost the scattered base: send it again
-                            base_future = scatter()
-                        queue.add(submit(i, v))
-                        continue
+                        try:
+                            if base_future.status != "finished":  # the cluster lost the scattered base: send again
+                                base_future = scatter()
+                            queue.add(submit(i, v))
+                            continue
+                        except Exception as again:  # noqa: BLE001 -- no worker took it in time: this run is lost
+                            exc = again
                     row = {"id": i, **{f"vary.{k}": x for k, x in v.items()}, "status": "lost" if lost else "error",
                            "error": f"{type(exc).__name__}: {exc}"}
                 row["attempts"] = attempts[i]
