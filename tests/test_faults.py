@@ -116,6 +116,10 @@ def test_the_fault_study_measures_delivery_against_failure_rate(tmp_path):
     assert clean["delivered_fraction"] == pytest.approx(direct["correct"] / due)
     assert clean["delivered_fraction_std"] == 0.0 and clean["delivered_fraction"] > 0
     assert broken["delivered_fraction"] < clean["delivered_fraction"]  # 30% of the cells dead
+    # the parcels due but neither delivered nor lost: still on the array, or never put on
+    assert clean["stuck"] == clean["on_array"] + clean["waiting"] == direct["on_array"] + direct["waiting"] - (
+        len(sc.parcels) - due)
+    assert all(0 <= r["stuck"] <= due for r in (clean, broken))
     assert (out / "study.png").stat().st_size > 10_000 and (out / "summary.parquet").is_file()
 
 

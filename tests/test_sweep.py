@@ -18,24 +18,22 @@ from virtual_vehicle.sim import run
 SWEEP = """base = "prototype_18"
 [vary]
 "duration" = [0.5, 1.0]
-"parcels.*.mu" = [0.3, 0.6, -1.0]
+"parcels.*.mu" = [0.3, 0.6, 0.9]
 """
 
 
-def test_a_grid_sweep_runs_every_variation_records_failures_and_resumes(tmp_path):
+def test_a_grid_sweep_runs_every_variation_and_resumes(tmp_path):
     spec_file = tmp_path / "sweep.toml"
     spec_file.write_text(SWEEP)
     res = CliRunner().invoke(app, ["sweep", str(spec_file), "--out", str(tmp_path / "out"), "--workers", "2"])
     assert res.exit_code == 0, res.output
     table = pd.read_parquet(tmp_path / "out" / "summary.parquet")
-    assert len(table) == 6
+    assert len(table) == 6 and (table["status"] == "ok").all() and (table["attempts"] == 1).all()
     assert sorted(zip(table["vary.duration"], table["vary.parcels.*.mu"])) == sorted(
-        (d, m) for d in (0.5, 1.0) for m in (0.3, 0.6, -1.0))
-    bad = table[table["vary.parcels.*.mu"] < 0]
-    assert (bad["status"] == "error").all() and bad["error"].str.contains("mu").all()
-    # each good row is what a direct run of that variation gives, bit for bit
+        (d, m) for d in (0.5, 1.0) for m in (0.3, 0.6, 0.9))
+    # each row is what a direct run of that variation gives, bit for bit
     base, _ = load_scenario("prototype_18")
-    for _, row in table[table["status"] == "ok"].iterrows():
+    for _, row in table.iterrows():
         parcels = [p.model_copy(update={"mu": row["vary.parcels.*.mu"]}) for p in base.parcels]
         direct = run(base.model_copy(update={"duration": row["vary.duration"], "parcels": parcels}).build())
         assert row["parcel.bread_box.end.x"] == direct.parcels[0].trajectory.states[-1, 0]
@@ -46,7 +44,7 @@ def test_a_grid_sweep_runs_every_variation_records_failures_and_resumes(tmp_path
     runs[2].unlink()
     spec, raw = sw.load_sweep(spec_file)
     again = sw.run_sweep(spec, raw, tmp_path / "out", workers=1)
-    assert (again["runs"], again["ran"], again["skipped"], again["failed"]) == (6, 1, 5, 2)
+    assert (again["runs"], again["ran"], again["skipped"], again["failed"]) == (6, 1, 5, 0)
     table2 = pd.read_parquet(tmp_path / "out" / "summary.parquet")
     timing = [c for c in table.columns if "wall_time" in c or "real_time" in c]
     pd.testing.assert_frame_equal(table.drop(columns=timing), table2.drop(columns=timing))
@@ -113,6 +111,36 @@ def test_bad_sweep_files_exit_2(tmp_path):
         assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("vary, path, message", [
+    ('"frictio.law" = ["viscous"]', "frictio.law", "unknown field"),  # a misspelt table
+    ('"parcels.0.muu" = [0.5]', "parcels.0.muu", "unknown field"),  # a misspelt field of a list item
+    ('"duration" = [1.0, 2.0]\n"parcels.*.mu" = [0.5, -1.0]', "parcels.*.mu", "greater than 0"),  # one bad value
+    ('"parcels.0.x" = [0.2, 100.0]', "parcels.0.x", "off the array"),  # caught only by building the scenario
+    ('"parcels.3.mu" = [0.5]', "parcels.3.mu", "index"),  # the prototype has one parcel
+])
+def test_a_bad_vary_path_or_value_stops_the_sweep_before_anything_runs(tmp_path, vary, path, message):
+    (tmp_path / "s.toml").write_text(f'base = "prototype_18"\n[vary]\n{vary}\n')
+    res = CliRunner().invoke(app, ["sweep", str(tmp_path / "s.toml"), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2, res.output
+    assert f"vary.{path}:" in res.output and message in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "o").exists()  # nothing ran
+
+
+def test_an_unreachable_scheduler_is_one_message_and_exit_2(tmp_path):
+    import socket
+
+    with socket.socket() as s:  # a port nothing listens on once this socket is closed
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    (tmp_path / "s.toml").write_text(SWEEP)
+    res = CliRunner().invoke(app, ["sweep", str(tmp_path / "s.toml"), "--out", str(tmp_path / "o"),
+                                   "--scheduler", f"tcp://127.0.0.1:{port}"])
+    assert res.exit_code == 2, res.output
+    assert f"no Dask scheduler answered at 'tcp://127.0.0.1:{port}' within {sw.CONNECT_TIMEOUT_S:g} s" in res.output
+    assert res.output.count("\n") <= 2 and "Traceback" not in res.output
+    assert not (tmp_path / "o").exists()
+
+
 def test_the_documented_sweep_file_is_valid(tmp_path):
     import re
     from pathlib import Path
@@ -126,3 +154,154 @@ def test_the_documented_sweep_file_is_valid(tmp_path):
     from virtual_vehicle.scenario import parse_scenario
 
     parse_scenario(sw.apply(base, rows[0])).build()
+
+
+def _raw(name):
+    import tomllib
+
+    return tomllib.loads(load_scenario(name)[1])
+
+
+def test_two_sweeps_at_once_on_one_cluster_keep_their_own_scenarios(tmp_path):
+    import threading
+
+    from dask.distributed import LocalCluster
+
+    sweeps = {"prototype_18": 18, "paper_2x2_inward": 4}  # base scenario -> its cell count
+    results, errors = {}, []
+    with LocalCluster(host="127.0.0.1", processes=True, n_workers=2, threads_per_worker=1,
+                      dashboard_address=None) as cluster:
+        start = threading.Barrier(len(sweeps))
+
+        def one(name):
+            try:
+                spec = sw.SweepSpec(base=name, vary={"duration": [0.1, 0.2, 0.3]})
+                start.wait()  # both scatter their base and submit their runs at the same time
+                results[name] = sw.run_sweep(spec, _raw(name), tmp_path / name, scheduler=cluster.scheduler_address)
+            except BaseException as exc:  # noqa: BLE001 -- reported by the main thread
+                errors.append(exc)
+
+        threads = [threading.Thread(target=one, args=(name,)) for name in sweeps]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    assert not errors, errors
+    for name, cells in sweeps.items():
+        table = pd.read_parquet(results[name]["summary"])
+        assert len(table) == 3 and (table["status"] == "ok").all(), table
+        assert set(table["scenario"]) == {name} and set(table["cells"]) == {cells}
+
+
+def test_runs_lost_with_every_worker_are_run_again_and_the_base_scattered_again(tmp_path):
+    import os
+    import signal
+
+    from dask.distributed import Client, LocalCluster
+
+    spec = sw.SweepSpec(base="prototype_18", vary={"duration": [0.25 * k for k in range(1, 9)]})
+    with LocalCluster(host="127.0.0.1", processes=True, n_workers=1, threads_per_worker=1,
+                      dashboard_address=None) as cluster:
+        with Client(cluster) as client:
+            pids = list(client.run(os.getpid).values())
+        killed = []
+
+        def kill_the_workers(fraction):  # after the first run is written: its worker dies with the scattered base
+            if not killed:
+                for pid in pids:
+                    os.kill(pid, signal.SIGKILL)
+                killed.append(fraction)
+
+        res = sw.run_sweep(spec, _raw("prototype_18"), tmp_path, scheduler=cluster.scheduler_address,
+                           progress=kill_the_workers)
+    assert killed and killed[0] < 1.0
+    table = pd.read_parquet(res["summary"])
+    assert (res["runs"], res["failed"], res["lost"]) == (8, 0, 0), table[["status", "error"]]
+    assert (table["status"] == "ok").all() and table["attempts"].max() == 2  # the runs lost were tried again
+    assert sorted(table["vary.duration"]) == [0.25 * k for k in range(1, 9)]
+
+
+def test_runs_lost_too_often_are_recorded_as_lost_and_run_again_on_the_next_sweep(tmp_path, monkeypatch):
+    from dask.distributed import LocalCluster
+    from distributed.comm.core import CommClosedError
+
+    real = sw.run_variation
+
+    def flaky(base, variation):  # as a worker whose connection keeps dropping would look to the client
+        if variation["duration"] > 0.7:
+            raise CommClosedError("connection to the worker lost")
+        return real(base, variation)
+
+    monkeypatch.setattr(sw, "run_variation", flaky)
+    spec = sw.SweepSpec(base="prototype_18", vary={"duration": [0.5, 1.0]})
+    with LocalCluster(n_workers=1, processes=False, dashboard_address=None) as cluster:
+        res = sw.run_sweep(spec, _raw("prototype_18"), tmp_path, scheduler=cluster.scheduler_address)
+        assert (res["runs"], res["failed"], res["lost"]) == (2, 1, 1)
+        lost = pd.read_parquet(res["summary"]).set_index("vary.duration").loc[1.0]
+        assert lost["status"] == "lost" and "connection" in lost["error"] and lost["attempts"] == sw.MAX_ATTEMPTS
+        monkeypatch.setattr(sw, "run_variation", real)  # the cluster is well again: the lost run (only) runs
+        again = sw.run_sweep(spec, _raw("prototype_18"), tmp_path, scheduler=cluster.scheduler_address)
+    assert (again["ran"], again["skipped"], again["failed"]) == (1, 1, 0)
+
+
+def test_failed_runs_exit_1_and_retry_failed_redoes_only_them(tmp_path, monkeypatch):
+    from dask.distributed import LocalCluster
+
+    real = sw.run_variation
+
+    def broken(base, variation):
+        if variation["duration"] > 0.7:
+            raise RuntimeError("a bug in this run")
+        return real(base, variation)
+
+    (tmp_path / "s.toml").write_text(SWEEP)
+    args = ["sweep", str(tmp_path / "s.toml"), "--out", str(tmp_path / "o")]
+    with LocalCluster(n_workers=1, processes=False, dashboard_address=None) as cluster:
+        args += ["--scheduler", cluster.scheduler_address]
+        monkeypatch.setattr(sw, "run_variation", broken)
+        res = CliRunner().invoke(app, args)
+        assert res.exit_code == 1 and "3 of 6 runs failed" in res.output and "--retry-failed" in res.output
+        table = pd.read_parquet(tmp_path / "o" / "summary.parquet")
+        assert (table["status"] == "error").sum() == 3 and table["error"].str.contains("a bug").sum() == 3
+        finished = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "o" / "runs").glob("*.json")
+                    if json.loads(p.read_text())["status"] == "ok"}
+        monkeypatch.setattr(sw, "run_variation", real)  # the bug fixed
+        res = CliRunner().invoke(app, args)  # without --retry-failed: failed rows stay
+        assert res.exit_code == 1 and "0 run now, 6 already done" in res.output
+        res = CliRunner().invoke(app, args + ["--retry-failed"])
+    assert res.exit_code == 0 and "3 run now, 3 already done), 0 failed" in res.output, res.output
+    assert (pd.read_parquet(tmp_path / "o" / "summary.parquet")["status"] == "ok").all()
+    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "o" / "runs").glob("*.json")
+            if p.name in finished} == finished  # finished runs were not redone
+
+
+def test_ctrl_c_stops_a_sweep_cleanly_and_keeps_its_finished_runs(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    (tmp_path / "s.toml").write_text('base = "sorting_junction"\n[vary]\n"duration" = [3.0]\n'
+                                     '"control.seed" = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11]\n')
+    out = tmp_path / "o"
+    env = {**os.environ, "PYTHONPATH": str(Path(sw.__file__).parents[1])}
+    proc = subprocess.Popen([sys.executable, "-m", "virtual_vehicle.cli", "sweep", str(tmp_path / "s.toml"),
+                             "--out", str(out), "--workers", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env, start_new_session=True)
+    try:
+        while not list(out.glob("runs/*.json")) and proc.poll() is None:
+            time.sleep(0.05)
+        os.killpg(proc.pid, signal.SIGINT)  # as Ctrl-C in a terminal: the sweep and its workers
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, (stdout, stderr)
+    assert "Traceback" not in stderr + stdout, stderr
+    kept = sorted(out.glob("runs/*"))
+    assert 1 <= len(kept) < 12 and all(p.suffix == ".json" and not p.name.startswith(".") for p in kept)
+    assert all(json.loads(p.read_text())["status"] == "ok" for p in kept)  # each complete
+    assert f"interrupted: {len(kept)} of 12 runs finished and kept in" in stderr and "to resume" in stderr
+    assert not (out / "summary.parquet").exists()

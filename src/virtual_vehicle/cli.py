@@ -1,6 +1,8 @@
 """The ``virtual-vehicle`` command.
 
-Exit codes: 0 success, 2 bad input (the message names the field), 1 an unexpected failure.
+Exit codes: 0 success, 2 bad input (the message names the field), 1 an unexpected failure, or (``sweep``,
+``fault-study``) some runs failed, their table still written; 130 stopped by Ctrl-C (``sweep``, ``fault-study``:
+finished runs kept, run again to resume).
 """
 
 from __future__ import annotations
@@ -215,12 +217,15 @@ def sweep(
     out_dir: Path = typer.Option(Path("results/sweep"), "--out", "-o", help="Folder for runs/ and summary.parquet; "
                                  "run again on the same folder to resume."),
     scheduler: Optional[str] = typer.Option(None, help="Address of a running Dask scheduler (default: a local "
-                                            "cluster)."),
+                                            "cluster); it must answer within 5 s."),
     workers: int = typer.Option(2, min=1, max=4096, help="Worker processes of the local cluster."),
+    retry_failed: bool = typer.Option(False, "--retry-failed", help="Also run again the runs recorded as failed "
+                                      "(status error); runs lost to the cluster are always run again."),
 ) -> None:
     """Run every variation of a base scenario on Dask and collect their summaries into one Parquet table; failed
-    runs are recorded with their error, and an interrupted sweep resumes without redoing finished runs."""
-    from .sweep import load_sweep, run_sweep
+    runs are recorded with their error, and an interrupted sweep resumes without redoing finished runs. Exit code 1
+    when any run failed (the table is still written), 2 for a bad sweep file (nothing runs), 130 after Ctrl-C."""
+    from .sweep import SweepInterrupted, load_sweep, run_sweep
 
     try:
         sw, base = load_sweep(spec)
@@ -229,11 +234,40 @@ def sweep(
         _fail(exc)
     bar = _LazyProgress(f"sweeping {count} variations of {sw.base}", delay=0.0)
     try:
-        res = run_sweep(sw, base, out_dir, scheduler=scheduler, workers=workers, progress=bar)
+        res = run_sweep(sw, base, out_dir, scheduler=scheduler, workers=workers, progress=bar,
+                        retry_failed=retry_failed)
+    except VirtualVehicleError as exc:
+        bar.close()
+        _fail(exc)
+    except SweepInterrupted as exc:
+        bar.close()
+        _interrupted(exc)
+    except KeyboardInterrupt:  # before any run started, or while writing the summary
+        bar.close()
+        _interrupted(None, out_dir)
     finally:
         bar.close()
-    out.print(f"[bold]{sw.base}[/bold]: {res['runs']} runs ({res['ran']} run now, {res['skipped']} already done), "
-              f"{res['failed']} failed; summary in {res['summary']}")
+    out.print(f"[bold]{escape(sw.base)}[/bold]: {res['runs']} runs ({res['ran']} run now, {res['skipped']} already "
+              f"done), {res['failed']} failed; summary in {escape(str(res['summary']))}")
+    _runs_failed(res)
+
+
+def _interrupted(exc, out_dir: Path | None = None) -> None:
+    """Say what an interrupted sweep (``exc`` a SweepInterrupted, or None and its ``out_dir``) kept and how to
+    resume it; exit 130 (as after SIGINT)."""
+    kept = (f"{exc.kept} of {exc.runs} runs finished and kept in {escape(str(exc.out / 'runs'))} (each complete; no "
+            "summary written)") if exc is not None else f"finished runs are kept in {escape(str(out_dir / 'runs'))}"
+    err.print(f"interrupted: {kept}; run the same command again to resume", highlight=False)
+    raise typer.Exit(code=130)
+
+
+def _runs_failed(res: dict) -> None:
+    """Exit 1 when some runs of a sweep failed, saying how many and how to retry them."""
+    if res["failed"]:
+        lost = f" ({res['lost']} lost to the cluster, retried on the next run)" if res["lost"] else ""
+        err.print(f"[red]{res['failed']} of {res['runs']} runs failed[/red]{lost}: see the status and error columns "
+                  f"of {escape(str(res['summary']))}; run again with --retry-failed to retry them", highlight=False)
+        raise typer.Exit(code=1)
 
 
 @app.command(name="fault-study")
@@ -247,12 +281,15 @@ def fault_study_cmd(
     out_dir: Path = typer.Option(Path("results/fault_study"), "--out", "-o", help="Folder (resumable sweep)."),
     scheduler: Optional[str] = typer.Option(None, help="Address of a running Dask scheduler."),
     workers: int = typer.Option(2, min=1, max=4096, help="Worker processes of the local cluster."),
+    retry_failed: bool = typer.Option(False, "--retry-failed", help="Also run again the runs recorded as failed "
+                                      "(status error); runs lost to the cluster are always run again."),
 ) -> None:
     """Monte-Carlo redundancy study: delivered fraction, delay and collisions against a failure rate, over random
-    fault draws; writes study.json, study.png and the sweep's summary.parquet."""
+    fault draws; writes study.json, study.png and the sweep's summary.parquet. Exit code 1 when any run failed (the
+    study is still written, from the runs that finished), 130 after Ctrl-C (rerun to resume)."""
     from rich.table import Table
 
-    from .sweep import fault_study
+    from .sweep import SweepInterrupted, fault_study
     from .viz import plot_fault_study
 
     try:
@@ -262,10 +299,16 @@ def fault_study_cmd(
     bar = _LazyProgress(f"fault study of {scenario}", delay=0.0)
     try:
         rows = fault_study(scenario, kind, values, samples, out_dir, duration=duration, scheduler=scheduler,
-                           workers=workers, progress=bar)
+                           workers=workers, progress=bar, retry_failed=retry_failed)
     except VirtualVehicleError as exc:
         bar.close()
         _fail(exc)
+    except SweepInterrupted as exc:
+        bar.close()
+        _interrupted(exc)
+    except KeyboardInterrupt:
+        bar.close()
+        _interrupted(None, out_dir)
     finally:
         bar.close()
     plot_fault_study(rows, kind, f"{scenario}: {samples} fault draws per rate", out_dir / "study.png")
@@ -282,6 +325,8 @@ def fault_study_cmd(
                       str(r["failed"]))
     out.print(table)
     out.print(f"written to {out_dir}/study.json, study.png and summary.parquet")
+    _runs_failed({"failed": sum(r["failed"] for r in rows), "lost": 0, "runs": sum(r["runs"] for r in rows),
+                  "summary": out_dir / "summary.parquet"})
 
 
 @app.command(name="scale-study")
