@@ -273,36 +273,89 @@ def plot_similarity(rows: list[dict], title: str, path: str | Path | None = None
     return _finish(fig, path)
 
 
+def fault_study_outcomes(rows: list[dict]) -> dict[str, np.ndarray]:
+    """Mean parcels per run of each outcome, per row of a fault study (:func:`~virtual_vehicle.sweep.fault_study`):
+    ``delivered`` (to the right exit), ``misrouted``, ``lost`` and ``not_delivered`` (still on the array or never put
+    on at the end of the run: parcels due minus delivered, misrouted and lost), which sum to ``parcels_due``. When
+    the rows carry ``on_array`` and ``waiting`` (mean parcels per run), ``not_delivered`` is split into those two.
+    NaN where a rate has no finished run."""
+    def col(key):
+        return np.array([np.nan if r.get(key) is None else r[key] for r in rows], dtype=float)
+
+    due = col("parcels_due")
+    out = {"delivered": col("delivered_fraction") * due, "misrouted": col("misrouted"), "lost": col("lost")}
+    if all(r.get("on_array") is not None and r.get("waiting") is not None for r in rows):
+        out["on_array"], out["waiting"] = col("on_array"), col("waiting")
+    else:
+        out["not_delivered"] = np.clip(due - out["delivered"] - out["misrouted"] - out["lost"], 0.0, None)
+    return out
+
+
+_OUTCOME_STYLE = {"delivered": ("delivered to the right exit", "tab:green"),
+                  "misrouted": ("misrouted (wrong exit)", "tab:orange"), "lost": ("lost (left elsewhere)", "tab:red"),
+                  "not_delivered": ("stuck: still on the array or never put on", "0.45"),
+                  "on_array": ("stuck on the array at the end", "0.45"), "waiting": ("never put on (entry blocked)",
+                                                                             "0.75")}
+
+
 def plot_fault_study(rows: list[dict], kind: str, title: str, path: str | Path | None = None):
     """A fault study (:func:`~virtual_vehicle.sweep.fault_study`): left, the fraction of parcels delivered to the
-    right exit (mean and one standard deviation over the fault seeds) against the failure rate; right, the mean
-    delivery time (s) and the mean collisions, misroutes and losses per run. Saves a PNG to ``path`` if given."""
+    right exit (mean and one standard deviation over the fault seeds) against the failure rate; middle, what became
+    of the parcels due (mean per run, stacked: delivered, misrouted, lost, and those stuck on the array or never
+    put on, :func:`fault_study_outcomes`) with the collisions per run; right, the mean delivery time (s) on an axis
+    from 0, its spread over the rates written out. Saves a PNG to ``path`` if given."""
     rate = np.array([r["rate"] for r in rows])
 
     def col(key):
-        return np.array([np.nan if r[key] is None else r[key] for r in rows], dtype=float)
+        return np.array([np.nan if r.get(key) is None else r[key] for r in rows], dtype=float)
 
-    fig, (ax, axt) = plt.subplots(1, 2, figsize=(11, 4.2), dpi=110)
+    fig, (ax, axo, axt) = plt.subplots(1, 3, figsize=(15.5, 4.6), dpi=110, gridspec_kw={"width_ratios": [1, 1.2, 1]})
+    xlabel = f"{kind.replace('_', ' ')} (probability per item)"
     frac, std = col("delivered_fraction"), col("delivered_fraction_std")
     ax.errorbar(rate, frac, yerr=std, marker="o", capsize=4, color="tab:blue")
     ax.set_ylim(-0.02, 1.02)
-    ax.set_xlabel(f"{kind.replace('_', ' ')} (probability per item)")
+    ax.set_xlabel(xlabel)
     ax.set_ylabel("fraction delivered to the right exit")
     ax.set_title(title)
     ax.grid(alpha=0.3)
-    axt.plot(rate, col("delivery_time_mean_s"), "o-", color="tab:green", label="mean delivery time (s)")
-    axt.set_xlabel(ax.get_xlabel())
+    # what became of the parcels: stacked bars, one per rate, summing to the parcels due
+    outcomes = fault_study_outcomes(rows)
+    pos = np.arange(len(rows))
+    bottom = np.zeros(len(rows))
+    for key, vals in outcomes.items():
+        label, colour = _OUTCOME_STYLE[key]
+        v = np.nan_to_num(vals)
+        axo.bar(pos, v, 0.6, bottom=bottom, color=colour, edgecolor="white", label=label, zorder=2)
+        for x, b, h in zip(pos, bottom, v):
+            if h >= 0.06 * max(1.0, np.nanmax(col("parcels_due"))):
+                axo.text(x, b + h / 2, f"{h:.3g}", ha="center", va="center", fontsize=8,
+                         color="white" if colour not in ("0.75",) else "black")
+        bottom += v
+    coll = col("collisions")
+    axo.plot(pos, coll, "kD--", ms=5, lw=1, label="collisions per run (pairs)", zorder=3)
+    none = [name for name, v in (("misrouted", outcomes["misrouted"]), ("lost", outcomes["lost"]),
+                                 ("collisions", coll)) if np.all(np.nan_to_num(v) == 0)]
+    if none:  # a zero bar is invisible: say so
+        axo.text(0.5, 0.785, f"0 {', 0 '.join(none)} at every rate", transform=axo.transAxes, ha="center", fontsize=8,
+                 color="0.2")
+    axo.set_xticks(pos, [f"{r:g}" for r in rate])
+    axo.set_xlabel(xlabel)
+    axo.set_ylabel("parcels per run (mean)")
+    top = max(1.0, float(np.nanmax(np.concatenate([bottom, np.nan_to_num(coll)]))))
+    axo.set_ylim(0.0, 1.35 * top)  # room for the legend above the bars
+    axo.set_title("what became of the parcels due")
+    axo.legend(fontsize=7, loc="upper center", ncol=2, frameon=False)
+    axo.grid(alpha=0.3, axis="y", zorder=0)
+    times = col("delivery_time_mean_s")
+    axt.plot(rate, times, "o-", color="tab:green", label="mean delivery time")
+    axt.set_ylim(0.0, 1.2 * max(1e-9, float(np.nanmax(times))) if np.any(np.isfinite(times)) else 1.0)
+    if np.any(np.isfinite(times)):
+        lo, hi = float(np.nanmin(times)), float(np.nanmax(times))
+        axt.text(0.03, 0.04, f"spread over the rates: {lo:.4g} .. {hi:.4g} s", transform=axt.transAxes, fontsize=8)
+    axt.set_xlabel(xlabel)
     axt.set_ylabel("delivery time (s)")
-    axc = axt.twinx()
-    for key, colour in (("collisions", "tab:red"), ("misrouted", "tab:orange"), ("lost", "tab:purple")):
-        axc.plot(rate, col(key), "s--", color=colour, ms=4, label=f"{key} per run")
-    axc.set_ylabel("per run (mean)")
-    axc.set_ylim(0.0, max(1.0, 1.1 * float(np.nanmax([col(k) for k in ("collisions", "misrouted", "lost")]))))
-    h1, l1 = axt.get_legend_handles_labels()
-    h2, l2 = axc.get_legend_handles_labels()
-    axt.legend(h1 + h2, l1 + l2, fontsize=8, loc="upper left")
     axt.grid(alpha=0.3)
-    axt.set_title("delay and failures")
+    axt.set_title("mean delivery time of the delivered")
     return _finish(fig, path)
 
 
