@@ -133,3 +133,25 @@ def test_traffic_under_ideal_rounds_writes_the_constant_latency_instead_of_plott
     assert ticks.get_ylim()[0] == 0.0
     (dead,) = _labelled(fig.axes[0], "dead cell")
     np.testing.assert_allclose(dead.get_offsets(), result.setup.cells.positions[[7]])
+
+
+def test_the_layout_command_draws_the_ids_and_refuses_what_it_cannot_draw(tmp_path):
+    from typer.testing import CliRunner
+
+    from virtual_vehicle.cli import app
+
+    out = tmp_path / "layout.png"
+    res = CliRunner().invoke(app, ["layout", "prototype_18", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert out.stat().st_size > 10_000
+    res = CliRunner().invoke(app, ["layout", "prototype_18", "--out", str(tmp_path / "layout.jpg")])
+    assert res.exit_code == 2 and "--out" in res.output
+    big = tmp_path / "big.toml"
+    big.write_text('name = "big"\nduration = 0.05\n[array]\nkind = "grid"\nnx = 60\nny = 50\npitch = 0.1\n'
+                   '[field]\nkind = "uniform"\nvelocity = [0.3, 0.0]\n[[parcels]]\nname = "box"\nlength = 0.3\n'
+                   'width = 0.25\nmass = 2.0\nmu = 1.0\nx = 3.0\ny = 2.5\n')
+    for args in (["layout", str(big), "--out", str(out)], ["run", str(big), "--cell-ids", "--out",
+                                                            str(tmp_path / "run")]):
+        res = CliRunner().invoke(app, args)
+        assert res.exit_code == 2 and "--cell-ids" in res.output and len(res.output.strip().splitlines()) == 1
+    assert not (tmp_path / "run").exists()
