@@ -17,7 +17,8 @@ def _fault_rows():
 
 def test_the_fault_study_picture_shows_the_stuck_parcels_and_starts_its_axes_at_zero():
     fig = viz.plot_fault_study(_fault_rows(), "dead_cell_rate", "study")
-    bars = {c.get_label(): [p.get_height() for p in c.patches] for ax in fig.axes for c in ax.containers if hasattr(c, "patches")}
+    bars = {c.get_label(): [p.get_height() for p in c.patches] for ax in fig.axes for c in ax.containers
+            if hasattr(c, "patches")}
     stuck = next(v for k, v in bars.items() if k.startswith("stuck"))
     np.testing.assert_allclose(stuck, [20 * 0.33, 20 * 0.59, 20 * 0.91])
     delivered = bars["delivered to the right exit"]
