@@ -121,3 +121,89 @@ def test_the_animate_command_records_a_networked_run(tmp_path):
     res = CliRunner().invoke(app, ["animate", "prototype_18", "--out", str(tmp_path / "x.gif"), "--start", "5",
                                    "--end", "1"])
     assert res.exit_code == 2 and "--start/--end" in res.output
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--fps", "100000"], "--fps"),
+    (["--fps", "0.01"], "--fps"),
+    (["--fps", "120", "--speed", "0.001"], "frames, more than"),
+])
+def test_the_animate_command_bounds_fps_and_frames_before_simulating(tmp_path, args, message):
+    out = tmp_path / "a.mp4"
+    res = CliRunner().invoke(app, ["animate", "prototype_18", "--out", str(out), *args])
+    assert res.exit_code == 2, res.output
+    assert message in res.output and "Traceback" not in res.output and len(res.output.strip().splitlines()) == 1
+    assert not any(tmp_path.iterdir())
+
+
+def test_an_interrupted_animation_leaves_no_file_and_says_how_far_it_got(field_run, tmp_path, monkeypatch):
+    calls = []
+
+    def grab(self, **kwargs):  # the third frame is interrupted, as by Ctrl-C
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return original(self, **kwargs)
+
+    original = anim.PillowWriter.grab_frame
+    monkeypatch.setattr(anim.PillowWriter, "grab_frame", grab)
+    with pytest.raises(anim.AnimationInterrupted) as info:
+        anim.animate(field_run, tmp_path / "a.gif", fps=5)
+    assert (info.value.frames, info.value.total) == (3, 11)
+    assert not any(tmp_path.iterdir())  # neither the target nor a hidden partial file
+
+
+@pytest.mark.skipif(anim.ffmpeg_exe() is None, reason="no ffmpeg")
+def test_ctrl_c_in_the_animate_command_stops_cleanly(tmp_path):
+    """SIGINT to the whole process group (as a terminal's Ctrl-C: ffmpeg gets it too) while frames are drawn."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    import virtual_vehicle
+
+    out = tmp_path / "a.mp4"
+    env = {**os.environ, "PYTHONPATH": str(Path(virtual_vehicle.__file__).parents[1]), "COLUMNS": "200"}
+    proc = subprocess.Popen([sys.executable, "-m", "virtual_vehicle.cli", "animate", "prototype_18", "--out",
+                             str(out), "--fps", "100", "--speed", "0.1"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, env=env, start_new_session=True, text=True)
+    try:
+        deadline = time.monotonic() + 240
+        while not any(tmp_path.glob(".a.*")) and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)  # wait until the video is being written
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(0.5)
+        os.killpg(proc.pid, signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr and "interrupted after drawing" in stderr
+    assert len([line for line in stderr.splitlines() if line.strip()]) == 1, stderr
+    assert not any(tmp_path.iterdir())
+
+
+def test_frames_draw_entries_exits_dead_cells_and_a_light_traffic_scale():
+    sc, _ = load_scenario("sorting_junction")
+    sc = sc.model_copy(update={"duration": 1.0, "sensors": sc.sensors.model_copy(update={"record": True}),
+                               "faults": type(sc.faults).model_validate({"dead_cells": [30], "events": [
+                                   {"t": 0.5, "dead_cells": [100]}]})})
+    r = run(sc.build())
+    data = anim.frame_data(r, np.array([0.0, 0.3, 0.7]))
+    fig, update = anim._scene(r, data)
+    ax = fig.axes[0]
+    names = {t.get_text() for t in ax.texts}
+    assert {"entry", "exit 0", "exit 1", "exit 2"} <= names
+    (crosses,) = [c for c in ax.collections if c.get_gid() == "dead-cells"]
+    for f, dead in ((1, {30}), (2, {30, 100})):  # the cell that dies at 0.5 s is crossed out from then on
+        update(f)
+        shown = set(np.flatnonzero(crosses.get_edgecolors()[:, 3] > 0))
+        assert shown == dead
+    tiles = ax.collections[0]
+    lo, hi = tiles.get_clim()
+    assert (lo, hi) == anim.traffic_range(data) and lo > 0  # the common level is near white, not mid-purple
+    assert min(anim.TRAFFIC_CMAP(0.0)[:3]) > 0.9 and tiles.get_alpha() < 1

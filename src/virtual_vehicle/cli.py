@@ -61,6 +61,8 @@ def run(
     checkpoint_every: float = typer.Option(60.0, min=1e-6, help="Simulated seconds between checkpoints."),
     formats: list[str] = typer.Option(["parquet", "csv"], "--format", help="Table formats to write (repeat the "
                                       "option for several): parquet, csv."),
+    cell_ids: bool = typer.Option(False, "--cell-ids", help="Write each cell's id beside it in paths.png (at most "
+                                  "2000 cells)."),
 ) -> None:
     """Run a scenario; write its tables (trajectories, events and, with distributed control, network and
     cell_traffic) as Parquet and CSV, summary.json, scenario.toml, paths.png (traffic.png) and the manifest
@@ -74,13 +76,16 @@ def run(
         setup = sc.build()
     except VirtualVehicleError as exc:
         _fail(exc)
+    if cell_ids and plot and setup.cells.n > 2000:
+        _fail(VirtualVehicleError(f"--cell-ids: ids are drawn for at most 2000 cells; this array has "
+                                  f"{setup.cells.n}"))
     bar = _LazyProgress(f"simulating {sc.name}")
     try:
         result = run_setup(setup, progress=bar, checkpoint=checkpoint,
                            checkpoint_every=checkpoint_every if checkpoint is not None else None, scenario_text=text)
     finally:
         bar.close()
-    _report(result, out_dir, plot, text, formats)
+    _report(result, out_dir, plot, text, formats, cell_ids=cell_ids)
 
 
 @app.command(name="resume")
@@ -114,7 +119,8 @@ def _formats(formats: list[str]) -> tuple[str, ...]:
     return tuple(dict.fromkeys(formats))
 
 
-def _report(result, out_dir: Path, plot: bool, text: str | None, formats: tuple[str, ...]) -> None:
+def _report(result, out_dir: Path, plot: bool, text: str | None, formats: tuple[str, ...],
+            cell_ids: bool = False) -> None:
     """Write a run's files and print its summary."""
     from .io import write_results
 
@@ -127,9 +133,9 @@ def _report(result, out_dir: Path, plot: bool, text: str | None, formats: tuple[
         if sc.control is not None and sc.control.program == "sort":
             from .viz import plot_sorting
 
-            plot_sorting(result, pictures["plot"])
+            plot_sorting(result, pictures["plot"], cell_ids=cell_ids)
         else:
-            plot_paths(result, pictures["plot"])
+            plot_paths(result, pictures["plot"], cell_ids=cell_ids)
         if result.network is not None and result.network.per_tick["sent"].sum() > 0:
             pictures["traffic_plot"] = out_dir / "traffic.png"
             plot_traffic(result, pictures["traffic_plot"])
@@ -173,20 +179,24 @@ def animate_cmd(
                                              "18-cell prototype)."),
     video: Path = typer.Option(Path("results/animation.mp4"), "--out", "-o", help="Video file: .mp4 (a .gif is "
                              "written beside it if no ffmpeg is found) or .gif."),
-    fps: float = typer.Option(20.0, min=1e-3, help="Frames per second of video."),
-    speed: float = typer.Option(1.0, min=1e-6, help="Simulated seconds per second of video."),
+    fps: float = typer.Option(20.0, help="Frames per second of video, 0.1..120."),
+    speed: float = typer.Option(1.0, help="Simulated seconds per second of video."),
     start: Optional[float] = typer.Option(None, help="First simulated time shown (s; default 0)."),
     end: Optional[float] = typer.Option(None, help="Last simulated time shown (s; default the scenario's duration)."),
 ) -> None:
     """Run a scenario and animate it: wheel commands as arrows, lit sensors, parcels with their names and goals,
-    message traffic as a heat map. Networked runs are recorded for this ([sensors] record = true)."""
-    from .animate import SUFFIXES, animate
+    entries and exits outlined, dead cells crossed out, message traffic as a grey heat map. Networked runs are
+    recorded for this ([sensors] record = true). At most 20000 frames; Ctrl-C stops cleanly (exit 130) and
+    leaves no partial video."""
+    from .animate import SUFFIXES, AnimationInterrupted, animate, check_request
     from .scenario import load_scenario
     from .sim import run as run_setup
 
     try:
         if video.suffix.lower() not in SUFFIXES:
             raise VirtualVehicleError(f"--out: the video must end in {' or '.join(SUFFIXES)}, got {video.name!r}")
+        if video.is_dir():
+            raise VirtualVehicleError(f"--out: {video} is a folder; name the video file")
         sc, text = load_scenario(scenario)
         if sc.control is not None and not sc.sensors.record:
             sc = sc.model_copy(update={"sensors": sc.sensors.model_copy(update={"record": True})})
@@ -194,21 +204,67 @@ def animate_cmd(
         t0, t1 = 0.0 if start is None else start, duration if end is None else end
         if not 0.0 <= t0 < t1 <= duration:
             raise VirtualVehicleError(f"--start/--end: need 0 <= start < end <= {duration:g} s, got {t0:g}..{t1:g}")
+        if not speed > 0:
+            raise VirtualVehicleError(f"--speed: must be positive (simulated s per s of video), got {speed:g}")
+        try:
+            frames = check_request(duration, fps, speed, start, end)
+        except ValueError as exc:
+            raise VirtualVehicleError(f"--{exc}") from None
         setup = sc.build()
     except VirtualVehicleError as exc:
         _fail(exc)
     bar = _LazyProgress(f"simulating {sc.name}")
     try:
         result = run_setup(setup, progress=bar, scenario_text=text)
+    except KeyboardInterrupt:
+        bar.close()
+        err.print("interrupted while simulating: nothing written", highlight=False)
+        raise typer.Exit(code=130) from None
     finally:
         bar.close()
-    bar = _LazyProgress(f"drawing {video.name}")
+    bar = _LazyProgress(f"drawing {frames} frames of {video.name}", delay=0.0)
     try:
         written = animate(result, video, fps=fps, speed=speed, start=start, end=end, progress=bar)
+    except AnimationInterrupted as exc:
+        bar.close()
+        err.print(f"interrupted after drawing {exc.frames} of {exc.total} frames: no video written (the partial "
+                  f"file was removed; {video} is untouched)", highlight=False)
+        raise typer.Exit(code=130) from None
+    except KeyboardInterrupt:
+        bar.close()
+        err.print(f"interrupted: no video written ({video} is untouched)", highlight=False)
+        raise typer.Exit(code=130) from None
     finally:
         bar.close()
     note = "" if written == video else " (no ffmpeg found, so a GIF)"
     out.print(f"[bold]{sc.name}[/bold]: animation written to {written}{note}")
+
+
+@app.command(name="layout")
+def layout_cmd(
+    scenario: Optional[str] = typer.Argument(None, help="Scenario TOML file or bundled scenario name (default: the "
+                                             "18-cell prototype)."),
+    picture: Path = typer.Option(Path("results/layout.png"), "--out", "-o", help="PNG file to write."),
+    cell_ids: bool = typer.Option(True, help="Write each cell's id (at most 2000 cells)."),
+) -> None:
+    """Draw a scenario's array without running it: every cell with its id (numbered row by row from the bottom row
+    up, left to right), entries and exits, dead cells and the parcels where they start."""
+    from .scenario import load_scenario
+    from .viz import MAX_CELL_IDS, plot_layout
+
+    try:
+        if picture.suffix.lower() != ".png":
+            raise VirtualVehicleError(f"--out: the picture must end in .png, got {picture.name!r}")
+        sc, _ = load_scenario(scenario)
+        setup = sc.build()
+        if cell_ids and setup.cells.n > MAX_CELL_IDS:
+            raise VirtualVehicleError(f"--cell-ids: ids are drawn for at most {MAX_CELL_IDS} cells; this array has "
+                                      f"{setup.cells.n} (use --no-cell-ids)")
+    except VirtualVehicleError as exc:
+        _fail(exc)
+    picture.parent.mkdir(parents=True, exist_ok=True)
+    plot_layout(setup, picture, cell_ids=cell_ids)
+    out.print(f"[bold]{sc.name}[/bold]: {setup.cells.n} cells drawn to {picture}")
 
 
 @app.command()
