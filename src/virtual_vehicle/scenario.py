@@ -774,9 +774,11 @@ def _check_step(setup: "Setup") -> None:
     across a cell jumps over support changes, and its stages evaluate the parcel where it never was (off its
     supports: with ``dt = 0.5`` s the prototype's box "tipped at t=0 s", its RK4 stage half a metre away). So a
     step carries a parcel at the fastest known speed (:func:`fastest_speed`) at most a tenth of a pitch:
-    ``dt <= pitch / (10 v_max)``. Where dt is the integration step (fixed mode, stick-slip), it is also at most
-    the output spacing (``output_dt``, default duration/500), else the samples would be interpolated between
-    steps and claim a resolution the run never had."""
+    ``dt <= pitch / (10 v_max)`` (measured on the prototype: at the bound, 0.016 s, fixed RK4 keeps all 37
+    support changes of the event-driven run within 1.3 mm; five times it drops support changes, ten times it is
+    7 cm off). Where dt is the integration step (fixed mode, stick-slip), it is also at most ``output_dt`` when
+    one is given (else the samples would be interpolated between steps and claim a resolution the run never had;
+    the default spacing, duration/500, is the program's choice, so there only ``dt <= duration``)."""
     sc = setup.scenario
     dt = sc.integrator.dt
     pitch = setup.cells.pitch
@@ -786,11 +788,12 @@ def _check_step(setup: "Setup") -> None:
                             f"({v:g} m/s) would cross {dt * v / pitch:.3g} cells ({pitch:g} m pitch) in one step; "
                             f"the step must be at most pitch / ({STEPS_PER_CELL} x speed) = "
                             f"{pitch / (STEPS_PER_CELL * v):.3g} s")
-    spacing = sc.output_dt or sc.duration / 500
-    if (sc.integrator.mode == "fixed" or sc.friction.law == "stick_slip") and dt > spacing * (1 + 1e-9):
-        what = "output_dt" if sc.output_dt else "duration / 500, the default output spacing"
-        raise ScenarioError("integrator.dt", f"{dt:g} s is longer than the output spacing ({spacing:g} s, "
-                            f"{what}): the step must be at most that (or set a larger output_dt)")
+    if sc.integrator.mode == "fixed" or sc.friction.law == "stick_slip":
+        limit, what = (sc.output_dt, "the output spacing (output_dt") if sc.output_dt else (sc.duration, "the run ("
+                                                                                              "duration")
+        if dt > limit * (1 + 1e-9):
+            raise ScenarioError("integrator.dt", f"{dt:g} s is longer than {what} = {limit:g} s): the step must be "
+                                "at most that")
 
 
 def memory_limit() -> int:
