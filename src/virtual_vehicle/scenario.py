@@ -267,7 +267,12 @@ class IntegratorSpec(_Strict):
     once (the event engine's own single DOP853 step, in one compiled call; see :mod:`virtual_vehicle.batch`); false
     integrates every parcel on its own. Where support changes chatter (a sliding mode: a parcel held on a boundary
     between support sets whose pieces each push it into the other), event mode crosses that boundary in fixed RK4
-    steps of ``dt`` and counts them as the parcel's ``chatter_steps``."""
+    steps of ``dt`` and counts them as the parcel's ``chatter_steps``.
+
+    ``dt`` must resolve the scene: at most ``pitch / (10 v_max)``, a tenth of a cell at the fastest speed known
+    before the run (wheels and belts of a constant field, the program's ``speed``, the diffusion ``sources``, the
+    parcels' starting speeds); with ``mode = "fixed"`` or the stick-slip law also at most ``output_dt`` (when given)
+    and the duration. A coarser step would jump over support changes and evaluate the parcel where it never was."""
 
     mode: Literal["event", "fixed"] = "event"
     rtol: Annotated[float, Field(gt=0, lt=1)] = 1e-10
@@ -534,6 +539,10 @@ class Scenario(_Strict):
     over a network), ``friction``, ``integrator``, ``contacts`` (parcel against parcel), ``sensors``, ``wheels``
     (ideal or motor-driven), ``faults`` (broken hardware), ``reconfiguration`` (cells taken out and put in during
     a run) and one ``parcels`` entry per parcel.
+
+    Before a run starts, what it will hold in memory (output samples times parcels, networked runs' per-tick
+    records, recorded cells, fixed steps) is estimated; a scenario needing more than half the machine's memory is
+    refused, naming the field that drives it (e.g. ``output_dt``).
     """
 
     name: Annotated[str, Field(min_length=1)] = "scenario"
