@@ -3,6 +3,7 @@ exit code 2 and no traceback."""
 
 import csv
 import json
+import re
 import subprocess
 import sys
 import tomllib
@@ -280,3 +281,203 @@ def test_compare_prints_pose_tasks_side_by_side(tmp_path):
     assert both["scenario"] == "pose_tasks"
     for mode in ("distributed", "central"):
         assert both[mode]["collisions"] == 0 and both[mode]["final_error_max_mm"] > 0
+
+
+def _prototype(**integrator) -> str:
+    """The prototype's TOML with an [integrator] table (its bound: pitch 0.08 m / (10 x 0.5 m/s) = 0.016 s)."""
+    text = load_scenario("prototype_18")[1]
+    table = "\n".join(f"{k} = {_val(v)}" for k, v in integrator.items())
+    return text.replace("[friction]", f"[integrator]\n{table}\n\n[friction]")
+
+
+@pytest.mark.parametrize("dt", [0.5, 10.0, 0.0161, 0.05])
+def test_a_fixed_step_that_cannot_resolve_the_scene_is_rejected_with_its_bound(dt):
+    """dt = 0.5 s once "tipped at t=0 s" (an RK4 stage put the box half a metre off its cells) and exited 0."""
+    sc = parse_text(_prototype(mode="fixed", dt=dt).replace("output_dt = 0.01", "output_dt = 0.5"))
+    with pytest.raises(ScenarioError, match=r"integrator\.dt: .* at most pitch / \(10 x speed\) = 0\.016 s") as e:
+        sc.build()
+    assert e.value.field == "integrator.dt"
+
+
+def test_a_fixed_step_within_its_bound_tracks_the_event_driven_run():
+    """At the bound (dt = 0.016 s, one step per tenth of a cell at the fastest wheel) the fixed step keeps every
+    support change of the event-driven run and stays within 2 mm of it (measured: 1.3 mm; 5x the bound drops support
+    changes, 10x is wrong by 7 cm)."""
+    event = run(load_scenario("prototype_18")[0].build()).parcels[0].trajectory
+    text = _prototype(mode="fixed", dt=0.016).replace("output_dt = 0.01", "output_dt = 0.016")
+    fixed = run(parse_text(text).build()).parcels[0].trajectory
+    assert fixed.status == "completed"
+    assert sum(e.kind == "support" for e in fixed.events) == sum(e.kind == "support" for e in event.events)
+    assert np.max(np.abs(fixed.states[:, 0] - np.interp(fixed.times, event.times, event.states[:, 0]))) < 2e-3
+
+
+def test_a_fixed_step_longer_than_the_output_spacing_is_rejected():
+    sc = parse_text(_prototype(mode="fixed", dt=0.012))  # within the crossing bound, above output_dt = 0.01
+    with pytest.raises(ScenarioError, match=r"integrator\.dt: 0\.012 s is longer than the output spacing"):
+        sc.build()
+    parse_text(_prototype(dt=0.012)).build()  # event mode samples its own dense output: fine
+
+
+def test_the_step_bound_counts_the_programs_speed_and_the_parcels_own():
+    d = base()  # uniform 0.2 m/s on a 0.1 m pitch: dt <= 0.05 s
+    d["integrator"] = {"dt": 0.05}
+    parse_scenario(d).build()
+    d["parcels"][0]["vx"] = 1.0  # thrown on at 1 m/s: dt <= 0.01 s
+    with pytest.raises(ScenarioError, match=r"\(1 m/s\)"):
+        parse_scenario(d).build()
+
+
+SORT_COULOMB = """
+name = "small_sort"
+duration = 0.5
+output_dt = 0.05
+[array]
+kind = "map"
+pitch = 0.1
+map = \"\"\"
+....11....
+....oo....
+EEoooooo00
+EEoooooo00
+..oooooo00
+\"\"\"
+[control]
+program = "sort"
+speed = 0.3
+[[parcels]]
+name = "p"
+length = 0.18
+width = 0.16
+mass = 1.0
+mu = 0.5
+x = 0.05
+y = 0.15
+destination = 1
+"""
+
+
+def test_networked_coulomb_runs_check_sliding_and_the_cli_warns(tmp_path):
+    """A sorter left at the default (Coulomb) law: the parcel outruns its 0.3 m/s wheels; networked runs used to
+    skip the check (coulomb_sliding_checked false) and print no warning."""
+    path = tmp_path / "small_sort.toml"
+    path.write_text(SORT_COULOMB)
+    result = runner.invoke(app, ["run", str(path), "--out", str(tmp_path / "o"), "--no-plot"])
+    assert result.exit_code == 0, result.output
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    p = s["parcels"][0]
+    assert p["coulomb_sliding_checked"] and p["coulomb_sliding_assumption_violated_at_s"] is not None
+    assert p["coulomb_max_reversed_slip_m_per_s"] > 0.05
+    assert s["coulomb_sliding"]["checked"] and s["coulomb_sliding"]["parcels_violating"] == 1
+    assert "warning: the Coulomb law's assumption" in result.stderr and '[friction] law = "viscous"' in result.stderr
+    path.write_text(SORT_COULOMB + '[friction]\nlaw = "viscous"\n')
+    viscous = runner.invoke(app, ["run", str(path), "--out", str(tmp_path / "v"), "--no-plot"])
+    assert viscous.exit_code == 0 and "warning" not in viscous.stderr
+    assert not json.loads((tmp_path / "v" / "summary.json").read_text())["coulomb_sliding"]["checked"]
+
+
+def test_a_reused_run_folder_holds_exactly_the_new_runs_files(tmp_path):
+    """A prototype run into the folder of a networked run with pictures used to keep network.*, traffic.png and
+    paths.png beside its own files."""
+    out = tmp_path / "o"
+    out.mkdir()
+    earlier = ["run.json", "summary.json", "network.csv", "network.parquet", "cell_traffic.csv", "traffic.png",
+               "paths.png", "cells.parquet", ".trajectories.csv.abc123"]
+    for name in earlier:
+        (out / name).write_text("earlier run")
+    (out / "my_notes.txt").write_text("mine")
+    p = _write(tmp_path, BASE)
+    result = runner.invoke(app, ["run", str(p), "--out", str(out), "--no-plot", "--format", "csv"])
+    assert result.exit_code == 0, result.output
+    names = {f.name for f in out.iterdir()}
+    assert names == {"trajectories.csv", "events.csv", "summary.json", "scenario.toml", "run.json", "my_notes.txt"}
+    assert set(json.loads((out / "run.json").read_text())["files"]) == names - {"run.json", "my_notes.txt"}
+
+
+def test_a_foreign_folder_or_a_file_as_out_is_refused_before_running(tmp_path):
+    p = _write(tmp_path, BASE)
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "thesis.tex").write_text("mine")
+    r = runner.invoke(app, ["run", str(p), "--out", str(foreign)])
+    assert r.exit_code == 2 and "thesis.tex" in r.stderr and "no run.json" in r.stderr
+    assert {f.name for f in foreign.iterdir()} == {"thesis.tex"}
+    unfinished = tmp_path / "unfinished"  # an interrupted run's files (no manifest yet) are ours to replace
+    unfinished.mkdir()
+    (unfinished / "trajectories.csv").write_text("half")
+    (unfinished / "ckpt.bin").write_text("a checkpoint")
+    r = runner.invoke(app, ["run", str(p), "--out", str(unfinished), "--no-plot", "--checkpoint",
+                            str(unfinished / "ckpt.bin")])
+    assert r.exit_code == 0, r.output
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    for out in (afile, afile / "sub"):
+        r = runner.invoke(app, ["run", str(p), "--out", str(out)])
+        assert r.exit_code == 2 and "is a file" in r.stderr and "summary" not in r.output
+
+
+def test_compare_keeps_an_earlier_comparison_unless_forced(tmp_path):
+    out = tmp_path / "cmp"
+    out.mkdir()
+    (out / "compare.json").write_text("{}")
+    r = runner.invoke(app, ["compare", "pose_tasks", "--out", str(out)])
+    assert r.exit_code == 2 and "--force" in r.stderr and "Traceback" not in r.output
+    assert (out / "compare.json").read_text() == "{}"
+
+
+def test_huge_runs_are_refused_with_the_estimate_before_allocating():
+    d = base()
+    d.update(duration=1e6, output_dt=1e-6)
+    with pytest.raises(ScenarioError, match=r"output_dt: this run would hold about .* TiB in memory .* more than "
+                                            r"the limit of"):
+        parse_scenario(d).build()
+    d.update(duration=1e6, output_dt=1.0)  # a long run sampled sparsely is fine
+    parse_scenario(d).build()
+
+
+def test_memory_estimate_counts_ticks_and_recorded_cells():
+    from virtual_vehicle.scenario import memory_estimate
+
+    sc = load_scenario("prototype_18_network_ideal")[0]
+    sc = sc.model_copy(update={"duration": 1e3, "sensors": sc.sensors.model_copy(update={"record": True})})
+    est = memory_estimate(sc.build())
+    ticks = 1e3 / sc.control.period
+    assert est["control.period"] == ticks * 96 and est["sensors.record"] == ticks * 18 * (5 + 48)
+
+
+def test_physically_meaningless_sizes_are_rejected_naming_the_field():
+    for path, value, field in [(("parcels", 0, "mass"), 1e-300, "parcels[0].mass: must be at least 1e-12"),
+                               (("parcels", 0, "length"), 1e-300, "parcels[0].length: must be at least 1e-09"),
+                               (("array", "pitch"), 1e-12, "array.pitch: must be at least 1e-09"),
+                               (("parcels", 0, "inertia"), 1e-300, "parcels[0].inertia")]:
+        with pytest.raises(ScenarioError, match=re.escape(field)):
+            parse_scenario(_mutate(path, value))
+
+
+def test_a_directory_is_not_taken_for_a_missing_scenario(tmp_path):
+    folder = tmp_path / "17_dir.toml"
+    folder.mkdir()
+    r = runner.invoke(app, ["check", str(folder)])
+    assert r.exit_code == 2 and "is a directory" in r.stderr and "no scenario file" not in r.stderr
+
+
+def test_help_keeps_its_brackets_and_version_is_printed():
+    r = runner.invoke(app, ["scale-study", "--help"])
+    assert "[field]" in r.output
+    r = runner.invoke(app, ["animate", "--help"])
+    assert "[sensors] record = true" in r.output
+    r = runner.invoke(app, ["--version"])
+    from virtual_vehicle import __version__
+
+    assert r.exit_code == 0 and r.output.strip() == f"virtual-vehicle {__version__}"
+
+
+def test_a_long_phase_shows_a_status_line(capsys):
+    from virtual_vehicle.cli import _Phase
+
+    with _Phase("building a huge array", delay=0.0):
+        pass
+    with _Phase("reading", delay=3600.0):  # a short phase shows nothing
+        pass
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0] == "building a huge array ..." and lines[1].startswith("building a huge array: done in ")
+    assert len(lines) == 2

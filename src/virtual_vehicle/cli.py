@@ -20,9 +20,56 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from .errors import ScenarioError, VirtualVehicleError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  rich_markup_mode=None,  # help texts are plain: "[field]" and "[sensors] record" are TOML, not markup
                   help="Simulate parcels carried by a distributed actuator array (the Virtual Vehicle).")
 err = Console(stderr=True, soft_wrap=True)
 out = Console(soft_wrap=True)
+
+
+def _version(value: bool) -> None:
+    if value:
+        from . import __version__
+
+        out.print(f"virtual-vehicle {__version__}", highlight=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                       help="Print the version and exit.")) -> None:
+    """Simulate parcels carried by a distributed actuator array (the Virtual Vehicle)."""
+
+
+class _Phase:
+    """A status line on stderr for a phase of a command that takes longer than ``delay`` seconds: "LABEL ..." once
+    it has, "LABEL: done in X s" when it ends (so that a long set-up, build or write shows where it is)."""
+
+    def __init__(self, label: str, delay: float = 1.0):
+        self.label = label
+        self.delay = delay
+        self.shown = False
+
+    def _show(self) -> None:
+        self.shown = True
+        err.print(f"{self.label} ...", highlight=False, markup=False)
+
+    def __enter__(self):
+        import threading
+
+        self.start = time.perf_counter()
+        self.timer = threading.Timer(self.delay, self._show)
+        self.timer.daemon = True
+        if self.delay <= 0:
+            self._show()
+        else:
+            self.timer.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.timer.cancel()
+        if self.shown and exc[0] is None:
+            err.print(f"{self.label}: done in {time.perf_counter() - self.start:.3g} s", highlight=False,
+                      markup=False)
 
 
 class _LazyProgress:
@@ -72,8 +119,11 @@ def run(
 
     try:
         formats = _formats(formats)
-        sc, text = load_scenario(scenario)
-        setup = sc.build()
+        _check_out(out_dir, keep=(checkpoint,) if checkpoint is not None else ())
+        with _Phase("reading the scenario"):
+            sc, text = load_scenario(scenario)
+        with _Phase(f"building {sc.name}"):
+            setup = sc.build()
     except VirtualVehicleError as exc:
         _fail(exc)
     if cell_ids and plot and setup.cells.n > 2000:
@@ -101,6 +151,7 @@ def resume_cmd(
     bar = _LazyProgress(f"resuming {checkpoint}")
     try:
         formats = _formats(formats)
+        _check_out(out_dir, keep=(checkpoint,))
         result = resume(checkpoint, progress=bar)
     except VirtualVehicleError as exc:
         bar.close()
@@ -119,27 +170,50 @@ def _formats(formats: list[str]) -> tuple[str, ...]:
     return tuple(dict.fromkeys(formats))
 
 
+def _check_out(out_dir: Path, keep: tuple[Path, ...] = ()) -> None:
+    """Fail (exit 2) before anything runs when ``--out`` cannot take a run's files (see
+    :func:`~virtual_vehicle.io.check_run_folder`)."""
+    from .io import check_run_folder
+
+    problem = check_run_folder(out_dir, keep)
+    if problem is not None:
+        raise VirtualVehicleError(f"--out: {problem}")
+
+
+def _check_out_folder(out_dir: Path) -> None:
+    """Fail before anything runs when ``--out`` names a file (or a folder under one)."""
+    parent = out_dir
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise VirtualVehicleError(f"--out: {str(parent)!r} is a file, not a folder")
+
+
 def _report(result, out_dir: Path, plot: bool, text: str | None, formats: tuple[str, ...],
             cell_ids: bool = False) -> None:
-    """Write a run's files and print its summary."""
-    from .io import write_results
+    """Write a run's files (after removing an earlier run's from the folder) and print its summary."""
+    from .io import clear_run_folder, write_results
 
     sc = result.setup.scenario
     pictures = {}
+    clear_run_folder(out_dir)  # a run folder holds exactly one run's files
     if plot:
         from .viz import plot_paths, plot_traffic
 
         pictures["plot"] = out_dir / "paths.png"
-        if sc.control is not None and sc.control.program == "sort":
-            from .viz import plot_sorting
+        with _Phase(f"drawing {pictures['plot']}"):
+            if sc.control is not None and sc.control.program == "sort":
+                from .viz import plot_sorting
 
-            plot_sorting(result, pictures["plot"], cell_ids=cell_ids)
-        else:
-            plot_paths(result, pictures["plot"], cell_ids=cell_ids)
+                plot_sorting(result, pictures["plot"], cell_ids=cell_ids)
+            else:
+                plot_paths(result, pictures["plot"], cell_ids=cell_ids)
         if result.network is not None and result.network.per_tick["sent"].sum() > 0:
             pictures["traffic_plot"] = out_dir / "traffic.png"
-            plot_traffic(result, pictures["traffic_plot"])
-    paths = {**write_results(result, out_dir, text, formats, extra=list(pictures.values())), **pictures}
+            with _Phase(f"drawing {pictures['traffic_plot']}"):
+                plot_traffic(result, pictures["traffic_plot"])
+    with _Phase(f"writing the tables to {out_dir}"):
+        paths = {**write_results(result, out_dir, text, formats, extra=list(pictures.values())), **pictures}
     s = result.summary()
     out.print(f"[bold]{sc.name}[/bold]: {len(result.parcels)} parcel(s), {sc.duration:g} s simulated in "
               f"{result.wall_time:.3g} s ({s['real_time_factor']:.0f}x real time), {sc.friction.law} friction, "
@@ -171,6 +245,13 @@ def _report(result, out_dir: Path, plot: bool, text: str | None, formats: tuple[
         out.print(f"  network ({net['delivery']}): {net['sentences_sent']} sentences sent, {net['sentences_received']} "
                   f"received, mean latency {lat}, {net['dropped']} dropped, {net['corrupted']} corrupted")
     out.print(f"results written to {out_dir}/: " + ", ".join(sorted({p.name for p in paths.values()})))
+    slide = s["coulomb_sliding"]
+    if slide["parcels_violating"]:
+        err.print(f"[yellow]warning[/yellow]: the Coulomb law's assumption that every wheel slides under the parcel "
+                  f"(paper 4.3) failed for {slide['parcels_violating']} of {len(s['parcels'])} parcel(s), first at "
+                  f"t={slide['first_violation_s']:.4g} s (a parcel outran a wheel by up to "
+                  f"{slide['max_reversed_slip_m_per_s']:.3g} m/s): their motion is not physical from then on; use "
+                  + escape('[friction] law = "viscous" or "stick_slip"'), highlight=False)
 
 
 @app.command(name="animate")
@@ -196,7 +277,8 @@ def animate_cmd(
         if video.suffix.lower() not in SUFFIXES:
             raise VirtualVehicleError(f"--out: the video must end in {' or '.join(SUFFIXES)}, got {video.name!r}")
         if video.is_dir():
-            raise VirtualVehicleError(f"--out: {video} is a folder; name the video file")
+            raise VirtualVehicleError(f"--out: {str(video)!r} is a folder; name the video file")
+        _check_out_folder(video.parent)
         sc, text = load_scenario(scenario)
         if sc.control is not None and not sc.sensors.record:
             sc = sc.model_copy(update={"sensors": sc.sensors.model_copy(update={"record": True})})
@@ -407,6 +489,7 @@ def scale_study_cmd(
     from .viz import plot_similarity
 
     try:
+        _check_out_folder(out_dir)
         sc, _ = load_scenario(scenario)
         try:
             ls = [float(x) for x in lengths.split(",") if x.strip()]
@@ -455,6 +538,7 @@ def equilibria_cmd(
     from .viz import plot_force_field
 
     try:
+        _check_out_folder(out_dir)
         sc, _ = load_scenario(scenario)
         setup = sc.build()
         if setup.control is not None:
@@ -509,8 +593,10 @@ _COMPARED = {
 def compare(
     scenario: str = typer.Argument("sorting_junction", help="A task scenario (program \"sort\" or \"pose\")."),
     out_dir: Path = typer.Option(Path("results/compare"), "--out", "-o", help="Folder for compare.json."),
+    force: bool = typer.Option(False, "--force", help="Replace an earlier compare.json in the folder."),
 ) -> None:
-    """Run a task scenario with distributed and with central control and print the metrics side by side."""
+    """Run a task scenario with distributed and with central control and print the metrics side by side; an
+    earlier comparison in the folder is kept unless --force is given."""
     import json
 
     from rich.table import Table
@@ -523,6 +609,10 @@ def compare(
         sc, _ = load_scenario(scenario)
         if sc.control is None or sc.control.program not in _COMPARED:
             raise ScenarioError("control.program", "compare needs a task scenario (program = \"sort\" or \"pose\")")
+        _check_out_folder(out_dir)
+        if (out_dir / "compare.json").exists() and not force:
+            raise VirtualVehicleError(f"--out: {str(out_dir / 'compare.json')!r} holds an earlier comparison; "
+                                      "name another folder, or give --force to replace it")
     except VirtualVehicleError as exc:
         _fail(exc)
     bar = _LazyProgress(f"simulating {sc.name} twice")

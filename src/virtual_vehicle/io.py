@@ -27,6 +27,60 @@ from .sim import RunResult
 
 FORMATS = ("parquet", "csv")
 
+TABLES = ("trajectories", "events", "network", "cell_traffic", "cells")
+"""Every table a run folder may hold (:func:`virtual_vehicle.tables.build`)."""
+RUN_FILES = frozenset({*(f"{t}.{fmt}" for t in TABLES for fmt in FORMATS), "summary.json", "scenario.toml",
+                       "run.json", "paths.png", "traffic.png"})
+"""The names of every file a run writes into its folder (the manifest run.json among them)."""
+
+
+def _ours(name: str) -> bool:
+    """A run's file, or the temporary name :func:`write_atomic` wrote one under (``.NAME.XXXX``)."""
+    return name in RUN_FILES or (name.startswith(".") and any(name.startswith(f".{f}.") for f in RUN_FILES))
+
+
+def check_run_folder(out_dir: str | Path, keep: tuple[Path, ...] = ()) -> str | None:
+    """Why ``out_dir`` cannot take a run's files, or None when it can (without touching anything): it must be a
+    folder or not exist yet (its first existing parent a folder), and be empty, or an earlier run's folder (it has
+    that run's manifest run.json), or hold nothing but a run's files (an interrupted run's: those
+    :func:`clear_run_folder` removes) and the files in ``keep`` (a checkpoint kept there)."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        return f"{str(out)!r} is a file, not a folder"
+    parent = out
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        return f"{str(parent)!r} is a file, so {str(out)!r} cannot be a folder"
+    if out.is_dir() and not (out / "run.json").is_file():  # an earlier run's folder is known by its manifest
+        kept = {Path(k).resolve() for k in keep}
+        foreign = sorted(e.name for e in out.iterdir() if not _ours(e.name) and e.resolve() not in kept)
+        if foreign:
+            shown = ", ".join(repr(n) for n in foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3
+                                                               else "")
+            return (f"folder {str(out)!r} is not empty and holds no earlier run (no run.json) but other files "
+                    f"({shown}); name a new or empty folder, or an earlier run's folder")
+    return None
+
+
+def clear_run_folder(out_dir: str | Path) -> list[str]:
+    """Remove an earlier run's files from ``out_dir`` (the names in :data:`RUN_FILES` and the temporary files of an
+    interrupted write), so that the folder holds exactly the next run's files; leave everything else. Returns the
+    names removed."""
+    out = Path(out_dir)
+    if not out.is_dir():
+        return []
+    removed = []
+    manifest = out / "run.json"
+    if manifest.exists():  # the manifest first: a folder without it holds an unfinished run
+        manifest.unlink()
+        removed.append(manifest.name)
+    for entry in sorted(out.iterdir()):
+        if _ours(entry.name) and entry.is_file():
+            entry.unlink()
+            removed.append(entry.name)
+    return removed
+
 
 def write_atomic(path: Path, data: str | bytes) -> None:
     """Write ``data`` to ``path`` so that the file appears complete or not at all."""

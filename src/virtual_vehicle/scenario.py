@@ -27,6 +27,13 @@ from .parcel import ParcelSpec, polygon, rectangle, supporting_cells
 Pos = Annotated[float, Field(gt=0)]
 Coord = Annotated[float, Field(ge=-1e6, le=1e6)]
 """A coordinate in m: the simulator's geometry is meant for floors, not for astronomy (|x| <= 1000 km)."""
+Length = Annotated[float, Field(ge=1e-9, le=1e3)]
+"""A size in m (a pitch, a parcel's side): from a nanometre (well below the smallest micro-actuator arrays, whose
+pitch is ~0.1 mm) to a kilometre. Below ~1e-9 m forces, inertias and tolerances underflow in the solvers."""
+Mass = Annotated[float, Field(ge=1e-12, le=1e7)]
+"""A parcel's mass in kg: from a nanogram (a micro-part on a MEMS array, with three decades to spare) to 10 000 t
+(box cars on truck tyres, paper Section 1). Below ~1e-12 kg the products of mass, inertia and friction underflow
+(``mass = 1e-300`` divided by zero)."""
 Speed = Annotated[float, Field(ge=-1e3, le=1e3)]
 """A speed in m/s (|v| <= 1 km/s)."""
 Point = tuple[Coord, Coord]
@@ -60,7 +67,7 @@ class _Wheels(_ArrayBase):
 
 
 class _Lattice(_Wheels):
-    pitch: Annotated[float, Field(gt=0, le=1e3)]
+    pitch: Length
     origin: Point = (0.0, 0.0)
     drive_angle: Annotated[float, Field(ge=-1e3, le=1e3)] = 0.0
 
@@ -92,7 +99,7 @@ class PointsArray(_Wheels):
 
     kind: Literal["points"]
     points: Annotated[list[Point], Field(min_length=1)]
-    pitch: Pos | None = None
+    pitch: Length | None = None
     drive_angle: Annotated[float, Field(ge=-1e3, le=1e3)] = 0.0
 
 
@@ -190,7 +197,7 @@ class HexArray(_ArrayBase):
     kind: Literal["hex"]
     nx: Annotated[int, Field(ge=1, le=100_000)]
     ny: Annotated[int, Field(ge=1, le=100_000)]
-    pitch: Annotated[float, Field(gt=0, le=1e3)]
+    pitch: Length
     origin: Point = (0.0, 0.0)
     drive_angle: Annotated[float, Field(ge=-1e3, le=1e3)] = 0.0
     wheel_radius: Pos | None = None
@@ -260,7 +267,12 @@ class IntegratorSpec(_Strict):
     once (the event engine's own single DOP853 step, in one compiled call; see :mod:`virtual_vehicle.batch`); false
     integrates every parcel on its own. Where support changes chatter (a sliding mode: a parcel held on a boundary
     between support sets whose pieces each push it into the other), event mode crosses that boundary in fixed RK4
-    steps of ``dt`` and counts them as the parcel's ``chatter_steps``."""
+    steps of ``dt`` and counts them as the parcel's ``chatter_steps``.
+
+    ``dt`` must resolve the scene: at most ``pitch / (10 v_max)``, a tenth of a cell at the fastest speed known
+    before the run (wheels and belts of a constant field, the program's ``speed``, the diffusion ``sources``, the
+    parcels' starting speeds); with ``mode = "fixed"`` or the stick-slip law also at most ``output_dt`` (when given)
+    and the duration. A coarser step would jump over support changes and evaluate the parcel where it never was."""
 
     mode: Literal["event", "fixed"] = "event"
     rtol: Annotated[float, Field(gt=0, lt=1)] = 1e-10
@@ -488,14 +500,14 @@ class ParcelEntry(_Strict):
     a parcel whose number is not yet due waits on a parking cell)."""
 
     name: Annotated[str, Field(min_length=1, max_length=64)]
-    length: Pos | None = None
-    width: Pos | None = None
+    length: Length | None = None
+    width: Length | None = None
     vertices: Annotated[list[Point], Field(min_length=3, max_length=1000)] | None = None
     com: Point | None = None
-    mass: Annotated[float, Field(gt=0, le=1e7)]  # kg: up to 10 000 t (box cars on truck tyres, paper Section 1)
+    mass: Mass
     mu: Annotated[float, Field(gt=0, le=1e6)]
     mu_static: Annotated[float, Field(gt=0, le=1e6)] | None = None
-    inertia: Annotated[float, Field(gt=0, le=1e15)] | None = None
+    inertia: Annotated[float, Field(ge=1e-30, le=1e15)] | None = None  # kg m^2: a nanogram a nanometre across
     x: Coord
     y: Coord
     theta: Annotated[float, Field(ge=-1e6, le=1e6)] = 0.0
@@ -527,6 +539,10 @@ class Scenario(_Strict):
     over a network), ``friction``, ``integrator``, ``contacts`` (parcel against parcel), ``sensors``, ``wheels``
     (ideal or motor-driven), ``faults`` (broken hardware), ``reconfiguration`` (cells taken out and put in during
     a run) and one ``parcels`` entry per parcel.
+
+    Before a run starts, what it will hold in memory (output samples times parcels, networked runs' per-tick
+    records, recorded cells, fixed steps) is estimated; a scenario needing more than half the machine's memory is
+    refused, naming the field that drives it (e.g. ``output_dt``).
     """
 
     name: Annotated[str, Field(min_length=1)] = "scenario"
@@ -676,8 +692,11 @@ class Scenario(_Strict):
         for k, ev in sorted(enumerate(self.faults.events), key=lambda e: e[1].t):
             now = later(now, ev, cells.n, sensors.count, f"faults.events[{k}]")
             events.append((ev.t, now))
-        return Setup(self, cells, velocities, LAWS[self.friction.law], specs, states, control, sensors, contacts,
-                     faults, events, present, changes)
+        setup = Setup(self, cells, velocities, LAWS[self.friction.law], specs, states, control, sensors, contacts,
+                      faults, events, present, changes)
+        _check_step(setup)
+        _check_memory(setup)
+        return setup
 
     def _check_sequence(self, park: np.ndarray) -> None:
         """Sequence numbers, where given, must be 0, 1, 2, ... (each once), on labelled parcels, with parking."""
@@ -734,6 +753,118 @@ class Scenario(_Strict):
                 now[i] = True
             out.append((ch.t, now))
         return present, out
+
+
+STEPS_PER_CELL = 10
+"""A fixed step may carry a parcel at most 1/STEPS_PER_CELL of a pitch (see :func:`fastest_speed`)."""
+
+
+def fastest_speed(setup: "Setup") -> float:
+    """The fastest speed (m/s) anything in the scene is known to move at before it runs: the wheels' and belts'
+    surface speeds of a constant field, the speed a program's wheels are limited to (``control.speed``; the
+    diffusion program's ``sources``, which bound every wheel by the maximum principle), and the parcels' own
+    starting speeds (a spinning parcel's corners included)."""
+    sc = setup.scenario
+    speeds = [float(np.max(np.hypot(*setup.contact_velocities.T), initial=0.0))]
+    c = sc.control
+    if c is not None:
+        speeds.append(max((float(np.hypot(v0, v1)) for _, v0, v1 in c.sources), default=0.0)
+                      if c.program == "diffusion" else c.speed)
+    for p, spec in zip(sc.parcels, setup.specs):
+        reach = float(np.max(np.hypot(*spec.footprint.T)))
+        speeds.append(float(np.hypot(p.vx, p.vy)) + abs(p.omega) * reach)
+    return max(speeds)
+
+
+def _check_step(setup: "Setup") -> None:
+    """``integrator.dt`` must resolve the scene. The fixed step (``mode = "fixed"``; every step of the stick-slip
+    law; in event mode the steps across chattering support changes and of parcels stepped together in contact)
+    looks the supports up only at its RK4 stages and logs support changes at its ends: a step that carries a parcel
+    across a cell jumps over support changes, and its stages evaluate the parcel where it never was (off its
+    supports: with ``dt = 0.5`` s the prototype's box "tipped at t=0 s", its RK4 stage half a metre away). So a
+    step carries a parcel at the fastest known speed (:func:`fastest_speed`) at most a tenth of a pitch:
+    ``dt <= pitch / (10 v_max)`` (measured on the prototype: at the bound, 0.016 s, fixed RK4 keeps all 37
+    support changes of the event-driven run within 1.3 mm; five times it drops support changes, ten times it is
+    7 cm off). Where dt is the integration step (fixed mode, stick-slip), it is also at most ``output_dt`` when
+    one is given (else the samples would be interpolated between steps and claim a resolution the run never had;
+    the default spacing, duration/500, is the program's choice, so there only ``dt <= duration``)."""
+    sc = setup.scenario
+    dt = sc.integrator.dt
+    pitch = setup.cells.pitch
+    v = fastest_speed(setup)
+    if v > 0 and dt > pitch / (STEPS_PER_CELL * v):
+        raise ScenarioError("integrator.dt", f"{dt:g} s cannot resolve the scene: a parcel at the fastest speed "
+                            f"({v:g} m/s) would cross {dt * v / pitch:.3g} cells ({pitch:g} m pitch) in one step; "
+                            f"the step must be at most pitch / ({STEPS_PER_CELL} x speed) = "
+                            f"{pitch / (STEPS_PER_CELL * v):.3g} s")
+    if sc.integrator.mode == "fixed" or sc.friction.law == "stick_slip":
+        limit, what = (sc.output_dt, "the output spacing (output_dt") if sc.output_dt else (sc.duration, "the run ("
+                                                                                              "duration")
+        if dt > limit * (1 + 1e-9):
+            raise ScenarioError("integrator.dt", f"{dt:g} s is longer than {what} = {limit:g} s): the step must be "
+                                "at most that")
+
+
+def memory_limit() -> int:
+    """Bytes a run may plan to hold in memory: half this machine's physical memory (8 GiB where it cannot be
+    read)."""
+    import os
+
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")) // 2
+    except (AttributeError, ValueError, OSError):
+        return 8 << 30
+
+
+def memory_estimate(setup: "Setup") -> dict[str, float]:
+    """What a run of ``setup`` will hold in memory (bytes), by the field that drives each part:
+
+    - ``output_dt``: the output samples (times and six states, 56 bytes, per parcel) kept in the trajectories, the
+      tables and their Parquet/CSV copies (counted four times), and the sample grid;
+    - ``control.period``: networked runs' per-tick network record (12 numbers of 8 bytes a tick);
+    - ``sensors.record``: the cell log of recorded networked runs (every cell's sensors, wheel speeds, commands and
+      sentence counts every tick: S + 48 bytes a cell);
+    - ``integrator.dt``: a constant-field run in fixed-step mode or with the stick-slip law keeps every step of
+      every parcel (about 200 bytes a step) until it samples them.
+    """
+    sc = setup.scenario
+    parcels = len(setup.specs)
+    spacing = sc.output_dt or sc.duration / 500
+    samples = np.floor(sc.duration / spacing) + 2
+    est = {"output_dt": samples * 8 + samples * parcels * 56 * 4}
+    if setup.control is not None:
+        ticks = np.ceil(sc.duration / setup.control.period)
+        est["control.period"] = ticks * 12 * 8
+        if sc.sensors.record:
+            est["sensors.record"] = ticks * setup.cells.n * (setup.sensors.count + 48)
+    elif sc.integrator.mode == "fixed" or sc.friction.law == "stick_slip":
+        est["integrator.dt"] = np.ceil(sc.duration / sc.integrator.dt) * parcels * 200
+    return {k: float(v) for k, v in est.items()}
+
+
+def _size(n: float) -> str:
+    for unit in ("bytes", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if n < 1024 or unit == "PiB":
+            return f"{n:.3g} {unit}"
+        n /= 1024
+    return ""
+
+
+def _check_memory(setup: "Setup") -> None:
+    """Refuse, before anything is allocated, a run whose :func:`memory_estimate` exceeds :func:`memory_limit`,
+    naming the field that drives the largest part."""
+    est = memory_estimate(setup)
+    total, limit = sum(est.values()), memory_limit()
+    if total > limit:
+        field, part = max(est.items(), key=lambda kv: kv[1])
+        sc = setup.scenario
+        hint = {"output_dt": f"{sc.duration:g} s sampled every {sc.output_dt or sc.duration / 500:g} s",
+                "control.period": f"{sc.duration:g} s in control ticks of {sc.control.period if sc.control else 0:g} s",
+                "sensors.record": "every cell recorded every control tick",
+                "integrator.dt": f"{sc.duration:g} s in fixed steps of {sc.integrator.dt:g} s"}[field]
+        raise ScenarioError(field, f"this run would hold about {_size(total)} in memory ({_size(part)} for {hint}), "
+                            f"more than the limit of {_size(limit)} (half this machine's memory); sample less "
+                            "often or simulate less")
 
 
 def _present_layer(contacts: layout.CellArray, keep: np.ndarray) -> layout.CellArray:
@@ -1018,6 +1149,10 @@ class Setup:
         return self.contact_layer.contact_velocities(self.velocities)
 
 
+_BOUNDS = {"greater_than": ("gt", "greater than"), "greater_than_equal": ("ge", "at least"),
+           "less_than": ("lt", "less than"), "less_than_equal": ("le", "at most")}
+
+
 def _format_validation(exc: ValidationError) -> ScenarioError:
     lines = []
     first_field = ""
@@ -1035,6 +1170,9 @@ def _format_validation(exc: ValidationError) -> ScenarioError:
         msg = err["msg"]
         if err["type"] == "extra_forbidden":
             msg = "unknown field (check its spelling against the scenario format)"
+        elif err["type"] in _BOUNDS and isinstance(err.get("ctx", {}).get(_BOUNDS[err["type"]][0]), (int, float)):
+            key, words = _BOUNDS[err["type"]]
+            msg = f"must be {words} {err['ctx'][key]:g}, got {err.get('input')!r}"
         elif err["type"] == "union_tag_invalid":
             msg = f"unknown kind {err.get('input', {}).get('kind') if isinstance(err.get('input'), dict) else ''!r}; " + msg
         first_field = first_field or loc
@@ -1074,6 +1212,9 @@ def load_scenario(source: str | Path | None = None) -> tuple[Scenario, str]:
     :data:`DEFAULT_SCENARIO`). Returns the scenario and its TOML text. Raises ScenarioError."""
     source = DEFAULT_SCENARIO if source is None else source
     path = Path(source)
+    if path.is_dir():
+        raise ScenarioError("", f"{str(path)!r} is a directory, not a scenario file: name a .toml file (or a bundled "
+                            "scenario)")
     if path.is_file():
         try:
             text = path.read_text(encoding="utf-8")

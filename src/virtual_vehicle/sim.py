@@ -36,7 +36,8 @@ class ParcelResult:
     """One parcel's run. ``sliding_violation`` is, for the Coulomb law, the first sample time (s) at which some
     supporting wheel no longer slid under the parcel in its direction of spin (the paper's Coulomb assumption), and
     the largest reversed slip (m/s) seen; None when the assumption held at every sample or was not checked
-    (``sliding_checked`` False: runs whose wheel speeds change with time)."""
+    (``sliding_checked`` False: another law, or a run that could not check it). Networked runs check it at every
+    output sample against the wheel speeds of that control tick."""
 
     spec: ParcelSpec
     trajectory: Trajectory
@@ -128,6 +129,15 @@ class RunResult:
         if faults is not None and faults.any():
             extra["faults"] = faults.summary()
         simulated = sum(pr.trajectory.t_end for pr in self.parcels)
+        checked = [p for p in parcels if p["coulomb_sliding_checked"]]
+        violated = [p for p in checked if p["coulomb_sliding_assumption_violated_at_s"] is not None]
+        extra["coulomb_sliding"] = {  # the paper's Coulomb law assumes every wheel slides under the parcel (4.3)
+            "checked": bool(checked),
+            "parcels_violating": len(violated),
+            "first_violation_s": min((p["coulomb_sliding_assumption_violated_at_s"] for p in violated), default=None),
+            "max_reversed_slip_m_per_s": max((p["coulomb_max_reversed_slip_m_per_s"] for p in violated),
+                                             default=None),
+        }
         return {
             "scenario": sc.name,
             "version": __version__,
@@ -162,14 +172,21 @@ class RunResult:
         return frames
 
 
-def coulomb_sliding_check(setup: Setup, spec: ParcelSpec, traj: Trajectory) -> tuple[float, float] | None:
-    """Check the paper's Coulomb assumption at every sample: under each supporting cell, each spinning wheel's
-    surface speed along its drive direction exceeds the parcel's (so the wheel slides in its direction of spin).
-    Returns (first violating time s, largest reversed slip m/s) or None."""
+def coulomb_sliding_check(setup: Setup, spec: ParcelSpec, traj: Trajectory,
+                          velocities: np.ndarray | None = None) -> tuple[float, float] | None:
+    """Check the paper's Coulomb assumption (Section 4.3: every wheel slides under the parcel in its direction of
+    spin) at every sample: under each supporting cell, each spinning wheel's surface speed along its drive direction
+    exceeds the parcel's. ``velocities``: the contact layer's surface velocities (m/s) over the samples (default the
+    constant field's). Returns (first violating time s, largest reversed slip m/s) or None."""
+    return _sliding(setup, spec, traj.times, traj.states,
+                    setup.contact_velocities if velocities is None else velocities)
+
+
+def _sliding(setup: Setup, spec: ParcelSpec, times, states, velocities: np.ndarray) -> tuple[float, float] | None:
+    """:func:`coulomb_sliding_check` on the samples ``times`` (s) and ``states``."""
     cells = setup.contact_layer
-    velocities = setup.contact_velocities
     first, worst = None, 0.0
-    for t, y in zip(traj.times, traj.states):
+    for t, y in zip(times, states):
         ids = supporting_cells(spec, y, cells.positions, cells.tree)
         if len(ids) == 0:
             continue
@@ -525,6 +542,8 @@ class NetworkRun(_Job):
         self.present = setup.present  # cells installed now (None: all, always)
         self.next_change = 0
         self.reconfigured: list[dict] = []
+        # the paper's Coulomb assumption, checked at every output sample against that tick's wheels (4.3)
+        self.sliding: list | None = [None] * len(self.ys) if isinstance(setup.law, CoulombLaw) else None
         if self.present is not None and not self.present.all():
             self._rewire()
 
@@ -533,6 +552,7 @@ class NetworkRun(_Job):
         # a checkpoint written before changed-cell stepping (same version number) goes on stepping every cell
         self.__dict__.setdefault("stepper", None)
         self.__dict__.setdefault("inbox_changed", None)
+        self.__dict__.setdefault("sliding", None)  # written before networked runs checked Coulomb sliding
 
     @property
     def done(self) -> bool:
@@ -610,17 +630,30 @@ class NetworkRun(_Job):
                     on[id(times)] = on_grid(times, window)
                 return on.get(id(times))
 
+            kept = [len(track.times) for track in self.tracks] if self.sliding is not None and len(window) else None
             for i, tr in enumerate(trajectories):
                 if tr is not None:
                     self.tracks[i].add(tr, window, on_window(tr.times))
             for i, steps, k in quiet:  # those the quiet stepper alone moved, from its block
                 self.tracks[i].add_quiet(steps, k, window, on_window(steps.times))
+            if kept is not None:
+                self._check_sliding(kept, velocities)
             gone = [i for i in self.on if not active[i]]
             for i in gone:  # those that left the array are gone, and so is what was cached for them
                 self.plant.release(i)
             if gone:
                 self.on = [i for i in self.on if active[i]]
         self.k += 1
+
+    def _check_sliding(self, kept: list[int], velocities: np.ndarray) -> None:
+        """The Coulomb check (:func:`coulomb_sliding_check`) on the samples each parcel's track took this tick
+        (beyond ``kept`` of them), under this tick's contact ``velocities`` (m/s)."""
+        for i, (track, n) in enumerate(zip(self.tracks, kept)):
+            if len(track.times) > n:
+                found = _sliding(self.setup, self.setup.specs[i], track.times[n:], track.states[n:], velocities)
+                if found is not None:
+                    before = self.sliding[i]
+                    self.sliding[i] = found if before is None else (before[0], max(before[1], found[1]))
 
     def _inject(self, t: float) -> None:
         """Break what the scenario's fault events due by ``t`` (s) break: from this tick on, dead cells are silent
@@ -692,7 +725,8 @@ class NetworkRun(_Job):
         results = []
         for i, (spec, track, y, t) in enumerate(zip(setup.specs, self.tracks, self.ys, self.arrive)):
             traj = track.trajectory() if track.started else Trajectory(np.array([t]), y[None].copy(), [], "waiting", t)
-            results.append(ParcelResult(spec, traj, sliding_checked=False, entered_at=self.entered[i]))
+            results.append(ParcelResult(spec, traj, None if self.sliding is None else self.sliding[i],
+                                        sliding_checked=self.sliding is not None, entered_at=self.entered[i]))
         record = NetworkRecord(ctl.delivery_name, self.period, self.per_tick, self.per_cell, self.latency)
         stats = {"network": record.totals(), "plant": plant_totals(self.plant)}
         if self.injected:

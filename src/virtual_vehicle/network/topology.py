@@ -96,14 +96,13 @@ def from_layout(cells: CellArray, ports: int | None = None, reach: float = 1.5) 
         port = np.round(bearing / (2 * np.pi / own[i])).astype(np.int64) % own[i]
         dist = np.hypot(d[:, 0], d[:, 1])
         order = np.lexsort((j, dist))  # nearest first; ties by id for determinism
-        for a, b, p in zip(i[order], j[order], port[order]):
-            if neighbor[a, p] < 0:
-                neighbor[a, p] = b
+        slot, first = np.unique((i * P + port)[order], return_index=True)  # each port takes its nearest candidate
+        neighbor.flat[slot] = j[order][first]
     back = np.full((n, P), -1, dtype=np.int64)
-    for a, p in zip(*np.nonzero(neighbor >= 0)):
-        b = neighbor[a, p]
-        q = np.flatnonzero(neighbor[b] == a)
-        if len(q) == 1:
-            back[a, p] = q[0]
+    a, p = np.nonzero(neighbor >= 0)
+    b = neighbor[a, p]
+    match = neighbor[b] == a[:, None]  # the ports of b that lead back to a
+    mutual = match.sum(axis=1) == 1
+    back[a[mutual], p[mutual]] = np.argmax(match[mutual], axis=1)
     neighbor[back < 0] = -1  # links must be mutual
     return Topology(neighbor, back, neighbor >= 0, np.ones(n, dtype=bool))
