@@ -63,11 +63,6 @@ class _GeometryCache:
         self.own: dict[bytes, list[SupportSolution]] = {}
         self.solves = 0
 
-    def __setstate__(self, state):
-        if "solutions" in state:  # a checkpoint written before solutions were shared: all of them its own
-            state = {"shared": {}, "own": state.pop("solutions"), **state}
-        self.__dict__.update(state)
-
 
 @dataclass(frozen=True, eq=False)
 class Piece:
@@ -84,9 +79,6 @@ class Piece:
     inertia: float = 1.0
     row: tuple[float, ...] = ()
     """The constants as :func:`constants_row` lists them (what the compiled engine integrates)."""
-
-    def __reduce__(self):  # the rhs is a closure: pickle the constants and build it again (same floats)
-        return _rebuild_piece, (self.support, self.solution, self.constants, self.mass, self.inertia)
 
     @cached_property
     def key(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
@@ -207,7 +199,7 @@ class ParcelModel:
     @cached_property
     def outline(self) -> tuple:
         """The parcel's footprint as the compiled engine takes it (:func:`~virtual_vehicle._kernel.outline`), made
-        once a model and shared by its :meth:`with_velocities` copies (lazily: old checkpoints lack it)."""
+        once a model and shared by its :meth:`with_velocities` copies."""
         return _kernel.outline(self.spec)
 
     @cached_property
