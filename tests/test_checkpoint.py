@@ -218,6 +218,7 @@ def test_a_crafted_checkpoint_runs_nothing_and_says_why(good, tmp_path, craft):
     (lambda doc: doc.update(package_version="0.0.1"), "written by virtual_vehicle 0.0.1; this is " + __version__),
     (lambda doc: doc.update(format_version=3), "format 3"),
     (lambda doc: doc.update(kind="movie"), "run kind"),
+    (lambda doc: doc.update(kind="field"), "a field run's checkpoint whose scenario is not one"),
     (lambda doc: doc["scenario"].update(duration=-1.0), "its scenario: duration"),
     (lambda doc: doc["position"].update(next_fault=4), "does not fit its scenario"),
     (lambda doc: doc["scenario"]["array"].update(nx=7), "does not fit its scenario"),

@@ -85,6 +85,8 @@ class Encoder:
         return len(self.arrays) - 1
 
     def encode(self, x, where: str = "state"):
+        """The JSON-ready form of ``x`` (its arrays appended to :attr:`arrays`). Raises TypeError, naming ``where``
+        in the tree, for a value that is not data nor an allowlisted class."""
         if id(x) in self.external:
             return {"$": "ext", "name": self.external[id(x)]}
         t = type(x)
@@ -174,6 +176,7 @@ class Decoder:
         return items
 
     def decode(self, node):
+        """The value a node of :meth:`Encoder.encode` stands for."""
         t = type(node)
         if node is None or t in (bool, str, int, float):
             return node

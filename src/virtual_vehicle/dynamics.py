@@ -95,10 +95,8 @@ class Piece:
         return self.solution.forces(np.asarray(y[:2], dtype=float))
 
 
-def _rebuild_piece(support, solution, constants, mass, inertia, row=None) -> "Piece":
-    """The piece of these parts; ``row`` is :func:`constants_row` of them, computed here when not given."""
-    if row is None:
-        row = constants_row(constants, solution.origin, mass, inertia)
+def _rebuild_piece(support, solution, constants, mass, inertia, row) -> "Piece":
+    """The piece of these parts; ``row`` is :func:`constants_row` of them."""
     return Piece(support, solution, constants, _make_rhs(row), mass, inertia, row)
 
 

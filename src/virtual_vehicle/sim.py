@@ -505,12 +505,15 @@ def _load(data: bytes, setup: Setup | None = None, where: str = "checkpoint") ->
             setup = parse_scenario(document.get("scenario")).build()
         except VirtualVehicleError as exc:
             raise VirtualVehicleError(f"cannot resume {where}: its scenario: {exc}") from None
+    if (kind == "network") != (setup.control is not None):
+        raise VirtualVehicleError(f"cannot resume {where}: a {kind} run's checkpoint whose scenario is not one")
     job = kinds[kind](setup)
     text = document.get("scenario_text")
     job.scenario_text = text if type(text) is str else None
     try:
         job._restore(document["position"], document.get("state"), arrays)
-    except (CheckpointError, KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+    except (CheckpointError, KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError,
+            RecursionError) as exc:
         raise VirtualVehicleError(f"cannot resume {where}: its state does not fit its scenario "
                                   f"({type(exc).__name__}: {exc})") from None
     return job, every
