@@ -276,12 +276,15 @@ def _same(a, b, work=True):
         assert a.network.latency == b.network.latency
 
 
-@pytest.mark.parametrize("case", ["wire", "ideal rounds, motors, recorded"])
+@pytest.mark.parametrize("case", ["wire", "ideal rounds, motors, recorded", "central sorter"])
 def test_a_networked_run_resumed_half_way_is_the_uninterrupted_run(tmp_path, case):
     from virtual_vehicle.sim import NetworkRun, resume, run
 
     if case == "wire":
         sc = _network()
+    elif case.startswith("central"):
+        base = _network("merge_two_streams", 1.5)
+        sc = base.model_copy(update={"control": base.control.model_copy(update={"central": True})})
     else:
         base = _network("prototype_18_network_ideal")
         sc = base.model_copy(update={"wheels": base.wheels.model_copy(update={"model": "motor"}),
