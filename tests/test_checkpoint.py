@@ -214,6 +214,11 @@ def test_a_crafted_checkpoint_runs_nothing_and_says_why(good, tmp_path, craft):
     assert not marker.exists()
 
 
+def _set_state(doc, key, node):
+    (pair,) = [p for p in doc["state"]["items"] if p[0] == key]
+    pair[1] = node
+
+
 @pytest.mark.parametrize("change, message", [
     (lambda doc: doc.update(package_version="0.0.1"), "written by virtual_vehicle 0.0.1; this is " + __version__),
     (lambda doc: doc.update(format_version=3), "format 3"),
@@ -221,13 +226,27 @@ def test_a_crafted_checkpoint_runs_nothing_and_says_why(good, tmp_path, craft):
     (lambda doc: doc.update(kind="field"), "a field run's checkpoint whose scenario is not one"),
     (lambda doc: doc["scenario"].update(duration=-1.0), "its scenario: duration"),
     (lambda doc: doc["position"].update(next_fault=4), "does not fit its scenario"),
-    (lambda doc: doc["scenario"]["array"].update(nx=7), "does not fit its scenario"),
+    (lambda doc: doc["scenario"]["array"].update(nx=7), "builds another setup"),
+    (lambda doc: _set_state(doc, "per_cell", {"$": "dict", "items": []}), "does not fit its scenario.*per_cell"),
+    (lambda doc: _set_state(doc, "k", "many"), "does not fit its scenario"),
 ])
 def test_a_checkpoint_of_another_version_or_scenario_is_refused_with_one_message(good, tmp_path, change, message):
     from virtual_vehicle.sim import resume
 
     with pytest.raises(VirtualVehicleError, match=message):
         resume(_rewritten(good, tmp_path, change))
+
+
+def test_a_run_whose_setup_was_changed_after_it_was_built_is_not_resumed_from_its_scenario(tmp_path):
+    from virtual_vehicle.sim import NetworkRun, resume
+
+    setup = _network().build()
+    setup.states[0] = setup.states[0] + [0.01, 0, 0, 0, 0, 0]  # not what its scenario says
+    job = NetworkRun(setup)
+    job.tick()
+    job.save(tmp_path / "c.ckpt", 0.5)
+    with pytest.raises(VirtualVehicleError, match="builds another setup"):
+        resume(tmp_path / "c.ckpt")
 
 
 def test_another_format_version_in_the_header_is_refused(tmp_path):

@@ -239,7 +239,8 @@ class _Job:
         tree, arrays = encode(self._state(), _state_classes(), self._externals())
         document = {"format_version": FORMAT_VERSION, "package_version": __version__, "kind": self.KIND,
                     "checkpoint_every": float(checkpoint_every), "scenario": self.setup.scenario.model_dump(mode="json"),
-                    "scenario_text": self.scenario_text, "position": self._position(), "state": tree}
+                    "scenario_text": self.scenario_text, "setup_digest": _setup_digest(self.setup),
+                    "position": self._position(), "state": tree}
         return pack(document, arrays)
 
     def _position(self) -> dict:
@@ -304,7 +305,7 @@ class FieldRun(_Job):
         from .checkpoint import decode
 
         s = decode(state, arrays, _state_classes())
-        _check_like({"ys": self.ys, "active": self.active}, s)
+        _check_like({"t": self.t, "wall": self.wall, "ys": self.ys, "active": self.active}, s)
         self.t, self.wall, self.ys, self.active, self.parts = (float(s["t"]), float(s["wall"]), list(s["ys"]),
                                                               list(s["active"]), list(s["parts"]))
         if not (len(self.ys) == len(self.active) == len(self.parts) == len(self.setup.specs)):
@@ -505,6 +506,9 @@ def _load(data: bytes, setup: Setup | None = None, where: str = "checkpoint") ->
             setup = parse_scenario(document.get("scenario")).build()
         except VirtualVehicleError as exc:
             raise VirtualVehicleError(f"cannot resume {where}: its scenario: {exc}") from None
+        if document.get("setup_digest") != _setup_digest(setup):
+            raise VirtualVehicleError(f"cannot resume {where}: its scenario builds another setup than the run had (a "
+                                      "setup changed after it was built cannot be resumed)")
     if (kind == "network") != (setup.control is not None):
         raise VirtualVehicleError(f"cannot resume {where}: a {kind} run's checkpoint whose scenario is not one")
     job = kinds[kind](setup)
@@ -519,11 +523,37 @@ def _load(data: bytes, setup: Setup | None = None, where: str = "checkpoint") ->
     return job, every
 
 
+def _setup_digest(setup: Setup) -> str:
+    """A SHA-256 of what a run's setup starts from (wheel velocities, contact positions, parcels' start states and
+    bodies), so that a resume whose scenario builds another setup than the run had is refused, not run."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for a in (setup.velocities, setup.contact_layer.positions, np.array(setup.states, dtype=float).reshape(-1, 6),
+              np.array([[s.mass, s.inertia, s.mu, s.radius] for s in setup.specs], dtype=float).reshape(-1, 4)):
+        a = np.ascontiguousarray(a, dtype=float)
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
 def _check_like(fresh, loaded, where: str = "state") -> None:
     """Raise ValueError where ``loaded`` (a run's state read from a checkpoint) is not shaped as ``fresh`` (the same
     run's state at its start): every array the start has (by key, attribute or position in lists of equal length)
-    must be there with the same dtype and shape, every object of the same class."""
-    if isinstance(fresh, np.ndarray):
+    must be there with the same dtype and shape, every object of the same class, every number a number of its
+    kind."""
+    import numbers
+
+    if isinstance(fresh, (bool, np.bool_)):
+        if not isinstance(loaded, (bool, np.bool_)):
+            raise ValueError(f"{where} is not a truth value")
+    elif isinstance(fresh, numbers.Integral):
+        if not isinstance(loaded, numbers.Integral) or isinstance(loaded, (bool, np.bool_)):
+            raise ValueError(f"{where} is not an integer")
+    elif isinstance(fresh, numbers.Real):
+        if not isinstance(loaded, numbers.Real) or isinstance(loaded, (bool, np.bool_)):
+            raise ValueError(f"{where} is not a number")
+    elif isinstance(fresh, np.ndarray):
         if not (isinstance(loaded, np.ndarray) and loaded.dtype == fresh.dtype and loaded.shape == fresh.shape):
             got = f"{loaded.dtype} {loaded.shape}" if isinstance(loaded, np.ndarray) else type(loaded).__name__
             raise ValueError(f"{where} is {got}, not {fresh.dtype} {fresh.shape}")
