@@ -449,17 +449,6 @@ def test_a_plant_refuses_states_and_modes_it_cannot_use(batch):
         Integration(mode="rk45")
 
 
-def test_a_plant_pickled_before_batching_goes_on_unbatched():
-    import pickle
-
-    plant = Plant(CELLS, [SPEC], LAWS["viscous"])
-    del plant.__dict__["_quiet"]  # as a checkpoint written by an older version holds it
-    again = pickle.loads(pickle.dumps(plant))
-    ys = [np.array([0.55, 0.55, 0.0, 0.0, 0.0, 0.0])]
-    again.advance(ys, [True], _field(2), 0.0, 0.01, 0.01)
-    assert again.record.quiet_steps == 0 and ys[0][3] != 0.0
-
-
 @pytest.mark.parametrize("law", ["viscous", "coulomb"])
 def test_the_reach_of_many_parcels_at_once_is_each_parcels_own(law):
     """The checks bound many parcels' reach in one go, their anchors' cells padded to the widest: the same floats as
@@ -596,35 +585,6 @@ def test_the_fastest_wheel_is_found_once_a_set_of_velocities_and_given_to_the_pl
                                                                                                 0.0, 0.5)[0]
 
 
-EDGE_COLUMNS = ("_near", "_near_count", "_edge_normals", "_edge_offsets", "_edge_count", "_noise")
-
-
-@pytest.mark.parametrize("columns", [("_pose", "_clear", "_slack", "_room", "_convex", "_support", "_made", "_rows",
-                                      "_changes", "_changed_at", "_seen", *EDGE_COLUMNS), EDGE_COLUMNS])
-def test_a_quiet_stepper_pickled_before_its_columns_measures_again(columns):
-    """A checkpoint whose stepper kept its anchors' measures only in the anchors (before the columns by parcel), or
-    kept no columns for the edge-by-edge checks, drops them and measures every parcel again: it goes on batched,
-    exactly as the same run checkpointed now."""
-    import pickle
-
-    plant = Plant(CELLS, [SPEC], LAWS["viscous"])
-    ys = [np.array([0.55, 0.55, 0.0, 0.0, 0.0, 0.0])]
-    plant.advance(ys, [True], _field(2), 0.0, 0.01, 0.01)
-    assert plant.record.quiet_steps == 1 and 0 in plant._quiet.anchors
-    now = pickle.loads(pickle.dumps(plant))
-    for name in columns:
-        del plant._quiet.__dict__[name]
-    old = pickle.loads(pickle.dumps(plant))
-    assert old._quiet.anchors == {} and all(hasattr(old._quiet, name) for name in columns)
-    ends = []
-    for again in (now, old):
-        ys_again = [ys[0].copy()]
-        again.advance(ys_again, [True], _field(3), 0.01, 0.02, 0.01)  # other wheels: every row is made again
-        assert again.record.quiet_steps == 2
-        ends.append(ys_again[0].tolist())
-    assert ends[0] == ends[1]
-
-
 def test_chatter_steps_add_up_across_control_ticks():
     """A parcel at rest with two edges exactly on cell centres chatters (see test_dynamics): the fixed steps the
     engine takes across it are counted per tick and summed over the run, as a networked run records them."""
@@ -690,26 +650,3 @@ def test_a_track_takes_quiet_steps_from_their_block_as_it_takes_their_trajectori
         (ref.events, ref.status, ref.t_end, ref.segments, ref.rhs_evals, ref.stats)
 
 
-def test_a_track_from_a_checkpoint_before_quiet_blocks_goes_on():
-    """A track pickled before quiet steps were taken from their block (its latest piece under ``piece``) loads and
-    goes on as one that never was pickled."""
-    import pickle
-
-    from virtual_vehicle.batch import QuietSteps
-    from virtual_vehicle.sim import _Track
-
-    rng = np.random.default_rng(3)
-    old = _Track()
-    old.add(_piece("summed", 0.0, 1, rng), np.empty(0))
-    state = dict(old.__dict__)
-    state["piece"] = state.pop("_piece")
-    del state["_quiet"]
-    loaded = _Track.__new__(_Track)
-    loaded.__setstate__(pickle.loads(pickle.dumps(state)))
-    steps = QuietSteps([0], np.array([0.01, 0.02]), rng.normal(size=(1, 2, 6)), [0], 11, [4])
-    for track in (old, loaded):
-        track.add_quiet(steps, 0, np.empty(0))
-    a, b = old.trajectory(), loaded.trajectory()
-    assert a.states.tolist() == b.states.tolist() and (a.stats, a.segments, a.rhs_evals) == (b.stats, b.segments,
-                                                                                           b.rhs_evals)
-    assert a.stats["chatter_steps"] == 2 and a.stats["solves"] == 4  # summed across; the latest piece's solves

@@ -232,21 +232,6 @@ def test_rows_are_written_back_as_assigning_them_would(n, shape, dtype, given_as
     assert a.tobytes() == expected.tobytes() and a.dtype == expected.dtype
 
 
-def test_a_checkpoint_from_before_changed_cell_stepping_resumes_stepping_every_cell():
-    import pickle
-
-    setup = _scenario("merge_two_streams", 2.0).build()
-    whole = NetworkRun(setup).run(None)
-    job = NetworkRun(setup)
-    while job.k < job.ticks // 2:
-        job.tick()
-    del job.stepper, job.inbox_changed  # as a job pickled by the version before had no such attributes
-    job.delivery._last = None
-    old = pickle.loads(pickle.dumps(job))
-    assert old.stepper is None
-    _same_run(whole, old.run(None))
-
-
 class _Echo:
     """Stationary and local: a cell holds how many hops away (up to 5) a lit sensor is, and says so."""
 

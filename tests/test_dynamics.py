@@ -391,13 +391,6 @@ def test_the_event_root_finder_is_scipys_brentq_without_evaluating_the_ends_agai
     assert outcome == kernel.REACHED and mine == ref and n_mine == calls[0] - 2
 
 
-def test_an_old_checkpoints_solved_supports_are_kept_as_its_own():
-    """A checkpoint pickled before supports were shared loads: its solutions (solved where it met them) stay its own."""
-    cache = dynamics._GeometryCache.__new__(dynamics._GeometryCache)
-    cache.__setstate__({"solutions": {b"k": ["sol"]}, "solves": 3})
-    assert cache.own == {b"k": ["sol"]} and cache.shared == {} and cache.solves == 3
-
-
 def test_viscous_row_settles_where_the_end_cell_carries_half():
     cells = layout.row(8, 0.1)
     spec = parcel.rectangle(0.35, 0.1, 1.0, 1.0)

@@ -201,12 +201,6 @@ class QuietStepper:
         self._changed_at[-1] = -1
         self._seen: np.ndarray | None = None  # the velocities last seen
 
-    def __setstate__(self, state):
-        self.__dict__.update(state)
-        if "_near" not in state:  # a checkpoint from before the columns (or some): measure every parcel again
-            self.anchors.clear()
-            self._columns(len(self.radius))
-
     def forget(self, i: int | None = None) -> None:
         """Drop parcel ``i``'s anchor (all anchors when None): it was moved another way, or the array changed."""
         if i is None:

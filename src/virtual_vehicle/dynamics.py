@@ -63,11 +63,6 @@ class _GeometryCache:
         self.own: dict[bytes, list[SupportSolution]] = {}
         self.solves = 0
 
-    def __setstate__(self, state):
-        if "solutions" in state:  # a checkpoint written before solutions were shared: all of them its own
-            state = {"shared": {}, "own": state.pop("solutions"), **state}
-        self.__dict__.update(state)
-
 
 @dataclass(frozen=True, eq=False)
 class Piece:
@@ -85,9 +80,6 @@ class Piece:
     row: tuple[float, ...] = ()
     """The constants as :func:`constants_row` lists them (what the compiled engine integrates)."""
 
-    def __reduce__(self):  # the rhs is a closure: pickle the constants and build it again (same floats)
-        return _rebuild_piece, (self.support, self.solution, self.constants, self.mass, self.inertia)
-
     @cached_property
     def key(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
         """(supporting cell ids, ids of those in contact)."""
@@ -103,10 +95,8 @@ class Piece:
         return self.solution.forces(np.asarray(y[:2], dtype=float))
 
 
-def _rebuild_piece(support, solution, constants, mass, inertia, row=None) -> "Piece":
-    """The piece of these parts; ``row`` is :func:`constants_row` of them, computed here when not given."""
-    if row is None:
-        row = constants_row(constants, solution.origin, mass, inertia)
+def _rebuild_piece(support, solution, constants, mass, inertia, row) -> "Piece":
+    """The piece of these parts; ``row`` is :func:`constants_row` of them."""
     return Piece(support, solution, constants, _make_rhs(row), mass, inertia, row)
 
 
@@ -207,7 +197,7 @@ class ParcelModel:
     @cached_property
     def outline(self) -> tuple:
         """The parcel's footprint as the compiled engine takes it (:func:`~virtual_vehicle._kernel.outline`), made
-        once a model and shared by its :meth:`with_velocities` copies (lazily: old checkpoints lack it)."""
+        once a model and shared by its :meth:`with_velocities` copies."""
         return _kernel.outline(self.spec)
 
     @cached_property

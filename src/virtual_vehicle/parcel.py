@@ -272,11 +272,6 @@ class PointGrid:
         self.order = np.argsort(key, kind="stable")  # the points, bucket by bucket, row by row
         self.start = np.searchsorted(key[self.order], np.arange(self.shape[0] * self.shape[1] + 1))
 
-    def __setstate__(self, state):
-        self.__dict__.update(state)
-        if self.points.flags.writeable:  # unpickled arrays are writeable (and older checkpoints kept them so)
-            self.points.setflags(write=False)
-
     def near(self, centres, reach) -> tuple[np.ndarray, np.ndarray]:
         """Every (centre k, point j) with point j in a bucket that meets the square of half side ``reach[k]`` (m, one
         value or one per centre) about centre k: all points within ``reach`` of it and some more. Returns the two

@@ -119,10 +119,20 @@ class Plant:
             self._quiet = QuietStepper(cells, self.specs, law, self._mu_max, gravity, integration.rtol,
                                        integration.atol)
 
-    def __setstate__(self, state):
-        self.__dict__.update(state)
-        self.__dict__.setdefault("_quiet", None)  # a checkpoint written before batching goes on unbatched
-        self.__dict__.setdefault("_solutions", {})
+    def state(self) -> dict:
+        """What a checkpoint keeps of the plant: its record, the pairs of parcels pushing each other and their
+        contacts' last impulses (warm starts), and each parcel's stick-slip wheel memory. The rest is either the
+        setup's (cells, parcels, law) or a cache made again as needed (solved supports, pieces, quiet anchors)."""
+        return {"record": self.record, "touching": self._touching, "warm": self._warm,
+                "memory": [model.contact_memory for model in self.base]}
+
+    def restore(self, state: dict) -> None:
+        """Take up what :meth:`state` returned (of a plant of the same scenario)."""
+        if len(state["memory"]) != len(self.base) or not isinstance(state["record"], PlantRecord):
+            raise ValueError("the plant's state is not this plant's")
+        self.record, self._touching, self._warm = state["record"], set(state["touching"]), dict(state["warm"])
+        for model, memory in zip(self.base, state["memory"]):
+            model.contact_memory = memory
 
     def _model(self, spec: ParcelSpec, share: bool = True) -> ParcelModel:
         """A fresh model of parcel ``spec`` at rest wheels, sharing solved supports with parcels of its weight (or

@@ -997,7 +997,7 @@ def _build_control(c: ControlSpec, cells: layout.CellArray, sensors, specs, stat
     from .network.wire import WireLevel, WireParams
 
     topo = from_layout(cells).with_faults(dead_cells=np.flatnonzero(faults.dead_cells), dead_links=faults.dead_links)
-    if c.delivery == "ideal":  # partials, not closures: a checkpoint of a run pickles them
+    if c.delivery == "ideal":
         make_delivery = functools.partial(IdealRounds, topo, loss_rate=c.loss_rate, seed=c.seed)
     else:
         make_delivery = functools.partial(WireLevel, topo, WireParams(**c.wire.model_dump()), seed=c.seed)

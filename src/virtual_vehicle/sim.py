@@ -7,7 +7,6 @@ resolves contact between parcels when it can.
 
 from __future__ import annotations
 
-import pickle
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -253,21 +252,54 @@ class _Job:
             progress(1.0)
         return self.result()
 
+    KIND: str
+    """The run's kind as a checkpoint names it."""
+
     def save(self, path, checkpoint_every: float) -> None:
-        """Write this run's state to ``path`` atomically."""
+        """Write this run's state to ``path`` atomically (a data file, see :mod:`virtual_vehicle.checkpoint`), then
+        go on from exactly what :func:`resume` reads back from it (caches start afresh), so that the checkpointed
+        run and one resumed from any of its checkpoints are the same run to the last bit."""
         from .io import write_atomic
 
-        write_atomic(Path(path), _CHECKPOINT_MAGIC + pickle.dumps((self, checkpoint_every),
-                                                                  protocol=pickle.HIGHEST_PROTOCOL))
+        data = self.checkpoint_bytes(checkpoint_every)
+        write_atomic(Path(path), data)
+        fresh, _ = _load(data, setup=self.setup)
+        self.__dict__.update(fresh.__dict__)
+
+    def checkpoint_bytes(self, checkpoint_every: float) -> bytes:
+        """This run's checkpoint: its scenario, where it is (:meth:`_position`, plain JSON) and its mutable state
+        (:meth:`_state`, encoded by :mod:`virtual_vehicle.checkpoint`); never the setup or any cache."""
+        from .checkpoint import FORMAT_VERSION, encode, pack
+
+        tree, arrays = encode(self._state(), _state_classes(), self._externals())
+        document = {"format_version": FORMAT_VERSION, "package_version": __version__, "kind": self.KIND,
+                    "checkpoint_every": float(checkpoint_every), "scenario": self.setup.scenario.model_dump(mode="json"),
+                    "scenario_text": self.scenario_text, "setup_digest": _setup_digest(self.setup),
+                    "position": self._position(), "state": tree}
+        return pack(document, arrays)
+
+    def _position(self) -> dict:
+        return {}
+
+    def _state(self) -> dict:
+        raise NotImplementedError
+
+    def _externals(self) -> dict:
+        """Objects of the setup the state refers to, written by name (and supplied again from the rebuilt setup)."""
+        return {}
+
+    def _restore(self, position: dict, state, arrays: list) -> None:
+        raise NotImplementedError
 
 
 class FieldRun(_Job):
     """A constant-field run between checkpoints: the plant, every parcel's state and the pieces of trajectory so
-    far (picklable)."""
+    far."""
+
+    KIND = "field"
 
     def __init__(self, setup: Setup):
         sc = setup.scenario
-        self.version = __version__
         self.scenario_text: str | None = None
         self.setup = setup
         self.t = 0.0
@@ -299,6 +331,21 @@ class FieldRun(_Job):
                 part.append(tr)
         self.t = t1
         return True
+
+    def _state(self) -> dict:
+        return {"t": self.t, "wall": self.wall, "ys": self.ys, "active": self.active, "parts": self.parts,
+                "plant": self.plant.state()}
+
+    def _restore(self, position: dict, state, arrays: list) -> None:
+        from .checkpoint import decode
+
+        s = decode(state, arrays, _state_classes())
+        _check_like({"t": self.t, "wall": self.wall, "ys": self.ys, "active": self.active}, s)
+        self.t, self.wall, self.ys, self.active, self.parts = (float(s["t"]), float(s["wall"]), list(s["ys"]),
+                                                              list(s["active"]), list(s["parts"]))
+        if not (len(self.ys) == len(self.active) == len(self.parts) == len(self.setup.specs)):
+            raise ValueError("the state's parcels are not the scenario's")
+        self.plant.restore(s["plant"])
 
     def result(self) -> RunResult:
         """Join the pieces into the run's :class:`RunResult` (samples on the output grid, and each parcel's last)."""
@@ -454,26 +501,126 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None, *
 def resume(checkpoint: str | Path, progress: Callable[[float], None] | None = None, *,
            checkpoint_every: float | None = None) -> RunResult:
     """Continue a run from its last checkpoint (see :func:`run` and :func:`run_network`); by default it keeps writing
-    checkpoints to the same file as often as before. Raises VirtualVehicleError for a file that is not one.
+    checkpoints to the same file as often as before. Raises VirtualVehicleError, with one message, for a file that is
+    not a checkpoint, is damaged, or was written by another format or package version.
 
-    A checkpoint is a Python pickle: resume only files you (or a run you trust) wrote."""
+    A checkpoint is data (:mod:`virtual_vehicle.checkpoint`): reading one never runs code named by the file. The
+    run's setup is built again from the scenario it holds."""
     from .errors import VirtualVehicleError
 
     path = Path(checkpoint)
     try:
-        with open(path, "rb") as f:
-            magic = f.read(len(_CHECKPOINT_MAGIC))
-            if magic != _CHECKPOINT_MAGIC:
-                raise VirtualVehicleError(f"{path} is not a virtual_vehicle checkpoint")
-            job, every = pickle.load(f)
-    except (OSError, pickle.UnpicklingError, EOFError, AttributeError, ImportError, TypeError, ValueError) as exc:
-        raise VirtualVehicleError(f"cannot read checkpoint {path}: {exc}") from None
-    if job.version != __version__:
-        raise VirtualVehicleError(f"checkpoint {path} was written by version {job.version}; this is {__version__}")
+        data = path.read_bytes()
+    except OSError as exc:
+        raise VirtualVehicleError(f"cannot read checkpoint {path}: {exc.strerror or exc}") from None
+    job, every = _load(data, where=str(path))
     return job.run(progress, checkpoint=path, checkpoint_every=checkpoint_every or every)
 
 
-_CHECKPOINT_MAGIC = b"virtual_vehicle checkpoint 1\n"
+def _load(data: bytes, setup: Setup | None = None, where: str = "checkpoint") -> tuple["_Job", float]:
+    """The run a checkpoint's bytes hold and its checkpoint interval (s). ``setup``: the run's own (a checkpointing
+    run going on from what it wrote); None: built from the checkpoint's scenario. Raises VirtualVehicleError."""
+    from .checkpoint import CheckpointError, unpack
+    from .errors import VirtualVehicleError
+    from .scenario import parse_scenario
+
+    try:
+        document, arrays = unpack(data)
+    except CheckpointError as exc:
+        raise VirtualVehicleError(f"cannot resume {where}: {exc}") from None
+    version = document.get("package_version")
+    if version != __version__:
+        raise VirtualVehicleError(f"cannot resume {where}: it was written by virtual_vehicle {version}; this is "
+                                  f"{__version__} (resume it with {version}, or run the scenario again)")
+    kinds = {"field": FieldRun, "network": NetworkRun}
+    kind, every = document.get("kind"), document.get("checkpoint_every")
+    if kind not in kinds or type(every) is not float or not every > 0 or type(document.get("position")) is not dict:
+        raise VirtualVehicleError(f"cannot resume {where}: damaged (its run kind, interval or position)")
+    if setup is None:
+        try:
+            setup = parse_scenario(document.get("scenario")).build()
+        except VirtualVehicleError as exc:
+            raise VirtualVehicleError(f"cannot resume {where}: its scenario: {exc}") from None
+        if document.get("setup_digest") != _setup_digest(setup):
+            raise VirtualVehicleError(f"cannot resume {where}: its scenario builds another setup than the run had (a "
+                                      "setup changed after it was built cannot be resumed)")
+    if (kind == "network") != (setup.control is not None):
+        raise VirtualVehicleError(f"cannot resume {where}: a {kind} run's checkpoint whose scenario is not one")
+    job = kinds[kind](setup)
+    text = document.get("scenario_text")
+    job.scenario_text = text if type(text) is str else None
+    try:
+        job._restore(document["position"], document.get("state"), arrays)
+    except (CheckpointError, KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError,
+            RecursionError) as exc:
+        raise VirtualVehicleError(f"cannot resume {where}: its state does not fit its scenario "
+                                  f"({type(exc).__name__}: {exc})") from None
+    return job, every
+
+
+def _setup_digest(setup: Setup) -> str:
+    """A SHA-256 of what a run's setup starts from (wheel velocities, contact positions, parcels' start states and
+    bodies), so that a resume whose scenario builds another setup than the run had is refused, not run."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for a in (setup.velocities, setup.contact_layer.positions, np.array(setup.states, dtype=float).reshape(-1, 6),
+              np.array([[s.mass, s.inertia, s.mu, s.radius] for s in setup.specs], dtype=float).reshape(-1, 4)):
+        a = np.ascontiguousarray(a, dtype=float)
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _check_like(fresh, loaded, where: str = "state") -> None:
+    """Raise ValueError where ``loaded`` (a run's state read from a checkpoint) is not shaped as ``fresh`` (the same
+    run's state at its start): every array the start has (by key, attribute or position in lists of equal length)
+    must be there with the same dtype and shape, every object of the same class, every number a number of its
+    kind."""
+    import numbers
+
+    if isinstance(fresh, (bool, np.bool_)):
+        if not isinstance(loaded, (bool, np.bool_)):
+            raise ValueError(f"{where} is not a truth value")
+    elif isinstance(fresh, numbers.Integral):
+        if not isinstance(loaded, numbers.Integral) or isinstance(loaded, (bool, np.bool_)):
+            raise ValueError(f"{where} is not an integer")
+    elif isinstance(fresh, numbers.Real):
+        if not isinstance(loaded, numbers.Real) or isinstance(loaded, (bool, np.bool_)):
+            raise ValueError(f"{where} is not a number")
+    elif isinstance(fresh, np.ndarray):
+        if not (isinstance(loaded, np.ndarray) and loaded.dtype == fresh.dtype and loaded.shape == fresh.shape):
+            got = f"{loaded.dtype} {loaded.shape}" if isinstance(loaded, np.ndarray) else type(loaded).__name__
+            raise ValueError(f"{where} is {got}, not {fresh.dtype} {fresh.shape}")
+    elif isinstance(fresh, dict):
+        if not isinstance(loaded, dict) or not fresh.keys() <= loaded.keys():
+            raise ValueError(f"{where} lacks {sorted(map(str, fresh))}")
+        for k, v in fresh.items():
+            _check_like(v, loaded[k], f"{where}[{k!r}]")
+    elif isinstance(fresh, (list, tuple)):
+        if type(loaded) is not type(fresh):
+            raise ValueError(f"{where} is not a {type(fresh).__name__}")
+        if len(fresh) == len(loaded):
+            for k, (a, b) in enumerate(zip(fresh, loaded)):
+                _check_like(a, b, f"{where}[{k}]")
+    elif type(fresh) in _state_classes().values():
+        if type(loaded) is not type(fresh):
+            raise ValueError(f"{where} is not a {type(fresh).__name__}")
+        _check_like(dict(vars(fresh)) if hasattr(fresh, "__dict__") else {}, dict(vars(loaded)), where)
+
+
+def _state_classes() -> dict[str, type]:
+    """The classes a checkpoint may hold, by name: virtual_vehicle's state classes, made from their fields."""
+    from .dynamics import Event
+    from .hardware import WheelDrives
+    from .network.delivery import IdealRounds
+    from .network.programs import ChangedCells
+    from .network.topology import Topology
+    from .network.wire import WireLevel, _Sentence
+    from .plant import PlantRecord
+
+    return {c.__name__: c for c in (Event, Trajectory, PlantRecord, LatencyStats, _Track, Mailbox, Topology,
+                                    IdealRounds, WireLevel, _Sentence, ChangedCells, WheelDrives)}
 
 
 def _reset_rows(state, fresh, rows: np.ndarray):
@@ -491,14 +638,18 @@ def _reset_rows(state, fresh, rows: np.ndarray):
 
 
 class NetworkRun(_Job):
-    """The state of a networked run between control ticks: everything needed to go on (picklable, so that a long
-    run can be checkpointed and resumed bit for bit)."""
+    """The state of a networked run between control ticks: everything needed to go on, so that a long run can be
+    checkpointed and resumed bit for bit."""
+
+    KIND = "network"
+    _DERIVED = frozenset({"scenario_text", "setup", "period", "ticks", "grid", "arrive", "destinations", "plant",
+                          "topology", "faults", "sensors", "present", "next_fault", "next_change", "cell_log"})
+    """What a checkpoint does not write: the setup and what follows from it and from :meth:`_position`."""
 
     def __init__(self, setup: Setup):
         sc = setup.scenario
         ctl = setup.control
         n, P = ctl.topology.n, ctl.topology.ports
-        self.version = __version__
         self.scenario_text: str | None = None
         self.setup = setup
         self.period = ctl.period
@@ -547,12 +698,49 @@ class NetworkRun(_Job):
         if self.present is not None and not self.present.all():
             self._rewire()
 
-    def __setstate__(self, state):
-        self.__dict__.update(state)
-        # a checkpoint written before changed-cell stepping (same version number) goes on stepping every cell
-        self.__dict__.setdefault("stepper", None)
-        self.__dict__.setdefault("inbox_changed", None)
-        self.__dict__.setdefault("sliding", None)  # written before networked runs checked Coulomb sliding
+    def _position(self) -> dict:
+        return {"next_fault": self.next_fault, "next_change": self.next_change}
+
+    def _externals(self) -> dict:
+        ctl = self.setup.control
+        return {"topology": self.topology, "topology.connected": self.topology.connected, "program": ctl.program,
+                "schema": ctl.program.schema, "config": ctl.config, "delivery.params": getattr(self.delivery, "p", None),
+                "motor": None if self.drives is None else self.drives.p}
+
+    def _state(self) -> dict:
+        for track in self.tracks:
+            track.settle()
+        state = {k: v for k, v in self.__dict__.items() if k not in self._DERIVED}
+        state["plant"] = self.plant.state()
+        state["cell_log"] = [np.asarray(column) for column in zip(*self.cell_log)]  # (one array a column)
+        return state
+
+    def _restore(self, position: dict, state, arrays: list) -> None:
+        from .checkpoint import decode
+
+        setup = self.setup
+        nf, nc = position["next_fault"], position["next_change"]
+        if not (type(nf) is int and type(nc) is int and 0 <= nf <= len(setup.fault_events)
+                and 0 <= nc <= len(setup.cell_changes)):
+            raise ValueError("its fault events or cell changes are not the scenario's")
+        if nf or nc:  # the faults and cells of now: what the last event and change made them
+            self.next_fault, self.next_change = nf, nc
+            if nf:
+                self._set_faults(setup.fault_events[nf - 1][1])
+            if nc:
+                self.present = setup.cell_changes[nc - 1][1]
+            self._rewire()
+        s = decode(state, arrays, _state_classes(), self._externals())
+        plant, log = s.pop("plant"), s.pop("cell_log")
+        expected = set(self.__dict__) - self._DERIVED
+        if set(s) != expected:
+            raise ValueError(f"it holds {sorted(set(s) ^ expected)} unlike a networked run")
+        _check_like({k: self.__dict__[k] for k in expected}, s)
+        self.__dict__.update(s)
+        if len(self.ys) != len(setup.specs) or len(self.tracks) != len(setup.specs):
+            raise ValueError("the state's parcels are not the scenario's")
+        self.plant.restore(plant)
+        self.cell_log = list(zip(*log))
 
     @property
     def done(self) -> bool:
@@ -662,12 +850,16 @@ class NetworkRun(_Job):
         while self.next_fault < len(events) and events[self.next_fault][0] <= t + 1e-9 * max(1.0, t):
             t_event, faults = events[self.next_fault]
             self.next_fault += 1
-            self.faults = faults
+            self._set_faults(faults)
             self._rewire()
-            base = self.setup.sensors
-            self.sensors = replace(base, stuck_on=base.stuck_on | faults.stuck_on,
-                                   stuck_off=(base.stuck_off | faults.stuck_off) & ~(base.stuck_on | faults.stuck_on))
             self.injected.append({"t_s": t_event, "at_tick_s": t, **faults.summary()})
+
+    def _set_faults(self, faults) -> None:
+        """The faults from now on, and the sensors they leave (stuck ones stuck); :meth:`_rewire` follows."""
+        self.faults = faults
+        base = self.setup.sensors
+        self.sensors = replace(base, stuck_on=base.stuck_on | faults.stuck_on,
+                               stuck_off=(base.stuck_off | faults.stuck_off) & ~(base.stuck_on | faults.stuck_on))
 
     def _reconfigure(self, t: float) -> None:
         """Take out and snap in the cells the scenario's changes due by ``t`` (s) name: from this tick on a removed
@@ -756,11 +948,11 @@ class _Track:
         self.rhs_evals = 0
         self.stats_pieces: list[dict] = []
 
-    def __setstate__(self, state):
-        if "piece" in state:  # a checkpoint written before quiet steps were taken in from their block
-            state["_piece"] = state.pop("piece")
-        state.setdefault("_quiet", None)
-        self.__dict__.update(state)
+    def settle(self) -> None:
+        """Make the latest piece and the stats piece Trajectories if they are still kept as quiet steps (a checkpoint
+        writes Trajectories, not the stepper's blocks)."""
+        self.piece
+        self._stats_first()
 
     @property
     def piece(self) -> Trajectory | None:

@@ -169,10 +169,6 @@ class Sorter:
         self.compiled = bool(compiled)
         """Step in compiled code (:func:`_step_cells`); False: in array operations (:meth:`_step_arrays`)."""
 
-    def __setstate__(self, state):
-        state.setdefault("compiled", True)  # a checkpoint from before the compiled step
-        self.__dict__.update(state)
-
     def init(self, n, ports, config):
         """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each (see
         :class:`~virtual_vehicle.network.programs.CellProgram`)."""
