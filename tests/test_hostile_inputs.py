@@ -86,6 +86,8 @@ def test_bad_scenarios(tmp_path, command, case, text, needle):
     path = write(tmp_path, text)
     out = tmp_path / ("o.gif" if command == "animate" else "o")
     args = [command, str(path)] + ([] if command == "check" else ["--out", str(out)])
+    if command == "animate" and case == "huge-allocation":  # the video's own bound is met first: 2e7 frames
+        needle = "--fps: 1e+06 s at speed 1 and 20 fps is 20000001 frames"
     one_error(runner.invoke(app, args), needle)
     assert not out.exists()
 
@@ -142,3 +144,36 @@ def test_the_console_script_says_it_once(tmp_path, case):
     assert proc.returncode == 2 and "Traceback" not in proc.stderr and proc.stdout == ""
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip() and not ln.endswith(" ...")]
     assert len(lines) == 1 and needle in lines[0], proc.stderr
+
+
+@pytest.mark.parametrize("fps", ["100000", "0.01"])
+def test_animate_frames_per_second_out_of_range(tmp_path, fps):
+    out = tmp_path / "o.gif"
+    one_error(runner.invoke(app, ["animate", str(write(tmp_path, scenario())), "--out", str(out), "--fps", fps]),
+              "--fps")
+    assert not out.exists()
+
+
+def sweep_file(tmp_path, vary: str) -> str:
+    (tmp_path / "base.toml").write_text(scenario())
+    path = tmp_path / "study.toml"
+    path.write_text(f'base = "base.toml"\n[vary]\n{vary}\n')
+    return str(path)
+
+
+def test_sweep_with_a_misspelt_vary_path(tmp_path):
+    out = tmp_path / "study"
+    one_error(runner.invoke(app, ["sweep", sweep_file(tmp_path, '"frictio.law" = ["coulomb", "viscous"]'),
+                                  "--out", str(out)]), "vary.frictio.law")
+    assert not out.exists()
+
+
+def test_sweep_against_an_unreachable_scheduler(tmp_path):
+    import socket
+
+    with socket.socket() as s:  # a port that nothing listens on once this closes
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "study"
+    one_error(runner.invoke(app, ["sweep", sweep_file(tmp_path, '"parcels.0.mass" = [1.0, 2.0]'), "--out", str(out),
+                                  "--scheduler", f"tcp://127.0.0.1:{port}"]), "--scheduler")
