@@ -36,11 +36,11 @@ _SCALE = """
 import json, sys, time
 sys.path.insert(0, {bench!r})
 import bench_scale
-from virtual_vehicle.scenario import parse_scenario
-from virtual_vehicle.sim import run_network
+from virtual_vehicle.config.scenario import parse_scenario
+from virtual_vehicle.run.sim import run_network
 setup = parse_scenario(bench_scale.scenario(100, {parcels}, {seconds})).build()
 try:  # load the compiled engine outside the timed run, as the imports are (from 580daa9)
-    from virtual_vehicle.dynamics import warm_up
+    from virtual_vehicle.engine.dynamics import warm_up
     warm_up()
 except ImportError:
     pass
@@ -58,7 +58,7 @@ CASES = {
 import json, sys, time
 sys.path.insert(0, {bench!r})
 import bench_perf as b
-from virtual_vehicle.dynamics import ParcelModel, integrate
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 walls = []
 for _ in range(5):
     start = time.perf_counter()

@@ -163,11 +163,11 @@ def run_case(case: str, seconds: float | None = None) -> dict:
     """Run ``case`` once unmeasured (to load numba's cached code; every run builds its models anew, so the timed
     one solves its support patterns as a first run does) and once with its kernels timed, which must end where the
     plain run ended; returns the figures (times in s)."""
-    from virtual_vehicle.dynamics import warm_up
+    from virtual_vehicle.engine.dynamics import warm_up
 
     if case == "coulomb1":
         import bench_perf as b
-        from virtual_vehicle.dynamics import ParcelModel, integrate
+        from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 
         simulated = 5.0 if seconds is None else seconds
 
@@ -176,8 +176,8 @@ def run_case(case: str, seconds: float | None = None) -> dict:
             return integrate(model, b.Y0_IN, 0.0, simulated, sample_dt=simulated).states[-1].tolist()
     elif case == "hall200":
         import bench_scale
-        from virtual_vehicle.scenario import parse_scenario
-        from virtual_vehicle.sim import run_network
+        from virtual_vehicle.config.scenario import parse_scenario
+        from virtual_vehicle.run.sim import run_network
 
         simulated = 2.0 if seconds is None else seconds
         text = bench_scale.scenario(100, 200, simulated)

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from virtual_vehicle.network.sentence import SentenceError, Word, WordType, decode, encode
+from virtual_vehicle.cells.network.sentence import SentenceError, Word, WordType, decode, encode
 
 TYPES = list(WordType)
 RANGES = {WordType.U8: (0, 256), WordType.BOOL: (0, 2), WordType.I16: (-(2**15), 2**15), WordType.U16: (0, 2**16),

@@ -21,7 +21,7 @@ import numpy as np
 
 
 def hour_scenario(minutes: float, interval: float = 3.0):
-    from virtual_vehicle.scenario import load_scenario
+    from virtual_vehicle.config.scenario import load_scenario
 
     sc, _ = load_scenario("sorting_junction")
     duration = 60.0 * minutes
@@ -35,7 +35,7 @@ def hour_scenario(minutes: float, interval: float = 3.0):
 
 
 def main() -> None:
-    from virtual_vehicle.sim import resume, run, run_network
+    from virtual_vehicle.run.sim import resume, run, run_network
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--minutes", type=float, default=60.0)

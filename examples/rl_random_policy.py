@@ -1,9 +1,9 @@
 """Reinforcement-learning starter: three policies on the pose-control task, to show the environments' shape.
 
-* a random policy on :class:`~virtual_vehicle.envs.ArrayEnv` (central; wheel speeds as the action),
+* a random policy on :class:`~virtual_vehicle.ui.envs.ArrayEnv` (central; wheel speeds as the action),
 * a proportional twist policy on the same task (action = the parcel's twist, from its observed pose): what a
   learned policy should at least match,
-* random agents on :class:`~virtual_vehicle.envs.CellsEnv` (every cell an agent, local observations only).
+* random agents on :class:`~virtual_vehicle.ui.envs.CellsEnv` (every cell an agent, local observations only).
 
 Prints each policy's mean return and final pose error. Run: ``python examples/rl_random_policy.py [--episodes 5]
 [--steps 100] [--video episode.gif]`` (``--video`` animates the last proportional episode).
@@ -15,7 +15,7 @@ import argparse
 
 import numpy as np
 
-from virtual_vehicle.envs import ArrayEnv, CellsEnv
+from virtual_vehicle.ui.envs import ArrayEnv, CellsEnv
 
 
 def rollout(env: ArrayEnv, policy, seed: int) -> tuple[float, dict]:
@@ -57,7 +57,7 @@ def main() -> None:
 
     report("proportional twist", [rollout(env, proportional, s) for s in range(args.episodes)])
     if args.video:
-        from virtual_vehicle.animate import animate
+        from virtual_vehicle.ui.animate import animate
 
         print(f"{'':>20}  video: {animate(env.episode.result(), args.video, targets=targets)}")
 

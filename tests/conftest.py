@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from hypothesis import assume, settings
 
-from virtual_vehicle import dynamics, friction
-from virtual_vehicle.dynamics import ParcelModel
+from virtual_vehicle.engine import dynamics
+from virtual_vehicle.physics import friction
+from virtual_vehicle.engine.dynamics import ParcelModel
 from virtual_vehicle.errors import TippingError
 
 # Every run draws the same examples on any machine: derandomized (examples follow from each test's name), no example

@@ -7,10 +7,10 @@ import pytest
 from PIL import Image
 from typer.testing import CliRunner
 
-from virtual_vehicle import animate as anim
-from virtual_vehicle.cli import app
-from virtual_vehicle.scenario import load_scenario
-from virtual_vehicle.sim import run
+from virtual_vehicle.ui import animate as anim
+from virtual_vehicle.ui.cli import app
+from virtual_vehicle.config.scenario import load_scenario
+from virtual_vehicle.run.sim import run
 
 
 def _run(name: str, duration: float, record: bool = True):
@@ -167,7 +167,7 @@ def test_ctrl_c_in_the_animate_command_stops_cleanly(tmp_path):
 
     out = tmp_path / "a.mp4"
     env = {**os.environ, "PYTHONPATH": str(Path(virtual_vehicle.__file__).parents[1]), "COLUMNS": "200"}
-    proc = subprocess.Popen([sys.executable, "-m", "virtual_vehicle.cli", "animate", "prototype_18", "--out",
+    proc = subprocess.Popen([sys.executable, "-m", "virtual_vehicle.ui.cli", "animate", "prototype_18", "--out",
                              str(out), "--fps", "100", "--speed", "0.1"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, env=env, start_new_session=True, text=True)
     try:

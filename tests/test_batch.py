@@ -12,13 +12,15 @@ import pytest
 from hypothesis import example, given, settings, strategies as st
 from scipy.integrate import DOP853
 
-from virtual_vehicle import _kernel, friction, layout, parcel
-from virtual_vehicle.batch import QuietStepper
-from virtual_vehicle.collide import point_reach, reach_bounds, wheel_speed_of
-from virtual_vehicle.dynamics import Event, ParcelModel, Trajectory, constants_row, integrate
-from virtual_vehicle.plant import Integration, Plant
-from virtual_vehicle.scenario import load_scenario, parse_scenario
-from virtual_vehicle.sim import run, run_network
+from virtual_vehicle.engine import _kernel
+from virtual_vehicle.physics import friction
+from virtual_vehicle.model import layout, parcel
+from virtual_vehicle.engine.batch import QuietStepper
+from virtual_vehicle.physics.collide import point_reach, reach_bounds, wheel_speed_of
+from virtual_vehicle.engine.dynamics import Event, ParcelModel, Trajectory, constants_row, integrate
+from virtual_vehicle.engine.plant import Integration, Plant
+from virtual_vehicle.config.scenario import load_scenario, parse_scenario
+from virtual_vehicle.run.sim import run, run_network
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from bench_scale import scenario as scale_scenario  # noqa: E402
@@ -105,7 +107,7 @@ def test_point_reaches_are_point_reach_to_the_last_bit(law):
     """The planner's bounds for every parcel at once are the scalar bounds, the same numbers (its windows, and so
     the runs, must not change with how many parcels are planned together): several outlines, speed floors, and
     parcels whose wheels give them nothing (mu = 0, the slow branch of the viscous bound)."""
-    from virtual_vehicle.collide import lever_of, point_reaches
+    from virtual_vehicle.physics.collide import lever_of, point_reaches
 
     rng = np.random.default_rng(1)
     specs = [SPEC, parcel.rectangle(0.5, 0.2, 3.0, 0.4), parcel.polygon([[0, 0], [0.3, 0], [0.1, 0.25]], 1.5, 0.8)]
@@ -520,7 +522,7 @@ def test_an_anchor_measured_again_takes_its_solution_again_only_where_the_cache_
     """Measured again on the same cells, an anchor takes its solution again when it was the first of its pattern's
     shared solutions and holds there: what the pattern cache finds (the same arrays). Where it does not hold, or was
     not the first, the cache is asked."""
-    from virtual_vehicle.batch import anchor
+    from virtual_vehicle.engine.batch import anchor
 
     model = ParcelModel(CELLS, SPEC, _field(1), LAWS["viscous"])
     y0 = np.array([0.55, 0.52, 0.3, 0.05, 0.0, 0.1])
@@ -588,7 +590,7 @@ def test_the_fastest_wheel_is_found_once_a_set_of_velocities_and_given_to_the_pl
 def test_chatter_steps_add_up_across_control_ticks():
     """A parcel at rest with two edges exactly on cell centres chatters (see test_dynamics): the fixed steps the
     engine takes across it are counted per tick and summed over the run, as a networked run records them."""
-    from virtual_vehicle.sim import _Track
+    from virtual_vehicle.run.sim import _Track
 
     hl, hw = SPEC.half_extents
     field = np.random.default_rng(7).uniform(-0.3, 0.3, (CELLS.n, 2))
@@ -625,8 +627,8 @@ def test_a_track_takes_quiet_steps_from_their_block_as_it_takes_their_trajectori
     (_Track.add_quiet), without making its Trajectory: the parcel's trajectory at the end is the same in every
     field as when each tick's Trajectory is taken in (samples on the grid, events, counts, the stats the run sums
     and those the latest piece sets), whatever pieces come before and after."""
-    from virtual_vehicle.batch import QuietSteps
-    from virtual_vehicle.sim import _Track
+    from virtual_vehicle.engine.batch import QuietSteps
+    from virtual_vehicle.run.sim import _Track
 
     rng = np.random.default_rng(seed)
     by_block, by_piece = _Track(), _Track()

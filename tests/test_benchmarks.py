@@ -11,8 +11,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from virtual_vehicle.dynamics import ParcelModel, integrate
-from virtual_vehicle.sim import coulomb_sliding_check
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
+from virtual_vehicle.run.sim import coulomb_sliding_check
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import bench_engine  # noqa: E402
@@ -66,7 +66,7 @@ def test_the_ceiling_benchmark_times_every_piece_and_puts_the_kernels_back():
     import bench_ceiling
     from numba.core.registry import CPUDispatcher
 
-    from virtual_vehicle import _kernel
+    from virtual_vehicle.engine import _kernel
 
     original = _kernel.run_piece
     model = ParcelModel(bench_perf.CELLS, bench_perf.SPEC, bench_perf.FIELDS_B["coulomb"], bench_perf.LAWS["coulomb"])
@@ -76,7 +76,7 @@ def test_the_ceiling_benchmark_times_every_piece_and_puts_the_kernels_back():
     assert _kernel.run_piece is original
     assert not [(mod.__name__, name) for mod in bench_ceiling._modules() for name, obj in vars(mod).items()
                 if callable(obj) and hasattr(obj, "__wrapped__") and isinstance(obj.__wrapped__, CPUDispatcher)]
-    entry = stats["virtual_vehicle._kernel.run_piece"]
+    entry = stats["virtual_vehicle.engine._kernel.run_piece"]
     assert entry.calls == tr.segments > 20 and entry.seconds > 0
     assert bench_ceiling.arrays_in(entry.result) == 3  # the restart and probe states, the cells under the probe
     assert bench_ceiling.arrays_in((np.zeros(2), (1.0, np.zeros(1)), 3, [np.zeros(1)])) == 2
@@ -85,7 +85,7 @@ def test_the_ceiling_benchmark_times_every_piece_and_puts_the_kernels_back():
     r = bench_ceiling.run_case("coulomb1", 0.5)
     assert r["simulated"] == 0.5 and 0 < r["work"] <= r["inside"] < r["wall"]
     assert r["calls"] == sum(k[1] for k in r["kernels"])
-    assert "virtual_vehicle._kernel.run_piece" in {k[0] for k in r["kernels"]}
+    assert "virtual_vehicle.engine._kernel.run_piece" in {k[0] for k in r["kernels"]}
     with pytest.raises(ValueError, match="unknown case"):
         bench_ceiling.run_case("coulomb2")
 

@@ -9,14 +9,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from virtual_vehicle import layout
-from virtual_vehicle.network.delivery import IdealRounds
-from virtual_vehicle.network.messages import Mailbox, Schema
-from virtual_vehicle.network.programs import CellInputs, ChangedCells, check_program
-from virtual_vehicle.network.sentence import WordType
-from virtual_vehicle.network.topology import from_layout
-from virtual_vehicle.scenario import CellChange, FaultEvent, ReconfigurationSpec, load_scenario
-from virtual_vehicle.sim import LatencyStats, NetworkRun
+from virtual_vehicle.model import layout
+from virtual_vehicle.cells.network.delivery import IdealRounds
+from virtual_vehicle.cells.network.messages import Mailbox, Schema
+from virtual_vehicle.cells.network.programs import CellInputs, ChangedCells, check_program
+from virtual_vehicle.cells.network.sentence import WordType
+from virtual_vehicle.cells.network.topology import from_layout
+from virtual_vehicle.config.scenario import CellChange, FaultEvent, ReconfigurationSpec, load_scenario
+from virtual_vehicle.run.sim import LatencyStats, NetworkRun
 
 WALL = [j * 24 + 12 for j in range(2, 10)]  # sorting_junction: a wall across the middle, rows 2..9 of column 12
 
@@ -77,7 +77,7 @@ def test_stepping_only_the_cells_that_changed_gives_the_same_run(case):
 
 
 def test_a_run_stepping_only_changed_cells_resumes_from_its_checkpoint_to_the_same_run(tmp_path):
-    from virtual_vehicle.sim import resume, run_network
+    from virtual_vehicle.run.sim import resume, run_network
 
     setup = CASES["merge, noisy sensors"]().build()
     whole = run_network(setup, checkpoint=tmp_path / "c.ckpt", checkpoint_every=4.0)
@@ -165,7 +165,7 @@ def test_the_contract_checker_catches_programs_that_are_not_stationary():
 
 
 def test_changed_cells_takes_stationary_programs_with_per_cell_arrays_only():
-    from virtual_vehicle.network.programs import Routing
+    from virtual_vehicle.cells.network.programs import Routing
 
     with pytest.raises(ValueError, match="stationary"):
         ChangedCells(Routing())
@@ -196,7 +196,7 @@ def test_latencies_all_alike_are_binned_as_any_others(value):
 @given(st.integers(0, 30), st.sampled_from([(), (1,), (2,), (3,), (4,), (5,), (8,), (2, 3), (4, 2)]),
        st.sampled_from([np.int64, np.int16, np.uint8, np.bool_, np.float64]), st.booleans(), st.integers(0, 2**32 - 1))
 def test_rows_that_differ_are_found_in_any_shape_and_layout(m, shape, dtype, fortran, seed):
-    from virtual_vehicle.network.messages import rows_differ
+    from virtual_vehicle.cells.network.messages import rows_differ
 
     rng = np.random.default_rng(seed)
     x = rng.integers(0, 2, (m, *shape)).astype(dtype)
@@ -214,7 +214,7 @@ def test_rows_that_differ_are_found_in_any_shape_and_layout(m, shape, dtype, for
 def test_rows_are_written_back_as_assigning_them_would(n, shape, dtype, given_as, fortran, seed):
     """_put_rows copies rows as whole units of their bytes: the result is a[rows] = b, bit for bit (a NaN's payload,
     -0.0), also for values of another dtype (cast as assignment casts them) and targets that are not contiguous."""
-    from virtual_vehicle.network.programs import _put_rows
+    from virtual_vehicle.cells.network.programs import _put_rows
 
     rng = np.random.default_rng(seed)
     rows = np.sort(rng.choice(n, rng.integers(0, n + 1), replace=False))
@@ -353,8 +353,8 @@ _WORDS = {"d": (-2**31, 2**31 - 1), "nxt": (0, 6), "vid": (-1, 8), "goal": (-1, 
 
 def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool):
     """A sorter, a state and inputs drawn at random (see the test below)."""
-    from virtual_vehicle.network.messages import DTYPE
-    from virtual_vehicle.sorting import Sorter
+    from virtual_vehicle.cells.network.messages import DTYPE
+    from virtual_vehicle.cells.sorting import Sorter
 
     n, P = 40, 4
     program = Sorter(0.3, gap=int(rng.integers(1, 4)), reach=int(rng.integers(2, 9)), max_age=max_age)
@@ -403,9 +403,9 @@ def test_the_sorter_steps_changed_cells_in_place_as_it_steps_them_gathered(seed,
     state and whose sentences changed, as comparing them does. ``silent``: nothing arrives and nothing heard is
     trusted, from a state already stepped so, so that only a cell's own words (a back-off counting down, a hold
     ageing) can change."""
-    from virtual_vehicle.network.messages import rows_differ
-    from virtual_vehicle.network.programs import _rows
-    from virtual_vehicle.sorting import _STATE
+    from virtual_vehicle.cells.network.messages import rows_differ
+    from virtual_vehicle.cells.network.programs import _rows
+    from virtual_vehicle.cells.sorting import _STATE
 
     rng = np.random.default_rng(seed)
     program, state, inputs = _random_sorter_inputs(rng, max_age, parking, True)
@@ -448,7 +448,7 @@ def test_the_sorter_steps_changed_cells_in_place_as_it_steps_them_gathered(seed,
 def test_a_direction_key_naming_no_port_fails_in_both_sorters():
     """A key word no sorter says (its port field beyond the cell's four ports) fails the compiled step as it fails
     the array one, instead of reading past the cell's ports."""
-    from virtual_vehicle.sorting import Sorter
+    from virtual_vehicle.cells.sorting import Sorter
 
     n, P = 3, 4
     for compiled in (True, False):

@@ -11,10 +11,11 @@ from collections import deque
 import numpy as np
 import pytest
 
-from virtual_vehicle import __version__, checkpoint
-from virtual_vehicle.checkpoint import CheckpointError, decode, encode
+from virtual_vehicle import __version__
+from virtual_vehicle.run import checkpoint
+from virtual_vehicle.run.checkpoint import CheckpointError, decode, encode
 from virtual_vehicle.errors import VirtualVehicleError
-from virtual_vehicle.scenario import load_scenario
+from virtual_vehicle.config.scenario import load_scenario
 
 
 @dataclasses.dataclass
@@ -124,7 +125,7 @@ def _network(name="prototype_18_network", duration=1.0, **update):
 @pytest.fixture(scope="module")
 def good(tmp_path_factory):
     """A real checkpoint of a short networked run (taken half way) and the run's uninterrupted result."""
-    from virtual_vehicle.sim import NetworkRun
+    from virtual_vehicle.run.sim import NetworkRun
 
     path = tmp_path_factory.mktemp("ck") / "run.ckpt"
     job = NetworkRun(_network().build())
@@ -185,7 +186,7 @@ def test_a_checkpoint_holds_only_json_and_plain_arrays(good):
 @pytest.mark.parametrize("craft", ["old pickle format", "pickle after the header", "pickled array",
                                    "class named by the file", "not a zip"])
 def test_a_crafted_checkpoint_runs_nothing_and_says_why(good, tmp_path, craft):
-    from virtual_vehicle.sim import resume
+    from virtual_vehicle.run.sim import resume
 
     marker = tmp_path / "ran"
     evil = pickle.dumps(_Evil(marker))
@@ -231,14 +232,14 @@ def _set_state(doc, key, node):
     (lambda doc: _set_state(doc, "k", "many"), "does not fit its scenario"),
 ])
 def test_a_checkpoint_of_another_version_or_scenario_is_refused_with_one_message(good, tmp_path, change, message):
-    from virtual_vehicle.sim import resume
+    from virtual_vehicle.run.sim import resume
 
     with pytest.raises(VirtualVehicleError, match=message):
         resume(_rewritten(good, tmp_path, change))
 
 
 def test_a_run_whose_setup_was_changed_after_it_was_built_is_not_resumed_from_its_scenario(tmp_path):
-    from virtual_vehicle.sim import NetworkRun, resume
+    from virtual_vehicle.run.sim import NetworkRun, resume
 
     setup = _network().build()
     setup.states[0] = setup.states[0] + [0.01, 0, 0, 0, 0, 0]  # not what its scenario says
@@ -250,7 +251,7 @@ def test_a_run_whose_setup_was_changed_after_it_was_built_is_not_resumed_from_it
 
 
 def test_another_format_version_in_the_header_is_refused(tmp_path):
-    from virtual_vehicle.sim import resume
+    from virtual_vehicle.run.sim import resume
 
     path = tmp_path / "future.ckpt"
     path.write_bytes(b"virtual_vehicle checkpoint 3\n" + b"anything")
@@ -261,7 +262,7 @@ def test_another_format_version_in_the_header_is_refused(tmp_path):
 def test_the_cli_resume_of_a_bad_file_exits_2_with_one_message(good, tmp_path):
     from typer.testing import CliRunner
 
-    from virtual_vehicle.cli import app
+    from virtual_vehicle.ui.cli import app
 
     marker = tmp_path / "ran"
     bad = _rewritten(good, tmp_path, members={"arrays/0.npy": _object_npy(marker)})
@@ -297,7 +298,7 @@ def _same(a, b, work=True):
 
 @pytest.mark.parametrize("case", ["wire", "ideal rounds, motors, recorded", "central sorter"])
 def test_a_networked_run_resumed_half_way_is_the_uninterrupted_run(tmp_path, case):
-    from virtual_vehicle.sim import NetworkRun, resume, run
+    from virtual_vehicle.run.sim import NetworkRun, resume, run
 
     if case == "wire":
         sc = _network()

@@ -15,10 +15,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from virtual_vehicle.cli import app
+from virtual_vehicle.ui.cli import app
 from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.scenario import bundled_scenarios, load_scenario, parse_scenario, parse_text
-from virtual_vehicle.sim import run
+from virtual_vehicle.config.scenario import bundled_scenarios, load_scenario, parse_scenario, parse_text
+from virtual_vehicle.run.sim import run
 
 runner = CliRunner()
 
@@ -207,7 +207,7 @@ def test_parcel_balanced_on_a_line_of_cells_is_rejected():
 
 def test_console_script_exit_code_without_traceback(tmp_path):
     p = _write(tmp_path, _mutate(("parcels", 0, "mass"), -3.0))
-    proc = subprocess.run([sys.executable, "-m", "virtual_vehicle.cli", "run", str(p)], capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-m", "virtual_vehicle.ui.cli", "run", str(p)], capture_output=True, text=True)
     assert proc.returncode == 2
     assert "parcels[0].mass" in proc.stderr and "Traceback" not in proc.stderr
 
@@ -250,7 +250,7 @@ def test_random_malformed_scenarios_are_rejected_cleanly(data):
 
 
 def test_bundled_files_are_valid_toml_with_descriptions():
-    for entry in resources.files("virtual_vehicle.scenarios").iterdir():
+    for entry in resources.files("virtual_vehicle.config.scenarios").iterdir():
         if entry.name.endswith(".toml"):
             data = tomllib.loads(entry.read_text())
             assert data["description"].strip()
@@ -258,7 +258,7 @@ def test_bundled_files_are_valid_toml_with_descriptions():
 
 
 def test_progress_bar_appears_only_after_its_delay():
-    from virtual_vehicle.cli import _LazyProgress
+    from virtual_vehicle.ui.cli import _LazyProgress
 
     quick = _LazyProgress("x", delay=3600.0)
     quick(0.5)
@@ -435,7 +435,7 @@ def test_huge_runs_are_refused_with_the_estimate_before_allocating():
 
 
 def test_memory_estimate_counts_ticks_and_recorded_cells():
-    from virtual_vehicle.scenario import memory_estimate
+    from virtual_vehicle.config.scenario import memory_estimate
 
     sc = load_scenario("prototype_18_network_ideal")[0]
     sc = sc.model_copy(update={"duration": 1e3, "sensors": sc.sensors.model_copy(update={"record": True})})
@@ -472,7 +472,7 @@ def test_help_keeps_its_brackets_and_version_is_printed():
 
 
 def test_a_long_phase_shows_a_status_line(capsys):
-    from virtual_vehicle.cli import _Phase
+    from virtual_vehicle.ui.cli import _Phase
 
     with _Phase("building a huge array", delay=0.0):
         pass

@@ -6,13 +6,13 @@ import pytest
 import shapely
 from hypothesis import given, settings, strategies as st
 
-from virtual_vehicle import layout
-from virtual_vehicle.collide import ContactParams, outline_distance, overlap_area, pair_contacts
-from virtual_vehicle.friction import LAWS
-from virtual_vehicle.parcel import polygon, rectangle
-from virtual_vehicle.plant import Plant, Integration
-from virtual_vehicle.scenario import parse_scenario
-from virtual_vehicle.sim import run
+from virtual_vehicle.model import layout
+from virtual_vehicle.physics.collide import ContactParams, outline_distance, overlap_area, pair_contacts
+from virtual_vehicle.physics.friction import LAWS
+from virtual_vehicle.model.parcel import polygon, rectangle
+from virtual_vehicle.engine.plant import Plant, Integration
+from virtual_vehicle.config.scenario import parse_scenario
+from virtual_vehicle.run.sim import run
 
 G = 9.81
 L_SHAPE = [[0, 0], [0.3, 0], [0.3, 0.15], [0.15, 0.15], [0.15, 0.3], [0, 0.3]]

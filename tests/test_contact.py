@@ -9,9 +9,9 @@ from hypothesis import strategies as st
 from scipy.optimize import minimize
 from scipy.spatial import ConvexHull
 
-from virtual_vehicle.contact import normal_forces, solve_support
+from virtual_vehicle.physics.contact import normal_forces, solve_support
 from virtual_vehicle.errors import TippingError
-from virtual_vehicle.reference import paper_normal_forces
+from virtual_vehicle.physics.reference import paper_normal_forces
 
 W = 20.0
 
@@ -186,7 +186,7 @@ def test_load_on_the_line_of_a_collinear_contact_set():
     """Regression (found by the parcel-collision property test): the centre of mass 1e-13 m beyond a row of four
     cells, two more cells behind it. The row carries the whole load and the plate tilts about it; the iteration used
     to cycle because the row's own solution leaves a tilt free."""
-    from virtual_vehicle.contact import contact_set
+    from virtual_vehicle.physics.contact import contact_set
 
     basis = np.array([[1.0, -0.050000000000000266, -0.06666666666666665],
                       [1.0, 0.04999999999999982, -0.06666666666666665],
@@ -208,7 +208,7 @@ def _halfplanes(normals, offsets):
 def test_hull_matches_qhull(seed, m, lattice):
     """The compiled hull's half-planes are Qhull's (scipy), also on a lattice, where cells lie on the hull's edges
     between its corners and must not make edges of their own."""
-    from virtual_vehicle.contact import _hull
+    from virtual_vehicle.physics.contact import _hull
 
     rng = np.random.default_rng(seed)
     if lattice:
@@ -226,7 +226,7 @@ def test_hull_matches_qhull(seed, m, lattice):
 def test_collinear_compiled_matches_svd():
     """The compiled collinearity test decides as numpy's SVD of the centred points does, on both sides of the
     tolerance."""
-    from virtual_vehicle.layout import _COLLINEAR_TOL, _collinear
+    from virtual_vehicle.model.layout import _COLLINEAR_TOL, _collinear
 
     rng = np.random.default_rng(3)
     for off in (0.0, 0.3e-9, 3e-9, 1e-3):
@@ -243,7 +243,7 @@ def test_collinear_compiled_matches_svd():
 def test_collinear_decides_as_the_svd_next_to_the_tolerance(seed, n, factor, angle, spread):
     """Points off a line at any angle, spread over 1 mm to 100 m, with an RMS offset from 0.3 to 3 times the
     tolerance: the test without an SVD decides as the smallest singular value does (barring a tie to 1e-6)."""
-    from virtual_vehicle.layout import _COLLINEAR_TOL, _collinear
+    from virtual_vehicle.model.layout import _COLLINEAR_TOL, _collinear
 
     rng = np.random.default_rng(seed)
     s = 10.0 ** spread * rng.uniform(-1, 1, n)
@@ -288,7 +288,7 @@ def test_a_solution_knows_whether_its_contacts_are_collinear(seed, m, lift):
     what the definition computes from the solution's contacts, with and without lift-off. Random draws seldom leave
     collinear contacts (2 in 291 of these), so a row of four cells carrying everything, and the 1-D model, are
     checked by name."""
-    from virtual_vehicle.layout import _collinear
+    from virtual_vehicle.model.layout import _collinear
 
     rng = np.random.default_rng(seed)
     P = 0.1 * rng.integers(0, 4, size=(m, 2)).astype(float)

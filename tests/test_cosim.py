@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from virtual_vehicle import layout
-from virtual_vehicle.control import Shuttle
+from virtual_vehicle.model import layout
+from virtual_vehicle.cells.control import Shuttle
 from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.network.programs import check_program
-from virtual_vehicle.network.topology import from_layout
-from virtual_vehicle.scenario import load_scenario, parse_scenario
-from virtual_vehicle.sim import run
+from virtual_vehicle.cells.network.programs import check_program
+from virtual_vehicle.cells.network.topology import from_layout
+from virtual_vehicle.config.scenario import load_scenario, parse_scenario
+from virtual_vehicle.run.sim import run
 
 
 def networked(delivery: str, **control):
@@ -91,9 +91,9 @@ def test_constant_commands_reproduce_the_open_loop_run():
     command the uniform field's wheel speeds give the constant-field trajectory."""
     import dataclasses
 
-    from virtual_vehicle.network.delivery import IdealRounds
-    from virtual_vehicle.network.messages import Mailbox
-    from virtual_vehicle.scenario import ControlSetup
+    from virtual_vehicle.cells.network.delivery import IdealRounds
+    from virtual_vehicle.cells.network.messages import Mailbox
+    from virtual_vehicle.config.scenario import ControlSetup
 
     sc, _ = load_scenario("crossing_30x30")
     open_loop = run(sc.build())
@@ -121,7 +121,7 @@ def test_constant_commands_reproduce_the_open_loop_run():
 
 
 def test_latency_statistics_stream_within_their_bin_width():
-    from virtual_vehicle.sim import LatencyStats
+    from virtual_vehicle.run.sim import LatencyStats
 
     rng = np.random.default_rng(4)
     x = rng.lognormal(np.log(0.012), 0.6, size=20000)

@@ -11,10 +11,10 @@ import pyarrow.parquet as pq
 import pytest
 from typer.testing import CliRunner
 
-from virtual_vehicle import io, tables
-from virtual_vehicle.cli import app
-from virtual_vehicle.scenario import dump_toml, load_scenario, parse_scenario, parse_text
-from virtual_vehicle.sim import run
+from virtual_vehicle.run import io, tables
+from virtual_vehicle.ui.cli import app
+from virtual_vehicle.config.scenario import dump_toml, load_scenario, parse_scenario, parse_text
+from virtual_vehicle.run.sim import run
 
 
 def _recorded(duration=0.5):
@@ -86,7 +86,7 @@ def test_run_folder_reproduces_a_scenario_built_in_code(tmp_path):
 
 
 def test_every_bundled_scenario_survives_a_trip_through_toml():
-    from virtual_vehicle.scenario import bundled_scenarios
+    from virtual_vehicle.config.scenario import bundled_scenarios
 
     for name in bundled_scenarios():
         sc = load_scenario(name)[0]

@@ -6,11 +6,12 @@ import itertools
 import numpy as np
 import pytest
 
-from virtual_vehicle import fields, friction, layout, parcel
-from virtual_vehicle.design import twist_design, wrench_design, wrench_matrix
-from virtual_vehicle.dynamics import ParcelModel, integrate
-from virtual_vehicle.equilibria import equilibria
-from virtual_vehicle.scenario import parse_scenario
+from virtual_vehicle.model import fields, layout, parcel
+from virtual_vehicle.physics import friction
+from virtual_vehicle.cells.design import twist_design, wrench_design, wrench_matrix
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
+from virtual_vehicle.analysis.equilibria import equilibria
+from virtual_vehicle.config.scenario import parse_scenario
 
 G = 9.81
 
@@ -150,7 +151,7 @@ def test_equilibria_command(tmp_path):
 
     from typer.testing import CliRunner
 
-    from virtual_vehicle.cli import app
+    from virtual_vehicle.ui.cli import app
 
     runner = CliRunner()
     res = runner.invoke(app, ["equilibria", "paper_2x2_inward", "-o", str(tmp_path), "--headings", "9",

@@ -4,15 +4,15 @@ network) against the heat equation, under ideal rounds and the wire-level networ
 import numpy as np
 import pytest
 
-from virtual_vehicle import layout
-from virtual_vehicle.control import Diffusion
-from virtual_vehicle.network.delivery import IdealRounds
-from virtual_vehicle.network.messages import Mailbox
-from virtual_vehicle.network.programs import CellInputs, check_program
-from virtual_vehicle.network.topology import from_layout
-from virtual_vehicle.network.wire import WireLevel, WireParams
-from virtual_vehicle.scenario import parse_scenario
-from virtual_vehicle.sim import run
+from virtual_vehicle.model import layout
+from virtual_vehicle.cells.control import Diffusion
+from virtual_vehicle.cells.network.delivery import IdealRounds
+from virtual_vehicle.cells.network.messages import Mailbox
+from virtual_vehicle.cells.network.programs import CellInputs, check_program
+from virtual_vehicle.cells.network.topology import from_layout
+from virtual_vehicle.cells.network.wire import WireLevel, WireParams
+from virtual_vehicle.config.scenario import parse_scenario
+from virtual_vehicle.run.sim import run
 
 
 def diffuse(cells, program, config, ticks, delivery=None, period=0.01):
@@ -94,14 +94,14 @@ def test_diffusion_scenario_spreads_a_source_under_a_parcel():
 # --------------------------------------------------------------------------- the Virtual Vehicle: sorting
 
 def sorting(duration=24.0, parcels=7, **update):
-    from virtual_vehicle.scenario import load_scenario
+    from virtual_vehicle.config.scenario import load_scenario
 
     sc, _ = load_scenario("sorting_junction")
     return sc.model_copy(update={"duration": duration, "parcels": sc.parcels[:parcels], **update})
 
 
 def test_sorter_is_a_local_program():
-    from virtual_vehicle.sorting import Sorter
+    from virtual_vehicle.cells.sorting import Sorter
 
     setup = sorting().build()
     cfg = {k: v for k, v in setup.control.config.items() if k != "clearance"}
@@ -124,7 +124,7 @@ def test_parcels_detour_around_dead_cells():
     the parcels still reach their exits, without any cell knowing the map."""
     import dataclasses
 
-    from virtual_vehicle.network.delivery import IdealRounds
+    from virtual_vehicle.cells.network.delivery import IdealRounds
 
     setup = sorting(duration=30.0, parcels=4).build()
     cells = setup.cells
@@ -142,7 +142,7 @@ def test_parcels_detour_around_dead_cells():
 
 
 def test_central_and_distributed_sorting_side_by_side():
-    from virtual_vehicle.tasks import compare
+    from virtual_vehicle.run.tasks import compare
 
     both = compare(sorting())
     for mode in ("distributed", "central"):
@@ -157,8 +157,8 @@ def test_the_sorter_runs_over_the_wire_model_on_a_fast_enough_line():
     """Over the wire-level network at 460800 baud about half the sentences reach each neighbour within a tick; holds
     that last ``max_age`` ticks after the last request carry the traffic handshake across the gaps, and the first
     parcel of the junction reaches its exit."""
-    from virtual_vehicle.scenario import WireSpec
-    from virtual_vehicle.tasks import sorting_report
+    from virtual_vehicle.config.scenario import WireSpec
+    from virtual_vehicle.run.tasks import sorting_report
 
     sc = sorting(duration=11.0, parcels=2)
     sc = sc.model_copy(update={"control": sc.control.model_copy(update={"delivery": "wire",
@@ -173,8 +173,8 @@ def test_the_sorter_runs_over_the_wire_model_on_a_fast_enough_line():
 
 
 def test_a_main_line_diverts_each_parcel_to_its_spur_and_lets_the_rest_through():
-    from virtual_vehicle.scenario import load_scenario
-    from virtual_vehicle.tasks import sorting_report
+    from virtual_vehicle.config.scenario import load_scenario
+    from virtual_vehicle.run.tasks import sorting_report
 
     sc, _ = load_scenario("divert_line")
     report = sorting_report(run(sc.build()))
@@ -188,14 +188,14 @@ def test_a_main_line_diverts_each_parcel_to_its_spur_and_lets_the_rest_through()
 def test_compare_command_rejects_a_scenario_that_is_not_a_task():
     from typer.testing import CliRunner
 
-    from virtual_vehicle.cli import app
+    from virtual_vehicle.ui.cli import app
 
     res = CliRunner().invoke(app, ["compare", "prototype_18"])
     assert res.exit_code == 2 and "sort" in res.output and "pose" in res.output
 
 
 def test_two_streams_merge_oldest_first_without_collisions():
-    from virtual_vehicle.scenario import load_scenario
+    from virtual_vehicle.config.scenario import load_scenario
 
     sc, _ = load_scenario("merge_two_streams")
     res = run(sc.model_copy(update={"duration": 30.0}).build())
@@ -225,7 +225,7 @@ def opposite_streams() -> dict:
 def test_two_streams_meeting_head_on_give_way_instead_of_deadlocking(central):
     """The first parcel from each side sidesteps toward the lane's middle and they meet head on, one free cell
     apart; each holds what the other needs. The younger backs off, the older goes into the lane, and so on."""
-    from virtual_vehicle.tasks import sorting_report
+    from virtual_vehicle.run.tasks import sorting_report
 
     sc = parse_scenario(opposite_streams())
     sc = sc.model_copy(update={"control": sc.control.model_copy(update={"central": central})})

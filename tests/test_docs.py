@@ -19,7 +19,7 @@ from pydantic import BaseModel
 from pydantic_core import PydanticUndefined
 
 import virtual_vehicle
-from virtual_vehicle import scenario_doc
+from virtual_vehicle.config import scenario_doc
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = sorted((ROOT / "docs").glob("*.md"))
@@ -97,7 +97,7 @@ def test_the_examples_run_as_scripts_and_write_nothing_where_they_run(sid, scrip
 
 def test_the_scenario_format_page_is_current_and_names_every_field():
     page = (ROOT / "docs" / "scenario-format.md").read_text()
-    assert page == scenario_doc.reference(), "regenerate: python -m virtual_vehicle.scenario_doc > docs/scenario-format.md"
+    assert page == scenario_doc.reference(), "regenerate: python -m virtual_vehicle.config.scenario_doc > docs/scenario-format.md"
     assert scenario_doc.undocumented() == []
     for _, model in scenario_doc.sections():
         for name in model.model_fields:

@@ -9,8 +9,10 @@ from hypothesis import assume, given, settings, strategies as st
 from scipy.linalg import expm
 from scipy.optimize import brentq
 
-from virtual_vehicle import _kernel as kernel, contact, dynamics, fields, friction, layout, parcel
-from virtual_vehicle.dynamics import ParcelModel, integrate
+from virtual_vehicle.engine import _kernel as kernel, dynamics
+from virtual_vehicle.physics import contact, friction
+from virtual_vehicle.model import fields, layout, parcel
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.errors import TippingError
 
 G = 9.81

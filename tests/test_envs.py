@@ -12,11 +12,11 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import parallel_api_test
 
-from virtual_vehicle import tables
-from virtual_vehicle.envs import FALL_PENALTY, ArrayEnv, CellsEnv
+from virtual_vehicle.run import tables
+from virtual_vehicle.ui.envs import FALL_PENALTY, ArrayEnv, CellsEnv
 from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.scenario import load_scenario
-from virtual_vehicle.sim import run
+from virtual_vehicle.config.scenario import load_scenario
+from virtual_vehicle.run.sim import run
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -146,7 +146,7 @@ def test_cells_env_and_array_env_agree_on_the_same_wheel_speeds():
 def test_an_episode_becomes_tables_and_an_animation(tmp_path):
     from PIL import Image
 
-    from virtual_vehicle.animate import animate
+    from virtual_vehicle.ui.animate import animate
 
     env = ArrayEnv("pose_control", action="twist", observe="poses", max_steps=6)
     env.reset(seed=0)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.scenario import load_scenario
-from virtual_vehicle.sim import run
+from virtual_vehicle.config.scenario import load_scenario
+from virtual_vehicle.run.sim import run
 
 
 def _with_faults(name: str, **faults):
@@ -90,7 +90,7 @@ def test_bad_faults_are_named():
         sc = _with_faults("paper_2x2_inward", free_wheels=[[0, 0]])
         sc.model_copy(update={"friction": sc.friction.model_copy(update={"law": "viscous"})}).build()
     with pytest.raises(ScenarioError, match="dead_link_rate"):
-        from virtual_vehicle.scenario import parse_text
+        from virtual_vehicle.config.scenario import parse_text
 
         parse_text(load_scenario("crossing_30x30")[1] + "\n[faults]\ndead_link_rate = 2.0\n")
 
@@ -100,7 +100,7 @@ def test_the_fault_study_measures_delivery_against_failure_rate(tmp_path):
 
     from typer.testing import CliRunner
 
-    from virtual_vehicle.cli import app
+    from virtual_vehicle.ui.cli import app
 
     out = tmp_path / "study"
     res = CliRunner().invoke(app, ["fault-study", "sorting_junction", "--rates", "0,0.3", "--samples", "2",
@@ -132,14 +132,14 @@ def test_the_fault_study_measures_delivery_against_failure_rate(tmp_path):
 def test_bad_fault_studies_exit_2(tmp_path, args, message):
     from typer.testing import CliRunner
 
-    from virtual_vehicle.cli import app
+    from virtual_vehicle.ui.cli import app
 
     res = CliRunner().invoke(app, ["fault-study", *args, "--out", str(tmp_path / "o")])
     assert res.exit_code == 2 and message in res.output, res.output
 
 
 def _inject(sc, **event):
-    from virtual_vehicle.scenario import FaultEvent
+    from virtual_vehicle.config.scenario import FaultEvent
 
     return sc.model_copy(update={"faults": sc.faults.model_copy(update={"events": [FaultEvent(**event)]})})
 
@@ -160,7 +160,7 @@ def test_a_cell_that_dies_mid_run_goes_silent_and_still_from_then_on(tmp_path):
     so = res.summary()["sorting"]
     assert so["misrouted"] == 0 and so["collisions"] == 0 and so["lost"] == 0 and so["correct"] >= 3
     # the same run, checkpointed across the event and resumed, ends the same
-    from virtual_vehicle.sim import resume
+    from virtual_vehicle.run.sim import resume
 
     whole = run(sc.build(), checkpoint=tmp_path / "c.ckpt", checkpoint_every=8.0)
     again = resume(tmp_path / "c.ckpt")

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import shapely
 
-from virtual_vehicle import layout, parcel
-from virtual_vehicle.control import Shuttle
+from virtual_vehicle.model import layout, parcel
+from virtual_vehicle.cells.control import Shuttle
 from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.hardware import Sensors, default_offsets
-from virtual_vehicle.io import write_results
-from virtual_vehicle.scenario import load_scenario, parse_scenario
-from virtual_vehicle.sim import run
+from virtual_vehicle.cells.hardware import Sensors, default_offsets
+from virtual_vehicle.run.io import write_results
+from virtual_vehicle.config.scenario import load_scenario, parse_scenario
+from virtual_vehicle.run.sim import run
 
 
 def test_default_sensors_sit_at_centre_and_edge_midpoints_in_the_cell_frame():
@@ -143,7 +143,7 @@ from dataclasses import replace  # noqa: E402
 
 from scipy.integrate import solve_ivp  # noqa: E402
 
-from virtual_vehicle.hardware import MotorParams, WheelDrives  # noqa: E402
+from virtual_vehicle.cells.hardware import MotorParams, WheelDrives  # noqa: E402
 
 
 def test_steady_speed_from_first_principles():
@@ -195,7 +195,7 @@ def test_a_heavy_parcel_slows_its_wheels():
     """Motor wheels under a constant field: while the parcel is being accelerated its friction load acts back on the
     wheels under it, which fall behind the free wheels of the same array at the same instant until the PI loop
     catches up; under a 40 kg parcel clearly, under 1 kg only at encoder-noise level."""
-    from virtual_vehicle.scenario import load_scenario, parse_scenario
+    from virtual_vehicle.config.scenario import load_scenario, parse_scenario
 
     lag = {}
     for mass in (1.0, 40.0):

@@ -12,7 +12,7 @@ import sys
 import pytest
 from typer.testing import CliRunner
 
-from virtual_vehicle.cli import app
+from virtual_vehicle.ui.cli import app
 
 runner = CliRunner()
 
@@ -139,7 +139,7 @@ def test_compare_over_an_earlier_comparison(tmp_path):
 def test_the_console_script_says_it_once(tmp_path, case):
     _, text, needle = next(c for c in SCENARIOS if c[0] == case)
     path = write(tmp_path, text)
-    proc = subprocess.run([sys.executable, "-m", "virtual_vehicle.cli", "run", str(path), "--out",
+    proc = subprocess.run([sys.executable, "-m", "virtual_vehicle.ui.cli", "run", str(path), "--out",
                            str(tmp_path / "o")], capture_output=True, text=True)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr and proc.stdout == ""
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip() and not ln.endswith(" ...")]

@@ -9,10 +9,12 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from virtual_vehicle import fields, friction, io, layout, parcel
-from virtual_vehicle.dynamics import ParcelModel, integrate
-from virtual_vehicle.scenario import bundled_scenarios, load_scenario
-from virtual_vehicle.sim import run
+from virtual_vehicle.model import fields, layout, parcel
+from virtual_vehicle.physics import friction
+from virtual_vehicle.run import io
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
+from virtual_vehicle.config.scenario import bundled_scenarios, load_scenario
+from virtual_vehicle.run.sim import run
 
 LAWS = {"coulomb": friction.CoulombLaw(), "viscous": friction.ViscousLaw(), "stick_slip": friction.StickSlipLaw()}
 
@@ -113,7 +115,7 @@ def test_a_killed_networked_run_resumes_to_the_uninterrupted_result(tmp_path):
     scenario = tmp_path / "s.toml"
     text = _bundled_text("sorting_junction").replace("duration = 40.0", "duration = 8.0")
     scenario.write_text(text)
-    exe = [sys.executable, "-m", "virtual_vehicle.cli"]
+    exe = [sys.executable, "-m", "virtual_vehicle.ui.cli"]
     ref = tmp_path / "ref"
     subprocess.run([*exe, "run", str(scenario), "-o", str(ref), "--no-plot"], check=True, capture_output=True)
     ck = tmp_path / "run.ckpt"
@@ -138,7 +140,7 @@ def test_a_killed_networked_run_resumes_to_the_uninterrupted_result(tmp_path):
 def test_resume_rejects_what_is_not_a_checkpoint(tmp_path):
     from typer.testing import CliRunner
 
-    from virtual_vehicle.cli import app
+    from virtual_vehicle.ui.cli import app
 
     bad = tmp_path / "x.ckpt"
     bad.write_bytes(b"not a checkpoint")
@@ -154,8 +156,8 @@ def test_an_interrupted_constant_field_run_resumes_bit_for_bit(tmp_path, name):
     """A constant-field run cut at checkpoints: stopped after its first checkpoint and resumed, it gives exactly the
     checkpointed run's result; and cutting changes the trajectory only at rounding level (event-driven) or not at
     all in substance (time-stepping)."""
-    from virtual_vehicle.scenario import load_scenario
-    from virtual_vehicle.sim import FieldRun, resume, run
+    from virtual_vehicle.config.scenario import load_scenario
+    from virtual_vehicle.run.sim import FieldRun, resume, run
 
     sc = load_scenario(name)[0]
     every = sc.duration / 3
@@ -175,6 +177,6 @@ def test_an_interrupted_constant_field_run_resumes_bit_for_bit(tmp_path, name):
 
 
 def _bundled_text(name):
-    from virtual_vehicle.scenario import load_scenario
+    from virtual_vehicle.config.scenario import load_scenario
 
     return load_scenario(name)[1]

@@ -1,4 +1,4 @@
-"""The compiled event engine (virtual_vehicle._kernel) against what it replaces and what it must agree with: the
+"""The compiled event engine (virtual_vehicle.engine._kernel) against what it replaces and what it must agree with: the
 footprint margins of parcel.py (shapely for non-convex outlines), scipy's DOP853 step by step, and itself when a
 run is handed back to Python and resumed."""
 
@@ -9,8 +9,10 @@ import pytest
 from hypothesis import example, given, settings, strategies as st
 from scipy.integrate import DOP853
 
-from virtual_vehicle import _kernel as kernel, dynamics, fields, friction, layout, parcel
-from virtual_vehicle.dynamics import ParcelModel, integrate, warm_up
+from virtual_vehicle.engine import _kernel as kernel, dynamics
+from virtual_vehicle.model import fields, layout, parcel
+from virtual_vehicle.physics import friction
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate, warm_up
 
 CELLS = layout.grid(30, 30, 0.1)
 SHAPES = {
@@ -53,7 +55,7 @@ def _room(values, gradients):
 @settings(max_examples=40, deadline=None)
 @given(st.floats(1.0, 2.0), st.floats(1.0, 2.0), st.floats(-3.2, 3.2))
 def test_anchor_measures_are_the_event_values_and_their_distances_to_zero(name, segment_at, x, y, th):
-    """What a quiet-step anchor measures (virtual_vehicle.batch): cell_margins gives the event values' margins to
+    """What a quiet-step anchor measures (virtual_vehicle.engine.batch): cell_margins gives the event values' margins to
     the last bit and the smallest |margin|; support_slack gives how far the centre of mass can move before a spring
     force or a hull half-plane reaches zero (each less its noise), as numpy computes it from the solution."""
     m, piece, seg, y0 = segment_at(CELLS, SHAPES[name], x, y, th)
@@ -155,11 +157,14 @@ def test_warming_up_compiles_what_networked_runs_call():
 import collections, json, sys
 sys.path.insert(0, %r)
 import bench_scale
-from virtual_vehicle import _kernel, friction, parcel, sorting
-from virtual_vehicle.network import delivery
-from virtual_vehicle.dynamics import warm_up
-from virtual_vehicle.scenario import parse_scenario
-from virtual_vehicle.sim import run_network
+from virtual_vehicle.engine import _kernel
+from virtual_vehicle.physics import friction
+from virtual_vehicle.model import parcel
+from virtual_vehicle.cells import sorting
+from virtual_vehicle.cells.network import delivery
+from virtual_vehicle.engine.dynamics import warm_up
+from virtual_vehicle.config.scenario import parse_scenario
+from virtual_vehicle.run.sim import run_network
 warm_up()
 home = {n: _kernel for n in ("run_piece", "pattern", "cell_margins", "support_slack", "edges_clear_many",
                                       "quiet_steps")}
@@ -205,7 +210,7 @@ def test_max_step_bounds_every_compiled_step():
 def test_the_compiled_pattern_is_numpys_and_sees_whole_cell_translations(seed, m, dx, dy):
     """The pattern cache's key (offsets from the first cell in whole resolution units) and origin are numpy's
     round and mean of the cells' positions; a copy of the cells moved by whole pitches has the same key."""
-    from virtual_vehicle.dynamics import _PATTERN_RESOLUTION
+    from virtual_vehicle.engine.dynamics import _PATTERN_RESOLUTION
 
     pitch = 0.1
     cells = layout.grid(120, 120, pitch)

@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 
 from scipy.spatial import cKDTree
 
-from virtual_vehicle import layout, parcel
+from virtual_vehicle.model import layout, parcel
 from virtual_vehicle.errors import ScenarioError
 
 

@@ -8,14 +8,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from virtual_vehicle import layout, parcel
-from virtual_vehicle.dynamics import ParcelModel
+from virtual_vehicle.model import layout, parcel
+from virtual_vehicle.engine.dynamics import ParcelModel
 from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.friction import CoulombLaw
-from virtual_vehicle.network.topology import from_layout
-from virtual_vehicle.reference import paper_normal_forces
-from virtual_vehicle.scenario import MapArray, load_scenario, parse_scenario
-from virtual_vehicle.sim import run
+from virtual_vehicle.physics.friction import CoulombLaw
+from virtual_vehicle.cells.network.topology import from_layout
+from virtual_vehicle.physics.reference import paper_normal_forces
+from virtual_vehicle.config.scenario import MapArray, load_scenario, parse_scenario
+from virtual_vehicle.run.sim import run
 
 
 def _scenario(array: dict, field=None, control=None, law="stick_slip", duration=2.0, parcels=None, **extra):
@@ -271,7 +271,7 @@ def test_a_free_wheel_of_a_separate_wheel_cell_frees_only_that_wheel():
 def test_cell_outlines_tile_the_floor_and_pictures_draw_belts_and_hexagons(tmp_path):
     import shapely
 
-    from virtual_vehicle.viz import plot_paths
+    from virtual_vehicle.ui.viz import plot_paths
 
     sc = _scenario({**MIXED, "belts": [{"start": [-1.0, 0.25], "end": [-0.08, 0.25], "width": 0.3, "speed": 0.2}]},
                    {"kind": "uniform", "velocity": [0.2, 0.0]}, duration=0.2,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from virtual_vehicle import viz
+from virtual_vehicle.ui import viz
 
 
 def _fault_rows():
@@ -36,7 +36,7 @@ def test_the_fault_study_splits_stuck_parcels_when_the_table_has_the_columns():
 
 
 def _built(name: str, duration: float, **update):
-    from virtual_vehicle.scenario import load_scenario
+    from virtual_vehicle.config.scenario import load_scenario
 
     sc, _ = load_scenario(name)
     parts = {}
@@ -47,7 +47,7 @@ def _built(name: str, duration: float, **update):
 
 @pytest.fixture(scope="module")
 def dead_field_run():
-    from virtual_vehicle.sim import run
+    from virtual_vehicle.run.sim import run
 
     return run(_built("prototype_18", 0.2, faults={"dead_cells": [7]}))
 
@@ -66,8 +66,8 @@ def test_dead_cells_are_crossed_out_and_start_and_end_outlines_are_in_the_legend
 
 
 def test_cell_ids_drawn_are_the_layouts_numbering_row_by_row_from_the_bottom():
-    from virtual_vehicle import layout
-    from virtual_vehicle.scenario import parse_scenario
+    from virtual_vehicle.model import layout
+    from virtual_vehicle.config.scenario import parse_scenario
 
     text = "oo.\nooo\nooo\n"  # 8 cells: the bottom line first, left to right
     cells, _ = layout.from_map(text, pitch=0.1)
@@ -87,7 +87,7 @@ def test_cell_ids_drawn_are_the_layouts_numbering_row_by_row_from_the_bottom():
 
 
 def _big_setup():
-    from virtual_vehicle.scenario import parse_scenario
+    from virtual_vehicle.config.scenario import parse_scenario
 
     return parse_scenario({"name": "big", "duration": 0.05, "array": {"kind": "grid", "nx": 60, "ny": 50,
                                                                       "pitch": 0.1},
@@ -99,7 +99,7 @@ def _big_setup():
 def test_a_large_array_is_drawn_as_one_image_not_a_marker_per_cell(monkeypatch):
     from matplotlib.image import AxesImage
 
-    from virtual_vehicle.sim import run
+    from virtual_vehicle.run.sim import run
 
     setup = _big_setup()  # 3000 cells; the threshold is lowered so the test stays small
     result = run(setup)
@@ -123,7 +123,7 @@ def test_the_raster_puts_each_cell_on_its_own_pixel():
 
 
 def test_traffic_under_ideal_rounds_writes_the_constant_latency_instead_of_plotting_it():
-    from virtual_vehicle.sim import run
+    from virtual_vehicle.run.sim import run
 
     result = run(_built("prototype_18_network_ideal", 0.6, faults={"dead_cells": [7]}))
     fig = viz.plot_traffic(result)
@@ -139,7 +139,7 @@ def test_traffic_under_ideal_rounds_writes_the_constant_latency_instead_of_plott
 def test_the_layout_command_draws_the_ids_and_refuses_what_it_cannot_draw(tmp_path):
     from typer.testing import CliRunner
 
-    from virtual_vehicle.cli import app
+    from virtual_vehicle.ui.cli import app
 
     out = tmp_path / "layout.png"
     res = CliRunner().invoke(app, ["layout", "prototype_18", "--out", str(out)])

@@ -4,12 +4,12 @@ controller that drives parcels to target poses with it."""
 import numpy as np
 import pytest
 
-from virtual_vehicle import layout, parcel
+from virtual_vehicle.model import layout, parcel
 from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.estimate import blobs, estimate_pose, initial_pose, sensor_spacing
-from virtual_vehicle.hardware import Sensors, default_offsets
-from virtual_vehicle.scenario import parse_scenario
-from virtual_vehicle.sim import run
+from virtual_vehicle.cells.estimate import blobs, estimate_pose, initial_pose, sensor_spacing
+from virtual_vehicle.cells.hardware import Sensors, default_offsets
+from virtual_vehicle.config.scenario import parse_scenario
+from virtual_vehicle.run.sim import run
 
 
 def test_pose_from_a_single_sensor_pattern_is_within_a_fraction_of_the_sensor_spacing():

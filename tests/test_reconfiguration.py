@@ -10,12 +10,13 @@ import shapely
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from virtual_vehicle import fields, friction, layout, parcel
-from virtual_vehicle.dynamics import ParcelModel, integrate
+from virtual_vehicle.model import fields, layout, parcel
+from virtual_vehicle.physics import friction
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.scenario import CellChange, ReconfigurationSpec, load_scenario
-from virtual_vehicle.sim import NetworkRun, run
-from virtual_vehicle.sorting import MAX_EXITS, UNREACHABLE
+from virtual_vehicle.config.scenario import CellChange, ReconfigurationSpec, load_scenario
+from virtual_vehicle.run.sim import NetworkRun, run
+from virtual_vehicle.cells.sorting import MAX_EXITS, UNREACHABLE
 
 WALL = [j * 24 + 12 for j in range(2, 10)]  # sorting_junction: a wall across the middle, rows 2..9 of column 12
 
@@ -138,7 +139,7 @@ def test_reconfiguration_needs_distributed_control():
 
 
 def test_a_checkpoint_taken_while_cells_are_out_resumes_to_the_same_run(tmp_path):
-    from virtual_vehicle.sim import resume
+    from virtual_vehicle.run.sim import resume
 
     setup = _reconfigured(8.0, changes=[CellChange(t=2.0, remove=WALL), CellChange(t=6.0, add=WALL)]).build()
     whole = run(setup, checkpoint=tmp_path / "c.ckpt", checkpoint_every=4.0)  # the last checkpoint: wall out

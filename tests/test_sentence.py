@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from virtual_vehicle.network.sentence import (MAX_PAYLOAD, SentenceError, Word, WordType, checksum, decode, encode,
+from virtual_vehicle.cells.network.sentence import (MAX_PAYLOAD, SentenceError, Word, WordType, checksum, decode, encode,
                                               wire_size)
 
 VALUES = {
@@ -168,7 +168,7 @@ def test_decoder_fuzz_never_misbehaves(data):
 @given(st.integers(0, 255), st.booleans(), st.integers(-(2**15), 2**15 - 1),
        st.floats(width=32, allow_nan=False, allow_infinity=False))
 def test_schema_fast_encoder_matches_the_reference_encoder(u8, flag, i16, f32):
-    from virtual_vehicle.network.messages import Schema
+    from virtual_vehicle.cells.network.messages import Schema
 
     schema = Schema.of(a=(10, WordType.U8), b=(11, WordType.BOOL), c=(12, WordType.I16), d=(13, WordType.F32))
     values = {"a": np.uint8(u8), "b": np.bool_(flag), "c": np.int16(i16), "d": np.float32(f32)}

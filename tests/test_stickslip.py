@@ -4,10 +4,11 @@ stopping on stopped wheels, exact energy accounting, and the paper's Coulomb law
 import numpy as np
 import pytest
 
-from virtual_vehicle import fields, friction, layout, parcel
-from virtual_vehicle.dynamics import ParcelModel, integrate
+from virtual_vehicle.model import fields, layout, parcel
+from virtual_vehicle.physics import friction
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.stickslip import solve_contacts
+from virtual_vehicle.engine.stickslip import solve_contacts
 
 G = 9.81
 
@@ -115,8 +116,8 @@ def test_a_run_split_into_ticks_is_the_same_run():
 
 
 def test_summary_reports_energy_and_solver_health():
-    from virtual_vehicle.scenario import load_scenario
-    from virtual_vehicle.sim import run
+    from virtual_vehicle.config.scenario import load_scenario
+    from virtual_vehicle.run.sim import run
 
     sc, _ = load_scenario("stick_slip_pickup")
     p = run(sc.build()).summary()["parcels"][0]

@@ -9,11 +9,11 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from virtual_vehicle import sweep as sw
-from virtual_vehicle.cli import app
+from virtual_vehicle.analysis import sweep as sw
+from virtual_vehicle.ui.cli import app
 from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.scenario import load_scenario
-from virtual_vehicle.sim import run
+from virtual_vehicle.config.scenario import load_scenario
+from virtual_vehicle.run.sim import run
 
 SWEEP = """base = "prototype_18"
 [vary]
@@ -151,7 +151,7 @@ def test_the_documented_sweep_file_is_valid(tmp_path):
     spec, base = sw.load_sweep(tmp_path / "study.toml")
     rows = spec.variations()
     assert len(rows) == 40 and all(0.0 <= r["control.loss_rate"] <= 0.3 for r in rows)
-    from virtual_vehicle.scenario import parse_scenario
+    from virtual_vehicle.config.scenario import parse_scenario
 
     parse_scenario(sw.apply(base, rows[0])).build()
 
@@ -287,7 +287,7 @@ def test_ctrl_c_stops_a_sweep_cleanly_and_keeps_its_finished_runs(tmp_path):
                                      '"control.seed" = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11]\n')
     out = tmp_path / "o"
     env = {**os.environ, "PYTHONPATH": str(Path(sw.__file__).parents[1])}
-    proc = subprocess.Popen([sys.executable, "-m", "virtual_vehicle.cli", "sweep", str(tmp_path / "s.toml"),
+    proc = subprocess.Popen([sys.executable, "-m", "virtual_vehicle.ui.cli", "sweep", str(tmp_path / "s.toml"),
                              "--out", str(out), "--workers", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=env, start_new_session=True)
     try:

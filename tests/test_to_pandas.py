@@ -5,9 +5,9 @@ import sys
 import numpy as np
 import pytest
 
-from virtual_vehicle import tables
-from virtual_vehicle.scenario import load_scenario
-from virtual_vehicle.sim import run
+from virtual_vehicle.run import tables
+from virtual_vehicle.config.scenario import load_scenario
+from virtual_vehicle.run.sim import run
 
 
 def _units(table):

@@ -5,6 +5,6 @@ Units are SI throughout: m, s, kg, N, rad.
 
 __version__ = "0.1.0"
 
-from .errors import IntegrationError, ScenarioError, TippingError, VirtualVehicleError  # noqa: E402
+from virtual_vehicle.errors import IntegrationError, ScenarioError, TippingError, VirtualVehicleError  # noqa: E402
 
 __all__ = ["__version__", "VirtualVehicleError", "ScenarioError", "TippingError", "IntegrationError"]

@@ -1,0 +1,153 @@
+"""Messages of a cell program, vectorised over cells and ports.
+
+A cell program declares a :class:`Schema`: the words its sentences carry (name, label, type). A :class:`Mailbox`
+holds one sentence per (cell, port): as an outbox, what each cell sends on each port this tick; as an inbox, what
+arrived on each port. Values are stored with the numpy dtype of their word type, so a program sees exactly the
+values a wire would carry (an F32 is a float32) whichever delivery model runs it.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from virtual_vehicle.cells.network.sentence import START, SentenceError, WordType, checksum, decode, wire_size
+
+DTYPE = {WordType.U8: np.uint8, WordType.BOOL: np.bool_, WordType.I16: np.int16, WordType.U16: np.uint16,
+         WordType.I32: np.int32, WordType.F32: np.float32}
+
+
+def rows_any(d: np.ndarray) -> np.ndarray:
+    """(m,) whether any element of each row of the boolean array ``d`` (m, ...) is set. numpy's any() along a short
+    axis is slow: a row of 1, 2, 4 or 8 booleans is read as one word, a longer one column by column."""
+    m = len(d)
+    d = d.reshape(m, math.prod(d.shape[1:]))  # (m, -1) fails for m = 0
+    k = d.shape[1]
+    if k in (1, 2, 4, 8) and d.flags.c_contiguous and d.dtype == np.bool_:
+        return d.view(f"u{k}")[:, 0] != 0
+    out = np.zeros(m, dtype=bool)
+    for q in range(k):
+        out |= d[:, q]
+    return out
+
+
+def rows_differ(a: list, b: list, m: int) -> np.ndarray:
+    """(m,) which rows differ between the arrays of ``a`` and the same arrays of ``b`` (each with first axis m)."""
+    out = np.zeros(m, dtype=bool)
+    for x, y in zip(a, b):
+        out |= rows_any(x != y)
+    return out
+
+
+@dataclass(frozen=True)
+class Field:
+    name: str
+    label: int
+    type: WordType
+
+
+@dataclass(frozen=True)
+class Schema:
+    """The words of a program's sentences. Every sentence carries all of them."""
+
+    fields: tuple[Field, ...]
+
+    def __post_init__(self):
+        names = [f.name for f in self.fields]
+        labels = [f.label for f in self.fields]
+        if len(set(names)) != len(names) or len(set(labels)) != len(labels):
+            raise ValueError("schema names and labels must be unique")
+        wire_size([f.type for f in self.fields])  # raises for unknown types
+        if self.sentence_bytes - 4 > 60:
+            raise ValueError("schema does not fit one sentence")
+
+    @classmethod
+    def of(cls, **words: tuple[int, WordType]) -> "Schema":
+        """``Schema.of(dist=(1, WordType.U8), speed=(2, WordType.F32))``."""
+        return cls(tuple(Field(name, label, WordType(t)) for name, (label, t) in words.items()))
+
+    @cached_property
+    def sentence_bytes(self) -> int:
+        """Bytes on the wire of one sentence (worked out once: every tick's traffic counts ask for it)."""
+        return wire_size([f.type for f in self.fields])
+
+    def to_bytes(self, values: dict) -> bytes:
+        """Encode one sentence from scalar values by name (the same bytes as :func:`sentence.encode`, through one
+        precompiled struct; values that do not fit their type raise SentenceError)."""
+        fmt, header = self._packer
+        args = []
+        for f, (label, code) in zip(self.fields, header):
+            v = values[f.name]
+            v = v.item() if hasattr(v, "item") else v
+            if f.type is WordType.F32:
+                if not math.isfinite(v) or abs(v) > 3.4028234663852886e38:
+                    raise SentenceError("bad value", f"{f.name}={v!r} does not fit F32")
+            elif f.type is WordType.BOOL:
+                v = int(bool(v))
+            args += (label, code, v)
+        try:
+            payload = struct.pack(fmt, *args)
+        except struct.error as exc:
+            raise SentenceError("bad value", str(exc)) from None
+        body = bytes((len(payload),)) + payload
+        return bytes((START,)) + body + checksum(body).to_bytes(2, "big")
+
+    @cached_property
+    def _packer(self):
+        codes = {WordType.U8: "B", WordType.BOOL: "B", WordType.I16: "h", WordType.U16: "H", WordType.I32: "i",
+                 WordType.F32: "f"}
+        fmt = ">" + "".join("BB" + codes[f.type] for f in self.fields)
+        return fmt, [(f.label, int(f.type)) for f in self.fields]
+
+    def from_bytes(self, data: bytes) -> dict:
+        """Decode one sentence to values by name; raises SentenceError (also for words not in the schema)."""
+        words = {w.label: w for w in decode(data)}
+        out = {}
+        for f in self.fields:
+            w = words.get(f.label)
+            if w is None or w.type != f.type:
+                raise SentenceError("schema mismatch", f"word {f.name!r} (label {f.label}) missing or mistyped")
+            out[f.name] = w.value
+        if len(words) != len(self.fields):
+            raise SentenceError("schema mismatch", "unexpected words")
+        return out
+
+
+@dataclass
+class Mailbox:
+    """One sentence per (cell, port): ``present[i, p]`` says whether there is one, ``values[name][i, p]`` its words."""
+
+    schema: Schema
+    present: np.ndarray
+    values: dict[str, np.ndarray]
+
+    @classmethod
+    def empty(cls, schema: Schema, n: int, ports: int) -> "Mailbox":
+        return cls(schema, np.zeros((n, ports), dtype=bool),
+                   {f.name: np.zeros((n, ports), dtype=DTYPE[f.type]) for f in schema.fields})
+
+    @classmethod
+    def broadcast(cls, schema: Schema, send: np.ndarray, ports: int, **values) -> "Mailbox":
+        """Each cell with ``send[i]`` sends the same sentence on every port; values are (n,) arrays by name."""
+        present = np.repeat(np.asarray(send, dtype=bool)[:, None], ports, axis=1)
+        vals = {f.name: np.repeat(np.asarray(values[f.name]).astype(DTYPE[f.type])[:, None], ports, axis=1)
+                for f in schema.fields}
+        return cls(schema, present, vals)
+
+    @property
+    def arrays(self) -> list[np.ndarray]:
+        """``present`` and every word's values, in the schema's order: the arrays two mailboxes differ in."""
+        return [self.present, *self.values.values()]
+
+    def take(self, rows: np.ndarray) -> "Mailbox":
+        """The sentences of the cells ``rows`` (indices) only."""
+        return Mailbox(self.schema, np.take(self.present, rows, axis=0),
+                       {k: np.take(v, rows, axis=0) for k, v in self.values.items()})
+
+    def count(self) -> int:
+        """Number of sentences held."""
+        return int(self.present.sum())

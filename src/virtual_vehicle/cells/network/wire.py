@@ -1,0 +1,307 @@
+"""Wire-level delivery: the paper's cell network hardware (Section 2.3), simulated event by event.
+
+Each cell has one serial port (UART) multiplexed between its neighbours, and one handshake line to each neighbour.
+
+- A cell with nothing in progress *polls*: it checks the incoming handshake line of one port every ``poll_time``
+  seconds, port after port. A cell with sentences queued tries to send after each full sweep of its ports.
+- To send on port q the cell selects q, raises its handshake line toward that neighbour and waits, unable to do
+  anything else, until the neighbour's polling reaches that line (the transfer starts) or ``cts_timeout`` passes
+  (it lowers the line, waits a random backoff in [0, ``backoff_max``] while polling, and tries again; after
+  ``max_attempts`` tries the sentence is dropped).
+- A transfer takes ``select_time`` plus the sentence's bytes at ``bits_per_byte`` bits each at ``baud`` bits/s;
+  both cells are busy for that time. Bit errors flip data bits independently at ``bit_error_rate``; the receiver
+  decodes the bytes and drops a sentence that fails (counted as corrupted), or, if the checksum misses, delivers the
+  misread sentence (counted as undetected). ``loss_rate`` loses whole sentences after transfer (e.g. an overrun).
+- Ports with no neighbour are known to be empty and their sentences dropped at once; a dead link or dead neighbour
+  simply never answers, which the sender finds out by timing out.
+- Per port at most ``queue_limit`` sentences wait; a newer one replaces the oldest waiting one (state-sharing
+  programs want the latest value).
+
+Latency, queueing and lost opportunities therefore emerge from the model. Polling of idle cells is not simulated
+poll by poll: a polling cell's position in its sweep is a function of time, so only interactions cost events.
+Units: s, bits/s, bytes.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from virtual_vehicle.cells.network.delivery import TickStats
+from virtual_vehicle.cells.network.messages import Mailbox
+from virtual_vehicle.cells.network.sentence import SentenceError
+from virtual_vehicle.cells.network.topology import Topology
+
+POLL, WAIT, XFER, DEAD = range(4)
+
+
+@dataclass(frozen=True)
+class WireParams:
+    """Hardware parameters (defaults: a 68HC11-class controller at 9600 baud)."""
+
+    baud: float = 9600.0
+    bits_per_byte: int = 10
+    poll_time: float = 50e-6
+    select_time: float = 20e-6
+    cts_timeout: float = 2e-3
+    backoff_max: float = 1e-3
+    max_attempts: int = 5
+    queue_limit: int = 1
+    bit_error_rate: float = 0.0
+    loss_rate: float = 0.0
+
+    def __post_init__(self):
+        for name in ("baud", "poll_time", "cts_timeout"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive")
+        for name in ("select_time", "backoff_max"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be non-negative")
+        if self.max_attempts < 1 or self.queue_limit < 1 or self.bits_per_byte < 8:
+            raise ValueError("max_attempts and queue_limit must be >= 1 and bits_per_byte >= 8")
+        for name in ("bit_error_rate", "loss_rate"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1]")
+
+
+class _Sentence:
+    __slots__ = ("data", "t_sent", "attempts")
+
+    def __init__(self, data: bytes, t_sent: float):
+        self.data = data
+        self.t_sent = t_sent
+        self.attempts = 0
+
+
+class WireLevel:
+    """The wire-level delivery model; state (queues, modes, time) persists from one exchange to the next."""
+
+    def __init__(self, topology: Topology, params: WireParams = WireParams(), seed: int | None = 0):
+        self.topology = topology
+        self.p = params
+        self.rng = np.random.default_rng(seed)
+        n, P = topology.n, topology.ports
+        self.mode = np.where(topology.alive, POLL, DEAD)
+        self.epoch = np.zeros(n, dtype=np.int64)
+        self.t0 = np.zeros(n)  # polling phase: at t0 the cell polls port p0, then one port per poll_time
+        self.p0 = np.zeros(n, dtype=np.int64)
+        self.target = np.full(n, -1, dtype=np.int64)  # port being sent on (WAIT / XFER as sender)
+        self.next_port = np.zeros(n, dtype=np.int64)  # round-robin pointer for choosing what to send
+        self.queues = [[deque() for _ in range(P)] for _ in range(n)]
+        self.events: list = []
+        self.seq = 0
+        self.now = 0.0
+        self._reset_tick(n, P)
+
+    # ------------------------------------------------------------------ public
+    def exchange(self, outbox: Mailbox, t: float, period: float) -> tuple[Mailbox, TickStats]:
+        """Serialise, frame and checksum every sentence at the link's baud rate and deliver what is complete by the
+        tick's end (corrupted frames are counted and dropped); see
+        :class:`~virtual_vehicle.cells.network.delivery.Delivery`."""
+        if t < self.now - 1e-12:
+            raise ValueError("exchange times must not go backwards")
+        topo = self.topology
+        n, P = topo.n, topo.ports
+        self._reset_tick(n, P)
+        self.schema = outbox.schema
+        self._advance(t)  # finish whatever was due before this tick
+        self.inbox = Mailbox.empty(outbox.schema, n, P)
+        cells, ports = np.nonzero(outbox.present & topo.alive[:, None])
+        for i, q in zip(cells.tolist(), ports.tolist()):
+            if topo.neighbor[i, q] < 0:
+                self.unaddressed += 1  # nobody there: the cell knows the port is empty
+                continue
+            data = outbox.schema.to_bytes({k: v[i, q] for k, v in outbox.values.items()})
+            queue = self.queues[i][q]
+            waiting = len(queue) - (1 if (self.mode[i] == XFER and self.target[i] == q) else 0)
+            if waiting >= self.p.queue_limit:
+                # replace the oldest waiting sentence (not the one on the wire)
+                idx = 1 if len(queue) > waiting else 0
+                del queue[idx]
+                self.superseded += 1
+            queue.append(_Sentence(data, t))
+            self.sent[i] += 1
+            self.bytes_sent[i] += len(data)
+        for i in range(n):
+            if self.mode[i] == POLL and self._has_queue(i):
+                self._push(self._next_sweep_end(i, t), "try", i)
+        self._advance(t + period)
+        stats = TickStats(self.sent, self.received, self.bytes_sent, self.bytes_received,
+                          np.array(self.latencies), lost=self.lost, corrupted=self.corrupted,
+                          undetected=self.undetected, dropped=self.dropped, unaddressed=self.unaddressed,
+                          extra={"timeouts": self.timeouts, "superseded": self.superseded,
+                                 "queued": sum(len(q) for qs in self.queues for q in qs)})
+        return self.inbox, stats
+
+    def set_topology(self, topology: Topology) -> None:
+        """Cells died, were taken out or snapped in, links were cut (see
+        :class:`~virtual_vehicle.cells.network.delivery.Delivery`), now. A cell that goes loses what it had queued (counted
+        as dropped) and any transfer it was part of is broken off (the sender keeps its sentence and tries again); a
+        transfer over a link that is cut likewise; a cell that comes starts polling with empty queues. Sentences
+        queued for a port whose link is gone time out and are dropped as for any silent neighbour."""
+        old, t = self.topology, self.now
+        self.topology = topology
+        P = topology.ports
+        going = np.flatnonzero(old.alive & ~topology.alive)
+        coming = np.flatnonzero(~old.alive & topology.alive)
+        broken = set()
+        for i in np.flatnonzero(self.mode == XFER):
+            q = self.target[i]
+            if q < 0:
+                continue  # a receiver: found from its sender
+            j = old.neighbor[i, q]
+            if not (topology.alive[i] and topology.alive[j] and topology.link_up[i, q]):
+                broken.update((int(i), int(j)))
+        for i in going:
+            self.dropped += sum(len(queue) for queue in self.queues[i])
+            self.queues[i] = [deque() for _ in range(P)]
+            self.target[i] = -1
+            self._set_mode(i, DEAD, t)
+        for i in sorted(broken - set(going.tolist())):
+            self.target[i] = -1
+            self._start_polling(i, t, self.p0[i])
+        for i in coming:
+            self.queues[i] = [deque() for _ in range(P)]
+            self.target[i] = -1
+            self._start_polling(i, t, 0)
+
+    # ------------------------------------------------------------------ internals
+    def _reset_tick(self, n, P):
+        self.sent = np.zeros(n, dtype=np.int64)
+        self.received = np.zeros(n, dtype=np.int64)
+        self.bytes_sent = np.zeros(n, dtype=np.int64)
+        self.bytes_received = np.zeros(n, dtype=np.int64)
+        self.latencies: list[float] = []
+        self.lost = self.corrupted = self.undetected = self.dropped = self.unaddressed = 0
+        self.timeouts = self.superseded = 0
+
+    def _push(self, t, kind, a, b=-1):
+        self.seq += 1
+        heapq.heappush(self.events, (t, self.seq, kind, a, b, self.epoch[a], self.epoch[b] if b >= 0 else 0))
+
+    def _advance(self, t_end):
+        ev = self.events
+        while ev and ev[0][0] <= t_end:
+            t, _, kind, a, b, ea, eb = heapq.heappop(ev)
+            self.now = t
+            if self.epoch[a] != ea or (b >= 0 and self.epoch[b] != eb):
+                continue  # the cell changed mode since: stale
+            getattr(self, "_on_" + kind)(t, a, b)
+        self.now = max(self.now, t_end)
+
+    def _has_queue(self, i) -> bool:
+        return any(self.queues[i])
+
+    def _set_mode(self, i, mode, t):
+        self.mode[i] = mode
+        self.epoch[i] += 1
+        if mode == POLL:
+            self.t0[i] = t
+
+    def _next_sweep_end(self, i, t) -> float:
+        sweep = self.topology.ports * self.p.poll_time
+        k = math.ceil((t - self.t0[i]) / sweep - 1e-9)
+        return self.t0[i] + max(k, 0) * sweep
+
+    def _poll_time_of(self, j, port, t) -> float:
+        """When polling cell j next checks the handshake line of ``port`` at or after t."""
+        tau, P = self.p.poll_time, self.topology.ports
+        k = max(0, math.ceil((t - self.t0[j]) / tau - 1e-9))
+        k += (port - self.p0[j] - k) % P
+        return self.t0[j] + k * tau
+
+    def _start_polling(self, i, t, first_port, retry_at=None):
+        """Poll from ``first_port`` on; answer neighbours already waiting on us in the order the sweep reaches
+        them; if sentences are queued, try to send again at ``retry_at`` (default: after one full sweep)."""
+        self._set_mode(i, POLL, t)
+        self.p0[i] = first_port % self.topology.ports
+        topo = self.topology
+        for q in range(topo.ports):
+            j = topo.neighbor[i, q]
+            if j >= 0 and topo.link_up[i, q] and self.mode[j] == WAIT and self.target[j] == topo.back_port[i, q]:
+                self._push(self._poll_time_of(i, q, t), "connect", i, j)
+        if self._has_queue(i):
+            self._push(t + topo.ports * self.p.poll_time if retry_at is None else retry_at, "try", i)
+
+    def _on_try(self, t, i, _):
+        if self.mode[i] != POLL or not self._has_queue(i):
+            return
+        P = self.topology.ports
+        for k in range(P):
+            q = (self.next_port[i] + k) % P
+            if self.queues[i][q]:
+                break
+        self.next_port[i] = (q + 1) % P
+        self.target[i] = q
+        self._set_mode(i, WAIT, t)
+        self._push(t + self.p.cts_timeout, "timeout", i)
+        topo = self.topology
+        j = topo.neighbor[i, q]
+        if topo.link_up[i, q] and topo.alive[j] and self.mode[j] == POLL:
+            self._push(self._poll_time_of(j, topo.back_port[i, q], t), "connect", j, i)
+
+    def _on_connect(self, t, j, i):
+        # j (polling) sees i's handshake line on the port that leads to i; i is waiting to send to j
+        if self.mode[j] != POLL or self.mode[i] != WAIT:
+            return
+        q = self.target[i]
+        head = self.queues[i][q][0]
+        duration = self.p.select_time + len(head.data) * self.p.bits_per_byte / self.p.baud
+        self._set_mode(i, XFER, t)
+        self._set_mode(j, XFER, t)
+        self._push(t + duration, "done", i, j)
+
+    def _on_done(self, t, i, j):
+        topo = self.topology
+        q = self.target[i]
+        s = self.queues[i][q].popleft()
+        port = topo.back_port[i, q]
+        self._receive(j, port, s, t)
+        self.target[i] = -1
+        self._start_polling(i, t, q + 1)
+        self._start_polling(j, t, port + 1)
+
+    def _receive(self, j, port, s: _Sentence, t):
+        data = s.data
+        if self.p.bit_error_rate > 0:
+            nbits = 8 * len(data)
+            k = self.rng.binomial(nbits, self.p.bit_error_rate)
+            if k:
+                buf = bytearray(data)
+                for b in self.rng.choice(nbits, k, replace=False).tolist():
+                    buf[b // 8] ^= 1 << (b % 8)
+                data = bytes(buf)
+        if self.p.loss_rate > 0 and self.rng.random() < self.p.loss_rate:
+            self.lost += 1
+            return
+        try:
+            values = self.schema.from_bytes(data)
+        except SentenceError:
+            self.corrupted += 1
+            return
+        if data != s.data:
+            self.undetected += 1
+        for k, v in values.items():
+            self.inbox.values[k][j, port] = v
+        self.inbox.present[j, port] = True
+        self.received[j] += 1
+        self.bytes_received[j] += len(data)
+        self.latencies.append(t - s.t_sent)
+
+    def _on_timeout(self, t, i, _):
+        if self.mode[i] != WAIT:
+            return
+        self.timeouts += 1
+        q = self.target[i]
+        head = self.queues[i][q][0]
+        head.attempts += 1
+        if head.attempts >= self.p.max_attempts:
+            self.queues[i][q].popleft()
+            self.dropped += 1
+        self.target[i] = -1
+        # back off: poll for a random while before trying again
+        self._start_polling(i, t, self.p0[i], retry_at=t + self.rng.uniform(0.0, self.p.backoff_max))

@@ -1,0 +1,883 @@
+"""The event engine's inner loop, compiled (numba): DOP853 steps on one smooth piece, event search and location.
+
+Units: SI (m, s, kg, N, rad). State ``[x, y, theta, vx, vy, omega]``.
+
+:func:`run_piece` integrates one piece (one support set and contact set, eqs. 23/29/33/38 as the constants row of
+:func:`~virtual_vehicle.engine.dynamics.constants_row`) with scipy's DOP853 scheme (same tableau, error norm and step-size
+rule as ``scipy.integrate.DOP853``; sums taken in plain loops, so results agree with scipy's to rounding, not to the
+last bit), samples every step's dense output for the first sign change of an event value, locates it by Brent's
+method and probes past it, as :mod:`virtual_vehicle.engine.dynamics` documents. In Python each of the ~100 support changes
+a second of an oscillating Coulomb parcel cost about a millisecond, mostly in array calls on a handful of numbers;
+compiled, a piece's own work takes a few tens of microseconds, and most of what remains is the Python between
+pieces (which cells, the support solve, the friction constants).
+
+Event values of a segment (:class:`~virtual_vehicle.engine.dynamics._Segment`), in order: the footprint margin of every
+candidate cell (m), the spring force of every supporting cell (N), the slack of the centre of mass in the supports'
+hull (m) and the distance left before the candidate list must be refreshed (m). A segment is passed as a
+:class:`Segment`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+from scipy.integrate import DOP853
+
+RECTANGLE, CONVEX, POLYGON = 0, 1, 2
+"""Footprint kinds: margins in closed form, from half-planes, or as a signed distance to a simple polygon."""
+
+# Outcomes of run_piece
+REACHED, EVENT, PAUSED, FAILED, NOT_FINITE, NO_CONVERGENCE = 0, 1, 2, 3, 4, 5
+
+SUBSAMPLES = 8
+"""Points inside every step at which the event predicates are checked, so that two crossings in one long step are
+told apart (intervals where a crossing could hide between samples are refined further)."""
+RATE_SAFETY = 2.0
+"""Factor on the acceleration bounds, which are taken from the two ends of a step (smooth within a piece)."""
+MIN_BRACKET = 1e-9
+"""Shortest interval (s) the search for a hidden crossing bisects to: a graze shallower than speed x 1e-9 s / 2
+(about 1e-10 m at 0.2 m/s) is not resolved."""
+PROBE_FIRST = 1e-9
+"""First look-ahead (s) past a located event, to read the new piece where no value is within rounding noise of zero.
+Two events closer than the look-ahead are taken as one (the integration itself restarts at the root)."""
+PROBE_MAX = 1e-6
+"""Longest time (s) past an event that the integrator looks ahead to see every value clear of rounding noise."""
+
+# scipy's DOP853 tableau and step-size rule (scipy.integrate._ivp.rk)
+_N_STAGES = DOP853.n_stages
+_A, _B, _E3, _E5, _D, _A_EXTRA = (np.ascontiguousarray(a, dtype=np.float64)  # compiled in as constants
+                                  for a in (DOP853.A, DOP853.B, DOP853.E3, DOP853.E5, DOP853.D, DOP853.A_EXTRA))
+_N_EXTENDED = _D.shape[1]
+_ERROR_EXPONENT = -1.0 / (DOP853.error_estimator_order + 1)
+_SAFETY, _MIN_FACTOR, _MAX_FACTOR = 0.9, 0.2, 10.0
+
+
+def accelerations(row, x, y, vx, vy, om):
+    """Linear and angular acceleration (m/s^2, m/s^2, rad/s^2) at centre of mass (x, y) (m) moving at (vx, vy) (m/s)
+    and spinning at ``om`` (rad/s), from a piece's :func:`~virtual_vehicle.engine.dynamics.constants_row`. Works on floats
+    (one parcel) and on arrays (one entry per parcel, ``row`` a sequence of arrays), with the same arithmetic, and
+    compiled (:data:`accelerations_compiled`)."""
+    (ox, oy, a11, a12, a21, a22, b1, b2, c11, c12, c21, c22, e1, e2, f0, mu, W, K11, K12, K21, K22, k1, k2,
+     s1, s2, s0, inv_m, inv_i) = row
+    X1 = x - ox
+    X2 = y - oy
+    fx = a11 * X1 + a12 * X2 + b1  # eq. 23
+    fy = a21 * X1 + a22 * X2 + b2
+    tau = X1 * (c11 * X1 + c12 * X2) + X2 * (c21 * X1 + c22 * X2) + e1 * X1 + e2 * X2 + f0  # eq. 29
+    # Viscous damping (zero for Coulomb, mu = 0): sum N_i (X_i - X_c) is zero unless a row holds the parcel laterally
+    S1x = K11 * X1 + K12 * X2 + k1
+    S1y = K21 * X1 + K22 * X2 + k2
+    Dx = S1x - W * X1
+    Dy = S1y - W * X2
+    fx = fx + mu * (-W * vx + om * Dy)  # eqs. 32-33
+    fy = fy + mu * (-W * vy - om * Dx)
+    second = (s1 * X1 + s2 * X2 + s0) - 2.0 * (X1 * S1x + X2 * S1y) + W * (X1 * X1 + X2 * X2)
+    tau = tau - mu * ((Dx * vy - Dy * vx) + om * second)  # eq. 38
+    return fx * inv_m, fy * inv_m, tau * inv_i
+
+
+accelerations_compiled = njit(cache=True)(accelerations)
+
+
+@njit(cache=True)
+def pattern(positions, support, unit):
+    """Where the cells ``support`` of ``positions`` ((n, 2), m) lie: (their positions (m, 2), their centroid (2,),
+    their offsets from the first of them in whole ``unit`` (m): the key of their geometric pattern, compared by the
+    pattern cache of :mod:`virtual_vehicle.engine.dynamics`)."""
+    m = support.shape[0]
+    pts = np.empty((m, 2))
+    origin = np.zeros(2)
+    rel = np.empty((m, 2), np.int64)
+    for i in range(m):
+        for j in range(2):
+            pts[i, j] = positions[support[i], j]
+            origin[j] += pts[i, j]  # as numpy's mean over axis 0: row by row, then divided
+            rel[i, j] = np.int64(np.rint((pts[i, j] - pts[0, j]) / unit))
+    origin /= m
+    return pts, origin, rel
+
+
+class Segment(NamedTuple):
+    """One segment's arrays, as the compiled functions take them (a numba named tuple). Lengths in m.
+
+    ``kind`` is a footprint kind, with ``half`` (2,) the rectangle's half extents, ``normals`` (k, 2) and
+    ``offsets`` (k,) a convex footprint's outward half-planes (also a rectangle's: the hidden-crossing test uses
+    them), ``vertices`` (k, 2) a polygon's outline. ``candidates`` (nc, 2) are the cells near the parcel;
+    ``origin`` .. ``hull_offsets`` the piece's support solution (:class:`~virtual_vehicle.physics.contact.SupportSolution`);
+    ``center`` and ``buffer`` bound where the candidates cover the footprint; ``reach`` bounds a candidate's distance
+    from the centre of mass while they do; ``noise_length`` (m) and ``noise_force`` (N) are the rounding noise of
+    the lengths and of the spring forces among the event values (:func:`_noise`); ``spring_dirs``
+    (m, 2) the gradients of the spring forces in the centre of mass (N/m) and ``spring_gradient`` (m,) their norms;
+    ``ids`` (nc,) the candidates' cell ids.
+    """
+
+    kind: int
+    convex: bool
+    half: np.ndarray
+    normals: np.ndarray
+    offsets: np.ndarray
+    vertices: np.ndarray
+    candidates: np.ndarray
+    origin: np.ndarray
+    basis: np.ndarray
+    plane_lin: np.ndarray
+    plane_const: np.ndarray
+    hull_normals: np.ndarray
+    hull_offsets: np.ndarray
+    center: np.ndarray
+    buffer: float
+    reach: float
+    noise_length: float
+    noise_force: float
+    spring_dirs: np.ndarray
+    spring_gradient: np.ndarray
+    ids: np.ndarray
+
+
+def outline(spec) -> tuple:
+    """The footprint of parcel ``spec`` (:class:`~virtual_vehicle.model.parcel.ParcelSpec`) as :class:`Segment` holds it:
+    (kind, convex, half, normals, offsets, vertices), lengths in m."""
+    def arr(a, shape):
+        return np.ascontiguousarray(a, dtype=np.float64).reshape(shape)
+
+    convex = bool(spec.convex)
+    half = spec.half_extents
+    normals, offsets = spec.halfplanes if convex else (np.zeros((0, 2)), np.zeros(0))
+    kind = RECTANGLE if half is not None else CONVEX if convex else POLYGON
+    return (kind, convex, arr(half if half is not None else (0.0, 0.0), 2), arr(normals, (-1, 2)), arr(offsets, -1),
+            arr(spec.footprint, (-1, 2)))
+
+
+def make_segment(footprint: tuple, radius: float, candidates: np.ndarray, sol, center: np.ndarray, buffer: float,
+                 noise_length: float, noise_force: float, ids: np.ndarray) -> tuple:
+    """The fields of the :class:`Segment` (in its order, as a plain tuple: numba types a plain tuple in compiled
+    code, a named one in Python, ~1.5 us more a call; :func:`run_piece` names them again) of a parcel of footprint
+    ``footprint`` (its :func:`outline`) and ``radius`` (m) with candidate cells ``candidates`` ((nc, 2) float64, m)
+    on support solution ``sol`` (whose arrays are float64 and contiguous, as :mod:`virtual_vehicle.physics.contact` makes
+    them), its candidates gathered within ``radius + buffer`` of ``center`` (m), whose cell ids are ``ids`` ((nc,)
+    int64); event values below ``noise_length`` (m) or ``noise_force`` (N) are rounding noise."""
+    return (*footprint, candidates, sol.origin, sol.basis, sol.plane_lin, sol.plane_const, sol.hull_normals,
+            sol.hull_offsets, center, float(buffer), float(radius + 2 * buffer), float(noise_length),
+            float(noise_force), sol.spring_lin, sol.spring_gradient, ids)
+
+
+@njit(cache=True, inline="always")  # called per candidate and sample: a call costs more than the margin
+def _margin(kind, half, normals, offsets, v, bx, by):
+    """Signed margin (m) of body-frame point (bx, by): positive inside (the distance to the nearest edge for a convex
+    footprint), negative outside (the most violated edge's distance; for a polygon, minus the distance to it)."""
+    if kind == RECTANGLE:
+        return min(half[0] - abs(bx), half[1] - abs(by))
+    if kind == CONVEX:
+        m = np.inf
+        for k in range(offsets.shape[0]):
+            m = min(m, offsets[k] - (bx * normals[k, 0] + by * normals[k, 1]))
+        return m
+    # simple polygon (vertices v): distance to the boundary, signed by the even-odd rule
+    nv = v.shape[0]
+    d2 = np.inf
+    inside = False
+    for k in range(nv):
+        ax, ay = v[k, 0], v[k, 1]
+        cx, cy = v[(k + 1) % nv, 0], v[(k + 1) % nv, 1]
+        ex, ey = cx - ax, cy - ay
+        u = min(1.0, max(0.0, ((bx - ax) * ex + (by - ay) * ey) / (ex * ex + ey * ey)))
+        px, py = ax + u * ex - bx, ay + u * ey - by
+        d2 = min(d2, px * px + py * py)
+        if (ay > by) != (cy > by) and bx < ax + (by - ay) * ex / ey:
+            inside = not inside
+    d = math.sqrt(d2)
+    return d if inside else -d
+
+
+@njit(cache=True)
+def values(seg, y, out):
+    """Event values of segment ``seg`` at state ``y`` into ``out`` (n,)."""
+    c, s = math.cos(y[2]), math.sin(y[2])
+    cand, half, normals, offsets, vertices = seg.candidates, seg.half, seg.normals, seg.offsets, seg.vertices
+    nc = cand.shape[0]
+    # One loop per footprint kind, the kind a constant in each, so that the compiler drops the other kinds' code from
+    # the loop: with the kind tested per candidate, the margins took ten times as long (0.6 against 0.06 us for 39).
+    if seg.kind == RECTANGLE:
+        for i in range(nc):
+            out[i] = _candidate_margin(cand, RECTANGLE, half, normals, offsets, vertices, i, y, c, s)
+    elif seg.kind == CONVEX:
+        for i in range(nc):
+            out[i] = _candidate_margin(cand, CONVEX, half, normals, offsets, vertices, i, y, c, s)
+    else:
+        for i in range(nc):
+            out[i] = _candidate_margin(cand, POLYGON, half, normals, offsets, vertices, i, y, c, s)
+    basis, plane_lin, plane_const = seg.basis, seg.plane_lin, seg.plane_const
+    m = basis.shape[0]
+    xi0, xi1 = y[0] - seg.origin[0], y[1] - seg.origin[1]
+    for k in range(m):
+        out[nc + k] = _spring(basis, plane_lin, plane_const, k, xi0, xi1)
+    hull_normals, hull_offsets = seg.hull_normals, seg.hull_offsets
+    q = hull_offsets.shape[0]
+    for k in range(q):
+        out[nc + m + k] = _slack(hull_normals, hull_offsets, k, xi0, xi1)
+    out[nc + m + q] = _refresh(seg, y)
+
+
+@njit(cache=True)
+def value(seg, y, i):
+    """Event value ``i`` of segment ``seg`` at state ``y`` (as :func:`values` computes it, alone)."""
+    nc, m, q = seg.candidates.shape[0], seg.basis.shape[0], seg.hull_offsets.shape[0]
+    if i < nc:
+        return _candidate_margin(seg.candidates, seg.kind, seg.half, seg.normals, seg.offsets, seg.vertices, i, y,
+                                 math.cos(y[2]), math.sin(y[2]))
+    xi0, xi1 = y[0] - seg.origin[0], y[1] - seg.origin[1]
+    if i < nc + m:
+        return _spring(seg.basis, seg.plane_lin, seg.plane_const, i - nc, xi0, xi1)
+    if i < nc + m + q:
+        return _slack(seg.hull_normals, seg.hull_offsets, i - nc - m, xi0, xi1)
+    return _refresh(seg, y)
+
+
+@njit(cache=True, inline="always")
+def _candidate_margin(cand, kind, half, normals, offsets, vertices, i, y, c, s):
+    """Footprint margin (m) of candidate cell ``i`` at state ``y`` with heading cosine and sine ``c``, ``s``."""
+    dx = cand[i, 0] - y[0]
+    dy = cand[i, 1] - y[1]
+    return _margin(kind, half, normals, offsets, vertices, c * dx + s * dy, -s * dx + c * dy)  # world -> body
+
+
+@njit(cache=True, inline="always")
+def _spring(basis, plane_lin, plane_const, k, xi0, xi1):
+    """Spring force (N) of supporting cell ``k`` at local centre of mass (xi0, xi1) (m)."""
+    force = 0.0
+    for j in range(basis.shape[1]):
+        force += basis[k, j] * (plane_lin[j, 0] * xi0 + plane_lin[j, 1] * xi1 + plane_const[j])
+    return force
+
+
+@njit(cache=True, inline="always")
+def _slack(hull_normals, hull_offsets, k, xi0, xi1):
+    """Slack (m) of the local centre of mass (xi0, xi1) in hull half-plane ``k``."""
+    return hull_offsets[k] - (xi0 * hull_normals[k, 0] + xi1 * hull_normals[k, 1])
+
+
+@njit(cache=True, inline="always")
+def _refresh(seg, y):
+    """Distance (m) the centre of mass may still move before the candidates must be gathered again."""
+    return seg.buffer - math.hypot(y[0] - seg.center[0], y[1] - seg.center[1])
+
+
+@njit(cache=True)
+def cell_margins(kind, half, normals, offsets, vertices, cells, y):
+    """Footprint margins (m) of the cells at ``cells`` ((nc, 2), m) with the parcel at pose ``y`` (x, y, theta, ...),
+    as the event values compute them; also the smallest ``|margin|`` (inf for no cell). The footprint is a
+    :func:`outline`'s first five entries less ``convex``."""
+    c, s = math.cos(y[2]), math.sin(y[2])
+    nc = cells.shape[0]
+    out = np.empty(nc)
+    if kind == RECTANGLE:  # one loop per kind, as in values()
+        for i in range(nc):
+            out[i] = _candidate_margin(cells, RECTANGLE, half, normals, offsets, vertices, i, y, c, s)
+    elif kind == CONVEX:
+        for i in range(nc):
+            out[i] = _candidate_margin(cells, CONVEX, half, normals, offsets, vertices, i, y, c, s)
+    else:
+        for i in range(nc):
+            out[i] = _candidate_margin(cells, POLYGON, half, normals, offsets, vertices, i, y, c, s)
+    smallest = np.inf
+    for i in range(nc):
+        smallest = min(smallest, abs(out[i]))
+    return out, smallest
+
+
+@njit(cache=True, inline="always")
+def _room(value, gx, gy):
+    """How far (m) the centre of mass can move before an affine function of it with ``value`` here (> 0 is clear) and
+    gradient (gx, gy) reaches zero: inf for a constant one that is clear, -inf for one that is not."""
+    norm = math.sqrt(gx * gx + gy * gy)
+    if norm > 0:
+        return value / norm
+    return np.inf if value > 0 else -np.inf
+
+
+@njit(cache=True)
+def support_slack(basis, plane_lin, plane_const, spring_lin, hull_normals, hull_offsets, xi0, xi1, noise_force,
+                  noise_length):
+    """How far (m) the local centre of mass (xi0, xi1) (m) can move before any spring force (eq. 19, gradient rows
+    ``spring_lin`` in N/m) or any supporting half-plane of a solution changes sign, each less its rounding noise
+    (``noise_force`` in N; ``noise_length`` m per unit of a half-plane normal's length); inf when nothing bounds it."""
+    out = np.inf
+    for k in range(basis.shape[0]):
+        force = abs(_spring(basis, plane_lin, plane_const, k, xi0, xi1)) - noise_force
+        out = min(out, _room(force, spring_lin[k, 0], spring_lin[k, 1]))
+    for k in range(hull_offsets.shape[0]):
+        nx, ny = hull_normals[k, 0], hull_normals[k, 1]
+        slack = _slack(hull_normals, hull_offsets, k, xi0, xi1) - noise_length * math.sqrt(nx * nx + ny * ny)
+        out = min(out, _room(slack, nx, ny))
+    return out
+
+
+@njit(cache=True, inline="always")
+def _noise(nc, m, noise_length, noise_force, i):
+    """Rounding noise of event value ``i`` of a segment with ``nc`` candidates and ``m`` supports (see
+    :class:`Segment`): below it its sign is not to be trusted."""
+    return noise_force if nc <= i < nc + m else noise_length
+
+
+@njit(cache=True)
+def _sign(v):
+    return (v > 0) - (v < 0)
+
+
+@njit(cache=True)
+def _edge_and_rate(normals, offsets, y, px, py):
+    """For a convex footprint at state ``y``: point (px, py)'s nearest (most violated) edge and that edge distance's
+    rate of change (m/s), from the point's velocity relative to the parcel in the body frame."""
+    c, s = math.cos(y[2]), math.sin(y[2])
+    dx, dy = px - y[0], py - y[1]
+    bx, by = c * dx + s * dy, -s * dx + c * dy
+    edge = 0
+    best = np.inf
+    for k in range(offsets.shape[0]):
+        h = offsets[k] - (bx * normals[k, 0] + by * normals[k, 1])
+        if h < best:
+            best, edge = h, k
+    om = y[5]
+    wx, wy = -(y[3] - om * dy), -(y[4] + om * dx)  # cell velocity relative to the parcel point
+    pbx, pby = c * wx + s * wy, -s * wx + c * wy
+    return edge, -(normals[edge, 0] * pbx + normals[edge, 1] * pby)
+
+
+@njit(cache=True)
+def may_hide(seg, ya, yb, ga, gb, dt, acc, spin_acc, out):
+    """Which event values (into ``out``) could have crossed zero and come back between states ``ya`` and ``yb``,
+    ``dt`` seconds apart, without changing sign at them, given bounds on the parcel's acceleration (m/s^2) and
+    angular acceleration (rad/s^2). Returns whether any could.
+
+    A footprint margin changes no faster than a body point at the candidates' distance moves, and for a convex
+    footprint a cell can slip in and out unseen only by cutting a corner or if its edge distance turns around; a
+    spring force is affine in the centre of mass, so it can dip through zero only if its rate ``G . v`` changes
+    sign, which needs ``|G . v_a| + |G . v_b| <= |G| acc dt``. Hull slacks and the refresh distance are not
+    searched (tipping shows up as a lift-off; a late refresh is harmless)."""
+    cand, reach, dirs, grad = seg.candidates, seg.reach, seg.spring_dirs, seg.spring_gradient
+    convex, normals, offsets, noise_length, noise_force = (seg.convex, seg.normals, seg.offsets, seg.noise_length,
+                                                           seg.noise_force)
+    nc, m = cand.shape[0], dirs.shape[0]
+    speed = max(math.hypot(ya[3], ya[4]), math.hypot(yb[3], yb[4])) + acc * dt / 2
+    spin = max(abs(ya[5]), abs(yb[5])) + spin_acc * dt / 2
+    point_acc = acc + spin_acc * reach + spin * spin * reach
+    any_hidden = False
+    for i in range(out.shape[0]):
+        out[i] = False
+    for i in range(nc):
+        if not abs(ga[i]) + abs(gb[i]) <= (speed + spin * reach) * dt:
+            continue
+        if convex:
+            edge_a, rate_a = _edge_and_rate(normals, offsets, ya, cand[i, 0], cand[i, 1])
+            edge_b, rate_b = _edge_and_rate(normals, offsets, yb, cand[i, 0], cand[i, 1])
+            turn = _sign(rate_a) != _sign(rate_b) or abs(rate_a) + abs(rate_b) <= point_acc * dt
+            if not (edge_a != edge_b or turn):
+                continue
+        out[i] = True
+    for k in range(m):
+        da = ya[3] * dirs[k, 0] + ya[4] * dirs[k, 1]
+        db = yb[3] * dirs[k, 0] + yb[4] * dirs[k, 1]
+        turn = _sign(da) != _sign(db) or abs(da) + abs(db) <= grad[k] * acc * dt
+        out[nc + k] = turn and abs(ga[nc + k]) + abs(gb[nc + k]) <= grad[k] * speed * dt
+    for i in range(nc + m):
+        noise = _noise(nc, m, noise_length, noise_force, i)
+        out[i] = out[i] and abs(ga[i]) > noise and abs(gb[i]) > noise
+        any_hidden = any_hidden or out[i]
+    return any_hidden
+
+
+@njit(cache=True)
+def dense_at(F, y_old, t_old, h, t, out):
+    """DOP853's dense output (scipy's ``Dop853DenseOutput``) of the step from ``t_old`` of length ``h`` at ``t``."""
+    x = (t - t_old) / h
+    for j in range(6):
+        out[j] = 0.0
+    nF = F.shape[0]
+    for i in range(nF):
+        w = x if i % 2 == 0 else 1 - x
+        for j in range(6):
+            out[j] = (out[j] + F[nF - 1 - i, j]) * w
+    for j in range(6):
+        out[j] += y_old[j]
+
+
+@njit(cache=True)
+def _changed(g, g0, out):
+    """Which values' signs differ from the baseline ``g0``, into ``out``; whether any."""
+    anyc = False
+    for i in range(g.shape[0]):
+        out[i] = (g[i] > 0) != g0[i]
+        anyc = anyc or out[i]
+    return anyc
+
+
+@njit(cache=True)
+def _unchanged(hidden, changed, out):
+    """``hidden`` where the value did not already change sign (a change is found, not hidden), into ``out`` (may
+    be ``hidden`` itself); whether any."""
+    anyh = False
+    for i in range(out.shape[0]):
+        out[i] = hidden[i] and not changed[i]
+        anyh = anyh or out[i]
+    return anyh
+
+
+@njit(cache=True)
+def _search(seg, F, y_old, t_old, h, g0, acc, spin_acc, t0, t1, y0, y1, g0v, g1v, hidden0):
+    """The earliest bracket in [t0, t1] (states ``y0``, ``y1``, event values ``g0v``, ``g1v``) across which the event
+    predicate leaves ``g0``, bisecting while a crossing could hide (``hidden0``: the whole interval's predicate):
+    (found, t_a, t_b, changed, g_a, g_b). Depth first, earliest half first."""
+    n = g0.shape[0]
+    cap = 64
+    T = np.empty(cap)
+    Y = np.empty((cap, 6))
+    G = np.empty((cap, n))
+    T[0], T[1] = t0, t1
+    Y[0], Y[1] = y0, y1
+    G[0], G[1] = g0v, g1v
+    used = 2
+    stack = np.empty((cap, 2), np.int64)
+    stack[0, 0], stack[0, 1] = 0, 1
+    depth = 1
+    changed = np.empty(n, np.bool_)
+    hidden = np.empty(n, np.bool_)
+    first = True
+    while depth > 0:
+        depth -= 1
+        a, b = stack[depth, 0], stack[depth, 1]
+        anyc = _changed(G[b], g0, changed)
+        if first:
+            anyh = _unchanged(hidden0, changed, hidden)
+            first = False
+        else:
+            may_hide(seg, Y[a], Y[b], G[a], G[b], T[b] - T[a], acc, spin_acc, hidden)
+            anyh = _unchanged(hidden, changed, hidden)
+        if not anyh or T[b] - T[a] <= MIN_BRACKET:
+            if anyc:
+                return True, T[a], T[b], changed.copy(), G[a].copy(), G[b].copy()
+            continue
+        if used == T.shape[0] or depth + 2 > stack.shape[0]:  # grow the stores
+            T2, Y2, G2 = np.empty(2 * used), np.empty((2 * used, 6)), np.empty((2 * used, n))
+            T2[:used], Y2[:used], G2[:used] = T[:used], Y[:used], G[:used]
+            T, Y, G = T2, Y2, G2
+            S2 = np.empty((2 * stack.shape[0], 2), np.int64)
+            S2[:depth] = stack[:depth]
+            stack = S2
+        mid = used
+        used += 1
+        T[mid] = 0.5 * (T[a] + T[b])
+        dense_at(F, y_old, t_old, h, T[mid], Y[mid])
+        values(seg, Y[mid], G[mid])
+        stack[depth, 0], stack[depth, 1] = mid, b  # the later half waits
+        stack[depth + 1, 0], stack[depth + 1, 1] = a, mid
+        depth += 2
+    return False, t0, t1, changed, g0v, g1v
+
+
+@njit(cache=True)
+def _phi(t, ctx):
+    """min_k s_k g_k(t) over the changed event values ``idx``: its first zero is the earliest crossing. ``ctx`` is
+    (segment, dense output F, y_old, t_old, h, idx, s_k, a work array for the state and a count of evaluations).
+    Only the changed values are computed (Brent's method evaluates this some ten times an event)."""
+    seg, F, y_old, t_old, h, idx, sgn, y, calls = ctx
+    calls[0] += 1
+    dense_at(F, y_old, t_old, h, t, y)
+    out = np.inf
+    for k in range(idx.shape[0]):
+        out = min(out, sgn[k] * value(seg, y, idx[k]))
+    return out
+
+
+@njit(cache=True)
+def _brent(ctx, xa, xb, fa, fb, xtol, rtol, maxiter):
+    """A root of :func:`_phi` (``ctx``) between ``xa`` and ``xb``, whose values there, ``fa`` and ``fb``, have
+    opposite signs (or one is zero), to within ``xtol + rtol |x|``: Brent's method as ``scipy.optimize.brentq`` runs
+    it (C. Harris's variant, with the same steps and the same arithmetic, so the same root), without evaluating the
+    two ends again: the event engine knows them. Returns (root, outcome): ``REACHED``, or ``NOT_FINITE`` (phi was not
+    finite at the returned point) or ``NO_CONVERGENCE``."""
+    xpre, xcur, fpre, fcur = xa, xb, fa, fb
+    if fpre == 0:
+        return xpre, REACHED
+    if fcur == 0:
+        return xcur, REACHED
+    xblk = fblk = spre = scur = 0.0
+    for _ in range(maxiter):
+        if fpre != 0 and fcur != 0 and math.copysign(1.0, fpre) != math.copysign(1.0, fcur):
+            xblk, fblk = xpre, fpre  # the root lies between xcur and xblk
+            spre = scur = xcur - xpre
+        if abs(fblk) < abs(fcur):
+            xpre, xcur, xblk = xcur, xblk, xcur
+            fpre, fcur, fblk = fcur, fblk, fcur
+        delta = (xtol + rtol * abs(xcur)) / 2
+        sbis = (xblk - xcur) / 2
+        if fcur == 0 or abs(sbis) < delta:
+            return xcur, REACHED
+        if abs(spre) > delta and abs(fcur) < abs(fpre):
+            if xpre == xblk:  # secant
+                stry = -fcur * (xcur - xpre) / (fcur - fpre)
+            else:  # inverse quadratic extrapolation
+                dpre = (fpre - fcur) / (xpre - xcur)
+                dblk = (fblk - fcur) / (xblk - xcur)
+                stry = -fcur * (fblk * dblk - fpre * dpre) / (dblk * dpre * (fblk - fpre))
+            if 2 * abs(stry) < min(abs(spre), 3 * abs(sbis) - delta):
+                spre, scur = scur, stry
+            else:
+                spre = scur = sbis
+        else:
+            spre = scur = sbis
+        xpre, fpre = xcur, fcur
+        xcur += scur if abs(scur) > delta else (delta if sbis > 0 else -delta)
+        fcur = _phi(xcur, ctx)
+        if not math.isfinite(fcur):
+            return xcur, NOT_FINITE
+    return xcur, NO_CONVERGENCE
+
+
+@njit(cache=True)
+def _locate(seg, F, y_old, t_old, h, g0, t_lo, t_hi, changed, g_lo, g_hi):
+    """The earliest event in (t_lo, t_hi], whose ends have event values ``g_lo``, ``g_hi``: (outcome, restart,
+    probe, probe values, whether those are clear of rounding noise).
+
+    The earliest crossing is the first zero of ``min_k s_k g_k(t)`` over the changed event functions, with ``s_k``
+    the sign that makes each positive before its crossing; it is bracketed by the caller and found by Brent's method.
+    ``restart`` is just past that root: the integration continues from there with the new piece. ``probe`` is a
+    little later, where every event value is clear of rounding noise: the new piece and its event baseline are read
+    there, so that cells crossing together by symmetry all cross and no tie at the root decides the piece."""
+    n = g0.shape[0]
+    nc, m, noise_length, noise_force = seg.candidates.shape[0], seg.basis.shape[0], seg.noise_length, seg.noise_force
+    idx = np.flatnonzero(changed)
+    sgn = np.empty(idx.shape[0])
+    phi_lo = phi_hi = np.inf
+    for k in range(idx.shape[0]):
+        sgn[k] = 1.0 if g0[idx[k]] else -1.0
+        phi_lo = min(phi_lo, sgn[k] * g_lo[idx[k]])
+        phi_hi = min(phi_hi, sgn[k] * g_hi[idx[k]])
+    y = np.empty(6)
+    g = np.empty(n)
+    eps = np.finfo(np.float64).eps
+    xtol = max(4 * eps * abs(t_hi), 1e-13)
+    outcome = REACHED
+    if phi_lo <= 0.0:
+        t_ev = t_lo
+    elif phi_hi > 0.0:  # the change was a sign flip through an exact zero at t_hi
+        t_ev = t_hi
+    else:
+        ctx = (seg, F, y_old, t_old, h, idx, sgn, y, np.zeros(1, np.int64))
+        t_ev, outcome = _brent(ctx, t_lo, t_hi, phi_lo, phi_hi, xtol, 4 * eps, 100)
+        if outcome != REACHED:
+            return outcome, t_ev, t_ev, g, False
+    step = PROBE_FIRST
+    t_star = min(t_hi, t_ev + xtol)
+    first = -1.0
+    while True:
+        dense_at(F, y_old, t_old, h, t_star, y)
+        values(seg, y, g)
+        differs = False
+        clear = True
+        for i in range(n):
+            differs = differs or (g[i] > 0) != g0[i]
+            clear = clear and abs(g[i]) > _noise(nc, m, noise_length, noise_force, i)
+        if differs:
+            if first < 0:
+                first = t_star
+            if clear:
+                return REACHED, min(t_ev + xtol, t_star), t_star, g, True
+        if t_star >= t_hi or t_star - t_ev > PROBE_MAX:
+            probe = t_hi if first < 0 else first
+            return REACHED, min(t_ev + xtol, probe), probe, g, False
+        t_star = min(t_hi, t_ev + step)
+        step *= 4
+
+
+@njit(cache=True)
+def _first_change(seg, F, y_old, t_old, h, g0, t_lo, t_hi, f_lo, f_hi):
+    """The earliest bracket (t_a, t_b) in (t_lo, t_hi] across which the event predicate leaves ``g0``:
+    (found, t_a, t_b, changed, g_a, g_b).
+
+    The step is sampled at ``SUBSAMPLES`` points. Between two samples an event function can cross zero and come
+    back (a cell grazing the footprint's edge) only if it could reach zero in that time (:func:`may_hide`); such
+    intervals are bisected, earliest first, until the crossing is found or ruled out (down to ``MIN_BRACKET``
+    seconds). A bracket is returned only once no other component could hide an earlier crossing inside it.
+    ``f_lo``, ``f_hi`` are the state derivatives at the step's ends, from which the acceleration bounds are taken
+    with a safety factor."""
+    n = g0.shape[0]
+    ts = np.linspace(t_lo, t_hi, SUBSAMPLES + 1)
+    Y = np.empty((SUBSAMPLES + 1, 6))
+    G = np.empty((SUBSAMPLES + 1, n))
+    for j in range(SUBSAMPLES + 1):
+        dense_at(F, y_old, t_old, h, ts[j], Y[j])
+        values(seg, Y[j], G[j])
+    acc = RATE_SAFETY * max(math.hypot(f_lo[3], f_lo[4]), math.hypot(f_hi[3], f_hi[4]))
+    spin_acc = RATE_SAFETY * max(abs(f_lo[5]), abs(f_hi[5]))
+    changed = np.empty(n, np.bool_)
+    hidden = np.empty(n, np.bool_)
+    for j in range(SUBSAMPLES):
+        anyc = _changed(G[j + 1], g0, changed)
+        may_hide(seg, Y[j], Y[j + 1], G[j], G[j + 1], ts[j + 1] - ts[j], acc, spin_acc, hidden)
+        anyh = _unchanged(hidden, changed, hidden)
+        if anyc or anyh:
+            found = _search(seg, F, y_old, t_old, h, g0, acc, spin_acc, ts[j], ts[j + 1], Y[j], Y[j + 1],
+                            G[j], G[j + 1], hidden)
+            if found[0]:
+                return found
+    return False, t_lo, t_hi, changed, G[0], G[SUBSAMPLES]
+
+
+@njit(cache=True)
+def _rhs(row, y, out):
+    out[0], out[1], out[2] = y[3], y[4], y[5]
+    out[3], out[4], out[5] = accelerations_compiled(row, y[0], y[1], y[3], y[4], y[5])
+
+
+@njit(cache=True)
+def _stage(row, y, h, K, a, s, work):
+    """Stage ``s`` of a Runge-Kutta step from ``y`` of length ``h``: ``K[s] = rhs(y + h sum_i<s a_i K_i)``."""
+    for j in range(6):
+        dy = 0.0
+        for i in range(s):
+            dy += K[i, j] * a[i]
+        work[j] = y[j] + dy * h
+    _rhs(row, work, K[s])
+
+
+@njit(cache=True)
+def _trial(row, y, f, h, rtol, atol, K, y_new, f_new, work):
+    """A trial step of DOP853 of length ``h`` from ``y`` with derivative ``f`` (scipy's ``rk_step``): fills the
+    stages ``K``, ``y_new`` and ``f_new``; returns the error norm (scipy's ``_estimate_error_norm``), below 1 for a
+    step DOP853 accepts."""
+    K[0] = f
+    for s in range(1, _N_STAGES):
+        _stage(row, y, h, K, _A[s], s, work)
+    for j in range(6):
+        acc = 0.0
+        for i in range(_N_STAGES):
+            acc += K[i, j] * _B[i]
+        y_new[j] = y[j] + h * acc
+    _rhs(row, y_new, f_new)
+    K[_N_STAGES] = f_new
+    err5 = err3 = 0.0
+    for j in range(6):
+        scale = atol + max(abs(y[j]), abs(y_new[j])) * rtol
+        e5 = e3 = 0.0
+        for i in range(_N_STAGES + 1):
+            e5 += K[i, j] * _E5[i]
+            e3 += K[i, j] * _E3[i]
+        err5 += (e5 / scale) ** 2
+        err3 += (e3 / scale) ** 2
+    if err5 == 0 and err3 == 0:
+        return 0.0
+    return abs(h) * err5 / math.sqrt((err5 + 0.01 * err3) * 6)
+
+
+@njit(cache=True)
+def _dop853_step(row, t, y, f, t_bound, h_abs, rtol, atol, max_step, K, y_new, f_new, work):
+    """One accepted step of scipy's DOP853 (``RungeKutta._step_impl``) from (t, y) with derivative f: fills
+    ``y_new``, ``f_new`` and the stages ``K``; returns (ok, t_new, h_abs for the next step, evaluations)."""
+    min_step = 10 * abs(np.nextafter(t, np.inf) - t)
+    if h_abs > max_step:
+        h_abs = max_step
+    elif h_abs < min_step:
+        h_abs = min_step
+    rejected = False
+    nfev = 0
+    while True:
+        if h_abs < min_step:
+            return False, t, h_abs, nfev
+        t_new = t + h_abs
+        if t_new - t_bound > 0:
+            t_new = t_bound
+        h = t_new - t
+        h_abs = abs(h)
+        norm = _trial(row, y, f, h, rtol, atol, K, y_new, f_new, work)
+        nfev += _N_STAGES
+        if norm < 1:
+            factor = _MAX_FACTOR if norm == 0 else min(_MAX_FACTOR, _SAFETY * norm ** _ERROR_EXPONENT)
+            if rejected:
+                factor = min(1.0, factor)
+            return True, t_new, h_abs * factor, nfev
+        factor = _SAFETY * norm ** _ERROR_EXPONENT  # a non-finite norm (overflowing trial) shrinks by MIN_FACTOR
+        h_abs *= factor if factor > _MIN_FACTOR else _MIN_FACTOR
+        rejected = True
+
+
+@njit(cache=True)
+def _dense(row, t_old, y_old, f_old, y_new, f_new, h, K, F, work):
+    """The step's dense-output coefficients F (7, 6) (scipy's ``DOP853._dense_output_impl``); evaluations made."""
+    for e in range(_A_EXTRA.shape[0]):
+        _stage(row, y_old, h, K, _A_EXTRA[e], _N_STAGES + 1 + e, work)
+    for j in range(6):
+        delta = y_new[j] - y_old[j]
+        F[0, j] = delta
+        F[1, j] = h * f_old[j] - delta
+        F[2, j] = 2 * delta - h * (f_new[j] + f_old[j])
+        for r in range(_D.shape[0]):
+            acc = 0.0
+            for i in range(_N_EXTENDED):
+                acc += _D[r, i] * K[i, j]
+            F[3 + r, j] = h * acc
+    return _A_EXTRA.shape[0]
+
+
+@njit(cache=True)
+def _workspace():
+    """Scratch arrays of a DOP853 step: the stages K, the dense-output coefficients F, and four states (the
+    derivative at the start, the new state and its derivative, a stage's argument)."""
+    return (np.empty((_N_EXTENDED, 6)), np.empty((_D.shape[0] + 3, 6)), np.empty(6), np.empty(6), np.empty(6),
+            np.empty(6))
+
+
+@njit(cache=True)
+def quiet_steps(rows, Y, t, t_bound, rtol, atol, sample_times, out):
+    """For each parcel k, with constants ``rows[k]`` (:func:`~virtual_vehicle.engine.dynamics.constants_row`, (n, 28)) at
+    state ``Y[k]`` (n, 6), the first step :func:`run_piece` takes from ``t`` to ``t_bound`` (s) on a new piece, when
+    that step reaches ``t_bound`` and DOP853 accepts it whole: then ``out[k, j]`` is its dense output at
+    ``sample_times[j]`` (in [t, t_bound]), as :func:`run_piece` samples it. The same code as :func:`run_piece`'s,
+    so a window with no event ends where the event engine ends it, to the last bit. Returns which parcels' steps
+    were accepted and the right-hand-side evaluations each took."""
+    n = Y.shape[0]
+    accepted = np.zeros(n, np.bool_)
+    K, F, f, y_new, f_new, work = _workspace()
+    min_step = 10 * abs(np.nextafter(t, np.inf) - t)
+    h_abs = max(t_bound - t, min_step)  # _dop853_step's first trial from run_piece's first step
+    t_new = t + h_abs
+    if t_new - t_bound > 0:
+        t_new = t_bound
+    h = t_new - t
+    if t_new != t_bound:  # rounding left a sliver: run_piece would take a second step
+        return accepted, 0
+    for k in range(n):
+        y = Y[k]
+        _rhs(rows[k], y, f)
+        if _trial(rows[k], y, f, h, rtol, atol, K, y_new, f_new, work) < 1:
+            accepted[k] = True
+            _dense(rows[k], t, y, f, y_new, f_new, h, K, F, work)
+            for j in range(sample_times.shape[0]):
+                dense_at(F, y, t, h, sample_times[j], out[k, j])
+    return accepted, 1 + _N_STAGES + _A_EXTRA.shape[0]
+
+
+@njit(cache=True)
+def run_piece(row, fields, y_base, t, y, t_bound, h_abs, first_step, rtol, atol, max_step, max_steps,
+              sample_times, next_sample, samples):
+    """Integrate one piece from (t, y) towards ``t_bound`` until its first event, ``max_steps`` steps, or the end.
+
+    ``row`` is the piece's constants row, ``fields`` its :class:`Segment`'s (:func:`make_segment`), ``y_base`` the
+    state at which the event values' signs are the baseline (the piece's start, or the probe just past the event that
+    began it). The first step tried is ``first_step`` when positive (a new piece), else ``h_abs`` (the same piece
+    resumed after a pause). Output samples ``sample_times[next_sample:]`` reached are written into ``samples``.
+    Times in s, states in SI units.
+
+    Returns (outcome, t, y, h_abs, last step, evaluations, next_sample, probe time, probe state, the cells under the
+    footprint at the probe (ids, as :meth:`~virtual_vehicle.engine.dynamics._Segment.support` finds them from the probe's
+    event values), whether those tell: the values clear of rounding noise and the probe within the candidates'
+    reach). On ``EVENT`` (t, y) is the restart point just past it.
+    """
+    seg = Segment(*fields)
+    g0 = np.empty(seg.candidates.shape[0] + seg.basis.shape[0] + seg.hull_offsets.shape[0] + 1)
+    values(seg, y_base, g0)
+    g0 = g0 > 0
+    n = g0.shape[0]
+    K, F, f, y_new, f_new, work = _workspace()
+    y = y.copy()
+    _rhs(row, y, f)
+    nfev = 1
+    if first_step > 0:
+        h_abs = first_step
+    last = 0.0
+    y_probe = np.empty(6)
+    none = np.empty(0, np.int64)
+    steps = 0
+    while t < t_bound:
+        if steps == max_steps:
+            return PAUSED, t, y, h_abs, last, nfev, next_sample, t, y_probe, none, False
+        ok, t_new, h_next, evals = _dop853_step(row, t, y, f, t_bound, h_abs, rtol, atol, max_step, K, y_new,
+                                                f_new, work)
+        nfev += evals
+        if not ok:
+            return FAILED, t, y, h_abs, last, nfev, next_sample, t, y_probe, none, False
+        steps += 1
+        h = t_new - t
+        last = h
+        nfev += _dense(row, t, y, f, y_new, f_new, h, K, F, work)
+        found, t_a, t_b, changed, g_a, g_b = _first_change(seg, F, y, t, h, g0, t, t_new, f, f_new)
+        t_reach = t_new
+        if found:
+            outcome, t_reach, t_probe, g, clear = _locate(seg, F, y, t, h, g0, t_a, t_b, changed, g_a, g_b)
+            if outcome != REACHED:
+                return outcome, t_reach, y, h_next, last, nfev, next_sample, t, y_probe, none, False
+        while next_sample < sample_times.shape[0] and sample_times[next_sample] <= t_reach:
+            dense_at(F, y, t, h, sample_times[next_sample], samples[next_sample])
+            next_sample += 1
+        if found:
+            y_restart = np.empty(6)
+            dense_at(F, y, t, h, t_reach, y_restart)
+            dense_at(F, y, t, h, t_probe, y_probe)
+            told = clear and g[n - 1] > 0
+            return EVENT, t_reach, y_restart, h_next, last, nfev, next_sample, t_probe, y_probe, \
+                _positive(seg.ids, g) if told else none, told
+        t = t_new
+        y[:] = y_new
+        f[:] = f_new
+        h_abs = h_next
+    return REACHED, t, y, h_abs, last, nfev, next_sample, t, y_probe, none, False
+
+
+@njit(cache=True)
+def _positive(ids, g):
+    """The ``ids`` whose value in ``g`` (the candidates' margins first) is positive, in order."""
+    count = 0
+    for i in range(ids.shape[0]):
+        count += g[i] > 0
+    out = np.empty(count, np.int64)
+    k = 0
+    for i in range(ids.shape[0]):
+        if g[i] > 0:
+            out[k] = ids[i]
+            k += 1
+    return out
+
+
+@njit(cache=True)
+def edges_clear(positions, near, normals, offsets, y, window, reach, accel, radius, lever, noise):
+    """Whether no cell ``near`` (ids into ``positions``, (n, 2) m) of a convex parcel at state ``y`` can cross its
+    outline (body-frame outward unit ``normals`` (k, 2), ``offsets`` (k,) m) within ``window`` s, edge by edge: the
+    bound of :meth:`virtual_vehicle.engine.batch.QuietStepper._edges_clear`, which documents it, for one parcel (``reach``
+    and ``accel`` in m, ``radius`` m, ``lever`` = 1 + m R^2 / I, ``noise`` m)."""
+    c, s = math.cos(y[2]), math.sin(y[2])
+    drift = accel / lever
+    turn = abs(y[5]) * window + (accel - drift) / radius
+    shift = min(reach, math.hypot(y[3], y[4]) * window + drift)
+    base = drift + noise + turn * shift
+    for i in range(near.shape[0]):
+        dx = positions[near[i], 0] - y[0]
+        dy = positions[near[i], 1] - y[1]
+        bound = base + turn * math.hypot(dx, dy)
+        low, high = np.inf, np.inf
+        for e in range(offsets.shape[0]):
+            nx = c * normals[e, 0] - s * normals[e, 1]  # world normals
+            ny = s * normals[e, 0] + c * normals[e, 1]
+            h = offsets[e] - (nx * dx + ny * dy)
+            toward = (nx * y[3] + ny * y[4]) * window
+            low = min(low, h + min(toward, 0.0) - bound)
+            high = min(high, h + max(toward, 0.0) + bound)
+        if not (low > 0 or high < 0):  # neither surely inside nor surely beyond an edge
+            return False
+    return True
+
+
+@njit(cache=True)
+def edges_clear_many(positions, near, near_count, normals, offsets, edge_count, Y, window, reach, accel, radius,
+                     lever, noise):
+    """:func:`edges_clear` for many parcels in one call (each call took ~4 us, most of it its eleven arguments):
+    parcel k's cells are ``near[k, :near_count[k]]``, its edges ``normals[k, :edge_count[k]]`` and ``offsets[k,
+    :edge_count[k]]`` (rows padded beyond), its state ``Y[k]``; ``reach``, ``accel``, ``radius``, ``lever`` and
+    ``noise`` are arrays by parcel. Returns a bool array by parcel."""
+    out = np.empty(Y.shape[0], np.bool_)
+    for k in range(Y.shape[0]):
+        e = edge_count[k]
+        out[k] = edges_clear(positions, near[k, :near_count[k]], normals[k, :e], offsets[k, :e], Y[k], window,
+                             reach[k], accel[k], radius[k], lever[k], noise[k])
+    return out

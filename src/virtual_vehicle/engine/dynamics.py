@@ -1,0 +1,758 @@
+"""The plant: planar parcel motion on a cell array, integrated piecewise between support changes (paper 4.5).
+
+Units: SI (m, s, kg, N, rad). The state of a parcel is ``[x, y, theta, vx, vy, omega]`` (centre of mass, heading,
+their rates); the equations of motion are ``m Xddot_c = f``, ``I thetaddot = tau`` with f and tau from the friction
+law's per-support-set constants.
+
+Paper 4.5, made exact: compute the cells under the parcel, form the mask (here: the contact set), compute the
+constants, integrate, and when the supports change recompute the constants and continue. "The supports change" is
+located as an event to the integrator's tolerance: a cell entering or leaving the footprint (a zero of its margin), a
+cell lifting off or touching down (a zero of its spring force), or the centre of mass leaving the supports (tipping).
+Constants are cached per (support set, contact set), so a configuration seen again is not solved again.
+
+Two integrators share the model:
+- ``"event"``: adaptive 8th-order Dormand-Prince (scipy's DOP853 scheme) on each smooth piece, events located by
+  root finding on the dense output, restarted with the new constants. The piece's inner loop (steps, event search
+  and location) is compiled (:mod:`virtual_vehicle.engine._kernel`); the support changes between pieces stay in Python
+  (with the support solve's and the friction constants' arithmetic compiled in :mod:`~virtual_vehicle.physics.contact` and
+  :mod:`~virtual_vehicle.physics.friction`);
+- ``"fixed"``: classical RK4 at a fixed step that looks up the supports at every stage and never locates events,
+  for comparison (first-order accurate across support changes).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from functools import cached_property
+from itertools import compress
+from typing import Callable, Literal, get_args
+
+import numpy as np
+
+from virtual_vehicle.engine import _kernel
+from virtual_vehicle.engine._kernel import accelerations
+from virtual_vehicle.physics.contact import SupportSolution, _solve
+from virtual_vehicle.errors import IntegrationError, TippingError
+from virtual_vehicle.physics.friction import (
+    CoulombLaw,
+    FrictionConstants,
+    FrictionLaw,
+    StickSlipLaw,
+    ViscousLaw,
+    _f64,
+    _row,
+)
+from virtual_vehicle.model.layout import CellArray
+from virtual_vehicle.model.parcel import ParcelSpec
+
+Mode = Literal["event", "fixed"]
+MODES = get_args(Mode)
+"""The modes of :func:`integrate` (and of a plant's :class:`~virtual_vehicle.engine.plant.Integration`)."""
+
+_PATTERN_RESOLUTION = 1e-9
+"""Relative positions of supporting cells are compared to this fraction of the pitch when matching patterns."""
+
+
+class _GeometryCache:
+    """Solved support geometries by pattern, for the models of one parcel that differ only in wheel velocities.
+
+    ``shared`` holds the planar solutions whose contact set is not collinear, solved in the pattern's own coordinates
+    (its integer offsets times ``_PATTERN_RESOLUTION`` pitches): the normal-force map of eqs. 13-19 then depends on
+    the pattern, the weight and the contact set alone, not on where or by which parcel it was first met, so parcels
+    of the same weight on the same array may share them and each still runs bit for bit as it would alone. ``own``
+    holds the rest (a 1-D or collinear contact set, whose solution depends on the centre of mass it was solved
+    at). ``solves`` counts the problems this parcel had to solve."""
+
+    def __init__(self, shared: dict | None = None):
+        self.shared: dict[bytes, list[SupportSolution]] = {} if shared is None else shared
+        self.own: dict[bytes, list[SupportSolution]] = {}
+        self.solves = 0
+
+
+@dataclass(frozen=True, eq=False)
+class Piece:
+    """One smooth piece of the dynamics: a support set, its contact set, the normal-force map and the constants.
+
+    ``rhs(t, y)`` is the state derivative valid while the pieces' support and contact sets hold.
+    """
+
+    support: np.ndarray
+    solution: SupportSolution
+    constants: FrictionConstants
+    rhs: Callable[[float, np.ndarray], np.ndarray]
+    mass: float = 1.0
+    inertia: float = 1.0
+    row: tuple[float, ...] = ()
+    """The constants as :func:`constants_row` lists them (what the compiled engine integrates)."""
+
+    @cached_property
+    def key(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """(supporting cell ids, ids of those in contact)."""
+        return tuple(self.support.tolist()), tuple(self.support[self.solution.in_contact].tolist())
+
+    @cached_property
+    def sets(self) -> tuple[frozenset[int], frozenset[int]]:
+        """:attr:`key` as sets: (supporting cell ids, ids of those in contact)."""
+        return frozenset(self.key[0]), frozenset(self.key[1])
+
+    def normal_forces(self, y) -> np.ndarray:
+        """Normal forces (N) of the supporting cells at state ``y``."""
+        return self.solution.forces(np.asarray(y[:2], dtype=float))
+
+
+def _rebuild_piece(support, solution, constants, mass, inertia, row) -> "Piece":
+    """The piece of these parts; ``row`` is :func:`constants_row` of them."""
+    return Piece(support, solution, constants, _make_rhs(row), mass, inertia, row)
+
+
+def constants_row(k: FrictionConstants, origin: np.ndarray, mass: float, inertia: float) -> tuple[float, ...]:
+    """A piece's constants as plain floats, in the order :func:`~virtual_vehicle.engine._kernel.accelerations` takes them:
+    local origin (m), the force and torque constants of eqs. 23 and 29, the viscous coefficient and weight, the
+    moments of eqs. 33 and 38, then 1 / mass and 1 / inertia. (A law's ``constants_and_row`` makes the same row
+    with its constants, in one compiled call.)"""
+    return tuple(_row(*map(_f64, (k.a, k.b, k.c, k.d, k.e)), float(k.f), float(k.damping), float(k.weight),
+                      *map(_f64, (k.moment_lin, k.moment_const, k.second_lin)), float(k.second_const), _f64(origin),
+                      1.0 / mass, 1.0 / inertia).tolist())
+
+
+def _make_rhs(row: tuple[float, ...]):
+    """State derivative from the constants row (eqs. 23, 29, 33, 38), in plain floats for speed."""
+    def rhs(t, y):
+        x, yy, _th, vx, vy, om = y.tolist()
+        return np.array((vx, vy, om, *accelerations(row, x, yy, vx, vy, om)))
+
+    return rhs
+
+
+class ParcelModel:
+    """One parcel on one cell array under constant wheel velocities and a friction law.
+
+    Args:
+        cells: the array.
+        spec: the parcel.
+        velocities: (n, 2) cell surface velocities, m/s.
+        law: the friction law.
+        gravity: m/s^2.
+        shared_solutions: a store of solved supports to share with the models of other parcels of the same weight
+            on the same array (see ``_GeometryCache``); None: this parcel's own.
+    """
+
+    def __init__(self, cells: CellArray, spec: ParcelSpec, velocities: np.ndarray, law: FrictionLaw,
+                 gravity: float = 9.81, shared_solutions: dict | None = None):
+        self.cells = cells
+        self.spec = spec
+        self.velocities = np.asarray(velocities, dtype=float)
+        if self.velocities.shape != (cells.n, 2) or not np.all(np.isfinite(self.velocities)):
+            raise ValueError(f"velocities must be finite with shape ({cells.n}, 2)")
+        self.law = law
+        if cells.separate and not isinstance(law, (CoulombLaw, StickSlipLaw)):
+            raise ValueError("separate wheels push only along their own drive direction; the paper's viscous law acts "
+                             "on the whole slip vector of a lumped cell: use the coulomb or stick_slip law")
+        self.weight = spec.weight(gravity)
+        self._pieces: dict[tuple, Piece] = {}
+        self._by_support: dict[tuple[int, ...], list[Piece]] = {}
+        self._geometry = _GeometryCache(shared_solutions)
+        self.present: np.ndarray | None = None
+        """(n,) False for contacts of cells taken out of the array (reconfiguration): they carry nothing. None: all
+        present. Set by the plant between integrate calls."""
+        self.contact_memory: dict = {"lam": {}, "stuck": {}}
+        """Stick-slip: each wheel's last impulse and whether it stuck, carried from one integrate call to the next
+        (shared with :meth:`with_velocities` copies), so a run split into control ticks is the same run. Use a
+        fresh model for an independent run."""
+        self._line_dir = None
+        if cells.is_line and cells.n > 1:
+            self._line_dir = np.linalg.svd(cells.positions - cells.positions.mean(axis=0), full_matrices=False)[2][0]
+
+    def margins_near(self, y, reach: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """The cells present within ``reach`` (m) of the centre of mass at state (or pose) ``y`` (ids, sorted), their
+        footprint margins (m, as the event values compute them) and the smallest ``|margin|`` (inf for none)."""
+        y = np.ascontiguousarray(y, dtype=float)
+        ids = self.cells.grid.within(y[0], y[1], reach, self.present)
+        kind, _, half, normals, offsets, vertices = self.outline
+        margins, nearest = _kernel.cell_margins(kind, half, normals, offsets, vertices, self.cells.positions[ids], y)
+        return ids, margins, nearest
+
+    def support_at(self, y) -> np.ndarray:
+        """Ids of the cells under the footprint at state (or pose) ``y`` (those present)."""
+        ids, margins, _ = self.margins_near(y, self.spec.radius * (1 + 1e-9) + 1e-12)
+        return ids[margins > 0]
+
+    def piece_at(self, y) -> Piece:
+        """The piece valid at state ``y``. Raises TippingError when the supports cannot carry the parcel."""
+        return self.piece_for(self.support_at(y), y)
+
+    def with_velocities(self, velocities: np.ndarray) -> "ParcelModel":
+        """The same parcel on the same array under other wheel velocities (m/s), sharing the solved support
+        geometry (normal forces do not depend on the wheels), so a controller may change the field every tick."""
+        velocities = np.asarray(velocities, dtype=float)
+        if velocities.shape != (self.cells.n, 2) or not np.all(np.isfinite(velocities)):
+            raise ValueError(f"velocities must be finite with shape ({self.cells.n}, 2)")
+        return self._rewheeled(velocities)
+
+    def _rewheeled(self, velocities: np.ndarray) -> "ParcelModel":
+        """:meth:`with_velocities` for ``velocities`` already checked ((n, 2) finite float array, m/s)."""
+        self.outline  # made here once, so that every copy shares it
+        other = ParcelModel.__new__(ParcelModel)
+        other.__dict__.update(self.__dict__)
+        other.velocities = velocities
+        other._pieces = {}
+        other._by_support = {}
+        return other
+
+    @cached_property
+    def outline(self) -> tuple:
+        """The parcel's footprint as the compiled engine takes it (:func:`~virtual_vehicle.engine._kernel.outline`), made
+        once a model and shared by its :meth:`with_velocities` copies."""
+        return _kernel.outline(self.spec)
+
+    @cached_property
+    def _segment_scales(self) -> tuple[float, float, float, float]:
+        """What every :class:`_Segment` of this parcel takes: its radius, the candidates' search buffer (m) and the
+        rounding noise of the lengths (m) and of the forces (N) among the event values, below which a sign is not to
+        be trusted."""
+        spec, cells = self.spec, self.cells
+        return (spec.radius, max(cells.pitch, 0.25 * spec.radius), _NOISE * max(1.0, cells.extent, spec.radius),
+                _NOISE * self.weight)
+
+    @property
+    def solves(self) -> int:
+        """Normal-force problems solved so far (shared by models made with :meth:`with_velocities`)."""
+        return self._geometry.solves
+
+    def piece_for(self, support: np.ndarray, y) -> Piece:
+        """The piece for the cells ``support`` at state ``y``.
+
+        Two caches avoid solving a support set again: by the cells themselves, and by their geometric pattern
+        (positions relative to the first cell), because on a regular lattice a parcel that has moved by whole cells
+        rests on a translated copy of a pattern it has met before, whose local solution is the same. The friction
+        constants of a new support set are recomputed from the solution (cheap).
+        """
+        X = np.asarray(y[:2], dtype=float)
+        skey = tuple(support.tolist())
+        for piece in self._by_support.get(skey, ()):
+            if piece.solution.holds(X - piece.solution.origin):
+                return piece
+        sol = self.solution_for(support, X)
+        k, row = self.constants_and_row(support, sol, self.velocities[support])
+        piece = _rebuild_piece(support, sol, k, self.spec.mass, self.spec.inertia, row)
+        piece.__dict__["key"] = skey, tuple(compress(skey, sol.in_contact.tolist()))  # Piece.key, from skey
+        existing = self._pieces.get(piece.key)
+        if existing is not None:
+            return existing
+        self._pieces[piece.key] = piece
+        self._by_support.setdefault(skey, []).append(piece)
+        return piece
+
+    def _adopt(self, support: np.ndarray, solution: SupportSolution, constants: FrictionConstants,
+               row: tuple[float, ...]) -> None:
+        """Cache the piece of the cells ``support`` made elsewhere from ``solution`` and ``constants`` for this
+        model's wheels (a quiet stepper's anchor), unless a piece of those cells is cached already."""
+        skey = tuple(support.tolist())
+        if skey not in self._by_support:
+            piece = _rebuild_piece(support, solution, constants, self.spec.mass, self.spec.inertia, row)
+            piece.__dict__["key"] = skey, tuple(compress(skey, solution.in_contact.tolist()))  # Piece.key, from skey
+            self._pieces[piece.key] = piece
+            self._by_support[skey] = [piece]
+
+    def solution_for(self, support: np.ndarray, com) -> SupportSolution:
+        """The solved normal forces of the cells ``support`` with the centre of mass at ``com`` (m), from the cache
+        of geometric patterns (shared by all velocities, and by parcels of the same weight) or solved now. Raises
+        TippingError when there is none."""
+        return self._solution_first(support, com)[0]
+
+    def _solution_first(self, support: np.ndarray, com) -> tuple[SupportSolution, bool]:
+        """:meth:`solution_for`, and whether it is the first of its pattern's shared solutions (which the lookup
+        tries before any other: wherever it holds on these cells, it is the one found)."""
+        X = np.asarray(com, dtype=float)
+        if len(support) == 0:
+            raise TippingError(f"no cell lies under the parcel at ({X[0]:.6g}, {X[1]:.6g}) m")
+        unit = _PATTERN_RESOLUTION * self.cells.pitch
+        pts, origin, rel = _kernel.pattern(self.cells.positions, support, unit)
+        gkey = rel.tobytes()
+        xi = X - origin
+        geometry = self._geometry
+        for store in (geometry.shared, geometry.own):
+            found = next(((k, t) for k, t in enumerate(store.get(gkey, ())) if t.holds(xi)), None)
+            if found is not None:
+                return found[1].at(origin), found[0] == 0 and store is geometry.shared
+        try:  # in the pattern's own coordinates (see _GeometryCache), its first cell at the local origin
+            sol = _solve(rel * unit, X - pts[0], self.weight, self.cells.is_line, self._line_dir)
+        except TippingError as exc:  # say where, in the array's coordinates
+            try:
+                _solve(pts, X, self.weight, self.cells.is_line, self._line_dir)
+            except TippingError as world:
+                raise world from None
+            raise TippingError(f"the centre of mass at ({X[0]:.6g}, {X[1]:.6g}) m is on the edge of the hull of its "
+                               f"{len(pts)} supporting cells, outside it to rounding: the parcel tips") from exc
+        geometry.solves += 1
+        store = geometry.own if sol.contact_collinear else geometry.shared
+        solved = store.setdefault(gkey, [])
+        solved.append(sol)
+        return sol.at(origin), len(solved) == 1 and store is geometry.shared
+
+    def constants_for(self, support: np.ndarray, sol: SupportSolution, velocities: np.ndarray) -> FrictionConstants:
+        """The friction law's constants for the cells ``support`` solved as ``sol``, whose surfaces move at
+        ``velocities`` ((len(support), 2), m/s)."""
+        return self.law.constants(sol, velocities, self.cells.active_directions[support], self.spec.mu)
+
+    def constants_and_row(self, support: np.ndarray, sol: SupportSolution,
+                          velocities: np.ndarray) -> tuple[FrictionConstants, tuple[float, ...]]:
+        """:meth:`constants_for` and the piece's constants row (:func:`constants_row`) in one compiled call."""
+        spec = self.spec
+        return self.law.constants_and_row(sol, velocities, self.cells.active_directions[support], spec.mu, spec.mass,
+                                          spec.inertia)
+
+    @property
+    def pieces_cached(self) -> int:
+        """Number of distinct (support set, contact set) pieces solved so far."""
+        return len(self._pieces)
+
+    def rhs(self, t: float, y: np.ndarray) -> np.ndarray:
+        """State derivative at ``y`` (looks the piece up; raises TippingError)."""
+        return self.piece_at(y).rhs(t, y)
+
+
+@dataclass(frozen=True)
+class Event:
+    """Something that changed the dynamics of one parcel.
+
+    ``kind`` is ``"support"`` (cells entered / left the footprint, lifted off / touched down), ``"tip"`` (the
+    parcel's centre of mass left its supports; the parcel falls off the array and is no longer simulated), or, in
+    multi-parcel runs (:mod:`virtual_vehicle.engine.plant`), ``"contact"`` / ``"release"`` (it started / stopped pushing
+    against the parcel named ``partner``). Times in s, state as ``[x, y, theta, vx, vy, omega]``.
+    """
+
+    t: float
+    kind: str
+    state: tuple[float, ...]
+    entered: tuple[int, ...] = ()
+    left: tuple[int, ...] = ()
+    lifted: tuple[int, ...] = ()
+    touched: tuple[int, ...] = ()
+    message: str = ""
+    partner: str = ""
+
+
+@dataclass
+class Trajectory:
+    """What happened to one parcel: samples, events, and how the run ended.
+
+    Attributes:
+        times: (k,) sample times, s. states: (k, 6) states at those times.
+        events: support changes and tipping, in time order.
+        status: ``"completed"`` (reached the end time) or ``"tipped"``.
+        t_end: time the parcel stopped being simulated, s.
+        segments: smooth pieces integrated (event mode) or steps taken (fixed mode).
+        rhs_evals: right-hand-side evaluations.
+    """
+
+    times: np.ndarray
+    states: np.ndarray
+    events: list[Event]
+    status: str
+    t_end: float
+    segments: int = 0
+    rhs_evals: int = 0
+    stats: dict = field(default_factory=dict)
+
+
+def _diff_event(t, y, old: Piece, new: Piece) -> Event | None:
+    (old_s, old_c), (new_s, new_c) = old.sets, new.sets
+    entered, left = new_s - old_s, old_s - new_s
+    lifted, touched = (old_c - new_c) & new_s, (new_c - old_c) & old_s
+    if not (entered or left or lifted or touched):
+        return None
+    return _support_event(float(t), tuple(np.asarray(y, dtype=float).tolist()), _ordered(entered), _ordered(left),
+                          _ordered(lifted), _ordered(touched))
+
+
+def _ordered(ids: frozenset[int]) -> tuple[int, ...]:
+    return tuple(sorted(ids)) if ids else ()
+
+
+def _support_event(t: float, state: tuple[float, ...], entered: tuple[int, ...], left: tuple[int, ...],
+                   lifted: tuple[int, ...], touched: tuple[int, ...]) -> Event:
+    """``Event(t, "support", state, entered, left, lifted, touched)``, the same object made without the frozen
+    dataclass's nine guarded field assignments (half of the ~1 us a support change's record took)."""
+    ev = object.__new__(Event)
+    ev.__dict__.update(t=t, kind="support", state=state, entered=entered, left=left, lifted=lifted, touched=touched,
+                       message="", partner="")
+    return ev
+
+
+class _Segment:
+    """Event functions of one piece started at state y0: an event is a sign change of any of them.
+
+    The values are, in order: the footprint margin of every candidate cell near the parcel (m), the spring force
+    of every supporting cell (N; its sign is contact), the slack of the centre of mass in the supports' hull (m),
+    and the distance left before the candidate list must be refreshed (m). The compiled engine
+    (:mod:`virtual_vehicle.engine._kernel`) evaluates them from :attr:`fields`.
+
+    The candidates are the cells within the parcel's radius plus ``buffer`` of ``center``, where they were gathered:
+    they cover the footprint while its centre stays within ``buffer`` of there. A segment that starts within half
+    that of its predecessor's centre keeps its candidates (a KD-tree query a support change saved; at 0.2 m/s and
+    100 changes a second a list lasts some 25 segments, and its refresh event costs one more).
+    """
+
+    def __init__(self, model: ParcelModel, piece: Piece, y0: np.ndarray, previous: "_Segment | None" = None):
+        radius, buffer, noise_length, noise_force = model._segment_scales
+        self.buffer = buffer
+        x, y = y0[:2].tolist()
+        if previous is not None and math.hypot(x - previous.xy[0], y - previous.xy[1]) <= buffer / 2:
+            # still cover the footprint for buffer / 2 more
+            self.ids, self.center, self.xy = previous.ids, previous.center, previous.xy
+            self.candidates = previous.candidates
+        else:
+            self.center = np.array(y0[:2], dtype=float)
+            self.xy = (x, y)
+            self.ids = model.cells.grid.within(x, y, radius + buffer, model.present)
+            self.candidates = model.cells.positions[self.ids]
+        sol = piece.solution
+        nc, m, q = len(self.ids), len(sol.points), len(sol.hull_offsets)
+        self.bounds = (0, nc, nc + m, nc + m + q, nc + m + q + 1)
+        self.fields = _kernel.make_segment(model.outline, radius, self.candidates, sol, self.center, buffer,
+                                           noise_length, noise_force, self.ids)
+
+    @cached_property
+    def arrays(self) -> _kernel.Segment:
+        """:attr:`fields` named (what the compiled functions other than ``run_piece`` take)."""
+        return _kernel.Segment(*self.fields)
+
+    def support(self, g: np.ndarray | None) -> np.ndarray | None:
+        """The cells under the footprint (as :meth:`ParcelModel.support_at` finds them) from event values ``g`` at
+        one state, or None when they cannot tell: no values, or the parcel has gone beyond the candidates' reach."""
+        if g is None or not g[-1] > 0:
+            return None
+        return self.ids[g[:self.bounds[1]] > 0]
+
+    def values(self, y) -> np.ndarray:
+        """Event values at state ``y`` ((6,) -> (n,)), or at many states ((k, 6) -> (k, n))."""
+        Y = np.atleast_2d(np.asarray(y, dtype=float))
+        out = np.empty((len(Y), self.bounds[-1]))
+        for state, row in zip(Y, out):
+            _kernel.values(self.arrays, np.ascontiguousarray(state), row)
+        return out if np.ndim(y) == 2 else out[0]
+
+
+_NOISE = 1e-11
+"""Relative size below which an event value is treated as zero (rounding noise)."""
+
+_CHATTER_EVENTS = 50
+_CHATTER_SPAN = 1e-9
+"""A run of ``_CHATTER_EVENTS`` support changes within ``_CHATTER_SPAN`` s (times max(1, |t|)) that goes back and
+forth between at most ``_CHATTER_PIECES`` pieces is chattering: the parcel sits on a boundary between support sets
+whose pieces each drive it back into the other (a sliding mode, as a parcel at rest with an edge exactly on a row
+of cell centres under a field pushing both ways). Events there come one rounding step apart and would never reach
+the end of the interval. (An edge sweeping a long row of cells at a grazing angle also makes many changes in a
+short time, but each to a new piece.)"""
+_CHATTER_PIECES = 4
+_CHATTER_STEPS = 20
+"""Fixed steps of ``dt`` taken across a chattering boundary before events are located again."""
+_PAUSE_STEPS = 64
+"""With a progress callback, the compiled engine hands control back after this many steps within one piece."""
+_NO_PAUSE = int(np.iinfo(np.int64).max)
+"""Steps within one piece without a progress callback: no limit (worked out once: np.iinfo took ~5 us a call)."""
+
+
+def warm_up() -> float:
+    """Compile the event engine's inner loop (:mod:`virtual_vehicle.engine._kernel`), the support solve's compiled parts
+    (:mod:`virtual_vehicle.physics.contact`, :mod:`virtual_vehicle.physics.friction`), the quiet step's checks and step
+    (:mod:`virtual_vehicle.engine.batch`) and the sorter's cell program (:mod:`virtual_vehicle.cells.sorting`; about a minute
+    together, the first time on a machine) or load them from numba's cache (a fraction of a second), by integrating
+    one parcel on a 4 x 4 array for 10 ms, looking its last piece up again, making its constants under the viscous
+    law too, checking and stepping it as a quiet step would, gathering the cells under it as sensing does, and
+    stepping the sorter once and carrying its sentences. The first integration of a process does this anyway (but
+    for the sorter and its sentences); call it to do it at a time of your choosing (the set-up of ``make`` does, so
+    that no later run waits). Returns the seconds it took."""
+    from virtual_vehicle.engine.batch import QuietStepper  # here: batch imports this module
+    from virtual_vehicle.model.fields import Uniform
+    from virtual_vehicle.model.layout import grid
+    from virtual_vehicle.cells.network.delivery import IdealRounds
+    from virtual_vehicle.cells.network.messages import Mailbox
+    from virtual_vehicle.cells.network.programs import CellInputs
+    from virtual_vehicle.cells.network.topology import from_layout
+    from virtual_vehicle.model.parcel import covered_pairs, rectangle
+    from virtual_vehicle.cells.sorting import Sorter
+
+    start = time.perf_counter()
+    cells = grid(4, 4, 0.1)
+    spec = rectangle(0.25, 0.22, 1.0, 0.5)
+    model = ParcelModel(cells, spec, Uniform((0.1, 0.0)).velocities(cells), CoulombLaw())
+    end = integrate(model, np.array([0.15, 0.15, 0.0, 0.0, 0.0, 0.0]), 0.0, 0.01).states[-1]
+    piece = model.piece_at(end)  # found again: the cache's test of a solution
+    ViscousLaw().constants_and_row(piece.solution, model.velocities[piece.support],
+                                   cells.active_directions[piece.support], 0.5, spec.mass, spec.inertia)
+    constants_row(piece.constants, piece.solution.origin, spec.mass, spec.inertia)  # as unpickling a piece does
+    # the quiet step's compiled checks, with the argument types networked runs give them
+    stepper = QuietStepper(cells, [spec], model.law, [spec.mu], model.weight / spec.mass, 1e-10, 1e-12)
+    stepper._anchor(0, [model], end)
+    stepper._edges_clear(np.zeros(1, dtype=np.int64), end[None], 0.01, np.zeros(1), np.zeros(1), stepper.radius,
+                         stepper.lever)
+    _kernel.quiet_steps(np.array([piece.row]), end[None], 0.01, 0.02, 1e-10, 1e-12,
+                        np.array([0.01, 0.02]), np.empty((1, 2, 6)))
+    covered_pairs([spec], [end], cells.grid)  # as sensing and destination labels gather cells
+    sorter = Sorter(0.3)  # the sorter's compiled cell program, and its sentences carried, as a networked run goes
+    topology = from_layout(cells)
+    inputs = CellInputs(0.0, np.zeros((cells.n, 5), bool), Mailbox.empty(sorter.schema, cells.n, 4),
+                        topology.connected, {}, None)
+    sent = sorter.step(sorter.init(cells.n, 4, {}), inputs)[1]
+    rounds = IdealRounds(topology)
+    for _ in range(2):  # the first carries everything, the second what changed
+        rounds.exchange_changed(sent, np.ones(cells.n, bool), 0.0, 0.01)
+    return time.perf_counter() - start
+
+
+def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "event", rtol: float = 1e-10,
+              atol: float = 1e-12, max_step: float = np.inf, dt: float = 1e-3, sample_dt: float | None = None,
+              sample_times: np.ndarray | None = None, progress: Callable[[float], None] | None = None,
+              max_segments: int = 1_000_000) -> Trajectory:
+    """Integrate one parcel from state ``y0`` at ``t0`` to ``t1`` (s).
+
+    Args:
+        mode: ``"event"`` (piecewise, events located) or ``"fixed"`` (RK4 with step ``dt``, s). A model whose law is
+            :class:`~virtual_vehicle.engine.stickslip.StickSlipLaw` is always time-stepped at ``dt`` (a complementarity
+            problem per step), whatever the mode.
+        rtol, atol: tolerances of the adaptive integrator (event mode); atol in state units (m, rad, m/s, rad/s).
+        max_step: largest step of the adaptive integrator, s.
+        dt: fixed step (s) of fixed mode and of stick-slip. Event mode uses it only where support changes chatter
+            (``_CHATTER_EVENTS`` of them within ``_CHATTER_SPAN`` s among a few pieces: a sliding mode on a boundary
+            between support sets). It crosses ``_CHATTER_STEPS`` such steps as fixed mode would (RK4, the support
+            read at every stage; first order across the boundary), counts them in ``stats["chatter_steps"]``, and
+            then locates events again.
+        sample_dt: spacing of the output samples, s (default: 100 samples over the run). Event mode samples the
+            integrator's dense output; fixed mode interpolates linearly between its steps.
+        sample_times: explicit increasing output times (s) within [t0, t1] instead of ``sample_dt``.
+        progress: called with the simulated time now and then.
+
+    Returns:
+        The :class:`Trajectory`. A parcel that tips ends with status ``"tipped"`` and a ``"tip"`` event.
+    """
+    y0 = np.asarray(y0, dtype=float)
+    if y0.shape != (6,) or not np.all(np.isfinite(y0)):
+        raise ValueError("y0 must be six finite numbers [x, y, theta, vx, vy, omega]")
+    if not t1 > t0:
+        raise ValueError(f"t1 must be after t0, got t0={t0}, t1={t1}")
+    if sample_times is not None:
+        sample_times = np.asarray(sample_times, dtype=float)
+        if np.any(np.diff(sample_times) <= 0) or sample_times[0] < t0 or sample_times[-1] > t1:
+            raise ValueError("sample_times must increase within [t0, t1]")
+    else:
+        if sample_dt is None:
+            sample_dt = (t1 - t0) / 100
+        if not sample_dt > 0:
+            raise ValueError("sample_dt must be positive")
+        sample_times = sample_grid(t0, t1, sample_dt)
+    if mode not in MODES:
+        raise ValueError(f"mode must be 'event' or 'fixed', got {mode!r}")
+    return _integrate(model, y0, t0, t1, sample_times, mode=mode, rtol=rtol, atol=atol, max_step=max_step, dt=dt,
+                      progress=progress, max_segments=max_segments)
+
+
+def _integrate(model: ParcelModel, y0: np.ndarray, t0: float, t1: float, sample_times: np.ndarray, *, mode: Mode,
+               rtol: float, atol: float, max_step: float, dt: float,
+               progress: Callable[[float], None] | None = None, max_segments: int = 1_000_000,
+               support: np.ndarray | None = None) -> Trajectory:
+    """:func:`integrate` for arguments known to be valid (``y0`` a finite (6,) float array, ``t1 > t0``,
+    ``sample_times`` a float array increasing within [t0, t1], ``mode`` known): a plant's calls, whose checks took
+    ~30 us of a ~250 us control tick with an event. ``support``: the cells under the parcel at ``y0`` when the caller
+    has found them as :meth:`ParcelModel.support_at` does (event mode starts from them)."""
+    # Flush values below 1e-100 (a velocity decaying for minutes under viscous damping reaches subnormal floats,
+    # where the adaptive integrator's error norm underflows to 0/0).
+    y0 = np.where(np.abs(y0) < 1e-100, 0.0, y0)
+    if isinstance(model.law, StickSlipLaw):
+        from virtual_vehicle.engine.stickslip import run_stick_slip  # here: stickslip imports this module
+
+        return run_stick_slip(model, y0, t0, t1, sample_times, progress, dt=dt)
+    if mode == "event":
+        return _run_event(model, y0, t0, t1, sample_times, progress, max_segments, rtol=rtol, atol=atol,
+                          max_step=max_step, dt=dt, support=support)
+    return _run_fixed(model, y0, t0, t1, sample_times, progress, max_segments, dt=dt)
+
+
+def sample_grid(t0: float, t1: float, sample_dt: float) -> np.ndarray:
+    """Output sample times (s): ``t0, t0 + sample_dt, ...`` up to ``t1``, and ``t1`` itself."""
+    n_samples = int(np.floor((t1 - t0) / sample_dt * (1 + 1e-12))) + 1
+    times = t0 + sample_dt * np.arange(n_samples)
+    if times[-1] < t1 - 1e-12 * max(1.0, abs(t1)):
+        times = np.append(times, t1)
+    return times
+
+
+class _Recorder:
+    """Output samples at ``sample_times`` (filled in order, also by the compiled engine), then the last state."""
+
+    def __init__(self, sample_times):
+        self.sample_times = np.ascontiguousarray(sample_times, dtype=float)
+        self.samples = np.empty((len(self.sample_times), 6))
+        self.next = 0
+        self.last: tuple[float, np.ndarray] | None = None
+
+    def pending_until(self, t) -> np.ndarray:
+        """Sample times not yet recorded that are <= t."""
+        j = int(np.searchsorted(self.sample_times, t, side="right"))
+        return self.sample_times[self.next:j]
+
+    def add(self, ts, ys) -> None:
+        self.samples[self.next:self.next + len(ts)] = np.reshape(ys, (-1, 6))
+        self.next += len(ts)
+
+    def final(self, t, y) -> None:
+        if self.next == 0 or t > self.sample_times[self.next - 1]:
+            self.last = float(t), np.array(y, dtype=float)
+
+    def arrays(self):
+        times, states = self.sample_times[:self.next], self.samples[:self.next]
+        if self.last is None:
+            return times.copy(), states.copy()
+        return np.append(times, self.last[0]), np.vstack([states, self.last[1]])
+
+
+def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol, atol, max_step,
+               dt, support=None) -> Trajectory:
+    rec = _Recorder(sample_times)
+    events: list[Event] = []
+    t, y = float(t0), y0.copy()
+    segments = nfev = chatter_steps = 0
+    recent: deque[tuple[float, tuple]] = deque(maxlen=_CHATTER_EVENTS)  # the latest support changes: time, piece
+    # First step: the whole interval, which the error control shrinks if it must (a few rejected trials for a long
+    # run). Within a piece the motion is smooth, so a short interval, as a control tick, is often one step, where
+    # the solver's own first-step guess took five.
+    h = t1 - t0
+    try:
+        piece = model.piece_at(y) if support is None else model.piece_for(support, y)
+    except TippingError as exc:
+        rec.final(t, y)
+        events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
+        return Trajectory(*rec.arrays(), events, "tipped", t)
+    status = "completed"
+    y_probe = y
+    seg = None
+    max_steps = _PAUSE_STEPS if progress is not None else _NO_PAUSE
+    while True:
+        segments += 1
+        if segments > max_segments:
+            raise IntegrationError(f"more than {max_segments} support changes: events accumulate near t={t:.9g} s")
+        seg = _Segment(model, piece, y_probe, seg)
+        base = y_probe  # the event values' signs here are the piece's baseline
+        first, h_abs = min(h, t1 - t), 0.0
+        while True:  # DOP853 on this piece until its first event (kernel.run_piece), handing back now and then
+            (outcome, t, y, h_abs, last, evals, rec.next, t_probe, y_probe, under,
+             told) = _kernel.run_piece(piece.row, seg.fields, base, t, y, t1, h_abs, first, rtol, atol, max_step,
+                                        max_steps, rec.sample_times, rec.next, rec.samples)
+            nfev += evals
+            first = 0.0
+            if last:
+                h = last
+            if outcome == _kernel.FAILED:
+                raise IntegrationError(f"integrator failed at t={t:.9g} s")
+            if outcome == _kernel.NOT_FINITE:
+                raise IntegrationError(f"an event function is not finite at t={t:.9g} s")
+            if outcome == _kernel.NO_CONVERGENCE:
+                raise IntegrationError(f"locating an event near t={t:.9g} s did not converge")
+            if progress is not None:
+                progress(t)
+            if outcome != _kernel.PAUSED:
+                break
+        if outcome == _kernel.REACHED:
+            break
+        recent.append((t, piece.key))
+        if (len(recent) == _CHATTER_EVENTS and t - recent[0][0] < _CHATTER_SPAN * max(1.0, abs(t))
+                and len({key for _, key in recent}) <= _CHATTER_PIECES):
+            recent.clear()  # chattering: cross the boundary in fixed steps, then locate events again
+            t_end = min(t1, t + _CHATTER_STEPS * dt)
+            due = rec.pending_until(t_end)
+            times, states, evs, status, t, n = _fixed_steps(model, y, t, t_end, dt, due, progress, _rk4(model))
+            kept = int(np.count_nonzero(due <= t))  # all of them unless it tipped
+            rec.add(times[:kept], states[:kept])
+            events.extend(evs)
+            chatter_steps += n
+            y = y_probe = states[-1]
+            if status == "tipped" or t >= t1:
+                break
+            piece = model.piece_at(y)  # tipping would have ended the fixed steps
+            continue
+        try:  # the cells under it are known from the probe's event values, when those tell (as seg.support)
+            new = model.piece_for(under, y_probe) if told else model.piece_at(y_probe)
+        except TippingError as exc:
+            events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
+            status = "tipped"
+            break
+        ev = _diff_event(t, y, piece, new)
+        if ev is not None:
+            events.append(ev)
+        piece = new
+        if t >= t1:  # the event's restart point is the end of the interval
+            break
+    rec.final(t, y)
+    stats = {"pieces_cached": model.pieces_cached, "solves": model.solves}
+    if chatter_steps:
+        stats["chatter_steps"] = chatter_steps
+    return Trajectory(*rec.arrays(), events, status, t, segments, nfev + 4 * chatter_steps, stats)
+
+
+def _fixed_steps(model, y0, t0, t1, dt, sample_times, progress, advance):
+    """Drive a fixed-step method: ``advance(piece, t, y, h) -> y_next`` takes one step of length h from state y.
+    Support changes are logged at the end of the step in which they happened; tipping ends the run.
+    Returns (times, states, events, status, t_end, steps)."""
+    if not dt > 0:
+        raise ValueError("dt must be positive")
+    events: list[Event] = []
+    t, y = float(t0), np.array(y0, dtype=float)
+    ts, ys = [t], [y.copy()]
+    steps = 0
+    status = "completed"
+    try:
+        piece = model.piece_at(y)
+        n_steps = int(np.ceil((t1 - t0) / dt - 1e-9))
+        for i in range(n_steps):
+            y = advance(piece, t, y, min(dt, t1 - t))
+            t = t0 + (i + 1) * dt if i + 1 < n_steps else t1
+            steps += 1
+            new = model.piece_at(y)
+            ev = _diff_event(t, y, piece, new)
+            if ev is not None:
+                events.append(ev)
+            piece = new
+            ts.append(t)
+            ys.append(y.copy())
+            if progress is not None and i % 256 == 0:
+                progress(t)
+    except TippingError as exc:
+        events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
+        status = "tipped"
+    times, states = _sampled(np.array(ts), np.array(ys), sample_times, t, y)
+    return times, states, events, status, t, steps
+
+
+def _rk4(model):
+    """Classical RK4 for :func:`_fixed_steps`; every stage looks its piece up."""
+    def rk4(piece, t, y, h):
+        k1 = model.rhs(t, y)
+        k2 = model.rhs(t + h / 2, y + h / 2 * k1)
+        k3 = model.rhs(t + h / 2, y + h / 2 * k2)
+        k4 = model.rhs(t + h, y + h * k3)
+        return y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return rk4
+
+
+def _run_fixed(model, y0, t0, t1, sample_times, progress, max_segments, *, dt) -> Trajectory:
+    times, states, events, status, t, steps = _fixed_steps(model, y0, t0, t1, dt, sample_times, progress,
+                                                           _rk4(model))
+    return Trajectory(times, states, events, status, t, steps, 4 * steps,
+                      {"pieces_cached": model.pieces_cached, "solves": model.solves})
+
+
+def _sampled(ts: np.ndarray, ys: np.ndarray, sample_times: np.ndarray, t: float, y: np.ndarray):
+    """Samples of a fixed-step run: states interpolated linearly at the sample times reached, plus the last state."""
+    keep = sample_times[sample_times <= t]
+    samples = np.column_stack([np.interp(keep, ts, ys[:, j]) for j in range(6)]) if len(keep) else np.zeros((0, 6))
+    times = list(keep)
+    states = list(samples)
+    if not times or t > times[-1]:
+        times.append(t)
+        states.append(y)
+    return np.array(times), np.array(states).reshape(-1, 6)
+

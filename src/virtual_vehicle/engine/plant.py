@@ -1,0 +1,622 @@
+"""The multi-parcel plant: every parcel on the array, and parcels pushing parcels.
+
+Units: SI (m, s, kg, N, N s, J).
+
+:meth:`Plant.advance` moves all parcels from ``t0`` to ``t1`` under constant wheel velocities. Time is cut into
+windows. In each window a parcel that cannot come within ``margin`` of any other (a rigorous bound on how far any
+point of it can move, :func:`~virtual_vehicle.physics.collide.point_reach`) is integrated on its own by the single-parcel
+engine (:func:`~virtual_vehicle.engine.dynamics.integrate`: event-driven, fixed-step or stick-slip, as configured), so a run
+whose parcels never meet is exactly the run without this module. Parcels that might meet are grouped (connected
+components) and time-stepped together at ``dt`` with the contact problem of :mod:`virtual_vehicle.physics.collide` (for the
+stick-slip law the wheels' rows join the same complementarity problem; for the Coulomb and viscous laws the wheels
+give each parcel its free velocity ``nu + h a``, paper eqs. 23/29 per support set).
+
+Events of a grouped parcel (support changes, tipping) are logged at the end of the step in which they happened, as in
+fixed-step mode; contacts add ``"contact"`` (two parcels started pushing each other) and ``"release"`` events.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Callable
+
+import numpy as np
+import shapely
+from scipy.optimize import brentq
+from scipy.spatial import cKDTree
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse import coo_matrix
+
+from virtual_vehicle.engine.batch import QuietStepper, QuietSteps
+from virtual_vehicle.physics.collide import (
+    ContactParams,
+    Rows,
+    lever_of,
+    overlap_area,
+    pair_contacts,
+    place,
+    point_reach,
+    point_reaches,
+    push_gain,
+    solve_rows,
+    wheel_speed_of,
+)
+from virtual_vehicle.engine.dynamics import (
+    MODES,
+    Event,
+    ParcelModel,
+    Trajectory,
+    _diff_event,
+    _integrate,
+    _sampled,
+    sample_grid,
+)
+from virtual_vehicle.errors import TippingError
+from virtual_vehicle.physics.friction import FrictionLaw, StickSlipLaw, ViscousLaw
+from virtual_vehicle.model.layout import CellArray
+from virtual_vehicle.model.parcel import ParcelSpec
+from virtual_vehicle.engine.stickslip import account, masses, new_account, remember, wheel_problem
+
+_ADDITIVE = ("wheel_work", "friction_dissipation", "step_dissipation", "contact_work", "unconverged_steps",
+             "chatter_steps")
+SUMMED_STATS = (*_ADDITIVE, "sweeps_max", "kinetic_start")
+"""Trajectory stats that :func:`join` does not simply take from the last piece."""
+
+
+@dataclass(frozen=True)
+class Integration:
+    """How single parcels are integrated (see :func:`~virtual_vehicle.engine.dynamics.integrate`) and the step ``dt`` (s)
+    of fixed-step, stick-slip and grouped parcels. ``batch``: in event mode (Coulomb or viscous law, no
+    ``max_step``), windows proven quiet are stepped for all parcels at once (:mod:`virtual_vehicle.engine.batch`: the same
+    single DOP853 step the event-driven engine would take, all in one compiled call)."""
+
+    mode: str = "event"
+    rtol: float = 1e-10
+    atol: float = 1e-12
+    max_step: float = np.inf
+    dt: float = 1e-3
+    batch: bool = True
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be 'event' or 'fixed', got {self.mode!r}")
+
+
+@dataclass
+class PlantRecord:
+    """What the plant counted over a run: ``parcel_contacts`` (pairs that started pushing each other),
+    ``max_penetration_m`` (deepest overlap between two parcels seen at a step, m), ``undetected_overlaps``
+    (window ends where two separately integrated parcels overlapped: must stay 0), ``grouped_steps`` (time steps
+    taken by groups of parcels in contact range), ``unconverged_contact_steps`` (steps whose contact problem did not
+    reach its tolerance within ``max_sweeps``), ``windows``, ``quiet_steps`` (parcel windows proven quiet and
+    stepped together, :mod:`virtual_vehicle.engine.batch`)."""
+
+    parcel_contacts: int = 0
+    max_penetration_m: float = 0.0
+    undetected_overlaps: int = 0
+    grouped_steps: int = 0
+    unconverged_contact_steps: int = 0
+    windows: int = 0
+    quiet_steps: int = 0
+    contacts_per_parcel: list[int] = field(default_factory=list)
+
+
+class Plant:
+    """All parcels of a run on one contact layer (cells, or one contact per wheel).
+
+    Args:
+        cells: the contact layer.
+        specs: the parcels.
+        law: the friction law.
+        gravity: m/s^2.
+        integration: single-parcel integrator settings and the time step of grouped parcels.
+        contact: how parcels touch each other.
+    """
+
+    def __init__(self, cells: CellArray, specs: list[ParcelSpec], law: FrictionLaw, gravity: float = 9.81,
+                 integration: Integration = Integration(), contact: ContactParams = ContactParams()):
+        self.cells = cells
+        self.specs = list(specs)
+        self.law = law
+        self.gravity = gravity
+        self.integration = integration
+        self.contact = contact
+        self._solutions: dict[float, dict] = {}  # solved supports shared by parcels of the same weight (N)
+        self.base = [self._model(spec) for spec in specs]
+        self.record = PlantRecord(contacts_per_parcel=[0] * len(specs))
+        self._touching: set[tuple[int, int]] = set()
+        self._warm: dict[tuple[int, int, int], tuple[float, float]] = {}
+        self._velocities: np.ndarray | None = None
+        self._models = None
+        self._law_name = "viscous" if isinstance(law, ViscousLaw) else "coulomb"
+        self._mu_max = [max(s.mu, s.mu_static or 0.0) for s in specs]
+        self._gain = [push_gain(s) for s in specs]
+        self._radius = np.array([s.radius for s in specs])
+        self._quiet = None
+        if (integration.batch and integration.mode == "event" and np.isinf(integration.max_step)
+                and not isinstance(law, StickSlipLaw)):
+            self._quiet = QuietStepper(cells, self.specs, law, self._mu_max, gravity, integration.rtol,
+                                       integration.atol)
+
+    def state(self) -> dict:
+        """What a checkpoint keeps of the plant: its record, the pairs of parcels pushing each other and their
+        contacts' last impulses (warm starts), and each parcel's stick-slip wheel memory. The rest is either the
+        setup's (cells, parcels, law) or a cache made again as needed (solved supports, pieces, quiet anchors)."""
+        return {"record": self.record, "touching": self._touching, "warm": self._warm,
+                "memory": [model.contact_memory for model in self.base]}
+
+    def restore(self, state: dict) -> None:
+        """Take up what :meth:`state` returned (of a plant of the same scenario)."""
+        if len(state["memory"]) != len(self.base) or not isinstance(state["record"], PlantRecord):
+            raise ValueError("the plant's state is not this plant's")
+        self.record, self._touching, self._warm = state["record"], set(state["touching"]), dict(state["warm"])
+        for model, memory in zip(self.base, state["memory"]):
+            model.contact_memory = memory
+
+    def _model(self, spec: ParcelSpec, share: bool = True) -> ParcelModel:
+        """A fresh model of parcel ``spec`` at rest wheels, sharing solved supports with parcels of its weight (or
+        keeping its own, ``share=False``)."""
+        store = self._solutions.setdefault(spec.weight(self.gravity), {}) if share else None
+        return ParcelModel(self.cells, spec, np.zeros((self.cells.n, 2)), self.law, self.gravity, store)
+
+    def models(self, velocities: np.ndarray) -> "_Models":
+        """The parcels' models under contact-layer velocities ``velocities`` (m/s), sharing solved geometry; each is
+        made when first asked for (a long run has many parcels that are not on the array)."""
+        if self._velocities is None or not np.array_equal(velocities, self._velocities):
+            self._velocities = np.array(velocities, dtype=float)
+            self._velocities.setflags(write=False)  # the models' own, shared by them and the quiet stepper
+            self._models = _Models(self.base, self._velocities)
+        return self._models
+
+    def set_present(self, present: np.ndarray | None) -> None:
+        """Take contacts out of the array or put them back (reconfiguration): ``present`` is an (n,) mask over the
+        contact layer (None: all present). Solved geometry stays cached (it depends only on the supports)."""
+        mask = None if present is None else np.asarray(present, dtype=bool).copy()
+        for model in self.base:
+            model.present = mask
+        if self._quiet is not None:
+            self._quiet.forget()
+        self._velocities = self._models = None  # models made from the old base are made again
+
+    def release(self, i: int) -> None:
+        """Forget what parcel ``i``'s model has cached (its own solved supports, pieces): it has left the array, and
+        a long run should hold memory for the parcels on it, not for every parcel it ever carried. The supports it
+        shared go when no parcel of its weight is left to share them."""
+        weight = self.specs[i].weight(self.gravity)
+        store = self._solutions.get(weight)
+        fresh = self._model(self.specs[i], share=False)
+        if store is not None and not any(m._geometry.shared is store for k, m in enumerate(self.base) if k != i):
+            del self._solutions[weight]
+        fresh.contact_memory = self.base[i].contact_memory
+        fresh.present = self.base[i].present
+        self.base[i] = fresh
+        if self._models is not None:
+            self._models.made.pop(i, None)
+        if self._quiet is not None:
+            self._quiet.forget(i)
+
+    # -- planning ----------------------------------------------------------------------------------------------
+    @cached_property
+    def _lever(self) -> np.ndarray:
+        return np.array([lever_of(s) for s in self.specs])
+
+    @cached_property
+    def _mu_max_arr(self) -> np.ndarray:
+        return np.array(self._mu_max, dtype=float)
+
+    def _reach(self, i, y, T, wmax, floor=0.0):
+        return point_reach(self.specs[i], y, T, law=self._law_name, mu_max=self._mu_max[i], gravity=self.gravity,
+                           wheel_speed=wmax, speed_floor=floor)
+
+    def _meet_time(self, i, j, ys, gap, H, wmax, floor) -> float:
+        """Earliest time (s, at most H; inf if later) at which parcels i and j could close ``gap`` (m)."""
+        if gap <= 0:
+            return 0.0
+
+        def closing(T):
+            return self._reach(i, ys[i], T, wmax, floor[i])[0] + self._reach(j, ys[j], T, wmax, floor[j])[0] - gap
+
+        if closing(H) < 0:
+            return np.inf
+        return float(brentq(closing, 0.0, H, xtol=1e-9))
+
+    def plan(self, ys, active, velocities, t: float, t1: float,
+             wheel_speed: float | None = None) -> tuple[float, list[list[int]]]:
+        """The next window's length (s) and the groups of parcels to step together in it (``wheel_speed``: the
+        fastest of ``velocities``, m/s, when the caller knows it).
+
+        No parcel can come within ``margin`` of a parcel outside its group before the window ends (bounds of
+        :func:`~virtual_vehicle.physics.collide.point_reach`). Pairs that could meet within ``min_window`` are grouped; the
+        window then lasts until the first moment any other pair could meet, at most ``window`` s (or, when no two
+        parcels can meet before ``t1``, all the way to ``t1``).
+        """
+        live = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
+        horizon = t1 - t
+        if len(live) < 2:
+            return horizon, []
+        cp = self.contact
+        wmax = wheel_speed_of(velocities) if wheel_speed is None else wheel_speed
+        Y = np.array([ys[i] for i in live], dtype=float)
+        tree = cKDTree(Y[:, :2])
+        radius = self._radius[live]
+
+        def reaches(T, floor):  # self._reach of every live parcel
+            return point_reaches(radius, self._lever[live], Y, T, law=self._law_name, mu_max=self._mu_max_arr[live],
+                                 gravity=self.gravity, wheel_speed=wmax, speed_floor=floor[live])
+
+        def candidates(T, floor):
+            reach = reaches(T, floor)[0]
+            ext = radius + reach
+            pairs = tree.query_pairs(2 * float(ext.max()) + cp.margin, output_type="ndarray")
+            if not len(pairs):
+                return pairs, np.zeros(0)
+            d = np.linalg.norm(Y[pairs[:, 0], :2] - Y[pairs[:, 1], :2], axis=1)
+            pairs = pairs[d < ext[pairs[:, 0]] + ext[pairs[:, 1]] + cp.margin]
+            if not len(pairs):
+                return pairs, np.zeros(0)
+            gaps = shapely.distance(outlines()[pairs[:, 0]], outlines()[pairs[:, 1]]) - cp.margin
+            keep = gaps < reach[pairs[:, 0]] + reach[pairs[:, 1]]
+            return pairs[keep], gaps[keep]
+
+        shapes = []
+
+        def outlines():  # the footprints where they are, made once per plan and only when needed
+            if not shapes:
+                shapes.append(np.array([shapely.Polygon(place(self.specs[i].footprint, ys[i])) for i in live]))
+            return shapes[0]
+
+        floor = np.zeros(len(self.specs))
+        if not len(candidates(horizon, floor)[0]):
+            return horizon, []
+        H = min(horizon, cp.window)
+        own = np.zeros(len(self.specs))  # fastest point speed each parcel's wheels alone can give it within H
+        own[live] = reaches(H, np.zeros(len(self.specs)))[1]
+        labels = np.arange(len(live))
+        for _ in range(len(live)):  # components only grow, so this ends
+            pairs, gaps = candidates(H, floor)
+            T = np.array([self._meet_time(live[a], live[b], ys, g, H, wmax, floor) for (a, b), g in zip(pairs, gaps)])
+            close = pairs[T < min(cp.min_window, H)] if len(pairs) else pairs
+            graph = coo_matrix((np.ones(len(close)), (close[:, 0], close[:, 1])) if len(close) else ([], ([], [])),
+                               shape=(len(live), len(live)))
+            new = connected_components(graph, directed=False)[1]
+            if np.array_equal(new, labels):
+                break
+            labels = new
+            # A push can make a parcel's points faster than the pusher's: each member of a group may reach its
+            # gain times the fastest speed any member's wheels can give.
+            fastest = np.zeros(new.max() + 1)
+            np.maximum.at(fastest, new, own[live])
+            sizes = np.bincount(new)
+            for k, i in enumerate(live):
+                floor[i] = self._gain[i] * fastest[new[k]] if sizes[new[k]] > 1 else 0.0
+        across = T[labels[pairs[:, 0]] != labels[pairs[:, 1]]] if len(pairs) else T
+        W = float(min(H, across.min())) if len(across) else H
+        out: dict[int, list[int]] = {}
+        for k, i in enumerate(live):
+            out.setdefault(int(labels[k]), []).append(i)
+        return W, sorted((g for g in out.values() if len(g) > 1), key=lambda g: g[0])
+
+    # -- advancing ---------------------------------------------------------------------------------------------
+    def advance(self, ys: list[np.ndarray], active: list[bool], velocities: np.ndarray, t0: float, t1: float,
+                sample_dt: float, progress: Callable[[float], None] | None = None,
+                sample_times: np.ndarray | None = None, trim: bool = True) -> list[Trajectory | None]:
+        """Move every active parcel from ``t0`` to ``t1`` (s) under constant contact-layer ``velocities`` (m/s).
+
+        ``ys`` and ``active`` are updated in place (a parcel that tips becomes inactive). Returns each parcel's
+        :class:`Trajectory` over the interval, sampled every ``sample_dt`` s from ``t0`` (or at ``sample_times``,
+        s, within the interval) and at its end (None for a parcel that was inactive at ``t0``). With ``trim=False``
+        it also keeps the states where the plant restarted its integration (``t0`` among them), for a caller that
+        keeps only the samples on its grid anyway (a networked run's tracks: most ticks hold no output sample, and
+        trimming each parcel's trajectory cost a few microseconds a tick). Raises ValueError when an active parcel's
+        state is not six finite numbers.
+        """
+        out, quiet = self._advance(ys, active, velocities, t0, t1, sample_dt, progress, sample_times)
+        for i, steps, k in quiet:
+            out[i] = steps.trajectory(k)
+        if trim:
+            grid = _output_grid(t0, t1, sample_dt, sample_times)
+            out = [None if tr is None else _on_grid(tr, grid) for tr in out]
+        return out
+
+    def _advance(self, ys: list[np.ndarray], active: list[bool], velocities: np.ndarray, t0: float, t1: float,
+                 sample_dt: float, progress: Callable[[float], None] | None = None,
+                 sample_times: np.ndarray | None = None) -> tuple[list[Trajectory | None],
+                                                                  list[tuple[int, QuietSteps, int]]]:
+        """:meth:`advance` untrimmed, with the parcels stepped only by the quiet stepper left as it stepped them: a
+        networked run takes them in from the stepper's block (a Trajectory per parcel and tick cost more than the
+        step). Returns the trajectories, None for those parcels and the inactive ones, and ``(i, steps, k)`` for
+        each of those parcels ``i``: its window is ``steps.trajectory(k)``."""
+        models = self.models(velocities)
+        was_active = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
+        if was_active:  # checked here once: the engine takes them as they are
+            try:
+                Y = np.array([ys[i] for i in was_active], dtype=float)
+            except ValueError:  # states of different lengths
+                Y = None
+            if Y is None or Y.shape != (len(was_active), 6) or not np.all(np.isfinite(Y)):
+                raise ValueError("the active parcels' states must be six finite numbers [x, y, theta, vx, vy, omega]")
+        parts: dict[int, list] = {i: [] for i in was_active}  # each window's Trajectory, or (steps, k) if quiet
+        grid = _output_grid(t0, t1, sample_dt, sample_times)
+        t = float(t0)
+        end = t1 - 1e-12 * max(1.0, abs(t1))
+        while t < end:
+            W, groups = self.plan(ys, active, velocities, t, t1, models.wheel_speed)
+            if t + W < end and t1 - (t + W) < 1e-6 * (t1 - t):
+                W = 0.5 * (t1 - t)  # never leave a sliver of an interval for the next window
+            te = t1 if t + W >= end else t + W
+            inside = grid[(grid > t) & (grid < te)]
+            samples = np.concatenate([[t], inside, [te]])
+            grouped = {i for g in groups for i in g}
+            integ = self.integration
+            solo = [i for i in was_active if active[i] and i not in grouped]
+            rest = solo
+            if self._quiet is not None:
+                for i in grouped:
+                    self._quiet.forget(i)
+                done, rest = self._quiet.step(models, self.base, solo, ys, models.velocities, t, te, samples,
+                                              models.wheel_speed)
+                self.record.quiet_steps += len(done)
+                if len(done):
+                    last = done.last()
+                    for k, i in enumerate(done.idx):  # a quiet step completes: nothing tips
+                        parts[i].append((done, k))
+                        ys[i] = last[k]
+            for i in rest:
+                known = None if self._quiet is None else self._quiet.hand_over(i, models[i], ys[i])
+                tr = _integrate(models[i], ys[i], t, te, samples, mode=integ.mode, rtol=integ.rtol, atol=integ.atol,
+                                max_step=integ.max_step, dt=integ.dt, support=known)  # all checked where they come in
+                if self._quiet is not None and (tr.events or tr.status != "completed"):
+                    self._quiet.forget(i)  # its anchor's piece may no longer hold
+                self._take(i, tr, ys, active, parts)
+            for g in groups:
+                for i, tr in self._step_group(g, models, ys, t, te, samples).items():
+                    self._take(i, tr, ys, active, parts)
+            self._check_overlaps(ys, active, groups)
+            self.record.windows += 1
+            t = te
+            if progress is not None:
+                progress(t)
+        out: list[Trajectory | None] = [None] * len(ys)
+        quiet: list[tuple[int, QuietSteps, int]] = []
+        for i, p in parts.items():
+            if len(p) == 1 and type(p[0]) is tuple:
+                quiet.append((i, *p[0]))
+            elif p:
+                out[i] = join([q[0].trajectory(q[1]) if type(q) is tuple else q for q in p])
+        return out, quiet
+
+    @staticmethod
+    def _take(i, tr, ys, active, parts):
+        parts[i].append(tr)
+        ys[i] = tr.states[-1].copy()
+        if tr.status == "tipped":
+            active[i] = False
+
+    def _check_overlaps(self, ys, active, groups):
+        live = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
+        if len(live) < 2:
+            return
+        group_of = {i: k for k, g in enumerate(groups) for i in g}
+        centres = np.array([ys[i] for i in live])[:, :2]  # one array, then its columns: slicing each took longer
+        for a, b in cKDTree(centres).query_pairs(2 * float(self._radius[live].max()), output_type="ndarray"):
+            i, j = live[a], live[b]
+            if group_of.get(i, -1 - i) == group_of.get(j, -2 - j):
+                continue
+            if overlap_area(self.specs[i], ys[i], self.specs[j], ys[j]) > 1e-12:
+                self.record.undetected_overlaps += 1
+
+    def _step_group(self, members: list[int], models, ys, t0: float, t1: float, samples: np.ndarray):
+        """Time-step a group of parcels together from ``t0`` to ``t1``; returns {parcel: Trajectory}."""
+        h = self.integration.dt
+        cp = self.contact
+        stick = isinstance(self.law, StickSlipLaw)
+        n_steps = max(1, int(np.ceil((t1 - t0) / h - 1e-9)))
+        Y = {i: np.array(ys[i], dtype=float) for i in members}
+        log = {i: ([t0], [Y[i].copy()], [], "completed") for i in members}
+        acc = {i: new_account() for i in members}
+        pieces = {}
+        live = []
+        for i in members:
+            try:
+                pieces[i] = models[i].piece_at(Y[i])
+                live.append(i)
+            except TippingError as exc:
+                log[i][2].append(Event(t0, "tip", tuple(map(float, Y[i])), message=str(exc)))
+                log[i] = (*log[i][:3], "tipped")
+        t_end = {i: t0 for i in members}
+        for s in range(n_steps):
+            if not live:
+                break
+            t = t0 + s * h
+            t_next = t1 if s + 1 == n_steps else t0 + (s + 1) * h
+            hh = t_next - t
+            slot = {i: b for b, i in enumerate(live)}
+            mass = np.array([masses(self.specs[i]) for i in live])
+            nu = np.array([Y[i][3:] for i in live])
+            rows = Rows()
+            wheels = {}
+            for b, i in enumerate(live):
+                if stick:
+                    J, w, bounds, lam0, keys = wheel_problem(models[i], pieces[i], Y[i], hh)
+                    first = len(rows)
+                    for r in range(len(w)):
+                        rows.box(b, J[r], w[r], bounds[r], lam0[r])
+                    wheels[i] = (first, J, w, bounds, keys)
+                else:
+                    nu[b] = nu[b] + hh * pieces[i].rhs(t, Y[i])[3:]  # wheels alone (eqs. 23/29 per support set)
+            normals = []  # (row, i, j, contact)
+            near_pairs = set()
+            centres = np.array([Y[i][:2] for i in live])
+            radius = self._radius[live]
+            near = cKDTree(centres).query_pairs(2 * float(radius.max()) + cp.margin, output_type="ndarray")
+            for x, z in sorted(map(tuple, near)):
+                i, j = live[x], live[z]
+                if np.hypot(*(centres[x] - centres[z])) > radius[x] + radius[z] + cp.margin:
+                    continue
+                for c in pair_contacts(i, self.specs[i], Y[i], j, self.specs[j], Y[j], cp.margin):
+                    warm = self._warm.get((c.i, c.j, c.feature), (0.0, 0.0))
+                    k, _ = rows.contact(slot[c.i], slot[c.j], c, Y[c.i][:2], Y[c.j][:2], hh, cp, warm)
+                    normals.append((k, c))
+                    self.record.max_penetration_m = max(self.record.max_penetration_m, -c.gap)
+                    if c.gap <= 0.5 * cp.margin:
+                        near_pairs.add((i, j))
+            pushing = set()
+            if not len(rows):
+                V = nu
+            else:
+                law = self.law if stick else cp
+                lam, V, sweeps, ok = solve_rows(rows, nu, 1.0 / mass, law.max_sweeps, cp.tolerance if not stick
+                                                else min(cp.tolerance, law.tolerance))
+                self.record.unconverged_contact_steps += not ok
+                self._warm = {key: v for key, v in self._warm.items() if not (key[0] in slot and key[1] in slot)}
+                self._warm.update({(c.i, c.j, c.feature): (float(lam[k]), float(lam[k + 1])) for k, c in normals})
+                pushing = {(min(c.i, c.j), max(c.i, c.j)) for k, c in normals if lam[k] > 0}
+                for b, i in enumerate(live):
+                    if i in wheels:
+                        first, J, w, bounds, keys = wheels[i]
+                        li = lam[first:first + len(w)]
+                        account(acc[i], li, J @ V[b] - w, w, V[b] - Y[i][3:], mass[b])
+                        remember(models[i], keys, li, bounds)
+                        acc[i]["sweeps_max"] = max(acc[i]["sweeps_max"], sweeps)
+                        acc[i]["unconverged_steps"] += not ok
+                for k, c in normals:  # work of the contact impulses on each parcel over the step
+                    for body, sign in ((c.i, 1.0), (c.j, -1.0)):
+                        if lam[k] or lam[k + 1]:
+                            r = c.point - Y[body][:2]
+                            n = c.normal * sign
+                            tvec = np.array([-n[1], n[0]])
+                            vb = V[slot[body]]
+                            vp = vb[:2] + vb[2] * np.array([-r[1], r[0]])
+                            acc[body]["contact_work"] += float(lam[k] * (n @ vp) + lam[k + 1] * (tvec @ vp))
+            self._contact_events(t_next, Y, pushing, near_pairs, log)
+            self.record.grouped_steps += 1
+            for b, i in enumerate(live):
+                Y[i] = np.concatenate([Y[i][:3] + hh * V[b], V[b]])  # semi-implicit Euler
+                t_end[i] = t_next
+            still = []
+            for i in live:
+                try:
+                    new = models[i].piece_at(Y[i])
+                except TippingError as exc:
+                    log[i][2].append(Event(t_next, "tip", tuple(map(float, Y[i])), message=str(exc)))
+                    log[i] = (*log[i][:3], "tipped")
+                    self._touching = {p for p in self._touching if i not in p}
+                    log[i][0].append(t_next)
+                    log[i][1].append(Y[i].copy())
+                    continue
+                ev = _diff_event(t_next, Y[i], pieces[i], new)
+                if ev is not None:
+                    log[i][2].append(ev)
+                pieces[i] = new
+                log[i][0].append(t_next)
+                log[i][1].append(Y[i].copy())
+                still.append(i)
+            live = still
+        out = {}
+        for i in members:
+            ts, states, events, status = log[i]
+            times, sampled = _sampled(np.array(ts), np.array(states), samples, ts[-1], states[-1])
+            stats = {}
+            if stick:
+                y0, y1 = states[0], states[-1]
+                m = masses(self.specs[i])
+                stats = {**acc[i], "kinetic_start": 0.5 * float(m @ y0[3:] ** 2),
+                         "kinetic_end": 0.5 * float(m @ y1[3:] ** 2)}
+            out[i] = Trajectory(times, sampled, events, status, t_end[i], len(ts) - 1, 0, stats)
+        return out
+
+    def _contact_events(self, t, Y, pushing, near_pairs, log):
+        """Log the pairs of this group (``log``'s parcels) that started pushing each other and those that drew apart
+        (gap above margin / 2)."""
+        mine = {p for p in self._touching if p[0] in log and p[1] in log}
+        for i, j in sorted(pushing - mine):
+            self.record.parcel_contacts += 1
+            for a, b in ((i, j), (j, i)):
+                self.record.contacts_per_parcel[a] += 1
+                log[a][2].append(Event(t, "contact", tuple(map(float, Y[a])), partner=self.specs[b].name))
+        for i, j in sorted(mine - pushing - near_pairs):
+            for a, b in ((i, j), (j, i)):
+                log[a][2].append(Event(t, "release", tuple(map(float, Y[a])), partner=self.specs[b].name))
+        self._touching = (self._touching - mine) | (mine & near_pairs) | pushing
+
+
+class _Models:
+    """Models of every parcel under one set of velocities, made on first use."""
+
+    def __init__(self, base: list[ParcelModel], velocities: np.ndarray):
+        n = base[0].cells.n if base else len(velocities)
+        if velocities.dtype != float or velocities.shape != (n, 2) or not np.all(np.isfinite(velocities)):
+            raise ValueError(f"velocities must be finite floats with shape ({n}, 2)")
+        self.base = base
+        self.velocities = velocities
+        self.made: dict[int, ParcelModel] = {}
+
+    def __getitem__(self, i: int) -> ParcelModel:
+        model = self.made.get(i)
+        if model is None:
+            model = self.made[i] = self.base[i]._rewheeled(self.velocities)  # checked once, above
+        return model
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    @cached_property
+    def wheel_speed(self) -> float:
+        """The fastest contact surface speed of these velocities (m/s), found once for the planner and the quiet
+        stepper (each took ~30 us over 10^4 cells a tick)."""
+        return wheel_speed_of(self.velocities)
+
+
+def _output_grid(t0: float, t1: float, sample_dt: float, sample_times: np.ndarray | None) -> np.ndarray:
+    """The output samples of :meth:`Plant.advance` (s): ``sample_times`` when given, else every ``sample_dt``."""
+    return sample_grid(t0, t1, sample_dt) if sample_times is None else np.asarray(sample_times, dtype=float)
+
+
+def on_grid(times: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """(len(times),) bool: which of the increasing ``times`` are points of the increasing ``grid`` (exactly)."""
+    if not len(grid):
+        return np.zeros(len(times), dtype=bool)
+    at = np.searchsorted(grid, times)
+    return (at < len(grid)) & (grid[np.minimum(at, len(grid) - 1)] == times)
+
+
+def _on_grid(tr: Trajectory, grid: np.ndarray) -> Trajectory:
+    """Keep the samples on the output grid and the last one (window ends are integration restarts, not output)."""
+    if not len(grid):  # most control ticks hold no output sample
+        return tr if len(tr.times) == 1 else Trajectory(tr.times[-1:].copy(), tr.states[-1:].copy(), tr.events,
+                                                         tr.status, tr.t_end, tr.segments, tr.rhs_evals, tr.stats)
+    keep = on_grid(tr.times, grid)
+    keep[-1] = True
+    if keep.all():
+        return tr
+    return Trajectory(tr.times[keep], tr.states[keep], tr.events, tr.status, tr.t_end, tr.segments, tr.rhs_evals,
+                      tr.stats)
+
+
+def join(segs: list[Trajectory]) -> Trajectory:
+    """One trajectory from consecutive pieces (the shared instants appear once). Energy flows and solver counts add
+    up; the kinetic energy at the start is the first piece's, at the end the last's."""
+    if len(segs) == 1:
+        return segs[0]
+    times, states, events = [segs[0].times], [segs[0].states], list(segs[0].events)
+    for s in segs[1:]:
+        times.append(s.times[1:])
+        states.append(s.states[1:])
+        events.extend(s.events)
+    last = segs[-1]
+    return Trajectory(np.concatenate(times), np.concatenate(states), events, last.status, last.t_end,
+                      sum(s.segments for s in segs), sum(s.rhs_evals for s in segs), joined_stats(segs))
+
+
+def joined_stats(segs: list[Trajectory]) -> dict:
+    """The stats of consecutive pieces as :func:`join` merges them."""
+    stats = dict(segs[-1].stats)
+    for key in _ADDITIVE:
+        if any(key in s.stats for s in segs):
+            stats[key] = sum(s.stats.get(key, 0) for s in segs)
+    if any("sweeps_max" in s.stats for s in segs):
+        stats["sweeps_max"] = max(s.stats.get("sweeps_max", 0) for s in segs)
+    if "kinetic_start" in segs[0].stats:
+        stats["kinetic_start"] = segs[0].stats["kinetic_start"]
+    return stats

@@ -1,0 +1,1046 @@
+"""The Simulator: runs a validated scenario and records what happened to every parcel.
+
+Units: SI. A constant field is run as one plant interval; a networked run advances the plant one control tick at
+a time. The plant (:mod:`virtual_vehicle.engine.plant`) integrates each parcel on its own while it cannot meet another and
+resolves contact between parcels when it can.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import shapely
+
+from virtual_vehicle import __version__
+from virtual_vehicle.engine.dynamics import Trajectory, sample_grid
+from virtual_vehicle.engine.plant import SUMMED_STATS, join, joined_stats, on_grid
+from virtual_vehicle.physics.friction import CoulombLaw
+from virtual_vehicle.cells.network.messages import Mailbox
+from virtual_vehicle.cells.hardware import WheelDrives
+from virtual_vehicle.cells.network.programs import CellInputs, ChangedCells, tree_map
+from virtual_vehicle.model.parcel import ParcelSpec, covered_pairs, supporting_cells
+from virtual_vehicle.config.scenario import Setup
+from virtual_vehicle.cells.sorting import encode_goal
+
+
+_ENERGY = ("kinetic_start", "kinetic_end", "wheel_work", "friction_dissipation", "step_dissipation", "contact_work")
+
+
+@dataclass
+class ParcelResult:
+    """One parcel's run. ``sliding_violation`` is, for the Coulomb law, the first sample time (s) at which some
+    supporting wheel no longer slid under the parcel in its direction of spin (the paper's Coulomb assumption), and
+    the largest reversed slip (m/s) seen; None when the assumption held at every sample or was not checked
+    (``sliding_checked`` False: another law, or a run that could not check it). Networked runs check it at every
+    output sample against the wheel speeds of that control tick."""
+
+    spec: ParcelSpec
+    trajectory: Trajectory
+    sliding_violation: tuple[float, float] | None = None
+    sliding_checked: bool = True
+    entered_at: float | None = 0.0
+    """When the parcel was put on the array (s); None if its place never came free (status ``"waiting"``)."""
+
+
+@dataclass
+class CellLog:
+    """What every cell saw and did at every control tick (T ticks, n cells, S sensors per cell).
+
+    ``t`` (T,) tick start, s; ``readings`` (T, n, S) presence sensors, bool; ``wheels`` (T, n, 2) the wheels' mean
+    surface speeds over the tick and ``commands`` (T, n, 2) the speeds the cell program asked for, m/s (wheel 0
+    along the cell's first drive direction); ``sent`` / ``received`` (T, n) sentences each cell put on and took off
+    its links during the tick."""
+
+    t: np.ndarray
+    readings: np.ndarray
+    wheels: np.ndarray
+    commands: np.ndarray
+    sent: np.ndarray
+    received: np.ndarray
+
+    @classmethod
+    def stack(cls, rows: list[tuple]) -> "CellLog":
+        """From per-tick rows (t, readings, wheels, commands, sent, received)."""
+        cols = list(zip(*rows))
+        return cls(*(np.asarray(c) for c in cols))
+
+
+@dataclass
+class RunResult:
+    """Everything a run produced."""
+
+    setup: Setup
+    parcels: list[ParcelResult]
+    wall_time: float
+    stats: dict = field(default_factory=dict)
+    network: "NetworkRecord | None" = None
+    cell_log: "CellLog | None" = None
+    """Every cell at every control tick, when recording was asked (``[sensors] record = true``, networked runs)."""
+    scenario_text: str | None = None
+    """The scenario file's text, when the run was started from one (kept through checkpoints)."""
+
+    def summary(self) -> dict:
+        """A JSON-ready summary: per-parcel outcome, start/end state, distance, events; run totals."""
+        sc = self.setup.scenario
+        parcels = []
+        for pr in self.parcels:
+            tr = pr.trajectory
+            path = np.diff(tr.states[:, :2], axis=0)
+            parcels.append({
+                "name": pr.spec.name,
+                "status": tr.status,
+                "t_end_s": tr.t_end,
+                "start": dict(zip(("x", "y", "theta", "vx", "vy", "omega"), map(float, tr.states[0]))),
+                "end": dict(zip(("x", "y", "theta", "vx", "vy", "omega"), map(float, tr.states[-1]))),
+                "path_length_m": float(np.sum(np.hypot(path[:, 0], path[:, 1]))) if len(path) else 0.0,
+                "support_changes": sum(1 for e in tr.events if e.kind == "support"),
+                "tipped_at_s": next((e.t for e in tr.events if e.kind == "tip"), None),
+                "contacts_with_parcels": sum(1 for e in tr.events if e.kind == "contact"),
+                "segments": tr.segments,
+                "rhs_evaluations": tr.rhs_evals,
+                "chatter_steps": tr.stats.get("chatter_steps", 0),  # fixed steps across a sliding mode (event mode)
+                "coulomb_sliding_assumption_violated_at_s": pr.sliding_violation[0] if pr.sliding_violation else None,
+                "coulomb_max_reversed_slip_m_per_s": pr.sliding_violation[1] if pr.sliding_violation else None,
+                "coulomb_sliding_checked": pr.sliding_checked and isinstance(self.setup.law, CoulombLaw),
+                **({"energy_J": {k: tr.stats[k] for k in _ENERGY},
+                    "stick_slip_unconverged_steps": tr.stats["unconverged_steps"]} if "wheel_work" in tr.stats else {}),
+            })
+        extra = {}
+        if sc.control is not None and sc.control.program == "pose":
+            from virtual_vehicle.run.tasks import pose_report
+
+            report = pose_report(self)
+            for entry, row in zip(parcels, report.pop("parcels")):
+                entry.update({k: v for k, v in row.items() if k != "name"})
+            extra["pose"] = report
+        if sc.control is not None and sc.control.program == "sort":
+            from virtual_vehicle.run.tasks import sorting_report
+
+            report = sorting_report(self)
+            for entry, row in zip(parcels, report.pop("parcels")):
+                entry.update({k: v for k, v in row.items() if k != "name"})
+            extra["sorting"] = report
+        faults = self.setup.faults
+        if faults is not None and faults.any():
+            extra["faults"] = faults.summary()
+        simulated = sum(pr.trajectory.t_end for pr in self.parcels)
+        checked = [p for p in parcels if p["coulomb_sliding_checked"]]
+        violated = [p for p in checked if p["coulomb_sliding_assumption_violated_at_s"] is not None]
+        extra["coulomb_sliding"] = {  # the paper's Coulomb law assumes every wheel slides under the parcel (4.3)
+            "checked": bool(checked),
+            "parcels_violating": len(violated),
+            "first_violation_s": min((p["coulomb_sliding_assumption_violated_at_s"] for p in violated), default=None),
+            "max_reversed_slip_m_per_s": max((p["coulomb_max_reversed_slip_m_per_s"] for p in violated),
+                                             default=None),
+        }
+        return {
+            "scenario": sc.name,
+            "version": __version__,
+            "friction_law": sc.friction.law,
+            "integrator": "time-stepping (stick-slip)" if sc.friction.law == "stick_slip" else sc.integrator.mode,
+            "duration_s": sc.duration,
+            "cells": self.setup.cells.n,
+            "parcels": parcels,
+            "wall_time_s": self.wall_time,
+            "real_time_factor": (sc.duration / self.wall_time) if self.wall_time > 0 else None,
+            "parcel_seconds_simulated": simulated,
+            **self.stats,
+            **extra,
+        }
+
+    def to_pandas(self) -> dict:
+        """The run's tables (:func:`virtual_vehicle.run.tables.build`) as pandas DataFrames, by table name:
+        ``trajectories`` and ``events`` always, ``network`` and ``cell_traffic`` for networked runs, ``cells`` when
+        recorded. Each frame keeps its columns' SI units in ``df.attrs["units"]`` (column -> unit, ``""`` for
+        counts, ids and flags). Needs pandas (an optional dependency; the ``dev`` extra installs it)."""
+        try:
+            import pandas  # noqa: F401  (pyarrow's to_pandas needs it)
+        except ImportError as exc:
+            raise ImportError("RunResult.to_pandas needs pandas, which is not installed: pip install pandas") from exc
+        from virtual_vehicle.run import tables
+
+        frames = {}
+        for name, table in tables.build(self).items():
+            df = table.to_pandas()
+            df.attrs["units"] = {f.name: f.metadata[b"unit"].decode() for f in table.schema}
+            frames[name] = df
+        return frames
+
+
+def coulomb_sliding_check(setup: Setup, spec: ParcelSpec, traj: Trajectory,
+                          velocities: np.ndarray | None = None) -> tuple[float, float] | None:
+    """Check the paper's Coulomb assumption (Section 4.3: every wheel slides under the parcel in its direction of
+    spin) at every sample: under each supporting cell, each spinning wheel's surface speed along its drive direction
+    exceeds the parcel's. ``velocities``: the contact layer's surface velocities (m/s) over the samples (default the
+    constant field's). Returns (first violating time s, largest reversed slip m/s) or None."""
+    return _sliding(setup, spec, traj.times, traj.states,
+                    setup.contact_velocities if velocities is None else velocities)
+
+
+def _sliding(setup: Setup, spec: ParcelSpec, times, states, velocities: np.ndarray) -> tuple[float, float] | None:
+    """:func:`coulomb_sliding_check` on the samples ``times`` (s) and ``states``."""
+    cells = setup.contact_layer
+    first, worst = None, 0.0
+    for t, y in zip(times, states):
+        ids = supporting_cells(spec, y, cells.positions, cells.tree)
+        if len(ids) == 0:
+            continue
+        r = cells.positions[ids] - y[:2]
+        w = y[3:5] + y[5] * np.column_stack([-r[:, 1], r[:, 0]])  # parcel velocity over each cell
+        U = cells.active_directions[ids]
+        wheel = np.einsum("ij,ikj->ik", velocities[ids], U)
+        parcel = np.einsum("ij,ikj->ik", w, U)
+        reversed_slip = np.where(wheel != 0, -np.sign(wheel) * (wheel - parcel), -np.inf)
+        m = float(reversed_slip.max())
+        if m > 1e-9:
+            first = float(t) if first is None else first
+            worst = max(worst, m)
+    return None if first is None else (first, worst)
+
+
+def run(setup: Setup, progress: Callable[[float], None] | None = None, *,
+        checkpoint: str | Path | None = None, checkpoint_every: float | None = None,
+        scenario_text: str | None = None) -> RunResult:
+    """Run a built scenario. ``progress`` is called with the fraction of the run done (0..1). A scenario with a
+    ``[control]`` table is co-simulated with its cell program and network (:func:`run_network`); a constant field
+    is one plant interval, cut at every checkpoint when ``checkpoint`` (a file path) and ``checkpoint_every``
+    (simulated s) are given, and :func:`resume` continues it to exactly the result the same checkpointed run gives
+    uninterrupted."""
+    if setup.control is not None:
+        return run_network(setup, progress, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
+                           scenario_text=scenario_text)
+    job = FieldRun(setup)
+    job.scenario_text = scenario_text
+    return job.run(progress, checkpoint=checkpoint, checkpoint_every=checkpoint_every)
+
+
+class _Job:
+    """A run that can be cut into steps, checkpointed between them and resumed (subclasses: :class:`FieldRun`,
+    :class:`NetworkRun`). ``step`` advances and says whether a checkpoint is due; ``result`` finishes."""
+
+    version: str
+    wall: float
+
+    @property
+    def done(self) -> bool:
+        raise NotImplementedError
+
+    def step(self, every: float | None, progress) -> bool:
+        raise NotImplementedError
+
+    def result(self) -> RunResult:
+        raise NotImplementedError
+
+    def run(self, progress=None, *, checkpoint=None, checkpoint_every=None) -> RunResult:
+        """Step to the end (writing checkpoints when asked) and return the result."""
+        if checkpoint is not None and not (checkpoint_every and checkpoint_every > 0):
+            raise ValueError("checkpoint_every must be a positive number of simulated seconds")
+        every = None if checkpoint is None else float(checkpoint_every)
+        start = time.perf_counter()
+        while not self.done:
+            due = self.step(every, progress)
+            if due and not self.done:
+                self.wall += time.perf_counter() - start
+                start = time.perf_counter()
+                self.save(checkpoint, every)
+        self.wall += time.perf_counter() - start
+        if progress is not None:
+            progress(1.0)
+        return self.result()
+
+    KIND: str
+    """The run's kind as a checkpoint names it."""
+
+    def save(self, path, checkpoint_every: float) -> None:
+        """Write this run's state to ``path`` atomically (a data file, see :mod:`virtual_vehicle.run.checkpoint`), then
+        go on from exactly what :func:`resume` reads back from it (caches start afresh), so that the checkpointed
+        run and one resumed from any of its checkpoints are the same run to the last bit."""
+        from virtual_vehicle.run.io import write_atomic
+
+        data = self.checkpoint_bytes(checkpoint_every)
+        write_atomic(Path(path), data)
+        fresh, _ = _load(data, setup=self.setup)
+        self.__dict__.update(fresh.__dict__)
+
+    def checkpoint_bytes(self, checkpoint_every: float) -> bytes:
+        """This run's checkpoint: its scenario, where it is (:meth:`_position`, plain JSON) and its mutable state
+        (:meth:`_state`, encoded by :mod:`virtual_vehicle.run.checkpoint`); never the setup or any cache."""
+        from virtual_vehicle.run.checkpoint import FORMAT_VERSION, encode, pack
+
+        tree, arrays = encode(self._state(), _state_classes(), self._externals())
+        document = {"format_version": FORMAT_VERSION, "package_version": __version__, "kind": self.KIND,
+                    "checkpoint_every": float(checkpoint_every), "scenario": self.setup.scenario.model_dump(mode="json"),
+                    "scenario_text": self.scenario_text, "setup_digest": _setup_digest(self.setup),
+                    "position": self._position(), "state": tree}
+        return pack(document, arrays)
+
+    def _position(self) -> dict:
+        return {}
+
+    def _state(self) -> dict:
+        raise NotImplementedError
+
+    def _externals(self) -> dict:
+        """Objects of the setup the state refers to, written by name (and supplied again from the rebuilt setup)."""
+        return {}
+
+    def _restore(self, position: dict, state, arrays: list) -> None:
+        raise NotImplementedError
+
+
+class FieldRun(_Job):
+    """A constant-field run between checkpoints: the plant, every parcel's state and the pieces of trajectory so
+    far."""
+
+    KIND = "field"
+
+    def __init__(self, setup: Setup):
+        sc = setup.scenario
+        self.scenario_text: str | None = None
+        self.setup = setup
+        self.t = 0.0
+        self.wall = 0.0
+        self.grid = sample_grid(0.0, sc.duration, sc.output_dt or sc.duration / 500)  # output sample times, s
+        self.plant = setup.plant()
+        self.ys = [y.copy() for y in setup.states]
+        self.active = [True] * len(self.ys)
+        self.parts: list[list[Trajectory]] = [[] for _ in self.ys]
+
+    @property
+    def done(self) -> bool:
+        """True once the plant has reached the scenario's duration."""
+        return self.t >= self.setup.scenario.duration
+
+    def step(self, every, progress) -> bool:
+        """Advance to the next checkpoint (or the end); True when a checkpoint is due."""
+        t_end = self.setup.scenario.duration
+        t0 = self.t
+        t1 = t_end if every is None or t0 + every >= t_end - 1e-9 * every else t0 + every
+        eps = 1e-12 * max(1.0, t1)
+        inside = self.grid[np.searchsorted(self.grid, t0 + eps, side="right"):
+                           np.searchsorted(self.grid, t1 - eps, side="left")]
+        window = np.concatenate([[t0], inside, [t1]])  # the pieces meet at the cuts; join drops the repeats
+        report = None if progress is None else (lambda t: progress(t / t_end))
+        for part, tr in zip(self.parts, self.plant.advance(self.ys, self.active, self.setup.contact_velocities,
+                                                           t0, t1, 0.0, report, sample_times=window)):
+            if tr is not None:
+                part.append(tr)
+        self.t = t1
+        return True
+
+    def _state(self) -> dict:
+        return {"t": self.t, "wall": self.wall, "ys": self.ys, "active": self.active, "parts": self.parts,
+                "plant": self.plant.state()}
+
+    def _restore(self, position: dict, state, arrays: list) -> None:
+        from virtual_vehicle.run.checkpoint import decode
+
+        s = decode(state, arrays, _state_classes())
+        _check_like({"t": self.t, "wall": self.wall, "ys": self.ys, "active": self.active}, s)
+        self.t, self.wall, self.ys, self.active, self.parts = (float(s["t"]), float(s["wall"]), list(s["ys"]),
+                                                              list(s["active"]), list(s["parts"]))
+        if not (len(self.ys) == len(self.active) == len(self.parts) == len(self.setup.specs)):
+            raise ValueError("the state's parcels are not the scenario's")
+        self.plant.restore(s["plant"])
+
+    def result(self) -> RunResult:
+        """Join the pieces into the run's :class:`RunResult` (samples on the output grid, and each parcel's last)."""
+        setup = self.setup
+        results = []
+        for spec, part in zip(setup.specs, self.parts):
+            traj = join(part)
+            keep = np.isin(traj.times, self.grid)  # the output samples, wherever the checkpoints cut
+            keep[-1] = True
+            traj = replace(traj, times=traj.times[keep], states=traj.states[keep])
+            check = coulomb_sliding_check(setup, spec, traj) if isinstance(setup.law, CoulombLaw) else None
+            results.append(ParcelResult(spec, traj, check))
+        return RunResult(setup, results, self.wall, {"plant": plant_totals(self.plant)},
+                         scenario_text=self.scenario_text)
+
+
+def plant_totals(plant) -> dict:
+    """The plant's run-level record, JSON-ready."""
+    rec = plant.record
+    return {"parcel_contacts": rec.parcel_contacts, "max_penetration_m": rec.max_penetration_m,
+            "undetected_overlaps": rec.undetected_overlaps, "grouped_steps": rec.grouped_steps,
+            "unconverged_contact_steps": rec.unconverged_contact_steps, "windows": rec.windows,
+            "quiet_steps": rec.quiet_steps}
+
+
+class LatencyStats:
+    """Streaming statistics of sentence latencies (s): count, sum, min, max, and counts on 512 log-spaced bins from
+    1 microsecond to 1000 s (edges 4.1% apart) for percentiles, so that an hour's run does not keep every one."""
+
+    EDGES = np.logspace(-6, 3, 513)
+
+    def __init__(self):
+        self.count = 0
+        self.total = 0.0
+        self.min = np.inf
+        self.max = -np.inf
+        self.counts = np.zeros(512, dtype=np.int64)
+
+    def add(self, latencies: np.ndarray) -> None:
+        """Count more sentence latencies (s)."""
+        if not len(latencies):
+            return
+        self.count += len(latencies)
+        self.total += float(latencies.sum())
+        low, high = float(latencies.min()), float(latencies.max())
+        self.min = min(self.min, low)
+        self.max = max(self.max, high)
+        if low == high:  # all in one bin (on ideal rounds every sentence takes one period)
+            self.counts[min(max(int(np.searchsorted(self.EDGES, low, side="right")) - 1, 0), 511)] += len(latencies)
+            return
+        bins = np.clip(np.searchsorted(self.EDGES, latencies, side="right") - 1, 0, 511)
+        self.counts += np.bincount(bins, minlength=512)
+
+    @property
+    def mean(self) -> float | None:
+        """Mean latency, s (None before any)."""
+        return self.total / self.count if self.count else None
+
+    def percentile(self, q: float) -> float | None:
+        """The upper edge of the bin holding the q-th percentile (within 4.1%), clipped to [min, max]."""
+        if not self.count:
+            return None
+        k = int(np.searchsorted(np.cumsum(self.counts), q / 100.0 * self.count, side="left"))
+        return float(min(max(self.EDGES[min(k + 1, 512)], self.min), self.max))
+
+    def __eq__(self, other) -> bool:
+        return (isinstance(other, LatencyStats) and self.count == other.count and self.total == other.total
+                and self.min == other.min and self.max == other.max and np.array_equal(self.counts, other.counts))
+
+
+@dataclass
+class NetworkRecord:
+    """Message traffic of a networked run.
+
+    Per tick (arrays of length ticks): ``t`` (s), ``sent``, ``received``, ``bytes_sent``, ``bytes_received``,
+    ``lost``, ``corrupted``, ``undetected``, ``dropped``, ``latency_mean`` / ``latency_max`` (s, NaN when nothing
+    arrived). Per cell (arrays of length n): ``cell_sent``, ``cell_received``, ``cell_bytes_sent``,
+    ``cell_bytes_received``. ``latency``: the delivered sentences' latencies (:class:`LatencyStats`).
+    """
+
+    delivery: str
+    period: float
+    per_tick: dict[str, np.ndarray]
+    per_cell: dict[str, np.ndarray]
+    latency: LatencyStats
+
+    def totals(self) -> dict:
+        """Run totals for the summary: sentences, bytes, faults, latency statistics (s)."""
+        lat = self.latency
+        return {
+            "delivery": self.delivery,
+            "control_period_s": self.period,
+            "sentences_sent": int(self.per_tick["sent"].sum()),
+            "sentences_received": int(self.per_tick["received"].sum()),
+            "bytes_sent": int(self.per_tick["bytes_sent"].sum()),
+            "lost": int(self.per_tick["lost"].sum()),
+            "corrupted": int(self.per_tick["corrupted"].sum()),
+            "undetected_corruptions": int(self.per_tick["undetected"].sum()),
+            "dropped": int(self.per_tick["dropped"].sum()),
+            "unaddressed": int(self.per_tick["unaddressed"].sum()),
+            "latency_mean_s": lat.mean,
+            "latency_p95_s": lat.percentile(95),
+            "latency_max_s": lat.max if lat.count else None,
+        }
+
+
+_FAULTS = ("lost", "corrupted", "undetected", "dropped", "unaddressed")
+
+
+def wheel_loads(setup: Setup, models, states, active, speeds: np.ndarray) -> np.ndarray:
+    """(n, 2) friction force (N) each wheel exerts on the parcels above it along its drive direction, whose reaction
+    loads the wheel: Coulomb mu N in the direction of spin (paper 4.3), viscous mu N times the slip (eq. 30),
+    stick-slip mu N against the slip (zero while a wheel is stuck). ``speeds`` are the wheels' surface speeds."""
+    cells = setup.cells
+    law = setup.scenario.friction.law
+    load = np.zeros((cells.n, 2))
+    for model, y, on in zip(models, states, active):
+        if not on:
+            continue
+        piece = model.piece_at(y)
+        ids, N = piece.support, piece.normal_forces(y)
+        r = cells.positions[ids] - y[:2]
+        v = y[3:5] + y[5] * np.column_stack([-r[:, 1], r[:, 0]])  # parcel velocity over each cell
+        for k in range(2):
+            u = cells.drive_directions[ids, k]
+            w = speeds[ids, k]
+            slip = w - np.einsum("ij,ij->i", v, u)
+            if law == "coulomb":
+                f = np.sign(w)
+            elif law == "viscous":
+                f = slip
+            else:
+                f = np.where(np.abs(slip) > 1e-9, np.sign(slip), 0.0)
+            load[ids, k] += model.spec.mu * N * f
+    return load
+
+
+def run_network(setup: Setup, progress: Callable[[float], None] | None = None, *,
+                checkpoint: str | Path | None = None, checkpoint_every: float | None = None,
+                scenario_text: str | None = None) -> RunResult:
+    """Co-simulate cell programs, the network and the parcels: at every control tick the cells read their sensors
+    and the sentences delivered since the last tick, step their program, and send; the wheels hold the commanded
+    speeds until the next tick (zero-order hold) while the plant integrates every parcel (event-driven).
+
+    With ``checkpoint`` (a file path) and ``checkpoint_every`` (simulated s), the whole run's state is written there
+    (atomically) that often; :func:`resume` continues from it to exactly the result an uninterrupted run gives.
+    """
+    job = NetworkRun(setup)
+    job.scenario_text = scenario_text
+    return job.run(progress, checkpoint=checkpoint, checkpoint_every=checkpoint_every)
+
+
+def resume(checkpoint: str | Path, progress: Callable[[float], None] | None = None, *,
+           checkpoint_every: float | None = None) -> RunResult:
+    """Continue a run from its last checkpoint (see :func:`run` and :func:`run_network`); by default it keeps writing
+    checkpoints to the same file as often as before. Raises VirtualVehicleError, with one message, for a file that is
+    not a checkpoint, is damaged, or was written by another format or package version.
+
+    A checkpoint is data (:mod:`virtual_vehicle.run.checkpoint`): reading one never runs code named by the file. The
+    run's setup is built again from the scenario it holds."""
+    from virtual_vehicle.errors import VirtualVehicleError
+
+    path = Path(checkpoint)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise VirtualVehicleError(f"cannot read checkpoint {path}: {exc.strerror or exc}") from None
+    job, every = _load(data, where=str(path))
+    return job.run(progress, checkpoint=path, checkpoint_every=checkpoint_every or every)
+
+
+def _load(data: bytes, setup: Setup | None = None, where: str = "checkpoint") -> tuple["_Job", float]:
+    """The run a checkpoint's bytes hold and its checkpoint interval (s). ``setup``: the run's own (a checkpointing
+    run going on from what it wrote); None: built from the checkpoint's scenario. Raises VirtualVehicleError."""
+    from virtual_vehicle.run.checkpoint import CheckpointError, unpack
+    from virtual_vehicle.errors import VirtualVehicleError
+    from virtual_vehicle.config.scenario import parse_scenario
+
+    try:
+        document, arrays = unpack(data)
+    except CheckpointError as exc:
+        raise VirtualVehicleError(f"cannot resume {where}: {exc}") from None
+    version = document.get("package_version")
+    if version != __version__:
+        raise VirtualVehicleError(f"cannot resume {where}: it was written by virtual_vehicle {version}; this is "
+                                  f"{__version__} (resume it with {version}, or run the scenario again)")
+    kinds = {"field": FieldRun, "network": NetworkRun}
+    kind, every = document.get("kind"), document.get("checkpoint_every")
+    if kind not in kinds or type(every) is not float or not every > 0 or type(document.get("position")) is not dict:
+        raise VirtualVehicleError(f"cannot resume {where}: damaged (its run kind, interval or position)")
+    if setup is None:
+        try:
+            setup = parse_scenario(document.get("scenario")).build()
+        except VirtualVehicleError as exc:
+            raise VirtualVehicleError(f"cannot resume {where}: its scenario: {exc}") from None
+        if document.get("setup_digest") != _setup_digest(setup):
+            raise VirtualVehicleError(f"cannot resume {where}: its scenario builds another setup than the run had (a "
+                                      "setup changed after it was built cannot be resumed)")
+    if (kind == "network") != (setup.control is not None):
+        raise VirtualVehicleError(f"cannot resume {where}: a {kind} run's checkpoint whose scenario is not one")
+    job = kinds[kind](setup)
+    text = document.get("scenario_text")
+    job.scenario_text = text if type(text) is str else None
+    try:
+        job._restore(document["position"], document.get("state"), arrays)
+    except (CheckpointError, KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError,
+            RecursionError) as exc:
+        raise VirtualVehicleError(f"cannot resume {where}: its state does not fit its scenario "
+                                  f"({type(exc).__name__}: {exc})") from None
+    return job, every
+
+
+def _setup_digest(setup: Setup) -> str:
+    """A SHA-256 of what a run's setup starts from (wheel velocities, contact positions, parcels' start states and
+    bodies), so that a resume whose scenario builds another setup than the run had is refused, not run."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for a in (setup.velocities, setup.contact_layer.positions, np.array(setup.states, dtype=float).reshape(-1, 6),
+              np.array([[s.mass, s.inertia, s.mu, s.radius] for s in setup.specs], dtype=float).reshape(-1, 4)):
+        a = np.ascontiguousarray(a, dtype=float)
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _check_like(fresh, loaded, where: str = "state") -> None:
+    """Raise ValueError where ``loaded`` (a run's state read from a checkpoint) is not shaped as ``fresh`` (the same
+    run's state at its start): every array the start has (by key, attribute or position in lists of equal length)
+    must be there with the same dtype and shape, every object of the same class, every number a number of its
+    kind."""
+    import numbers
+
+    if isinstance(fresh, (bool, np.bool_)):
+        if not isinstance(loaded, (bool, np.bool_)):
+            raise ValueError(f"{where} is not a truth value")
+    elif isinstance(fresh, numbers.Integral):
+        if not isinstance(loaded, numbers.Integral) or isinstance(loaded, (bool, np.bool_)):
+            raise ValueError(f"{where} is not an integer")
+    elif isinstance(fresh, numbers.Real):
+        if not isinstance(loaded, numbers.Real) or isinstance(loaded, (bool, np.bool_)):
+            raise ValueError(f"{where} is not a number")
+    elif isinstance(fresh, np.ndarray):
+        if not (isinstance(loaded, np.ndarray) and loaded.dtype == fresh.dtype and loaded.shape == fresh.shape):
+            got = f"{loaded.dtype} {loaded.shape}" if isinstance(loaded, np.ndarray) else type(loaded).__name__
+            raise ValueError(f"{where} is {got}, not {fresh.dtype} {fresh.shape}")
+    elif isinstance(fresh, dict):
+        if not isinstance(loaded, dict) or not fresh.keys() <= loaded.keys():
+            raise ValueError(f"{where} lacks {sorted(map(str, fresh))}")
+        for k, v in fresh.items():
+            _check_like(v, loaded[k], f"{where}[{k!r}]")
+    elif isinstance(fresh, (list, tuple)):
+        if type(loaded) is not type(fresh):
+            raise ValueError(f"{where} is not a {type(fresh).__name__}")
+        if len(fresh) == len(loaded):
+            for k, (a, b) in enumerate(zip(fresh, loaded)):
+                _check_like(a, b, f"{where}[{k}]")
+    elif type(fresh) in _state_classes().values():
+        if type(loaded) is not type(fresh):
+            raise ValueError(f"{where} is not a {type(fresh).__name__}")
+        _check_like(dict(vars(fresh)) if hasattr(fresh, "__dict__") else {}, dict(vars(loaded)), where)
+
+
+def _state_classes() -> dict[str, type]:
+    """The classes a checkpoint may hold, by name: virtual_vehicle's state classes, made from their fields."""
+    from virtual_vehicle.engine.dynamics import Event
+    from virtual_vehicle.cells.hardware import WheelDrives
+    from virtual_vehicle.cells.network.delivery import IdealRounds
+    from virtual_vehicle.cells.network.programs import ChangedCells
+    from virtual_vehicle.cells.network.topology import Topology
+    from virtual_vehicle.cells.network.wire import WireLevel, _Sentence
+    from virtual_vehicle.engine.plant import PlantRecord
+
+    return {c.__name__: c for c in (Event, Trajectory, PlantRecord, LatencyStats, _Track, Mailbox, Topology,
+                                    IdealRounds, WireLevel, _Sentence, ChangedCells, WheelDrives)}
+
+
+def _reset_rows(state, fresh, rows: np.ndarray):
+    """``state`` (a program's per-cell arrays, nested in dicts, tuples or dataclasses) with the rows ``rows`` of every
+    per-cell array taken from ``fresh`` (the program's initial state)."""
+
+    def reset(a, b):
+        if isinstance(a, np.ndarray) and a.ndim >= 1 and a.shape[0] == len(rows):
+            out = a.copy()
+            out[rows] = b[rows]
+            return out
+        return a
+
+    return tree_map(reset, state, fresh)
+
+
+class NetworkRun(_Job):
+    """The state of a networked run between control ticks: everything needed to go on, so that a long run can be
+    checkpointed and resumed bit for bit."""
+
+    KIND = "network"
+    _DERIVED = frozenset({"scenario_text", "setup", "period", "ticks", "grid", "arrive", "destinations", "plant",
+                          "topology", "faults", "sensors", "present", "next_fault", "next_change", "cell_log"})
+    """What a checkpoint does not write: the setup and what follows from it and from :meth:`_position`."""
+
+    def __init__(self, setup: Setup):
+        sc = setup.scenario
+        ctl = setup.control
+        n, P = ctl.topology.n, ctl.topology.ports
+        self.scenario_text: str | None = None
+        self.setup = setup
+        self.period = ctl.period
+        self.ticks = int(np.ceil(sc.duration / self.period - 1e-9))
+        self.grid = sample_grid(0.0, sc.duration, sc.output_dt or sc.duration / 500)  # output sample times, s
+        self.k = 0
+        self.wall = 0.0
+        self.state = ctl.program.init(n, P, ctl.config)
+        self.inbox = Mailbox.empty(ctl.program.schema, n, P)
+        self.delivery = ctl.make_delivery()
+        # step only the cells that changed, where the program allows it and the delivery model tells which inboxes
+        # changed (ideal rounds): the same run to the last bit
+        self.stepper = (ChangedCells(ctl.program) if ctl.changed_only and getattr(ctl.program, "stationary", False)
+                        and hasattr(self.delivery, "exchange_changed") else None)
+        self.inbox_changed: np.ndarray | None = None
+        self.sensor_rng = np.random.default_rng(setup.sensors.seed)
+        self.drives = WheelDrives(n, sc.wheels.motor()) if sc.wheels.model == "motor" else None
+        self.ys = [y.copy() for y in setup.states]
+        self.arrive = [p.t_start for p in sc.parcels]
+        self.active = [t == 0 for t in self.arrive]
+        self.on = [i for i, a in enumerate(self.active) if a]  # the active parcels, in order
+        self.queue = sorted((i for i, t in enumerate(self.arrive) if t > 0), key=lambda i: (self.arrive[i], i))
+        self.entered = [0.0 if t == 0 else None for t in self.arrive]
+        self.destinations = [None if p.destination is None else encode_goal(p.destination, p.sequence)
+                             for p in sc.parcels]  # what each parcel's label says
+        self.plant = setup.plant()
+        self.tracks = [_Track() for _ in self.ys]
+        keys = ("sent", "received", "bytes_sent", "bytes_received")
+        self.per_tick = {k: np.zeros(self.ticks, dtype=np.int64) for k in (*keys, *_FAULTS)}
+        self.per_tick["t"] = self.period * np.arange(self.ticks)
+        self.per_tick["latency_mean"] = np.full(self.ticks, np.nan)
+        self.per_tick["latency_max"] = np.full(self.ticks, np.nan)
+        self.per_cell = {f"cell_{k}": np.zeros(n, dtype=np.int64) for k in keys}
+        self.latency = LatencyStats()
+        self.cell_log: list = []
+        self.topology = ctl.topology  # these three change when faults are injected during the run
+        self.faults = setup.faults
+        self.sensors = setup.sensors
+        self.next_fault = 0
+        self.injected: list[dict] = []
+        self.present = setup.present  # cells installed now (None: all, always)
+        self.next_change = 0
+        self.reconfigured: list[dict] = []
+        # the paper's Coulomb assumption, checked at every output sample against that tick's wheels (4.3)
+        self.sliding: list | None = [None] * len(self.ys) if isinstance(setup.law, CoulombLaw) else None
+        if self.present is not None and not self.present.all():
+            self._rewire()
+
+    def _position(self) -> dict:
+        return {"next_fault": self.next_fault, "next_change": self.next_change}
+
+    def _externals(self) -> dict:
+        ctl = self.setup.control
+        return {"topology": self.topology, "topology.connected": self.topology.connected, "program": ctl.program,
+                "schema": ctl.program.schema, "config": ctl.config, "delivery.params": getattr(self.delivery, "p", None),
+                "motor": None if self.drives is None else self.drives.p}
+
+    def _state(self) -> dict:
+        for track in self.tracks:
+            track.settle()
+        state = {k: v for k, v in self.__dict__.items() if k not in self._DERIVED}
+        state["plant"] = self.plant.state()
+        state["cell_log"] = [np.asarray(column) for column in zip(*self.cell_log)]  # (one array a column)
+        return state
+
+    def _restore(self, position: dict, state, arrays: list) -> None:
+        from virtual_vehicle.run.checkpoint import decode
+
+        setup = self.setup
+        nf, nc = position["next_fault"], position["next_change"]
+        if not (type(nf) is int and type(nc) is int and 0 <= nf <= len(setup.fault_events)
+                and 0 <= nc <= len(setup.cell_changes)):
+            raise ValueError("its fault events or cell changes are not the scenario's")
+        if nf or nc:  # the faults and cells of now: what the last event and change made them
+            self.next_fault, self.next_change = nf, nc
+            if nf:
+                self._set_faults(setup.fault_events[nf - 1][1])
+            if nc:
+                self.present = setup.cell_changes[nc - 1][1]
+            self._rewire()
+        s = decode(state, arrays, _state_classes(), self._externals())
+        plant, log = s.pop("plant"), s.pop("cell_log")
+        expected = set(self.__dict__) - self._DERIVED
+        if set(s) != expected:
+            raise ValueError(f"it holds {sorted(set(s) ^ expected)} unlike a networked run")
+        _check_like({k: self.__dict__[k] for k in expected}, s)
+        self.__dict__.update(s)
+        if len(self.ys) != len(setup.specs) or len(self.tracks) != len(setup.specs):
+            raise ValueError("the state's parcels are not the scenario's")
+        self.plant.restore(plant)
+        self.cell_log = list(zip(*log))
+
+    @property
+    def done(self) -> bool:
+        """True once every control tick has run."""
+        return self.k >= self.ticks
+
+    def step(self, every, progress) -> bool:
+        """One control tick; True when a checkpoint is due."""
+        self.tick()
+        if progress is not None:
+            progress(self.k / self.ticks)
+        return every is not None and self.k % max(1, int(round(every / self.period))) == 0
+
+    def tick(self) -> None:
+        """One control tick: sensors, program, network, wheels, plant."""
+        setup, sc, ctl = self.setup, self.setup.scenario, self.setup.control
+        k, period = self.k, self.period
+        t0 = k * period
+        t1 = min(sc.duration, t0 + period)
+        self._inject(t0)
+        self._reconfigure(t0)
+        topo, cells = self.topology, setup.cells
+        ys, active = self.ys, self.active
+        self._admit(t0)
+        on = self.on
+        sensors = self.sensors.read([setup.specs[i] for i in on], [ys[i] for i in on], self.sensor_rng)
+        if self.present is not None:
+            sensors[~self.present] = 0  # a cell taken out senses nothing
+        labelled = any(self.destinations[i] is not None for i in on)
+        labels = _labels(setup, [ys[i] for i in on], [setup.specs[i] for i in on],
+                         [self.destinations[i] for i in on]) if labelled else None
+        inputs = CellInputs(t0, sensors, self.inbox, topo.connected, ctl.config, labels)
+        if self.stepper is None:
+            self.state, outbox, wheels = ctl.program.step(self.state, inputs)
+        else:
+            self.state, outbox, wheels, out_changed = self.stepper.step(self.state, inputs, self.inbox_changed)
+        command = np.where(topo.alive[:, None], np.asarray(wheels, dtype=float), 0.0)  # a dead cell does not drive
+        command = cells.belt_commands(command)  # plain belts run at their own speed
+        if self.drives is None:
+            wheels = command
+        else:
+            load = wheel_loads(setup, self.plant.base, ys, active, self.drives.speed)
+            wheels = self.drives.step(command, load, period)
+        if self.faults is not None:
+            wheels = self.faults.hold(wheels)  # stuck wheels (and those of dead cells) stay still
+        velocities = cells.surface_velocities(wheels)
+        if setup.contact_layer is not cells:  # separate or omni wheels, belts: each contact's own surface velocity
+            velocities = setup.contact_layer.contact_velocities(velocities)
+        if self.stepper is None:
+            self.inbox, stats = self.delivery.exchange(outbox, t0, period)
+        else:
+            self.inbox, stats, self.inbox_changed = self.delivery.exchange_changed(outbox, out_changed, t0, period)
+        if sc.sensors.record:
+            self.cell_log.append((t0, sensors.astype(bool), np.array(wheels, dtype=float), command.copy(),
+                                  stats.sent.copy(), stats.received.copy()))
+        for key in ("sent", "received", "bytes_sent", "bytes_received"):
+            self.per_tick[key][k] = int(getattr(stats, key).sum())
+            self.per_cell[f"cell_{key}"] += getattr(stats, key)
+        for key in _FAULTS:
+            self.per_tick[key][k] = getattr(stats, key)
+        if len(stats.latencies):
+            self.per_tick["latency_mean"][k] = stats.latencies.mean()
+            self.per_tick["latency_max"][k] = stats.latencies.max()
+            self.latency.add(stats.latencies)
+        if t1 > t0:
+            eps = 1e-12 * max(1.0, t1)
+            window = self.grid[np.searchsorted(self.grid, t0 - eps, side="left"):
+                               np.searchsorted(self.grid, t1 + eps, side="right")]  # output samples in this tick
+            trajectories, quiet = self.plant._advance(ys, active, velocities, t0, t1, self.period,
+                                                      sample_times=window)  # untrimmed: the tracks keep the grid
+            on: dict[int, np.ndarray] = {}  # by times array: the parcels stepped together share theirs
+
+            def on_window(times):
+                if len(window) and id(times) not in on:
+                    on[id(times)] = on_grid(times, window)
+                return on.get(id(times))
+
+            kept = [len(track.times) for track in self.tracks] if self.sliding is not None and len(window) else None
+            for i, tr in enumerate(trajectories):
+                if tr is not None:
+                    self.tracks[i].add(tr, window, on_window(tr.times))
+            for i, steps, k in quiet:  # those the quiet stepper alone moved, from its block
+                self.tracks[i].add_quiet(steps, k, window, on_window(steps.times))
+            if kept is not None:
+                self._check_sliding(kept, velocities)
+            gone = [i for i in self.on if not active[i]]
+            for i in gone:  # those that left the array are gone, and so is what was cached for them
+                self.plant.release(i)
+            if gone:
+                self.on = [i for i in self.on if active[i]]
+        self.k += 1
+
+    def _check_sliding(self, kept: list[int], velocities: np.ndarray) -> None:
+        """The Coulomb check (:func:`coulomb_sliding_check`) on the samples each parcel's track took this tick
+        (beyond ``kept`` of them), under this tick's contact ``velocities`` (m/s)."""
+        for i, (track, n) in enumerate(zip(self.tracks, kept)):
+            if len(track.times) > n:
+                found = _sliding(self.setup, self.setup.specs[i], track.times[n:], track.states[n:], velocities)
+                if found is not None:
+                    before = self.sliding[i]
+                    self.sliding[i] = found if before is None else (before[0], max(before[1], found[1]))
+
+    def _inject(self, t: float) -> None:
+        """Break what the scenario's fault events due by ``t`` (s) break: from this tick on, dead cells are silent
+        and still, stuck wheels held, dead links cut, stuck sensors stuck."""
+        events = self.setup.fault_events
+        while self.next_fault < len(events) and events[self.next_fault][0] <= t + 1e-9 * max(1.0, t):
+            t_event, faults = events[self.next_fault]
+            self.next_fault += 1
+            self._set_faults(faults)
+            self._rewire()
+            self.injected.append({"t_s": t_event, "at_tick_s": t, **faults.summary()})
+
+    def _set_faults(self, faults) -> None:
+        """The faults from now on, and the sensors they leave (stuck ones stuck); :meth:`_rewire` follows."""
+        self.faults = faults
+        base = self.setup.sensors
+        self.sensors = replace(base, stuck_on=base.stuck_on | faults.stuck_on,
+                               stuck_off=(base.stuck_off | faults.stuck_off) & ~(base.stuck_on | faults.stuck_on))
+
+    def _reconfigure(self, t: float) -> None:
+        """Take out and snap in the cells the scenario's changes due by ``t`` (s) name: from this tick on a removed
+        cell carries, drives, senses and says nothing; an added one starts its program afresh."""
+        changes = self.setup.cell_changes
+        while self.next_change < len(changes) and changes[self.next_change][0] <= t + 1e-9 * max(1.0, t):
+            t_change, present = changes[self.next_change]
+            self.next_change += 1
+            added = present & ~self.present
+            removed = self.present & ~present
+            self.present = present
+            self._rewire()
+            ctl = self.setup.control
+            fresh = ctl.program.init(self.topology.n, self.topology.ports, ctl.config)
+            self.state = _reset_rows(self.state, fresh, added)
+            self.reconfigured.append({"t_s": t_change, "at_tick_s": t, "added": np.flatnonzero(added).tolist(),
+                                      "removed": np.flatnonzero(removed).tolist()})
+
+    def _rewire(self) -> None:
+        """The topology, delivery model and plant after faults or a reconfiguration: dead and absent cells have no
+        links; absent cells carry nothing."""
+        from virtual_vehicle.cells.network.topology import from_layout
+
+        dead = self.faults.dead_cells if self.faults is not None else np.zeros(self.setup.cells.n, dtype=bool)
+        links = self.faults.dead_links if self.faults is not None else ()
+        if self.present is not None:
+            dead = dead | ~self.present
+            self.plant.set_present(self.present[self.setup.contact_layer.cell_of])
+        self.topology = from_layout(self.setup.cells).with_faults(dead_cells=np.flatnonzero(dead), dead_links=links)
+        self.delivery.set_topology(self.topology)
+
+    def _admit(self, t: float) -> None:
+        """Put on the array the parcels due by ``t``, first come first placed, while their place is free: no active
+        parcel overlaps it, or, when the program asks for a clearance (config ``clearance``, m), none comes that
+        close. The queue waits behind its first parcel."""
+        setup = self.setup
+        clearance = float(setup.control.config.get("clearance", 0.0))
+        while self.queue and self.arrive[self.queue[0]] <= t + 1e-12:
+            i = self.queue[0]
+            place = setup.specs[i].world_polygon(self.ys[i])
+            for j in self.on:
+                other = setup.specs[j].world_polygon(self.ys[j])
+                if clearance > 0 and shapely.distance(place, other) <= clearance:
+                    return
+                if clearance <= 0 and shapely.intersection(place, other).area > 1e-12:
+                    return
+            self.queue.pop(0)
+            self.active[i] = True
+            self.entered[i] = t
+            self.on = sorted([*self.on, i])
+
+    def result(self) -> RunResult:
+        """The run's :class:`RunResult`: trajectories, network record and (when recorded) the cell log."""
+        setup, ctl = self.setup, self.setup.control
+        results = []
+        for i, (spec, track, y, t) in enumerate(zip(setup.specs, self.tracks, self.ys, self.arrive)):
+            traj = track.trajectory() if track.started else Trajectory(np.array([t]), y[None].copy(), [], "waiting", t)
+            results.append(ParcelResult(spec, traj, None if self.sliding is None else self.sliding[i],
+                                        sliding_checked=self.sliding is not None, entered_at=self.entered[i]))
+        record = NetworkRecord(ctl.delivery_name, self.period, self.per_tick, self.per_cell, self.latency)
+        stats = {"network": record.totals(), "plant": plant_totals(self.plant)}
+        if self.injected:
+            stats["faults_injected"] = self.injected
+        if self.reconfigured:
+            stats["reconfigured"] = self.reconfigured
+        return RunResult(setup, results, self.wall, stats,
+                         record, CellLog.stack(self.cell_log) if setup.scenario.sensors.record and self.cell_log else None,
+                         self.scenario_text)
+
+
+_SUMMED = frozenset(SUMMED_STATS)
+
+
+class _Track:
+    """One parcel's trajectory as a networked run goes: only the samples on the output grid and the latest state
+    are kept (a run of an hour at 100 Hz would otherwise hold a piece per tick), events, status and the energy and
+    solver counts (added up as :func:`~virtual_vehicle.engine.plant.join` does)."""
+
+    def __init__(self):
+        self.times: list[float] = []
+        self.states: list[np.ndarray] = []
+        self.events: list = []
+        self._piece = None  # the latest piece, whose last state, status, end and stats carry on
+        self._quiet = None  # or (steps, k): the latest piece was a quiet step, not yet made a Trajectory
+        self.segments = 0
+        self.rhs_evals = 0
+        self.stats_pieces: list[dict] = []
+
+    def settle(self) -> None:
+        """Make the latest piece and the stats piece Trajectories if they are still kept as quiet steps (a checkpoint
+        writes Trajectories, not the stepper's blocks)."""
+        self.piece
+        self._stats_first()
+
+    @property
+    def piece(self) -> Trajectory | None:
+        """The latest piece (None before the first)."""
+        if self._quiet is not None:
+            steps, k = self._quiet
+            self._piece, self._quiet = steps.trajectory(k), None
+        return self._piece
+
+    @property
+    def started(self) -> bool:
+        return self._piece is not None or self._quiet is not None
+
+    def _sample(self, times: np.ndarray, states: np.ndarray) -> None:
+        """Keep the samples at ``times`` (s, on the output grid) with their ``states`` (an array of this track's own,
+        whose rows it keeps) after the last kept."""
+        for t, y in zip(times.tolist(), states):
+            if not self.times or t > self.times[-1]:
+                self.times.append(t)
+                self.states.append(y)
+
+    def add(self, tr: Trajectory, grid: np.ndarray, on: np.ndarray | None = None) -> None:
+        """Take in the parcel's trajectory over one tick (as the plant returns it untrimmed): of its samples, those
+        on the output ``grid`` (s) and its last state. ``on``: which of its times lie on the grid, when known."""
+        if len(grid):  # most control ticks hold no output sample
+            if on is None:
+                on = on_grid(tr.times, grid)
+            self._sample(tr.times[on], tr.states[on])
+        self.events.extend(tr.events)
+        self.segments += tr.segments
+        self.rhs_evals += tr.rhs_evals
+        self._piece, self._quiet = tr, None
+        if tr.stats:
+            first = self._stats_first()
+            if first and not (_SUMMED.isdisjoint(tr.stats) and _SUMMED.isdisjoint(first[0].stats)):
+                self.stats_pieces = join_stats([*first, tr])
+            else:
+                self.stats_pieces = [tr]  # the latest stands
+
+    def add_quiet(self, steps, k: int, grid: np.ndarray, on: np.ndarray | None = None) -> None:
+        """:meth:`add` for a tick the quiet stepper alone took, as ``steps.trajectory(k)`` (one step, no events, the
+        stats the count of solves only), without making that Trajectory unless it is asked for."""
+        if len(grid):
+            if on is None:
+                on = on_grid(steps.times, grid)
+            self._sample(steps.times[on], steps.states[steps.rows[k], on])
+        self.segments += 1
+        self.rhs_evals += steps.evals
+        self._quiet = ref = steps, k
+        head = self.stats_pieces[0] if self.stats_pieces else None
+        if head is not None and type(head) is not tuple and not _SUMMED.isdisjoint(head.stats):
+            self.stats_pieces = join_stats([head, self.piece])  # (a quiet step's own stats hold nothing summed)
+        else:
+            self.stats_pieces = [ref]  # the latest stands, made a Trajectory when it is read
+
+    def _stats_first(self) -> list:
+        """``stats_pieces[:1]``, a quiet step there made its Trajectory."""
+        first = self.stats_pieces[:1]
+        if first and type(first[0]) is tuple:
+            steps, k = first[0]
+            first = self.stats_pieces = [steps.trajectory(k)]
+        return first
+
+    def trajectory(self) -> Trajectory:
+        times, states = list(self.times), list(self.states)
+        end = float(self.piece.times[-1])
+        if not times or end > times[-1]:
+            times.append(end)
+            states.append(self.piece.states[-1].copy())
+        stats = self._stats_first()[0].stats if self.stats_pieces else dict(self.piece.stats)
+        return Trajectory(np.array(times), np.array(states).reshape(-1, 6), self.events, self.piece.status,
+                          self.piece.t_end, self.segments, self.rhs_evals, stats)
+
+
+def join_stats(pieces: list[Trajectory]) -> list[Trajectory]:
+    """The stats of consecutive pieces added up (as :func:`~virtual_vehicle.engine.plant.join` does), as one stand-in
+    piece (its samples are not used)."""
+    first, last = pieces[0], pieces[-1]
+    return [Trajectory(first.times[:1], first.states[:1], [], last.status, last.t_end, 0, 0, joined_stats(pieces))]
+
+
+def _labels(setup: Setup, states, specs, destinations) -> np.ndarray:
+    """(n,) the destination label of the parcel above each cell's centre, -1 for none (``states``, ``specs`` and
+    ``destinations`` of the parcels on the array)."""
+    cells = setup.cells
+    out = np.full(cells.n, -1, dtype=np.int64)
+    on = [k for k, dest in enumerate(destinations) if dest is not None]
+    if on:
+        owner, cell = covered_pairs([specs[k] for k in on], [states[k] for k in on], cells.grid)
+        out[cell] = np.array([destinations[k] for k in on], dtype=np.int64)[owner]
+    return out

@@ -1,0 +1,2 @@
+"""People and learners: the command line, pictures, animation, Gymnasium / PettingZoo environments.
+"""
