@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
-	$(BIN)/python -c "from virtual_vehicle.engine.dynamics import warm_up; print(f'event engine ready in {warm_up():.1f} s')"
+	$(BIN)/python -c "from virtual_vehicle.run.warm import warm_up; print(f'event engine ready in {warm_up():.1f} s')"
 	touch $(STAMP)
 
 run: $(STAMP)

@@ -40,7 +40,7 @@ from virtual_vehicle.config.scenario import parse_scenario
 from virtual_vehicle.run.sim import run_network
 setup = parse_scenario(bench_scale.scenario(100, {parcels}, {seconds})).build()
 try:  # load the compiled engine outside the timed run, as the imports are (from 580daa9)
-    from virtual_vehicle.engine.dynamics import warm_up
+    from virtual_vehicle.run.warm import warm_up
     warm_up()
 except ImportError:
     pass

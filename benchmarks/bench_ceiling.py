@@ -163,7 +163,7 @@ def run_case(case: str, seconds: float | None = None) -> dict:
     """Run ``case`` once unmeasured (to load numba's cached code; every run builds its models anew, so the timed
     one solves its support patterns as a first run does) and once with its kernels timed, which must end where the
     plain run ended; returns the figures (times in s)."""
-    from virtual_vehicle.engine.dynamics import warm_up
+    from virtual_vehicle.run.warm import warm_up
 
     if case == "coulomb1":
         import bench_perf as b

@@ -19,7 +19,8 @@ import numpy as np
 
 from virtual_vehicle.model import fields, layout, parcel
 from virtual_vehicle.physics import friction
-from virtual_vehicle.engine.dynamics import ParcelModel, integrate, warm_up
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
+from virtual_vehicle.run.warm import warm_up
 from virtual_vehicle.model.parcel import supporting_cells
 from virtual_vehicle.physics.reference import paper_normal_forces
 

@@ -52,7 +52,7 @@ def scenario(side: int, parcels: int, seconds: float, batch: bool = True, change
 
 def one(side: int, parcels: int, seconds: float, batch: bool = True, changed_only: bool = True) -> dict:
     """Run one configuration here; return its figures."""
-    from virtual_vehicle.engine.dynamics import warm_up
+    from virtual_vehicle.run.warm import warm_up
     from virtual_vehicle.config.scenario import parse_scenario
     from virtual_vehicle.run.sim import NetworkRun
 

@@ -142,7 +142,7 @@ def test_parcels_detour_around_dead_cells():
 
 
 def test_central_and_distributed_sorting_side_by_side():
-    from virtual_vehicle.run.tasks import compare
+    from virtual_vehicle.analysis.compare import compare
 
     both = compare(sorting())
     for mode in ("distributed", "central"):

@@ -9,7 +9,7 @@ from hypothesis import assume, given, settings, strategies as st
 from scipy.linalg import expm
 from scipy.optimize import brentq
 
-from virtual_vehicle.engine import _kernel as kernel, dynamics
+from virtual_vehicle.engine import _kernel as kernel, dynamics, stepping
 from virtual_vehicle.physics import contact, friction
 from virtual_vehicle.model import fields, layout, parcel
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
@@ -490,7 +490,7 @@ def test_support_change_records_are_the_dataclass_s_own():
             assert type(ids) is tuple and list(ids) == sorted(ids)
     with pytest.raises(AttributeError):  # still frozen
         support[0].t = 0.0
-    assert dynamics._ordered(frozenset({40, 3, 17})) == (3, 17, 40) and dynamics._ordered(frozenset()) == ()
+    assert stepping._ordered(frozenset({40, 3, 17})) == (3, 17, 40) and stepping._ordered(frozenset()) == ()
 
 
 def test_chattering_supports_are_crossed_in_fixed_steps_and_converge():

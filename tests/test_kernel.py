@@ -12,7 +12,8 @@ from scipy.integrate import DOP853
 from virtual_vehicle.engine import _kernel as kernel, dynamics
 from virtual_vehicle.model import fields, layout, parcel
 from virtual_vehicle.physics import friction
-from virtual_vehicle.engine.dynamics import ParcelModel, integrate, warm_up
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
+from virtual_vehicle.run.warm import warm_up
 
 CELLS = layout.grid(30, 30, 0.1)
 SHAPES = {
@@ -162,7 +163,7 @@ from virtual_vehicle.physics import friction
 from virtual_vehicle.model import parcel
 from virtual_vehicle.cells import sorting
 from virtual_vehicle.cells.network import delivery
-from virtual_vehicle.engine.dynamics import warm_up
+from virtual_vehicle.run.warm import warm_up
 from virtual_vehicle.config.scenario import parse_scenario
 from virtual_vehicle.run.sim import run_network
 warm_up()

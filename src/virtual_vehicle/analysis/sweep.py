@@ -330,7 +330,7 @@ def run_sweep(spec: SweepSpec, base: dict, out_dir: str | Path, *, scheduler: st
     KeyboardInterrupt) on Ctrl-C, after shutting the cluster down; every run finished by then is kept."""
     from dask.distributed import as_completed
 
-    from virtual_vehicle.run.io import write_atomic
+    from virtual_vehicle.run.files import write_atomic
 
     out = Path(out_dir)
     runs_dir = out / "runs"
@@ -442,7 +442,7 @@ def write_summary(rows: list[dict], out: Path) -> Path:
     import pyarrow as pa
 
     from virtual_vehicle.run import tables
-    from virtual_vehicle.run.io import write_atomic
+    from virtual_vehicle.run.files import write_atomic
 
     names = list(dict.fromkeys(k for r in rows for k in r))  # rows of failed runs have fewer columns
     table = pa.table({k: pa.array([r.get(k) for r in rows]) for k in names})
@@ -466,7 +466,7 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
     neither delivered nor lost at the end: ``on_array`` (put on the array and still there), ``waiting`` (never put
     on: their place at the entry never came free) and ``stuck`` (the two together), each a mean over the seeds of the
     runs that finished; also written to ``study.json``. ``retry_failed``: see :func:`run_sweep`."""
-    from virtual_vehicle.run.io import write_atomic
+    from virtual_vehicle.run.files import write_atomic
     from virtual_vehicle.config.scenario import load_scenario
 
     if kind not in FAULT_KINDS:

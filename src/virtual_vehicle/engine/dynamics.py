@@ -23,9 +23,8 @@ Two integrators share the model:
 from __future__ import annotations
 
 import math
-import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 from itertools import compress
 from typing import Callable, Literal, get_args
@@ -41,12 +40,13 @@ from virtual_vehicle.physics.friction import (
     FrictionConstants,
     FrictionLaw,
     StickSlipLaw,
-    ViscousLaw,
     _f64,
     _row,
 )
 from virtual_vehicle.model.layout import CellArray
 from virtual_vehicle.model.parcel import ParcelSpec
+from virtual_vehicle.engine.stepping import Event, Trajectory, diff_event, fixed_steps, sample_grid
+from virtual_vehicle.engine.stickslip import run_stick_slip
 
 Mode = Literal["event", "fixed"]
 MODES = get_args(Mode)
@@ -315,74 +315,6 @@ class ParcelModel:
         return self.piece_at(y).rhs(t, y)
 
 
-@dataclass(frozen=True)
-class Event:
-    """Something that changed the dynamics of one parcel.
-
-    ``kind`` is ``"support"`` (cells entered / left the footprint, lifted off / touched down), ``"tip"`` (the
-    parcel's centre of mass left its supports; the parcel falls off the array and is no longer simulated), or, in
-    multi-parcel runs (:mod:`virtual_vehicle.engine.plant`), ``"contact"`` / ``"release"`` (it started / stopped pushing
-    against the parcel named ``partner``). Times in s, state as ``[x, y, theta, vx, vy, omega]``.
-    """
-
-    t: float
-    kind: str
-    state: tuple[float, ...]
-    entered: tuple[int, ...] = ()
-    left: tuple[int, ...] = ()
-    lifted: tuple[int, ...] = ()
-    touched: tuple[int, ...] = ()
-    message: str = ""
-    partner: str = ""
-
-
-@dataclass
-class Trajectory:
-    """What happened to one parcel: samples, events, and how the run ended.
-
-    Attributes:
-        times: (k,) sample times, s. states: (k, 6) states at those times.
-        events: support changes and tipping, in time order.
-        status: ``"completed"`` (reached the end time) or ``"tipped"``.
-        t_end: time the parcel stopped being simulated, s.
-        segments: smooth pieces integrated (event mode) or steps taken (fixed mode).
-        rhs_evals: right-hand-side evaluations.
-    """
-
-    times: np.ndarray
-    states: np.ndarray
-    events: list[Event]
-    status: str
-    t_end: float
-    segments: int = 0
-    rhs_evals: int = 0
-    stats: dict = field(default_factory=dict)
-
-
-def _diff_event(t, y, old: Piece, new: Piece) -> Event | None:
-    (old_s, old_c), (new_s, new_c) = old.sets, new.sets
-    entered, left = new_s - old_s, old_s - new_s
-    lifted, touched = (old_c - new_c) & new_s, (new_c - old_c) & old_s
-    if not (entered or left or lifted or touched):
-        return None
-    return _support_event(float(t), tuple(np.asarray(y, dtype=float).tolist()), _ordered(entered), _ordered(left),
-                          _ordered(lifted), _ordered(touched))
-
-
-def _ordered(ids: frozenset[int]) -> tuple[int, ...]:
-    return tuple(sorted(ids)) if ids else ()
-
-
-def _support_event(t: float, state: tuple[float, ...], entered: tuple[int, ...], left: tuple[int, ...],
-                   lifted: tuple[int, ...], touched: tuple[int, ...]) -> Event:
-    """``Event(t, "support", state, entered, left, lifted, touched)``, the same object made without the frozen
-    dataclass's nine guarded field assignments (half of the ~1 us a support change's record took)."""
-    ev = object.__new__(Event)
-    ev.__dict__.update(t=t, kind="support", state=state, entered=entered, left=left, lifted=lifted, touched=touched,
-                       message="", partner="")
-    return ev
-
-
 class _Segment:
     """Event functions of one piece started at state y0: an event is a sign change of any of them.
 
@@ -457,54 +389,6 @@ _NO_PAUSE = int(np.iinfo(np.int64).max)
 """Steps within one piece without a progress callback: no limit (worked out once: np.iinfo took ~5 us a call)."""
 
 
-def warm_up() -> float:
-    """Compile the event engine's inner loop (:mod:`virtual_vehicle.engine._kernel`), the support solve's compiled parts
-    (:mod:`virtual_vehicle.physics.contact`, :mod:`virtual_vehicle.physics.friction`), the quiet step's checks and step
-    (:mod:`virtual_vehicle.engine.batch`) and the sorter's cell program (:mod:`virtual_vehicle.cells.sorting`; about a minute
-    together, the first time on a machine) or load them from numba's cache (a fraction of a second), by integrating
-    one parcel on a 4 x 4 array for 10 ms, looking its last piece up again, making its constants under the viscous
-    law too, checking and stepping it as a quiet step would, gathering the cells under it as sensing does, and
-    stepping the sorter once and carrying its sentences. The first integration of a process does this anyway (but
-    for the sorter and its sentences); call it to do it at a time of your choosing (the set-up of ``make`` does, so
-    that no later run waits). Returns the seconds it took."""
-    from virtual_vehicle.engine.batch import QuietStepper  # here: batch imports this module
-    from virtual_vehicle.model.fields import Uniform
-    from virtual_vehicle.model.layout import grid
-    from virtual_vehicle.cells.network.delivery import IdealRounds
-    from virtual_vehicle.cells.network.messages import Mailbox
-    from virtual_vehicle.cells.network.programs import CellInputs
-    from virtual_vehicle.cells.network.topology import from_layout
-    from virtual_vehicle.model.parcel import covered_pairs, rectangle
-    from virtual_vehicle.cells.sorting import Sorter
-
-    start = time.perf_counter()
-    cells = grid(4, 4, 0.1)
-    spec = rectangle(0.25, 0.22, 1.0, 0.5)
-    model = ParcelModel(cells, spec, Uniform((0.1, 0.0)).velocities(cells), CoulombLaw())
-    end = integrate(model, np.array([0.15, 0.15, 0.0, 0.0, 0.0, 0.0]), 0.0, 0.01).states[-1]
-    piece = model.piece_at(end)  # found again: the cache's test of a solution
-    ViscousLaw().constants_and_row(piece.solution, model.velocities[piece.support],
-                                   cells.active_directions[piece.support], 0.5, spec.mass, spec.inertia)
-    constants_row(piece.constants, piece.solution.origin, spec.mass, spec.inertia)  # as unpickling a piece does
-    # the quiet step's compiled checks, with the argument types networked runs give them
-    stepper = QuietStepper(cells, [spec], model.law, [spec.mu], model.weight / spec.mass, 1e-10, 1e-12)
-    stepper._anchor(0, [model], end)
-    stepper._edges_clear(np.zeros(1, dtype=np.int64), end[None], 0.01, np.zeros(1), np.zeros(1), stepper.radius,
-                         stepper.lever)
-    _kernel.quiet_steps(np.array([piece.row]), end[None], 0.01, 0.02, 1e-10, 1e-12,
-                        np.array([0.01, 0.02]), np.empty((1, 2, 6)))
-    covered_pairs([spec], [end], cells.grid)  # as sensing and destination labels gather cells
-    sorter = Sorter(0.3)  # the sorter's compiled cell program, and its sentences carried, as a networked run goes
-    topology = from_layout(cells)
-    inputs = CellInputs(0.0, np.zeros((cells.n, 5), bool), Mailbox.empty(sorter.schema, cells.n, 4),
-                        topology.connected, {}, None)
-    sent = sorter.step(sorter.init(cells.n, 4, {}), inputs)[1]
-    rounds = IdealRounds(topology)
-    for _ in range(2):  # the first carries everything, the second what changed
-        rounds.exchange_changed(sent, np.ones(cells.n, bool), 0.0, 0.01)
-    return time.perf_counter() - start
-
-
 def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "event", rtol: float = 1e-10,
               atol: float = 1e-12, max_step: float = np.inf, dt: float = 1e-3, sample_dt: float | None = None,
               sample_times: np.ndarray | None = None, progress: Callable[[float], None] | None = None,
@@ -563,22 +447,12 @@ def _integrate(model: ParcelModel, y0: np.ndarray, t0: float, t1: float, sample_
     # where the adaptive integrator's error norm underflows to 0/0).
     y0 = np.where(np.abs(y0) < 1e-100, 0.0, y0)
     if isinstance(model.law, StickSlipLaw):
-        from virtual_vehicle.engine.stickslip import run_stick_slip  # here: stickslip imports this module
 
         return run_stick_slip(model, y0, t0, t1, sample_times, progress, dt=dt)
     if mode == "event":
         return _run_event(model, y0, t0, t1, sample_times, progress, max_segments, rtol=rtol, atol=atol,
                           max_step=max_step, dt=dt, support=support)
     return _run_fixed(model, y0, t0, t1, sample_times, progress, max_segments, dt=dt)
-
-
-def sample_grid(t0: float, t1: float, sample_dt: float) -> np.ndarray:
-    """Output sample times (s): ``t0, t0 + sample_dt, ...`` up to ``t1``, and ``t1`` itself."""
-    n_samples = int(np.floor((t1 - t0) / sample_dt * (1 + 1e-12))) + 1
-    times = t0 + sample_dt * np.arange(n_samples)
-    if times[-1] < t1 - 1e-12 * max(1.0, abs(t1)):
-        times = np.append(times, t1)
-    return times
 
 
 class _Recorder:
@@ -664,7 +538,7 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             recent.clear()  # chattering: cross the boundary in fixed steps, then locate events again
             t_end = min(t1, t + _CHATTER_STEPS * dt)
             due = rec.pending_until(t_end)
-            times, states, evs, status, t, n = _fixed_steps(model, y, t, t_end, dt, due, progress, _rk4(model))
+            times, states, evs, status, t, n = fixed_steps(model, y, t, t_end, dt, due, progress, _rk4(model))
             kept = int(np.count_nonzero(due <= t))  # all of them unless it tipped
             rec.add(times[:kept], states[:kept])
             events.extend(evs)
@@ -680,7 +554,7 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
             status = "tipped"
             break
-        ev = _diff_event(t, y, piece, new)
+        ev = diff_event(t, y, piece, new)
         if ev is not None:
             events.append(ev)
         piece = new
@@ -693,42 +567,8 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     return Trajectory(*rec.arrays(), events, status, t, segments, nfev + 4 * chatter_steps, stats)
 
 
-def _fixed_steps(model, y0, t0, t1, dt, sample_times, progress, advance):
-    """Drive a fixed-step method: ``advance(piece, t, y, h) -> y_next`` takes one step of length h from state y.
-    Support changes are logged at the end of the step in which they happened; tipping ends the run.
-    Returns (times, states, events, status, t_end, steps)."""
-    if not dt > 0:
-        raise ValueError("dt must be positive")
-    events: list[Event] = []
-    t, y = float(t0), np.array(y0, dtype=float)
-    ts, ys = [t], [y.copy()]
-    steps = 0
-    status = "completed"
-    try:
-        piece = model.piece_at(y)
-        n_steps = int(np.ceil((t1 - t0) / dt - 1e-9))
-        for i in range(n_steps):
-            y = advance(piece, t, y, min(dt, t1 - t))
-            t = t0 + (i + 1) * dt if i + 1 < n_steps else t1
-            steps += 1
-            new = model.piece_at(y)
-            ev = _diff_event(t, y, piece, new)
-            if ev is not None:
-                events.append(ev)
-            piece = new
-            ts.append(t)
-            ys.append(y.copy())
-            if progress is not None and i % 256 == 0:
-                progress(t)
-    except TippingError as exc:
-        events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
-        status = "tipped"
-    times, states = _sampled(np.array(ts), np.array(ys), sample_times, t, y)
-    return times, states, events, status, t, steps
-
-
 def _rk4(model):
-    """Classical RK4 for :func:`_fixed_steps`; every stage looks its piece up."""
+    """Classical RK4 for :func:`fixed_steps`; every stage looks its piece up."""
     def rk4(piece, t, y, h):
         k1 = model.rhs(t, y)
         k2 = model.rhs(t + h / 2, y + h / 2 * k1)
@@ -739,20 +579,9 @@ def _rk4(model):
 
 
 def _run_fixed(model, y0, t0, t1, sample_times, progress, max_segments, *, dt) -> Trajectory:
-    times, states, events, status, t, steps = _fixed_steps(model, y0, t0, t1, dt, sample_times, progress,
+    times, states, events, status, t, steps = fixed_steps(model, y0, t0, t1, dt, sample_times, progress,
                                                            _rk4(model))
     return Trajectory(times, states, events, status, t, steps, 4 * steps,
                       {"pieces_cached": model.pieces_cached, "solves": model.solves})
 
-
-def _sampled(ts: np.ndarray, ys: np.ndarray, sample_times: np.ndarray, t: float, y: np.ndarray):
-    """Samples of a fixed-step run: states interpolated linearly at the sample times reached, plus the last state."""
-    keep = sample_times[sample_times <= t]
-    samples = np.column_stack([np.interp(keep, ts, ys[:, j]) for j in range(6)]) if len(keep) else np.zeros((0, 6))
-    times = list(keep)
-    states = list(samples)
-    if not times or t > times[-1]:
-        times.append(t)
-        states.append(y)
-    return np.array(times), np.array(states).reshape(-1, 6)
 

@@ -42,16 +42,8 @@ from virtual_vehicle.physics.collide import (
     solve_rows,
     wheel_speed_of,
 )
-from virtual_vehicle.engine.dynamics import (
-    MODES,
-    Event,
-    ParcelModel,
-    Trajectory,
-    _diff_event,
-    _integrate,
-    _sampled,
-    sample_grid,
-)
+from virtual_vehicle.engine.dynamics import MODES, ParcelModel, _integrate
+from virtual_vehicle.engine.stepping import Event, Trajectory, diff_event, sample_grid, sampled_at
 from virtual_vehicle.errors import TippingError
 from virtual_vehicle.physics.friction import FrictionLaw, StickSlipLaw, ViscousLaw
 from virtual_vehicle.model.layout import CellArray
@@ -505,7 +497,7 @@ class Plant:
                     log[i][0].append(t_next)
                     log[i][1].append(Y[i].copy())
                     continue
-                ev = _diff_event(t_next, Y[i], pieces[i], new)
+                ev = diff_event(t_next, Y[i], pieces[i], new)
                 if ev is not None:
                     log[i][2].append(ev)
                 pieces[i] = new
@@ -516,7 +508,7 @@ class Plant:
         out = {}
         for i in members:
             ts, states, events, status = log[i]
-            times, sampled = _sampled(np.array(ts), np.array(states), samples, ts[-1], states[-1])
+            times, sampled = sampled_at(np.array(ts), np.array(states), samples, ts[-1], states[-1])
             stats = {}
             if stick:
                 y0, y1 = states[0], states[-1]

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from virtual_vehicle.engine.stepping import Trajectory, fixed_steps
 from virtual_vehicle.physics.friction import StickSlipLaw
 
 __all__ = ["StickSlipLaw", "solve_contacts", "run_stick_slip"]
@@ -129,12 +130,10 @@ def solve_contacts(J, w, bounds, nu, minv, lam0, max_sweeps: int, tol: float):
 def run_stick_slip(model, y0, t0, t1, sample_times, progress, *, dt):
     """Time-step one parcel under :class:`StickSlipLaw` from ``t0`` to ``t1`` (s) at step ``dt`` (s).
 
-    Returns a :class:`~virtual_vehicle.engine.dynamics.Trajectory` whose ``stats`` hold the energy account (J):
+    Returns a :class:`~virtual_vehicle.engine.stepping.Trajectory` whose ``stats`` hold the energy account (J):
     ``wheel_work``, ``friction_dissipation``, ``step_dissipation``, ``kinetic_start``, ``kinetic_end``, and the
     solver's ``sweeps_max`` and ``unconverged_steps``.
     """
-    from virtual_vehicle.engine.dynamics import Trajectory, _fixed_steps
-
     law = model.law
     mass = masses(model.spec)
     minv = 1.0 / mass
@@ -150,7 +149,7 @@ def run_stick_slip(model, y0, t0, t1, sample_times, progress, *, dt):
         remember(model, keys, lam, bounds)
         return np.concatenate([y[:3] + h * nu_p, nu_p])  # semi-implicit Euler
 
-    times, states, events, status, t, steps = _fixed_steps(model, y0, t0, t1, dt, sample_times, progress, step)
+    times, states, events, status, t, steps = fixed_steps(model, y0, t0, t1, dt, sample_times, progress, step)
     y = states[-1]
     stats = {**acc, "kinetic_start": 0.5 * float(mass @ np.asarray(y0, dtype=float)[3:] ** 2),
              "kinetic_end": 0.5 * float(mass @ y[3:] ** 2), "pieces_cached": model.pieces_cached,

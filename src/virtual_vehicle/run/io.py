@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import platform
-import tempfile
 from pathlib import Path
 
 from virtual_vehicle.run import tables
+from virtual_vehicle.config.scenario import dump_toml
+from virtual_vehicle.run.files import write_atomic
 from virtual_vehicle.run.sim import RunResult
 
 FORMATS = ("parquet", "csv")
@@ -82,31 +82,11 @@ def clear_run_folder(out_dir: str | Path) -> list[str]:
     return removed
 
 
-def write_atomic(path: Path, data: str | bytes) -> None:
-    """Write ``data`` to ``path`` so that the file appears complete or not at all."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    mode = "wb" if isinstance(data, bytes) else "w"
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, mode, **({} if mode == "wb" else {"encoding": "utf-8", "newline": ""})) as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def scenario_toml(result: RunResult) -> str:
     """The run's scenario as TOML text: the file it was started from, else its validated model written out (a
     scenario built in code)."""
     if result.scenario_text is not None:
         return result.scenario_text
-    from virtual_vehicle.config.scenario import dump_toml
-
     return dump_toml(result.setup.scenario)
 
 

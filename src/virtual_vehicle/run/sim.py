@@ -259,7 +259,7 @@ class _Job:
         """Write this run's state to ``path`` atomically (a data file, see :mod:`virtual_vehicle.run.checkpoint`), then
         go on from exactly what :func:`resume` reads back from it (caches start afresh), so that the checkpointed
         run and one resumed from any of its checkpoints are the same run to the last bit."""
-        from virtual_vehicle.run.io import write_atomic
+        from virtual_vehicle.run.files import write_atomic
 
         data = self.checkpoint_bytes(checkpoint_every)
         write_atomic(Path(path), data)

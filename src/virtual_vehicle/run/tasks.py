@@ -146,19 +146,3 @@ REPORTS = {"sort": sorting_report, "pose": pose_report}
 """Task reports by program: what :func:`compare` puts side by side."""
 
 
-def compare(scenario, progress=None) -> dict:
-    """Run a task scenario (program ``"sort"`` or ``"pose"``) twice, with distributed and with central control, and
-    return both reports side by side: {"distributed": report, "central": report} (see :func:`sorting_report` and
-    :func:`pose_report`, without the per-parcel rows), each with the run's wall time (s)."""
-    from virtual_vehicle.run.sim import run
-
-    report_of = REPORTS[scenario.control.program]
-    out = {}
-    for mode in ("distributed", "central"):
-        control = scenario.control.model_copy(update={"central": mode == "central"})
-        result = run(scenario.model_copy(update={"control": control}).build(), progress)
-        report = report_of(result)
-        report.pop("parcels")
-        report["wall_time_s"] = result.wall_time
-        out[mode] = report
-    return out

@@ -269,9 +269,9 @@ def animate_cmd(
     entries and exits outlined, dead cells crossed out, message traffic as a grey heat map. Networked runs are
     recorded for this ([sensors] record = true). At most 20000 frames; Ctrl-C stops cleanly (exit 130) and
     leaves no partial video."""
-    from virtual_vehicle.ui.animate import SUFFIXES, AnimationInterrupted, animate, check_request
     from virtual_vehicle.config.scenario import load_scenario
     from virtual_vehicle.run.sim import run as run_setup
+    from virtual_vehicle.ui.animate import SUFFIXES, AnimationInterrupted, animate, check_request
 
     try:
         if video.suffix.lower() not in SUFFIXES:
@@ -363,31 +363,40 @@ def sweep(
     """Run every variation of a base scenario on Dask and collect their summaries into one Parquet table; failed
     runs are recorded with their error, and an interrupted sweep resumes without redoing finished runs. Exit code 1
     when any run failed (the table is still written), 2 for a bad sweep file (nothing runs), 130 after Ctrl-C."""
-    from virtual_vehicle.analysis.sweep import SweepInterrupted, load_sweep, run_sweep
+    from virtual_vehicle.analysis.sweep import load_sweep, run_sweep
 
     try:
         sw, base = load_sweep(spec)
         count = len(sw.variations())
     except VirtualVehicleError as exc:
         _fail(exc)
-    bar = _LazyProgress(f"sweeping {count} variations of {sw.base}", delay=0.0)
+    res = _study(f"sweeping {count} variations of {sw.base}", out_dir,
+                 lambda bar: run_sweep(sw, base, out_dir, scheduler=scheduler, workers=workers, progress=bar,
+                                       retry_failed=retry_failed))
+    out.print(f"[bold]{escape(sw.base)}[/bold]: {res['runs']} runs ({res['ran']} run now, {res['skipped']} already "
+              f"done), {res['failed']} failed; summary in {escape(str(res['summary']))}")
+    _runs_failed(res)
+
+
+def _study(label: str, out_dir: Path, call):
+    """``call(progress)`` (a sweep or a fault study) under a progress bar: a bad input is one message (exit 2), an
+    interrupt says what was kept (exit 130), also before any run started or while the summary is written."""
+    from virtual_vehicle.analysis.sweep import SweepInterrupted
+
+    bar = _LazyProgress(label, delay=0.0)
     try:
-        res = run_sweep(sw, base, out_dir, scheduler=scheduler, workers=workers, progress=bar,
-                        retry_failed=retry_failed)
+        return call(bar)
     except VirtualVehicleError as exc:
         bar.close()
         _fail(exc)
     except SweepInterrupted as exc:
         bar.close()
         _interrupted(exc)
-    except KeyboardInterrupt:  # before any run started, or while writing the summary
+    except KeyboardInterrupt:
         bar.close()
         _interrupted(None, out_dir)
     finally:
         bar.close()
-    out.print(f"[bold]{escape(sw.base)}[/bold]: {res['runs']} runs ({res['ran']} run now, {res['skipped']} already "
-              f"done), {res['failed']} failed; summary in {escape(str(res['summary']))}")
-    _runs_failed(res)
 
 
 def _interrupted(exc, out_dir: Path | None = None) -> None:
@@ -427,28 +436,17 @@ def fault_study_cmd(
     study is still written, from the runs that finished), 130 after Ctrl-C (rerun to resume)."""
     from rich.table import Table
 
-    from virtual_vehicle.analysis.sweep import SweepInterrupted, fault_study
+    from virtual_vehicle.analysis.sweep import fault_study
     from virtual_vehicle.ui.viz import plot_fault_study
 
     try:
         values = [float(x) for x in rates.split(",") if x.strip()]
     except ValueError:
         _fail(VirtualVehicleError(f"--rates: not a list of numbers: {rates!r}"))
-    bar = _LazyProgress(f"fault study of {scenario}", delay=0.0)
-    try:
-        rows = fault_study(scenario, kind, values, samples, out_dir, duration=duration, scheduler=scheduler,
-                           workers=workers, progress=bar, retry_failed=retry_failed)
-    except VirtualVehicleError as exc:
-        bar.close()
-        _fail(exc)
-    except SweepInterrupted as exc:
-        bar.close()
-        _interrupted(exc)
-    except KeyboardInterrupt:
-        bar.close()
-        _interrupted(None, out_dir)
-    finally:
-        bar.close()
+    rows = _study(f"fault study of {scenario}", out_dir,
+                  lambda bar: fault_study(scenario, kind, values, samples, out_dir, duration=duration,
+                                          scheduler=scheduler, workers=workers, progress=bar,
+                                          retry_failed=retry_failed))
     plot_fault_study(rows, kind, f"{scenario}: {samples} fault draws per rate", out_dir / "study.png")
     table = Table(title=f"{scenario}: {kind}")
     for head in ("rate", "delivered (mean ± std)", "delivery time (s)", "collisions", "misrouted", "lost", "failed"):
@@ -483,9 +481,9 @@ def scale_study_cmd(
 
     from rich.table import Table
 
-    from virtual_vehicle.run.io import write_atomic
     from virtual_vehicle.analysis.scaling import similarity_study
     from virtual_vehicle.config.scenario import load_scenario
+    from virtual_vehicle.run.files import write_atomic
     from virtual_vehicle.ui.viz import plot_similarity
 
     try:
@@ -533,8 +531,8 @@ def equilibria_cmd(
     import numpy as np
 
     from virtual_vehicle.analysis.equilibria import equilibria
-    from virtual_vehicle.run.io import write_atomic
     from virtual_vehicle.config.scenario import load_scenario
+    from virtual_vehicle.run.files import write_atomic
     from virtual_vehicle.ui.viz import plot_force_field
 
     try:
@@ -601,9 +599,9 @@ def compare(
 
     from rich.table import Table
 
-    from virtual_vehicle.run.io import write_atomic
+    from virtual_vehicle.analysis.compare import compare as compare_modes
     from virtual_vehicle.config.scenario import load_scenario
-    from virtual_vehicle.run.tasks import compare as compare_modes
+    from virtual_vehicle.run.files import write_atomic
 
     try:
         sc, _ = load_scenario(scenario)

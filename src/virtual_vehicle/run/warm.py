@@ -1,0 +1,58 @@
+"""Compile (or load from numba's cache) every compiled kernel a run uses, at a time of the caller's choosing."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from virtual_vehicle.cells.network.delivery import IdealRounds
+from virtual_vehicle.cells.network.messages import Mailbox
+from virtual_vehicle.cells.network.programs import CellInputs
+from virtual_vehicle.cells.network.topology import from_layout
+from virtual_vehicle.cells.sorting import Sorter
+from virtual_vehicle.engine import _kernel
+from virtual_vehicle.engine.batch import QuietStepper
+from virtual_vehicle.engine.dynamics import ParcelModel, constants_row, integrate
+from virtual_vehicle.model.fields import Uniform
+from virtual_vehicle.model.layout import grid
+from virtual_vehicle.model.parcel import covered_pairs, rectangle
+from virtual_vehicle.physics.friction import CoulombLaw, ViscousLaw
+
+
+def warm_up() -> float:
+    """Compile the event engine's inner loop (:mod:`virtual_vehicle.engine._kernel`), the support solve's compiled parts
+    (:mod:`virtual_vehicle.physics.contact`, :mod:`virtual_vehicle.physics.friction`), the quiet step's checks and step
+    (:mod:`virtual_vehicle.engine.batch`) and the sorter's cell program (:mod:`virtual_vehicle.cells.sorting`; about a minute
+    together, the first time on a machine) or load them from numba's cache (a fraction of a second), by integrating
+    one parcel on a 4 x 4 array for 10 ms, looking its last piece up again, making its constants under the viscous
+    law too, checking and stepping it as a quiet step would, gathering the cells under it as sensing does, and
+    stepping the sorter once and carrying its sentences. The first integration of a process does this anyway (but
+    for the sorter and its sentences); call it to do it at a time of your choosing (the set-up of ``make`` does, so
+    that no later run waits). Returns the seconds it took."""
+    start = time.perf_counter()
+    cells = grid(4, 4, 0.1)
+    spec = rectangle(0.25, 0.22, 1.0, 0.5)
+    model = ParcelModel(cells, spec, Uniform((0.1, 0.0)).velocities(cells), CoulombLaw())
+    end = integrate(model, np.array([0.15, 0.15, 0.0, 0.0, 0.0, 0.0]), 0.0, 0.01).states[-1]
+    piece = model.piece_at(end)  # found again: the cache's test of a solution
+    ViscousLaw().constants_and_row(piece.solution, model.velocities[piece.support],
+                                   cells.active_directions[piece.support], 0.5, spec.mass, spec.inertia)
+    constants_row(piece.constants, piece.solution.origin, spec.mass, spec.inertia)  # as unpickling a piece does
+    # the quiet step's compiled checks, with the argument types networked runs give them
+    stepper = QuietStepper(cells, [spec], model.law, [spec.mu], model.weight / spec.mass, 1e-10, 1e-12)
+    stepper._anchor(0, [model], end)
+    stepper._edges_clear(np.zeros(1, dtype=np.int64), end[None], 0.01, np.zeros(1), np.zeros(1), stepper.radius,
+                         stepper.lever)
+    _kernel.quiet_steps(np.array([piece.row]), end[None], 0.01, 0.02, 1e-10, 1e-12,
+                        np.array([0.01, 0.02]), np.empty((1, 2, 6)))
+    covered_pairs([spec], [end], cells.grid)  # as sensing and destination labels gather cells
+    sorter = Sorter(0.3)  # the sorter's compiled cell program, and its sentences carried, as a networked run goes
+    topology = from_layout(cells)
+    inputs = CellInputs(0.0, np.zeros((cells.n, 5), bool), Mailbox.empty(sorter.schema, cells.n, 4),
+                        topology.connected, {}, None)
+    sent = sorter.step(sorter.init(cells.n, 4, {}), inputs)[1]
+    rounds = IdealRounds(topology)
+    for _ in range(2):  # the first carries everything, the second what changed
+        rounds.exchange_changed(sent, np.ones(cells.n, bool), 0.0, 0.01)
+    return time.perf_counter() - start
