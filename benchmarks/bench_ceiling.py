@@ -167,6 +167,7 @@ def run_case(case: str, seconds: float | None = None) -> dict:
 
     if case == "coulomb1":
         import bench_perf as b
+
         from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 
         simulated = 5.0 if seconds is None else seconds
@@ -176,6 +177,7 @@ def run_case(case: str, seconds: float | None = None) -> dict:
             return integrate(model, b.Y0_IN, 0.0, simulated, sample_dt=simulated).states[-1].tolist()
     elif case == "hall200":
         import bench_scale
+
         from virtual_vehicle.config.scenario import parse_scenario
         from virtual_vehicle.run.sim import run_network
 

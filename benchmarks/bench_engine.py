@@ -15,10 +15,10 @@ import time
 
 import numpy as np
 
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
 from virtual_vehicle.physics import friction
 from virtual_vehicle.physics.contact import normal_forces
-from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.physics.reference import paper_normal_forces
 
 

@@ -13,9 +13,9 @@ import time
 
 import numpy as np
 
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
 from virtual_vehicle.physics import friction
-from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 
 
 def traps(cells, size=4):

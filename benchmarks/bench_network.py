@@ -13,12 +13,12 @@ import time
 
 import numpy as np
 
-from virtual_vehicle.model import layout
 from virtual_vehicle.cells.network.delivery import IdealRounds
 from virtual_vehicle.cells.network.messages import Mailbox
 from virtual_vehicle.cells.network.programs import CellInputs, Routing
 from virtual_vehicle.cells.network.topology import from_layout
 from virtual_vehicle.cells.network.wire import WireLevel
+from virtual_vehicle.model import layout
 
 
 def measure(delivery, topo, ticks: int, period: float):

@@ -17,12 +17,12 @@ import time
 
 import numpy as np
 
-from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics import friction
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
-from virtual_vehicle.run.warm import warm_up
+from virtual_vehicle.model import fields, layout, parcel
 from virtual_vehicle.model.parcel import supporting_cells
+from virtual_vehicle.physics import friction
 from virtual_vehicle.physics.reference import paper_normal_forces
+from virtual_vehicle.run.warm import warm_up
 
 CELLS = layout.grid(30, 30, 0.1)
 SPEC = parcel.rectangle(0.4, 0.3, 2.0, 1.0)

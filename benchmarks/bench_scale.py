@@ -52,9 +52,9 @@ def scenario(side: int, parcels: int, seconds: float, batch: bool = True, change
 
 def one(side: int, parcels: int, seconds: float, batch: bool = True, changed_only: bool = True) -> dict:
     """Run one configuration here; return its figures."""
-    from virtual_vehicle.run.warm import warm_up
     from virtual_vehicle.config.scenario import parse_scenario
     from virtual_vehicle.run.sim import NetworkRun
+    from virtual_vehicle.run.warm import warm_up
 
     setup = parse_scenario(scenario(side, parcels, seconds, batch, changed_only)).build()
     load = warm_up()  # numba's cached code, loaded outside the timed run as the imports are

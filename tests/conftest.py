@@ -10,9 +10,9 @@ import pytest
 from hypothesis import assume, settings
 
 from virtual_vehicle.engine import dynamics
-from virtual_vehicle.physics import friction
 from virtual_vehicle.engine.dynamics import ParcelModel
 from virtual_vehicle.errors import TippingError
+from virtual_vehicle.physics import friction
 
 # Every run draws the same examples on any machine: derandomized (examples follow from each test's name), no example
 # database (a failure found once cannot make later runs differ, and no .hypothesis/ folder is written), the failing

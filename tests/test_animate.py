@@ -7,10 +7,10 @@ import pytest
 from PIL import Image
 from typer.testing import CliRunner
 
-from virtual_vehicle.ui import animate as anim
-from virtual_vehicle.ui.cli import app
 from virtual_vehicle.config.scenario import load_scenario
 from virtual_vehicle.run.sim import run
+from virtual_vehicle.ui import animate as anim
+from virtual_vehicle.ui.cli import app
 
 
 def _run(name: str, duration: float, record: bool = True):

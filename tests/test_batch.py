@@ -9,17 +9,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import example, given, settings, strategies as st
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 from scipy.integrate import DOP853
 
+from virtual_vehicle.config.scenario import load_scenario, parse_scenario
 from virtual_vehicle.engine import _kernel
-from virtual_vehicle.physics import friction
-from virtual_vehicle.model import layout, parcel
 from virtual_vehicle.engine.batch import QuietStepper
-from virtual_vehicle.physics.collide import point_reach, reach_bounds, wheel_speed_of
 from virtual_vehicle.engine.dynamics import Event, ParcelModel, Trajectory, constants_row, integrate
 from virtual_vehicle.engine.plant import Integration, Plant
-from virtual_vehicle.config.scenario import load_scenario, parse_scenario
+from virtual_vehicle.model import layout, parcel
+from virtual_vehicle.physics import friction
+from virtual_vehicle.physics.collide import point_reach, reach_bounds, wheel_speed_of
 from virtual_vehicle.run.sim import run, run_network
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))

@@ -9,13 +9,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from virtual_vehicle.model import layout
 from virtual_vehicle.cells.network.delivery import IdealRounds
 from virtual_vehicle.cells.network.messages import Mailbox, Schema
 from virtual_vehicle.cells.network.programs import CellInputs, ChangedCells, check_program
 from virtual_vehicle.cells.network.sentence import WordType
 from virtual_vehicle.cells.network.topology import from_layout
 from virtual_vehicle.config.scenario import CellChange, FaultEvent, ReconfigurationSpec, load_scenario
+from virtual_vehicle.model import layout
 from virtual_vehicle.run.sim import LatencyStats, NetworkRun
 
 WALL = [j * 24 + 12 for j in range(2, 10)]  # sorting_junction: a wall across the middle, rows 2..9 of column 12

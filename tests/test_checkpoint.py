@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from virtual_vehicle import __version__
+from virtual_vehicle.config.scenario import load_scenario
+from virtual_vehicle.errors import VirtualVehicleError
 from virtual_vehicle.run import checkpoint
 from virtual_vehicle.run.checkpoint import CheckpointError, decode, encode
-from virtual_vehicle.errors import VirtualVehicleError
-from virtual_vehicle.config.scenario import load_scenario
 
 
 @dataclasses.dataclass

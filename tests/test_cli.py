@@ -15,10 +15,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from virtual_vehicle.ui.cli import app
-from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.config.scenario import bundled_scenarios, load_scenario, parse_scenario, parse_text
+from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.run.sim import run
+from virtual_vehicle.ui.cli import app
 
 runner = CliRunner()
 

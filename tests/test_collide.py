@@ -4,14 +4,15 @@ impact, a pushed pair), no interpenetration, and runs whose parcels never meet l
 import numpy as np
 import pytest
 import shapely
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from virtual_vehicle.config.scenario import parse_scenario
+from virtual_vehicle.engine.plant import Integration, Plant
 from virtual_vehicle.model import layout
+from virtual_vehicle.model.parcel import polygon, rectangle
 from virtual_vehicle.physics.collide import ContactParams, outline_distance, overlap_area, pair_contacts
 from virtual_vehicle.physics.friction import LAWS
-from virtual_vehicle.model.parcel import polygon, rectangle
-from virtual_vehicle.engine.plant import Plant, Integration
-from virtual_vehicle.config.scenario import parse_scenario
 from virtual_vehicle.run.sim import run
 
 G = 9.81

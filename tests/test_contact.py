@@ -9,8 +9,8 @@ from hypothesis import strategies as st
 from scipy.optimize import minimize
 from scipy.spatial import ConvexHull
 
-from virtual_vehicle.physics.contact import normal_forces, solve_support
 from virtual_vehicle.errors import TippingError
+from virtual_vehicle.physics.contact import normal_forces, solve_support
 from virtual_vehicle.physics.reference import paper_normal_forces
 
 W = 20.0

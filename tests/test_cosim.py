@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from virtual_vehicle.model import layout
 from virtual_vehicle.cells.control import Shuttle
-from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.cells.network.programs import check_program
 from virtual_vehicle.cells.network.topology import from_layout
 from virtual_vehicle.config.scenario import load_scenario, parse_scenario
+from virtual_vehicle.errors import ScenarioError
+from virtual_vehicle.model import layout
 from virtual_vehicle.run.sim import run
 
 

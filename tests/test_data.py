@@ -11,10 +11,10 @@ import pyarrow.parquet as pq
 import pytest
 from typer.testing import CliRunner
 
-from virtual_vehicle.run import io, tables
-from virtual_vehicle.ui.cli import app
 from virtual_vehicle.config.scenario import dump_toml, load_scenario, parse_scenario, parse_text
+from virtual_vehicle.run import io, tables
 from virtual_vehicle.run.sim import run
+from virtual_vehicle.ui.cli import app
 
 
 def _recorded(duration=0.5):

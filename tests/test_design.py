@@ -6,12 +6,12 @@ import itertools
 import numpy as np
 import pytest
 
+from virtual_vehicle.analysis.equilibria import equilibria
+from virtual_vehicle.cells.design import twist_design, wrench_design, wrench_matrix
+from virtual_vehicle.config.scenario import parse_scenario
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
 from virtual_vehicle.physics import friction
-from virtual_vehicle.cells.design import twist_design, wrench_design, wrench_matrix
-from virtual_vehicle.engine.dynamics import ParcelModel, integrate
-from virtual_vehicle.analysis.equilibria import equilibria
-from virtual_vehicle.config.scenario import parse_scenario
 
 G = 9.81
 

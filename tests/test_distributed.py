@@ -4,7 +4,6 @@ network) against the heat equation, under ideal rounds and the wire-level networ
 import numpy as np
 import pytest
 
-from virtual_vehicle.model import layout
 from virtual_vehicle.cells.control import Diffusion
 from virtual_vehicle.cells.network.delivery import IdealRounds
 from virtual_vehicle.cells.network.messages import Mailbox
@@ -12,6 +11,7 @@ from virtual_vehicle.cells.network.programs import CellInputs, check_program
 from virtual_vehicle.cells.network.topology import from_layout
 from virtual_vehicle.cells.network.wire import WireLevel, WireParams
 from virtual_vehicle.config.scenario import parse_scenario
+from virtual_vehicle.model import layout
 from virtual_vehicle.run.sim import run
 
 

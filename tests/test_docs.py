@@ -10,11 +10,11 @@ import pkgutil
 import re
 import subprocess
 import sys
+import tomllib
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
-import tomllib
 from pydantic import BaseModel
 from pydantic_core import PydanticUndefined
 

@@ -5,15 +5,17 @@ import itertools
 
 import numpy as np
 import pytest
-from hypothesis import assume, given, settings, strategies as st
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 from scipy.linalg import expm
 from scipy.optimize import brentq
 
-from virtual_vehicle.engine import _kernel as kernel, dynamics, stepping
-from virtual_vehicle.physics import contact, friction
-from virtual_vehicle.model import fields, layout, parcel
+from virtual_vehicle.engine import _kernel as kernel
+from virtual_vehicle.engine import dynamics, stepping
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.errors import TippingError
+from virtual_vehicle.model import fields, layout, parcel
+from virtual_vehicle.physics import contact, friction
 
 G = 9.81
 

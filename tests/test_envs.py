@@ -12,11 +12,11 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import parallel_api_test
 
-from virtual_vehicle.run import tables
-from virtual_vehicle.ui.envs import FALL_PENALTY, ArrayEnv, CellsEnv
-from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.config.scenario import load_scenario
+from virtual_vehicle.errors import ScenarioError
+from virtual_vehicle.run import tables
 from virtual_vehicle.run.sim import run
+from virtual_vehicle.ui.envs import FALL_PENALTY, ArrayEnv, CellsEnv
 
 ROOT = Path(__file__).resolve().parents[1]
 

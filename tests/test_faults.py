@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.config.scenario import load_scenario
+from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.run.sim import run
 
 

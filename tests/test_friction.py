@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from virtual_vehicle.physics.contact import solve_support
 from virtual_vehicle.engine._kernel import accelerations
 from virtual_vehicle.engine.dynamics import constants_row
+from virtual_vehicle.physics.contact import solve_support
 from virtual_vehicle.physics.friction import LAWS, CoulombLaw, ViscousLaw, coulomb_constants, viscous_constants
 
 D = 0.1

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import shapely
 
-from virtual_vehicle.model import layout, parcel
 from virtual_vehicle.cells.control import Shuttle
-from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.cells.hardware import Sensors, default_offsets
-from virtual_vehicle.run.io import write_results
 from virtual_vehicle.config.scenario import load_scenario, parse_scenario
+from virtual_vehicle.errors import ScenarioError
+from virtual_vehicle.model import layout, parcel
+from virtual_vehicle.run.io import write_results
 from virtual_vehicle.run.sim import run
 
 

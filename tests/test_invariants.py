@@ -9,11 +9,11 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from virtual_vehicle.model import fields, layout, parcel
+from virtual_vehicle.config.scenario import bundled_scenarios, load_scenario
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
+from virtual_vehicle.model import layout, parcel
 from virtual_vehicle.physics import friction
 from virtual_vehicle.run import io
-from virtual_vehicle.engine.dynamics import ParcelModel, integrate
-from virtual_vehicle.config.scenario import bundled_scenarios, load_scenario
 from virtual_vehicle.run.sim import run
 
 LAWS = {"coulomb": friction.CoulombLaw(), "viscous": friction.ViscousLaw(), "stick_slip": friction.StickSlipLaw()}

@@ -6,13 +6,15 @@ import json
 
 import numpy as np
 import pytest
-from hypothesis import example, given, settings, strategies as st
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 from scipy.integrate import DOP853
 
-from virtual_vehicle.engine import _kernel as kernel, dynamics
+from virtual_vehicle.engine import _kernel as kernel
+from virtual_vehicle.engine import dynamics
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
 from virtual_vehicle.physics import friction
-from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.run.warm import warm_up
 
 CELLS = layout.grid(30, 30, 0.1)

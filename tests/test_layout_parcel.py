@@ -4,11 +4,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from scipy.spatial import cKDTree
 
-from virtual_vehicle.model import layout, parcel
 from virtual_vehicle.errors import ScenarioError
+from virtual_vehicle.model import layout, parcel
 
 
 def test_grid_row_points():

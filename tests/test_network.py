@@ -4,12 +4,12 @@ faults and corruption handling."""
 import numpy as np
 import pytest
 
-from virtual_vehicle.model import layout
 from virtual_vehicle.cells.network.delivery import IdealRounds
 from virtual_vehicle.cells.network.messages import Mailbox, Schema
 from virtual_vehicle.cells.network.sentence import WordType
 from virtual_vehicle.cells.network.topology import from_layout
 from virtual_vehicle.cells.network.wire import WireLevel, WireParams
+from virtual_vehicle.model import layout
 
 SCHEMA = Schema.of(value=(1, WordType.I16), hops=(2, WordType.U8))
 EAST, NORTH, WEST, SOUTH = range(4)

@@ -66,8 +66,8 @@ def test_dead_cells_are_crossed_out_and_start_and_end_outlines_are_in_the_legend
 
 
 def test_cell_ids_drawn_are_the_layouts_numbering_row_by_row_from_the_bottom():
-    from virtual_vehicle.model import layout
     from virtual_vehicle.config.scenario import parse_scenario
+    from virtual_vehicle.model import layout
 
     text = "oo.\nooo\nooo\n"  # 8 cells: the bottom line first, left to right
     cells, _ = layout.from_map(text, pitch=0.1)

@@ -4,11 +4,11 @@ controller that drives parcels to target poses with it."""
 import numpy as np
 import pytest
 
-from virtual_vehicle.model import layout, parcel
-from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.cells.estimate import blobs, estimate_pose, initial_pose, sensor_spacing
 from virtual_vehicle.cells.hardware import Sensors, default_offsets
 from virtual_vehicle.config.scenario import parse_scenario
+from virtual_vehicle.errors import ScenarioError
+from virtual_vehicle.model import layout, parcel
 from virtual_vehicle.run.sim import run
 
 

@@ -6,13 +6,13 @@ import pytest
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import shortest_path
 
-from virtual_vehicle.model import layout
 from virtual_vehicle.cells.network.delivery import IdealRounds
 from virtual_vehicle.cells.network.messages import Mailbox, Schema
 from virtual_vehicle.cells.network.programs import UNREACHABLE, CellInputs, Flood, Routing, check_program
 from virtual_vehicle.cells.network.sentence import WordType
 from virtual_vehicle.cells.network.topology import from_layout
 from virtual_vehicle.cells.network.wire import WireLevel
+from virtual_vehicle.model import layout
 
 
 def bfs(topo, sources):

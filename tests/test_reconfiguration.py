@@ -10,13 +10,13 @@ import shapely
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.cells.sorting import MAX_EXITS, UNREACHABLE
+from virtual_vehicle.config.scenario import CellChange, ReconfigurationSpec, load_scenario
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.config.scenario import CellChange, ReconfigurationSpec, load_scenario
+from virtual_vehicle.model import fields, layout, parcel
+from virtual_vehicle.physics import friction
 from virtual_vehicle.run.sim import NetworkRun, run
-from virtual_vehicle.cells.sorting import MAX_EXITS, UNREACHABLE
 
 WALL = [j * 24 + 12 for j in range(2, 10)]  # sorting_junction: a wall across the middle, rows 2..9 of column 12
 

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from virtual_vehicle.ui.cli import app
-from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.analysis.scaling import dimensionless, scale_scenario, similarity_study
 from virtual_vehicle.config.scenario import load_scenario, parse_scenario
+from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.run.sim import run
+from virtual_vehicle.ui.cli import app
 
 
 @pytest.mark.parametrize("name", ["paper_2x2_inward", "prototype_18", "row_oscillator_viscous", "stick_slip_pickup",

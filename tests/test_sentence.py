@@ -9,8 +9,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from virtual_vehicle.cells.network.sentence import (MAX_PAYLOAD, SentenceError, Word, WordType, checksum, decode, encode,
-                                              wire_size)
+from virtual_vehicle.cells.network.sentence import (
+    MAX_PAYLOAD,
+    SentenceError,
+    Word,
+    WordType,
+    checksum,
+    decode,
+    encode,
+    wire_size,
+)
 
 VALUES = {
     WordType.U8: st.integers(0, 255),

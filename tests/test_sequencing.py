@@ -6,11 +6,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.cells.network.programs import check_program
-from virtual_vehicle.config.scenario import load_scenario, parse_scenario
-from virtual_vehicle.run.sim import run
 from virtual_vehicle.cells.sorting import Sorter, _pack, _unpack, decode_goal, encode_goal
+from virtual_vehicle.config.scenario import load_scenario, parse_scenario
+from virtual_vehicle.errors import ScenarioError
+from virtual_vehicle.run.sim import run
 from virtual_vehicle.run.tasks import sorting_report
 
 

@@ -7,12 +7,12 @@ import shapely
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from virtual_vehicle.config.scenario import parse_scenario
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
+from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.model import fields, layout, parcel
 from virtual_vehicle.physics import friction
 from virtual_vehicle.physics.contact import normal_forces
-from virtual_vehicle.engine.dynamics import ParcelModel, integrate
-from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.config.scenario import parse_scenario
 
 L_SHAPE = [[0, 0], [0.4, 0], [0.4, 0.15], [0.15, 0.15], [0.15, 0.3], [0, 0.3]]
 

@@ -4,11 +4,11 @@ stopping on stopped wheels, exact energy accounting, and the paper's Coulomb law
 import numpy as np
 import pytest
 
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
+from virtual_vehicle.engine.stickslip import solve_contacts
+from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.model import fields, layout, parcel
 from virtual_vehicle.physics import friction
-from virtual_vehicle.engine.dynamics import ParcelModel, integrate
-from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.engine.stickslip import solve_contacts
 
 G = 9.81
 

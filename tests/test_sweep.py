@@ -10,10 +10,10 @@ import pytest
 from typer.testing import CliRunner
 
 from virtual_vehicle.analysis import sweep as sw
-from virtual_vehicle.ui.cli import app
-from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.config.scenario import load_scenario
+from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.run.sim import run
+from virtual_vehicle.ui.cli import app
 
 SWEEP = """base = "prototype_18"
 [vary]

@@ -5,8 +5,8 @@ import sys
 import numpy as np
 import pytest
 
-from virtual_vehicle.run import tables
 from virtual_vehicle.config.scenario import load_scenario
+from virtual_vehicle.run import tables
 from virtual_vehicle.run.sim import run
 
 

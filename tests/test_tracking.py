@@ -5,11 +5,11 @@ simulation and side by side with the central controller."""
 import numpy as np
 import pytest
 
+from virtual_vehicle.analysis.compare import compare
 from virtual_vehicle.cells.control import pose_error
 from virtual_vehicle.cells.network.programs import check_program
 from virtual_vehicle.config.scenario import load_scenario, parse_scenario
 from virtual_vehicle.run.sim import NetworkRun, run
-from virtual_vehicle.analysis.compare import compare
 from virtual_vehicle.run.tasks import pose_report
 
 

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.config.scenario import load_scenario, parse_scenario
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.config.scenario import load_scenario, parse_scenario
+from virtual_vehicle.model import fields, layout, parcel
+from virtual_vehicle.physics import friction
 from virtual_vehicle.run.sim import run
 
 D = 0.1

@@ -30,9 +30,9 @@ import numpy as np
 
 from virtual_vehicle.engine.dynamics import ParcelModel
 from virtual_vehicle.errors import TippingError
-from virtual_vehicle.physics.friction import FrictionLaw, ViscousLaw
 from virtual_vehicle.model.layout import CellArray
 from virtual_vehicle.model.parcel import ParcelSpec
+from virtual_vehicle.physics.friction import FrictionLaw, ViscousLaw
 
 
 @dataclass

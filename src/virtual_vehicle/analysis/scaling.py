@@ -20,8 +20,8 @@ import math
 
 import numpy as np
 
-from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.config.scenario import Scenario, parse_scenario
+from virtual_vehicle.errors import ScenarioError
 
 # Dimensions as (length, time, mass) exponents, by field name within each table.
 _L, _T, _V, _W = (1, 0, 0), (0, 1, 0), (1, -1, 0), (0, -1, 0)  # length, time, speed, spin

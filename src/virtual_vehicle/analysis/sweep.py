@@ -466,8 +466,8 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
     neither delivered nor lost at the end: ``on_array`` (put on the array and still there), ``waiting`` (never put
     on: their place at the entry never came free) and ``stuck`` (the two together), each a mean over the seeds of the
     runs that finished; also written to ``study.json``. ``retry_failed``: see :func:`run_sweep`."""
-    from virtual_vehicle.run.files import write_atomic
     from virtual_vehicle.config.scenario import load_scenario
+    from virtual_vehicle.run.files import write_atomic
 
     if kind not in FAULT_KINDS:
         raise ScenarioError("kind", f"{kind!r} is not a fault rate; use one of {', '.join(FAULT_KINDS)}")

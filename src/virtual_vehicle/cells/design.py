@@ -26,9 +26,9 @@ from scipy.optimize import lsq_linear
 
 from virtual_vehicle.engine.dynamics import ParcelModel
 from virtual_vehicle.model.fields import Twist
-from virtual_vehicle.physics.friction import CoulombLaw, FrictionLaw, StickSlipLaw, ViscousLaw
 from virtual_vehicle.model.layout import CellArray
 from virtual_vehicle.model.parcel import ParcelSpec
+from virtual_vehicle.physics.friction import CoulombLaw, FrictionLaw, StickSlipLaw, ViscousLaw
 
 EXHAUSTIVE_WHEELS = 10
 """Coulomb designs over at most this many wheels try all 3^m spin patterns."""

@@ -18,11 +18,11 @@ import numpy as np
 import shapely
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from virtual_vehicle.errors import ScenarioError, TippingError
 from virtual_vehicle.model import fields as fieldlib
 from virtual_vehicle.model import layout
-from virtual_vehicle.errors import ScenarioError, TippingError
-from virtual_vehicle.physics.friction import LAWS, FrictionLaw
 from virtual_vehicle.model.parcel import ParcelSpec, polygon, rectangle, supporting_cells
+from virtual_vehicle.physics.friction import LAWS, FrictionLaw
 
 Pos = Annotated[float, Field(gt=0)]
 Coord = Annotated[float, Field(ge=-1e6, le=1e6)]
@@ -587,8 +587,8 @@ class Scenario(_Strict):
     def build(self) -> "Setup":
         """Build the simulation objects and check the rules that need them (cells, parcels on the array, no
         overlaps). Raises ScenarioError naming the field."""
-        from virtual_vehicle.model.faults import later, resolve
         from virtual_vehicle.cells.network.topology import from_layout
+        from virtual_vehicle.model.faults import later, resolve
 
         cells, contacts, marks = _build_array(self.array)
         velocities = np.zeros((cells.n, 2)) if self.field is None else _build_field(self.field).velocities(cells)

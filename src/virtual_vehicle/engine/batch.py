@@ -53,11 +53,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from virtual_vehicle.physics.collide import reach_bounds, wheel_speed_of
-from virtual_vehicle.physics.contact import SupportSolution
 from virtual_vehicle.engine import _kernel
 from virtual_vehicle.engine.dynamics import _NOISE, ParcelModel, Trajectory
 from virtual_vehicle.errors import TippingError
+from virtual_vehicle.physics.collide import reach_bounds, wheel_speed_of
+from virtual_vehicle.physics.contact import SupportSolution
 from virtual_vehicle.physics.friction import FrictionConstants, ViscousLaw
 
 

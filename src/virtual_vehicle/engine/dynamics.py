@@ -33,8 +33,12 @@ import numpy as np
 
 from virtual_vehicle.engine import _kernel
 from virtual_vehicle.engine._kernel import accelerations
-from virtual_vehicle.physics.contact import SupportSolution, _solve
+from virtual_vehicle.engine.stepping import Event, Trajectory, diff_event, fixed_steps, sample_grid
+from virtual_vehicle.engine.stickslip import run_stick_slip
 from virtual_vehicle.errors import IntegrationError, TippingError
+from virtual_vehicle.model.layout import CellArray
+from virtual_vehicle.model.parcel import ParcelSpec
+from virtual_vehicle.physics.contact import SupportSolution, _solve
 from virtual_vehicle.physics.friction import (
     CoulombLaw,
     FrictionConstants,
@@ -43,10 +47,6 @@ from virtual_vehicle.physics.friction import (
     _f64,
     _row,
 )
-from virtual_vehicle.model.layout import CellArray
-from virtual_vehicle.model.parcel import ParcelSpec
-from virtual_vehicle.engine.stepping import Event, Trajectory, diff_event, fixed_steps, sample_grid
-from virtual_vehicle.engine.stickslip import run_stick_slip
 
 Mode = Literal["event", "fixed"]
 MODES = get_args(Mode)

@@ -24,11 +24,17 @@ from typing import Callable
 import numpy as np
 import shapely
 from scipy.optimize import brentq
-from scipy.spatial import cKDTree
-from scipy.sparse.csgraph import connected_components
 from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 from virtual_vehicle.engine.batch import QuietStepper, QuietSteps
+from virtual_vehicle.engine.dynamics import MODES, ParcelModel, _integrate
+from virtual_vehicle.engine.stepping import Event, Trajectory, diff_event, sample_grid, sampled_at
+from virtual_vehicle.engine.stickslip import account, masses, new_account, remember, wheel_problem
+from virtual_vehicle.errors import TippingError
+from virtual_vehicle.model.layout import CellArray
+from virtual_vehicle.model.parcel import ParcelSpec
 from virtual_vehicle.physics.collide import (
     ContactParams,
     Rows,
@@ -42,13 +48,7 @@ from virtual_vehicle.physics.collide import (
     solve_rows,
     wheel_speed_of,
 )
-from virtual_vehicle.engine.dynamics import MODES, ParcelModel, _integrate
-from virtual_vehicle.engine.stepping import Event, Trajectory, diff_event, sample_grid, sampled_at
-from virtual_vehicle.errors import TippingError
 from virtual_vehicle.physics.friction import FrictionLaw, StickSlipLaw, ViscousLaw
-from virtual_vehicle.model.layout import CellArray
-from virtual_vehicle.model.parcel import ParcelSpec
-from virtual_vehicle.engine.stickslip import account, masses, new_account, remember, wheel_problem
 
 _ADDITIVE = ("wheel_work", "friction_dissipation", "step_dissipation", "contact_work", "unconverged_steps",
              "chatter_steps")

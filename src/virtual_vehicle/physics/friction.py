@@ -27,8 +27,8 @@ from typing import Protocol
 import numpy as np
 from numba import njit
 
-from virtual_vehicle.physics.contact import SupportSolution
 from virtual_vehicle.model.layout import _collinear
+from virtual_vehicle.physics.contact import SupportSolution
 
 J = np.array([[0.0, 1.0], [-1.0, 0.0]])
 """The paper's rotation matrix J (eq. 25): ``x^T J v`` is the scalar cross product ``x x v``."""

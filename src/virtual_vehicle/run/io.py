@@ -20,8 +20,8 @@ import json
 import platform
 from pathlib import Path
 
-from virtual_vehicle.run import tables
 from virtual_vehicle.config.scenario import dump_toml
+from virtual_vehicle.run import tables
 from virtual_vehicle.run.files import write_atomic
 from virtual_vehicle.run.sim import RunResult
 

@@ -16,16 +16,15 @@ import numpy as np
 import shapely
 
 from virtual_vehicle import __version__
+from virtual_vehicle.cells.hardware import WheelDrives
+from virtual_vehicle.cells.network.messages import Mailbox
+from virtual_vehicle.cells.network.programs import CellInputs, ChangedCells, tree_map
+from virtual_vehicle.cells.sorting import encode_goal
+from virtual_vehicle.config.scenario import Setup
 from virtual_vehicle.engine.dynamics import Trajectory, sample_grid
 from virtual_vehicle.engine.plant import SUMMED_STATS, join, joined_stats, on_grid
-from virtual_vehicle.physics.friction import CoulombLaw
-from virtual_vehicle.cells.network.messages import Mailbox
-from virtual_vehicle.cells.hardware import WheelDrives
-from virtual_vehicle.cells.network.programs import CellInputs, ChangedCells, tree_map
 from virtual_vehicle.model.parcel import ParcelSpec, covered_pairs, supporting_cells
-from virtual_vehicle.config.scenario import Setup
-from virtual_vehicle.cells.sorting import encode_goal
-
+from virtual_vehicle.physics.friction import CoulombLaw
 
 _ENERGY = ("kinetic_start", "kinetic_end", "wheel_work", "friction_dissipation", "step_dissipation", "contact_work")
 
@@ -520,9 +519,9 @@ def resume(checkpoint: str | Path, progress: Callable[[float], None] | None = No
 def _load(data: bytes, setup: Setup | None = None, where: str = "checkpoint") -> tuple["_Job", float]:
     """The run a checkpoint's bytes hold and its checkpoint interval (s). ``setup``: the run's own (a checkpointing
     run going on from what it wrote); None: built from the checkpoint's scenario. Raises VirtualVehicleError."""
-    from virtual_vehicle.run.checkpoint import CheckpointError, unpack
-    from virtual_vehicle.errors import VirtualVehicleError
     from virtual_vehicle.config.scenario import parse_scenario
+    from virtual_vehicle.errors import VirtualVehicleError
+    from virtual_vehicle.run.checkpoint import CheckpointError, unpack
 
     try:
         document, arrays = unpack(data)
@@ -611,12 +610,12 @@ def _check_like(fresh, loaded, where: str = "state") -> None:
 
 def _state_classes() -> dict[str, type]:
     """The classes a checkpoint may hold, by name: virtual_vehicle's state classes, made from their fields."""
-    from virtual_vehicle.engine.dynamics import Event
     from virtual_vehicle.cells.hardware import WheelDrives
     from virtual_vehicle.cells.network.delivery import IdealRounds
     from virtual_vehicle.cells.network.programs import ChangedCells
     from virtual_vehicle.cells.network.topology import Topology
     from virtual_vehicle.cells.network.wire import WireLevel, _Sentence
+    from virtual_vehicle.engine.dynamics import Event
     from virtual_vehicle.engine.plant import PlantRecord
 
     return {c.__name__: c for c in (Event, Trajectory, PlantRecord, LatencyStats, _Track, Mailbox, Topology,

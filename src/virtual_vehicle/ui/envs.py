@@ -30,9 +30,9 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from virtual_vehicle.cells.design import twist_design
+from virtual_vehicle.config.scenario import Scenario, load_scenario
 from virtual_vehicle.engine.dynamics import Trajectory
 from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.config.scenario import Scenario, load_scenario
 from virtual_vehicle.run.sim import CellLog, ParcelResult, RunResult
 
 FALL_PENALTY = 10.0

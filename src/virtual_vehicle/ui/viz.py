@@ -15,8 +15,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Polygon as PolygonPatch  # noqa: E402
 
-from virtual_vehicle.run.files import write_atomic  # noqa: E402
 from virtual_vehicle.model.layout import cell_outlines  # noqa: E402
+from virtual_vehicle.run.files import write_atomic  # noqa: E402
 from virtual_vehicle.run.sim import RunResult  # noqa: E402
 
 
