@@ -200,7 +200,7 @@ def test_a_crafted_checkpoint_runs_nothing_and_says_why(good, tmp_path, craft):
         message = "damaged"
     elif craft == "pickled array":
         path = _rewritten(good, tmp_path, members={"arrays/0.npy": _object_npy(marker)})
-        message = "damaged.*allow_pickle"
+        message = "arrays/0.npy: an array of Python objects"
     elif craft == "class named by the file":
         def document(doc):
             doc["state"]["items"][0][1] = {"$": "obj", "@": 99999, "class": "_Evil", "fields": []}
@@ -322,3 +322,37 @@ def test_a_networked_run_resumed_half_way_is_the_uninterrupted_run(tmp_path, cas
     checkpointed = run(sc.build(), checkpoint=tmp_path / "c.ckpt", checkpoint_every=0.3)
     _same(plain, checkpointed, work=False)
     _same(checkpointed, resume(tmp_path / "c.ckpt"))
+
+
+def _npy_header_only(shape) -> bytes:
+    """A .npy file whose header claims ``shape`` float64 values and that holds none of them."""
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, {"descr": "<f8", "fortran_order": False, "shape": shape})
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("claim", ["a header claiming 10^13 values", "a stack of 10^9 empty rows",
+                                   "more than may unpack"])
+def test_a_checkpoint_that_claims_huge_arrays_is_refused_before_allocating(good, tmp_path, monkeypatch, claim):
+    from virtual_vehicle.run.sim import resume
+
+    if claim == "a header claiming 10^13 values":
+        path = _rewritten(good, tmp_path, members={"arrays/0.npy": _npy_header_only((10**13,))})
+        message = "does not fit its"
+    elif claim == "a stack of 10^9 empty rows":
+        path = _rewritten(good, tmp_path, document=lambda d: _set_state(d, "ys", {"$": "rows", "k": 0}),
+                          members={"arrays/0.npy": _npy_header_only((10**9, 0))})
+        message = "rows of an array of shape"
+    else:
+        monkeypatch.setattr(checkpoint, "MAX_BYTES", 1000)
+        path = good
+        message = "more than the 1000"
+    with pytest.raises(VirtualVehicleError, match=message):
+        resume(path)
+
+
+def test_an_infinite_checkpoint_interval_is_refused(tmp_path):
+    from virtual_vehicle.run.sim import run
+
+    with pytest.raises(VirtualVehicleError, match="checkpoint_every: must be a positive, finite"):
+        run(_network(duration=0.1).build(), checkpoint=tmp_path / "c.ckpt", checkpoint_every=float("inf"))

@@ -177,3 +177,30 @@ def test_sweep_against_an_unreachable_scheduler(tmp_path):
     out = tmp_path / "study"
     one_error(runner.invoke(app, ["sweep", sweep_file(tmp_path, '"parcels.0.mass" = [1.0, 2.0]'), "--out", str(out),
                                   "--scheduler", f"tcp://127.0.0.1:{port}"]), "--scheduler")
+
+
+def test_checkpoint_into_a_folder_or_under_a_file_before_anything_runs(tmp_path):
+    path = write(tmp_path, scenario())
+    afile = tmp_path / "taken"
+    afile.write_text("x")
+    for target, needle in ((tmp_path, "is a folder"), (afile / "c.ckpt", "is a file, not a folder")):
+        one_error(runner.invoke(app, ["run", str(path), "--out", str(tmp_path / "o"), "--checkpoint", str(target)]),
+                  "--checkpoint: ")
+        assert needle in runner.invoke(app, ["run", str(path), "--out", str(tmp_path / "o"), "--checkpoint",
+                                             str(target)]).stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_sweep_fault_study_and_layout_out_under_a_file(tmp_path):
+    afile = tmp_path / "taken"
+    afile.write_text("x")
+    sweep = sweep_file(tmp_path, '"parcels.0.mass" = [1.0, 2.0]')
+    one_error(runner.invoke(app, ["sweep", sweep, "--out", str(afile)]), "--out")
+    one_error(runner.invoke(app, ["fault-study", "sorting_junction", "--out", str(afile / "s")]), "--out")
+    one_error(runner.invoke(app, ["layout", "prototype_18", "--out", str(afile / "l.png")]), "--out")
+    assert afile.read_text() == "x"
+
+
+def test_fault_study_with_a_rate_twice(tmp_path):
+    one_error(runner.invoke(app, ["fault-study", "sorting_junction", "--rates", "0.1,0.1", "--out",
+                                  str(tmp_path / "s")]), "rates")

@@ -286,12 +286,13 @@ def test_ctrl_c_stops_a_sweep_cleanly_and_keeps_its_finished_runs(tmp_path):
     (tmp_path / "s.toml").write_text('base = "sorting_junction"\n[vary]\n"duration" = [3.0]\n'
                                      '"control.seed" = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11]\n')
     out = tmp_path / "o"
-    env = {**os.environ, "PYTHONPATH": str(Path(sw.__file__).parents[1])}
+    env = {**os.environ, "PYTHONPATH": str(Path(sw.__file__).parents[2])}
     proc = subprocess.Popen([sys.executable, "-m", "virtual_vehicle.ui.cli", "sweep", str(tmp_path / "s.toml"),
                              "--out", str(out), "--workers", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=env, start_new_session=True)
     try:
-        while not list(out.glob("runs/*.json")) and proc.poll() is None:
+        deadline = time.monotonic() + 300  # a bound on the wait, not a timing assertion
+        while not list(out.glob("runs/*.json")) and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.05)
         os.killpg(proc.pid, signal.SIGINT)  # as Ctrl-C in a terminal: the sweep and its workers
         stdout, stderr = proc.communicate(timeout=60)
@@ -305,3 +306,13 @@ def test_ctrl_c_stops_a_sweep_cleanly_and_keeps_its_finished_runs(tmp_path):
     assert all(json.loads(p.read_text())["status"] == "ok" for p in kept)  # each complete
     assert f"interrupted: {len(kept)} of 12 runs finished and kept in" in stderr and "to resume" in stderr
     assert not (out / "summary.parquet").exists()
+
+
+def test_every_random_draw_is_its_own_run_even_when_two_draw_the_same_values():
+    spec = sw.SweepSpec(base="paper_2x2_inward", mode="random", samples=10, vary={"parcels.0.mass": [1.0, 2.0]})
+    variations = spec.variations()
+    assert len({tuple(v.items()) for v in variations}) <= 2
+    assert len(set(sw.sweep_ids(spec, variations, {"name": "b"}))) == 10
+    grid = sw.SweepSpec(base="paper_2x2_inward", vary={"parcels.0.mass": [1.0, 2.0]})
+    assert sw.sweep_ids(grid, grid.variations(), {"name": "b"}) == [sw.run_id(v, {"name": "b"})
+                                                                    for v in grid.variations()]

@@ -194,6 +194,14 @@ def run_id(variation: dict, base: dict | None = None) -> str:
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
 
 
+def sweep_ids(spec: SweepSpec, variations: list[dict], base: dict) -> list[str]:
+    """The run id of each variation: a random sweep's draws are samples even when two draw the same values, so each
+    is its own run; a grid's combinations are distinct by construction."""
+    if spec.mode == "random":
+        return [run_id({"sample": k, **v}, base) for k, v in enumerate(variations)]
+    return [run_id(v, base) for v in variations]
+
+
 def _matches(path: str, loc: str) -> bool:
     """Whether a ``vary`` path and a validation error's field (``parcels[0].mu``) name the same place, or one lies
     inside the other (``*`` stands for any list index)."""
@@ -335,7 +343,7 @@ def run_sweep(spec: SweepSpec, base: dict, out_dir: str | Path, *, scheduler: st
     out = Path(out_dir)
     runs_dir = out / "runs"
     variations = spec.variations()
-    ids = [run_id(v, base) for v in variations]
+    ids = sweep_ids(spec, variations, base)
     redo = {"lost", "error"} if retry_failed else {"lost"}
     todo = [(i, v) for i, v in zip(ids, variations) if _needs_run(runs_dir / f"{i}.json", redo)]
     check_variations(base, [v for _, v in todo])
@@ -382,7 +390,7 @@ def run_sweep(spec: SweepSpec, base: dict, out_dir: str | Path, *, scheduler: st
                             exc = again
                     row = {"id": i, **{f"vary.{k}": x for k, x in v.items()}, "status": "lost" if lost else "error",
                            "error": f"{type(exc).__name__}: {exc}"}
-                row["attempts"] = attempts[i]
+                row["id"], row["attempts"] = i, attempts[i]
                 write_atomic(runs_dir / f"{i}.json", json.dumps(row, default=float).encode())
                 done += 1
                 if progress is not None:
@@ -474,6 +482,8 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
     rates = [float(r) for r in rates]
     if not rates or any(not 0.0 <= r <= 1.0 for r in rates):
         raise ScenarioError("rates", "give one or more failure rates in [0, 1]")
+    if len(set(rates)) != len(rates):
+        raise ScenarioError("rates", f"each failure rate once, got {rates}")
     if int(samples) < 1:
         raise ScenarioError("samples", f"must be at least 1, got {samples}")
     sc, text = load_scenario(scenario)
@@ -485,14 +495,16 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
         if not duration > 0:
             raise ScenarioError("duration", f"must be positive (s), got {duration}")
         base["duration"] = float(duration)
+    end = base.get("duration", sc.duration)
+    due = sum(p.t_start <= end for p in sc.parcels)  # parcels put on by the end; later ones cannot count
+    if due == 0:
+        raise ScenarioError("duration", f"no parcel is put on the array within {end:g} s: nothing to deliver")
     spec = SweepSpec(base=scenario, vary={f"faults.{kind}": rates, "faults.seed": list(range(int(samples)))})
     res = run_sweep(spec, base, out_dir, scheduler=scheduler, workers=workers, progress=progress,
                     retry_failed=retry_failed)
     import pyarrow.parquet as pq
 
     table = pq.read_table(res["summary"]).to_pylist()
-    end = base["duration"]
-    due = sum(p.t_start <= end for p in sc.parcels)  # parcels put on by the end; later ones cannot count
     rows = []
     for rate in rates:
         sel = [r for r in table if r[f"vary.faults.{kind}"] == rate]

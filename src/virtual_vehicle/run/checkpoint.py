@@ -214,8 +214,8 @@ class Decoder:
             return self._register(node, a)
         if tag == "rows":
             a = self._array(node.get("k"))
-            if a.ndim < 1:
-                raise CheckpointError("rows of a 0-d array")
+            if a.ndim < 1 or len(a) > MAX_ROWS:
+                raise CheckpointError(f"rows of an array of shape {a.shape}")
             return self._register(node, list(a))
         if tag == "list":
             out = self._register(node, [])
@@ -298,6 +298,29 @@ def pack(document: dict, arrays: list[np.ndarray]) -> bytes:
     return buf.getvalue()
 
 
+MAX_BYTES = 8 * 2**30
+"""The most a checkpoint may hold unpacked (B): a file that claims more is refused before anything is allocated."""
+MAX_ROWS = 10**7
+"""The most arrays one stacked list of a checkpoint may hold."""
+
+
+def _read_array(z: zipfile.ZipFile, name: str) -> np.ndarray:
+    """One ``.npy`` member, refused unless its header's shape and type account for exactly its size."""
+    info = z.getinfo(name)
+    with z.open(info) as f:
+        version = np.lib.format.read_magic(f)
+        read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+        if version not in read_header:
+            raise CheckpointError(f"{name}: npy version {version}")
+        shape, _, dtype = read_header[version](f)
+        if dtype.hasobject:
+            raise CheckpointError(f"{name}: an array of Python objects")
+        if info.file_size - f.tell() != math.prod(shape) * dtype.itemsize:
+            raise CheckpointError(f"{name}: its header's shape {shape} does not fit its {info.file_size} bytes")
+        f.seek(0)
+        return np.lib.format.read_array(f, allow_pickle=False)
+
+
 def unpack(data: bytes) -> tuple[dict, list[np.ndarray]]:
     """The document and arrays of a checkpoint file's bytes. Raises CheckpointError, saying why, for anything else
     (another format version included)."""
@@ -311,17 +334,19 @@ def unpack(data: bytes) -> tuple[dict, list[np.ndarray]]:
                               "only: run the scenario again")
     try:
         with zipfile.ZipFile(io.BytesIO(rest)) as z:
+            size = sum(info.file_size for info in z.infolist())
+            if size > MAX_BYTES:
+                raise CheckpointError(f"it would unpack to {size} bytes, more than the {MAX_BYTES} a checkpoint may")
             document = json.loads(z.read("checkpoint.json").decode("utf-8"))
             if type(document) is not dict or type(document.get("arrays")) is not int:
                 raise CheckpointError("the document is not a checkpoint's")
             arrays = []
             for k in range(document["arrays"]):
-                with z.open(f"arrays/{k}.npy") as f:
-                    arrays.append(np.lib.format.read_array(f, allow_pickle=False))
+                arrays.append(_read_array(z, f"arrays/{k}.npy"))
     except CheckpointError:
         raise
     except (zipfile.BadZipFile, zipfile.LargeZipFile, KeyError, ValueError, OSError, EOFError,
-            UnicodeDecodeError, RecursionError) as exc:
+            UnicodeDecodeError, RecursionError, MemoryError) as exc:
         raise CheckpointError(f"damaged ({type(exc).__name__}: {exc})") from None
     if document.get("format_version") != FORMAT_VERSION:
         raise CheckpointError(f"checkpoint format {document.get('format_version')!r}; this version reads format "

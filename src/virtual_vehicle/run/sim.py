@@ -7,6 +7,7 @@ resolves contact between parcels when it can.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -23,6 +24,7 @@ from virtual_vehicle.cells.sorting import encode_goal
 from virtual_vehicle.config.scenario import Setup
 from virtual_vehicle.engine.dynamics import Trajectory, sample_grid
 from virtual_vehicle.engine.plant import SUMMED_STATS, join, joined_stats, on_grid
+from virtual_vehicle.errors import VirtualVehicleError
 from virtual_vehicle.model.parcel import ParcelSpec, covered_pairs, supporting_cells
 from virtual_vehicle.physics.friction import CoulombLaw
 
@@ -236,8 +238,9 @@ class _Job:
 
     def run(self, progress=None, *, checkpoint=None, checkpoint_every=None) -> RunResult:
         """Step to the end (writing checkpoints when asked) and return the result."""
-        if checkpoint is not None and not (checkpoint_every and checkpoint_every > 0):
-            raise ValueError("checkpoint_every must be a positive number of simulated seconds")
+        if checkpoint is not None and not (checkpoint_every and 0 < checkpoint_every < math.inf):
+            raise VirtualVehicleError(f"checkpoint_every: must be a positive, finite number of simulated seconds, got "
+                                      f"{checkpoint_every}")
         every = None if checkpoint is None else float(checkpoint_every)
         start = time.perf_counter()
         while not self.done:
@@ -505,7 +508,6 @@ def resume(checkpoint: str | Path, progress: Callable[[float], None] | None = No
 
     A checkpoint is data (:mod:`virtual_vehicle.run.checkpoint`): reading one never runs code named by the file. The
     run's setup is built again from the scenario it holds."""
-    from virtual_vehicle.errors import VirtualVehicleError
 
     path = Path(checkpoint)
     try:
@@ -520,7 +522,6 @@ def _load(data: bytes, setup: Setup | None = None, where: str = "checkpoint") ->
     """The run a checkpoint's bytes hold and its checkpoint interval (s). ``setup``: the run's own (a checkpointing
     run going on from what it wrote); None: built from the checkpoint's scenario. Raises VirtualVehicleError."""
     from virtual_vehicle.config.scenario import parse_scenario
-    from virtual_vehicle.errors import VirtualVehicleError
     from virtual_vehicle.run.checkpoint import CheckpointError, unpack
 
     try:
@@ -533,7 +534,7 @@ def _load(data: bytes, setup: Setup | None = None, where: str = "checkpoint") ->
                                   f"{__version__} (resume it with {version}, or run the scenario again)")
     kinds = {"field": FieldRun, "network": NetworkRun}
     kind, every = document.get("kind"), document.get("checkpoint_every")
-    if kind not in kinds or type(every) is not float or not every > 0 or type(document.get("position")) is not dict:
+    if kind not in kinds or type(every) is not float or not 0 < every < math.inf or type(document.get("position")) is not dict:
         raise VirtualVehicleError(f"cannot resume {where}: damaged (its run kind, interval or position)")
     if setup is None:
         try:
@@ -551,7 +552,7 @@ def _load(data: bytes, setup: Setup | None = None, where: str = "checkpoint") ->
     try:
         job._restore(document["position"], document.get("state"), arrays)
     except (CheckpointError, KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError,
-            RecursionError) as exc:
+            RecursionError, MemoryError) as exc:
         raise VirtualVehicleError(f"cannot resume {where}: its state does not fit its scenario "
                                   f"({type(exc).__name__}: {exc})") from None
     return job, every

@@ -120,6 +120,8 @@ def run(
     try:
         formats = _formats(formats)
         _check_out(out_dir, keep=(checkpoint,) if checkpoint is not None else ())
+        if checkpoint is not None:
+            _check_file_target(checkpoint, "--checkpoint")
         with _Phase("reading the scenario"):
             sc, text = load_scenario(scenario)
         with _Phase(f"building {sc.name}"):
@@ -180,13 +182,20 @@ def _check_out(out_dir: Path, keep: tuple[Path, ...] = ()) -> None:
         raise VirtualVehicleError(f"--out: {problem}")
 
 
-def _check_out_folder(out_dir: Path) -> None:
-    """Fail before anything runs when ``--out`` names a file (or a folder under one)."""
+def _check_out_folder(out_dir: Path, option: str = "--out") -> None:
+    """Fail before anything runs when the folder ``option`` names is a file (or a folder under one)."""
     parent = out_dir
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
     if not parent.is_dir():
-        raise VirtualVehicleError(f"--out: {str(parent)!r} is a file, not a folder")
+        raise VirtualVehicleError(f"{option}: {str(parent)!r} is a file, not a folder")
+
+
+def _check_file_target(path: Path, option: str) -> None:
+    """Fail before anything runs when a file to be written (``option`` names it) is a folder or lies under a file."""
+    if path.is_dir():
+        raise VirtualVehicleError(f"{option}: {str(path)!r} is a folder; name a file")
+    _check_out_folder(path.parent, option)
 
 
 def _report(result, out_dir: Path, plot: bool, text: str | None, formats: tuple[str, ...],
@@ -337,6 +346,7 @@ def layout_cmd(
     try:
         if picture.suffix.lower() != ".png":
             raise VirtualVehicleError(f"--out: the picture must end in .png, got {picture.name!r}")
+        _check_file_target(picture, "--out")
         sc, _ = load_scenario(scenario)
         setup = sc.build()
         if cell_ids and setup.cells.n > MAX_CELL_IDS:
@@ -368,6 +378,7 @@ def sweep(
     try:
         sw, base = load_sweep(spec)
         count = len(sw.variations())
+        _check_out_folder(out_dir)
     except VirtualVehicleError as exc:
         _fail(exc)
     res = _study(f"sweeping {count} variations of {sw.base}", out_dir,
@@ -443,6 +454,10 @@ def fault_study_cmd(
         values = [float(x) for x in rates.split(",") if x.strip()]
     except ValueError:
         _fail(VirtualVehicleError(f"--rates: not a list of numbers: {rates!r}"))
+    try:
+        _check_out_folder(out_dir)
+    except VirtualVehicleError as exc:
+        _fail(exc)
     rows = _study(f"fault study of {scenario}", out_dir,
                   lambda bar: fault_study(scenario, kind, values, samples, out_dir, duration=duration,
                                           scheduler=scheduler, workers=workers, progress=bar,
