@@ -13,7 +13,7 @@ from virtual_vehicle.config.scenario import bundled_scenarios, load_scenario
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import layout, parcel
 from virtual_vehicle.physics import friction
-from virtual_vehicle.run import io
+from virtual_vehicle.run import files, io
 from virtual_vehicle.run.sim import run
 
 LAWS = {"coulomb": friction.CoulombLaw(), "viscous": friction.ViscousLaw(), "stick_slip": friction.StickSlipLaw()}
@@ -101,6 +101,14 @@ def test_an_interrupted_write_leaves_no_file(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         io.write_atomic(target, "new")
     assert target.read_text() == "old"  # the previous complete file survives
+
+
+def test_an_atomically_written_file_has_the_mode_open_gives(tmp_path):
+    """mkstemp makes its files 0600; a run's tables and pictures are for others to read as any new file is."""
+    files.write_atomic(tmp_path / "a.json", "{}")
+    with open(tmp_path / "b.json", "w") as fh:
+        fh.write("{}")
+    assert (tmp_path / "a.json").stat().st_mode & 0o777 == (tmp_path / "b.json").stat().st_mode & 0o777
 
 
 def test_a_killed_networked_run_resumes_to_the_uninterrupted_result(tmp_path):

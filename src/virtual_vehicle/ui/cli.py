@@ -128,9 +128,12 @@ def run(
             setup = sc.build()
     except VirtualVehicleError as exc:
         _fail(exc)
-    if cell_ids and plot and setup.cells.n > 2000:
-        _fail(VirtualVehicleError(f"--cell-ids: ids are drawn for at most 2000 cells; this array has "
-                                  f"{setup.cells.n}"))
+    if cell_ids and plot:
+        from virtual_vehicle.ui.viz import MAX_CELL_IDS
+
+        if setup.cells.n > MAX_CELL_IDS:
+            _fail(VirtualVehicleError(f"--cell-ids: ids are drawn for at most {MAX_CELL_IDS} cells; this array has "
+                                      f"{setup.cells.n}"))
     bar = _LazyProgress(f"simulating {sc.name}")
     try:
         result = run_setup(setup, progress=bar, checkpoint=checkpoint,

@@ -563,10 +563,12 @@ def plot_fault_study(rows: list[dict], kind: str, title: str, path: str | Path |
 
 def _finish(fig, path):
     """Lay out, save as PNG (atomically) when ``path`` is given, release the figure's memory, return it."""
-    fig.tight_layout()
-    if path is not None:
-        buf = _io.BytesIO()
-        fig.savefig(buf, format="png")
-        write_atomic(Path(path), buf.getvalue())
-    plt.close(fig)
+    try:
+        fig.tight_layout()
+        if path is not None:
+            buf = _io.BytesIO()
+            fig.savefig(buf, format="png")
+            write_atomic(Path(path), buf.getvalue())
+    finally:
+        plt.close(fig)
     return fig
