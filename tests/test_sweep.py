@@ -163,32 +163,34 @@ def _raw(name):
 
 
 def test_two_sweeps_at_once_on_one_cluster_keep_their_own_scenarios(tmp_path):
-    import threading
+    """Two sweep commands (two processes, as two users' would be) against one scheduler on 127.0.0.1 at once."""
+    import subprocess
+    import sys
+    from pathlib import Path
 
     from dask.distributed import LocalCluster
 
     sweeps = {"prototype_18": 18, "paper_2x2_inward": 4}  # base scenario -> its cell count
-    results, errors = {}, []
+    env = {**__import__("os").environ, "PYTHONPATH": str(Path(sw.__file__).parents[2])}
     with LocalCluster(host="127.0.0.1", processes=True, n_workers=2, threads_per_worker=1,
                       dashboard_address=None) as cluster:
-        start = threading.Barrier(len(sweeps))
-
-        def one(name):
-            try:
-                spec = sw.SweepSpec(base=name, vary={"duration": [0.1, 0.2, 0.3]})
-                start.wait()  # both scatter their base and submit their runs at the same time
-                results[name] = sw.run_sweep(spec, _raw(name), tmp_path / name, scheduler=cluster.scheduler_address)
-            except BaseException as exc:  # noqa: BLE001 -- reported by the main thread
-                errors.append(exc)
-
-        threads = [threading.Thread(target=one, args=(name,)) for name in sweeps]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-    assert not errors, errors
+        procs = {}
+        for name in sweeps:
+            spec = tmp_path / f"{name}.toml"
+            spec.write_text(f'base = "{name}"\n[vary]\n"duration" = [0.1, 0.2, 0.3]\n')
+            procs[name] = subprocess.Popen(
+                [sys.executable, "-m", "virtual_vehicle.ui.cli", "sweep", str(spec), "--out", str(tmp_path / name),
+                 "--scheduler", cluster.scheduler_address], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                text=True, env=env)
+        try:
+            outputs = {name: proc.communicate(timeout=300) for name, proc in procs.items()}  # a bound, not a timing
+        finally:
+            for proc in procs.values():
+                if proc.poll() is None:
+                    proc.kill()
     for name, cells in sweeps.items():
-        table = pd.read_parquet(results[name]["summary"])
+        assert procs[name].returncode == 0, outputs[name]
+        table = pd.read_parquet(tmp_path / name / "summary.parquet")
         assert len(table) == 3 and (table["status"] == "ok").all(), table
         assert set(table["scenario"]) == {name} and set(table["cells"]) == {cells}
 
