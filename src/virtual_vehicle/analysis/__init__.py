@@ -1,2 +1,2 @@
-"""Studies over a model or many runs: equilibria, field design, the scaling family, sweeps.
+"""Studies over a model or many runs: equilibria, the scaling family, sweeps, distributed against central control.
 """
