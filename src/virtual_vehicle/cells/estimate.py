@@ -6,7 +6,8 @@ Units: SI (m, rad, s).
 The footprint of a known parcel is consistent with a reading when every lit sensor is inside it and every dark
 sensor outside. The consistent poses form a region whose size is set by the sensor spacing; the estimate is the pose
 deepest inside it: it minimises ``sum_lit exp(-m / s) + sum_dark exp(m / s)`` over the sensors near the parcel,
-``m`` the sensor's signed margin in the footprint (positive inside, :func:`~virtual_vehicle.model.parcel.footprint_margins`)
+``m`` the sensor's signed margin in the footprint (positive inside,
+:func:`~virtual_vehicle.model.parcel.footprint_margins`)
 and ``s`` a softness of a quarter of the sensor spacing. Over time a prediction (the last estimate moved by the
 commanded motion) seeds the search and a weak pull toward it picks, among poses the pattern cannot tell apart, the
 one the motion explains. Lit sensors are grouped into parcels by proximity (connected lit sensors within 1.5 sensor

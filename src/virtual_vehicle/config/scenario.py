@@ -190,7 +190,8 @@ class RegionsField(_Strict):
 class HexArray(_ArrayBase):
     """A hexagonal lattice (:func:`~virtual_vehicle.model.layout.hexagonal`): ``ny`` rows of ``nx`` cells whose
     neighbours are ``pitch`` (m) apart, odd rows shifted by half a pitch, first cell at ``origin`` (m), six network
-    ports a cell. Every cell drives three omni wheels at 120 degrees (:func:`~virtual_vehicle.model.layout.three_wheels`),
+    ports a cell. Every cell drives three omni wheels at 120 degrees
+    (:func:`~virtual_vehicle.model.layout.three_wheels`),
     ``wheel_radius`` (m, default pitch/4) from its centre, wheel 0 along ``drive_angle`` (rad); coulomb and
     stick_slip laws, ideal wheels, whole-cell faults only. ``belts`` as for :class:`GridArray`."""
 
@@ -264,7 +265,8 @@ class IntegratorSpec(_Strict):
     """``mode``: ``"event"`` (piecewise, support changes located; default) or ``"fixed"`` (RK4 at step ``dt``, s).
     ``rtol``/``atol`` (state units) and ``max_step`` (s) tune the event-driven integrator. ``batch`` (default true):
     in event mode without ``max_step``, control ticks proven free of support changes are stepped for all parcels at
-    once (the event engine's own single DOP853 step, in one compiled call; see :mod:`virtual_vehicle.engine.batch`); false
+    once (the event engine's own single DOP853 step, in one compiled call; see :mod:`virtual_vehicle.engine.batch`);
+    false
     integrates every parcel on its own. Where support changes chatter (a sliding mode: a parcel held on a boundary
     between support sets whose pieces each push it into the other), event mode crosses that boundary in fixed RK4
     steps of ``dt`` and counts them as the parcel's ``chatter_steps``.
@@ -331,7 +333,8 @@ class ControlSpec(_Strict):
     to ``speed`` (m/s), stopping within ``tolerance`` = [m, rad]; with ``waypoints`` (one list of [x, y, theta] per
     parcel) it transports each along that path, passing a waypoint within ``pass_radius`` (m). The cells under each
     parcel estimate its pose together and drive it (:mod:`~virtual_vehicle.cells.tracking`), or with ``central`` = true
-    one computer reads every sensor and commands every cell (:class:`~virtual_vehicle.cells.control.PoseControl`). ``"diffusion"``: every cell's wheel speeds relax
+    one computer reads every sensor and commands every cell (:class:`~virtual_vehicle.cells.control.PoseControl`).
+    ``"diffusion"``: every cell's wheel speeds relax
     toward its neighbours' at rate ``alpha`` per tick (the discrete heat equation); ``sources`` = [[cell, v0, v1],
     ...] hold their wheel speeds (m/s). ``"sort"``: the Virtual Vehicle (:mod:`virtual_vehicle.cells.sorting`): cells
     inside ``entries`` outlines read each arriving parcel's ``destination``, cells inside ``exits[k]`` are exit k (a
@@ -340,7 +343,8 @@ class ControlSpec(_Strict):
     with a ``sequence`` number leave in that order: one whose number is not yet due parks where one of its carrying
     cells is a parking cell (inside a ``parking`` outline, or ``P`` on a map) and waits there (at most three exits
     then). ``central``
-    = true runs the same policies on one central computer instead (:class:`~virtual_vehicle.cells.sorting.CentralSorter`),
+    = true runs the same policies on one central computer instead
+    (:class:`~virtual_vehicle.cells.sorting.CentralSorter`),
     for comparison. ``dead_links``: [cell id, port] pairs whose link is cut (square cells: ports 0..3 = east,
     north, west, south of the cell; hexagonal cells: ports 0..5, every 60 degrees counter-clockwise from east).
     ``changed_only`` (default true): on ideal rounds, step the sorter only on the cells whose sensors, sentences or
@@ -400,7 +404,8 @@ class SensorSpec(_Strict):
 
 class WheelSpec(_Strict):
     """How the wheels follow their commands: ``model = "ideal"`` (actual speed = commanded) or ``"motor"`` (a DC
-    gearmotor per wheel with PWM limit, encoder and PI loop; see :class:`~virtual_vehicle.cells.hardware.MotorParams` for
+    gearmotor per wheel with PWM limit, encoder and PI loop; see :class:`~virtual_vehicle.cells.hardware.MotorParams`
+    for
     the parameters below, SI units). With a constant ``[field]``, motors are commanded every ``period`` (s); with
     ``[control]`` its period is used.
 

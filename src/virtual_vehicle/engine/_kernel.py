@@ -3,10 +3,12 @@
 Units: SI (m, s, kg, N, rad). State ``[x, y, theta, vx, vy, omega]``.
 
 :func:`run_piece` integrates one piece (one support set and contact set, eqs. 23/29/33/38 as the constants row of
-:func:`~virtual_vehicle.engine.dynamics.constants_row`) with scipy's DOP853 scheme (same tableau, error norm and step-size
+:func:`~virtual_vehicle.engine.dynamics.constants_row`) with scipy's DOP853 scheme (same tableau, error norm and
+step-size
 rule as ``scipy.integrate.DOP853``; sums taken in plain loops, so results agree with scipy's to rounding, not to the
 last bit), samples every step's dense output for the first sign change of an event value, locates it by Brent's
-method and probes past it, as :mod:`virtual_vehicle.engine.dynamics` documents. In Python each of the ~100 support changes
+method and probes past it, as :mod:`virtual_vehicle.engine.dynamics` documents. In Python each of the ~100 support
+changes
 a second of an oscillating Coulomb parcel cost about a millisecond, mostly in array calls on a handful of numbers;
 compiled, a piece's own work takes a few tens of microseconds, and most of what remains is the Python between
 pieces (which cells, the support solve, the friction constants).
@@ -57,7 +59,8 @@ _SAFETY, _MIN_FACTOR, _MAX_FACTOR = 0.9, 0.2, 10.0
 
 def accelerations(row, x, y, vx, vy, om):
     """Linear and angular acceleration (m/s^2, m/s^2, rad/s^2) at centre of mass (x, y) (m) moving at (vx, vy) (m/s)
-    and spinning at ``om`` (rad/s), from a piece's :func:`~virtual_vehicle.engine.dynamics.constants_row`. Works on floats
+    and spinning at ``om`` (rad/s), from a piece's :func:`~virtual_vehicle.engine.dynamics.constants_row`. Works on
+    floats
     (one parcel) and on arrays (one entry per parcel, ``row`` a sequence of arrays), with the same arithmetic, and
     compiled (:data:`accelerations_compiled`)."""
     (ox, oy, a11, a12, a21, a22, b1, b2, c11, c12, c21, c22, e1, e2, f0, mu, W, K11, K12, K21, K22, k1, k2,
@@ -106,7 +109,8 @@ class Segment(NamedTuple):
     ``kind`` is a footprint kind, with ``half`` (2,) the rectangle's half extents, ``normals`` (k, 2) and
     ``offsets`` (k,) a convex footprint's outward half-planes (also a rectangle's: the hidden-crossing test uses
     them), ``vertices`` (k, 2) a polygon's outline. ``candidates`` (nc, 2) are the cells near the parcel;
-    ``origin`` .. ``hull_offsets`` the piece's support solution (:class:`~virtual_vehicle.physics.contact.SupportSolution`);
+    ``origin`` .. ``hull_offsets`` the piece's support solution
+    (:class:`~virtual_vehicle.physics.contact.SupportSolution`);
     ``center`` and ``buffer`` bound where the candidates cover the footprint; ``reach`` bounds a candidate's distance
     from the centre of mass while they do; ``noise_length`` (m) and ``noise_force`` (N) are the rounding noise of
     the lengths and of the spring forces among the event values (:func:`_noise`); ``spring_dirs``
@@ -156,7 +160,8 @@ def make_segment(footprint: tuple, radius: float, candidates: np.ndarray, sol, c
     """The fields of the :class:`Segment` (in its order, as a plain tuple: numba types a plain tuple in compiled
     code, a named one in Python, ~1.5 us more a call; :func:`run_piece` names them again) of a parcel of footprint
     ``footprint`` (its :func:`outline`) and ``radius`` (m) with candidate cells ``candidates`` ((nc, 2) float64, m)
-    on support solution ``sol`` (whose arrays are float64 and contiguous, as :mod:`virtual_vehicle.physics.contact` makes
+    on support solution ``sol`` (whose arrays are float64 and contiguous, as :mod:`virtual_vehicle.physics.contact`
+    makes
     them), its candidates gathered within ``radius + buffer`` of ``center`` (m), whose cell ids are ``ids`` ((nc,)
     int64); event values below ``noise_length`` (m) or ``noise_force`` (N) are rounding noise."""
     return (*footprint, candidates, sol.origin, sol.basis, sol.plane_lin, sol.plane_const, sol.hull_normals,
@@ -771,7 +776,8 @@ def run_piece(row, fields, y_base, t, y, t_bound, h_abs, first_step, rtol, atol,
     Times in s, states in SI units.
 
     Returns (outcome, t, y, h_abs, last step, evaluations, next_sample, probe time, probe state, the cells under the
-    footprint at the probe (ids, as :meth:`~virtual_vehicle.engine.dynamics._Segment.support` finds them from the probe's
+    footprint at the probe (ids, as :meth:`~virtual_vehicle.engine.dynamics._Segment.support` finds them from the
+    probe's
     event values), whether those tell: the values clear of rounding noise and the probe within the candidates'
     reach). On ``EVENT`` (t, y) is the restart point just past it.
     """
@@ -844,7 +850,8 @@ def _positive(ids, g):
 def edges_clear(positions, near, normals, offsets, y, window, reach, accel, radius, lever, noise):
     """Whether no cell ``near`` (ids into ``positions``, (n, 2) m) of a convex parcel at state ``y`` can cross its
     outline (body-frame outward unit ``normals`` (k, 2), ``offsets`` (k,) m) within ``window`` s, edge by edge: the
-    bound of :meth:`virtual_vehicle.engine.batch.QuietStepper._edges_clear`, which documents it, for one parcel (``reach``
+    bound of :meth:`virtual_vehicle.engine.batch.QuietStepper._edges_clear`, which documents it, for one parcel
+    (``reach``
     and ``accel`` in m, ``radius`` m, ``lever`` = 1 + m R^2 / I, ``noise`` m)."""
     c, s = math.cos(y[2]), math.sin(y[2])
     drift = accel / lever

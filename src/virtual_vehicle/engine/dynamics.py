@@ -14,7 +14,8 @@ Two integrators share the model:
 - ``"event"``: adaptive 8th-order Dormand-Prince (scipy's DOP853 scheme) on each smooth piece, events located by
   root finding on the dense output, restarted with the new constants. The piece's inner loop (steps, event search
   and location) is compiled (:mod:`virtual_vehicle.engine._kernel`); the support changes between pieces stay in Python
-  (with the support solve's and the friction constants' arithmetic compiled in :mod:`~virtual_vehicle.physics.contact` and
+  (with the support solve's and the friction constants' arithmetic compiled in :mod:`~virtual_vehicle.physics.contact`
+  and
   :mod:`~virtual_vehicle.physics.friction`);
 - ``"fixed"``: classical RK4 at a fixed step that looks up the supports at every stage and never locates events,
   for comparison (first-order accurate across support changes).

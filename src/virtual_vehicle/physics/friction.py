@@ -341,7 +341,8 @@ class ViscousLaw:
 @dataclass(frozen=True)
 class StickSlipLaw:
     """Stick-slip friction (paper Section 5): each wheel sticks to the parcel or slides, solved as a complementarity
-    problem every time step (:mod:`virtual_vehicle.engine.stickslip`). The parcel's ``mu`` is the kinetic coefficient and
+    problem every time step (:mod:`virtual_vehicle.engine.stickslip`). The parcel's ``mu`` is the kinetic coefficient
+    and
     ``mu_static`` (default ``mu``) the static one. Always time-stepped. Its per-support-set constants (for reference
     only) are those of the sliding regime: the paper's Coulomb constants. ``max_sweeps`` and ``tolerance`` (relative
     to the largest impulse bound) control the projected Gauss-Seidel solver."""

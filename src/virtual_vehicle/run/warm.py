@@ -23,7 +23,8 @@ from virtual_vehicle.physics.friction import CoulombLaw, ViscousLaw
 def warm_up() -> float:
     """Compile the event engine's inner loop (:mod:`virtual_vehicle.engine._kernel`), the support solve's compiled parts
     (:mod:`virtual_vehicle.physics.contact`, :mod:`virtual_vehicle.physics.friction`), the quiet step's checks and step
-    (:mod:`virtual_vehicle.engine.batch`) and the sorter's cell program (:mod:`virtual_vehicle.cells.sorting`; about a minute
+    (:mod:`virtual_vehicle.engine.batch`) and the sorter's cell program (:mod:`virtual_vehicle.cells.sorting`; about a
+    minute
     together, the first time on a machine) or load them from numba's cache (a fraction of a second), by integrating
     one parcel on a 4 x 4 array for 10 ms, looking its last piece up again, making its constants under the viscous
     law too, checking and stepping it as a quiet step would, gathering the cells under it as sensing does, and

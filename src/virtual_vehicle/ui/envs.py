@@ -161,7 +161,8 @@ class Episode:
 
     def result(self) -> RunResult:
         """The episode so far as a :class:`~virtual_vehicle.run.sim.RunResult`, e.g. for
-        :func:`~virtual_vehicle.ui.animate.animate` or :func:`~virtual_vehicle.run.tables.build`: its cell log has a row per
+        :func:`~virtual_vehicle.ui.animate.animate` or :func:`~virtual_vehicle.run.tables.build`: its cell log has a row
+        per
         decision (readings then, wheel speeds held from then) and a last row for now (wheels as last held)."""
         parcels = []
         for i, spec in enumerate(self.setup.specs):
@@ -180,7 +181,8 @@ class ArrayEnv(gymnasium.Env):
     """A central controller for an array (Gymnasium API).
 
     Args:
-        scenario: a bundled scenario name, a TOML path or a :class:`~virtual_vehicle.config.scenario.Scenario` (its array,
+        scenario: a bundled scenario name, a TOML path or a :class:`~virtual_vehicle.config.scenario.Scenario` (its
+        array,
             parcels, friction and sensors; its field or control is replaced by the agent).
         observe: ``"sensors"`` ((n, S) int8 readings), ``"poses"`` ((P, 6) x, y m, theta rad wrapped to
             [-pi, pi), vx, vy m/s, omega rad/s) or ``"both"`` (a dict of the two).

@@ -456,7 +456,8 @@ def plot_force_field(cells, spec, velocities, law, heading: float, eqs=(), path:
 
 def plot_similarity(rows: list[dict], title: str, path: str | Path | None = None):
     """Overlay the first parcel's dimensionless path of every member of a similarity family (rows of
-    :func:`~virtual_vehicle.analysis.scaling.similarity_study`): x / L and y / L against t / sqrt(L / g), one line style per
+    :func:`~virtual_vehicle.analysis.scaling.similarity_study`): x / L and y / L against t / sqrt(L / g), one line style
+    per
     scale, labelled with its pitch (m) and parcel mass (kg). Similar runs draw one curve. Saves a PNG to ``path``
     if given; returns the figure."""
     fig, ax = plt.subplots(figsize=(8, 4.5), dpi=110)

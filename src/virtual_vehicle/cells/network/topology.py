@@ -2,7 +2,8 @@
 
 A cell has one port per neighbour direction (4 on a square layout, east/north/west/south in the cell's own frame,
 counter-clockwise from the drive direction of wheel 0; 6 on a hexagonal one, every 60 degrees from it; none on a
-plain conveyor belt). An array mixing kinds has as many port columns as its cells have at most. A port with no neighbour, or whose link or neighbour is dead,
+plain conveyor belt). An array mixing kinds has as many port columns as its cells have at most. A port with no
+neighbour, or whose link or neighbour is dead,
 is simply silent. No cell has an address: a cell knows only its ports, and ids here are the simulator's bookkeeping.
 """
 
