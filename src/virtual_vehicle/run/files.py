@@ -7,20 +7,6 @@ import tempfile
 from pathlib import Path
 
 
-def folder_problem(folder: str | Path) -> str | None:
-    """Why ``folder`` cannot be (made) a folder, or None: it must be one or not exist yet, its first existing
-    parent a folder. Touches nothing."""
-    out = Path(folder)
-    if out.exists() and not out.is_dir():
-        return f"{str(out)!r} is a file, not a folder"
-    parent = out
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        return f"{str(parent)!r} is a file, so {str(out)!r} cannot be a folder"
-    return None
-
-
 def _new_file_mode() -> int:
     """The mode ``open()`` gives a new file: 0666 less the process's umask (read, and put back at once)."""
     umask = os.umask(0o022)

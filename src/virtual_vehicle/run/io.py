@@ -22,7 +22,7 @@ from pathlib import Path
 
 from virtual_vehicle.config.scenario import dump_toml
 from virtual_vehicle.run import tables
-from virtual_vehicle.run.files import folder_problem, write_atomic
+from virtual_vehicle.run.files import write_atomic
 from virtual_vehicle.run.sim import RunResult
 
 FORMATS = ("parquet", "csv")
@@ -45,9 +45,13 @@ def check_run_folder(out_dir: str | Path, keep: tuple[Path, ...] = ()) -> str | 
     that run's manifest run.json), or hold nothing but a run's files (an interrupted run's: those
     :func:`clear_run_folder` removes) and the files in ``keep`` (a checkpoint kept there)."""
     out = Path(out_dir)
-    problem = folder_problem(out)
-    if problem is not None:
-        return problem
+    if out.exists() and not out.is_dir():
+        return f"{str(out)!r} is a file, not a folder"
+    parent = out
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        return f"{str(parent)!r} is a file, so {str(out)!r} cannot be a folder"
     if out.is_dir() and not (out / "run.json").is_file():  # an earlier run's folder is known by its manifest
         kept = {Path(k).resolve() for k in keep}
         foreign = sorted(e.name for e in out.iterdir() if not _ours(e.name) and e.resolve() not in kept)
