@@ -154,7 +154,6 @@ def test_an_interrupted_animation_leaves_no_file_and_says_how_far_it_got(field_r
 
 
 @pytest.mark.skipif(anim.ffmpeg_exe() is None, reason="no ffmpeg")
-@pytest.mark.flaky(reruns=2)  # a Ctrl-C race, not understood yet: failed together once in 8 full runs
 def test_ctrl_c_in_the_animate_command_stops_cleanly(tmp_path):
     """SIGINT to the whole process group (as a terminal's Ctrl-C: ffmpeg gets it too) while frames are drawn."""
     import os

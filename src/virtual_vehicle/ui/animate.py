@@ -16,9 +16,7 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-import signal
 import tempfile
-import threading
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -36,6 +34,7 @@ from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Polygon as PolygonPatch  # noqa: E402
 
 from virtual_vehicle.model.layout import cell_outlines  # noqa: E402
+from virtual_vehicle.run.interrupt import Interrupts, without_sigint  # noqa: E402
 from virtual_vehicle.run.sim import RunResult  # noqa: E402
 from virtual_vehicle.ui.viz import absent_cells, dead_cells, sorter_lanes  # noqa: E402
 
@@ -181,7 +180,7 @@ def animate(result: RunResult, path: str | Path, *, fps: float = 20.0, speed: fl
             path = path.with_suffix(".gif")
         else:
             matplotlib.rcParams["animation.ffmpeg_path"] = exe
-            writer = FFMpegWriter(fps=fps, codec="libx264", extra_args=["-pix_fmt", "yuv420p"])
+            writer = _Encoder(fps=fps, codec="libx264", extra_args=["-pix_fmt", "yuv420p"])
     if writer is None:
         writer = PillowWriter(fps=fps)
     fig, update = _scene(result, data, targets)
@@ -189,6 +188,7 @@ def animate(result: RunResult, path: str | Path, *, fps: float = 20.0, speed: fl
     drawn = [0]
 
     def draw(f):
+        stop.check()  # a Ctrl-C whose KeyboardInterrupt a finaliser swallowed still stops here
         out = update(f)
         drawn[0] = f + 1
         return out
@@ -198,22 +198,21 @@ def animate(result: RunResult, path: str | Path, *, fps: float = 20.0, speed: fl
     # written under a hidden temporary name beside the target, renamed when whole, removed on any failure
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".part" + path.suffix, dir=path.parent)
     os.close(fd)
-    old_term = _terminate_as_interrupt()
     # ffmpeg's complaints go to matplotlib's log; hold them, to show them only when they are news (not a Ctrl-C)
     held = _HeldLog(logging.getLogger("matplotlib.animation"))
+    stop = Interrupts(terminate=True)  # SIGTERM interrupts as Ctrl-C does, so the partial file is removed
     try:
-        anim.save(tmp, writer=writer, dpi=dpi,
-                  progress_callback=None if progress is None else (lambda i, n: progress((i + 1) / n)))
-        os.replace(tmp, path)
-    except BaseException as exc:  # Ctrl-C: ffmpeg dies of it too, and matplotlib then raises a second error
-        if _interrupted(exc):
+        with stop:
+            anim.save(tmp, writer=writer, dpi=dpi,
+                      progress_callback=None if progress is None else (lambda i, n: progress((i + 1) / n)))
+            os.replace(tmp, path)
+    except BaseException as exc:  # after a signal, any error (ffmpeg gone, a broken pipe) is the interrupt's doing
+        if stop.seen or _interrupted(exc):
             held.drop()
             raise AnimationInterrupted(drawn[0], total) from None
         raise
     finally:
         held.release()
-        if old_term is not None:
-            signal.signal(signal.SIGTERM, old_term)
         plt.close(fig)
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -244,6 +243,16 @@ class _HeldLog(logging.Handler):
         self.records = []
 
 
+class _Encoder(FFMpegWriter):
+    """matplotlib's ffmpeg writer whose ffmpeg ignores SIGINT: a terminal's Ctrl-C reaches the whole process group,
+    and an ffmpeg that died of it first would leave this process a broken pipe instead of the interrupt; this process
+    stops and closes ffmpeg itself."""
+
+    def setup(self, *args, **kwargs):
+        with without_sigint():  # the disposition is inherited across fork and exec
+            super().setup(*args, **kwargs)
+
+
 def _interrupted(exc: BaseException) -> bool:
     """Whether ``exc`` is, or arose while handling, a KeyboardInterrupt."""
     seen = set()
@@ -253,18 +262,6 @@ def _interrupted(exc: BaseException) -> bool:
         seen.add(id(exc))
         exc = exc.__context__
     return False
-
-
-def _terminate_as_interrupt():
-    """While an animation is written, SIGTERM interrupts it as Ctrl-C does (so the partial file is removed);
-    returns the handler to restore (None off the main thread, where signals cannot be handled)."""
-    if threading.current_thread() is not threading.main_thread():
-        return None
-
-    def handler(signum, frame):
-        raise KeyboardInterrupt
-
-    return signal.signal(signal.SIGTERM, handler)
 
 
 def traffic_range(data: FrameData) -> tuple[float, float]:
