@@ -212,7 +212,7 @@ def animate(result: RunResult, path: str | Path, *, fps: float = 20.0, speed: fl
             raise AnimationInterrupted(drawn[0], total) from None
         raise
     finally:
-        held.release()
+        held.pass_on()
         plt.close(fig)
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -220,8 +220,9 @@ def animate(result: RunResult, path: str | Path, *, fps: float = 20.0, speed: fl
 
 
 class _HeldLog(logging.Handler):
-    """Holds the records of ``logger`` (and keeps them from its parents) until :meth:`release` passes them on;
-    :meth:`drop` forgets them."""
+    """Holds the records of ``logger`` (and keeps them from its parents) until :meth:`pass_on` passes them on;
+    :meth:`drop` forgets them. (Not ``release``: that is the lock method ``Handler.handle`` calls after each record,
+    which once made this pass every record on at once.)"""
 
     def __init__(self, logger: logging.Logger):
         super().__init__()
@@ -235,7 +236,7 @@ class _HeldLog(logging.Handler):
     def drop(self):
         self.records = []
 
-    def release(self):
+    def pass_on(self):
         self.logger.removeHandler(self)
         self.logger.propagate = self.propagate
         for record in self.records:
