@@ -299,10 +299,12 @@ class CellsEnv(ParallelEnv):
 
     Each agent observes a flat float32 vector: its S sensor readings (0/1), its two wheel speeds (m/s), and for each
     of its P ports the ``message_size`` numbers the neighbour on that port sent at the previous step (zeros where
-    there is none, or the link or neighbour is dead, from the start or since a fault event). Each acts with a vector of 2 + ``message_size`` numbers: its
-    wheel speeds (m/s, within +-vmax) and the message its neighbours read next step (within +-1; an all-zero
-    message counts as silence in the traffic the cell log records). Reward, task and the other arguments are those
-    of :class:`ArrayEnv`; the reward is shared by all agents. ``state()`` is the parcels' states, flattened.
+    there is none, or the link or neighbour is dead, from the start or since a fault event). Each acts with a vector
+    of 2 + ``message_size`` numbers: its wheel speeds (m/s, within +-vmax; a dead or absent cell's do not turn) and
+    the message its neighbours read next step (within +-1; an all-zero message counts as silence in the traffic the
+    cell log records). Its wheel speeds observed are those its wheels held over the last step (a motor wheel's mean).
+    Reward, task and the other arguments are those of :class:`ArrayEnv`; the reward is shared by all agents.
+    ``state()`` is the parcels' states, flattened.
     """
 
     metadata = {"render_modes": ["rgb_array"], "name": "virtual_vehicle_cells_v0"}
