@@ -88,3 +88,23 @@ def test_motor_wheels_follow_the_same_commands_in_an_environment_as_in_a_run():
     # the motors mattered: ideal wheels given the same commands carry the parcels elsewhere
     ideal = _replay(sc.model_copy(update={"duration": 0.3}), log.commands, setup.control.period, targets)[2]
     assert np.abs(ideal[-1, :, :2] - states[-1, :, :2]).max() > 1e-4
+
+
+def test_cells_taken_out_carry_nothing_in_an_environment_as_in_a_run():
+    from virtual_vehicle.config.scenario import CellChange, ReconfigurationSpec
+
+    sc, _ = load_scenario("prototype_18_network")
+    setup = sc.build()
+    start = setup.states[0][:2]
+    under = np.argsort(np.hypot(*(setup.cells.positions - start).T))[:2].tolist()  # the two cells nearest the parcel
+    changes = ReconfigurationSpec(changes=[CellChange(t=0.2, remove=under), CellChange(t=0.6, add=under)])
+    changed = _recorded(sc, duration=0.8, reconfiguration=changes)
+    result = run(changed.build())
+    assert [c["removed"] for c in result.summary()["reconfigured"]] == [sorted(under), []]
+    period = setup.control.period
+    targets = [[0.0, 0.0, 0.0]] * len(sc.parcels)
+    env, times, states = _replay(changed, result.cell_log.commands, period, targets)
+    _assert_same_as_run(result, times, states)
+    # the change mattered: with the cells left in, the same commands carry the parcel elsewhere
+    kept = _replay(_recorded(sc, duration=0.8), result.cell_log.commands, period, targets)[2]
+    assert np.abs(kept[-1, :, :2] - states[-1, :, :2]).max() > 1e-4

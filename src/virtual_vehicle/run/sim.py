@@ -981,11 +981,9 @@ class NetworkRun(TickedRun, _Job):
         inputs = CellInputs(t0, sensors, self.inbox, topo.connected, ctl.config, labels)
         if self.stepper is None:
             self.state, outbox, wheels = ctl.program.step(self.state, inputs)
-        else:
+            self.inbox, stats = self.delivery.exchange(outbox, t0, period)  # what they sent, delivered
+        else:  # only the cells that changed step; the network tells whose inbox changes
             self.state, outbox, wheels, out_changed = self.stepper.step(self.state, inputs, self.inbox_changed)
-        if self.stepper is None:
-            self.inbox, stats = self.delivery.exchange(outbox, t0, period)
-        else:
             self.inbox, stats, self.inbox_changed = self.delivery.exchange_changed(outbox, out_changed, t0, period)
         for key in ("sent", "received", "bytes_sent", "bytes_received"):
             self.per_tick[key][k] = int(getattr(stats, key).sum())
