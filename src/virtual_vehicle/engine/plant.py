@@ -308,7 +308,7 @@ class Plant:
         trimming each parcel's trajectory cost a few microseconds a tick). Raises ValueError when an active parcel's
         state is not six finite numbers.
         """
-        out, quiet = self._advance(ys, active, velocities, t0, t1, sample_dt, progress, sample_times)
+        out, quiet = self.advance_blocks(ys, active, velocities, t0, t1, sample_dt, progress, sample_times)
         for i, steps, k in quiet:
             out[i] = steps.trajectory(k)
         if trim:
@@ -316,14 +316,15 @@ class Plant:
             out = [None if tr is None else _on_grid(tr, grid) for tr in out]
         return out
 
-    def _advance(self, ys: list[np.ndarray], active: list[bool], velocities: np.ndarray, t0: float, t1: float,
-                 sample_dt: float, progress: Callable[[float], None] | None = None,
-                 sample_times: np.ndarray | None = None) -> tuple[list[Trajectory | None],
-                                                                  list[tuple[int, QuietSteps, int]]]:
-        """:meth:`advance` untrimmed, with the parcels stepped only by the quiet stepper left as it stepped them: a
-        networked run takes them in from the stepper's block (a Trajectory per parcel and tick cost more than the
-        step). Returns the trajectories, None for those parcels and the inactive ones, and ``(i, steps, k)`` for
-        each of those parcels ``i``: its window is ``steps.trajectory(k)``."""
+    def advance_blocks(self, ys: list[np.ndarray], active: list[bool], velocities: np.ndarray, t0: float, t1: float,
+                       sample_dt: float, progress: Callable[[float], None] | None = None,
+                       sample_times: np.ndarray | None = None) -> tuple[list[Trajectory | None],
+                                                                        list[tuple[int, QuietSteps, int]]]:
+        """:meth:`advance` untrimmed, with the parcels stepped only by the quiet stepper left in the stepper's block:
+        a run that goes one control tick at a time takes them in from there (a Trajectory per parcel and tick cost
+        more than the step). Returns the trajectories, None for those parcels and the inactive ones, and
+        ``(i, steps, k)`` for each of those parcels ``i``: its window is ``steps.trajectory(k)``. Arguments and
+        errors as :meth:`advance`'s."""
         models = self.models(velocities)
         was_active = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
         if was_active:  # checked here once: the engine takes them as they are
