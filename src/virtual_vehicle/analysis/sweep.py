@@ -474,6 +474,7 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
     neither delivered nor lost at the end: ``on_array`` (put on the array and still there), ``waiting`` (never put
     on: their place at the entry never came free) and ``stuck`` (the two together), each a mean over the seeds of the
     runs that finished; also written to ``study.json``. ``retry_failed``: see :func:`run_sweep`."""
+    from virtual_vehicle.cells.programs import program_of
     from virtual_vehicle.config.scenario import load_scenario
     from virtual_vehicle.run.files import write_atomic
 
@@ -487,7 +488,7 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
     if int(samples) < 1:
         raise ScenarioError("samples", f"must be at least 1, got {samples}")
     sc, text = load_scenario(scenario)
-    if sc.control is None or sc.control.program != "sort":
+    if sc.control is None or program_of(sc.control).SUMMARY != "sorting":  # it reads the summary's sorting block
         raise ScenarioError("control.program", "a fault study needs a sorting scenario (program = \"sort\"): it "
                             "counts parcels delivered to the right exit")
     base = tomllib.loads(text)

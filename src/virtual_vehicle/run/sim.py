@@ -21,6 +21,7 @@ from virtual_vehicle import __version__
 from virtual_vehicle.cells.hardware import WheelDrives
 from virtual_vehicle.cells.network.messages import Mailbox
 from virtual_vehicle.cells.network.programs import CellInputs, ChangedCells, tree_map
+from virtual_vehicle.cells.programs import program_of
 from virtual_vehicle.cells.sorting import encode_goal
 from virtual_vehicle.config.scenario import Setup
 from virtual_vehicle.engine.dynamics import Trajectory, sample_grid
@@ -112,20 +113,12 @@ class RunResult:
                     "stick_slip_unconverged_steps": tr.stats["unconverged_steps"]} if "wheel_work" in tr.stats else {}),
             })
         extra = {}
-        if sc.control is not None and sc.control.program == "pose":
-            from virtual_vehicle.run.tasks import pose_report
-
-            report = pose_report(self)
+        task = None if sc.control is None else program_of(sc.control)
+        if task is not None and task.report is not None:  # the program's task report, its rows merged per parcel
+            report = task.report(self)
             for entry, row in zip(parcels, report.pop("parcels")):
                 entry.update({k: v for k, v in row.items() if k != "name"})
-            extra["pose"] = report
-        if sc.control is not None and sc.control.program == "sort":
-            from virtual_vehicle.run.tasks import sorting_report
-
-            report = sorting_report(self)
-            for entry, row in zip(parcels, report.pop("parcels")):
-                entry.update({k: v for k, v in row.items() if k != "name"})
-            extra["sorting"] = report
+            extra[task.SUMMARY] = report
         faults = self.setup.faults
         if faults is not None and faults.any():
             extra["faults"] = faults.summary()

@@ -33,6 +33,7 @@ from matplotlib.colors import LinearSegmentedColormap  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Polygon as PolygonPatch  # noqa: E402
 
+from virtual_vehicle.cells.programs import program_of  # noqa: E402
 from virtual_vehicle.model.layout import cell_outlines  # noqa: E402
 from virtual_vehicle.run.interrupt import Interrupts, without_sigint  # noqa: E402
 from virtual_vehicle.run.sim import RunResult  # noqa: E402
@@ -316,7 +317,7 @@ def _scene(result: RunResult, data: FrameData, targets=None):
     crosses = ax.scatter(cells.positions[:, 0], cells.positions[:, 1], marker="x", s=float(np.clip(
         1200.0 * pitch / max(xmax - xmin, ymax - ymin, pitch), 8.0, 60.0)), linewidths=1.5, c="none", zorder=4,
         gid="dead-cells")
-    # the sorter's entries and exits (program "sort"), outlined and named
+    # the entries and exits of a program that has them (the sorter), outlined and named
     for label, colour, poly in sorter_lanes(setup, _DEST_COLOURS):
         ax.add_patch(PolygonPatch(poly, closed=True, fill=False, ec=colour, lw=2.2, ls="-", zorder=2))
         ax.text(poly[:, 0].mean(), poly[:, 1].mean(), label, ha="center", va="center", fontsize=8, color=colour,
@@ -349,9 +350,10 @@ def _scene(result: RunResult, data: FrameData, targets=None):
                       c=_lit_colours(data.lit[0]), edgecolors="none", zorder=6)
     # parcels
     names = [pr.spec.name for pr in result.parcels]
-    dests = [p.destination for p in sc.parcels] if sc.control is not None and sc.control.program == "sort" else None
-    if targets is None and sc.control is not None and sc.control.program == "pose":
-        targets = sc.control.targets
+    marks = program_of(sc.control).markers(setup) if sc.control is not None else None
+    dests = marks.destinations if marks is not None else None
+    if targets is None and marks is not None:
+        targets = marks.targets
     colours = [_DEST_COLOURS[(d or 0) % len(_DEST_COLOURS)] for d in dests] if dests else \
         [_DEST_COLOURS[k % len(_DEST_COLOURS)] for k in range(len(names))]
     if targets is not None:

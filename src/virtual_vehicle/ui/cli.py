@@ -210,11 +210,11 @@ def _report(result, out_dir: Path, plot: bool, text: str | None, formats: tuple[
     pictures = {}
     clear_run_folder(out_dir)  # a run folder holds exactly one run's files
     if plot:
-        from virtual_vehicle.ui.viz import plot_paths, plot_traffic
+        from virtual_vehicle.ui.viz import plot_paths, plot_traffic, sorter_lanes
 
         pictures["plot"] = out_dir / "paths.png"
         with _Phase(f"drawing {pictures['plot']}"):
-            if sc.control is not None and sc.control.program == "sort":
+            if sorter_lanes(result.setup):  # a run with entries and exits: drawn as a sorting run
                 from virtual_vehicle.ui.viz import plot_sorting
 
                 plot_sorting(result, pictures["plot"], cell_ids=cell_ids)
@@ -590,24 +590,10 @@ def equilibria_cmd(
               f"written to {out_dir}/equilibria.json and force_field.png")
 
 
-_COMPARED = {
-    "sort": (("correct", "delivered to the right exit"), ("misrouted", "misrouted"), ("lost", "lost"),
-             ("collisions", "collisions"), ("throughput_per_hour", "parcels per hour"),
-             ("delivery_time_mean_s", "mean delivery time (s)"), ("delivery_time_max_s", "longest delivery time (s)"),
-             ("entry_delay_mean_s", "mean wait at the entry (s)"), ("on_array", "still on the array"),
-             ("waiting", "never put on"), ("order_inversions", "pairs left out of sequence")),
-    "pose": (("settled", "settled within 5 mm and 2 deg"), ("collisions", "collisions"),
-             ("throughput_per_hour", "parcels settled per hour"), ("final_error_mean_mm", "mean final error (mm)"),
-             ("final_error_max_mm", "largest final error (mm)"), ("final_error_mean_deg", "mean final error (deg)"),
-             ("final_error_max_deg", "largest final error (deg)"), ("settle_time_mean_s", "mean time to settle (s)"),
-             ("settle_time_max_s", "longest time to settle (s)"),
-             ("max_path_deviation_mm", "largest deviation from the path (mm)")),
-}
-
-
 @app.command()
 def compare(
-    scenario: str = typer.Argument("sorting_junction", help="A task scenario (program \"sort\" or \"pose\")."),
+    scenario: str = typer.Argument("sorting_junction", help="A task scenario (program \"sort\" or \"pose\": a "
+                                   "program with a task report that also runs centrally)."),
     out_dir: Path = typer.Option(Path("results/compare"), "--out", "-o", help="Folder for compare.json."),
     force: bool = typer.Option(False, "--force", help="Replace an earlier compare.json in the folder."),
 ) -> None:
@@ -618,13 +604,15 @@ def compare(
     from rich.table import Table
 
     from virtual_vehicle.analysis.compare import compare as compare_modes
+    from virtual_vehicle.cells.programs import PROGRAMS, program_of, with_task
     from virtual_vehicle.config.scenario import load_scenario
     from virtual_vehicle.run.files import write_atomic
 
     try:
         sc, _ = load_scenario(scenario)
-        if sc.control is None or sc.control.program not in _COMPARED:
-            raise ScenarioError("control.program", "compare needs a task scenario (program = \"sort\" or \"pose\")")
+        if sc.control is None or not program_of(sc.control).COMPARED or not program_of(sc.control).CENTRAL:
+            tasks = " or ".join(f'"{name}"' for name in with_task(PROGRAMS, central=True))
+            raise ScenarioError("control.program", f"compare needs a task scenario (program = {tasks})")
         _check_out_folder(out_dir)
         if (out_dir / "compare.json").exists() and not force:
             raise VirtualVehicleError(f"--out: {str(out_dir / 'compare.json')!r} holds an earlier comparison; "
@@ -642,7 +630,7 @@ def compare(
     table.add_column("metric")
     table.add_column("distributed")
     table.add_column("central")
-    for key, label in _COMPARED[sc.control.program]:
+    for key, label in program_of(sc.control).COMPARED:
         cells = []
         for mode in ("distributed", "central"):
             v = both[mode][key]

@@ -62,8 +62,8 @@ class Episode:
                  max_steps: int = 200, targets=None, tolerance=(0.005, np.radians(2.0)), vmax: float | None = None,
                  start_noise=(0.0, 0.0)):
         sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)[0]
-        if targets is None and sc.control is not None and sc.control.targets is not None:
-            targets = sc.control.targets
+        if targets is None and sc.control is not None:
+            targets = getattr(sc.control, "targets", None)  # a pose program's
         if targets is None:
             raise ScenarioError("targets", "an environment needs a target pose [x, y, theta] per parcel (or a "
                                 "scenario with program = \"pose\")")
@@ -88,7 +88,7 @@ class Episode:
         self.max_steps = int(max_steps)
         self.targets = targets
         self.tolerance = tol
-        self.vmax = float(vmax if vmax is not None else (sc.control.speed if sc.control is not None else 0.5))
+        self.vmax = float(vmax if vmax is not None else (sc.control.top_speed() if sc.control is not None else 0.5))
         if not self.vmax > 0:
             raise ScenarioError("vmax", f"must be a positive speed in m/s, got {self.vmax}")
         self.start_noise = np.asarray(start_noise, dtype=float)
