@@ -72,24 +72,22 @@ class _Trial:
     def forces(self, law: FrictionLaw, y):
         return law.cell_forces(self.points(y), self.normal, self.V, self.U, self.mu, y)
 
-    def rate(self, y):
+    def rate(self, law: FrictionLaw, y):
         """State derivative under the law's cell forces, the contact points fixed to the parcel."""
-        P = self.points(y)
-        fx, fy, tau = affine.cell_wrench(P, self.law_forces(y), y[:2])
+        fx, fy, tau = affine.cell_wrench(self.points(y), self.forces(law, y), y[:2])
         return np.array([y[3], y[4], y[5], fx / self.mass, fy / self.mass, tau / self.inertia])
 
 
 def _run(trial: _Trial, law: FrictionLaw, y0, window: float, steps: int):
     """RK4 states (steps + 1, 6) of the trial's parcel from ``y0`` over ``window`` s under ``law``."""
-    trial.law_forces = lambda y: trial.forces(law, y)
     h = window / steps
     ys = [np.asarray(y0, dtype=float)]
     for _ in range(steps):
         y = ys[-1]
-        k1 = trial.rate(y)
-        k2 = trial.rate(y + 0.5 * h * k1)
-        k3 = trial.rate(y + 0.5 * h * k2)
-        k4 = trial.rate(y + h * k3)
+        k1 = trial.rate(law, y)
+        k2 = trial.rate(law, y + 0.5 * h * k1)
+        k3 = trial.rate(law, y + 0.5 * h * k2)
+        k4 = trial.rate(law, y + h * k3)
         ys.append(y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4))
     return np.array(ys)
 
