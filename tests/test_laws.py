@@ -160,8 +160,20 @@ class CreepLaw(CoulombLaw):
         return f + np.array([1e-3 * mu, 0.0]) * np.asarray(normal)[:, None]
 
 
+@dataclass(frozen=True)
+class UndampedRowLaw(ViscousLaw):
+    """Broken: hands the engine a row without its damping."""
+
+    name: str = "undamped_row"
+
+    def constants_and_row(self, solution, velocities, drive_directions, mu, mass, inertia):
+        k, row = super().constants_and_row(solution, velocities, drive_directions, mu, mass, inertia)
+        return k, (*row[:15], 0.0, *row[16:])
+
+
 @pytest.mark.parametrize("law, what", [(BackwardsLaw(), "give"), (ShortReachLaw(), "reach bound"),
-                                       (LopsidedLaw(), "moved rigidly"), (CreepLaw(), "at rest")])
+                                       (LopsidedLaw(), "moved rigidly"), (CreepLaw(), "at rest"),
+                                       (UndampedRowLaw(), "row")])
 def test_check_law_fails_a_broken_law(law, what):
     with pytest.raises(AssertionError, match=what):
         check_law(law, trials=10)
