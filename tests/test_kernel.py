@@ -14,7 +14,7 @@ from virtual_vehicle.engine import _kernel as kernel
 from virtual_vehicle.engine import dynamics
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics.laws import affine
+from virtual_vehicle.physics import friction
 from virtual_vehicle.run.warm import warm_up
 
 CELLS = layout.grid(30, 30, 0.1)

@@ -107,10 +107,10 @@ def _rebuild_piece(support, solution, constants, mass, inertia, row) -> "Piece":
 
 
 def constants_row(k: FrictionConstants, origin: np.ndarray, mass: float, inertia: float) -> tuple[float, ...]:
-    """A piece's constants as plain floats, in the order :func:`~virtual_vehicle.engine._kernel.accelerations` takes them
-    (named by :data:`~virtual_vehicle.physics.laws.affine.ROW_FIELDS`): local origin (m), the force and torque
-    constants of eqs. 23 and 29, the viscous coefficient and weight, the moments of eqs. 33 and 38, then 1 / mass and
-    1 / inertia. (A law's ``constants_and_row`` makes the same row
+    """A piece's constants as plain floats, in the order :func:`~virtual_vehicle.engine._kernel.accelerations`
+    takes them (named by :data:`~virtual_vehicle.physics.laws.affine.ROW_FIELDS`): local origin (m), the force and
+    torque constants of eqs. 23 and 29, the viscous coefficient and weight, the moments of eqs. 33 and 38, then
+    1 / mass and 1 / inertia. (A law's ``constants_and_row`` makes the same row
     with its constants, in one compiled call.)"""
     f64 = affine.f64
     return tuple(affine.row(*map(f64, (k.a, k.b, k.c, k.d, k.e)), float(k.f), float(k.damping), float(k.weight),

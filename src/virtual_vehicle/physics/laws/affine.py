@@ -61,16 +61,19 @@ class FrictionConstants:
         self.damping = float(damping)
         self.weight = float(weight)
 
-    a = property(lambda self: self.terms[0:4].reshape(2, 2))
-    b = property(lambda self: self.terms[4:6])
-    c = property(lambda self: self.terms[6:10].reshape(2, 2))
-    d = property(lambda self: self.terms[10:12])
-    e = property(lambda self: self.terms[12:14])
-    f = property(lambda self: float(self.terms[14]))
-    moment_lin = property(lambda self: self.terms[15:19].reshape(2, 2))
-    moment_const = property(lambda self: self.terms[19:21])
-    second_lin = property(lambda self: self.terms[21:23])
-    second_const = property(lambda self: float(self.terms[23]))
+    a = property(lambda self: self.terms[0:4].reshape(2, 2), doc="(2, 2) force per m of centre of mass, N/m (eq. 23).")
+    b = property(lambda self: self.terms[4:6], doc="(2,) force at the local origin, N (eq. 23).")
+    c = property(lambda self: self.terms[6:10].reshape(2, 2), doc="(2, 2) quadratic torque term, N/m (eq. 28).")
+    d = property(lambda self: self.terms[10:12], doc="(2,) linear torque term from b, N (eq. 28).")
+    e = property(lambda self: self.terms[12:14], doc="(2,) linear torque term from the cells' levers, N (eq. 28).")
+    f = property(lambda self: float(self.terms[14]), doc="Torque at the local origin, N m (eq. 28).")
+    moment_lin = property(lambda self: self.terms[15:19].reshape(2, 2),
+                          doc="(2, 2) ``sum_i N_i X_i`` per m of centre of mass, N.")
+    moment_const = property(lambda self: self.terms[19:21], doc="(2,) ``sum_i N_i X_i`` at the origin, N m.")
+    second_lin = property(lambda self: self.terms[21:23],
+                          doc="(2,) ``sum_i N_i |X_i|^2`` per m of centre of mass, N m (eq. 37).")
+    second_const = property(lambda self: float(self.terms[23]),
+                            doc="``sum_i N_i |X_i|^2`` at the origin, N m^2 (eq. 37).")
 
     def __getstate__(self):
         return self.terms, self.damping, self.weight
