@@ -161,7 +161,7 @@ import collections, json, sys
 sys.path.insert(0, %r)
 import bench_scale
 from virtual_vehicle.engine import _kernel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics.laws import affine
 from virtual_vehicle.model import parcel
 from virtual_vehicle.cells import sorting
 from virtual_vehicle.cells.network import delivery
@@ -172,7 +172,7 @@ warm_up()
 home = {n: _kernel for n in ("run_piece", "pattern", "cell_margins", "support_slack", "edges_clear_many",
                                       "quiet_steps")}
 home["_within"] = home["_covered"] = parcel
-home["_terms_and_row"] = friction  # the bench_scale hall is viscous
+home["_terms_and_row"] = affine  # the bench_scale hall is viscous
 home["_step_cells"] = sorting
 home["_carry"] = delivery
 names = tuple(home)

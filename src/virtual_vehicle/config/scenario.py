@@ -24,7 +24,7 @@ from virtual_vehicle.errors import ScenarioError, TippingError
 from virtual_vehicle.model import fields as fieldlib
 from virtual_vehicle.model import layout
 from virtual_vehicle.model.parcel import ParcelSpec, polygon, rectangle, supporting_cells
-from virtual_vehicle.physics.friction import LAWS, FrictionLaw
+from virtual_vehicle.physics.laws import LAWS, FrictionLaw
 
 Pos = Annotated[float, Field(gt=0)]
 Coord = Annotated[float, Field(ge=-1e6, le=1e6)]
@@ -260,7 +260,7 @@ class FrictionSpec(_Strict):
     ``"stick_slip"`` (paper Section 5: wheels stick or slide, parcel ``mu`` kinetic and ``mu_static`` static,
     dimensionless; time-stepped at ``integrator.dt``)."""
 
-    law: Literal["coulomb", "viscous", "stick_slip"] = "coulomb"
+    law: Literal[tuple(LAWS)] = "coulomb"  # the registered laws
 
 
 class IntegratorSpec(_Strict):
@@ -536,9 +536,12 @@ class Scenario(_Strict):
             if port >= cells.ports[cell]:
                 raise ScenarioError(f"control.dead_links[{k}]", f"cell {cell} has ports 0..{cells.ports[cell] - 1}")
         faults = resolve(self.faults, cells, sensors.count, from_layout(cells).neighbor, listed_links)
-        if faults.free_wheels.any() and self.friction.law == "viscous":
-            raise ScenarioError("faults", "free-spinning wheels need the coulomb or stick_slip law (the paper's "
-                                "viscous law acts on a cell's whole slip vector)")
+        law = LAWS[self.friction.law]
+        if faults.free_wheels.any():
+            try:
+                law.supports(cells, free_wheels=True)
+            except ValueError as e:
+                raise ScenarioError("faults", str(e)) from None
         three = contacts is not None and contacts.wheel_of.max() >= 2
         if three and (faults.stuck_wheels.any() or faults.free_wheels.any()):
             raise ScenarioError("faults", "stuck and free wheels are modelled for two-wheel cells; a hexagonal cell's "
@@ -562,11 +565,11 @@ class Scenario(_Strict):
         if faults.stuck_on.any() or faults.stuck_off.any():
             sensors = dataclasses.replace(sensors, stuck_on=sensors.stuck_on | faults.stuck_on,
                                           stuck_off=sensors.stuck_off | faults.stuck_off)
-        if contacts is not None and contacts.separate:
-            if self.friction.law == "viscous":
-                raise ScenarioError("array.wheels", "separate and omni wheels push only along their own drive "
-                                    "direction: use the coulomb or stick_slip law (the paper's viscous law is for "
-                                    "lumped cells)")
+        if contacts is not None:
+            try:
+                law.supports(contacts)
+            except ValueError as e:
+                raise ScenarioError("array.wheels", str(e)) from None
         if contacts is not None and self.wheels.model == "motor":
             raise ScenarioError("wheels.model", "motor-driven wheels are modelled for the paper's lumped cells "
                                 "without belts; use model = \"ideal\" with separate or omni wheels and belts")
@@ -614,7 +617,7 @@ class Scenario(_Strict):
         for k, ev in sorted(enumerate(self.faults.events), key=lambda e: e[1].t):
             now = later(now, ev, cells.n, sensors.count, f"faults.events[{k}]")
             events.append((ev.t, now))
-        setup = Setup(self, cells, velocities, LAWS[self.friction.law], specs, states, control, sensors, contacts,
+        setup = Setup(self, cells, velocities, law, specs, states, control, sensors, contacts,
                       faults, events, present, changes)
         _check_step(setup)
         _check_memory(setup)
@@ -699,7 +702,7 @@ def _check_step(setup: "Setup") -> None:
                             f"({v:g} m/s) would cross {dt * v / pitch:.3g} cells ({pitch:g} m pitch) in one step; "
                             f"the step must be at most pitch / ({STEPS_PER_CELL} x speed) = "
                             f"{pitch / (STEPS_PER_CELL * v):.3g} s")
-    if sc.integrator.mode == "fixed" or sc.friction.law == "stick_slip":
+    if sc.integrator.mode == "fixed" or setup.law.time_stepper is not None:
         limit, what = (sc.output_dt, "the output spacing (output_dt") if sc.output_dt else (sc.duration, "the run ("
                                                                                               "duration")
         if dt > limit * (1 + 1e-9):
@@ -739,7 +742,7 @@ def memory_estimate(setup: "Setup") -> dict[str, float]:
         est["control.period"] = ticks * 12 * 8
         if sc.sensors.record:
             est["sensors.record"] = ticks * setup.cells.n * (setup.sensors.count + 48)
-    elif sc.integrator.mode == "fixed" or sc.friction.law == "stick_slip":
+    elif sc.integrator.mode == "fixed" or setup.law.time_stepper is not None:
         est["integrator.dt"] = np.ceil(sc.duration / sc.integrator.dt) * parcels * 200
     return {k: float(v) for k, v in est.items()}
 

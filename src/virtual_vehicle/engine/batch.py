@@ -17,8 +17,9 @@ planner has already ruled out pushes from other parcels). Two bounds hold, and t
 - the friction law's alone (:func:`~virtual_vehicle.physics.collide.reach_bounds`), which also bounds every point's
 speed
   by ``S_max`` over the window;
-- the piece's, valid while the piece holds (which is what is being proven: the first moment it would stop holding
-  comes after the window, by continuity). With ``k = mu g (1 + m R^2 / I)``, ``S0 = |v| + |omega| R`` now and
+- the piece's (the law's :meth:`~virtual_vehicle.physics.laws.base.FrictionLaw.piece_reach`), valid while the
+  piece holds (which is what is being proven: the first moment it would stop holding comes after the window, by
+  continuity). With ``k = mu g (1 + m R^2 / I)``, ``S0 = |v| + |omega| R`` now and
   ``c = S_max^2 / R`` bounding the centripetal acceleration ``omega^2 R`` and ``|omega| |v|``:
 
   - viscous (eq. 30): every cell under the parcel pushes with ``mu N_i u_i``, ``u_i`` its slip. The parcel's
@@ -60,7 +61,7 @@ from virtual_vehicle.engine.dynamics import _NOISE, ParcelModel, Trajectory
 from virtual_vehicle.errors import TippingError
 from virtual_vehicle.physics.collide import reach_bounds, wheel_speed_of
 from virtual_vehicle.physics.contact import SupportSolution
-from virtual_vehicle.physics.friction import FrictionConstants, ViscousLaw
+from virtual_vehicle.physics.laws import FrictionConstants
 
 
 @dataclass
@@ -162,7 +163,7 @@ class QuietStepper:
     Args:
         cells: the contact layer.
         specs: every parcel of the plant.
-        law: the friction law (Coulomb or viscous).
+        law: the friction law (event-driven).
         mu_max: each parcel's largest friction coefficient.
         gravity: m/s^2.
         rtol, atol: the event-driven engine's tolerances, applied to the single step exactly as it applies them.
@@ -172,7 +173,6 @@ class QuietStepper:
         self.cells = cells
         self.length = max(1.0, cells.extent)
         self.law = law
-        self.viscous = isinstance(law, ViscousLaw)
         self.gravity = gravity
         self.rtol, self.atol = rtol, atol
         self.radius = np.array([s.radius for s in specs])
@@ -285,9 +285,7 @@ class QuietStepper:
         if self._rows.shape[1] != len(row):  # made at the first refresh: the row's length is the law's
             self._rows = np.zeros((len(self._rows), len(row)))
         self._rows[i] = row
-        if not self.viscous:
-            drive = self.law.drive_vectors(v, self.cells.active_directions[a.support])
-            self._drive[i] = float(np.max(np.hypot(drive[:, 0], drive[:, 1])))  # the largest |F_i| (eq. 21)
+        self._drive[i] = self.law.drive_bound(v, self.cells.active_directions[a.support])  # Coulomb: max |F_i|
 
     def reach(self, idx, Y: np.ndarray, window: float, velocities: np.ndarray,
               wheel_speed: float) -> tuple[np.ndarray, np.ndarray]:
@@ -299,28 +297,22 @@ class QuietStepper:
         R = self.radius[idx]
         k = self.lever_mu[idx] * self.gravity
         s0 = np.hypot(Y[:, 3], Y[:, 4]) + np.abs(Y[:, 5]) * R
-        r_law, s_max = reach_bounds(s0, self.lever_mu[idx], window, law="viscous" if self.viscous else "coulomb",
-                                    gravity=self.gravity, wheel_speed=wheel_speed)
+        r_law, s_max = reach_bounds(s0, self.lever_mu[idx], window, law=self.law, gravity=self.gravity,
+                                    wheel_speed=wheel_speed)
         if self.cells.is_line:  # a row may hold the parcel laterally: the law's bound only
             return r_law, np.full(len(idx), np.inf)
         c = s_max * s_max / R
-        if self.viscous:
+
+        def slip():  # the largest slip speed (m/s) under each parcel now, for a law whose bound reads it
             ids = self._support[idx]  # (parcels, cells), padded with the sentinel cell: read as any, then masked
             arm = np.take(self.cells.positions, ids, axis=0, mode="clip") - Y[:, None, :2]
             spin = Y[:, 5, None]
             v = np.take(velocities, ids, axis=0, mode="clip")
-            slip = np.hypot(v[..., 0] - Y[:, 3, None] + spin * arm[..., 1],
-                            v[..., 1] - Y[:, 4, None] - spin * arm[..., 0])
-            sigma = np.where(ids < self.cells.n, slip, 0.0).max(axis=1, initial=0.0)
-            # sigma_0 ((e^{kT} - 1) / k - T) + c ((e^{kT} - 1) / k - T) / k, by its series where kT is small
-            kt = k * window
-            big = kt > 1e-4
-            ks = np.where(big, k, 1.0)
-            g1 = np.where(big, np.expm1(kt) / ks - window, kt * window * (0.5 + kt / 6 + kt * kt / 24))
-            g2 = np.where(big, g1 / ks, window * window * (0.5 + kt / 6 + kt * kt / 24))
-            accel = sigma * g1 + c * g2
-        else:
-            accel = 0.5 * (k * self._drive[idx] + c) * window ** 2
+            slips = np.hypot(v[..., 0] - Y[:, 3, None] + spin * arm[..., 1],
+                             v[..., 1] - Y[:, 4, None] - spin * arm[..., 0])
+            return np.where(ids < self.cells.n, slips, 0.0).max(axis=1, initial=0.0)
+
+        accel = self.law.piece_reach(k, window, c, self._drive[idx], slip)
         return np.minimum(r_law, s0 * window + accel), accel
 
     def _check(self, idx, ks, Y, anchors, window, base, velocities, wheel_speed) -> np.ndarray:

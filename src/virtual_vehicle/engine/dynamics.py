@@ -16,7 +16,7 @@ Two integrators share the model:
   and location) is compiled (:mod:`virtual_vehicle.engine._kernel`); the support changes between pieces stay in Python
   (with the support solve's and the friction constants' arithmetic compiled in :mod:`~virtual_vehicle.physics.contact`
   and
-  :mod:`~virtual_vehicle.physics.friction`);
+  :mod:`~virtual_vehicle.physics.laws.affine`);
 - ``"fixed"``: classical RK4 at a fixed step that looks up the supports at every stage and never locates events,
   for comparison (first-order accurate across support changes).
 """
@@ -40,14 +40,11 @@ from virtual_vehicle.errors import IntegrationError, TippingError
 from virtual_vehicle.model.layout import CellArray
 from virtual_vehicle.model.parcel import ParcelSpec
 from virtual_vehicle.physics.contact import SupportSolution, _solve
-from virtual_vehicle.physics.friction import (
-    CoulombLaw,
-    FrictionConstants,
-    FrictionLaw,
-    StickSlipLaw,
-    _f64,
-    _row,
-)
+from virtual_vehicle.physics.laws import FrictionConstants, FrictionLaw, affine
+
+TIME_STEPPERS = {"stick_slip": run_stick_slip}
+"""The engine's time steppers by the name a time-stepped law gives (its ``time_stepper``): each solves the law's
+modes every step at ``dt`` (s) instead of integrating affine pieces between events."""
 
 Mode = Literal["event", "fixed"]
 MODES = get_args(Mode)
@@ -110,13 +107,15 @@ def _rebuild_piece(support, solution, constants, mass, inertia, row) -> "Piece":
 
 
 def constants_row(k: FrictionConstants, origin: np.ndarray, mass: float, inertia: float) -> tuple[float, ...]:
-    """A piece's constants as plain floats, in the order :func:`~virtual_vehicle.engine._kernel.accelerations` takes them:
-    local origin (m), the force and torque constants of eqs. 23 and 29, the viscous coefficient and weight, the
-    moments of eqs. 33 and 38, then 1 / mass and 1 / inertia. (A law's ``constants_and_row`` makes the same row
+    """A piece's constants as plain floats, in the order :func:`~virtual_vehicle.engine._kernel.accelerations`
+    takes them (named by :data:`~virtual_vehicle.physics.laws.affine.ROW_FIELDS`): local origin (m), the force and
+    torque constants of eqs. 23 and 29, the viscous coefficient and weight, the moments of eqs. 33 and 38, then
+    1 / mass and 1 / inertia. (A law's ``constants_and_row`` makes the same row
     with its constants, in one compiled call.)"""
-    return tuple(_row(*map(_f64, (k.a, k.b, k.c, k.d, k.e)), float(k.f), float(k.damping), float(k.weight),
-                      *map(_f64, (k.moment_lin, k.moment_const, k.second_lin)), float(k.second_const), _f64(origin),
-                      1.0 / mass, 1.0 / inertia).tolist())
+    f64 = affine.f64
+    return tuple(affine.row(*map(f64, (k.a, k.b, k.c, k.d, k.e)), float(k.f), float(k.damping), float(k.weight),
+                            *map(f64, (k.moment_lin, k.moment_const, k.second_lin)), float(k.second_const),
+                            f64(origin), 1.0 / mass, 1.0 / inertia).tolist())
 
 
 def _make_rhs(row: tuple[float, ...]):
@@ -149,9 +148,10 @@ class ParcelModel:
         if self.velocities.shape != (cells.n, 2) or not np.all(np.isfinite(self.velocities)):
             raise ValueError(f"velocities must be finite with shape ({cells.n}, 2)")
         self.law = law
-        if cells.separate and not isinstance(law, (CoulombLaw, StickSlipLaw)):
-            raise ValueError("separate wheels push only along their own drive direction; the paper's viscous law acts "
-                             "on the whole slip vector of a lumped cell: use the coulomb or stick_slip law")
+        law.supports(cells)
+        if law.time_stepper is not None and law.time_stepper not in TIME_STEPPERS:
+            raise ValueError(f"the {law.name} law asks for a time stepper {law.time_stepper!r} the engine does not "
+                             f"have: one of {', '.join(map(repr, TIME_STEPPERS))}")
         self.weight = spec.weight(gravity)
         self._pieces: dict[tuple, Piece] = {}
         self._by_support: dict[tuple[int, ...], list[Piece]] = {}
@@ -398,8 +398,8 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
 
     Args:
         mode: ``"event"`` (piecewise, events located) or ``"fixed"`` (RK4 with step ``dt``, s). A model whose law is
-            :class:`~virtual_vehicle.engine.stickslip.StickSlipLaw` is always time-stepped at ``dt`` (a complementarity
-            problem per step), whatever the mode.
+            time-stepped (its ``time_stepper``, e.g. stick-slip: a complementarity problem per step) is always
+            stepped at ``dt``, whatever the mode.
         rtol, atol: tolerances of the adaptive integrator (event mode); atol in state units (m, rad, m/s, rad/s).
         max_step: largest step of the adaptive integrator, s.
         dt: fixed step (s) of fixed mode and of stick-slip. Event mode uses it only where support changes chatter
@@ -447,9 +447,8 @@ def _integrate(model: ParcelModel, y0: np.ndarray, t0: float, t1: float, sample_
     # Flush values below 1e-100 (a velocity decaying for minutes under viscous damping reaches subnormal floats,
     # where the adaptive integrator's error norm underflows to 0/0).
     y0 = np.where(np.abs(y0) < 1e-100, 0.0, y0)
-    if isinstance(model.law, StickSlipLaw):
-
-        return run_stick_slip(model, y0, t0, t1, sample_times, progress, dt=dt)
+    if model.law.time_stepper is not None:
+        return TIME_STEPPERS[model.law.time_stepper](model, y0, t0, t1, sample_times, progress, dt=dt)
     if mode == "event":
         return _run_event(model, y0, t0, t1, sample_times, progress, max_segments, rtol=rtol, atol=atol,
                           max_step=max_step, dt=dt, support=support)

@@ -51,7 +51,7 @@ from virtual_vehicle.physics.collide import (
     solve_rows,
     wheel_speed_of,
 )
-from virtual_vehicle.physics.friction import FrictionLaw, StickSlipLaw, ViscousLaw
+from virtual_vehicle.physics.laws import FrictionLaw
 
 _ADDITIVE = ("wheel_work", "friction_dissipation", "step_dissipation", "contact_work", "unconverged_steps",
              "chatter_steps")
@@ -125,13 +125,12 @@ class Plant:
         self._warm: dict[tuple[int, int, int], tuple[float, float]] = {}
         self._velocities: np.ndarray | None = None
         self._models = None
-        self._law_name = "viscous" if isinstance(law, ViscousLaw) else "coulomb"
         self._mu_max = [max(s.mu, s.mu_static or 0.0) for s in specs]
         self._gain = [push_gain(s) for s in specs]
         self._radius = np.array([s.radius for s in specs])
         self._quiet = None
         if (integration.batch and integration.mode == "event" and np.isinf(integration.max_step)
-                and not isinstance(law, StickSlipLaw)):
+                and law.time_stepper is None):
             self._quiet = QuietStepper(cells, self.specs, law, self._mu_max, gravity, integration.rtol,
                                        integration.atol)
 
@@ -202,7 +201,7 @@ class Plant:
         return np.array(self._mu_max, dtype=float)
 
     def _reach(self, i, y, T, wmax, floor=0.0):
-        return point_reach(self.specs[i], y, T, law=self._law_name, mu_max=self._mu_max[i], gravity=self.gravity,
+        return point_reach(self.specs[i], y, T, law=self.law, mu_max=self._mu_max[i], gravity=self.gravity,
                            wheel_speed=wmax, speed_floor=floor)
 
     def _meet_time(self, i, j, ys, gap, H, wmax, floor) -> float:
@@ -239,7 +238,7 @@ class Plant:
         radius = self._radius[live]
 
         def reaches(T, floor):  # self._reach of every live parcel
-            return point_reaches(radius, self._lever[live], Y, T, law=self._law_name, mu_max=self._mu_max_arr[live],
+            return point_reaches(radius, self._lever[live], Y, T, law=self.law, mu_max=self._mu_max_arr[live],
                                  gravity=self.gravity, wheel_speed=wmax, speed_floor=floor[live])
 
         def candidates(T, floor):
@@ -408,7 +407,7 @@ class Plant:
         """Time-step a group of parcels together from ``t0`` to ``t1``; returns {parcel: Trajectory}."""
         h = self.integration.dt
         cp = self.contact
-        stick = isinstance(self.law, StickSlipLaw)
+        stick = self.law.time_stepper is not None  # a time-stepped law's wheels join the contact problem
         n_steps = max(1, int(np.ceil((t1 - t0) / h - 1e-9)))
         Y = {i: np.array(ys[i], dtype=float) for i in members}
         log = {i: ([t0], [Y[i].copy()], [], "completed") for i in members}

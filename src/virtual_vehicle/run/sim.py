@@ -28,7 +28,6 @@ from virtual_vehicle.engine.dynamics import Trajectory, sample_grid
 from virtual_vehicle.engine.plant import SUMMED_STATS, join, joined_stats, on_grid
 from virtual_vehicle.errors import VirtualVehicleError
 from virtual_vehicle.model.parcel import ParcelSpec, covered_pairs, supporting_cells
-from virtual_vehicle.physics.friction import CoulombLaw
 
 _ENERGY = ("kinetic_start", "kinetic_end", "wheel_work", "friction_dissipation", "step_dissipation", "contact_work")
 
@@ -108,7 +107,7 @@ class RunResult:
                 "chatter_steps": tr.stats.get("chatter_steps", 0),  # fixed steps across a sliding mode (event mode)
                 "coulomb_sliding_assumption_violated_at_s": pr.sliding_violation[0] if pr.sliding_violation else None,
                 "coulomb_max_reversed_slip_m_per_s": pr.sliding_violation[1] if pr.sliding_violation else None,
-                "coulomb_sliding_checked": pr.sliding_checked and isinstance(self.setup.law, CoulombLaw),
+                "coulomb_sliding_checked": pr.sliding_checked and self.setup.law.assumes_sliding,
                 **({"energy_J": {k: tr.stats[k] for k in _ENERGY},
                     "stick_slip_unconverged_steps": tr.stats["unconverged_steps"]} if "wheel_work" in tr.stats else {}),
             })
@@ -136,7 +135,8 @@ class RunResult:
             "scenario": sc.name,
             "version": __version__,
             "friction_law": sc.friction.law,
-            "integrator": "time-stepping (stick-slip)" if sc.friction.law == "stick_slip" else sc.integrator.mode,
+            "integrator": (f"time-stepping ({self.setup.law.time_stepper.replace('_', '-')})"
+                           if self.setup.law.time_stepper else sc.integrator.mode),
             "duration_s": sc.duration,
             "cells": self.setup.cells.n,
             "parcels": parcels,
@@ -352,7 +352,7 @@ class FieldRun(_Job):
             keep = np.isin(traj.times, self.grid)  # the output samples, wherever the checkpoints cut
             keep[-1] = True
             traj = replace(traj, times=traj.times[keep], states=traj.states[keep])
-            check = coulomb_sliding_check(setup, spec, traj) if isinstance(setup.law, CoulombLaw) else None
+            check = coulomb_sliding_check(setup, spec, traj) if setup.law.assumes_sliding else None
             results.append(ParcelResult(spec, traj, check))
         return RunResult(setup, results, self.wall, {"plant": plant_totals(self.plant)},
                          scenario_text=self.scenario_text)
@@ -456,7 +456,7 @@ def wheel_loads(setup: Setup, models, states, active, speeds: np.ndarray) -> np.
     loads the wheel: Coulomb mu N in the direction of spin (paper 4.3), viscous mu N times the slip (eq. 30),
     stick-slip mu N against the slip (zero while a wheel is stuck). ``speeds`` are the wheels' surface speeds."""
     cells = setup.cells
-    law = setup.scenario.friction.law
+    law = setup.law
     load = np.zeros((cells.n, 2))
     for model, y, on in zip(models, states, active):
         if not on:
@@ -469,13 +469,7 @@ def wheel_loads(setup: Setup, models, states, active, speeds: np.ndarray) -> np.
             u = cells.drive_directions[ids, k]
             w = speeds[ids, k]
             slip = w - np.einsum("ij,ij->i", v, u)
-            if law == "coulomb":
-                f = np.sign(w)
-            elif law == "viscous":
-                f = slip
-            else:
-                f = np.where(np.abs(slip) > 1e-9, np.sign(slip), 0.0)
-            load[ids, k] += model.spec.mu * N * f
+            load[ids, k] += model.spec.mu * N * law.wheel_loads(w, slip)
     return load
 
 
@@ -681,7 +675,7 @@ class TickedRun:
         self.next_change = 0
         self.reconfigured: list[dict] = []
         # the paper's Coulomb assumption, checked at every output sample against that tick's wheels (4.3)
-        self.sliding: list | None = [None] * len(self.ys) if isinstance(setup.law, CoulombLaw) else None
+        self.sliding: list | None = [None] * len(self.ys) if setup.law.assumes_sliding else None
         if self.present is not None and not self.present.all():
             self._rewire()
 
