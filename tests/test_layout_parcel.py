@@ -6,6 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
+from virtual_vehicle.config.scenario import parse_scenario
 from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.model import layout, parcel
 
@@ -25,27 +26,53 @@ def test_grid_row_points():
 
 
 def test_layout_validation():
-    with pytest.raises(ScenarioError, match="same position"):
+    with pytest.raises(ValueError, match="same position"):
         layout.from_points([[0, 0], [0, 0]])
-    with pytest.raises(ScenarioError, match="pitch"):
+    with pytest.raises(ValueError, match="pitch"):
         layout.grid(2, 2, -0.1)
-    with pytest.raises(ScenarioError, match="at least one"):
+    with pytest.raises(ValueError, match="at least one"):
         layout.grid(0, 2, 0.1)
-    with pytest.raises(ScenarioError, match="orthogonal"):
+    with pytest.raises(ValueError, match="orthogonal"):
         layout.CellArray(np.zeros((1, 2)), np.array([[[1.0, 0.0], [1.0, 0.0]]]), 0.1)
+
+
+def test_the_model_raises_plain_errors_and_the_scenario_names_the_field():
+    """The model knows nothing of scenario files: a bad argument is a plain ValueError without a TOML path; the
+    scenario that made the call names the field, down to the entry of a list."""
+    with pytest.raises(ValueError, match="^two cells share the same position$") as exc:
+        layout.from_points([[0, 0], [0, 0]])
+    assert not isinstance(exc.value, ScenarioError)
+    with pytest.raises(ValueError, match="^com, the centre of mass") as exc:
+        parcel.polygon([[0, 0], [1, 0], [1, 1], [0, 1]], 1.0, 0.5, com=[2.0, 2.0])
+    assert not isinstance(exc.value, ScenarioError)
+    box = {"name": "box", "length": 0.15, "width": 0.15, "mass": 1.0, "mu": 0.5, "x": 0.05, "y": 0.05}
+    field = {"kind": "uniform", "velocity": [0.1, 0.0]}
+    doubled = {"kind": "points", "points": [[0.0, 0.0], [0.1, 0.0], [0.1, 0.0]]}
+    with pytest.raises(ScenarioError, match=r"^array\.points: two cells share the same position$"):
+        parse_scenario({"duration": 1.0, "array": doubled, "field": field, "parcels": [box]}).build()
+    odd = dict(box, length=None, width=None, vertices=[[0, 0], [0.1, 0], [0.1, 0.1], [0, 0.1]], com=[0.3, 0.3])
+    with pytest.raises(ScenarioError, match=r"^parcels\[0\]: com, the centre of mass \[0.3, 0.3\], must lie inside"):
+        parse_scenario({"duration": 1.0, "array": {"kind": "grid", "nx": 3, "ny": 3, "pitch": 0.1}, "field": field,
+                        "parcels": [odd]}).build()
+    belts = [{"start": [-0.3, 0.1], "end": [-0.1, 0.1], "width": 0.1, "speed": 0.1},
+             {"start": [0.0, 0.1], "end": [0.5, 0.1], "width": 0.1, "speed": 0.1}]
+    with pytest.raises(ScenarioError, match=r"^array\.belts\[1\]: the belt from \[0.0, 0.1\] to \[0.5, 0.1\] m covers "
+                                            r"cell 3 at \[0.0, 0.1\] m"):
+        parse_scenario({"duration": 1.0, "array": {"kind": "grid", "nx": 3, "ny": 3, "pitch": 0.1, "belts": belts},
+                        "field": field, "parcels": [box]}).build()
 
 
 def test_rectangle_inertia_and_validation():
     p = parcel.rectangle(0.3, 0.2, 1.5, 0.4)
     assert p.inertia == pytest.approx(1.5 * (0.09 + 0.04) / 12)
     assert p.half_extents == (0.15, 0.1)
-    with pytest.raises(ScenarioError, match="mass"):
+    with pytest.raises(ValueError, match="mass"):
         parcel.rectangle(0.3, 0.2, -1.0, 0.4)
-    with pytest.raises(ScenarioError, match="width"):
+    with pytest.raises(ValueError, match="width"):
         parcel.rectangle(0.3, 0.0, 1.0, 0.4)
     notched = parcel.ParcelSpec(np.array([[-1, -1], [1, -1], [0, -0.5], [1, 1], [-1, 1]], float), 1.0, 1.0, 0.5)
     assert not notched.convex  # non-convex outlines are fine
-    with pytest.raises(ScenarioError, match="simple polygon"):
+    with pytest.raises(ValueError, match="simple polygon"):
         parcel.ParcelSpec(np.array([[-1, -1], [1, 1], [1, -1], [-1, 1]], float), 1.0, 1.0, 0.5)
     clockwise = parcel.ParcelSpec(np.array([[-1, -1], [-1, 1], [1, 1], [1, -1]], float), 1.0, 1.0, 0.5)
     assert parcel._signed_area(clockwise.footprint) > 0  # stored counter-clockwise
