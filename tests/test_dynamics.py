@@ -292,14 +292,14 @@ def test_a_parcel_tipping_off_a_pattern_is_told_where_in_the_arrays_coordinates(
     y = np.array([2.03, 1.47, 0.3, 0, 0, 0])
     with pytest.raises(TippingError, match=r"\(2\.03, 1\.47\) m is"):
         m.solution_for(m.support_at(y)[:3], y[:2])  # three cells on one side: outside their hull
-    real = dynamics._solve
+    real = dynamics.solve_prechecked
 
     def canonical_tips(points, com, *args):
         if not np.any(points[0]):  # the pattern's own coordinates: its first cell at the origin
             raise TippingError("outside to rounding")
         return real(points, com, *args)
 
-    monkeypatch.setattr(dynamics, "_solve", canonical_tips)
+    monkeypatch.setattr(dynamics, "solve_prechecked", canonical_tips)
     with pytest.raises(TippingError, match=r"\(2\.03, 1\.47\) m is on the edge"):
         m.solution_for(m.support_at(y), y[:2])
 
@@ -318,7 +318,7 @@ def test_a_piece_made_by_the_engine_knows_its_key():
     for piece in pieces:
         assert piece.key == type(piece).key.func(piece)
         fresh = model.with_velocities(model.velocities)
-        fresh._adopt(piece.support, piece.solution, piece.constants, piece.row)
+        fresh.adopt(piece.support, piece.solution, piece.constants, piece.row)
         adopted = fresh._by_support[piece.key[0]][0]
         assert adopted.key == type(adopted).key.func(adopted) == piece.key
 

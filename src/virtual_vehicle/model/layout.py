@@ -27,7 +27,8 @@ from scipy.spatial import cKDTree
 
 from virtual_vehicle.model.parcel import PointGrid
 
-_COLLINEAR_TOL = 1e-9  # m: largest distance of a cell from the best-fit line for a layout to count as a row
+COLLINEAR_TOL = 1e-9
+"""m: the largest distance of a point from the best-fit line for points to count as collinear (a layout as a row)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -154,7 +155,7 @@ class CellArray:
     def is_line(self) -> bool:
         """True when all cells lie on one straight line (the paper's 1-D array). A parcel on such an array is
         assumed held laterally (the 1-D model: vertical force and one moment equation only)."""
-        return _collinear(self.positions)
+        return collinear(self.positions)
 
     @cached_property
     def extent(self) -> float:
@@ -169,14 +170,15 @@ class CellArray:
         return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
 
-def _collinear(points: np.ndarray, tol: float = _COLLINEAR_TOL) -> bool:
-    """True if the points ((n, 2), m) lie within ``tol`` metres of one straight line (or are a single point)."""
-    return bool(collinear(np.ascontiguousarray(points, dtype=np.float64), tol))
+def collinear(points: np.ndarray, tol: float = COLLINEAR_TOL) -> bool:
+    """True if the points ((n, 2), m) lie within ``tol`` metres of one straight line (or are a single point): the
+    test of a 1-D array and of a collinear contact set (the 1-D model of the normal forces)."""
+    return bool(_collinear_kernel(np.ascontiguousarray(points, dtype=np.float64), tol))
 
 
 @njit(cache=True)
-def collinear(points, tol):
-    """:func:`_collinear` compiled, for float64 points, without an SVD (LAPACK's took ~10-25 us on the ~12 points of
+def _collinear_kernel(points, tol):
+    """:func:`collinear` compiled, for float64 points, without an SVD (LAPACK's took ~10-25 us on the ~12 points of
     a support set, and every new support pattern asks): the RMS distance of the centred points from the best-fit line
     is that of their components across its direction, the principal axis of their 2 x 2 scatter matrix. The axis is
     found to rounding (~1e-16 rad), so the distances are too; the square root of the matrix's smaller eigenvalue (the

@@ -64,6 +64,18 @@ class ParcelSpec:
         fp.setflags(write=False)
         object.__setattr__(self, "footprint", fp)
 
+    def derived(self, name: str, make, *args):
+        """``make(*args)``, made once for this parcel and kept under ``name``: what the layers above work out from
+        its outline (the convex parts parcel-parcel contact splits it into, say) is made once a parcel, not once a
+        use. The description itself stays as it is (frozen); only this memo grows."""
+        memo = self.__dict__.get("_derived")
+        if memo is None:
+            memo = self.__dict__["_derived"] = {}
+        value = memo.get(name)
+        if value is None:
+            value = memo[name] = make(*args)
+        return value
+
     @cached_property
     def polygon(self) -> shapely.Polygon:
         """The footprint as a shapely polygon in the body frame."""

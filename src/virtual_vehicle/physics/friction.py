@@ -27,7 +27,7 @@ from typing import Protocol
 import numpy as np
 from numba import njit
 
-from virtual_vehicle.model.layout import _collinear
+from virtual_vehicle.model.layout import collinear
 from virtual_vehicle.physics.contact import SupportSolution
 
 J = np.array([[0.0, 1.0], [-1.0, 0.0]])
@@ -217,7 +217,7 @@ def _coulomb_drive(V, U):
 def _all_in_contact_map(points, weight: float):
     """The paper's eq. 19 with every listed cell in contact (no lift-off), in the points' own frame."""
     P = np.asarray(points, dtype=float)
-    if _collinear(P):
+    if collinear(P):
         raise ValueError("the paper's planar constants need at least three non-collinear points")
     B = np.column_stack([np.ones(len(P)), P])
     minv = np.linalg.inv(B.T @ B)
