@@ -198,31 +198,6 @@ def test_load_on_the_line_of_a_collinear_contact_set():
     assert contact_set(basis, rhs).tolist() == [False, False, True, True, True, True]
 
 
-def _halfplanes(normals, offsets):
-    rows = np.column_stack([normals, offsets])
-    return rows[np.lexsort(np.round(rows, 9).T[::-1])]  # ordered as rounded, so that ulps do not reorder ties
-
-
-@settings(max_examples=80, deadline=None)
-@given(st.integers(0, 10_000), st.integers(3, 40), st.booleans())
-def test_hull_matches_qhull(seed, m, lattice):
-    """The compiled hull's half-planes are Qhull's (scipy), also on a lattice, where cells lie on the hull's edges
-    between its corners and must not make edges of their own."""
-    from virtual_vehicle.physics.contact import _hull
-
-    rng = np.random.default_rng(seed)
-    if lattice:
-        P = 0.1 * rng.integers(0, 6, size=(m, 2)).astype(float)
-        assume(np.linalg.matrix_rank(P - P[0]) == 2)
-    else:
-        P = rng.uniform(-1, 1, size=(m, 2))
-    hull = ConvexHull(P)
-    ours = _halfplanes(*_hull(P, 1e-12))
-    qhull = _halfplanes(hull.equations[:, :2], -hull.equations[:, 2])
-    assert ours.shape == qhull.shape
-    np.testing.assert_allclose(ours, qhull, atol=1e-12)
-
-
 def test_collinear_compiled_matches_svd():
     """The compiled collinearity test decides as numpy's SVD of the centred points does, on both sides of the
     tolerance."""
