@@ -93,6 +93,7 @@ class LazyProgress:
         self.bar.update(self.task, completed=min(max(fraction, 0.0), 1.0))
 
     def close(self) -> None:
+        """Take the bar off the screen (when it appeared): the run is over."""
         if self.bar is not None:
             self.bar.stop()
 
