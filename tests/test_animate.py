@@ -212,7 +212,7 @@ def test_frames_draw_entries_exits_dead_cells_and_a_light_traffic_scale():
                                    {"t": 0.5, "dead_cells": [100]}]})})
     r = run(sc.build())
     data = anim.frame_data(r, np.array([0.0, 0.3, 0.7]))
-    fig, update = anim._scene(r, data)
+    fig, update = anim.scene(r, data)
     ax = fig.axes[0]
     names = {t.get_text() for t in ax.texts}
     assert {"entry", "exit 0", "exit 1", "exit 2"} <= names

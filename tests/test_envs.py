@@ -117,7 +117,7 @@ def test_cells_hear_their_neighbours_one_step_later_on_the_right_port():
     obs, _ = env.reset(seed=0)
     ep, topo = env.episode, env.topology
     S = ep.sensors_per_cell
-    ids = np.array([env._index[a] for a in env.agents])
+    ids = np.array([int(a.removeprefix("cell_")) for a in env.agents])  # agent "cell_i" is cell i
     actions = {a: np.array([0.0, 0.0, i / ep.n, -0.5], dtype=np.float32) for a, i in zip(env.agents, ids)}
     obs, rewards, *_ = env.step(actions)
     assert len(set(rewards.values())) == 1  # one shared reward

@@ -6,6 +6,7 @@ path (see :func:`bundled_scenarios`). Errors are :class:`~virtual_vehicle.errors
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import tomllib
@@ -44,6 +45,19 @@ Vel = tuple[Speed, Speed]
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+
+@contextlib.contextmanager
+def _at(path: str):
+    """Name the TOML ``path`` a library call was built from: the model, cells and hardware raise plain ValueError
+    (they know nothing of scenario files), which becomes a ScenarioError naming the field here. A ScenarioError
+    raised inside (already naming its field) passes unchanged."""
+    try:
+        yield
+    except ScenarioError:
+        raise
+    except ValueError as exc:
+        raise ScenarioError(path, str(exc)) from None
 
 
 class BeltSpec(_Strict):
@@ -524,7 +538,8 @@ class Scenario(_Strict):
         from virtual_vehicle.model.faults import later, resolve
 
         cells, contacts, marks = _build_array(self.array)
-        velocities = np.zeros((cells.n, 2)) if self.field is None else _build_field(self.field).velocities(cells)
+        with _at("field"):
+            velocities = np.zeros((cells.n, 2)) if self.field is None else _build_field(self.field).velocities(cells)
         if cells.belts.any():  # plain belts run at their own speed whatever the field says
             dirs = cells.drive_directions
             velocities = np.einsum("ik,ikj->ij", cells.belt_commands(np.einsum("ij,ikj->ik", velocities, dirs)), dirs)
@@ -535,7 +550,9 @@ class Scenario(_Strict):
                 raise ScenarioError(f"control.dead_links[{k}]", f"cell {cell} does not exist (the array has {cells.n})")
             if port >= cells.ports[cell]:
                 raise ScenarioError(f"control.dead_links[{k}]", f"cell {cell} has ports 0..{cells.ports[cell] - 1}")
-        faults = resolve(self.faults, cells, sensors.count, from_layout(cells).neighbor, listed_links)
+        _check_listed_faults(self.faults, cells.n, sensors.count, "faults")
+        with _at("faults"):
+            faults = resolve(self.faults, cells, sensors.count, from_layout(cells).neighbor, listed_links)
         law = LAWS[self.friction.law]
         if faults.free_wheels.any():
             try:
@@ -584,13 +601,11 @@ class Scenario(_Strict):
         specs, states = [], []
         for i, p in enumerate(self.parcels):
             where = f"parcels[{i}]"
-            try:
+            with _at(where):
                 if p.vertices is not None:
                     spec = polygon(p.vertices, p.mass, p.mu, p.com, p.inertia, name=p.name, mu_static=p.mu_static)
                 else:
                     spec = rectangle(p.length, p.width, p.mass, p.mu, p.inertia, name=p.name, mu_static=p.mu_static)
-            except ScenarioError as exc:
-                raise ScenarioError(f"{where}.{exc.field.rsplit('.', 1)[-1]}", exc.message) from None
             state = np.array([p.x, p.y, p.theta, p.vx, p.vy, p.omega], dtype=float)
             _check_on_array(start_layer, spec, state, where, p.name)
             specs.append(spec)
@@ -615,7 +630,9 @@ class Scenario(_Strict):
             control = _field_control(cells, velocities, self.wheels.period)
         events, now = [], faults
         for k, ev in sorted(enumerate(self.faults.events), key=lambda e: e[1].t):
-            now = later(now, ev, cells.n, sensors.count, f"faults.events[{k}]")
+            _check_listed_faults(ev, cells.n, sensors.count, f"faults.events[{k}]")
+            with _at(f"faults.events[{k}]"):
+                now = later(now, ev, cells.n, sensors.count)
             events.append((ev.t, now))
         setup = Setup(self, cells, velocities, law, specs, states, control, sensors, contacts,
                       faults, events, present, changes)
@@ -797,38 +814,64 @@ def _build_array(a) -> tuple[layout.CellArray, layout.CellArray | None, dict]:
     """The cell layer, the contact layer (None when it is the cell layer: the paper's lumped cells) and the map's
     marks (entry / exit cells) of array table ``a``, belts included."""
     if isinstance(a, MixedArray):
-        built = [_build_part(part) for part in a.parts]
-        cells, contacts = layout.combine([(c, t) for c, t, _ in built])
+        for k, part in enumerate(a.parts):
+            if not np.isclose(part.pitch, a.parts[0].pitch, rtol=1e-9):
+                raise ScenarioError(f"array.parts[{k}].pitch", f"the parts of a mixed array share one pitch "
+                                    f"({a.parts[0].pitch:g} m); this one has {part.pitch:g} m")
+        built = [_build_part(part, f"array.parts[{k}]") for k, part in enumerate(a.parts)]
+        with _at("array.parts"):
+            cells, contacts = layout.combine([(c, t) for c, t, _ in built])
         marks = {key: np.concatenate([m.get(key, np.zeros(c.n, bool)) for c, _, m in built])
                  for key in sorted({key for _, _, m in built for key in m})}
     else:
-        cells, contacts, marks = _build_part(a)
-    belts = [layout.Belt(b.start, b.end, b.width, b.speed, b.spacing or cells.pitch / 2) for b in a.belts]
-    if belts:
-        n = cells.n
-        cells, contacts = layout.with_belts(cells, cells if contacts is None else contacts, belts)
+        cells, contacts, marks = _build_part(a, "array")
+    n = cells.n
+    for k, b in enumerate(a.belts):  # one at a time, to name the belt at fault: the same array as all at once
+        with _at(f"array.belts[{k}]"):
+            belt = layout.Belt(b.start, b.end, b.width, b.speed, b.spacing or cells.pitch / 2)
+            cells, contacts = layout.with_belts(cells, cells if contacts is None else contacts, [belt])
+    if a.belts:
         marks = {k: np.concatenate([m, np.zeros(cells.n - n, bool)]) for k, m in marks.items()}
     return cells, contacts, marks
 
 
-def _build_part(a) -> tuple[layout.CellArray, layout.CellArray | None, dict]:
-    """Cells, contact layer (None: lumped) and marks of one array table, without its belts."""
+def _build_part(a, where: str) -> tuple[layout.CellArray, layout.CellArray | None, dict]:
+    """Cells, contact layer (None: lumped) and marks of one array table (at TOML path ``where``), without its
+    belts."""
     marks = {}
-    if isinstance(a, GridArray):
-        cells = layout.grid(a.nx, a.ny, a.pitch, a.origin, a.drive_angle)
-    elif isinstance(a, RowArray):
-        cells = layout.row(a.n, a.pitch, a.origin, a.drive_angle)
-    elif isinstance(a, HexArray):
-        cells = layout.hexagonal(a.nx, a.ny, a.pitch, a.origin, a.drive_angle)
-    elif isinstance(a, MapArray):
-        cells, marks = layout.from_map(a.map, a.pitch, a.origin, a.lattice, a.drive_angle)
+    if isinstance(a, MapArray):
+        with _at(f"{where}.map"):
+            cells, marks = layout.from_map(a.map, a.pitch, a.origin, a.lattice, a.drive_angle)
+    elif isinstance(a, PointsArray):
+        with _at(f"{where}.points"):
+            cells = layout.from_points(a.points, a.pitch, a.drive_angle)
     else:
-        cells = layout.from_points(a.points, a.pitch, a.drive_angle)
+        with _at(where):
+            if isinstance(a, GridArray):
+                cells = layout.grid(a.nx, a.ny, a.pitch, a.origin, a.drive_angle)
+            elif isinstance(a, RowArray):
+                cells = layout.row(a.n, a.pitch, a.origin, a.drive_angle)
+            else:
+                cells = layout.hexagonal(a.nx, a.ny, a.pitch, a.origin, a.drive_angle)
     if isinstance(a, HexArray) or getattr(a, "lattice", "square") == "hex":
-        return cells, layout.three_wheels(cells, a.wheel_radius), marks
+        with _at(f"{where}.wheel_radius"):
+            return cells, layout.three_wheels(cells, a.wheel_radius), marks
     if a.wheels == "separate":
-        return cells, layout.separate_wheels(cells, a.wheel_offsets), marks
+        with _at(f"{where}.wheel_offsets"):
+            return cells, layout.separate_wheels(cells, a.wheel_offsets), marks
     return cells, None, marks
+
+
+def _check_listed_faults(table, n: int, sensors: int, where: str) -> None:
+    """Every cell (and sensor) that faults table or event ``table`` (at TOML path ``where``) lists must exist: checked
+    here, before the faults are resolved, to name the entry at fault."""
+    for name in ("dead_cells", "stuck_wheels", "free_wheels", "stuck_on", "stuck_off", "dead_links"):
+        for k, item in enumerate(getattr(table, name, ())):
+            cell = item if isinstance(item, int) else item[0]
+            if cell >= n:
+                raise ScenarioError(f"{where}.{name}[{k}]", f"cell {cell} does not exist (the array has {n})")
+            if name in ("stuck_on", "stuck_off") and item[1] >= sensors:
+                raise ScenarioError(f"{where}.{name}[{k}]", f"no sensor {item[1]}: cells have {sensors}")
 
 
 def _build_field(f):
@@ -865,8 +908,9 @@ def _build_sensors(spec: SensorSpec, cells: layout.CellArray):
                                     f"{len(offsets)} sensors each)")
             mask[cell, sensor] = True
         masks[name] = mask
-    return Sensors(cells, offsets, spec.false_positive, spec.false_negative, masks["stuck_on"], masks["stuck_off"],
-                   spec.seed)
+    with _at("sensors"):
+        return Sensors(cells, offsets, spec.false_positive, spec.false_negative, masks["stuck_on"],
+                       masks["stuck_off"], spec.seed)
 
 
 def _field_control(cells: layout.CellArray, velocities: np.ndarray, period: float) -> "ControlSetup":

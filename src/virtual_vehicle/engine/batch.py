@@ -53,11 +53,12 @@ supports change.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from virtual_vehicle.engine import _kernel
-from virtual_vehicle.engine.dynamics import _NOISE, ParcelModel, Trajectory
+from virtual_vehicle.engine.dynamics import ROUNDING_NOISE, ParcelModel, Trajectory
 from virtual_vehicle.errors import TippingError
 from virtual_vehicle.physics.collide import reach_bounds, wheel_speed_of
 from virtual_vehicle.physics.contact import SupportSolution
@@ -73,14 +74,14 @@ class _Anchor:
     slack: float  # m
     support: np.ndarray  # cell ids
     solution: SupportSolution
-    geometry: object  # the parcel's shared cache of solved supports (for its count of solves)
+    model: ParcelModel  # the parcel's model that measured it (its count of solves, shared by its copies)
     room: float = 0.0  # m: the buffer less rounding noise; cells further than radius + buffer are not in ``near``
     noise: float = 0.0  # m: rounding noise in positions
     near: np.ndarray | None = None  # convex footprint: the cells within radius + buffer (ids); else None
     halfplanes: tuple[np.ndarray, np.ndarray] | None = None  # convex footprint: its edges' normals and offsets
     constants: FrictionConstants | None = None  # the piece's, for the wheels last seen under it (None: not yet)
     row: tuple[float, ...] = ()  # and its constants row
-    first: bool = False  # the solution is the first of its pattern's shared solutions (ParcelModel._solution_first)
+    first: bool = False  # the solution is the first of its pattern's shared solutions (ParcelModel.solution_and_first)
 
 
 def anchor(model: ParcelModel, y: np.ndarray, length: float, previous: _Anchor | None = None) -> _Anchor | None:
@@ -99,17 +100,17 @@ def anchor(model: ParcelModel, y: np.ndarray, length: float, previous: _Anchor |
         sol, first = previous.solution, True
     else:
         try:
-            sol, first = model._solution_first(support, y[:2])
+            sol, first = model.solution_and_first(support, y[:2])
         except TippingError:
             return None
     length = max(length, spec.radius)
-    clear = min(buffer, nearest) - _NOISE * length
+    clear = min(buffer, nearest) - ROUNDING_NOISE * length
     xi = y[:2] - sol.origin
+    noise = ROUNDING_NOISE * length
     slack = _kernel.support_slack(sol.basis, sol.plane_lin, sol.plane_const, sol.spring_lin, sol.hull_normals,
-                                  sol.hull_offsets, xi[0], xi[1], _NOISE * model.weight, _NOISE * length)
-    return _Anchor(np.array(y[:3], dtype=float), clear, slack, support, sol, model._geometry,
-                   room=buffer - _NOISE * length, noise=_NOISE * length, near=ids if spec.convex else None,
-                   halfplanes=spec.halfplanes if spec.convex else None, first=first)
+                                  sol.hull_offsets, xi[0], xi[1], ROUNDING_NOISE * model.weight, noise)
+    return _Anchor(np.array(y[:3], dtype=float), clear, slack, support, sol, model, room=buffer - noise, noise=noise,
+                   near=ids if spec.convex else None, halfplanes=spec.halfplanes if spec.convex else None, first=first)
 
 
 def _padded_row(column: np.ndarray, i: int, values: np.ndarray, fill) -> np.ndarray:
@@ -155,6 +156,20 @@ class QuietSteps:
     def last(self) -> np.ndarray:
         """(q, 6) each parcel's state at the window's end, a new array."""
         return self.states[self.rows, -1]
+
+
+class QuietStep(NamedTuple):
+    """One parcel's quiet window: parcel ``parcel`` (the plant's index) is ``steps``'s ``k``-th, its samples kept in
+    that block (making its :class:`~virtual_vehicle.engine.dynamics.Trajectory` only when asked: a networked run takes
+    most of them in from the block)."""
+
+    parcel: int
+    steps: QuietSteps
+    k: int
+
+    def trajectory(self) -> Trajectory:
+        """The window as a trajectory: one step, no events, completed."""
+        return self.steps.trajectory(self.k)
 
 
 class QuietStepper:
@@ -250,7 +265,7 @@ class QuietStepper:
         if a is None:
             return None
         if a.constants is not None and self._changed_at[self._support[i]].max() <= self._made[i]:
-            model._adopt(a.support, a.solution, a.constants, a.row)
+            model.adopt(a.support, a.solution, a.constants, a.row)
         return a.support if y is not None and a.pose.tolist() == y[:3].tolist() else None
 
     def _see(self, velocities: np.ndarray) -> None:
@@ -365,6 +380,14 @@ class QuietStepper:
                                         self._edge_normals[idx], self._edge_offsets[idx], self._edge_count[idx],
                                         np.ascontiguousarray(Y), window, r, accel, R, lever, self._noise[idx])
 
+    def compile_checks(self, model: ParcelModel, y: np.ndarray) -> None:
+        """Compile (or load from numba's cache) the compiled checks :meth:`step` runs, with the argument types it
+        gives them, at a time of the caller's choosing: anchor parcel 0 (``model``'s) at state ``y`` and ask its
+        edges whether the cells stay clear of them for 10 ms (the branch a step takes only near cells)."""
+        self._anchor(0, [model], y)
+        self._edges_clear(np.zeros(1, dtype=np.int64), y[None], 0.01, np.zeros(1), np.zeros(1), self.radius,
+                          self.lever)
+
     def step(self, models, base, idx: list[int], ys, velocities: np.ndarray, t: float, te: float,
              samples: np.ndarray, wheel_speed: float | None = None) -> tuple[QuietSteps, list[int]]:
         """Advance the parcels ``idx`` (states ``ys[i]``, no other parcel within reach) from ``t`` to ``te`` (s)
@@ -408,5 +431,5 @@ class QuietStepper:
         rest.extend(idx[k] for k in quiet[~accepted].tolist())
         kept = quiet[rows].tolist()
         return QuietSteps([idx[k] for k in kept], times, states, rows, evals,
-                          [anchors[k].geometry.solves for k in kept]), rest
+                          [anchors[k].model.solves for k in kept]), rest
 

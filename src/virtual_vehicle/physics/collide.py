@@ -123,21 +123,20 @@ def _edge_distances(spec: ParcelSpec, pose, points):
 
 def convex_parts(spec: ParcelSpec) -> list[np.ndarray]:
     """The footprint as convex pieces in the body frame, counter-clockwise: itself when convex, else its constrained
-    Delaunay triangles (shapely)."""
-    cached = spec.__dict__.get("_convex_parts")
-    if cached is None:
-        if spec.convex:
-            cached = [spec.footprint]
-        else:
-            tris = shapely.constrained_delaunay_triangles(spec.polygon)
-            cached = []
-            for tri in shapely.get_parts(tris):
-                v = np.asarray(tri.exterior.coords)[:-1]
-                if (v[1, 0] - v[0, 0]) * (v[2, 1] - v[0, 1]) - (v[1, 1] - v[0, 1]) * (v[2, 0] - v[0, 0]) < 0:
-                    v = v[::-1]
-                cached.append(v.copy())
-        spec.__dict__["_convex_parts"] = cached
-    return cached
+    Delaunay triangles (shapely). Made once a parcel (:meth:`~virtual_vehicle.model.parcel.ParcelSpec.derived`)."""
+    return spec.derived("convex_parts", _split_convex, spec)
+
+
+def _split_convex(spec: ParcelSpec) -> list[np.ndarray]:
+    if spec.convex:
+        return [spec.footprint]
+    parts = []
+    for tri in shapely.get_parts(shapely.constrained_delaunay_triangles(spec.polygon)):
+        v = np.asarray(tri.exterior.coords)[:-1]
+        if (v[1, 0] - v[0, 0]) * (v[2, 1] - v[0, 1]) - (v[1, 1] - v[0, 1]) * (v[2, 0] - v[0, 0]) < 0:
+            v = v[::-1]
+        parts.append(v.copy())
+    return parts
 
 
 def _faces(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -215,16 +214,19 @@ def pair_contacts(i: int, spec_i: ParcelSpec, y_i, j: int, spec_j: ParcelSpec, y
     return out
 
 
+def _part_frames(spec: ParcelSpec) -> list[tuple]:
+    """Each convex part in the body frame: vertices, (normals, offsets) of its faces, centre and radius."""
+    frames = []
+    for v in convex_parts(spec):
+        n, o = _faces(v)
+        c = v.mean(axis=0)
+        frames.append((v, n, o, c, float(np.max(np.hypot(*(v - c).T)))))
+    return frames
+
+
 def _placed_parts(spec: ParcelSpec, pose):
     """Each convex part at ``pose``: world vertices, (normals, offsets) of its faces, centre and radius."""
-    cache = spec.__dict__.get("_part_frames")
-    if cache is None:
-        cache = []
-        for v in convex_parts(spec):
-            n, o = _faces(v)
-            c = v.mean(axis=0)
-            cache.append((v, n, o, c, float(np.max(np.hypot(*(v - c).T)))))
-        spec.__dict__["_part_frames"] = cache
+    cache = spec.derived("part_frames", _part_frames, spec)
     cs, sn = np.cos(pose[2]), np.sin(pose[2])
     R = np.array([[cs, -sn], [sn, cs]])
     x = np.array([pose[0], pose[1]])

@@ -42,9 +42,7 @@ def warm_up() -> float:
     constants_row(piece.constants, piece.solution.origin, spec.mass, spec.inertia)  # as unpickling a piece does
     # the quiet step's compiled checks, with the argument types networked runs give them
     stepper = QuietStepper(cells, [spec], model.law, [spec.mu], model.weight / spec.mass, 1e-10, 1e-12)
-    stepper._anchor(0, [model], end)
-    stepper._edges_clear(np.zeros(1, dtype=np.int64), end[None], 0.01, np.zeros(1), np.zeros(1), stepper.radius,
-                         stepper.lever)
+    stepper.compile_checks(model, end)
     _kernel.quiet_steps(np.array([piece.row]), end[None], 0.01, 0.02, 1e-10, 1e-12,
                         np.array([0.01, 0.02]), np.empty((1, 2, 6)))
     covered_pairs([spec], [end], cells.grid)  # as sensing and destination labels gather cells

@@ -184,7 +184,7 @@ def animate(result: RunResult, path: str | Path, *, fps: float = 20.0, speed: fl
             writer = _Encoder(fps=fps, codec="libx264", extra_args=["-pix_fmt", "yuv420p"])
     if writer is None:
         writer = PillowWriter(fps=fps)
-    fig, update = _scene(result, data, targets)
+    fig, update = scene(result, data, targets)
     total = len(data.times)
     drawn = [0]
 
@@ -278,7 +278,7 @@ def traffic_range(data: FrameData) -> tuple[float, float]:
     return lo, hi
 
 
-def _scene(result: RunResult, data: FrameData, targets=None):
+def scene(result: RunResult, data: FrameData, targets=None):
     """The figure and the function that draws frame ``f`` of ``data`` into it (``targets``: see :func:`animate`)."""
     setup = result.setup
     sc = setup.scenario

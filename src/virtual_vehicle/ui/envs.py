@@ -283,11 +283,11 @@ def render_rgb(ep: Episode) -> np.ndarray:
     """(H, W, 3) uint8 picture of the episode now, drawn like a frame of :func:`~virtual_vehicle.ui.animate.animate`."""
     import matplotlib.pyplot as plt
 
-    from virtual_vehicle.ui.animate import _scene, frame_data
+    from virtual_vehicle.ui.animate import scene, frame_data
 
     result = ep.result()
     t = result.setup.scenario.duration if ep.k else 0.0
-    fig, _ = _scene(result, frame_data(result, [t]), ep.targets)
+    fig, _ = scene(result, frame_data(result, [t]), ep.targets)
     fig.canvas.draw()
     rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
     plt.close(fig)

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from virtual_vehicle.model.layout import _collinear
+from virtual_vehicle.model.layout import collinear
 
 J = np.array([[0.0, 1.0], [-1.0, 0.0]])
 """The paper's rotation matrix J (eq. 25): ``x^T J v`` is the scalar cross product ``x x v``."""
@@ -199,7 +199,7 @@ def cell_wrench(points, forces, com) -> tuple[float, float, float]:
 def all_in_contact_map(points, weight: float):
     """The paper's eq. 19 with every listed cell in contact (no lift-off), in the points' own frame."""
     P = np.asarray(points, dtype=float)
-    if _collinear(P):
+    if collinear(P):
         raise ValueError("the paper's planar constants need at least three non-collinear points")
     B = np.column_stack([np.ones(len(P)), P])
     minv = np.linalg.inv(B.T @ B)
