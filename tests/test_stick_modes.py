@@ -247,3 +247,20 @@ def test_inconsistent_inputs_are_refused():
         wheels_on(SQUARE, np.arange(4), contact.solve_support(SQUARE.positions, [0, 0], 9.81), np.zeros((3, 2)), 0.4)
     with pytest.raises(ValueError, match="mass"):
         simulate(on(SQUARE, [0, 0], BOX, np.zeros((4, 2))), np.zeros(6), 0, 1, 0.0, 1.0)
+
+
+@pytest.mark.parametrize("kind", ["separate", "hex omni"])
+def test_set_down_on_a_uniform_field_ends_riding_it(kind):
+    """On one-wheel contacts the wheels catch up one by one; the parcel ends riding the field exactly, with the
+    energy balance closed (wheel work = kinetic energy gained + dissipation, each > 0)."""
+    cells = (layout.separate_wheels(layout.grid(3, 3, D, origin=(-D, -D))) if kind == "separate"
+             else layout.three_wheels(layout.hexagonal(3, 3, D, origin=(-D, -D))))
+    v = np.array([0.25, -0.1])
+    com = cells.positions.mean(axis=0) + [0.01, -0.01]
+    y0 = np.array([*com, 0.3, 0, 0, 0])
+    run = simulate(on(cells, com, BOX, np.tile(v, (cells.n, 1))), y0, 0, 0.3, BOX.mass, BOX.inertia)
+    assert len(run.events) >= 2 and len(run.events[-1].after.stick) == 2 * cells.n - (~cells.wheel_active).sum()
+    np.testing.assert_allclose(run.y_end[3:], [*v, 0], atol=1e-12)
+    gained = run.kinetic_end - run.kinetic_start
+    assert gained > 0 and run.dissipation > 0
+    assert abs(run.wheel_work - gained - run.dissipation) <= 1e-8 * run.wheel_work

@@ -10,9 +10,10 @@ centre of mass to the wheel's contact point its Jacobian row is ``J = [u_x, u_y,
 Between events the parcel is in a *mode*: each wheel sticks (``s = 0``) or slips with a known sign ``sigma`` and then
 pushes with the kinetic force ``lam = -sigma mu_k N`` (the per-wheel form of the paper's Coulomb law, eqs. 20-22:
 a wheel that outruns the parcel pushes it with ``mu N`` along its spin). Sticking wheels are linear constraints on
-the acceleration, ``J nu_dot + c = w_dot`` with ``c = -omega (v x u)`` (the lever ``r`` shortens as the centre moves);
-their forces come from the KKT system ``M nu_dot = J^T lam``. Three independent sticking rows fix the twist: the
-parcel rides the field rigidly and only support events (the engine's) can end the mode.
+the acceleration, ``J nu_dot + c = w_dot`` with ``c = -omega (v x u)`` (the lever ``r`` changes as the centre moves,
+``dr/dt = -v``); their forces come from the KKT system ``M nu_dot = J^T lam``. Three independent sticking rows fix the
+twist: the parcel rides the field rigidly, and the mode then ends only at a support event (the engine's) or where the
+wrench that riding takes (zero on a uniform field, centripetal on a turning one) leaves what the wheels can hold.
 
 **Redundant sticking wheels (the rule).** With more than three sticking wheels their forces are not unique, only
 their net wrench ``F_S`` is. Stick holds while ``F_S`` lies in the zonotope ``Z_S = {J_S^T lam : |lam_j| <= mu_s N_j}``
@@ -124,7 +125,7 @@ class Wheels:
     def slips(self, t: float, y) -> np.ndarray:
         """(m,) slip speeds ``J nu - w`` (m/s) at time ``t`` and state ``y`` = (x, y, theta, vx, vy, omega)."""
         y = np.asarray(y, dtype=float)
-        return self.rows(y[:2]) @ y[3:] - self.surface(t)
+        return self.rows(y[:2]) @ y[3:6] - self.surface(t)
 
 
 def wheels_on(cells, support, solution, velocities, mu: float, mu_static: float | None = None, *,
@@ -197,6 +198,7 @@ class Mode:
 
 
 def _masses(mass: float, inertia: float) -> np.ndarray:
+    """(3,) generalised masses (kg, kg, kg m^2), refused unless positive (a massless parcel has no dynamics)."""
     if not (mass > 0 and inertia > 0):
         raise ValueError(f"mass (kg) and inertia (kg m^2) must be positive, got {mass}, {inertia}")
     return np.array([mass, mass, inertia], dtype=float)
@@ -207,7 +209,7 @@ def _kinematics(wheels: Wheels, t: float, y):
     y = np.asarray(y, dtype=float)
     J = wheels.rows(y[:2])
     N = wheels.normal(y[:2])
-    s = J @ y[3:] - wheels.surface(t)
+    s = J @ y[3:6] - wheels.surface(t)
     u = wheels.directions
     c = -y[5] * (y[3] * u[:, 1] - y[4] * u[:, 0])  # d/dt (r x u) . omega with dr/dt = -v
     return J, N, s, c, wheels.accels
@@ -241,7 +243,7 @@ def mode_rhs(wheels: Wheels, mode: Mode, t: float, y, mass: float, inertia: floa
     S = mode.stick
     nu_dot, lam_S, _ = _stick_solve(J, 1.0 / mvec, J[L].T @ lam[L], wdot - c, S)
     lam[S] = lam_S
-    return np.concatenate([np.asarray(y, dtype=float)[3:], nu_dot]), lam
+    return np.concatenate([np.asarray(y, dtype=float)[3:6], nu_dot]), lam
 
 
 def _facet_spec(G) -> tuple:
@@ -325,10 +327,18 @@ def mode_events(wheels: Wheels, mode: Mode, t: float, y, mass: float, inertia: f
         events.append(slip)
     if len(mode.stick):
         spec = _facet_spec(_required(wheels, mode, t, y, minv)[0])
+        last = {}  # the integrator asks every facet at the same (t, y): one KKT solve serves them all
+
+        def slacks(t, y):
+            key = (t, y[:6].tobytes())
+            if key not in last:
+                last.clear()
+                last[key] = _slack(*_required(wheels, mode, t, y[:6], minv), spec)
+            return last[key]
+
         for f in range(len(spec[2])):
             def stick(t, y, f=f):
-                G, F = _required(wheels, mode, t, y[:6], minv)
-                return float(_slack(G, F, (spec[0], spec[1], spec[2][f:f + 1]))[0])
+                return float(slacks(t, y)[f])
 
             stick.kind, stick.index, stick.direction, stick.terminal = "stick", f, -1, True
             stick.spec = spec
