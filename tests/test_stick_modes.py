@@ -84,6 +84,43 @@ def test_fixed_step_law_converges_at_first_order():
     assert np.all(np.abs(order - 1) < 0.1), (errs, order)
 
 
+def _kicked_turn(mu_static):
+    """Wheels turning the parcel about a point 2 cm off its centre, but one cell's wheels faster along x: that cell
+    slips and the other seven wheels ride until the centripetal wrench breaks their grip, twice."""
+    spec = parcel.rectangle(0.3, 0.3, 1.0, 0.4, mu_static=mu_static)
+    V = fields.Twist((0.02, 0.0), (0, 0, 8.0)).velocities(SQUARE) + [[0, 0], [0, 0], [0, 0], [0.3, 0]]
+    return spec, V, np.array([0, 0, 0, 0, -8.0 * 0.02, 8.0])
+
+
+def test_fixed_step_law_converges_through_stick_breaks():
+    """With redundant sticking wheels breaking away twice (mu_s = mu_k), the stepped law still approaches the
+    exact solution at first order: it breaks where the wrench leaves the zonotope."""
+    spec, V, y0 = _kicked_turn(0.4)
+    T = 0.41
+    run = simulate(on(SQUARE, y0[:2], spec, V), y0, 0, T, spec.mass, spec.inertia)
+    assert [e.kind for e in run.events] == ["stick", "stick"] and len(run.events[0].before.stick) == 7
+    ts = np.linspace(0, T, 42)
+    ref = run.state(ts)
+    errs = [np.abs(integrate(ParcelModel(SQUARE, spec, V, friction.StickSlipLaw(), G), y0, 0, T, dt=dt,
+                             sample_times=ts).states - ref).max() for dt in (2e-4, 1e-4, 5e-5)]
+    order = np.log2(np.array(errs[:-1]) / errs[1:])
+    assert np.all(np.abs(order - 1) < 0.1), (errs, order)
+
+
+def test_a_lift_off_ends_the_run_where_the_engine_sees_it():
+    """The reference holds one support set: it stops where a cell's normal force reaches zero, which is where the
+    engine (stepped) lifts that cell off, and a fresh support solve there finds that cell unloaded."""
+    spec, V, y0 = _kicked_turn(0.4)
+    run = simulate(on(SQUARE, y0[:2], spec, V), y0, 0, 0.6, spec.mass, spec.inertia)
+    assert run.status == "support" and run.events[-1].kind == "support"
+    lifted = run.events[-1].index // 2  # the wheel's cell (two wheels a cell)
+    forces = contact.solve_support(SQUARE.positions, run.y_end[:2], spec.weight(G)).forces(run.y_end[:2])
+    assert abs(forces[lifted]) < 1e-9 * spec.weight(G) and (np.delete(forces, lifted) > 0.1).all()
+    dt = 1e-4
+    first = integrate(ParcelModel(SQUARE, spec, V, friction.StickSlipLaw(), G), y0, 0, 0.6, dt=dt).events[0]
+    assert first.lifted == (lifted,) and abs(first.t - run.t_end) <= dt
+
+
 def test_energy_account_closes():
     """Wheel work = kinetic energy gained + dissipation, dissipation >= 0, through stick and slip events."""
     V, y0 = _twist_scene()

@@ -22,7 +22,13 @@ their net wrench ``F_S`` is. Stick holds while ``F_S`` lies in the zonotope ``Z_
 slip against their force; the wheels in the facet's plane are decided again. This is the rule the fixed-step law
 (:mod:`virtual_vehicle.engine.stickslip`) obeys: its box LCP has a unique post-step twist, and that twist sticks iff
 the required impulse lies in ``h Z_S``. The per-wheel stick forces reported are the minimum-norm ones (any other
-distribution inside the bounds has the same wrench, the same motion and the same power).
+distribution inside the bounds has the same wrench, the same motion and the same power). With ``mu_s = mu_k`` the
+stepped law converges to this at first order through such breaks (tested). With ``mu_s > mu_k`` it does not: it
+gives the static bound next step only to wheels whose impulse was strictly inside their bound, and its projected
+Gauss-Seidel may put a redundant sticking wheel exactly at its bound while the wrench is well inside ``h Z_S``; that
+wheel is then held to ``mu_k`` although it never slid, its zonotope shrinks, and the grip breaks early (seen on a
+turning field: demotions from 0.14 s, a break 3 ms before the exact one, independent of the step). Deciding "stuck"
+from the wheel's slip after the step instead of its impulse would follow this rule.
 
 **Deciding a mode (at an event).** Slipping wheels keep their sign. Wheels at zero slip solve the acceleration-level
 box problem ``min 1/2 lam^T A lam + q^T lam`` over ``|lam| <= mu_s N`` (``A = J M^-1 J^T``), whose acceleration
@@ -312,13 +318,21 @@ def mode_events(wheels: Wheels, mode: Mode, t: float, y, mass: float, inertia: f
     """Event functions ``g(t, y)`` of ``mode`` entered at time ``t`` (s) and state ``y``, for
     :func:`scipy.integrate.solve_ivp`; each falls through zero at its event (``direction = -1``, terminal).
 
-    Per slipping wheel: its slip speed times its sign (m/s; zero when it catches up with its wheel). Per facet of the
-    sticking wheels' zonotope (the facets as they are at (t, y)): the support of the zonotope along the facet's
-    normal minus that of the required wrench (zero when the wrench reaches the facet). Each function carries
-    ``kind`` ("slip" or "stick") and ``index`` (the wheel, or the facet).
+    Per wheel in contact: its cell's normal force (N; zero where the support set's contact set changes, the
+    engine's event, which ends a :func:`simulate`). Per slipping wheel: its slip speed times its sign (m/s; zero
+    when it catches up with its wheel). Per facet of the sticking wheels' zonotope (the facets as they are at
+    (t, y)): the support of the zonotope along the facet's normal minus that of the required wrench (zero when the
+    wrench reaches the facet). Each function carries
+    ``kind`` ("support", "slip" or "stick") and ``index`` (the wheel, or the facet).
     """
     minv = 1.0 / _masses(mass, inertia)
     events = []
+    for j in np.flatnonzero(wheels.normal(np.asarray(y, dtype=float)[:2]) > 0).tolist():
+        def lift(t, y, j=j):
+            return float(wheels.force_lin[j] @ (y[:2] - wheels.origin) + wheels.force_const[j])
+
+        lift.kind, lift.index, lift.direction, lift.terminal = "support", j, -1, True
+        events.append(lift)
     for j in mode.slip.tolist():
         def slip(t, y, j=j, sign=mode.state[j]):
             return sign * float(wheels.rows(y[:2])[j] @ y[3:6] - wheels.surface(t)[j])
@@ -464,6 +478,8 @@ class StickSlipRun:
         dissipation: J, ``int -sum lam s dt`` (friction's loss, >= 0).
         kinetic_start, kinetic_end: J.
         t_end: s; y_end: (6,) the final state.
+        status: "completed" (reached ``t1``) or "support" (stopped where a wheel's normal force fell to zero: the
+            support set's contact set changes there, and the engine must solve the new one and call again).
     """
 
     segments: list
@@ -474,6 +490,7 @@ class StickSlipRun:
     kinetic_end: float
     t_end: float
     y_end: np.ndarray = field(repr=False)
+    status: str = "completed"
 
     def state(self, t):
         """(6,) state at time ``t`` (s), or (k, 6) for k times."""
@@ -500,7 +517,9 @@ def simulate(wheels: Wheels, y0, t0: float, t1: float, mass: float, inertia: flo
     the fixed support set of ``wheels``: each mode with :func:`scipy.integrate.solve_ivp` (DOP853, dense output) and
     its :func:`mode_events`, the mode decided again by :func:`decide_mode` at every event. At an event the twist is
     projected onto the new sticking wheels' constraints (a correction of the size of the root's error) so that a
-    parcel riding its wheels does so to round-off. The wheel work and the dissipation are integrated alongside.
+    parcel riding its wheels does so to round-off. The wheel work and the dissipation are integrated alongside. The
+    run stops early (``status`` "support", last event of kind "support") where a wheel's normal force falls to zero:
+    beyond it this support set's normal-force map no longer holds.
 
     Raises:
         ValueError: more than ``max_events`` events (chattering), or the integrator failed.
@@ -530,9 +549,14 @@ def simulate(wheels: Wheels, y0, t0: float, t1: float, mass: float, inertia: flo
         segments.append((t, float(sol.t[-1]), mode, sol.sol))
         t, z = float(sol.t[-1]), sol.y[:, -1].copy()
         if sol.status == 0:
+            status = "completed"
             break
         hit = min((float(te[0]), k) for k, te in enumerate(sol.t_events) if len(te))[1]
         fn = fns[hit]
+        if fn.kind == "support":
+            events.append(ModeEvent(t, fn.kind, int(fn.index), mode, mode))
+            status = "support"
+            break
         breaking = _breaking(wheels, mode, t, z[:6], minv, fn) if fn.kind == "stick" else None
         new = decide_mode(wheels, t, z[:6], mass, inertia, breaking=breaking)
         z[:6] = _project(wheels, new, t, z[:6], minv)
@@ -542,7 +566,7 @@ def simulate(wheels: Wheels, y0, t0: float, t1: float, mass: float, inertia: flo
         mode = new
     y = z[:6]
     return StickSlipRun(segments, events, float(z[6]), float(z[7]), kinetic_start, 0.5 * float(mvec @ y[3:] ** 2),
-                        t, y)
+                        t, y, status)
 
 
 def _breaking(wheels, mode, t, y, minv, fn) -> dict:
