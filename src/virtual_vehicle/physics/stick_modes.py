@@ -143,7 +143,8 @@ def wheels_on(cells, support, solution, velocities, mu: float, mu_static: float 
     ``velocities`` (n, 2) m/s are the entries' surface velocities (as a friction law takes them) and ``accelerations``
     (n, 2) m/s^2 their rates (default 0); each present wheel (``cells.wheel_active``) moves at their projection on its
     drive direction. ``mu`` is kinetic, ``mu_static`` (default ``mu``) static. ``stuck`` (n, 2) bool marks wheels that
-    cannot turn (surface speed 0), ``free`` (n, 2) bool wheels that cannot push (coefficients 0). Every present wheel
+    cannot turn (surface speed 0; a run's ``Faults.held``), ``free`` (n, 2) bool wheels that cannot push (coefficients
+    0; ``Faults.free_wheels``). Every present wheel
     of an entry carries its entry's whole normal force, as in the paper's Coulomb law (eq. 21).
     """
     support = np.asarray(support, dtype=np.int64)
