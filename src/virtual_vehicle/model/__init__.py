@@ -1,3 +1,3 @@
-"""Immutable descriptions: cell layouts (lattices, maps, belts), parcel specs, wheel-velocity fields, fault schedules.
-Imports nothing of the package but errors.
+"""Immutable descriptions: cell layouts (lattices, maps, belts), parcel specs, wheel-velocity fields, fault schedules;
+and the data form a run's state is written in (state_data). Imports nothing of the package but errors.
 """
