@@ -16,6 +16,7 @@ from functools import cached_property
 import numpy as np
 
 from virtual_vehicle.model.layout import CellArray
+from virtual_vehicle.model import state_data
 from virtual_vehicle.model.parcel import ParcelSpec, PointGrid, covered_pairs
 
 MAX_SENSORS = 5
@@ -182,6 +183,24 @@ class WheelDrives:
         self.integral = np.zeros((n, 2))
         self.measured = np.zeros((n, 2))  # encoder estimate of surface speed, m/s
         self.voltage = np.zeros((n, 2))
+
+    _ARRAYS = ("speed", "angle", "counts", "integral", "measured", "voltage")
+
+    def to_data(self) -> dict:
+        """The drives' state as data: (n, 2) arrays ``speed`` (m/s), ``angle`` (rad), encoder ``counts``, the PI
+        loop's ``integral`` (m), ``measured`` (m/s) and ``voltage`` (V). The parameters are the setup's."""
+        return {k: getattr(self, k) for k in self._ARRAYS}
+
+    @classmethod
+    def from_data(cls, d, params: MotorParams = MotorParams(), where: str = "drives") -> "WheelDrives":
+        """The drives :meth:`to_data` wrote, with ``params``; raises ValueError for data of other keys, dtypes or
+        shapes."""
+        d = state_data.fields(d, cls._ARRAYS, where)
+        n = len(state_data.array(d, "speed", "f", (None, 2), where))
+        drives = cls(n, params)
+        for k in cls._ARRAYS:
+            setattr(drives, k, state_data.array(d, k, "i" if k == "counts" else "f", (n, 2), where))
+        return drives
 
     def step(self, command: np.ndarray, load: np.ndarray, period: float) -> np.ndarray:
         """Apply speed ``command`` (n, 2, m/s) for ``period`` s against the friction ``load`` (n, 2, N) through the PI

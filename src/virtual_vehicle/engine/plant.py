@@ -38,6 +38,7 @@ from virtual_vehicle.engine.stickslip import account, masses, new_account, remem
 from virtual_vehicle.errors import TippingError
 from virtual_vehicle.model.layout import CellArray
 from virtual_vehicle.model.parcel import ParcelSpec
+from virtual_vehicle.model.state_data import array, fields, integer, number
 from virtual_vehicle.physics.collide import (
     ContactParams,
     Rows,
@@ -96,6 +97,23 @@ class PlantRecord:
     windows: int = 0
     quiet_steps: int = 0
     contacts_per_parcel: list[int] = field(default_factory=list)
+
+    _COUNTS = ("parcel_contacts", "undetected_overlaps", "grouped_steps", "unconverged_contact_steps", "windows",
+               "quiet_steps")
+
+    def to_data(self) -> dict:
+        """This record as data: its counts, ``max_penetration_m`` (m) and ``contacts_per_parcel`` as an int array."""
+        return {**{k: int(getattr(self, k)) for k in self._COUNTS}, "max_penetration_m": float(self.max_penetration_m),
+                "contacts_per_parcel": np.array(self.contacts_per_parcel, dtype=np.int64).reshape(-1)}
+
+    @classmethod
+    def from_data(cls, d, where: str = "record") -> "PlantRecord":
+        """The record :meth:`to_data` wrote; raises ValueError for data of other keys, kinds or shapes."""
+        d = fields(d, (*cls._COUNTS, "max_penetration_m", "contacts_per_parcel"), where)
+        depth = number(d, "max_penetration_m", where)
+        per_parcel = array(d, "contacts_per_parcel", "i", (None,), where).tolist()
+        return cls(**{k: integer(d, k, where) for k in cls._COUNTS}, max_penetration_m=depth,
+                   contacts_per_parcel=per_parcel)
 
 
 class Plant:

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from virtual_vehicle.errors import TippingError
+from virtual_vehicle.model.state_data import array, fields, from_ragged, integer, number, ragged, text, texts
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,29 @@ class Event:
                            touched=touched, message="", partner="")
         return ev
 
+    @classmethod
+    def to_columns(cls, events: list[Event]) -> dict:
+        """A list of events as data (a run's state is data): ``t`` (k,) s, ``state`` (k, 6), ``entered``, ``left``,
+        ``lifted``, ``touched`` as ragged int columns (:func:`~virtual_vehicle.model.state_data.ragged`), and
+        ``kind``, ``message`` and ``partner`` as lists of k strings (any text, which a numpy text array is not)."""
+        return {"t": np.array([e.t for e in events], dtype=np.float64),
+                "kind": [e.kind for e in events],
+                "state": np.array([e.state for e in events], dtype=np.float64).reshape(len(events), 6),
+                **{name: ragged(getattr(e, name) for e in events) for name in ("entered", "left", "lifted", "touched")},
+                "message": [e.message for e in events], "partner": [e.partner for e in events]}
+
+    @classmethod
+    def from_columns(cls, d, where: str = "events") -> list[Event]:
+        """The events :meth:`to_columns` wrote; raises ValueError for data of other keys, dtypes or shapes."""
+        d = fields(d, ("t", "kind", "state", "entered", "left", "lifted", "touched", "message", "partner"), where)
+        t = array(d, "t", "f", (None,), where)
+        k = len(t)
+        columns = [t.tolist(), texts(d, "kind", k, where),
+                   [tuple(row) for row in array(d, "state", "f", (k, 6), where).tolist()],
+                   *(from_ragged(d[name], k, f"{where}.{name}") for name in ("entered", "left", "lifted", "touched")),
+                   texts(d, "message", k, where), texts(d, "partner", k, where)]
+        return [cls(*row) for row in zip(*columns)]
+
 
 @dataclass
 class Trajectory:
@@ -67,6 +91,28 @@ class Trajectory:
     segments: int = 0
     rhs_evals: int = 0
     stats: dict = field(default_factory=dict)
+
+    def to_data(self) -> dict:
+        """This trajectory as data: its arrays, its events as columns (:meth:`Event.to_columns`), its status and
+        counts, and its stats (names to plain numbers)."""
+        return {"times": self.times, "states": self.states, "events": Event.to_columns(self.events),
+                "status": self.status, "t_end": float(self.t_end), "segments": int(self.segments),
+                "rhs_evals": int(self.rhs_evals),
+                "stats": {k: v.item() if isinstance(v, np.generic) else v for k, v in self.stats.items()}}
+
+    @classmethod
+    def from_data(cls, d, where: str = "trajectory") -> Trajectory:
+        """The trajectory :meth:`to_data` wrote; raises ValueError for data of other keys, dtypes or shapes."""
+        d = fields(d, ("times", "states", "events", "status", "t_end", "segments", "rhs_evals", "stats"), where)
+        times = array(d, "times", "f", (None,), where)
+        stats = d["stats"]
+        if type(stats) is not dict or not all(type(k) is str and type(v) in (int, float, bool)
+                                              for k, v in stats.items()):
+            raise ValueError(f"{where}.stats: not a dict of names to numbers")
+        return cls(times, array(d, "states", "f", (len(times), 6), where), Event.from_columns(d["events"],
+                                                                                              f"{where}.events"),
+                   text(d, "status", where), number(d, "t_end", where), integer(d, "segments", where),
+                   integer(d, "rhs_evals", where), dict(stats))
 
 
 def diff_event(t, y, old, new) -> Event | None:

@@ -19,6 +19,7 @@ from numba import njit
 
 from virtual_vehicle.cells.network.messages import Mailbox, rows_any, rows_differ
 from virtual_vehicle.cells.network.topology import Topology
+from virtual_vehicle.model import state_data
 
 
 @dataclass
@@ -53,6 +54,14 @@ class Delivery(Protocol):
     def set_topology(self, topology: Topology) -> None:
         """From now on carry sentences over ``topology`` (cells died, were taken out or snapped in, links cut)."""
 
+    def to_data(self) -> dict:
+        """What the delivery carries from one exchange to the next, as data (arrays and plain values)."""
+
+    def load_data(self, d, inbox: Mailbox | None = None) -> None:
+        """Go on from what :meth:`to_data` wrote, on a delivery made from the same setup and over the run's topology
+        now; ``inbox`` is the mailbox the last exchange returned, which the run kept. Raises ValueError for data
+        that is not such a delivery's."""
+
 
 class IdealRounds:
     """Every sentence sent on a connected port arrives at the next tick; ``loss_rate`` drops each independently.
@@ -71,6 +80,20 @@ class IdealRounds:
     def set_topology(self, topology: Topology) -> None:
         """From the next exchange on, deliver over ``topology`` (see :class:`Delivery`)."""
         self.topology = topology
+
+    def to_data(self) -> dict:
+        """The state of the delivery as data: its random generator's (``rng``). What :meth:`exchange_changed`
+        carried last is a cache (the next call without it carries every sentence and compares, to the same inbox
+        and statistics); the topology and loss rate are the setup's."""
+        return {"rng": state_data.rng_to_data(self.rng)}
+
+    def load_data(self, d, inbox: Mailbox | None = None) -> None:
+        """Go on from what :meth:`to_data` wrote (on a delivery made from the same setup, over the run's topology
+        now); ``inbox``: the mailbox the last exchange returned (unused: nothing of it is state here). Raises
+        ValueError for other data."""
+        d = state_data.fields(d, ("rng",), "delivery")
+        self.rng = state_data.rng_from_data(d["rng"], "delivery.rng")
+        self._last = None
 
     def exchange(self, outbox: Mailbox, t: float, period: float) -> tuple[Mailbox, TickStats]:
         """Every sentence on a connected port arrives at the next tick (each dropped with ``loss_rate``); see

@@ -16,6 +16,7 @@ from functools import cached_property
 import numpy as np
 
 from virtual_vehicle.cells.network.sentence import START, SentenceError, WordType, checksum, decode, wire_size
+from virtual_vehicle.model import state_data
 
 DTYPE = {WordType.U8: np.uint8, WordType.BOOL: np.bool_, WordType.I16: np.int16, WordType.U16: np.uint16,
          WordType.I32: np.int32, WordType.F32: np.float32}
@@ -151,3 +152,22 @@ class Mailbox:
     def count(self) -> int:
         """Number of sentences held."""
         return int(self.present.sum())
+
+    def to_data(self) -> dict:
+        """The sentences as data: ``present`` (n, P) and ``values`` (each word's (n, P) array, by name). The schema
+        is the program's (part of the setup), given again to :meth:`from_data`."""
+        return {"present": self.present, "values": dict(self.values)}
+
+    @classmethod
+    def from_data(cls, d, schema: Schema, where: str = "mailbox") -> "Mailbox":
+        """The mailbox :meth:`to_data` wrote, of sentences of ``schema``; raises ValueError for data of other keys,
+        words, dtypes or shapes."""
+        d = state_data.fields(d, ("present", "values"), where)
+        present = state_data.array(d, "present", "b", (None, None), where)
+        values = state_data.fields(d["values"], [f.name for f in schema.fields], f"{where}.values")
+        for f in schema.fields:
+            v = values[f.name]
+            if not (isinstance(v, np.ndarray) and v.dtype == DTYPE[f.type] and v.shape == present.shape):
+                raise ValueError(f"{where}.values[{f.name!r}]: not a {np.dtype(DTYPE[f.type])} array of shape "
+                                 f"{present.shape}")
+        return cls(schema, present, {f.name: values[f.name] for f in schema.fields})

@@ -29,6 +29,7 @@ import numpy as np
 
 from virtual_vehicle.cells.network.messages import Mailbox, Schema, rows_differ
 from virtual_vehicle.cells.network.sentence import WordType
+from virtual_vehicle.model import state_data
 
 UNREACHABLE = 255
 """Hop distance meaning "no path known" (the largest U8)."""
@@ -286,6 +287,24 @@ class ChangedCells:
         self.ticks = 0
         self.stepped = 0
         """Ticks run, and cells stepped over all of them (a full step counts every cell)."""
+
+    _COUNTS = ("backoff", "skip", "ticks", "stepped")
+
+    def to_data(self) -> dict:
+        """Its state as data: the plain-stepping schedule (``backoff``, ``skip``) and its counts (``ticks``,
+        ``stepped``). What it kept of the last tick is a cache: without it the next tick steps every cell, which
+        gives the same outputs to the last bit."""
+        return {k: int(getattr(self, k)) for k in self._COUNTS}
+
+    def load_data(self, d) -> None:
+        """Go on from what :meth:`to_data` wrote (on a stepper of the same program); raises ValueError for other
+        data."""
+        d = state_data.fields(d, self._COUNTS, "stepper")
+        values = {k: state_data.integer(d, k, "stepper") for k in self._COUNTS}
+        if not 1 <= values["backoff"] <= self.max_backoff:
+            raise ValueError(f"stepper.backoff: {values['backoff']} is not in [1, {self.max_backoff}]")
+        self.__dict__.update(values)
+        self.last = None
 
     def step(self, state, inputs: CellInputs, inbox_changed: np.ndarray | None = None):
         """One tick: ``(state, outbox, wheels, outbox_changed)``, the first three as :meth:`CellProgram.step` returns

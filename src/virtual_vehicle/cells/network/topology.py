@@ -15,6 +15,7 @@ from functools import cached_property
 import numpy as np
 
 from virtual_vehicle.model.layout import CellArray
+from virtual_vehicle.model.state_data import array, fields
 
 GRID_PORTS = ("east", "north", "west", "south")
 
@@ -50,6 +51,22 @@ class Topology:
         """(n, P) True where a message sent on the port can arrive: a neighbour, the link up, both cells alive
         (computed once: a topology's arrays are not changed after it is made; faults make a new one)."""
         return self.link_up & (self.neighbor >= 0)
+
+    def to_data(self) -> dict:
+        """The links as data: ``neighbor``, ``back_port``, ``link_up`` (n, P) and ``alive`` (n,)."""
+        return {"neighbor": self.neighbor, "back_port": self.back_port, "link_up": self.link_up, "alive": self.alive}
+
+    @classmethod
+    def from_data(cls, d, where: str = "topology") -> "Topology":
+        """The topology :meth:`to_data` wrote; raises ValueError for data of other keys, dtypes or shapes, or ids
+        out of range."""
+        d = fields(d, ("neighbor", "back_port", "link_up", "alive"), where)
+        neighbor = array(d, "neighbor", "i", (None, None), where)
+        n, P = neighbor.shape
+        back = array(d, "back_port", "i", (n, P), where)
+        if not ((neighbor >= -1) & (neighbor < n) & (back >= -1) & (back < P)).all():
+            raise ValueError(f"{where}: a neighbour or back port out of range")
+        return cls(neighbor, back, array(d, "link_up", "b", (n, P), where), array(d, "alive", "b", (n,), where))
 
     def with_faults(self, dead_cells=(), dead_links=()) -> "Topology":
         """A copy with cells (ids) dead and links ((cell, port) pairs) down, both directions of each."""

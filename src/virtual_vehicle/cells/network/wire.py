@@ -35,6 +35,7 @@ from virtual_vehicle.cells.network.delivery import TickStats
 from virtual_vehicle.cells.network.messages import Mailbox
 from virtual_vehicle.cells.network.sentence import SentenceError
 from virtual_vehicle.cells.network.topology import Topology
+from virtual_vehicle.model import state_data
 
 POLL, WAIT, XFER, DEAD = range(4)
 
@@ -169,6 +170,90 @@ class WireLevel:
             self.queues[i] = [deque() for _ in range(P)]
             self.target[i] = -1
             self._start_polling(i, t, 0)
+
+    _KINDS = ("try", "connect", "done", "timeout")
+    """The kinds of the pending events, in the order their codes in :meth:`to_data` number them."""
+
+    def to_data(self) -> dict:
+        """Everything that carries on from one exchange to the next, as data: the random generator (``rng``), per
+        cell ``mode``, ``epoch``, polling phase ``t0`` (s) and ``p0``, ``target`` and ``next_port`` (n,), the clock
+        ``now`` (s), the event counter ``seq``, the pending events as columns in heap order (``events``: time s,
+        number, kind code of :attr:`_KINDS`, cells ``a``, ``b`` and their epochs) and the queued sentences as
+        columns (``sentences``: cell, port, time sent s, attempts, length in bytes, in queue order, and their bytes
+        one after another in ``data``). The tick's traffic counts start afresh at every exchange; the topology and
+        parameters are the setup's and the run's."""
+        ev = self.events
+        kinds = {k: c for c, k in enumerate(self._KINDS)}
+        queued = [(i, q, s) for i, ports in enumerate(self.queues) for q, queue in enumerate(ports) for s in queue]
+        return {
+            "rng": state_data.rng_to_data(self.rng),
+            **{k: getattr(self, k).astype(np.float64 if k == "t0" else np.int64) for k in self._PER_CELL},
+            "now": float(self.now), "seq": int(self.seq),
+            "events": {"t": np.array([e[0] for e in ev], dtype=np.float64),
+                       **{k: np.array([e[c] if c != 2 else kinds[e[2]] for e in ev], dtype=np.int64)
+                          for c, k in ((1, "seq"), (2, "kind"), (3, "a"), (4, "b"), (5, "epoch_a"), (6, "epoch_b"))}},
+            "sentences": {"cell": np.array([i for i, _, _ in queued], dtype=np.int64),
+                          "port": np.array([q for _, q, _ in queued], dtype=np.int64),
+                          "t_sent": np.array([s.t_sent for _, _, s in queued], dtype=np.float64),
+                          "attempts": np.array([s.attempts for _, _, s in queued], dtype=np.int64),
+                          "length": np.array([len(s.data) for _, _, s in queued], dtype=np.int64),
+                          "data": np.frombuffer(b"".join(s.data for _, _, s in queued), dtype=np.uint8).copy()},
+        }
+
+    _PER_CELL = ("mode", "epoch", "t0", "p0", "target", "next_port")
+
+    def load_data(self, d, inbox: Mailbox | None = None) -> None:
+        """Go on from what :meth:`to_data` wrote, on a wire made from the same setup and over the run's topology now.
+        ``inbox``: the mailbox the last exchange returned, which the run kept (a transfer that ends in the sliver
+        between one tick's end and the next one's start is received into it, as in the run that wrote the data; its
+        schema decodes them). Raises ValueError for data that is not such a wire's."""
+        where = "delivery"
+        d = state_data.fields(d, ("rng", *self._PER_CELL, "now", "seq", "events", "sentences"), where)
+        n, P = self.topology.n, self.topology.ports
+        per_cell = {k: state_data.array(d, k, "f" if k == "t0" else "i", (n,), where) for k in self._PER_CELL}
+        if not (np.isin(per_cell["mode"], (POLL, WAIT, XFER, DEAD)).all() and (per_cell["target"] >= -1).all()
+                and (per_cell["target"] < P).all() and (per_cell["p0"] >= 0).all() and (per_cell["p0"] < P).all()
+                and (per_cell["next_port"] >= 0).all() and (per_cell["next_port"] < P).all()):
+            raise ValueError(f"{where}: a cell's mode or port out of range")
+        at = f"{where}.events"
+        ev = state_data.fields(d["events"], ("t", "seq", "kind", "a", "b", "epoch_a", "epoch_b"), at)
+        t = state_data.array(ev, "t", "f", (None,), at)
+        cols = {k: state_data.array(ev, k, "i", (len(t),), at) for k in ("seq", "kind", "a", "b", "epoch_a",
+                                                                          "epoch_b")}
+        if not (((cols["kind"] >= 0) & (cols["kind"] < len(self._KINDS)) & (cols["a"] >= 0) & (cols["a"] < n)
+                 & (cols["b"] >= -1) & (cols["b"] < n)).all()):
+            raise ValueError(f"{at}: a kind or cell out of range")
+        child = np.arange(1, len(t))
+        parent = (child - 1) // 2
+        if ((t[parent] > t[child]) | ((t[parent] == t[child]) & (cols["seq"][parent] >= cols["seq"][child]))).any():
+            raise ValueError(f"{at}: not a heap of distinct events in time order")
+        at = f"{where}.sentences"
+        sd = state_data.fields(d["sentences"], ("cell", "port", "t_sent", "attempts", "length", "data"), at)
+        cell = state_data.array(sd, "cell", "i", (None,), at)
+        port, t_sent, attempts, length = (state_data.array(sd, k, "f" if k == "t_sent" else "i", (len(cell),), at)
+                                          for k in ("port", "t_sent", "attempts", "length"))
+        data = state_data.array(sd, "data", "u1", (None,), at)
+        if not (((cell >= 0) & (cell < n) & (port >= 0) & (port < P) & (length >= 0)).all()
+                and int(length.sum()) == len(data)):
+            raise ValueError(f"{at}: a cell or port out of range, or lengths that do not add up to its bytes")
+        self.rng = state_data.rng_from_data(d["rng"], f"{where}.rng")
+        for k, a in per_cell.items():
+            setattr(self, k, a)
+        self.now, self.seq = state_data.number(d, "now", where), state_data.integer(d, "seq", where)
+        kinds = [self._KINDS[c] for c in cols["kind"].tolist()]
+        self.events = list(zip(t.tolist(), cols["seq"].tolist(), kinds, cols["a"].tolist(), cols["b"].tolist(),
+                               cols["epoch_a"].tolist(), cols["epoch_b"].tolist()))
+        self.queues = [[deque() for _ in range(P)] for _ in range(n)]
+        raw = data.tobytes()
+        ends = np.cumsum(length).tolist()
+        for i, q, ts, tries, size, end in zip(cell.tolist(), port.tolist(), t_sent.tolist(), attempts.tolist(),
+                                              length.tolist(), ends):
+            s = _Sentence(raw[end - size:end], ts)
+            s.attempts = tries
+            self.queues[i][q].append(s)
+        self._reset_tick(n, P)
+        if inbox is not None:
+            self.schema, self.inbox = inbox.schema, inbox
 
     # ------------------------------------------------------------------ internals
     def _reset_tick(self, n, P):
