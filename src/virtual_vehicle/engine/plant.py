@@ -153,19 +153,53 @@ class Plant:
                                        integration.atol)
 
     def state(self) -> dict:
-        """What a checkpoint keeps of the plant: its record, the pairs of parcels pushing each other and their
-        contacts' last impulses (warm starts), and each parcel's stick-slip wheel memory. The rest is either the
-        setup's (cells, parcels, law) or a cache made again as needed (solved supports, pieces, quiet anchors)."""
-        return {"record": self.record, "touching": self._touching, "warm": self._warm,
-                "memory": [model.contact_memory for model in self.base]}
+        """What a checkpoint keeps of the plant, as data (arrays and plain values): its record
+        (:meth:`PlantRecord.to_data`), the pairs of parcels pushing each other (``touching`` (m, 2)), their contacts'
+        last impulses (warm starts: ``warm`` by the contacts' ``pairs`` (m, 2) of parcels and ``features`` (m, F)
+        (:class:`~virtual_vehicle.physics.collide.Contact`), their ``impulses`` (m, 2) N s, in their order) and each
+        parcel's stick-slip wheel memory (``memory``: per parcel the wheels' keys (m, 2) cell, wheel, last impulses
+        (m,) N s and whether each stuck). The rest is either the setup's (cells, parcels, law) or a cache made again
+        as needed (solved supports, pieces, quiet anchors)."""
+        memory = []
+        for model in self.base:
+            lam, stuck = model.contact_memory["lam"], model.contact_memory["stuck"]
+            if list(lam) != list(stuck):
+                raise ValueError("a parcel's wheel memory holds impulses and stuck flags of different wheels")
+            memory.append({"keys": np.array(list(lam), dtype=np.int64).reshape(-1, 2),
+                           "lam": np.array(list(lam.values()), dtype=np.float64),
+                           "stuck": np.array(list(stuck.values()), dtype=bool)})
+        return {"record": self.record.to_data(),
+                "touching": np.array(sorted(self._touching), dtype=np.int64).reshape(-1, 2),
+                "warm": {"pairs": np.array([key[:2] for key in self._warm], dtype=np.int64).reshape(-1, 2),
+                         "features": np.array([key[2] for key in self._warm], dtype=np.int64).reshape(
+                             len(self._warm), -1 if self._warm else 0),
+                         "impulses": np.array(list(self._warm.values()), dtype=np.float64).reshape(-1, 2)},
+                "memory": memory}
 
     def restore(self, state: dict) -> None:
-        """Take up what :meth:`state` returned (of a plant of the same scenario)."""
-        if len(state["memory"]) != len(self.base) or not isinstance(state["record"], PlantRecord):
-            raise ValueError("the plant's state is not this plant's")
-        self.record, self._touching, self._warm = state["record"], set(state["touching"]), dict(state["warm"])
-        for model, memory in zip(self.base, state["memory"]):
-            model.contact_memory = memory
+        """Take up what :meth:`state` returned (of a plant of the same scenario); raises ValueError for data of other
+        keys, dtypes or shapes."""
+        where = "plant"
+        state = fields(state, ("record", "touching", "warm", "memory"), where)
+        record = PlantRecord.from_data(state["record"], f"{where}.record")
+        warm = fields(state["warm"], ("pairs", "features", "impulses"), f"{where}.warm")
+        pairs = array(warm, "pairs", "i", (None, 2), f"{where}.warm")
+        features = array(warm, "features", "i", (len(pairs), None), f"{where}.warm")
+        impulses = array(warm, "impulses", "f", (len(pairs), 2), f"{where}.warm")
+        memory = state["memory"]
+        if (type(memory) is not list or len(memory) != len(self.base)
+                or len(record.contacts_per_parcel) != len(self.base)):
+            raise ValueError("the plant's state is not this plant's: its parcels differ")
+        self.record = record
+        self._touching = set(map(tuple, array(state, "touching", "i", (None, 2), where).tolist()))
+        self._warm = {(i, j, tuple(f)): tuple(lam) for (i, j), f, lam in zip(pairs.tolist(), features.tolist(),
+                                                                              impulses.tolist())}
+        for k, (model, m) in enumerate(zip(self.base, memory)):
+            at = f"{where}.memory[{k}]"
+            m = fields(m, ("keys", "lam", "stuck"), at)
+            wheels = list(map(tuple, array(m, "keys", "i", (None, 2), at).tolist()))
+            model.contact_memory = {"lam": dict(zip(wheels, array(m, "lam", "f", (len(wheels),), at).tolist())),
+                                    "stuck": dict(zip(wheels, array(m, "stuck", "b", (len(wheels),), at).tolist()))}
 
     def _model(self, spec: ParcelSpec, share: bool = True) -> ParcelModel:
         """A fresh model of parcel ``spec`` at rest wheels, sharing solved supports with parcels of its weight (or

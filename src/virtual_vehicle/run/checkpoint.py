@@ -1,13 +1,15 @@
 """Checkpoints as data: a small tree codec (JSON plus numbered numpy arrays) and the checkpoint file around it.
 
-Reading a checkpoint never runs code named by the file: there is no pickle anywhere; the document is read with
-:func:`json.loads` and every array with ``numpy.lib.format.read_array(..., allow_pickle=False)``; the only objects
-made are plain values (None, bool, int, float, str, bytes, lists, tuples, dicts, sets, deques, numpy arrays and
-scalars of numeric or boolean dtypes), numpy random generators of the standard bit generators (from their
-``bit_generator.state`` dict), and instances of the classes the caller allowlists, made with ``cls.__new__`` and
-given their recorded fields (no ``__init__``, no ``__setstate__``). A node naming anything else is an error.
+A checkpoint holds a run's state, never its model: the state is declared by the run as a tree of plain data (the
+``to_data`` forms of the objects that hold it, :mod:`virtual_vehicle.model.state_data`), and the setup is built
+again from the scenario the checkpoint holds. Reading one never runs code named by the file: there is no pickle
+anywhere; the document is read with :func:`json.loads` and every array with
+``numpy.lib.format.read_array(..., allow_pickle=False)``; the only objects made are plain values (None, bool, int,
+float, str, bytes, lists, tuples, dicts, sets, deques, numpy arrays of numeric, boolean or text dtypes and numpy
+scalars of numeric or boolean dtypes). A node naming anything else is an error; the objects of the run are made by
+the run's own code from that data, which checks it.
 
-File layout (format version :data:`FORMAT_VERSION`): the header line ``virtual_vehicle checkpoint 2`` and then a zip
+File layout (format version :data:`FORMAT_VERSION`): the header line ``virtual_vehicle checkpoint 3`` and then a zip
 archive holding ``checkpoint.json`` (the document: format version, package version, the run's kind, its scenario
 and the encoded run state) and ``arrays/<k>.npy`` for every array the state refers to.
 
@@ -15,15 +17,13 @@ Tree encoding (the JSON form of a value): None, bool, str, int and finite floats
 round-trip exactly); every other value is an object with a ``"$"`` tag: ``float`` (non-finite), ``np`` (a numpy
 scalar: dtype and value), ``array`` (index ``k`` among the arrays), ``rows`` (a list of equal-shaped arrays stored as
 one stacked array), ``list``, ``tuple``, ``dict`` (items as [key, value] pairs, so any key), ``set``, ``frozenset``,
-``deque``, ``bytes`` (base64), ``rng``, ``obj`` (an allowlisted class by name, with its fields), ``ext`` (an object
-the reader supplies by name: parts of the immutable setup rebuilt from the scenario) and ``ref`` (the same object as
-an earlier node with that ``@`` number: shared arrays, lists, dicts and objects stay shared).
+``deque``, ``bytes`` (base64) and ``ref`` (the same object as an earlier node with that ``@`` number: shared arrays,
+lists and dicts of a cell program's state stay shared).
 """
 
 from __future__ import annotations
 
 import base64
-import dataclasses
 import io
 import json
 import math
@@ -32,14 +32,15 @@ from collections import deque
 
 import numpy as np
 
-FORMAT_VERSION = 2
-"""The checkpoint format this version writes and reads (1 was a pickle, which is not read: it could run code)."""
+FORMAT_VERSION = 3
+"""The checkpoint format this version writes and reads (1 was a pickle, which is not read: it could run code; 2 held
+objects of allowlisted classes by their fields, not the state's data forms)."""
+
+_OLD_FORMATS = {"1": "format 1 was a Python pickle, which is never loaded: it could run code",
+                "2": "format 2 held the run's objects, not its state as data"}
 
 MAGIC = b"virtual_vehicle checkpoint "
 HEADER = MAGIC + str(FORMAT_VERSION).encode() + b"\n"
-
-_BIT_GENERATORS = {cls.__name__: cls for cls in (np.random.PCG64, np.random.PCG64DXSM, np.random.MT19937,
-                                                  np.random.Philox, np.random.SFC64)}
 
 
 class CheckpointError(ValueError):
@@ -57,15 +58,9 @@ def _float(text: str) -> float:
 
 
 class Encoder:
-    """Encodes trees of values into JSON-ready form, collecting their arrays (:attr:`arrays`).
+    """Encodes trees of plain values into JSON-ready form, collecting their arrays (:attr:`arrays`)."""
 
-    ``classes``: allowlisted classes by name (dataclasses are written by their fields, others by ``__slots__`` or
-    ``__dict__``); ``externals``: objects not written but named, for the reader to supply."""
-
-    def __init__(self, classes: dict[str, type], externals: dict[str, object] | None = None):
-        self.names = {cls: name for name, cls in classes.items()}
-        self.external = {id(obj): name for name, obj in (externals or {}).items() if obj is not None}
-        self._externals = externals  # (kept alive, so their ids stay theirs)
+    def __init__(self):
         self.arrays: list[np.ndarray] = []
         self._memo: dict[int, int] = {}
         self._alive: list = []  # everything memoized stays alive while encoding, so no id is reused
@@ -79,16 +74,14 @@ class Encoder:
         return n
 
     def _array(self, a: np.ndarray) -> int:
-        if a.dtype.hasobject:
-            raise TypeError("arrays of Python objects are not data")
+        if a.dtype.kind not in "biufU":
+            raise TypeError(f"arrays of dtype {a.dtype} are not data")
         self.arrays.append(a)
         return len(self.arrays) - 1
 
     def encode(self, x, where: str = "state"):
         """The JSON-ready form of ``x`` (its arrays appended to :attr:`arrays`). Raises TypeError, naming ``where``
-        in the tree, for a value that is not data nor an allowlisted class."""
-        if id(x) in self.external:
-            return {"$": "ext", "name": self.external[id(x)]}
+        in the tree, for a value that is not plain data."""
         t = type(x)
         if x is None or t is bool or t is str or t is int:
             return x
@@ -106,9 +99,8 @@ class Encoder:
         if t is np.ndarray:
             return {"$": "array", "@": self._tag(x), "k": self._array(x), "ro": not x.flags.writeable}
         if t is list:
-            if (len(x) > 1 and all(type(e) is np.ndarray and id(e) not in self._memo and id(e) not in self.external
-                                   for e in x)
-                    and len({(e.shape, e.dtype.str) for e in x}) == 1 and not x[0].dtype.hasobject):
+            if (len(x) > 1 and all(type(e) is np.ndarray and id(e) not in self._memo for e in x)
+                    and len({(e.shape, e.dtype.str) for e in x}) == 1 and x[0].dtype.kind in "biufU"):
                 return {"$": "rows", "@": self._tag(x), "k": self._array(np.stack(x))}
             n = self._tag(x)
             return {"$": "list", "@": n, "items": [self.encode(e, f"{where}[{k}]") for k, e in enumerate(x)]}
@@ -127,33 +119,15 @@ class Encoder:
                     "items": [self.encode(e, f"{where}[{k}]") for k, e in enumerate(x)]}
         if t is bytes:
             return {"$": "bytes", "v": base64.b64encode(x).decode("ascii")}
-        if t is np.random.Generator:
-            bg = x.bit_generator
-            if type(bg).__name__ not in _BIT_GENERATORS:
-                raise TypeError(f"{where}: bit generator {type(bg).__name__} is not written")
-            n = self._tag(x)
-            return {"$": "rng", "@": n, "bit_generator": type(bg).__name__, "state": self.encode(bg.state, where)}
-        if t in self.names:
-            n = self._tag(x)
-            if dataclasses.is_dataclass(x):
-                fields = {f.name: getattr(x, f.name) for f in dataclasses.fields(x)}
-            elif hasattr(t, "__slots__"):
-                fields = {k: getattr(x, k) for k in t.__slots__ if hasattr(x, k)}
-            else:
-                fields = dict(vars(x))
-            return {"$": "obj", "@": n, "class": self.names[t],
-                    "fields": [[k, self.encode(v, f"{where}.{k}")] for k, v in fields.items()]}
         raise TypeError(f"{where}: a {t.__module__}.{t.__qualname__} is not written into a checkpoint")
 
 
 class Decoder:
-    """The inverse of :class:`Encoder`: makes only the values and allowlisted classes listed in the module notes.
-    Raises CheckpointError for any node it does not know."""
+    """The inverse of :class:`Encoder`: makes only the plain values listed in the module notes. Raises
+    CheckpointError for any node it does not know."""
 
-    def __init__(self, arrays: list[np.ndarray], classes: dict[str, type], externals: dict[str, object] | None = None):
+    def __init__(self, arrays: list[np.ndarray]):
         self.arrays = arrays
-        self.classes = classes
-        self.externals = externals or {}
         self._memo: dict[int, object] = {}
 
     def _register(self, node: dict, obj):
@@ -202,11 +176,6 @@ class Decoder:
             if type(n) is not int or n not in self._memo:
                 raise CheckpointError(f"reference to unknown object {n!r}")
             return self._memo[n]
-        if tag == "ext":
-            name = node.get("name")
-            if type(name) is not str or name not in self.externals:
-                raise CheckpointError(f"unknown external {name!r}")
-            return self.externals[name]
         if tag == "array":
             a = self._array(node.get("k"))
             if node.get("ro"):
@@ -248,42 +217,18 @@ class Decoder:
             if type(v) is not str:
                 raise CheckpointError("bad bytes")
             return base64.b64decode(v.encode("ascii"), validate=True)
-        if tag == "rng":
-            cls = _BIT_GENERATORS.get(node.get("bit_generator"))
-            if cls is None:
-                raise CheckpointError(f"unknown bit generator {node.get('bit_generator')!r}")
-            bg = cls()
-            bg.state = self.decode(node.get("state"))
-            return self._register(node, np.random.Generator(bg))
-        if tag == "obj":
-            name = node.get("class")
-            cls = self.classes.get(name) if type(name) is str else None
-            if cls is None:
-                raise CheckpointError(f"class {name!r} is not one a checkpoint may hold")
-            obj = self._register(node, cls.__new__(cls))
-            allowed = ({f.name for f in dataclasses.fields(cls)} if dataclasses.is_dataclass(cls)
-                       else set(cls.__slots__) if hasattr(cls, "__slots__") else None)
-            for pair in self._items(node, "fields"):
-                if type(pair) is not list or len(pair) != 2 or type(pair[0]) is not str:
-                    raise CheckpointError("fields must be [name, value] pairs")
-                if allowed is not None and pair[0] not in allowed:
-                    raise CheckpointError(f"{name} has no field {pair[0]!r}")
-                if allowed is None and (pair[0].startswith("__") or pair[0] in vars(cls)):
-                    raise CheckpointError(f"{name}.{pair[0]} is not a field")
-                object.__setattr__(obj, pair[0], self.decode(pair[1]))
-            return obj
         raise CheckpointError(f"unknown node {tag!r}")
 
 
-def encode(tree, classes: dict[str, type], externals: dict[str, object] | None = None):
-    """``(document, arrays)``: the JSON-ready form of ``tree`` and the arrays it refers to."""
-    enc = Encoder(classes, externals)
+def encode(tree):
+    """``(document, arrays)``: the JSON-ready form of ``tree`` (plain data) and the arrays it refers to."""
+    enc = Encoder()
     return enc.encode(tree), enc.arrays
 
 
-def decode(document, arrays: list[np.ndarray], classes: dict[str, type], externals: dict[str, object] | None = None):
+def decode(document, arrays: list[np.ndarray]):
     """The tree :func:`encode` encoded (see :class:`Decoder`)."""
-    return Decoder(arrays, classes, externals).decode(document)
+    return Decoder(arrays).decode(document)
 
 
 def pack(document: dict, arrays: list[np.ndarray]) -> bytes:
@@ -315,6 +260,8 @@ def _read_array(z: zipfile.ZipFile, name: str) -> np.ndarray:
         shape, _, dtype = read_header[version](f)
         if dtype.hasobject:
             raise CheckpointError(f"{name}: an array of Python objects")
+        if dtype.kind not in "biufU":
+            raise CheckpointError(f"{name}: an array of dtype {dtype}")
         if info.file_size - f.tell() != math.prod(shape) * dtype.itemsize:
             raise CheckpointError(f"{name}: its header's shape {shape} does not fit its {info.file_size} bytes")
         f.seek(0)
@@ -329,7 +276,7 @@ def unpack(data: bytes) -> tuple[dict, list[np.ndarray]]:
     line, _, rest = data.partition(b"\n")
     version = line[len(MAGIC):].decode("ascii", "replace")
     if version != str(FORMAT_VERSION):
-        old = " (format 1 was a Python pickle, which is never loaded: it could run code)" if version == "1" else ""
+        old = f" ({_OLD_FORMATS[version]})" if version in _OLD_FORMATS else ""
         raise CheckpointError(f"checkpoint format {version!r}{old}; this version reads format {FORMAT_VERSION} "
                               "only: run the scenario again")
     try:

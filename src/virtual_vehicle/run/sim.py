@@ -25,9 +25,11 @@ from virtual_vehicle.cells.programs import program_of
 from virtual_vehicle.cells.sorting import encode_goal
 from virtual_vehicle.config.scenario import Setup
 from virtual_vehicle.engine.dynamics import Trajectory, sample_grid
+from virtual_vehicle.engine.stepping import Event
 from virtual_vehicle.engine.plant import SUMMED_STATS, join, joined_stats, on_grid
 from virtual_vehicle.errors import VirtualVehicleError
 from virtual_vehicle.model.parcel import ParcelSpec, covered_pairs, supporting_cells
+from virtual_vehicle.model.state_data import array, fields, integer, number, rng_from_data, rng_to_data
 
 _ENERGY = ("kinetic_start", "kinetic_end", "wheel_work", "friction_dissipation", "step_dissipation", "contact_work")
 
@@ -262,12 +264,21 @@ class _Job:
         fresh, _ = _load(data, setup=self.setup)
         self.__dict__.update(fresh.__dict__)
 
+    STATE: tuple[str, ...]
+    """The fields that are the run's state, each written as data (arrays and plain values) by :meth:`_state` and
+    read back by :meth:`_restore`. Everything else a run holds is its model (the setup, immutable), what follows
+    from the setup and :meth:`_position`, or a cache made again as needed."""
+
     def checkpoint_bytes(self, checkpoint_every: float) -> bytes:
-        """This run's checkpoint: its scenario, where it is (:meth:`_position`, plain JSON) and its mutable state
-        (:meth:`_state`, encoded by :mod:`virtual_vehicle.run.checkpoint`); never the setup or any cache."""
+        """This run's checkpoint: its scenario, where it is (:meth:`_position`, plain JSON) and its state
+        (:attr:`STATE` as data, :meth:`_state`, encoded by :mod:`virtual_vehicle.run.checkpoint`); never the setup
+        or any cache."""
         from virtual_vehicle.run.checkpoint import FORMAT_VERSION, encode, pack
 
-        tree, arrays = encode(self._state(), _state_classes(), self._externals())
+        state = self._state()
+        if set(state) != set(self.STATE):
+            raise AssertionError(f"the state written is not the state declared: {sorted(set(state) ^ set(self.STATE))}")
+        tree, arrays = encode(state)
         document = {"format_version": FORMAT_VERSION, "package_version": __version__, "kind": self.KIND,
                     "checkpoint_every": float(checkpoint_every), "scenario": self.setup.scenario.model_dump(mode="json"),
                     "scenario_text": self.scenario_text, "setup_digest": _setup_digest(self.setup),
@@ -278,14 +289,23 @@ class _Job:
         return {}
 
     def _state(self) -> dict:
+        """The fields of :attr:`STATE` as data, by name."""
         raise NotImplementedError
-
-    def _externals(self) -> dict:
-        """Objects of the setup the state refers to, written by name (and supplied again from the rebuilt setup)."""
-        return {}
 
     def _restore(self, position: dict, state, arrays: list) -> None:
+        """Take up a checkpoint's position and state (its document's tree and arrays) on this run, made afresh from
+        the same setup; raises ValueError (or CheckpointError) for a state that does not fit it."""
         raise NotImplementedError
+
+    def _read_state(self, state, arrays: list) -> dict:
+        """The checkpoint's state tree decoded, checked to hold exactly the fields of :attr:`STATE`."""
+        from virtual_vehicle.run.checkpoint import decode
+
+        s = decode(state, arrays)
+        if type(s) is not dict or set(s) != set(self.STATE):
+            got = sorted(map(str, s)) if type(s) is dict else type(s).__name__
+            raise ValueError(f"it holds {got}, not the state of a {self.KIND} run {sorted(self.STATE)}")
+        return s
 
 
 class FieldRun(_Job):
@@ -328,19 +348,26 @@ class FieldRun(_Job):
         self.t = t1
         return True
 
+    STATE = ("t", "wall", "ys", "active", "parts", "plant")
+    """The plant's time and the wall time so far (s), every parcel's state (N, 6) and whether it is still on the
+    array, the pieces of trajectory so far (:meth:`Trajectory.to_data` each), the plant's state."""
+
     def _state(self) -> dict:
-        return {"t": self.t, "wall": self.wall, "ys": self.ys, "active": self.active, "parts": self.parts,
+        return {"t": float(self.t), "wall": float(self.wall), "ys": _stack(self.ys),
+                "active": np.array(self.active, dtype=bool), "parts": [[tr.to_data() for tr in part] for part in
+                                                                        self.parts],
                 "plant": self.plant.state()}
 
     def _restore(self, position: dict, state, arrays: list) -> None:
-        from virtual_vehicle.run.checkpoint import decode
-
-        s = decode(state, arrays, _state_classes())
-        _check_like({"t": self.t, "wall": self.wall, "ys": self.ys, "active": self.active}, s)
-        self.t, self.wall, self.ys, self.active, self.parts = (float(s["t"]), float(s["wall"]), list(s["ys"]),
-                                                              list(s["active"]), list(s["parts"]))
-        if not (len(self.ys) == len(self.active) == len(self.parts) == len(self.setup.specs)):
-            raise ValueError("the state's parcels are not the scenario's")
+        s = self._read_state(state, arrays)
+        N = len(self.setup.specs)
+        parts = s["parts"]
+        if type(parts) is not list or len(parts) != N or not all(type(p) is list for p in parts):
+            raise ValueError("state.parts: not a list of pieces per parcel")
+        self.parts = [[Trajectory.from_data(d, f"state.parts[{i}]") for d in part] for i, part in enumerate(parts)]
+        self.t, self.wall = number(s, "t", "state"), number(s, "wall", "state")
+        self.ys = [row.copy() for row in array(s, "ys", "f", (N, 6), "state")]
+        self.active = array(s, "active", "b", (N,), "state").tolist()
         self.plant.restore(s["plant"])
 
     def result(self) -> RunResult:
@@ -407,6 +434,24 @@ class LatencyStats:
         k = int(np.searchsorted(np.cumsum(self.counts), q / 100.0 * self.count, side="left"))
         return float(min(max(self.EDGES[min(k + 1, 512)], self.min), self.max))
 
+    def to_data(self) -> dict:
+        """These statistics as data: ``count``, ``total`` (s), ``min`` and ``max`` (s, infinite before any) and the
+        bins' ``counts`` (512,)."""
+        return {"count": int(self.count), "total": float(self.total), "min": float(self.min), "max": float(self.max),
+                "counts": self.counts}
+
+    @classmethod
+    def from_data(cls, d, where: str = "latency") -> "LatencyStats":
+        """The statistics :meth:`to_data` wrote; raises ValueError for data of other keys, kinds or shapes."""
+        d = fields(d, ("count", "total", "min", "max", "counts"), where)
+        out = cls()
+        out.count, out.total = integer(d, "count", where), number(d, "total", where)
+        out.min, out.max = number(d, "min", where), number(d, "max", where)
+        out.counts = array(d, "counts", "i", (512,), where)
+        if int(out.counts.sum()) != out.count:
+            raise ValueError(f"{where}: its bins do not add up to its count")
+        return out
+
     def __eq__(self, other) -> bool:
         return (isinstance(other, LatencyStats) and self.count == other.count and self.total == other.total
                 and self.min == other.min and self.max == other.max and np.array_equal(self.counts, other.counts))
@@ -449,6 +494,14 @@ class NetworkRecord:
 
 
 _FAULTS = ("lost", "corrupted", "undetected", "dropped", "unaddressed")
+
+_CELL_LOG = ("t", "readings", "wheels", "commands", "sent", "received")
+"""The columns of a ticked run's cell log, as :class:`CellLog` names them."""
+
+
+def _stack(states: list[np.ndarray]) -> np.ndarray:
+    """Parcels' states (each (6,)) as one (N, 6) float array."""
+    return np.array(states, dtype=np.float64).reshape(len(states), 6)
 
 
 def wheel_loads(setup: Setup, models, states, active, speeds: np.ndarray) -> np.ndarray:
@@ -591,24 +644,6 @@ def _check_like(fresh, loaded, where: str = "state") -> None:
         if len(fresh) == len(loaded):
             for k, (a, b) in enumerate(zip(fresh, loaded)):
                 _check_like(a, b, f"{where}[{k}]")
-    elif type(fresh) in _state_classes().values():
-        if type(loaded) is not type(fresh):
-            raise ValueError(f"{where} is not a {type(fresh).__name__}")
-        _check_like(dict(vars(fresh)) if hasattr(fresh, "__dict__") else {}, dict(vars(loaded)), where)
-
-
-def _state_classes() -> dict[str, type]:
-    """The classes a checkpoint may hold, by name: virtual_vehicle's state classes, made from their fields."""
-    from virtual_vehicle.cells.hardware import WheelDrives
-    from virtual_vehicle.cells.network.delivery import IdealRounds
-    from virtual_vehicle.cells.network.programs import ChangedCells
-    from virtual_vehicle.cells.network.topology import Topology
-    from virtual_vehicle.cells.network.wire import WireLevel, _Sentence
-    from virtual_vehicle.engine.dynamics import Event
-    from virtual_vehicle.engine.plant import PlantRecord
-
-    return {c.__name__: c for c in (Event, Trajectory, PlantRecord, LatencyStats, _Track, Mailbox, Topology,
-                                    IdealRounds, WireLevel, _Sentence, ChangedCells, WheelDrives)}
 
 
 def _reset_rows(state, fresh, rows: np.ndarray):
@@ -678,6 +713,82 @@ class TickedRun:
         self.sliding: list | None = [None] * len(self.ys) if setup.law.assumes_sliding else None
         if self.present is not None and not self.present.all():
             self._rewire()
+
+    TICKED_STATE = ("k", "ys", "active", "on", "queue", "entered", "sliding", "injected", "reconfigured",
+                    "sensor_rng", "drives", "tracks", "plant", "cell_log")
+    """The fields that are a ticked run's state (:meth:`ticked_state`)."""
+
+    def ticked_state(self) -> dict:
+        """The ticked run's state as data (arrays and plain values), by field: the ticks done ``k``, every parcel's
+        state ``ys`` (N, 6), which are on the array (``active``, ``on`` in order), the ``queue`` of those waiting and
+        when each came on (``entered`` (N,) s, NaN before), the Coulomb check so far (``sliding``: which parcels
+        broke it, first time s and worst slip m/s; None when not checked), the fault events and cell changes
+        applied (``injected``, ``reconfigured``: their summaries), the sensors' random generator, the motors
+        (:meth:`WheelDrives.to_data`, None without), the parcels' tracks (:meth:`_Track.to_data`), the plant's state
+        and the cell log as columns (None when empty)."""
+        N = len(self.ys)
+        sliding = None
+        if self.sliding is not None:
+            sliding = {"found": np.array([x is not None for x in self.sliding], dtype=bool),
+                       "at": np.array([x if x is not None else (np.nan, np.nan) for x in self.sliding],
+                                      dtype=np.float64).reshape(N, 2)}
+        log = None
+        if self.cell_log:
+            log = dict(zip(_CELL_LOG, (np.asarray(column) for column in zip(*self.cell_log))))  # an array a column
+        return {"k": int(self.k), "ys": _stack(self.ys), "active": np.array(self.active, dtype=bool),
+                "on": np.array(self.on, dtype=np.int64), "queue": np.array(self.queue, dtype=np.int64),
+                "entered": np.array([np.nan if t is None else t for t in self.entered], dtype=np.float64),
+                "sliding": sliding, "injected": self.injected, "reconfigured": self.reconfigured,
+                "sensor_rng": rng_to_data(self.sensor_rng),
+                "drives": None if self.drives is None else self.drives.to_data(),
+                "tracks": [track.to_data() for track in self.tracks], "plant": self.plant.state(), "cell_log": log}
+
+    def load_ticked_state(self, s: dict) -> None:
+        """Take up what :meth:`ticked_state` wrote (of a run of the same setup, made afresh); raises ValueError for
+        data that does not fit it."""
+        where = "state"
+        N, n = len(self.setup.specs), self.setup.cells.n
+        k = integer(s, "k", where)
+        ys = array(s, "ys", "f", (N, 6), where)
+        active = array(s, "active", "b", (N,), where).tolist()
+        on, queue = (array(s, key, "i", (None,), where).tolist() for key in ("on", "queue"))
+        if not (set(on) <= set(range(N)) and set(queue) <= set(range(N)) and on == sorted(set(on))):
+            raise ValueError(f"{where}: parcels on the array or waiting that are not the scenario's")
+        entered = array(s, "entered", "f", (N,), where)
+        if (s["sliding"] is None) != (self.sliding is None):
+            raise ValueError(f"{where}.sliding: the Coulomb check is {'not ' if self.sliding is None else ''}made")
+        sliding = None
+        if s["sliding"] is not None:
+            d = fields(s["sliding"], ("found", "at"), f"{where}.sliding")
+            found = array(d, "found", "b", (N,), f"{where}.sliding").tolist()
+            at = array(d, "at", "f", (N, 2), f"{where}.sliding").tolist()
+            sliding = [tuple(x) if f else None for f, x in zip(found, at)]
+        for key in ("injected", "reconfigured"):
+            if type(s[key]) is not list or not all(type(x) is dict for x in s[key]):
+                raise ValueError(f"{where}.{key}: not a list of summaries")
+        if (s["drives"] is None) != (self.drives is None):
+            raise ValueError(f"{where}.drives: not the scenario's wheels")
+        drives = None if self.drives is None else WheelDrives.from_data(s["drives"], self.drives.p, f"{where}.drives")
+        if drives is not None and drives.speed.shape != (n, 2):
+            raise ValueError(f"{where}.drives: {len(drives.speed)} cells, not {n}")
+        tracks = s["tracks"]
+        if type(tracks) is not list or len(tracks) != N:
+            raise ValueError(f"{where}.tracks: not one track per parcel")
+        log = []
+        if s["cell_log"] is not None:
+            d = fields(s["cell_log"], _CELL_LOG, f"{where}.cell_log")
+            T = len(array(d, "t", "f", (None,), f"{where}.cell_log"))
+            columns = [array(d, key, kind, shape, f"{where}.cell_log") for key, kind, shape in (
+                ("t", "f", (T,)), ("readings", "b", (T, n, None)), ("wheels", "f", (T, n, 2)),
+                ("commands", "f", (T, n, 2)), ("sent", "i", (T, n)), ("received", "i", (T, n)))]
+            log = list(zip(*columns))
+        self.tracks = [_Track.from_data(d, f"{where}.tracks[{i}]") for i, d in enumerate(tracks)]
+        self.sensor_rng = rng_from_data(s["sensor_rng"], f"{where}.sensor_rng")
+        self.plant.restore(s["plant"])
+        self.k, self.ys, self.active, self.on, self.queue = k, [row.copy() for row in ys], active, on, queue
+        self.entered = [None if np.isnan(t) else t for t in entered.tolist()]
+        self.sliding, self.drives, self.cell_log = sliding, drives, log
+        self.injected, self.reconfigured = s["injected"], s["reconfigured"]
 
     def span(self) -> tuple[float, float]:
         """(start, end) of the next tick, s."""
@@ -858,10 +969,15 @@ class NetworkRun(TickedRun, _Job):
     checkpointed and resumed bit for bit. Its decision at every tick is the cell programs' and their network's."""
 
     KIND = "network"
-    _DERIVED = frozenset({"scenario_text", "setup", "period", "ticks", "grid", "arrive", "destinations", "plant",
-                          "topology", "faults", "sensors", "present", "next_fault", "next_change", "cell_log", "end",
-                          "record"})
-    """What a checkpoint does not write: the setup and what follows from it and from :meth:`_position`."""
+    STATE = ("wall", "k", "ys", "active", "on", "queue", "entered", "sliding", "injected", "reconfigured",
+             "sensor_rng", "drives", "tracks", "plant", "cell_log", "state", "inbox", "inbox_changed", "delivery",
+             "stepper", "per_tick", "per_cell", "latency")
+    """The ticked run's state (:meth:`TickedRun.ticked_state`), the wall time so far (s), and the network's: the cell
+    programs' state (their own tree of arrays and plain values), the inbox they read next, which inboxes changed
+    (None: not known), the delivery model's and the changed-cells stepper's state (None without one), the traffic
+    per tick and per cell and the latency statistics. The setup, the topology, faults, sensors and cells installed
+    now (from :meth:`_position`), the output grid and the arrival times are not state: they follow from the
+    setup."""
 
     def __init__(self, setup: Setup):
         sc = setup.scenario
@@ -893,24 +1009,14 @@ class NetworkRun(TickedRun, _Job):
     def _position(self) -> dict:
         return {"next_fault": self.next_fault, "next_change": self.next_change}
 
-    def _externals(self) -> dict:
-        ctl = self.setup.control
-        return {"topology": self.topology, "topology.connected": self.topology.connected, "program": ctl.program,
-                "schema": ctl.program.schema, "config": ctl.config, "delivery.params": getattr(self.delivery, "p", None),
-                "motor": None if self.drives is None else self.drives.p}
-
     def _state(self) -> dict:
-        for track in self.tracks:
-            track.settle()
-        state = {k: v for k, v in self.__dict__.items() if k not in self._DERIVED}
-        state["plant"] = self.plant.state()
-        state["cell_log"] = [np.asarray(column) for column in zip(*self.cell_log)]  # (one array a column)
-        return state
+        return {**self.ticked_state(), "wall": float(self.wall), "state": self.state, "inbox": self.inbox.to_data(),
+                "inbox_changed": self.inbox_changed, "delivery": self.delivery.to_data(),
+                "stepper": None if self.stepper is None else self.stepper.to_data(),
+                "per_tick": self.per_tick, "per_cell": self.per_cell, "latency": self.latency.to_data()}
 
     def _restore(self, position: dict, state, arrays: list) -> None:
-        from virtual_vehicle.run.checkpoint import decode
-
-        setup = self.setup
+        setup, ctl = self.setup, self.setup.control
         nf, nc = position["next_fault"], position["next_change"]
         if not (type(nf) is int and type(nc) is int and 0 <= nf <= len(setup.fault_events)
                 and 0 <= nc <= len(setup.cell_changes)):
@@ -922,17 +1028,22 @@ class NetworkRun(TickedRun, _Job):
             if nc:
                 self.present = setup.cell_changes[nc - 1][1]
             self._rewire()
-        s = decode(state, arrays, _state_classes(), self._externals())
-        plant, log = s.pop("plant"), s.pop("cell_log")
-        expected = set(self.__dict__) - self._DERIVED
-        if set(s) != expected:
-            raise ValueError(f"it holds {sorted(set(s) ^ expected)} unlike a networked run")
-        _check_like({k: self.__dict__[k] for k in expected}, s)
-        self.__dict__.update(s)
-        if len(self.ys) != len(setup.specs) or len(self.tracks) != len(setup.specs):
-            raise ValueError("the state's parcels are not the scenario's")
-        self.plant.restore(plant)
-        self.cell_log = list(zip(*log))
+        s = self._read_state(state, arrays)
+        self.load_ticked_state(s)
+        _check_like({k: self.__dict__[k] for k in ("state", "per_tick", "per_cell")}, s)
+        n, P = self.topology.n, self.topology.ports
+        self.wall = number(s, "wall", "state")
+        self.state, self.per_tick, self.per_cell = s["state"], s["per_tick"], s["per_cell"]
+        self.inbox = Mailbox.from_data(s["inbox"], ctl.program.schema, "state.inbox")
+        if self.inbox.present.shape != (n, P):
+            raise ValueError(f"state.inbox: shape {self.inbox.present.shape}, not {(n, P)}")
+        self.inbox_changed = None if s["inbox_changed"] is None else array(s, "inbox_changed", "b", (n,), "state")
+        self.delivery.load_data(s["delivery"], self.inbox)
+        if (s["stepper"] is None) != (self.stepper is None):
+            raise ValueError("state.stepper: not the scenario's (changed cells only or not)")
+        if self.stepper is not None:
+            self.stepper.load_data(s["stepper"])
+        self.latency = LatencyStats.from_data(s["latency"], "state.latency")
 
     @property
     def done(self) -> bool:
@@ -1094,6 +1205,33 @@ class _Track:
             steps, k = first[0]
             first = self.stats_pieces = [steps.trajectory(k)]
         return first
+
+    def to_data(self) -> dict:
+        """The track as data: the samples kept (``times`` (k,) s, ``states`` (k, 6)), the events as columns
+        (:meth:`Event.to_columns`), the latest ``piece`` and the ``stats_pieces`` (:meth:`Trajectory.to_data` each,
+        a quiet step made its Trajectory first) and the counts."""
+        self.settle()
+        return {"times": np.array(self.times, dtype=np.float64), "states": _stack(self.states),
+                "events": Event.to_columns(self.events),
+                "piece": None if self._piece is None else self._piece.to_data(),
+                "segments": int(self.segments), "rhs_evals": int(self.rhs_evals),
+                "stats_pieces": [tr.to_data() for tr in self.stats_pieces]}
+
+    @classmethod
+    def from_data(cls, d, where: str = "track") -> "_Track":
+        """The track :meth:`to_data` wrote; raises ValueError for data of other keys, dtypes or shapes."""
+        d = fields(d, ("times", "states", "events", "piece", "segments", "rhs_evals", "stats_pieces"), where)
+        track = cls()
+        times = array(d, "times", "f", (None,), where)
+        track.times, track.states = times.tolist(), list(array(d, "states", "f", (len(times), 6), where))
+        track.events = Event.from_columns(d["events"], f"{where}.events")
+        track._piece = None if d["piece"] is None else Trajectory.from_data(d["piece"], f"{where}.piece")
+        track.segments, track.rhs_evals = integer(d, "segments", where), integer(d, "rhs_evals", where)
+        pieces = d["stats_pieces"]
+        if type(pieces) is not list or len(pieces) > 1:
+            raise ValueError(f"{where}.stats_pieces: not a list of at most one piece")
+        track.stats_pieces = [Trajectory.from_data(p, f"{where}.stats_pieces") for p in pieces]
+        return track
 
     def trajectory(self) -> Trajectory:
         times, states = list(self.times), list(self.states)
