@@ -201,6 +201,9 @@ def _set_state(doc, key, node):
     (lambda doc: doc["scenario"]["array"].update(nx=7), "builds another setup"),
     (lambda doc: _set_state(doc, "per_cell", {"$": "dict", "items": []}), "does not fit its scenario.*per_cell"),
     (lambda doc: _set_state(doc, "k", "many"), "does not fit its scenario"),
+    (lambda doc: _set_state(doc, "k", 10**6), "ticks done of the run's"),
+    (lambda doc: _set_state(doc, "tracks", {"$": "list", "items": []}), "not one track per parcel"),
+    (lambda doc: _set_state(doc, "ys", {"$": "array", "k": 1}), "state.ys: a bool array"),  # (array 1: active)
 ])
 def test_a_checkpoint_of_another_version_or_scenario_is_refused_with_one_message(good, tmp_path, change, message):
     from virtual_vehicle.run.sim import resume

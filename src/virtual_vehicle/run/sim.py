@@ -969,9 +969,8 @@ class NetworkRun(TickedRun, _Job):
     checkpointed and resumed bit for bit. Its decision at every tick is the cell programs' and their network's."""
 
     KIND = "network"
-    STATE = ("wall", "k", "ys", "active", "on", "queue", "entered", "sliding", "injected", "reconfigured",
-             "sensor_rng", "drives", "tracks", "plant", "cell_log", "state", "inbox", "inbox_changed", "delivery",
-             "stepper", "per_tick", "per_cell", "latency")
+    STATE = ("wall", *TickedRun.TICKED_STATE, "state", "inbox", "inbox_changed", "delivery", "stepper", "per_tick",
+             "per_cell", "latency")
     """The ticked run's state (:meth:`TickedRun.ticked_state`), the wall time so far (s), and the network's: the cell
     programs' state (their own tree of arrays and plain values), the inbox they read next, which inboxes changed
     (None: not known), the delivery model's and the changed-cells stepper's state (None without one), the traffic
@@ -1030,6 +1029,8 @@ class NetworkRun(TickedRun, _Job):
             self._rewire()
         s = self._read_state(state, arrays)
         self.load_ticked_state(s)
+        if self.k > self.ticks:
+            raise ValueError(f"state.k: {self.k} ticks done of the run's {self.ticks}")
         _check_like({k: self.__dict__[k] for k in ("state", "per_tick", "per_cell")}, s)
         n, P = self.topology.n, self.topology.ports
         self.wall = number(s, "wall", "state")
