@@ -17,6 +17,7 @@ from virtual_vehicle.cells.network.topology import from_layout
 from virtual_vehicle.config.scenario import CellChange, FaultEvent, ReconfigurationSpec, load_scenario
 from virtual_vehicle.model import layout
 from virtual_vehicle.run.sim import LatencyStats, NetworkRun
+from sorter_oracle import step_arrays, stepped_by_arrays
 
 WALL = [j * 24 + 12 for j in range(2, 10)]  # sorting_junction: a wall across the middle, rows 2..9 of column 12
 
@@ -310,8 +311,9 @@ def test_the_compiled_sorter_runs_as_its_array_statement_in_whole_runs(case):
     for compiled in (True, False):
         setup = sc.build()
         program = setup.control.program
-        program.compiled = compiled
-        if compiled:
+        if not compiled:
+            stepped_by_arrays(program)
+        else:
             step_rows = program.step_rows
 
             def counted(*args):
@@ -332,7 +334,7 @@ def test_the_compiled_sorter_runs_as_its_array_statement_in_whole_runs(case):
 
 
 def _keys(rng, shape) -> np.ndarray:
-    """Direction keys as sorters say them (sorting._key: distance, keeping the direction, a port, hops), or none."""
+    """Direction keys as sorters say them (rules.direction_key: distance, keeping the direction, a port, hops), or none."""
     key = ((rng.integers(0, 260, shape) * 2 + rng.integers(0, 2, shape)) * 8 + rng.integers(0, 4, shape)) * 64 \
         + rng.integers(0, 64, shape)
     return np.where(rng.random(shape) < 0.3, 1 << 20, key)
@@ -392,7 +394,7 @@ def test_the_compiled_sorter_steps_as_its_array_statement_on_any_inputs(seed, ma
     ids from a handful, so that neighbours share them), any sensors, links, labels, exits, entries, parking and
     one-way cells, and any state, stale or fresh."""
     program, state, inputs = _random_sorter_inputs(np.random.default_rng(seed), max_age, parking, labelled)
-    _same_step(program.step(state, inputs), program._step_arrays(state, inputs))
+    _same_step(program.step(state, inputs), step_arrays(program, state, inputs))
 
 
 @settings(max_examples=100, deadline=None)
@@ -405,7 +407,7 @@ def test_the_sorter_steps_changed_cells_in_place_as_it_steps_them_gathered(seed,
     ageing) can change."""
     from virtual_vehicle.cells.network.messages import rows_differ
     from virtual_vehicle.cells.network.programs import _rows
-    from virtual_vehicle.cells.sorting import _STATE
+    from virtual_vehicle.cells.sorting.sorter import _STATE
 
     rng = np.random.default_rng(seed)
     program, state, inputs = _random_sorter_inputs(rng, max_age, parking, True)
@@ -421,7 +423,7 @@ def test_the_sorter_steps_changed_cells_in_place_as_it_steps_them_gathered(seed,
                      {k: v[rows] for k, v in inputs.config.items()}, inputs.labels[rows])
     sub_state = {k: ({w: a[rows] for w, a in v.items()} if isinstance(v, dict) else v[rows])
                  for k, v in state.items()}
-    ref_state, ref_out, ref_wheels = program._step_arrays(sub_state, sub)
+    ref_state, ref_out, ref_wheels = step_arrays(program, sub_state, sub)
     mine = {k: ({w: a.copy() for w, a in v.items()} if isinstance(v, dict) else v.copy()) for k, v in state.items()}
     outbox = Mailbox(out0.schema, out0.present.copy(), {w: a.copy() for w, a in out0.values.items()})
     wheels = np.array(wheels0)
@@ -452,7 +454,7 @@ def test_a_direction_key_naming_no_port_fails_in_both_sorters():
 
     n, P = 3, 4
     for compiled in (True, False):
-        program = Sorter(0.3, compiled=compiled)
+        program = Sorter(0.3) if compiled else stepped_by_arrays(Sorter(0.3))
         state = program.init(n, P, {})
         state["vid"][:] = 7
         state["goal"][:] = 0
