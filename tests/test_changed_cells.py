@@ -334,7 +334,8 @@ def test_the_compiled_sorter_runs_as_its_array_statement_in_whole_runs(case):
 
 
 def _keys(rng, shape) -> np.ndarray:
-    """Direction keys as sorters say them (rules.direction_key: distance, keeping the direction, a port, hops), or none."""
+    """Direction keys as sorters say them (rules.direction_key: distance, keeping the direction, a port,
+    hops), or none."""
     key = ((rng.integers(0, 260, shape) * 2 + rng.integers(0, 2, shape)) * 8 + rng.integers(0, 4, shape)) * 64 \
         + rng.integers(0, 64, shape)
     return np.where(rng.random(shape) < 0.3, 1 << 20, key)

@@ -5,7 +5,8 @@ off, agree on the direction, hold cells ahead, stop or go, say). Units: SI (m/s 
 The arrays travel in a few records (named tuples, which numba compiles field by field): :class:`Words` (one array
 per sentence word, in the schema's order), :class:`CellState` (the per-cell state words), :class:`Memory` (what a
 cell keeps between ticks), :class:`Config`, :class:`Rules` (the sorter's numbers), :class:`Inputs`,
-:class:`Outputs` and :class:`Scratch` (one port's worth of working space, allocated once a call)."""
+:class:`Outputs`, :class:`Said` (what a cell says) and :class:`Scratch` (working space, one entry per port, allocated
+once a call).""" 
 
 from __future__ import annotations
 
@@ -35,6 +36,8 @@ Inputs = namedtuple("Inputs", "present arrived sensors connected")
 Outputs = namedtuple("Outputs", "present sent wheels unsettled out_changed")
 """Where the sentences go (a presence mask and :class:`Words`), the (n, 2) wheel speeds (m/s), and per row whether
 the state and the sentences changed."""
+Said = namedtuple("Said", "d nxt vid goal key stop hold ack ex blk")
+"""The words a cell says on every port (its requests, per port, are in :class:`Scratch`)."""
 Scratch = namedtuple("Scratch", "trusted allowed same_nb open_side score nb_entry cand req block to_req to_rdep")
 """Working space of one cell, one entry per port."""
 
@@ -303,53 +306,74 @@ def acknowledge(i, new_hold, hport, h, inp, gap, s):
 
 
 @njit(cache=True)
-def say(i, on, lit, parked, vid, goal, key, stop, park, nxt, new_hold, hdep, hport, ack, front, dp, h, inp, cfg,
-        new, out, reach, gap, s):
-    """The sentence this cell sends on every port: its gradients (none through a parked parcel nor a gap of one cell
-    beside it), the number due, its vehicle, direction key, stop and park hops, requests (a front cell asks the cell
-    ahead; a held cell passes it on until ``gap + 1`` deep), its hold and acknowledgement, what it is (entry or
-    exit) and its closed sides. Whether it differs from what ``out`` held."""
-    P = s.trusted.shape[0]
+def gradient_word(i, on, parked, h, new, reach, s):
+    """The gradients this cell says, packed: none through a parked parcel, nor through a gap of one cell beside it
+    (too narrow for a parcel)."""
     beside_parked = False
-    for q in range(P):
+    for q in range(s.trusted.shape[0]):
         beside_parked = beside_parked or (s.trusted[q] and unpack(h.stop[i, q], 1, 8) <= reach)
     beside_parked = beside_parked and not (on and not parked)
     word = 0
     for e in range(MAX_EXITS):
         said = UNREACHABLE if (parked or beside_parked) else min(new.dist[i, e], UNREACHABLE)
         word += said << (8 * e)
-    if word >= 1 << 31:
-        word -= 1 << 32
+    return word - (1 << 32) if word >= 1 << 31 else word
+
+
+@njit(cache=True)
+def closed_word(s):
+    """The hops to a closed side, per side (``s.block``), packed six bits a side."""
     blk = 0
-    for q in range(P):
+    for q in range(s.block.shape[0]):
         blk += min(s.block[q], 63) << (6 * q)
-    if blk >= 1 << 31:
-        blk -= 1 << 32
-    for q in range(P):
+    return blk - (1 << 32) if blk >= 1 << 31 else blk
+
+
+@njit(cache=True)
+def requests(i, front, dp, vid, new_hold, hdep, hport, inp, gap, s):
+    """The requests this cell sends, per port (``s.to_req``, ``s.to_rdep``: vehicle id and depth; -1 and 0 for
+    none): a front cell asks the cell ahead, a held cell passes the request on until ``gap + 1`` deep."""
+    for q in range(s.to_req.shape[0]):
         s.to_req[q], s.to_rdep[q] = NONE, 0
     if front and inp.connected[i, dp]:
         s.to_req[dp], s.to_rdep[dp] = vid, 1
     fwd = (hport + 2) % 4
     if new_hold >= 0 and hdep < gap + 1 and inp.connected[i, max(fwd, 0)]:
         s.to_req[fwd], s.to_rdep[fwd] = new_hold, hdep + 1
+
+
+@njit(cache=True)
+def say(i, said, out, s):
+    """Send the sentence (``said``, a :class:`Said`, and the requests in ``s``) on every port; whether it differs
+    from what ``out`` held."""
     o = out.sent
     sent_new = False
-    for q in range(P):
+    for q in range(out.present.shape[1]):
         sent_new |= not out.present[i, q]
         out.present[i, q] = True
-        sent_new |= _put(o.d, i, q, word)
-        sent_new |= _put(o.nxt, i, q, nxt)
-        sent_new |= _put(o.vid, i, q, vid if on else NONE)
-        sent_new |= _put(o.goal, i, q, goal if on else NONE)
-        sent_new |= _put(o.key, i, q, min(key, 2**31 - 1))
-        sent_new |= _put(o.stop, i, q, min(stop, 255) + (min(park, 255) << 8))
+        sent_new |= _put(o.d, i, q, said.d)
+        sent_new |= _put(o.nxt, i, q, said.nxt)
+        sent_new |= _put(o.vid, i, q, said.vid)
+        sent_new |= _put(o.goal, i, q, said.goal)
+        sent_new |= _put(o.key, i, q, said.key)
+        sent_new |= _put(o.stop, i, q, said.stop)
         sent_new |= _put(o.req, i, q, s.to_req[q])
         sent_new |= _put(o.rdep, i, q, s.to_rdep[q])
-        sent_new |= _put(o.hold, i, q, vid if (lit and on) else new_hold)
-        sent_new |= _put(o.ack, i, q, min(ack, 255) + ((hport + 1) << 8))
-        sent_new |= _put(o.ex, i, q, ENTRY if cfg.entry[i] else cfg.exit[i])
-        sent_new |= _put(o.blk, i, q, blk)
+        sent_new |= _put(o.hold, i, q, said.hold)
+        sent_new |= _put(o.ack, i, q, said.ack)
+        sent_new |= _put(o.ex, i, q, said.ex)
+        sent_new |= _put(o.blk, i, q, said.blk)
     return sent_new
+
+
+@njit(cache=True)
+def remember(i, kept, before, after):
+    """Keep the cell's new state words (``kept``, a :class:`CellState` of numbers) in row i of ``after``; whether
+    they differ from row i of ``before`` (read first: it may be ``after``)."""
+    changed = False
+    for k in range(len(kept)):
+        changed |= _put1(after[k], before[k], i, kept[k])
+    return changed
 
 
 @njit(cache=True)
@@ -408,21 +432,11 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             out.wheels[i, axis] = sign * rules.speed
         if off_array and go_front and seq >= 0:
             nxt = max(nxt, seq + 1)
-        out.out_changed[i] = say(i, on, lit, parked, vid, goal, key, stop, park, nxt, new_hold, hdep, hport, ack,
-                                 front, dp, h, inp, cfg, new, out, reach, gap, s)
-        c = new.cell
-        changed |= _put1(c.vid, cell.vid, i, vid)
-        changed |= _put1(c.goal, cell.goal, i, goal)
-        changed |= _put1(c.dir, cell.dir, i, direction if (moving or direction >= 0) else NONE)
-        changed |= _put1(c.key, cell.key, i, key)
-        changed |= _put1(c.stop, cell.stop, i, stop)
-        changed |= _put1(c.hold, cell.hold, i, new_hold)
-        changed |= _put1(c.hdep, cell.hdep, i, hdep)
-        changed |= _put1(c.hport, cell.hport, i, hport)
-        changed |= _put1(c.hage, cell.hage, i, hage)
-        changed |= _put1(c.ack, cell.ack, i, ack)
-        changed |= _put1(c.nxt, cell.nxt, i, nxt)
-        changed |= _put1(c.park, cell.park, i, park)
-        changed |= _put1(c.back, cell.back, i, back)
-        changed |= _put1(c.bdir, cell.bdir, i, bdir)
-        out.unsettled[i] = changed
+        requests(i, front, dp, vid, new_hold, hdep, hport, inp, gap, s)
+        said = Said(gradient_word(i, on, parked, h, new, reach, s), nxt, vid if on else NONE, goal if on else NONE,
+                    min(key, 2**31 - 1), min(stop, 255) + (min(park, 255) << 8), vid if (lit and on) else new_hold,
+                    min(ack, 255) + ((hport + 1) << 8), ENTRY if cfg.entry[i] else cfg.exit[i], closed_word(s))
+        out.out_changed[i] = say(i, said, out, s)
+        kept = CellState(vid, goal, direction if (moving or direction >= 0) else NONE, key, stop, new_hold, hdep, hport,
+                         hage, ack, nxt, park, back, bdir)
+        out.unsettled[i] = changed | remember(i, kept, cell, new.cell)
