@@ -13,7 +13,7 @@ from virtual_vehicle.cells.sorting.rules import BIG, MAX_EXITS, NONE, back_off_t
 
 
 class Sorter:
-    """Distributed sorting program (see the module notes).
+    """Distributed sorting program (the rules: :mod:`virtual_vehicle.cells.sorting`).
 
     Args:
         speed: wheel surface speed of a moving vehicle, m/s.
@@ -33,7 +33,7 @@ class Sorter:
     side through which its exit lane leaves);
     ``entry`` bool; ``entry_no`` an entry cell's installation number; ``park`` bool, a parking cell (optional);
     ``forbid`` the port a parcel on a one-way cell may not move toward, -1 for none (optional). Inputs: ``labels``
-    (the label read at entry cells, :func:`encode_goal`; -1 for none).
+    (the label read at entry cells, :func:`~virtual_vehicle.cells.sorting.rules.encode_goal`; -1 for none).
 
     Stationary (see :mod:`virtual_vehicle.cells.network.programs`): the tick's time enters only a new vehicle's id,
     given
