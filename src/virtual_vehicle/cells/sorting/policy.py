@@ -112,7 +112,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     s_vid, s_goal, s_dir, s_key, s_stop, s_hold, s_hdep, s_hport, s_hage, s_ack, s_nxt, s_park, s_back, s_bdir = \
         state_in
     o_d, o_nxt, o_vid, o_goal, o_key, o_stop, o_req, o_rdep, o_hold, o_ack, o_ex, o_blk = sent
-    park_any = False  # over the cells stepped, as the array version sees them
+    park_any = False  # over the cells stepped, as stepping those rows gathered sees them
     for i in rows:
         park_any = park_any or park_cell[i]
     trusted = np.empty(P, np.bool_)
