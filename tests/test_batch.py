@@ -385,7 +385,7 @@ def test_supports_shared_by_weight_go_with_the_last_parcel_of_that_weight():
     plant.release(1)
     plant.release(2)
     assert plant._solutions == {}
-    assert plant.base[0].solves == 0 and plant.base[0]._geometry.shared == {}  # fresh, and its own
+    assert plant.base[0].solves == 0 and plant.base[0].shared_solutions == {}  # fresh, and its own
 
 
 def test_parcels_pushing_each_other_agree_with_and_without_batching():
@@ -540,7 +540,7 @@ def test_an_anchor_measured_again_takes_its_solution_again_only_where_the_cache_
     assert anchor(model, nudged, 1.0, not_first).solution is not not_first.solution  # asked the cache
     first.solution.__dict__["holds"] = lambda xi: False  # as though its contacts had changed there
     assert anchor(model, nudged, 1.0, first).solution is not first.solution  # asked the cache
-    (solutions,) = model._geometry.shared.values()
+    (solutions,) = model.shared_solutions.values()
     decoy = solutions[0].at(solutions[0].origin)
     decoy.__dict__["holds"] = lambda xi: False
     solutions.insert(0, decoy)  # another solution of the pattern, tried first

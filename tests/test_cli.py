@@ -258,12 +258,12 @@ def test_bundled_files_are_valid_toml_with_descriptions():
 
 
 def test_progress_bar_appears_only_after_its_delay():
-    from virtual_vehicle.ui.cli import _LazyProgress
+    from virtual_vehicle.ui.cli import LazyProgress
 
-    quick = _LazyProgress("x", delay=3600.0)
+    quick = LazyProgress("x", delay=3600.0)
     quick(0.5)
     assert quick.bar is None  # a short run shows nothing
-    slow = _LazyProgress("x", delay=0.0)
+    slow = LazyProgress("x", delay=0.0)
     slow(0.25)
     slow(0.5)
     assert slow.bar is not None and slow.bar.tasks[0].completed == 0.5
@@ -472,11 +472,11 @@ def test_help_keeps_its_brackets_and_version_is_printed():
 
 
 def test_a_long_phase_shows_a_status_line(capsys):
-    from virtual_vehicle.ui.cli import _Phase
+    from virtual_vehicle.ui.cli import Phase
 
-    with _Phase("building a huge array", delay=0.0):
+    with Phase("building a huge array", delay=0.0):
         pass
-    with _Phase("reading", delay=3600.0):  # a short phase shows nothing
+    with Phase("reading", delay=3600.0):  # a short phase shows nothing
         pass
     lines = capsys.readouterr().err.splitlines()
     assert lines[0] == "building a huge array ..." and lines[1].startswith("building a huge array: done in ")

@@ -198,35 +198,10 @@ def test_load_on_the_line_of_a_collinear_contact_set():
     assert contact_set(basis, rhs).tolist() == [False, False, True, True, True, True]
 
 
-def _halfplanes(normals, offsets):
-    rows = np.column_stack([normals, offsets])
-    return rows[np.lexsort(np.round(rows, 9).T[::-1])]  # ordered as rounded, so that ulps do not reorder ties
-
-
-@settings(max_examples=80, deadline=None)
-@given(st.integers(0, 10_000), st.integers(3, 40), st.booleans())
-def test_hull_matches_qhull(seed, m, lattice):
-    """The compiled hull's half-planes are Qhull's (scipy), also on a lattice, where cells lie on the hull's edges
-    between its corners and must not make edges of their own."""
-    from virtual_vehicle.physics.contact import _hull
-
-    rng = np.random.default_rng(seed)
-    if lattice:
-        P = 0.1 * rng.integers(0, 6, size=(m, 2)).astype(float)
-        assume(np.linalg.matrix_rank(P - P[0]) == 2)
-    else:
-        P = rng.uniform(-1, 1, size=(m, 2))
-    hull = ConvexHull(P)
-    ours = _halfplanes(*_hull(P, 1e-12))
-    qhull = _halfplanes(hull.equations[:, :2], -hull.equations[:, 2])
-    assert ours.shape == qhull.shape
-    np.testing.assert_allclose(ours, qhull, atol=1e-12)
-
-
 def test_collinear_compiled_matches_svd():
     """The compiled collinearity test decides as numpy's SVD of the centred points does, on both sides of the
     tolerance."""
-    from virtual_vehicle.model.layout import _COLLINEAR_TOL, _collinear
+    from virtual_vehicle.model.layout import COLLINEAR_TOL, collinear
 
     rng = np.random.default_rng(3)
     for off in (0.0, 0.3e-9, 3e-9, 1e-3):
@@ -234,8 +209,8 @@ def test_collinear_compiled_matches_svd():
         P = np.column_stack([s, 0.5 * s + off * rng.standard_normal(9)])
         centred = P - P.mean(axis=0)
         rms = np.linalg.svd(centred, compute_uv=False)[-1] / np.sqrt(len(P))
-        assert _collinear(P) == (rms <= _COLLINEAR_TOL)
-    assert _collinear(np.zeros((1, 2))) and _collinear([[0, 0], [1, 2]])
+        assert collinear(P) == (rms <= COLLINEAR_TOL)
+    assert collinear(np.zeros((1, 2))) and collinear([[0, 0], [1, 2]])
 
 
 @settings(max_examples=200, deadline=None)
@@ -243,17 +218,17 @@ def test_collinear_compiled_matches_svd():
 def test_collinear_decides_as_the_svd_next_to_the_tolerance(seed, n, factor, angle, spread):
     """Points off a line at any angle, spread over 1 mm to 100 m, with an RMS offset from 0.3 to 3 times the
     tolerance: the test without an SVD decides as the smallest singular value does (barring a tie to 1e-6)."""
-    from virtual_vehicle.model.layout import _COLLINEAR_TOL, _collinear
+    from virtual_vehicle.model.layout import COLLINEAR_TOL, collinear
 
     rng = np.random.default_rng(seed)
     s = 10.0 ** spread * rng.uniform(-1, 1, n)
     d = rng.standard_normal(n)
-    d *= factor * _COLLINEAR_TOL * np.sqrt(n) / np.linalg.norm(d)
+    d *= factor * COLLINEAR_TOL * np.sqrt(n) / np.linalg.norm(d)
     u = np.array([np.cos(angle), np.sin(angle)])
     P = 10.0 * rng.uniform(-1, 1, 2) + s[:, None] * u + d[:, None] * np.array([-u[1], u[0]])
     rms = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)[-1] / np.sqrt(n)
-    assume(abs(rms / _COLLINEAR_TOL - 1.0) > 1e-6)
-    assert _collinear(P) == (rms <= _COLLINEAR_TOL)
+    assume(abs(rms / COLLINEAR_TOL - 1.0) > 1e-6)
+    assert collinear(P) == (rms <= COLLINEAR_TOL)
 
 
 @settings(max_examples=60, deadline=None)
@@ -288,18 +263,18 @@ def test_a_solution_knows_whether_its_contacts_are_collinear(seed, m, lift):
     what the definition computes from the solution's contacts, with and without lift-off. Random draws seldom leave
     collinear contacts (2 in 291 of these), so a row of four cells carrying everything, and the 1-D model, are
     checked by name."""
-    from virtual_vehicle.model.layout import _collinear
+    from virtual_vehicle.model.layout import collinear
 
     rng = np.random.default_rng(seed)
     P = 0.1 * rng.integers(0, 4, size=(m, 2)).astype(float)
-    assume(not _collinear(P))
+    assume(not collinear(P))
     corner = P[np.argmax(P.sum(axis=1))]
     com = P.mean(axis=0) + lift * (corner - P.mean(axis=0))  # towards a corner: more cells lift off
     try:
         sol = solve_support(P, com, W)
     except TippingError:
         assume(False)
-    assert sol.contact_collinear == _collinear(sol.points[sol.in_contact])
+    assert sol.contact_collinear == collinear(sol.points[sol.in_contact])
     assert sol.contact_collinear == type(sol).contact_collinear.func(sol)  # the filled-in value, recomputed
     # the springs' gradients, filled in by the compiled planar solve: the properties' own floats, bit for bit
     spring_lin = sol.basis @ sol.plane_lin

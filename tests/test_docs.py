@@ -147,13 +147,17 @@ def _readme_defaults() -> list[tuple[str, str, object, object]]:
     models = {}
     for label, model in scenario_doc.sections():
         label = re.sub(r'\] kind = "\w+"\.', ".", label)  # '[[array] kind = "grid".belts]]': [[array.belts]]
-        m = re.fullmatch(r'\[\[?([\w.]+)\]\]?(?: kind = "(\w+)")?', label)
+        m = re.fullmatch(r'\[\[?([\w.]+)\]\]?(?: (?:kind|program) = "(\w+)")?', label)
         models[(m.group(1), m.group(2)) if label != "(top level)" else ("", None)] = model
     block = re.search(r"```toml\n(.*?)```", (ROOT / "README.md").read_text(), flags=re.S).group(1)
     section, kind, found = "", None, []
 
-    def model_here():
-        return models.get((section, kind)) or models.get((section, None))
+    def model_here(key=None):
+        """The table's model for its kind (or program), else one of the table's models that has ``key``."""
+        here = models.get((section, kind)) or models.get((section, None))
+        if here is not None and (key is None or key in here.model_fields):
+            return here
+        return next((m for (s, _), m in models.items() if s == section and key in m.model_fields), here)
 
     for line in block.splitlines():
         body = line[1:].strip() if line.startswith("#") else line.strip()
@@ -168,15 +172,15 @@ def _readme_defaults() -> list[tuple[str, str, object, object]]:
                 comment = body  # prose
             else:
                 comment = body.split("#", 1)[1] if "#" in body else ""
-                if key == "kind":
+                if key in ("kind", "program"):
                     kind = value
                     continue
-                model = model_here()
+                model = model_here(key)
                 assert model is not None and key in model.model_fields, f"README: no field {key!r} in [{section}]"
                 if not comment.strip().startswith("e.g.") and _default(model, key) is not None:
                     found.append((f"[{section}]", key, value, _default(model, key)))
-        model = model_here()
         for key, literal in re.findall(r"\b(\w+) = " + _LITERAL, comment):
+            model = model_here(key)
             if model is not None and key in model.model_fields and key != "kind" and _default(model, key) is not None:
                 found.append((f"[{section}] (comment)", key, tomllib.loads(f"v = {literal}")["v"],
                               _default(model, key)))

@@ -5,13 +5,10 @@ import itertools
 
 import numpy as np
 import pytest
-from hypothesis import assume, given, settings
-from hypothesis import strategies as st
 from scipy.linalg import expm
 from scipy.optimize import brentq
 
-from virtual_vehicle.engine import _kernel as kernel
-from virtual_vehicle.engine import dynamics, stepping
+from virtual_vehicle.engine import dynamics
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.errors import TippingError
 from virtual_vehicle.model import fields, layout, parcel
@@ -292,14 +289,14 @@ def test_a_parcel_tipping_off_a_pattern_is_told_where_in_the_arrays_coordinates(
     y = np.array([2.03, 1.47, 0.3, 0, 0, 0])
     with pytest.raises(TippingError, match=r"\(2\.03, 1\.47\) m is"):
         m.solution_for(m.support_at(y)[:3], y[:2])  # three cells on one side: outside their hull
-    real = dynamics._solve
+    real = dynamics.solve_prechecked
 
     def canonical_tips(points, com, *args):
         if not np.any(points[0]):  # the pattern's own coordinates: its first cell at the origin
             raise TippingError("outside to rounding")
         return real(points, com, *args)
 
-    monkeypatch.setattr(dynamics, "_solve", canonical_tips)
+    monkeypatch.setattr(dynamics, "solve_prechecked", canonical_tips)
     with pytest.raises(TippingError, match=r"\(2\.03, 1\.47\) m is on the edge"):
         m.solution_for(m.support_at(y), y[:2])
 
@@ -310,89 +307,19 @@ def test_a_piece_made_by_the_engine_knows_its_key():
     cells = layout.grid(30, 30, 0.1)
     model = ParcelModel(cells, parcel.rectangle(0.4, 0.3, 2.0, 1.0), fields.Inward((1.5, 1.5), 3.0).velocities(cells),
                         friction.CoulombLaw())
-    integrate(model, np.array([1.12, 1.47, 0.3, 0.0, 0.0, 0.0]), 0.0, 1.0)
-    for x in np.linspace(0.005, 0.03, 6):  # over the array's edge, the centre of mass near its first column: lift-off
-        model.piece_at(np.array([x, 1.47, 0.1, 0.0, 0.0, 0.0]))
-    pieces = list(model._pieces.values())
-    assert len(pieces) > 50 and any(not p.solution.in_contact.all() for p in pieces)
-    for piece in pieces:
+    tr = integrate(model, np.array([1.12, 1.47, 0.3, 0.0, 0.0, 0.0]), 0.0, 1.0, sample_dt=0.002)
+    edge = [np.array([x, 1.47, 0.1, 0.0, 0.0, 0.0]) for x in np.linspace(0.005, 0.03, 6)]  # the centre of mass near
+    found = {}  # the first column, the parcel over the array's edge: lift-off
+    for y in list(tr.states) + edge:
+        found.setdefault(id(piece := model.piece_at(y)), (piece, y))
+    assert len(found) > 50 and any(not p.solution.in_contact.all() for p, _ in found.values())
+    for piece, y in found.values():
         assert piece.key == type(piece).key.func(piece)
         fresh = model.with_velocities(model.velocities)
-        fresh._adopt(piece.support, piece.solution, piece.constants, piece.row)
-        adopted = fresh._by_support[piece.key[0]][0]
+        fresh.adopt(piece.support, piece.solution, piece.constants, piece.row)
+        adopted = fresh.piece_for(piece.support, y)
+        assert adopted is not piece and adopted.solution is piece.solution  # the adopted piece, looked up
         assert adopted.key == type(adopted).key.func(adopted) == piece.key
-
-
-def test_a_segment_reads_the_supports_off_its_event_values_while_its_candidates_reach():
-    """After an event the engine takes the cells under the parcel from the probe's footprint margins, not from a new
-    search: the same cells as ``support_at`` wherever the candidate list still covers the footprint, and no answer
-    beyond it (nor without values)."""
-    cells = layout.grid(30, 30, 0.1)
-    spec = parcel.rectangle(0.4, 0.3, 2.0, 1.0)
-    m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), friction.CoulombLaw())
-    y0 = np.array([1.12, 1.47, 0.3, 0, 0, 0])
-    seg = dynamics._Segment(m, m.piece_at(y0), y0)
-    rng = np.random.default_rng(4)
-    told = 0
-    for _ in range(200):
-        y = y0 + np.r_[rng.uniform(-0.15, 0.15, 2), rng.uniform(-1, 1), 0, 0, 0]
-        g = seg.values(y)
-        found = seg.support(g)
-        if np.hypot(*(y[:2] - y0[:2])) < seg.buffer:
-            np.testing.assert_array_equal(found, m.support_at(y))
-            np.testing.assert_array_equal(kernel._positive(seg.ids, g), found)  # the compiled engine's reading
-            told += 1
-        else:
-            assert found is None
-    assert 50 < told < 200 and seg.support(None) is None
-
-
-def test_a_segment_keeps_its_predecessors_candidates_only_within_half_the_buffer():
-    """A segment that starts within half the refresh buffer of where its predecessor gathered its candidates keeps
-    them, and their centre, so that its refresh value still counts from there; a segment starting farther gathers
-    new ones. Either way it reads the supports off its event values as support_at finds them."""
-    cells = layout.grid(30, 30, 0.1)
-    spec = parcel.rectangle(0.4, 0.3, 2.0, 1.0)
-    m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), friction.CoulombLaw())
-    y0 = np.array([1.12, 1.47, 0.3, 0, 0, 0])
-    first = dynamics._Segment(m, m.piece_at(y0), y0)
-    near = y0 + np.array([0.03, -0.03, 0.4, 0, 0, 0])  # 0.042 m away: within half of the 0.1 m buffer
-    kept = dynamics._Segment(m, m.piece_at(near), near, first)
-    assert kept.ids is first.ids and kept.center is first.center
-    np.testing.assert_array_equal(kept.support(kept.values(near)), m.support_at(near))
-    assert kept.values(near)[-1] == pytest.approx(kept.buffer - np.hypot(0.03, 0.03), abs=1e-15)
-    far = y0 + np.array([0.06, 0.0, -0.2, 0, 0, 0])
-    fresh = dynamics._Segment(m, m.piece_at(far), far, first)
-    assert fresh.ids is not first.ids and fresh.center.tolist() == far[:2].tolist()
-    np.testing.assert_array_equal(fresh.support(fresh.values(far)), m.support_at(far))
-
-
-@settings(max_examples=300, deadline=None)
-@given(st.floats(1.0, 2.0), st.floats(1.0, 2.0), st.floats(-3.2, 3.2), st.floats(-0.1, 0.1), st.floats(-0.1, 0.1),
-       st.floats(-0.5, 0.5), st.sampled_from([1e-3, 1e-2, 0.1]))
-def test_the_event_root_finder_is_scipys_brentq_without_evaluating_the_ends_again(segment_at, x, y, th, dx, dy, dth,
-                                                                                 h):
-    """Events are located by Brent's method as scipy runs it, on the engine's own event function (the earliest of the
-    changed footprint margins along a step's dense output), given the bracket's end values: the same root to the
-    last bit, two evaluations fewer."""
-    m, piece, seg, y0 = segment_at(layout.grid(30, 30, 0.1), parcel.rectangle(0.4, 0.3, 2.0, 1.0), x, y, th)
-    delta = np.array([dx, dy, dth, 0.0, 0.0, 0.0])
-    F = np.zeros((7, 6))
-    F[0] = delta  # a dense output moving the parcel uniformly by delta over the step [0, h]
-    g0, g1 = seg.values(y0), seg.values(y0 + delta)
-    changed = np.flatnonzero(((g1 > 0) != (g0 > 0))[:seg.bounds[1]])  # margins only: the hull is not searched
-    assume(len(changed))
-    sgn = np.where(g0[changed] > 0, 1.0, -1.0)
-    calls = np.zeros(1, np.int64)
-    ctx = (seg.arrays, F, y0, 0.0, h, changed, sgn, np.empty(6), calls)
-    fa, fb = float(np.min(sgn * g0[changed])), float(np.min(sgn * g1[changed]))
-    assume(fa > 0 > fb)
-    eps = np.finfo(float).eps
-    mine, outcome = kernel._brent(ctx, 0.0, h, fa, fb, 1e-13, 4 * eps, 100)
-    n_mine = int(calls[0])
-    calls[0] = 0
-    ref = brentq(lambda t: kernel._phi(t, ctx), 0.0, h, xtol=1e-13, rtol=4 * eps)
-    assert outcome == kernel.REACHED and mine == ref and n_mine == calls[0] - 2
 
 
 def test_viscous_row_settles_where_the_end_cell_carries_half():
@@ -488,11 +415,13 @@ def test_support_change_records_are_the_dataclass_s_own():
     for e in support:
         made = dynamics.Event(e.t, "support", e.state, e.entered, e.left, e.lifted, e.touched)
         assert e == made and hash(e) == hash(made) and vars(e) == vars(made) and repr(e) == repr(made)
+        again = dynamics.Event.support(e.t, e.state, e.entered, e.left, e.lifted, e.touched)
+        assert again == made and vars(again) == vars(made)
         for ids in (e.entered, e.left, e.lifted, e.touched):
             assert type(ids) is tuple and list(ids) == sorted(ids)
     with pytest.raises(AttributeError):  # still frozen
         support[0].t = 0.0
-    assert stepping._ordered(frozenset({40, 3, 17})) == (3, 17, 40) and stepping._ordered(frozenset()) == ()
+    assert any(e.entered for e in support) and any(not e.lifted for e in support)  # full and empty ones seen
 
 
 def test_chattering_supports_are_crossed_in_fixed_steps_and_converge():

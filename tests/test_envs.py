@@ -117,7 +117,7 @@ def test_cells_hear_their_neighbours_one_step_later_on_the_right_port():
     obs, _ = env.reset(seed=0)
     ep, topo = env.episode, env.topology
     S = ep.sensors_per_cell
-    ids = np.array([env._index[a] for a in env.agents])
+    ids = np.array([int(a.removeprefix("cell_")) for a in env.agents])  # agent "cell_i" is cell i
     actions = {a: np.array([0.0, 0.0, i / ep.n, -0.5], dtype=np.float32) for a, i in zip(env.agents, ids)}
     obs, rewards, *_ = env.step(actions)
     assert len(set(rewards.values())) == 1  # one shared reward
@@ -188,3 +188,24 @@ def test_the_example_script_runs():
                           "--steps", "10"], capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr
     assert "random policy" in res.stdout and "proportional twist" in res.stdout and "cells" in res.stdout
+
+
+def test_a_cell_that_dies_mid_episode_stops_driving_and_talking():
+    from virtual_vehicle.config.scenario import FaultEvent
+
+    sc, _ = load_scenario("pose_control")
+    dead = 5 * 20 + 5  # an inner cell of the 20 x 20 grid
+    sc = sc.model_copy(update={"faults": sc.faults.model_copy(update={"events": [FaultEvent(t=0.1,
+                                                                                             dead_cells=[dead])]})})
+    env = CellsEnv(sc, message_size=1, period=0.05, max_steps=4)
+    env.reset(seed=0)
+    S, topo = env.episode.sensors_per_cell, env.topology
+    (j, port), *_ = [(j, p) for j in range(env.episode.n) for p in range(topo.ports) if topo.neighbor[j, p] == dead]
+    heard, driven = [], []
+    for _ in range(4):  # decisions at t = 0, 0.05 (alive), 0.1, 0.15 (dead from 0.1 s on)
+        obs, *_ = env.step({a: np.array([0.1, -0.1, 1.0], np.float32) for a in env.agents})
+        heard.append(float(obs[f"cell_{j}"][S + 2 + port]))
+        driven.append(obs[f"cell_{dead}"][S:S + 2].tolist())
+    assert heard == [1.0, 0.0, 0.0, 0.0]  # its neighbours hear nothing from the decision at 0.1 s on
+    assert driven[:2] == [[pytest.approx(0.1), pytest.approx(-0.1)]] * 2 and driven[2:] == [[0.0, 0.0]] * 2
+    assert env.episode.result().summary()["faults_injected"][0]["dead_cells"] == [dead]

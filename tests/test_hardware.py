@@ -81,9 +81,9 @@ def test_same_seed_same_readings_and_validation():
     a = Sensors(cells, default_offsets(0.1), 0.3, 0.3).read([spec], y, np.random.default_rng(9))
     b = Sensors(cells, default_offsets(0.1), 0.3, 0.3).read([spec], y, np.random.default_rng(9))
     assert np.array_equal(a, b)
-    with pytest.raises(ScenarioError, match="offsets"):
+    with pytest.raises(ValueError, match="offsets"):
         Sensors(cells, np.zeros((6, 2)))
-    with pytest.raises(ScenarioError, match="false_positive"):
+    with pytest.raises(ValueError, match="false_positive"):
         Sensors(cells, default_offsets(0.1), false_positive=1.5)
     sc, _ = load_scenario("prototype_18_network_ideal")
     d = sc.model_dump()

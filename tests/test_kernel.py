@@ -1,14 +1,19 @@
-"""The compiled event engine (virtual_vehicle.engine._kernel) against what it replaces and what it must agree with: the
-footprint margins of parcel.py (shapely for non-convex outlines), scipy's DOP853 step by step, and itself when a
-run is handed back to Python and resumed."""
+"""The compiled kernels against what they replace and what they must agree with: the event engine
+(virtual_vehicle.engine._kernel, its segments and root finder) against the footprint margins of parcel.py (shapely
+for non-convex outlines), scipy's DOP853 step by step and scipy's brentq, and itself when a run is handed back to
+Python and resumed; parcel.py's compiled margins against its array operations; the support solve's compiled hull
+against Qhull. Being the kernels' own unit tests, these may name private functions; every other test goes through
+public names."""
 
 import json
 
 import numpy as np
 import pytest
-from hypothesis import example, given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 from scipy.integrate import DOP853
+from scipy.optimize import brentq
+from scipy.spatial import ConvexHull
 
 from virtual_vehicle.engine import _kernel as kernel
 from virtual_vehicle.engine import dynamics
@@ -92,6 +97,158 @@ def test_support_slack_of_constant_functions_is_unbounded_or_none():
     assert half == pytest.approx((1.0 - 0.4 - 0.02) / 2.0)
 
 
+def test_a_segment_reads_the_supports_off_its_event_values_while_its_candidates_reach():
+    """After an event the engine takes the cells under the parcel from the probe's footprint margins, not from a new
+    search: the same cells as ``support_at`` wherever the candidate list still covers the footprint, and no answer
+    beyond it (nor without values)."""
+    cells = layout.grid(30, 30, 0.1)
+    spec = parcel.rectangle(0.4, 0.3, 2.0, 1.0)
+    m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), friction.CoulombLaw())
+    y0 = np.array([1.12, 1.47, 0.3, 0, 0, 0])
+    seg = dynamics._Segment(m, m.piece_at(y0), y0)
+    rng = np.random.default_rng(4)
+    told = 0
+    for _ in range(200):
+        y = y0 + np.r_[rng.uniform(-0.15, 0.15, 2), rng.uniform(-1, 1), 0, 0, 0]
+        g = seg.values(y)
+        found = seg.support(g)
+        if np.hypot(*(y[:2] - y0[:2])) < seg.buffer:
+            np.testing.assert_array_equal(found, m.support_at(y))
+            np.testing.assert_array_equal(kernel._positive(seg.ids, g), found)  # the compiled engine's reading
+            told += 1
+        else:
+            assert found is None
+    assert 50 < told < 200 and seg.support(None) is None
+
+
+def test_a_segment_keeps_its_predecessors_candidates_only_within_half_the_buffer():
+    """A segment that starts within half the refresh buffer of where its predecessor gathered its candidates keeps
+    them, and their centre, so that its refresh value still counts from there; a segment starting farther gathers
+    new ones. Either way it reads the supports off its event values as support_at finds them."""
+    cells = layout.grid(30, 30, 0.1)
+    spec = parcel.rectangle(0.4, 0.3, 2.0, 1.0)
+    m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), friction.CoulombLaw())
+    y0 = np.array([1.12, 1.47, 0.3, 0, 0, 0])
+    first = dynamics._Segment(m, m.piece_at(y0), y0)
+    near = y0 + np.array([0.03, -0.03, 0.4, 0, 0, 0])  # 0.042 m away: within half of the 0.1 m buffer
+    kept = dynamics._Segment(m, m.piece_at(near), near, first)
+    assert kept.ids is first.ids and kept.center is first.center
+    np.testing.assert_array_equal(kept.support(kept.values(near)), m.support_at(near))
+    assert kept.values(near)[-1] == pytest.approx(kept.buffer - np.hypot(0.03, 0.03), abs=1e-15)
+    far = y0 + np.array([0.06, 0.0, -0.2, 0, 0, 0])
+    fresh = dynamics._Segment(m, m.piece_at(far), far, first)
+    assert fresh.ids is not first.ids and fresh.center.tolist() == far[:2].tolist()
+    np.testing.assert_array_equal(fresh.support(fresh.values(far)), m.support_at(far))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(1.0, 2.0), st.floats(1.0, 2.0), st.floats(-3.2, 3.2), st.floats(-0.1, 0.1), st.floats(-0.1, 0.1),
+       st.floats(-0.5, 0.5), st.sampled_from([1e-3, 1e-2, 0.1]))
+def test_the_event_root_finder_is_scipys_brentq_without_evaluating_the_ends_again(segment_at, x, y, th, dx, dy, dth,
+                                                                                 h):
+    """Events are located by Brent's method as scipy runs it, on the engine's own event function (the earliest of the
+    changed footprint margins along a step's dense output), given the bracket's end values: the same root to the
+    last bit, two evaluations fewer."""
+    m, piece, seg, y0 = segment_at(layout.grid(30, 30, 0.1), parcel.rectangle(0.4, 0.3, 2.0, 1.0), x, y, th)
+    delta = np.array([dx, dy, dth, 0.0, 0.0, 0.0])
+    F = np.zeros((7, 6))
+    F[0] = delta  # a dense output moving the parcel uniformly by delta over the step [0, h]
+    g0, g1 = seg.values(y0), seg.values(y0 + delta)
+    changed = np.flatnonzero(((g1 > 0) != (g0 > 0))[:seg.bounds[1]])  # margins only: the hull is not searched
+    assume(len(changed))
+    sgn = np.where(g0[changed] > 0, 1.0, -1.0)
+    calls = np.zeros(1, np.int64)
+    ctx = (seg.arrays, F, y0, 0.0, h, changed, sgn, np.empty(6), calls)
+    fa, fb = float(np.min(sgn * g0[changed])), float(np.min(sgn * g1[changed]))
+    assume(fa > 0 > fb)
+    eps = np.finfo(float).eps
+    mine, outcome = kernel._brent(ctx, 0.0, h, fa, fb, 1e-13, 4 * eps, 100)
+    n_mine = int(calls[0])
+    calls[0] = 0
+    ref = brentq(lambda t: kernel._phi(t, ctx), 0.0, h, xtol=1e-13, rtol=4 * eps)
+    assert outcome == kernel.REACHED and mine == ref and n_mine == calls[0] - 2
+
+
+
+_OUTLINES = [parcel.rectangle(0.4, 0.3, 1.0, 0.5), parcel.rectangle(0.2, 0.2, 1.0, 0.5),
+             parcel.polygon([[0, 0], [0.4, 0], [0.5, 0.2], [0.2, 0.35], [-0.05, 0.2]], 2.0, 1.0),
+             parcel.polygon([[0, 0], [0.4, 0], [0.4, 0.12], [0.12, 0.12], [0.12, 0.4], [0, 0.4]], 2.0, 1.0,
+                            com=(0.1, 0.1))]
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.sampled_from([0, 2]), st.floats(-3.2, 3.2), st.integers(0, 2**32 - 1))
+def test_the_compiled_margin_of_a_point_is_the_array_margin_to_the_last_bit(which, theta, seed):
+    """What the compiled pairs test, point by point: the margin of a rectangle or of a convex outline, the same
+    float as _turned_margins makes in array operations (not merely the same sign), near the outline and far."""
+    spec = _OUTLINES[which]
+    rng = np.random.default_rng(seed)
+    dx, dy = rng.uniform(-0.4, 0.4, 200), rng.uniform(-0.4, 0.4, 200)
+    c, s = np.cos(np.array([theta])), np.sin(np.array([theta]))
+    ref = parcel._turned_margins(spec, c[0], s[0], dx, dy)
+    kinds, half, normals, offsets, counts = parcel._outline_table([spec])
+    mine = [parcel._turned_margin(kinds[0], half[0], normals[0], offsets[0], counts[0], c[0], s[0], x, y)
+            for x, y in zip(dx, dy)]
+    assert np.array(mine).tobytes() == ref.tobytes()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.sampled_from(range(len(_OUTLINES))), min_size=1, max_size=8), st.integers(0, 2**32 - 1),
+       st.booleans())
+def test_covered_pairs_compiled_keep_what_the_array_margins_keep(kinds, seed, on_lattice):
+    """The compiled pairs are those PointGrid.near finds whose margin, computed as _turned_margins computes it in
+    array operations, is positive: the same pairs in the same order, to the last rounding step (points on a lattice
+    with parcels at rest on it put many exactly on an edge, where the sign is decided by rounding alone)."""
+    rng = np.random.default_rng(seed)
+    if on_lattice:
+        pts = np.stack(np.meshgrid(np.arange(30) * 0.05, np.arange(30) * 0.05), -1).reshape(-1, 2)
+        poses = [np.array([0.05 * rng.integers(6, 24), 0.05 * rng.integers(6, 24), 0.5 * np.pi * rng.integers(4)])
+                 for _ in kinds]
+    else:
+        pts = rng.uniform(0.0, 1.5, size=(3000, 2))
+        poses = [rng.uniform([0.3, 0.3, -3.2], [1.2, 1.2, 3.2]) for _ in kinds]
+    specs = [_OUTLINES[k] for k in kinds]
+    states = [np.concatenate([y, rng.normal(size=3)]) for y in poses]
+    grid = parcel.PointGrid(pts)
+    owner, point = grid.near(np.array(poses)[:, :2], [spec.radius * (1 + 1e-9) + 1e-12 for spec in specs])
+    P = np.array(poses)
+    cos, sin = np.cos(P[:, 2]), np.sin(P[:, 2])
+    keep = np.zeros(len(owner), dtype=bool)
+    for k, spec in enumerate(specs):  # as covered_pairs computed them before it was compiled
+        sel = owner == k
+        at = pts[point[sel]]
+        keep[sel] = parcel._turned_margins(spec, cos[k], sin[k], at[:, 0] - P[k, 0], at[:, 1] - P[k, 1]) > 0
+    mine = parcel.covered_pairs(specs, states, grid)
+    assert mine[0].tolist() == owner[keep].tolist() and mine[1].tolist() == point[keep].tolist()
+    assert parcel.covered_pairs(specs, [y[:3] for y in states], grid)[1].tolist() == point[keep].tolist()
+
+
+
+def _halfplanes(normals, offsets):
+    rows = np.column_stack([normals, offsets])
+    return rows[np.lexsort(np.round(rows, 9).T[::-1])]  # ordered as rounded, so that ulps do not reorder ties
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(0, 10_000), st.integers(3, 40), st.booleans())
+def test_hull_matches_qhull(seed, m, lattice):
+    """The compiled hull's half-planes (physics.contact) are Qhull's (scipy), also on a lattice, where cells lie on
+    the hull's edges between its corners and must not make edges of their own."""
+    from virtual_vehicle.physics.contact import _hull
+
+    rng = np.random.default_rng(seed)
+    if lattice:
+        P = 0.1 * rng.integers(0, 6, size=(m, 2)).astype(float)
+        assume(np.linalg.matrix_rank(P - P[0]) == 2)
+    else:
+        P = rng.uniform(-1, 1, size=(m, 2))
+    hull = ConvexHull(P)
+    ours = _halfplanes(*_hull(P, 1e-12))
+    qhull = _halfplanes(hull.equations[:, :2], -hull.equations[:, 2])
+    assert ours.shape == qhull.shape
+    np.testing.assert_allclose(ours, qhull, atol=1e-12)
+
+
 def test_compiled_dop853_takes_scipys_steps():
     """From the same state and trial step, the compiled DOP853 lands where scipy's DOP853 lands (the same tableau,
     to rounding: scipy sums stages with BLAS, the kernel in plain loops), accepts or rejects the same trial steps,
@@ -161,7 +318,7 @@ import collections, json, sys
 sys.path.insert(0, %r)
 import bench_scale
 from virtual_vehicle.engine import _kernel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics.laws import affine
 from virtual_vehicle.model import parcel
 from virtual_vehicle.cells.sorting import policy
 from virtual_vehicle.cells.network import delivery
@@ -172,7 +329,7 @@ warm_up()
 home = {n: _kernel for n in ("run_piece", "pattern", "cell_margins", "support_slack", "edges_clear_many",
                                       "quiet_steps")}
 home["_within"] = home["_covered"] = parcel
-home["_terms_and_row"] = friction  # the bench_scale hall is viscous
+home["_terms_and_row"] = affine  # the bench_scale hall is viscous
 home["step_cells"] = policy
 home["_carry"] = delivery
 names = tuple(home)

@@ -2,10 +2,12 @@
 
 import numpy as np
 import pytest
+import shapely
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
+from virtual_vehicle.config.scenario import parse_scenario
 from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.model import layout, parcel
 
@@ -25,38 +27,66 @@ def test_grid_row_points():
 
 
 def test_layout_validation():
-    with pytest.raises(ScenarioError, match="same position"):
+    with pytest.raises(ValueError, match="same position"):
         layout.from_points([[0, 0], [0, 0]])
-    with pytest.raises(ScenarioError, match="pitch"):
+    with pytest.raises(ValueError, match="pitch"):
         layout.grid(2, 2, -0.1)
-    with pytest.raises(ScenarioError, match="at least one"):
+    with pytest.raises(ValueError, match="at least one"):
         layout.grid(0, 2, 0.1)
-    with pytest.raises(ScenarioError, match="orthogonal"):
+    with pytest.raises(ValueError, match="orthogonal"):
         layout.CellArray(np.zeros((1, 2)), np.array([[[1.0, 0.0], [1.0, 0.0]]]), 0.1)
+
+
+def test_the_model_raises_plain_errors_and_the_scenario_names_the_field():
+    """The model knows nothing of scenario files: a bad argument is a plain ValueError without a TOML path; the
+    scenario that made the call names the field, down to the entry of a list."""
+    with pytest.raises(ValueError, match="^two cells share the same position$") as exc:
+        layout.from_points([[0, 0], [0, 0]])
+    assert not isinstance(exc.value, ScenarioError)
+    with pytest.raises(ValueError, match="^com, the centre of mass") as exc:
+        parcel.polygon([[0, 0], [1, 0], [1, 1], [0, 1]], 1.0, 0.5, com=[2.0, 2.0])
+    assert not isinstance(exc.value, ScenarioError)
+    box = {"name": "box", "length": 0.15, "width": 0.15, "mass": 1.0, "mu": 0.5, "x": 0.05, "y": 0.05}
+    field = {"kind": "uniform", "velocity": [0.1, 0.0]}
+    doubled = {"kind": "points", "points": [[0.0, 0.0], [0.1, 0.0], [0.1, 0.0]]}
+    with pytest.raises(ScenarioError, match=r"^array\.points: two cells share the same position$"):
+        parse_scenario({"duration": 1.0, "array": doubled, "field": field, "parcels": [box]}).build()
+    odd = dict(box, length=None, width=None, vertices=[[0, 0], [0.1, 0], [0.1, 0.1], [0, 0.1]], com=[0.3, 0.3])
+    with pytest.raises(ScenarioError, match=r"^parcels\[0\]: com, the centre of mass \[0.3, 0.3\], must lie inside"):
+        parse_scenario({"duration": 1.0, "array": {"kind": "grid", "nx": 3, "ny": 3, "pitch": 0.1}, "field": field,
+                        "parcels": [odd]}).build()
+    belts = [{"start": [-0.3, 0.1], "end": [-0.1, 0.1], "width": 0.1, "speed": 0.1},
+             {"start": [0.0, 0.1], "end": [0.5, 0.1], "width": 0.1, "speed": 0.1}]
+    with pytest.raises(ScenarioError, match=r"^array\.belts\[1\]: the belt from \[0.0, 0.1\] to \[0.5, 0.1\] m covers "
+                                            r"cell 3 at \[0.0, 0.1\] m"):
+        parse_scenario({"duration": 1.0, "array": {"kind": "grid", "nx": 3, "ny": 3, "pitch": 0.1, "belts": belts},
+                        "field": field, "parcels": [box]}).build()
 
 
 def test_rectangle_inertia_and_validation():
     p = parcel.rectangle(0.3, 0.2, 1.5, 0.4)
     assert p.inertia == pytest.approx(1.5 * (0.09 + 0.04) / 12)
     assert p.half_extents == (0.15, 0.1)
-    with pytest.raises(ScenarioError, match="mass"):
+    with pytest.raises(ValueError, match="mass"):
         parcel.rectangle(0.3, 0.2, -1.0, 0.4)
-    with pytest.raises(ScenarioError, match="width"):
+    with pytest.raises(ValueError, match="width"):
         parcel.rectangle(0.3, 0.0, 1.0, 0.4)
     notched = parcel.ParcelSpec(np.array([[-1, -1], [1, -1], [0, -0.5], [1, 1], [-1, 1]], float), 1.0, 1.0, 0.5)
     assert not notched.convex  # non-convex outlines are fine
-    with pytest.raises(ScenarioError, match="simple polygon"):
+    with pytest.raises(ValueError, match="simple polygon"):
         parcel.ParcelSpec(np.array([[-1, -1], [1, 1], [1, -1], [-1, 1]], float), 1.0, 1.0, 0.5)
     clockwise = parcel.ParcelSpec(np.array([[-1, -1], [-1, 1], [1, 1], [1, -1]], float), 1.0, 1.0, 0.5)
-    assert parcel._signed_area(clockwise.footprint) > 0  # stored counter-clockwise
+    assert clockwise.polygon.exterior.is_ccw and not shapely.Polygon(clockwise.footprint[::-1]).exterior.is_ccw
 
 
 @settings(max_examples=100, deadline=None)
 @given(st.floats(-1, 1), st.floats(-1, 1), st.floats(-np.pi, np.pi))
 def test_margins_agree_with_shapely_and_the_generic_polygon_path(x, y, theta):
     spec = parcel.rectangle(0.4, 0.3, 1.0, 0.5)
-    generic = parcel.ParcelSpec(spec.footprint[[0, 1, 2, 3]].copy() * [1, 1], 1.0, 1.0, 0.5)
-    object.__setattr__(generic, "half_extents", None)  # force the half-plane path
+    # the same rectangle with a fifth vertex mid-edge: not the closed form's four corners, so the half-plane path
+    generic = parcel.ParcelSpec(np.array([[-0.2, -0.15], [0.0, -0.15], [0.2, -0.15], [0.2, 0.15], [-0.2, 0.15]]), 1.0,
+                                1.0, 0.5)
+    assert generic.half_extents is None and generic.convex
     pts = np.random.default_rng(0).uniform(-1.5, 1.5, size=(50, 2))
     m = parcel.footprint_margins(spec, (x, y, theta), pts)
     np.testing.assert_allclose(m, parcel.footprint_margins(generic, (x, y, theta), pts), atol=1e-12)
@@ -169,56 +199,3 @@ def test_covered_pairs_are_the_points_strictly_under_each_footprint():
     for k, (spec, y) in enumerate(zip(specs, states)):
         assert sorted(point[owner == k].tolist()) == np.flatnonzero(parcel.footprint_margins(spec, y, pts) > 0).tolist()
     assert [len(a) for a in parcel.covered_pairs([], [], parcel.PointGrid(pts))] == [0, 0]
-
-
-_OUTLINES = [parcel.rectangle(0.4, 0.3, 1.0, 0.5), parcel.rectangle(0.2, 0.2, 1.0, 0.5),
-             parcel.polygon([[0, 0], [0.4, 0], [0.5, 0.2], [0.2, 0.35], [-0.05, 0.2]], 2.0, 1.0),
-             parcel.polygon([[0, 0], [0.4, 0], [0.4, 0.12], [0.12, 0.12], [0.12, 0.4], [0, 0.4]], 2.0, 1.0,
-                            com=(0.1, 0.1))]
-
-
-@settings(max_examples=30, deadline=None)
-@given(st.sampled_from([0, 2]), st.floats(-3.2, 3.2), st.integers(0, 2**32 - 1))
-def test_the_compiled_margin_of_a_point_is_the_array_margin_to_the_last_bit(which, theta, seed):
-    """What the compiled pairs test, point by point: the margin of a rectangle or of a convex outline, the same
-    float as _turned_margins makes in array operations (not merely the same sign), near the outline and far."""
-    spec = _OUTLINES[which]
-    rng = np.random.default_rng(seed)
-    dx, dy = rng.uniform(-0.4, 0.4, 200), rng.uniform(-0.4, 0.4, 200)
-    c, s = np.cos(np.array([theta])), np.sin(np.array([theta]))
-    ref = parcel._turned_margins(spec, c[0], s[0], dx, dy)
-    kinds, half, normals, offsets, counts = parcel._outline_table([spec])
-    mine = [parcel._turned_margin(kinds[0], half[0], normals[0], offsets[0], counts[0], c[0], s[0], x, y)
-            for x, y in zip(dx, dy)]
-    assert np.array(mine).tobytes() == ref.tobytes()
-
-
-@settings(max_examples=60, deadline=None)
-@given(st.lists(st.sampled_from(range(len(_OUTLINES))), min_size=1, max_size=8), st.integers(0, 2**32 - 1),
-       st.booleans())
-def test_covered_pairs_compiled_keep_what_the_array_margins_keep(kinds, seed, on_lattice):
-    """The compiled pairs are those PointGrid.near finds whose margin, computed as _turned_margins computes it in
-    array operations, is positive: the same pairs in the same order, to the last rounding step (points on a lattice
-    with parcels at rest on it put many exactly on an edge, where the sign is decided by rounding alone)."""
-    rng = np.random.default_rng(seed)
-    if on_lattice:
-        pts = np.stack(np.meshgrid(np.arange(30) * 0.05, np.arange(30) * 0.05), -1).reshape(-1, 2)
-        poses = [np.array([0.05 * rng.integers(6, 24), 0.05 * rng.integers(6, 24), 0.5 * np.pi * rng.integers(4)])
-                 for _ in kinds]
-    else:
-        pts = rng.uniform(0.0, 1.5, size=(3000, 2))
-        poses = [rng.uniform([0.3, 0.3, -3.2], [1.2, 1.2, 3.2]) for _ in kinds]
-    specs = [_OUTLINES[k] for k in kinds]
-    states = [np.concatenate([y, rng.normal(size=3)]) for y in poses]
-    grid = parcel.PointGrid(pts)
-    owner, point = grid.near(np.array(poses)[:, :2], [spec.radius * (1 + 1e-9) + 1e-12 for spec in specs])
-    P = np.array(poses)
-    cos, sin = np.cos(P[:, 2]), np.sin(P[:, 2])
-    keep = np.zeros(len(owner), dtype=bool)
-    for k, spec in enumerate(specs):  # as covered_pairs computed them before it was compiled
-        sel = owner == k
-        at = pts[point[sel]]
-        keep[sel] = parcel._turned_margins(spec, cos[k], sin[k], at[:, 0] - P[k, 0], at[:, 1] - P[k, 1]) > 0
-    mine = parcel.covered_pairs(specs, states, grid)
-    assert mine[0].tolist() == owner[keep].tolist() and mine[1].tolist() == point[keep].tolist()
-    assert parcel.covered_pairs(specs, [y[:3] for y in states], grid)[1].tolist() == point[keep].tolist()

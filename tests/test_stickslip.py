@@ -6,7 +6,6 @@ import pytest
 
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.engine.stickslip import solve_contacts
-from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.model import fields, layout, parcel
 from virtual_vehicle.physics import friction
 
@@ -96,7 +95,7 @@ def test_static_friction_holds_what_kinetic_friction_would_not():
 
 
 def test_mu_static_is_validated():
-    with pytest.raises(ScenarioError, match="mu_static"):
+    with pytest.raises(ValueError, match="mu_static"):
         parcel.rectangle(0.3, 0.2, 1.0, 0.5, mu_static=0.4)
 
 

@@ -277,7 +277,6 @@ def test_failed_runs_exit_1_and_retry_failed_redoes_only_them(tmp_path, monkeypa
             if p.name in finished} == finished  # finished runs were not redone
 
 
-@pytest.mark.flaky(reruns=2)  # a Ctrl-C race, not understood yet: failed together once in 8 full runs
 def test_ctrl_c_stops_a_sweep_cleanly_and_keeps_its_finished_runs(tmp_path):
     import os
     import signal

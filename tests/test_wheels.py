@@ -23,7 +23,7 @@ def test_contact_layer_geometry_and_velocities():
     V = c.contact_velocities(np.array([[0.3, 0.4], [0.0, -0.2]]))
     np.testing.assert_allclose(V[0], [0.0, 0.4], atol=1e-15)  # wheel 0 keeps the world-y part
     np.testing.assert_allclose(V[1], [0.3, 0.0], atol=1e-15)
-    with pytest.raises(ScenarioError, match="different points"):
+    with pytest.raises(ValueError, match="different points"):
         layout.separate_wheels(cells, [[0, 0], [0, 0]])
 
 

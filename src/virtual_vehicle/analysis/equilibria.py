@@ -32,7 +32,7 @@ from virtual_vehicle.engine.dynamics import ParcelModel
 from virtual_vehicle.errors import TippingError
 from virtual_vehicle.model.layout import CellArray
 from virtual_vehicle.model.parcel import ParcelSpec
-from virtual_vehicle.physics.friction import FrictionLaw, ViscousLaw
+from virtual_vehicle.physics.laws import FrictionLaw
 
 
 @dataclass
@@ -74,7 +74,7 @@ class _Field:
     def __init__(self, cells, spec, velocities, law, gravity):
         self.model = ParcelModel(cells, spec, velocities, law, gravity)
         self.spec = spec
-        self.damped = isinstance(law, ViscousLaw)
+        self.damped = law.damped
         self.force_tol = 1e-9 * spec.weight(gravity)
 
     def piece(self, X, theta):

@@ -22,6 +22,7 @@ import numpy as np
 
 from virtual_vehicle.config.scenario import Scenario, parse_scenario
 from virtual_vehicle.errors import ScenarioError
+from virtual_vehicle.physics.laws import law_named
 
 # Dimensions as (length, time, mass) exponents, by field name within each table.
 _L, _T, _V, _W = (1, 0, 0), (0, 1, 0), (1, -1, 0), (0, -1, 0)  # length, time, speed, spin
@@ -93,12 +94,12 @@ def scale_scenario(scenario: Scenario, length: float, mass: float = 1.0, name: s
     data["array"] = _table(data["array"], _ARRAY, s, m)
     data["array"]["belts"] = [_table(b, _BELT, s, m) for b in data["array"].get("belts", [])]
     data["field"] = _field(data["field"], s, m)
-    viscous = scenario.friction.law == "viscous"
+    law = law_named(scenario.friction.law)
     parcels = []
     for p in data["parcels"]:
         q = _table(p, _PARCEL, s, m)
-        if viscous:
-            q["mu"] = p["mu"] / math.sqrt(s)  # eq. 30: mu in s/m
+        if "mu" in p:
+            q["mu"] = law.scaled_mu(p["mu"], s)  # in the law's units: dimensionless, or s/m (eq. 30)
         parcels.append(q)
     data["parcels"] = parcels
     data["integrator"] = _table(data["integrator"], _INTEGRATOR, s, m)

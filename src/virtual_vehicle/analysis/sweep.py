@@ -54,6 +54,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from virtual_vehicle.errors import ScenarioError, VirtualVehicleError
+from virtual_vehicle.run.interrupt import Interrupts, without_sigint
 
 Scalar = Union[bool, int, float, str]
 PER_PARCEL_COLUMNS = 10
@@ -300,15 +301,10 @@ def _connect(scheduler: str | None, workers: int | None):
     if scheduler is None:
         # Ctrl-C in a terminal reaches the whole process group: the worker processes ignore it (a disposition they
         # inherit when spawned, restarted ones too) and this process alone stops the sweep and shuts them down.
-        main = threading.current_thread() is threading.main_thread()
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
-        try:
+        with without_sigint():
             # dashboard_address ":0": no fixed port to collide with another cluster on this machine
             cluster = LocalCluster(n_workers=workers or 2, threads_per_worker=1, processes=True,
                                    dashboard_address=":0", silence_logs=logging.ERROR)
-        finally:
-            if main:
-                signal.signal(signal.SIGINT, previous)
         try:
             client = Client(cluster)
             client.register_plugin(_ignore_sigint_plugin(), name="virtual-vehicle-ignore-sigint")  # workers restarted too
@@ -351,54 +347,58 @@ def run_sweep(spec: SweepSpec, base: dict, out_dir: str | Path, *, scheduler: st
     if todo:
         client = cluster = None
         futures: dict = {}
+        stop = Interrupts()
         try:
-            client, cluster = _connect(scheduler, workers)
-            runs_dir.mkdir(parents=True, exist_ok=True)
-            digest = base_digest(base)
+            with stop:
+                client, cluster = _connect(scheduler, workers)
+                runs_dir.mkdir(parents=True, exist_ok=True)
+                digest = base_digest(base)
 
-            def scatter():  # a key of this sweep's own: its base's content hash and a random suffix
-                key = f"vv-sweep-base-{digest}-{uuid.uuid4().hex[:8]}"
-                return client.scatter({key: base}, broadcast=True, timeout=SCATTER_TIMEOUT_S)[key]
+                def scatter():  # a key of this sweep's own: its base's content hash and a random suffix
+                    key = f"vv-sweep-base-{digest}-{uuid.uuid4().hex[:8]}"
+                    return client.scatter({key: base}, broadcast=True, timeout=SCATTER_TIMEOUT_S)[key]
 
-            try:
-                base_future = scatter()
-            except (TimeoutError, OSError) as exc:  # the scheduler has no workers
-                raise SweepError(f"the Dask cluster took no data within {SCATTER_TIMEOUT_S:g} s (no workers?): "
-                                 f"{exc}") from None
-            attempts = {i: 0 for i, _ in todo}
-
-            def submit(i, v):
-                attempts[i] += 1
-                fut = client.submit(run_variation, base_future, v, key=f"vv-run-{i}-{uuid.uuid4().hex[:8]}")
-                futures[fut] = (i, v)
-                return fut
-
-            queue = as_completed([submit(i, v) for i, v in todo])
-            for fut in queue:
-                i, v = futures.pop(fut)
                 try:
-                    row = fut.result()
-                except Exception as exc:  # noqa: BLE001 -- a failed task is a row, not a failed sweep
-                    lost = _lost_to_cluster(exc)
-                    if lost and attempts[i] < MAX_ATTEMPTS:
-                        try:
-                            if base_future.status != "finished":  # the cluster lost the scattered base: send again
-                                base_future = scatter()
-                            queue.add(submit(i, v))
-                            continue
-                        except Exception as again:  # noqa: BLE001 -- no worker took it in time: this run is lost
-                            exc = again
-                    row = {"id": i, **{f"vary.{k}": x for k, x in v.items()}, "status": "lost" if lost else "error",
-                           "error": f"{type(exc).__name__}: {exc}"}
-                row["id"], row["attempts"] = i, attempts[i]
-                write_atomic(runs_dir / f"{i}.json", json.dumps(row, default=float).encode())
-                done += 1
-                if progress is not None:
-                    progress(done / len(variations))
+                    base_future = scatter()
+                except (TimeoutError, OSError) as exc:  # the scheduler has no workers
+                    raise SweepError(f"the Dask cluster took no data within {SCATTER_TIMEOUT_S:g} s "
+                                     f"(no workers?): {exc}") from None
+                attempts = {i: 0 for i, _ in todo}
+
+                def submit(i, v):
+                    attempts[i] += 1
+                    key = f"vv-run-{i}-{uuid.uuid4().hex[:8]}"
+                    fut = client.submit(run_variation, base_future, v, key=key)
+                    futures[fut] = (i, v)
+                    return fut
+
+                queue = as_completed([submit(i, v) for i, v in todo])
+                for fut in queue:
+                    stop.check()  # a Ctrl-C whose KeyboardInterrupt a finaliser swallowed stops the sweep here
+                    i, v = futures.pop(fut)
+                    try:
+                        row = fut.result()
+                    except Exception as exc:  # noqa: BLE001 -- a failed task is a row, not a failed sweep
+                        lost = _lost_to_cluster(exc)
+                        if lost and attempts[i] < MAX_ATTEMPTS:
+                            try:
+                                if base_future.status != "finished":  # the cluster lost the scattered base
+                                    base_future = scatter()
+                                queue.add(submit(i, v))
+                                continue
+                            except Exception as again:  # noqa: BLE001 -- no worker took it in time: lost
+                                exc = again
+                        row = {"id": i, **{f"vary.{k}": x for k, x in v.items()},
+                               "status": "lost" if lost else "error", "error": f"{type(exc).__name__}: {exc}"}
+                    row["id"], row["attempts"] = i, attempts[i]
+                    write_atomic(runs_dir / f"{i}.json", json.dumps(row, default=float).encode())
+                    done += 1
+                    if progress is not None:
+                        progress(done / len(variations))
         except KeyboardInterrupt:
             interrupted = True
         else:
-            interrupted = False
+            interrupted = stop.seen  # a signal after the last run finished: still an interrupted sweep
         finally:
             _shut_down(client, cluster, futures)
         if interrupted:
@@ -474,6 +474,7 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
     neither delivered nor lost at the end: ``on_array`` (put on the array and still there), ``waiting`` (never put
     on: their place at the entry never came free) and ``stuck`` (the two together), each a mean over the seeds of the
     runs that finished; also written to ``study.json``. ``retry_failed``: see :func:`run_sweep`."""
+    from virtual_vehicle.cells.programs import program_of
     from virtual_vehicle.config.scenario import load_scenario
     from virtual_vehicle.run.files import write_atomic
 
@@ -487,7 +488,7 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
     if int(samples) < 1:
         raise ScenarioError("samples", f"must be at least 1, got {samples}")
     sc, text = load_scenario(scenario)
-    if sc.control is None or sc.control.program != "sort":
+    if sc.control is None or program_of(sc.control).SUMMARY != "sorting":  # it reads the summary's sorting block
         raise ScenarioError("control.program", "a fault study needs a sorting scenario (program = \"sort\"): it "
                             "counts parcels delivered to the right exit")
     base = tomllib.loads(text)

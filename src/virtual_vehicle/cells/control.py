@@ -120,7 +120,7 @@ class PoseControl:
         self.tolerance = tuple(float(v) for v in tolerance)
         self.period = float(period)
         self.spacing = sensor_spacing(self.points)
-        self.symmetry = symmetry or [_rotational_symmetry(s) for s in self.specs]
+        self.symmetry = symmetry or [rotational_symmetry(s) for s in self.specs]
         self.waypoints = [np.asarray(w, dtype=float).reshape(-1, 3) for w in (waypoints or [[]] * len(self.specs))]
         if len(self.waypoints) != len(self.specs):
             raise ValueError("one list of waypoints per parcel")
@@ -168,7 +168,7 @@ class PoseControl:
                 Mailbox.empty(self.schema, n, P), wheels)
 
 
-def _rotational_symmetry(spec) -> int:
+def rotational_symmetry(spec) -> int:
     """How many times a turn maps the outline onto itself about its centre of mass (1, 2 or 4 checked)."""
     for k in (4, 2):
         c, s = np.cos(2 * np.pi / k), np.sin(2 * np.pi / k)
@@ -181,7 +181,7 @@ def _rotational_symmetry(spec) -> int:
 def pose_error(spec, pose, target) -> tuple[float, float]:
     """Distance (m) and heading error (rad, wrapped to the outline's rotational symmetry) from ``pose`` to
     ``target``."""
-    sym = _rotational_symmetry(spec)
+    sym = rotational_symmetry(spec)
     period = 2 * np.pi / sym
     dth = (float(target[2]) - float(pose[2]) + period / 2) % period - period / 2
     return float(np.hypot(target[0] - pose[0], target[1] - pose[1])), abs(dth)

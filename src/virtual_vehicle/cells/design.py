@@ -18,20 +18,18 @@ Units: SI (m, s, N, N m, rad, m/s, rad/s).
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import lsq_linear
 
 from virtual_vehicle.engine.dynamics import ParcelModel
 from virtual_vehicle.model.fields import Twist
 from virtual_vehicle.model.layout import CellArray
 from virtual_vehicle.model.parcel import ParcelSpec
-from virtual_vehicle.physics.friction import CoulombLaw, FrictionLaw, StickSlipLaw, ViscousLaw
+from virtual_vehicle.physics.laws import LAWS, FrictionLaw
 
-EXHAUSTIVE_WHEELS = 10
-"""Coulomb designs over at most this many wheels try all 3^m spin patterns."""
+_GEOMETRY = LAWS["coulomb"]
+"""The law of the models that only find supports and normal forces here (which do not depend on the law)."""
 
 
 @dataclass
@@ -61,7 +59,7 @@ def twist_design(cells: CellArray, spec: ParcelSpec, state, twist, vmax: float =
     """Wheel speeds under the parcel at ``state`` for the twist ``twist`` = (vx, vy m/s of its centre of mass,
     omega rad/s), scaled down uniformly if a wheel would exceed ``vmax`` (m/s)."""
     state = np.asarray(state, dtype=float)
-    model = ParcelModel(cells, spec, np.zeros((cells.n, 2)), ViscousLaw())
+    model = ParcelModel(cells, spec, np.zeros((cells.n, 2)), _GEOMETRY)
     support = model.support_at(state)
     want = np.asarray(twist, dtype=float)
     field = Twist((float(state[0]), float(state[1])), tuple(want)).velocities(cells)
@@ -78,7 +76,7 @@ def wrench_matrix(cells: CellArray, spec: ParcelSpec, state, gravity: float = 9.
     """(3, 2m) map from what the m supporting cells' wheels do to the wrench on the parcel (N, N, N m per unit),
     the supporting cells, and the normal forces (N) at ``state`` (paper eqs. 3-19 with lift-off)."""
     state = np.asarray(state, dtype=float)
-    model = ParcelModel(cells, spec, np.zeros((cells.n, 2)), CoulombLaw(), gravity)
+    model = ParcelModel(cells, spec, np.zeros((cells.n, 2)), _GEOMETRY, gravity)
     piece = model.piece_at(state)
     support, N = piece.support, piece.normal_forces(state)
     U = cells.active_directions[support]  # (m, 2, 2)
@@ -100,56 +98,13 @@ def wrench_design(cells: CellArray, spec: ParcelSpec, state, wrench, law: Fricti
     state = np.asarray(state, dtype=float)
     want = np.asarray(wrench, dtype=float)
     A, support, N = wrench_matrix(cells, spec, state, gravity)
-    m = A.shape[1]
-    if isinstance(law, ViscousLaw):
-        U = cells.active_directions[support].reshape(-1, 2)
-        r = np.repeat(cells.positions[support] - state[:2], 2, axis=0)
-        v_cell = state[3:5] + state[5] * np.column_stack([-r[:, 1], r[:, 0]])  # parcel velocity over each cell
-        own = np.einsum("ij,ij->i", v_cell, U)  # eq. 30: the slip is the wheel speed less this
-        b = -A @ own
-        active = np.any(A != 0, axis=0)
-        sol = lsq_linear(A[:, active], want - b, bounds=(-vmax, vmax), method="bvls", tol=1e-12)
-        x = np.zeros(m)
-        x[active] = sol.x
-        achieved = A @ x + b
-    elif isinstance(law, (CoulombLaw, StickSlipLaw)):
-        s = _coulomb_signs(A, want)
-        x = vmax * s
-        achieved = A @ s
-    else:
-        raise TypeError(f"no wrench design for {type(law).__name__}")
+    U = cells.active_directions[support].reshape(-1, 2)
+    r = np.repeat(cells.positions[support] - state[:2], 2, axis=0)
+    v_cell = state[3:5] + state[5] * np.column_stack([-r[:, 1], r[:, 0]])  # parcel velocity over each cell
+    own = np.einsum("ij,ij->i", v_cell, U)  # the parcel's own speed along each wheel
+    x, achieved = law.design_wheels(A, own, want, vmax)
     speeds = np.zeros((cells.n, 2))
     speeds[support] = x.reshape(-1, 2)
     velocities = np.einsum("ik,ikj->ij", speeds, cells.active_directions)
     return Design(velocities, speeds, support, want, achieved, float(np.linalg.norm(achieved - want)))
 
-
-def _coulomb_signs(A: np.ndarray, want: np.ndarray) -> np.ndarray:
-    """Spin pattern s in {-1, 0, 1}^m minimising |A s - want| (exhaustive for small m, else rounded least squares
-    improved one wheel at a time)."""
-    m = A.shape[1]
-    useful = np.flatnonzero(np.any(A != 0, axis=0))
-    s = np.zeros(m)
-    if len(useful) <= EXHAUSTIVE_WHEELS:
-        Au = A[:, useful]
-        best, best_err = None, np.inf
-        for pattern in itertools.product((-1.0, 0.0, 1.0), repeat=len(useful)):
-            err = float(np.sum((Au @ pattern - want) ** 2))
-            if best is None or err < best_err - 1e-15 * max(1.0, best_err):
-                best, best_err = pattern, err
-        s[useful] = best
-        return s
-    relaxed = lsq_linear(A, want, bounds=(-1.0, 1.0), method="bvls").x
-    s = np.round(relaxed)
-    err = float(np.sum((A @ s - want) ** 2))
-    improved = True
-    while improved:
-        improved = False
-        for j in useful:
-            for value in (-1.0, 0.0, 1.0):
-                if value == s[j]:
-                    continue
-                trial = float(np.sum((A @ s + A[:, j] * (value - s[j]) - want) ** 2))
-                if trial < err - 1e-15 * max(1.0, err):
-                    s[j], err, improved = value, trial, True
-    return s

@@ -15,7 +15,6 @@ from functools import cached_property
 
 import numpy as np
 
-from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.model.layout import CellArray
 from virtual_vehicle.model.parcel import ParcelSpec, PointGrid, covered_pairs
 
@@ -51,18 +50,18 @@ class Sensors:
     def __post_init__(self):
         off = np.asarray(self.offsets, dtype=float)
         if off.ndim != 2 or off.shape[1] != 2 or not 1 <= len(off) <= MAX_SENSORS or not np.all(np.isfinite(off)):
-            raise ScenarioError("sensors.offsets", f"needs 1 to {MAX_SENSORS} finite [x, y] offsets in m")
+            raise ValueError(f"offsets must be 1 to {MAX_SENSORS} finite [x, y] offsets in m")
         for name in ("false_positive", "false_negative"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
-                raise ScenarioError(f"sensors.{name}", f"must be a probability in [0, 1], got {v}")
+                raise ValueError(f"{name} must be a probability in [0, 1], got {v}")
         object.__setattr__(self, "offsets", off)
         shape = (self.cells.n, len(off))
         for name in ("stuck_on", "stuck_off"):
             mask = getattr(self, name)
             mask = np.zeros(shape, bool) if mask is None else np.asarray(mask, dtype=bool)
             if mask.shape != shape:
-                raise ScenarioError(f"sensors.{name}", f"fault mask must have shape {shape}")
+                raise ValueError(f"{name}: the fault mask must have shape {shape}")
             object.__setattr__(self, name, mask)
 
     @property
@@ -138,9 +137,9 @@ class MotorParams:
         for name in ("supply_voltage", "resistance", "torque_constant", "rotor_inertia", "gear_ratio",
                      "wheel_radius", "wheel_inertia"):
             if not getattr(self, name) > 0:
-                raise ScenarioError(f"wheels.{name}", f"must be positive, got {getattr(self, name)}")
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.viscous_damping < 0 or self.kp < 0 or self.ki < 0 or self.encoder_counts < 1:
-            raise ScenarioError("wheels", "viscous_damping, kp and ki must be >= 0 and encoder_counts >= 1")
+            raise ValueError("viscous_damping, kp and ki must be >= 0 and encoder_counts >= 1")
 
     @property
     def inertia(self) -> float:

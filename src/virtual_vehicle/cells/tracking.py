@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from virtual_vehicle.cells.control import _rotational_symmetry
+from virtual_vehicle.cells.control import rotational_symmetry
 from virtual_vehicle.cells.network.messages import Mailbox, Schema
 from virtual_vehicle.cells.network.programs import CellInputs
 from virtual_vehicle.cells.network.sentence import WordType
@@ -94,7 +94,7 @@ class DistributedPose:
         self.gradient_step = float(step)
         self.max_age = int(max_age)
         self.radius = np.array([max(s.radius, 1e-9) for s in self.specs])
-        self.symmetry = np.array([_rotational_symmetry(s) for s in self.specs])
+        self.symmetry = np.array([rotational_symmetry(s) for s in self.specs])
 
     def init(self, n, ports, config):
         """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each (see

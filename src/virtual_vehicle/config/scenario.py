@@ -6,6 +6,7 @@ path (see :func:`bundled_scenarios`). Errors are :class:`~virtual_vehicle.errors
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import tomllib
@@ -18,11 +19,13 @@ import numpy as np
 import shapely
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from virtual_vehicle.cells.programs import PROGRAMS, owners, program_of
+from virtual_vehicle.cells.programs.base import BuildContext, ControlSetup, FieldError, WireSpec
 from virtual_vehicle.errors import ScenarioError, TippingError
 from virtual_vehicle.model import fields as fieldlib
 from virtual_vehicle.model import layout
 from virtual_vehicle.model.parcel import ParcelSpec, polygon, rectangle, supporting_cells
-from virtual_vehicle.physics.friction import LAWS, FrictionLaw
+from virtual_vehicle.physics.laws import LAWS, FrictionLaw
 
 Pos = Annotated[float, Field(gt=0)]
 Coord = Annotated[float, Field(ge=-1e6, le=1e6)]
@@ -42,6 +45,19 @@ Vel = tuple[Speed, Speed]
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+
+@contextlib.contextmanager
+def _at(path: str):
+    """Name the TOML ``path`` a library call was built from: the model, cells and hardware raise plain ValueError
+    (they know nothing of scenario files), which becomes a ScenarioError naming the field here. A ScenarioError
+    raised inside (already naming its field) passes unchanged."""
+    try:
+        yield
+    except ScenarioError:
+        raise
+    except ValueError as exc:
+        raise ScenarioError(path, str(exc)) from None
 
 
 class BeltSpec(_Strict):
@@ -258,7 +274,7 @@ class FrictionSpec(_Strict):
     ``"stick_slip"`` (paper Section 5: wheels stick or slide, parcel ``mu`` kinetic and ``mu_static`` static,
     dimensionless; time-stepped at ``integrator.dt``)."""
 
-    law: Literal["coulomb", "viscous", "stick_slip"] = "coulomb"
+    law: Literal[tuple(LAWS)] = "coulomb"  # the registered laws
 
 
 class IntegratorSpec(_Strict):
@@ -305,86 +321,17 @@ class ContactSpec(_Strict):
                              min_window=self.min_window)
 
 
-class WireSpec(_Strict):
-    """Wire-level network hardware (see :class:`~virtual_vehicle.cells.network.wire.WireParams`): ``baud`` (bits/s),
-    ``poll_time``, ``select_time``, ``cts_timeout``, ``backoff_max`` (s), ``max_attempts``, ``queue_limit``,
-    ``bit_error_rate`` and ``loss_rate`` (0..1)."""
-
-    baud: Pos = 9600.0
-    poll_time: Pos = 50e-6
-    select_time: Annotated[float, Field(ge=0)] = 20e-6
-    cts_timeout: Pos = 2e-3
-    backoff_max: Annotated[float, Field(ge=0)] = 1e-3
-    max_attempts: Annotated[int, Field(ge=1, le=1000)] = 5
-    queue_limit: Annotated[int, Field(ge=1, le=1000)] = 1
-    bit_error_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
-    loss_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
+def control_spec(programs: dict = PROGRAMS):
+    """The ``[control]`` table's type for a registry of program modules (name -> module): the union of their
+    ``Options``, told apart by ``program``. :data:`ControlSpec` is that of :data:`PROGRAMS`."""
+    options = tuple(m.Options for m in programs.values())
+    return Annotated[Union[options], Field(discriminator="program")] if len(options) > 1 else options[0]
 
 
-class ControlSpec(_Strict):
-    """Distributed control: every cell runs ``program`` each ``period`` (s); sentences travel by ``delivery``
-    (``"ideal"`` rounds, or ``"wire"``: the paper's RS232 hardware, tuned by ``[control.wire]``). ``loss_rate``
-    (0..1) drops sentences on ideal rounds; ``seed`` fixes the network's randomness.
-
-    Programs: ``"shuttle"`` passes parcels back and forth along the wheel-0 axis at ``speed`` (m/s), reversing by a
-    flood of at most ``hop_limit`` hops started by the end cells that sense a parcel; cells repeat their state
-    every ``heartbeat`` ticks. ``"pose"`` is a closed loop from the sensors: it drives parcel k to
-    ``targets[k]`` = [x, y, theta] (m, m, rad) with twist ``gain`` (1/s) times the estimated error, wheels limited
-    to ``speed`` (m/s), stopping within ``tolerance`` = [m, rad]; with ``waypoints`` (one list of [x, y, theta] per
-    parcel) it transports each along that path, passing a waypoint within ``pass_radius`` (m). The cells under each
-    parcel estimate its pose together and drive it (:mod:`~virtual_vehicle.cells.tracking`), or with ``central`` = true
-    one computer reads every sensor and commands every cell (:class:`~virtual_vehicle.cells.control.PoseControl`).
-    ``"diffusion"``: every cell's wheel speeds relax
-    toward its neighbours' at rate ``alpha`` per tick (the discrete heat equation); ``sources`` = [[cell, v0, v1],
-    ...] hold their wheel speeds (m/s). ``"sort"``: the Virtual Vehicle (:mod:`virtual_vehicle.cells.sorting`): cells
-    inside ``entries`` outlines read each arriving parcel's ``destination``, cells inside ``exits[k]`` are exit k (a
-    lane reaching the edge; parcels leave through the side most of its cells have open);
-    parcels ride at ``speed`` keeping ``gap`` free cells ahead, sharing decisions over ``reach`` hops. Parcels
-    with a ``sequence`` number leave in that order: one whose number is not yet due parks where one of its carrying
-    cells is a parking cell (inside a ``parking`` outline, or ``P`` on a map) and waits there (at most three exits
-    then). ``central``
-    = true runs the same policies on one central computer instead
-    (:class:`~virtual_vehicle.cells.sorting.CentralSorter`),
-    for comparison. ``dead_links``: [cell id, port] pairs whose link is cut (square cells: ports 0..3 = east,
-    north, west, south of the cell; hexagonal cells: ports 0..5, every 60 degrees counter-clockwise from east).
-    ``changed_only`` (default true): on ideal rounds, step the sorter only on the cells whose sensors, sentences or
-    state changed since the last tick (the others would repeat themselves); the run is the same to the last bit,
-    false steps every cell every tick (:class:`~virtual_vehicle.cells.network.programs.ChangedCells`)."""
-
-    program: Literal["shuttle", "pose", "diffusion", "sort"]
-    period: Annotated[float, Field(gt=0, le=10)] = 0.01
-    delivery: Literal["ideal", "wire"] = "ideal"
-    speed: Annotated[float, Field(gt=0, le=1e3)] = 0.2
-    hop_limit: Annotated[int, Field(ge=1, le=254)] = 32
-    heartbeat: Annotated[int, Field(ge=1, le=100_000)] = 10
-    loss_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
-    seed: Annotated[int, Field(ge=0)] = 0
-    dead_links: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=5)]]] = []
-    wire: WireSpec = WireSpec()
-    targets: list[tuple[Coord, Coord, Annotated[float, Field(ge=-1e3, le=1e3)]]] | None = None
-    waypoints: list[list[tuple[Coord, Coord, Annotated[float, Field(ge=-1e3, le=1e3)]]]] | None = None
-    pass_radius: Annotated[float, Field(gt=0, le=10)] = 0.01
-    gain: Annotated[float, Field(gt=0, le=1e3)] = 2.0
-    tolerance: tuple[Annotated[float, Field(gt=0, le=1)], Annotated[float, Field(gt=0, le=3.2)]] = (5e-4, 0.0035)
-    alpha: Annotated[float, Field(gt=0, le=1)] = 0.2
-    sources: list[tuple[Annotated[int, Field(ge=0)], Speed, Speed]] = []
-    exits: Annotated[list[Annotated[list[Point], Field(min_length=3)]], Field(max_length=4)] = []
-    entries: list[Annotated[list[Point], Field(min_length=3)]] = []
-    parking: list[Annotated[list[Point], Field(min_length=3)]] = []
-    gap: Annotated[int, Field(ge=1, le=50)] = 2
-    reach: Annotated[int, Field(ge=1, le=62)] = 8
-    central: bool = False
-    changed_only: bool = True
-
-    @model_validator(mode="after")
-    def _pose_needs_targets(self):
-        if self.program == "pose" and self.targets is None:
-            raise ValueError("program 'pose' needs targets = [[x, y, theta], ...], one per parcel")
-        if self.program != "pose" and (self.targets is not None or self.waypoints is not None):
-            raise ValueError("targets and waypoints go with program 'pose'")
-        if self.waypoints is not None and self.targets is not None and len(self.waypoints) != len(self.targets):
-            raise ValueError("waypoints: one list per parcel, like targets")
-        return self
+ControlSpec = control_spec()
+"""Distributed control (the ``[control]`` table): every cell runs ``program``, a name in
+:data:`~virtual_vehicle.cells.programs.PROGRAMS`; each takes the shared options of
+:class:`~virtual_vehicle.cells.programs.base.ProgramOptions` and its own (its module's ``Options``)."""
 
 
 class SensorSpec(_Strict):
@@ -579,11 +526,6 @@ class Scenario(_Strict):
                              "not both or neither")
         if self.output_dt is not None and self.output_dt > self.duration:
             raise ValueError(f"output_dt ({self.output_dt} s) is longer than duration ({self.duration} s)")
-        c = self.control
-        maps = self.array.kind == "map" or any(p.kind == "map" for p in getattr(self.array, "parts", ()))
-        if c is not None and c.program == "sort" and (not c.exits or not c.entries) and not maps:
-            raise ValueError("program 'sort' needs exits = [outline, ...] and entries = [outline, ...] "
-                             "(outlines [[x, y], ...] in m), or an [array] map that marks them")
         if self.contacts.slop >= self.contacts.margin:
             raise ValueError(f"contacts.slop ({self.contacts.slop} m) must be below contacts.margin "
                              f"({self.contacts.margin} m)")
@@ -596,7 +538,8 @@ class Scenario(_Strict):
         from virtual_vehicle.model.faults import later, resolve
 
         cells, contacts, marks = _build_array(self.array)
-        velocities = np.zeros((cells.n, 2)) if self.field is None else _build_field(self.field).velocities(cells)
+        with _at("field"):
+            velocities = np.zeros((cells.n, 2)) if self.field is None else _build_field(self.field).velocities(cells)
         if cells.belts.any():  # plain belts run at their own speed whatever the field says
             dirs = cells.drive_directions
             velocities = np.einsum("ik,ikj->ij", cells.belt_commands(np.einsum("ij,ikj->ik", velocities, dirs)), dirs)
@@ -607,10 +550,15 @@ class Scenario(_Strict):
                 raise ScenarioError(f"control.dead_links[{k}]", f"cell {cell} does not exist (the array has {cells.n})")
             if port >= cells.ports[cell]:
                 raise ScenarioError(f"control.dead_links[{k}]", f"cell {cell} has ports 0..{cells.ports[cell] - 1}")
-        faults = resolve(self.faults, cells, sensors.count, from_layout(cells).neighbor, listed_links)
-        if faults.free_wheels.any() and self.friction.law == "viscous":
-            raise ScenarioError("faults", "free-spinning wheels need the coulomb or stick_slip law (the paper's "
-                                "viscous law acts on a cell's whole slip vector)")
+        _check_listed_faults(self.faults, cells.n, sensors.count, "faults")
+        with _at("faults"):
+            faults = resolve(self.faults, cells, sensors.count, from_layout(cells).neighbor, listed_links)
+        law = LAWS[self.friction.law]
+        if faults.free_wheels.any():
+            try:
+                law.supports(cells, free_wheels=True)
+            except ValueError as e:
+                raise ScenarioError("faults", str(e)) from None
         three = contacts is not None and contacts.wheel_of.max() >= 2
         if three and (faults.stuck_wheels.any() or faults.free_wheels.any()):
             raise ScenarioError("faults", "stuck and free wheels are modelled for two-wheel cells; a hexagonal cell's "
@@ -634,11 +582,11 @@ class Scenario(_Strict):
         if faults.stuck_on.any() or faults.stuck_off.any():
             sensors = dataclasses.replace(sensors, stuck_on=sensors.stuck_on | faults.stuck_on,
                                           stuck_off=sensors.stuck_off | faults.stuck_off)
-        if contacts is not None and contacts.separate:
-            if self.friction.law == "viscous":
-                raise ScenarioError("array.wheels", "separate and omni wheels push only along their own drive "
-                                    "direction: use the coulomb or stick_slip law (the paper's viscous law is for "
-                                    "lumped cells)")
+        if contacts is not None:
+            try:
+                law.supports(contacts)
+            except ValueError as e:
+                raise ScenarioError("array.wheels", str(e)) from None
         if contacts is not None and self.wheels.model == "motor":
             raise ScenarioError("wheels.model", "motor-driven wheels are modelled for the paper's lumped cells "
                                 "without belts; use model = \"ideal\" with separate or omni wheels and belts")
@@ -653,13 +601,11 @@ class Scenario(_Strict):
         specs, states = [], []
         for i, p in enumerate(self.parcels):
             where = f"parcels[{i}]"
-            try:
+            with _at(where):
                 if p.vertices is not None:
                     spec = polygon(p.vertices, p.mass, p.mu, p.com, p.inertia, name=p.name, mu_static=p.mu_static)
                 else:
                     spec = rectangle(p.length, p.width, p.mass, p.mu, p.inertia, name=p.name, mu_static=p.mu_static)
-            except ScenarioError as exc:
-                raise ScenarioError(f"{where}.{exc.field.rsplit('.', 1)[-1]}", exc.message) from None
             state = np.array([p.x, p.y, p.theta, p.vx, p.vy, p.omega], dtype=float)
             _check_on_array(start_layer, spec, state, where, p.name)
             specs.append(spec)
@@ -672,55 +618,27 @@ class Scenario(_Strict):
                 if shapely.intersection(polys[i], polys[j]).area > 1e-12:
                     raise ScenarioError(f"parcels[{j}]", f"parcel {self.parcels[j].name!r} overlaps parcel "
                                         f"{self.parcels[i].name!r} at the start; move one of them")
-        if self.control is not None and self.control.targets is not None and len(self.control.targets) != len(specs):
-            raise ScenarioError("control.targets", f"needs one target per parcel: {len(specs)}, got "
-                                f"{len(self.control.targets)}")
         for i, p in enumerate(self.parcels):
             if p.t_start > 0 and self.control is None:
                 raise ScenarioError(f"parcels[{i}].t_start", "parcels arriving later need [control] (a networked run)")
-            if p.sequence is not None and (self.control is None or self.control.program != "sort"):
-                raise ScenarioError(f"parcels[{i}].sequence", "sequence numbers are for sorting (program \"sort\")")
+            if p.sequence is not None and (self.control is None or not program_of(self.control).LABELS):
+                readers = _either([name for name, m in PROGRAMS.items() if m.LABELS])
+                raise ScenarioError(f"parcels[{i}].sequence", f"sequence numbers are for sorting (program {readers})")
         control = None if self.control is None else _build_control(self.control, cells, sensors, specs, states,
-                                                                       faults, marks)
-        if control is not None and not self.control.changed_only:
-            control = dataclasses.replace(control, changed_only=False)
-        if control is not None and self.control.program == "sort":
-            n_exits = int(control.config["exit"].max()) + 1
-            for i, p in enumerate(self.parcels):
-                if p.destination is not None and p.destination >= n_exits:
-                    raise ScenarioError(f"parcels[{i}].destination", f"exit {p.destination} does not exist (the "
-                                        f"scenario has {n_exits} exits, 0..{n_exits - 1})")
-            self._check_sequence(control.config["park"])
+                                                                       self.parcels, faults, marks)
         if control is None and self.wheels.model == "motor":
             control = _field_control(cells, velocities, self.wheels.period)
         events, now = [], faults
         for k, ev in sorted(enumerate(self.faults.events), key=lambda e: e[1].t):
-            now = later(now, ev, cells.n, sensors.count, f"faults.events[{k}]")
+            _check_listed_faults(ev, cells.n, sensors.count, f"faults.events[{k}]")
+            with _at(f"faults.events[{k}]"):
+                now = later(now, ev, cells.n, sensors.count)
             events.append((ev.t, now))
-        setup = Setup(self, cells, velocities, LAWS[self.friction.law], specs, states, control, sensors, contacts,
+        setup = Setup(self, cells, velocities, law, specs, states, control, sensors, contacts,
                       faults, events, present, changes)
         _check_step(setup)
         _check_memory(setup)
         return setup
-
-    def _check_sequence(self, park: np.ndarray) -> None:
-        """Sequence numbers, where given, must be 0, 1, 2, ... (each once), on labelled parcels, with parking."""
-        numbered = [(i, p) for i, p in enumerate(self.parcels) if p.sequence is not None]
-        if not numbered:
-            return
-        for i, p in numbered:
-            if p.destination is None:
-                raise ScenarioError(f"parcels[{i}].sequence", "a sequence number goes with a destination (the "
-                                    "label carries both)")
-        got = sorted(p.sequence for _, p in numbered)
-        if got != list(range(len(got))):
-            missing = sorted(set(range(len(got))) - set(got))
-            raise ScenarioError(f"parcels[{numbered[0][0]}].sequence", "sequence numbers must be 0, 1, 2, ... each "
-                                f"once over the parcels that have one (missing {missing[:5]}): a number never "
-                                "delivered would hold the rest forever")
-        if not park.any():
-            raise ScenarioError("control.parking", "parcels with sequence numbers need parking cells (P on the "
-                                "map, or control.parking outlines) to wait on")
 
     def _reconfiguration(self, cells: layout.CellArray) -> tuple[np.ndarray, list]:
         """(cells present at the start, [(t, cells present from then on), ...] in time order), checked; (None, [])
@@ -730,7 +648,7 @@ class Scenario(_Strict):
             return None, []
         present = np.ones(cells.n, dtype=bool)
         c = self.control
-        if c is None or c.central or self.wheels.model == "motor":
+        if c is None or getattr(c, "central", False) or self.wheels.model == "motor":
             raise ScenarioError("reconfiguration", "cells taken out and put in during a run need [control] with a "
                                 "distributed program (central = false) and ideal wheels")
 
@@ -766,15 +684,14 @@ STEPS_PER_CELL = 10
 
 def fastest_speed(setup: "Setup") -> float:
     """The fastest speed (m/s) anything in the scene is known to move at before it runs: the wheels' and belts'
-    surface speeds of a constant field, the speed a program's wheels are limited to (``control.speed``; the
-    diffusion program's ``sources``, which bound every wheel by the maximum principle), and the parcels' own
-    starting speeds (a spinning parcel's corners included)."""
+    surface speeds of a constant field, the speed a program's wheels are limited to (its options' ``top_speed()``:
+    ``control.speed``, or the diffusion program's ``sources``, which bound every wheel by the maximum principle),
+    and the parcels' own starting speeds (a spinning parcel's corners included)."""
     sc = setup.scenario
     speeds = [float(np.max(np.hypot(*setup.contact_velocities.T), initial=0.0))]
     c = sc.control
     if c is not None:
-        speeds.append(max((float(np.hypot(v0, v1)) for _, v0, v1 in c.sources), default=0.0)
-                      if c.program == "diffusion" else c.speed)
+        speeds.append(c.top_speed())
     for p, spec in zip(sc.parcels, setup.specs):
         reach = float(np.max(np.hypot(*spec.footprint.T)))
         speeds.append(float(np.hypot(p.vx, p.vy)) + abs(p.omega) * reach)
@@ -802,7 +719,7 @@ def _check_step(setup: "Setup") -> None:
                             f"({v:g} m/s) would cross {dt * v / pitch:.3g} cells ({pitch:g} m pitch) in one step; "
                             f"the step must be at most pitch / ({STEPS_PER_CELL} x speed) = "
                             f"{pitch / (STEPS_PER_CELL * v):.3g} s")
-    if sc.integrator.mode == "fixed" or sc.friction.law == "stick_slip":
+    if sc.integrator.mode == "fixed" or setup.law.time_stepper is not None:
         limit, what = (sc.output_dt, "the output spacing (output_dt") if sc.output_dt else (sc.duration, "the run ("
                                                                                               "duration")
         if dt > limit * (1 + 1e-9):
@@ -842,7 +759,7 @@ def memory_estimate(setup: "Setup") -> dict[str, float]:
         est["control.period"] = ticks * 12 * 8
         if sc.sensors.record:
             est["sensors.record"] = ticks * setup.cells.n * (setup.sensors.count + 48)
-    elif sc.integrator.mode == "fixed" or sc.friction.law == "stick_slip":
+    elif sc.integrator.mode == "fixed" or setup.law.time_stepper is not None:
         est["integrator.dt"] = np.ceil(sc.duration / sc.integrator.dt) * parcels * 200
     return {k: float(v) for k, v in est.items()}
 
@@ -897,38 +814,64 @@ def _build_array(a) -> tuple[layout.CellArray, layout.CellArray | None, dict]:
     """The cell layer, the contact layer (None when it is the cell layer: the paper's lumped cells) and the map's
     marks (entry / exit cells) of array table ``a``, belts included."""
     if isinstance(a, MixedArray):
-        built = [_build_part(part) for part in a.parts]
-        cells, contacts = layout.combine([(c, t) for c, t, _ in built])
+        for k, part in enumerate(a.parts):
+            if not np.isclose(part.pitch, a.parts[0].pitch, rtol=1e-9):
+                raise ScenarioError(f"array.parts[{k}].pitch", f"the parts of a mixed array share one pitch "
+                                    f"({a.parts[0].pitch:g} m); this one has {part.pitch:g} m")
+        built = [_build_part(part, f"array.parts[{k}]") for k, part in enumerate(a.parts)]
+        with _at("array.parts"):
+            cells, contacts = layout.combine([(c, t) for c, t, _ in built])
         marks = {key: np.concatenate([m.get(key, np.zeros(c.n, bool)) for c, _, m in built])
                  for key in sorted({key for _, _, m in built for key in m})}
     else:
-        cells, contacts, marks = _build_part(a)
-    belts = [layout.Belt(b.start, b.end, b.width, b.speed, b.spacing or cells.pitch / 2) for b in a.belts]
-    if belts:
-        n = cells.n
-        cells, contacts = layout.with_belts(cells, cells if contacts is None else contacts, belts)
+        cells, contacts, marks = _build_part(a, "array")
+    n = cells.n
+    for k, b in enumerate(a.belts):  # one at a time, to name the belt at fault: the same array as all at once
+        with _at(f"array.belts[{k}]"):
+            belt = layout.Belt(b.start, b.end, b.width, b.speed, b.spacing or cells.pitch / 2)
+            cells, contacts = layout.with_belts(cells, cells if contacts is None else contacts, [belt])
+    if a.belts:
         marks = {k: np.concatenate([m, np.zeros(cells.n - n, bool)]) for k, m in marks.items()}
     return cells, contacts, marks
 
 
-def _build_part(a) -> tuple[layout.CellArray, layout.CellArray | None, dict]:
-    """Cells, contact layer (None: lumped) and marks of one array table, without its belts."""
+def _build_part(a, where: str) -> tuple[layout.CellArray, layout.CellArray | None, dict]:
+    """Cells, contact layer (None: lumped) and marks of one array table (at TOML path ``where``), without its
+    belts."""
     marks = {}
-    if isinstance(a, GridArray):
-        cells = layout.grid(a.nx, a.ny, a.pitch, a.origin, a.drive_angle)
-    elif isinstance(a, RowArray):
-        cells = layout.row(a.n, a.pitch, a.origin, a.drive_angle)
-    elif isinstance(a, HexArray):
-        cells = layout.hexagonal(a.nx, a.ny, a.pitch, a.origin, a.drive_angle)
-    elif isinstance(a, MapArray):
-        cells, marks = layout.from_map(a.map, a.pitch, a.origin, a.lattice, a.drive_angle)
+    if isinstance(a, MapArray):
+        with _at(f"{where}.map"):
+            cells, marks = layout.from_map(a.map, a.pitch, a.origin, a.lattice, a.drive_angle)
+    elif isinstance(a, PointsArray):
+        with _at(f"{where}.points"):
+            cells = layout.from_points(a.points, a.pitch, a.drive_angle)
     else:
-        cells = layout.from_points(a.points, a.pitch, a.drive_angle)
+        with _at(where):
+            if isinstance(a, GridArray):
+                cells = layout.grid(a.nx, a.ny, a.pitch, a.origin, a.drive_angle)
+            elif isinstance(a, RowArray):
+                cells = layout.row(a.n, a.pitch, a.origin, a.drive_angle)
+            else:
+                cells = layout.hexagonal(a.nx, a.ny, a.pitch, a.origin, a.drive_angle)
     if isinstance(a, HexArray) or getattr(a, "lattice", "square") == "hex":
-        return cells, layout.three_wheels(cells, a.wheel_radius), marks
+        with _at(f"{where}.wheel_radius"):
+            return cells, layout.three_wheels(cells, a.wheel_radius), marks
     if a.wheels == "separate":
-        return cells, layout.separate_wheels(cells, a.wheel_offsets), marks
+        with _at(f"{where}.wheel_offsets"):
+            return cells, layout.separate_wheels(cells, a.wheel_offsets), marks
     return cells, None, marks
+
+
+def _check_listed_faults(table, n: int, sensors: int, where: str) -> None:
+    """Every cell (and sensor) that faults table or event ``table`` (at TOML path ``where``) lists must exist: checked
+    here, before the faults are resolved, to name the entry at fault."""
+    for name in ("dead_cells", "stuck_wheels", "free_wheels", "stuck_on", "stuck_off", "dead_links"):
+        for k, item in enumerate(getattr(table, name, ())):
+            cell = item if isinstance(item, int) else item[0]
+            if cell >= n:
+                raise ScenarioError(f"{where}.{name}[{k}]", f"cell {cell} does not exist (the array has {n})")
+            if name in ("stuck_on", "stuck_off") and item[1] >= sensors:
+                raise ScenarioError(f"{where}.{name}[{k}]", f"no sensor {item[1]}: cells have {sensors}")
 
 
 def _build_field(f):
@@ -965,8 +908,9 @@ def _build_sensors(spec: SensorSpec, cells: layout.CellArray):
                                     f"{len(offsets)} sensors each)")
             mask[cell, sensor] = True
         masks[name] = mask
-    return Sensors(cells, offsets, spec.false_positive, spec.false_negative, masks["stuck_on"], masks["stuck_off"],
-                   spec.seed)
+    with _at("sensors"):
+        return Sensors(cells, offsets, spec.false_positive, spec.false_negative, masks["stuck_on"],
+                       masks["stuck_off"], spec.seed)
 
 
 def _field_control(cells: layout.CellArray, velocities: np.ndarray, period: float) -> "ControlSetup":
@@ -980,23 +924,9 @@ def _field_control(cells: layout.CellArray, velocities: np.ndarray, period: floa
     return ControlSetup(FollowField(wheels), topo, functools.partial(IdealRounds, topo), "none", period, {})
 
 
-@dataclass(frozen=True, eq=False)
-class ControlSetup:
-    """The distributed side of a run: program, topology, a factory of fresh delivery models (each run starts from an
-    idle network with its own seeded randomness), period (s), per-cell configuration, and whether a stationary
-    program is stepped only on the cells that changed (where the delivery model can tell which)."""
-
-    program: object
-    topology: object
-    make_delivery: object
-    delivery_name: str
-    period: float
-    config: dict
-    changed_only: bool = True
-
-
-def _build_control(c: ControlSpec, cells: layout.CellArray, sensors, specs, states, faults, marks) -> ControlSetup:
-    from virtual_vehicle.cells.control import PoseControl, Shuttle
+def _build_control(c, cells: layout.CellArray, sensors, specs, states, parcels, faults, marks) -> ControlSetup:
+    """The network every program shares (the topology with its dead cells and links, the delivery model), then
+    the program's own builder (its module in :data:`~virtual_vehicle.cells.programs.PROGRAMS`)."""
     from virtual_vehicle.cells.network.delivery import IdealRounds
     from virtual_vehicle.cells.network.topology import from_layout
     from virtual_vehicle.cells.network.wire import WireLevel, WireParams
@@ -1006,110 +936,11 @@ def _build_control(c: ControlSpec, cells: layout.CellArray, sensors, specs, stat
         make_delivery = functools.partial(IdealRounds, topo, loss_rate=c.loss_rate, seed=c.seed)
     else:
         make_delivery = functools.partial(WireLevel, topo, WireParams(**c.wire.model_dump()), seed=c.seed)
-    if c.program == "diffusion":
-        from virtual_vehicle.cells.control import Diffusion
-
-        fixed = np.zeros(cells.n, dtype=bool)
-        speed = np.zeros((cells.n, 2))
-        for k, (cell, v0, v1) in enumerate(c.sources):
-            if cell >= cells.n:
-                raise ScenarioError(f"control.sources[{k}]", f"cell {cell} does not exist (the array has {cells.n})")
-            fixed[cell] = True
-            speed[cell] = (v0, v1)
-        program = Diffusion(c.alpha, max_age=0 if c.delivery == "ideal" else 20)
-        return ControlSetup(program, topo, make_delivery, c.delivery, c.period, {"fixed": fixed, "speed": speed})
-    if c.program == "sort":
-        return _build_sorter(c, cells, topo, make_delivery, marks)
-    if c.program == "pose" and c.central:
-        program = PoseControl(cells, sensors.points, specs, states, c.targets, gain=c.gain, max_speed=c.speed,
-                              tolerance=c.tolerance, period=c.period, waypoints=c.waypoints,
-                              pass_radius=c.pass_radius)
-    elif c.program == "pose":
-        from virtual_vehicle.cells.estimate import sensor_spacing
-        from virtual_vehicle.cells.tracking import DistributedPose
-
-        program = DistributedPose(specs, states, c.targets, spacing=sensor_spacing(sensors.points), gain=c.gain,
-                                  max_speed=c.speed, tolerance=c.tolerance, period=c.period, waypoints=c.waypoints,
-                                  pass_radius=c.pass_radius, max_age=0 if c.delivery == "ideal" else 20)
-        config = {"position": cells.positions, "directions": cells.active_directions,
-                  "sensor_points": sensors.points}  # what each cell is told when it is installed
-        return ControlSetup(program, topo, make_delivery, c.delivery, c.period, config)
-    else:
-        program = Shuttle(c.speed, c.hop_limit, c.heartbeat)
-    return ControlSetup(program, topo, make_delivery, c.delivery, c.period, {})
-
-
-def _inside(outline, cells: layout.CellArray, where: str) -> np.ndarray:
-    poly = shapely.Polygon(np.asarray(outline, dtype=float))
-    if not poly.is_valid or poly.area <= 0:
-        raise ScenarioError(where, "is not a simple polygon with positive area")
-    inside = shapely.covers(poly, shapely.points(cells.positions))
-    if not inside.any():
-        raise ScenarioError(where, "contains no cell")
-    return inside
-
-
-def _build_sorter(c: ControlSpec, cells: layout.CellArray, topo, make_delivery, marks) -> ControlSetup:
-    from virtual_vehicle.cells.sorting import PARK, Sorter
-
-    if np.any(cells.ports[~cells.belts] != 4):
-        raise ScenarioError("control.program", "the sorter runs on square lattices (four ports a cell)")
-    exit_id = np.full(cells.n, -1, dtype=np.int64)
-    if c.exits:
-        for k, outline in enumerate(c.exits):
-            inside = _inside(outline, cells, f"control.exits[{k}]")
-            exit_id[inside & (exit_id < 0)] = k
-        n_exits = len(c.exits)
-    else:  # from the map
-        n_exits = 0
-        while str(n_exits) in marks:
-            exit_id[marks[str(n_exits)]] = n_exits
-            n_exits += 1
-        if n_exits == 0 or any(str(k) in marks for k in range(n_exits, 4)):
-            raise ScenarioError("array.map", "program 'sort' needs exits: mark them 0, 1, ... in order on the map, "
-                                "or give control.exits")
-    exit_port = np.full(cells.n, -1, dtype=np.int64)
-    for k in range(n_exits):
-        region = np.flatnonzero(exit_id == k)
-        free = (~topo.connected[region]).sum(axis=0)  # sides of the region's cells with no neighbour, by port
-        where = f"control.exits[{k}]" if c.exits else f"array.map (exit {k})"
-        if free.max() == 0:
-            raise ScenarioError(where, "an exit must reach the edge of the array (parcels leave "
-                                "through a side with no neighbour)")
-        if np.sum(free == free.max()) > 1:
-            raise ScenarioError(where, "the way out is ambiguous (the exit touches two edges as much; "
-                                "keep it off the corner)")
-        exit_port[region] = int(np.argmax(free))  # the way out: the side most of its cells have open
-    entry = np.zeros(cells.n, dtype=bool)
-    for k, outline in enumerate(c.entries):
-        entry |= _inside(outline, cells, f"control.entries[{k}]")
-    park = np.zeros(cells.n, dtype=bool)
-    for k, outline in enumerate(c.parking):
-        park |= _inside(outline, cells, f"control.parking[{k}]")
-    if not c.parking:
-        park = marks.get("P", park)
-    if park.any() and n_exits > PARK:
-        raise ScenarioError("control.parking", f"with parking cells a sorter has at most {PARK} exits (the "
-                            "fourth gradient leads to the parking cells)")
-    if not c.entries:
-        entry = marks.get("E", entry)
-        if not entry.any():
-            raise ScenarioError("array.map", "program 'sort' needs entries: mark entry cells E on the map, or give "
-                                "control.entries")
-    forbid = np.full(cells.n, -1, dtype=np.int64)  # one-way cells: the port a parcel may not move toward
-    for arrow, against in layout.ONE_WAY.items():
-        forbid[marks.get(arrow, np.zeros(cells.n, bool))] = against
-    config = {"exit": exit_id, "exit_port": exit_port, "entry": entry, "park": park, "forbid": forbid,
-              "entry_no": np.arange(1, cells.n + 1, dtype=np.int64),  # installation numbers: unique vehicle ids
-              "clearance": (c.gap + 1) * cells.pitch}  # the loader waits for this much room around a new parcel
-    if c.central:
-        from virtual_vehicle.cells.sorting import CentralSorter
-
-        program = CentralSorter(topo, c.speed, c.gap, period=c.period)
-    else:
-        program = Sorter(c.speed, c.gap, c.reach, max_age=0 if c.delivery == "ideal" else 20, period=c.period,
-                         pitch=cells.pitch)
-    return ControlSetup(program, topo, make_delivery, c.delivery, c.period, config)
+    ctx = BuildContext(cells, sensors, specs, states, parcels, topo, make_delivery, marks)
+    try:
+        return program_of(c).build(c, ctx)
+    except FieldError as exc:
+        raise ScenarioError(exc.field, exc.message) from None
 
 
 @dataclass(frozen=True, eq=False)
@@ -1158,12 +989,21 @@ _BOUNDS = {"greater_than": ("gt", "greater than"), "greater_than_equal": ("ge", 
            "less_than": ("lt", "less than"), "less_than_equal": ("le", "at most")}
 
 
+def _either(names: list[str]) -> str:
+    """``"a", "b" or "c"``: names as TOML strings."""
+    quoted = [f'"{n}"' for n in names]
+    return quoted[0] if len(quoted) == 1 else ", ".join(quoted[:-1]) + " or " + quoted[-1]
+
+
 def _format_validation(exc: ValidationError) -> ScenarioError:
     lines = []
     first_field = ""
     for err in exc.errors():
+        parts, program = list(err["loc"]), None
+        if len(parts) >= 2 and parts[0] == "control" and parts[1] in PROGRAMS:
+            program = parts.pop(1)  # the tag pydantic adds: the program whose options it checked
         loc = ""
-        for part in err["loc"]:
+        for part in parts:
             if isinstance(part, int):
                 loc += f"[{part}]"
             else:
@@ -1173,8 +1013,18 @@ def _format_validation(exc: ValidationError) -> ScenarioError:
                     "radial", "squeeze", "rotation", "twist", "regions"):
             loc = loc.replace(f".{tag}.", ".").removesuffix(f".{tag}")
         msg = err["msg"]
-        if err["type"] == "extra_forbidden":
+        names = _either(list(PROGRAMS))
+        if err["type"] == "extra_forbidden" and program is not None and len(parts) == 2 and owners(parts[1]):
+            msg = (f'is a field of program {_either(owners(parts[1]))}, not of program "{program}" (see the scenario '
+                   "format)")
+        elif err["type"] == "extra_forbidden":
             msg = "unknown field (check its spelling against the scenario format)"
+        elif err["type"] == "union_tag_invalid" and err.get("ctx", {}).get("discriminator") == "'program'":
+            loc += ".program"
+            msg = f"unknown program \"{err['ctx'].get('tag')}\"; the programs are {names}"
+        elif err["type"] == "union_tag_not_found" and err.get("ctx", {}).get("discriminator") == "'program'":
+            loc += ".program"
+            msg = f"missing: name the program every cell runs, one of {names}"
         elif err["type"] in _BOUNDS and isinstance(err.get("ctx", {}).get(_BOUNDS[err["type"]][0]), (int, float)):
             key, words = _BOUNDS[err["type"]]
             msg = f"must be {words} {err['ctx'][key]:g}, got {err.get('input')!r}"

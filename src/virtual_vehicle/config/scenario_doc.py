@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import inspect
 import re
+import textwrap
 import types
 import typing
 from collections.abc import Iterator
@@ -28,7 +29,7 @@ takes the same fields as keyword arguments.
 
 This page is generated from the models that validate the files (`python -m virtual_vehicle.config.scenario_doc`);
 *required* marks a field without a default. A table chosen by `kind` (the array, the field) takes the fields of
-the section for that kind.
+the section for that kind; the `[control]` table, chosen by `program`, those of the section for that program.
 """
 
 
@@ -113,11 +114,37 @@ def _default(field) -> str:
     return f"`{toml(value)!r}`".replace("'", '"').replace("True", "true").replace("False", "false")
 
 
-def _doc(model: type[BaseModel]) -> str:
-    """The model's docstring as Markdown (reST literals and cross-references made code spans)."""
-    text = inspect.cleandoc(model.__doc__ or "")
+def _bases(model: type[BaseModel]) -> list[type[BaseModel]]:
+    """The models ``model`` inherits fields from that describe them (a program's options: the options every program
+    shares), nearest first."""
+    return [c for c in model.__mro__[1:]
+            if issubclass(c, BaseModel) and c is not BaseModel and c.__dict__.get("__doc__")]
+
+
+def _described(model: type[BaseModel]) -> str:
+    """The model's docstring, then those of the models it inherits fields from."""
+    docs = [model.__doc__ or ""] + [c.__doc__ for c in _bases(model)]
+    return "\n\n".join(inspect.cleandoc(d) for d in docs if d)
+
+
+def _markdown(text: str) -> str:
+    """reST literals and cross-references made code spans."""
     text = re.sub(r":\w+:`~?(?:virtual_vehicle\.)?([^`]+)`", r"`\1`", text)
     return text.replace("``", "`")
+
+
+def _doc(model: type[BaseModel], shown: dict | None = None) -> str:
+    """The model's docstring and its bases' as Markdown; a base already described under another section (``shown``:
+    base -> that section's path) is referred to there instead of repeated."""
+    shown = {} if shown is None else shown
+    parts = [inspect.cleandoc(model.__doc__ or "")]
+    for base in _bases(model):
+        if base in shown:
+            fields = ", ".join(f"``{name}``" for name in base.model_fields if name not in ("kind", "program"))
+            parts.append(textwrap.fill(f"Also the fields {fields}, described under ``{shown[base]}``.", 110))
+        else:
+            parts.append(inspect.cleandoc(base.__doc__))
+    return _markdown("\n\n".join(p for p in parts if p))
 
 
 def sections() -> Iterator[tuple[str, type[BaseModel]]]:
@@ -132,23 +159,25 @@ def sections() -> Iterator[tuple[str, type[BaseModel]]]:
         yield path, model
         for name, f in model.model_fields.items():
             inner = _models(f.annotation)
-            base = name if path == "(top level)" else f"{path.strip('[]')}.{name}"
+            base = name if path == "(top level)" else f"{path.split(' ')[0].strip('[]')}.{name}"  # tag dropped
             listed = typing.get_origin(f.annotation) is list or any(
                 typing.get_origin(a) is list for a in typing.get_args(f.annotation))
             for m in inner:
-                kind = m.model_fields.get("kind")
+                tag = next((t for t in ("kind", "program") if t in m.model_fields), None)  # what picks the table
                 label = f"[[{base}]]" if listed else f"[{base}]"
-                if kind is not None and len(inner) > 1:
-                    label += f" kind = {typing.get_args(kind.annotation)[0]!r}".replace("'", '"')
+                if tag is not None and len(inner) > 1:
+                    label += f" {tag} = {typing.get_args(m.model_fields[tag].annotation)[0]!r}".replace("'", '"')
                 queue.append((label, m))
 
 
 def reference() -> str:
     """The whole reference page, Markdown."""
     out = [INTRO]
+    shown: dict = {}
     for path, model in sections():
         out.append(f"## `{path}` ({model.__name__})\n")
-        out.append(_doc(model) + "\n")
+        out.append(_doc(model, shown) + "\n")
+        shown.update({base: path for base in _bases(model) if base not in shown})
         out.append("| field | type | default | limits |")
         out.append("|---|---|---|---|")
         for name, f in model.model_fields.items():
@@ -163,7 +192,7 @@ def undocumented() -> list[str]:
         return re.search(r"``(\[[\w.]*\.)?" + re.escape(name) + r"(?!\w)", doc) is not None
 
     return [f"{model.__name__}.{name}" for _, model in sections() for name in model.model_fields
-            if name != "kind" and not named(name, model.__doc__ or "")]
+            if name != "kind" and not named(name, _described(model))]
 
 
 if __name__ == "__main__":

@@ -17,8 +17,9 @@ planner has already ruled out pushes from other parcels). Two bounds hold, and t
 - the friction law's alone (:func:`~virtual_vehicle.physics.collide.reach_bounds`), which also bounds every point's
 speed
   by ``S_max`` over the window;
-- the piece's, valid while the piece holds (which is what is being proven: the first moment it would stop holding
-  comes after the window, by continuity). With ``k = mu g (1 + m R^2 / I)``, ``S0 = |v| + |omega| R`` now and
+- the piece's (the law's :meth:`~virtual_vehicle.physics.laws.base.FrictionLaw.piece_reach`), valid while the
+  piece holds (which is what is being proven: the first moment it would stop holding comes after the window, by
+  continuity). With ``k = mu g (1 + m R^2 / I)``, ``S0 = |v| + |omega| R`` now and
   ``c = S_max^2 / R`` bounding the centripetal acceleration ``omega^2 R`` and ``|omega| |v|``:
 
   - viscous (eq. 30): every cell under the parcel pushes with ``mu N_i u_i``, ``u_i`` its slip. The parcel's
@@ -52,15 +53,16 @@ supports change.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from virtual_vehicle.engine import _kernel
-from virtual_vehicle.engine.dynamics import _NOISE, ParcelModel, Trajectory
+from virtual_vehicle.engine.dynamics import ROUNDING_NOISE, ParcelModel, Trajectory
 from virtual_vehicle.errors import TippingError
 from virtual_vehicle.physics.collide import reach_bounds, wheel_speed_of
 from virtual_vehicle.physics.contact import SupportSolution
-from virtual_vehicle.physics.friction import FrictionConstants, ViscousLaw
+from virtual_vehicle.physics.laws import FrictionConstants
 
 
 @dataclass
@@ -72,14 +74,14 @@ class _Anchor:
     slack: float  # m
     support: np.ndarray  # cell ids
     solution: SupportSolution
-    geometry: object  # the parcel's shared cache of solved supports (for its count of solves)
+    model: ParcelModel  # the parcel's model that measured it (its count of solves, shared by its copies)
     room: float = 0.0  # m: the buffer less rounding noise; cells further than radius + buffer are not in ``near``
     noise: float = 0.0  # m: rounding noise in positions
     near: np.ndarray | None = None  # convex footprint: the cells within radius + buffer (ids); else None
     halfplanes: tuple[np.ndarray, np.ndarray] | None = None  # convex footprint: its edges' normals and offsets
     constants: FrictionConstants | None = None  # the piece's, for the wheels last seen under it (None: not yet)
     row: tuple[float, ...] = ()  # and its constants row
-    first: bool = False  # the solution is the first of its pattern's shared solutions (ParcelModel._solution_first)
+    first: bool = False  # the solution is the first of its pattern's shared solutions (ParcelModel.solution_and_first)
 
 
 def anchor(model: ParcelModel, y: np.ndarray, length: float, previous: _Anchor | None = None) -> _Anchor | None:
@@ -98,17 +100,17 @@ def anchor(model: ParcelModel, y: np.ndarray, length: float, previous: _Anchor |
         sol, first = previous.solution, True
     else:
         try:
-            sol, first = model._solution_first(support, y[:2])
+            sol, first = model.solution_and_first(support, y[:2])
         except TippingError:
             return None
     length = max(length, spec.radius)
-    clear = min(buffer, nearest) - _NOISE * length
+    clear = min(buffer, nearest) - ROUNDING_NOISE * length
     xi = y[:2] - sol.origin
+    noise = ROUNDING_NOISE * length
     slack = _kernel.support_slack(sol.basis, sol.plane_lin, sol.plane_const, sol.spring_lin, sol.hull_normals,
-                                  sol.hull_offsets, xi[0], xi[1], _NOISE * model.weight, _NOISE * length)
-    return _Anchor(np.array(y[:3], dtype=float), clear, slack, support, sol, model._geometry,
-                   room=buffer - _NOISE * length, noise=_NOISE * length, near=ids if spec.convex else None,
-                   halfplanes=spec.halfplanes if spec.convex else None, first=first)
+                                  sol.hull_offsets, xi[0], xi[1], ROUNDING_NOISE * model.weight, noise)
+    return _Anchor(np.array(y[:3], dtype=float), clear, slack, support, sol, model, room=buffer - noise, noise=noise,
+                   near=ids if spec.convex else None, halfplanes=spec.halfplanes if spec.convex else None, first=first)
 
 
 def _padded_row(column: np.ndarray, i: int, values: np.ndarray, fill) -> np.ndarray:
@@ -156,13 +158,27 @@ class QuietSteps:
         return self.states[self.rows, -1]
 
 
+class QuietStep(NamedTuple):
+    """One parcel's quiet window: parcel ``parcel`` (the plant's index) is ``steps``'s ``k``-th, its samples kept in
+    that block (making its :class:`~virtual_vehicle.engine.dynamics.Trajectory` only when asked: a networked run takes
+    most of them in from the block)."""
+
+    parcel: int
+    steps: QuietSteps
+    k: int
+
+    def trajectory(self) -> Trajectory:
+        """The window as a trajectory: one step, no events, completed."""
+        return self.steps.trajectory(self.k)
+
+
 class QuietStepper:
     """Steps the quiet windows of separately moving parcels together (see the module docstring).
 
     Args:
         cells: the contact layer.
         specs: every parcel of the plant.
-        law: the friction law (Coulomb or viscous).
+        law: the friction law (event-driven).
         mu_max: each parcel's largest friction coefficient.
         gravity: m/s^2.
         rtol, atol: the event-driven engine's tolerances, applied to the single step exactly as it applies them.
@@ -172,7 +188,6 @@ class QuietStepper:
         self.cells = cells
         self.length = max(1.0, cells.extent)
         self.law = law
-        self.viscous = isinstance(law, ViscousLaw)
         self.gravity = gravity
         self.rtol, self.atol = rtol, atol
         self.radius = np.array([s.radius for s in specs])
@@ -250,7 +265,7 @@ class QuietStepper:
         if a is None:
             return None
         if a.constants is not None and self._changed_at[self._support[i]].max() <= self._made[i]:
-            model._adopt(a.support, a.solution, a.constants, a.row)
+            model.adopt(a.support, a.solution, a.constants, a.row)
         return a.support if y is not None and a.pose.tolist() == y[:3].tolist() else None
 
     def _see(self, velocities: np.ndarray) -> None:
@@ -285,9 +300,7 @@ class QuietStepper:
         if self._rows.shape[1] != len(row):  # made at the first refresh: the row's length is the law's
             self._rows = np.zeros((len(self._rows), len(row)))
         self._rows[i] = row
-        if not self.viscous:
-            drive = self.law.drive_vectors(v, self.cells.active_directions[a.support])
-            self._drive[i] = float(np.max(np.hypot(drive[:, 0], drive[:, 1])))  # the largest |F_i| (eq. 21)
+        self._drive[i] = self.law.drive_bound(v, self.cells.active_directions[a.support])  # Coulomb: max |F_i|
 
     def reach(self, idx, Y: np.ndarray, window: float, velocities: np.ndarray,
               wheel_speed: float) -> tuple[np.ndarray, np.ndarray]:
@@ -299,28 +312,22 @@ class QuietStepper:
         R = self.radius[idx]
         k = self.lever_mu[idx] * self.gravity
         s0 = np.hypot(Y[:, 3], Y[:, 4]) + np.abs(Y[:, 5]) * R
-        r_law, s_max = reach_bounds(s0, self.lever_mu[idx], window, law="viscous" if self.viscous else "coulomb",
-                                    gravity=self.gravity, wheel_speed=wheel_speed)
+        r_law, s_max = reach_bounds(s0, self.lever_mu[idx], window, law=self.law, gravity=self.gravity,
+                                    wheel_speed=wheel_speed)
         if self.cells.is_line:  # a row may hold the parcel laterally: the law's bound only
             return r_law, np.full(len(idx), np.inf)
         c = s_max * s_max / R
-        if self.viscous:
+
+        def slip():  # the largest slip speed (m/s) under each parcel now, for a law whose bound reads it
             ids = self._support[idx]  # (parcels, cells), padded with the sentinel cell: read as any, then masked
             arm = np.take(self.cells.positions, ids, axis=0, mode="clip") - Y[:, None, :2]
             spin = Y[:, 5, None]
             v = np.take(velocities, ids, axis=0, mode="clip")
-            slip = np.hypot(v[..., 0] - Y[:, 3, None] + spin * arm[..., 1],
-                            v[..., 1] - Y[:, 4, None] - spin * arm[..., 0])
-            sigma = np.where(ids < self.cells.n, slip, 0.0).max(axis=1, initial=0.0)
-            # sigma_0 ((e^{kT} - 1) / k - T) + c ((e^{kT} - 1) / k - T) / k, by its series where kT is small
-            kt = k * window
-            big = kt > 1e-4
-            ks = np.where(big, k, 1.0)
-            g1 = np.where(big, np.expm1(kt) / ks - window, kt * window * (0.5 + kt / 6 + kt * kt / 24))
-            g2 = np.where(big, g1 / ks, window * window * (0.5 + kt / 6 + kt * kt / 24))
-            accel = sigma * g1 + c * g2
-        else:
-            accel = 0.5 * (k * self._drive[idx] + c) * window ** 2
+            slips = np.hypot(v[..., 0] - Y[:, 3, None] + spin * arm[..., 1],
+                             v[..., 1] - Y[:, 4, None] - spin * arm[..., 0])
+            return np.where(ids < self.cells.n, slips, 0.0).max(axis=1, initial=0.0)
+
+        accel = self.law.piece_reach(k, window, c, self._drive[idx], slip)
         return np.minimum(r_law, s0 * window + accel), accel
 
     def _check(self, idx, ks, Y, anchors, window, base, velocities, wheel_speed) -> np.ndarray:
@@ -373,6 +380,14 @@ class QuietStepper:
                                         self._edge_normals[idx], self._edge_offsets[idx], self._edge_count[idx],
                                         np.ascontiguousarray(Y), window, r, accel, R, lever, self._noise[idx])
 
+    def compile_checks(self, model: ParcelModel, y: np.ndarray) -> None:
+        """Compile (or load from numba's cache) the compiled checks :meth:`step` runs, with the argument types it
+        gives them, at a time of the caller's choosing: anchor parcel 0 (``model``'s) at state ``y`` and ask its
+        edges whether the cells stay clear of them for 10 ms (the branch a step takes only near cells)."""
+        self._anchor(0, [model], y)
+        self._edges_clear(np.zeros(1, dtype=np.int64), y[None], 0.01, np.zeros(1), np.zeros(1), self.radius,
+                          self.lever)
+
     def step(self, models, base, idx: list[int], ys, velocities: np.ndarray, t: float, te: float,
              samples: np.ndarray, wheel_speed: float | None = None) -> tuple[QuietSteps, list[int]]:
         """Advance the parcels ``idx`` (states ``ys[i]``, no other parcel within reach) from ``t`` to ``te`` (s)
@@ -416,5 +431,5 @@ class QuietStepper:
         rest.extend(idx[k] for k in quiet[~accepted].tolist())
         kept = quiet[rows].tolist()
         return QuietSteps([idx[k] for k in kept], times, states, rows, evals,
-                          [anchors[k].geometry.solves for k in kept]), rest
+                          [anchors[k].model.solves for k in kept]), rest
 

@@ -16,7 +16,7 @@ Two integrators share the model:
   and location) is compiled (:mod:`virtual_vehicle.engine._kernel`); the support changes between pieces stay in Python
   (with the support solve's and the friction constants' arithmetic compiled in :mod:`~virtual_vehicle.physics.contact`
   and
-  :mod:`~virtual_vehicle.physics.friction`);
+  :mod:`~virtual_vehicle.physics.laws.affine`);
 - ``"fixed"``: classical RK4 at a fixed step that looks up the supports at every stage and never locates events,
   for comparison (first-order accurate across support changes).
 """
@@ -39,15 +39,12 @@ from virtual_vehicle.engine.stickslip import run_stick_slip
 from virtual_vehicle.errors import IntegrationError, TippingError
 from virtual_vehicle.model.layout import CellArray
 from virtual_vehicle.model.parcel import ParcelSpec
-from virtual_vehicle.physics.contact import SupportSolution, _solve
-from virtual_vehicle.physics.friction import (
-    CoulombLaw,
-    FrictionConstants,
-    FrictionLaw,
-    StickSlipLaw,
-    _f64,
-    _row,
-)
+from virtual_vehicle.physics.contact import SupportSolution, solve_prechecked
+from virtual_vehicle.physics.laws import FrictionConstants, FrictionLaw, affine
+
+TIME_STEPPERS = {"stick_slip": run_stick_slip}
+"""The engine's time steppers by the name a time-stepped law gives (its ``time_stepper``): each solves the law's
+modes every step at ``dt`` (s) instead of integrating affine pieces between events."""
 
 Mode = Literal["event", "fixed"]
 MODES = get_args(Mode)
@@ -103,20 +100,27 @@ class Piece:
         """Normal forces (N) of the supporting cells at state ``y``."""
         return self.solution.forces(np.asarray(y[:2], dtype=float))
 
-
-def _rebuild_piece(support, solution, constants, mass, inertia, row) -> "Piece":
-    """The piece of these parts; ``row`` is :func:`constants_row` of them."""
-    return Piece(support, solution, constants, _make_rhs(row), mass, inertia, row)
+    @classmethod
+    def of(cls, support: np.ndarray, solution: SupportSolution, constants: FrictionConstants, mass: float,
+           inertia: float, row: tuple[float, ...], support_key: tuple[int, ...]) -> "Piece":
+        """The piece of these parts (``row`` is :func:`constants_row` of them), its :attr:`key` made from
+        ``support_key``, ``tuple(support.tolist())``, which a model looking pieces up by their cells has made
+        already (converting the cells again took a good part of a new piece's bookkeeping)."""
+        piece = cls(support, solution, constants, _make_rhs(row), mass, inertia, row)
+        piece.__dict__["key"] = support_key, tuple(compress(support_key, solution.in_contact.tolist()))
+        return piece
 
 
 def constants_row(k: FrictionConstants, origin: np.ndarray, mass: float, inertia: float) -> tuple[float, ...]:
-    """A piece's constants as plain floats, in the order :func:`~virtual_vehicle.engine._kernel.accelerations` takes them:
-    local origin (m), the force and torque constants of eqs. 23 and 29, the viscous coefficient and weight, the
-    moments of eqs. 33 and 38, then 1 / mass and 1 / inertia. (A law's ``constants_and_row`` makes the same row
+    """A piece's constants as plain floats, in the order :func:`~virtual_vehicle.engine._kernel.accelerations`
+    takes them (named by :data:`~virtual_vehicle.physics.laws.affine.ROW_FIELDS`): local origin (m), the force and
+    torque constants of eqs. 23 and 29, the viscous coefficient and weight, the moments of eqs. 33 and 38, then
+    1 / mass and 1 / inertia. (A law's ``constants_and_row`` makes the same row
     with its constants, in one compiled call.)"""
-    return tuple(_row(*map(_f64, (k.a, k.b, k.c, k.d, k.e)), float(k.f), float(k.damping), float(k.weight),
-                      *map(_f64, (k.moment_lin, k.moment_const, k.second_lin)), float(k.second_const), _f64(origin),
-                      1.0 / mass, 1.0 / inertia).tolist())
+    f64 = affine.f64
+    return tuple(affine.row(*map(f64, (k.a, k.b, k.c, k.d, k.e)), float(k.f), float(k.damping), float(k.weight),
+                            *map(f64, (k.moment_lin, k.moment_const, k.second_lin)), float(k.second_const),
+                            f64(origin), 1.0 / mass, 1.0 / inertia).tolist())
 
 
 def _make_rhs(row: tuple[float, ...]):
@@ -149,9 +153,10 @@ class ParcelModel:
         if self.velocities.shape != (cells.n, 2) or not np.all(np.isfinite(self.velocities)):
             raise ValueError(f"velocities must be finite with shape ({cells.n}, 2)")
         self.law = law
-        if cells.separate and not isinstance(law, (CoulombLaw, StickSlipLaw)):
-            raise ValueError("separate wheels push only along their own drive direction; the paper's viscous law acts "
-                             "on the whole slip vector of a lumped cell: use the coulomb or stick_slip law")
+        law.supports(cells)
+        if law.time_stepper is not None and law.time_stepper not in TIME_STEPPERS:
+            raise ValueError(f"the {law.name} law asks for a time stepper {law.time_stepper!r} the engine does not "
+                             f"have: one of {', '.join(map(repr, TIME_STEPPERS))}")
         self.weight = spec.weight(gravity)
         self._pieces: dict[tuple, Piece] = {}
         self._by_support: dict[tuple[int, ...], list[Piece]] = {}
@@ -191,9 +196,9 @@ class ParcelModel:
         velocities = np.asarray(velocities, dtype=float)
         if velocities.shape != (self.cells.n, 2) or not np.all(np.isfinite(velocities)):
             raise ValueError(f"velocities must be finite with shape ({self.cells.n}, 2)")
-        return self._rewheeled(velocities)
+        return self.with_prechecked_velocities(velocities)
 
-    def _rewheeled(self, velocities: np.ndarray) -> "ParcelModel":
+    def with_prechecked_velocities(self, velocities: np.ndarray) -> "ParcelModel":
         """:meth:`with_velocities` for ``velocities`` already checked ((n, 2) finite float array, m/s)."""
         self.outline  # made here once, so that every copy shares it
         other = ParcelModel.__new__(ParcelModel)
@@ -210,13 +215,19 @@ class ParcelModel:
         return _kernel.outline(self.spec)
 
     @cached_property
-    def _segment_scales(self) -> tuple[float, float, float, float]:
+    def segment_scales(self) -> tuple[float, float, float, float]:
         """What every :class:`_Segment` of this parcel takes: its radius, the candidates' search buffer (m) and the
         rounding noise of the lengths (m) and of the forces (N) among the event values, below which a sign is not to
         be trusted."""
         spec, cells = self.spec, self.cells
-        return (spec.radius, max(cells.pitch, 0.25 * spec.radius), _NOISE * max(1.0, cells.extent, spec.radius),
-                _NOISE * self.weight)
+        return (spec.radius, max(cells.pitch, 0.25 * spec.radius), ROUNDING_NOISE * max(1.0, cells.extent, spec.radius),
+                ROUNDING_NOISE * self.weight)
+
+    @property
+    def shared_solutions(self) -> dict:
+        """The store of solved supports this model shares with the models of other parcels of its weight (the
+        ``shared_solutions`` it was made with, or its own): a plant drops a store no parcel uses any more."""
+        return self._geometry.shared
 
     @property
     def solves(self) -> int:
@@ -238,8 +249,7 @@ class ParcelModel:
                 return piece
         sol = self.solution_for(support, X)
         k, row = self.constants_and_row(support, sol, self.velocities[support])
-        piece = _rebuild_piece(support, sol, k, self.spec.mass, self.spec.inertia, row)
-        piece.__dict__["key"] = skey, tuple(compress(skey, sol.in_contact.tolist()))  # Piece.key, from skey
+        piece = Piece.of(support, sol, k, self.spec.mass, self.spec.inertia, row, skey)
         existing = self._pieces.get(piece.key)
         if existing is not None:
             return existing
@@ -247,14 +257,13 @@ class ParcelModel:
         self._by_support.setdefault(skey, []).append(piece)
         return piece
 
-    def _adopt(self, support: np.ndarray, solution: SupportSolution, constants: FrictionConstants,
+    def adopt(self, support: np.ndarray, solution: SupportSolution, constants: FrictionConstants,
                row: tuple[float, ...]) -> None:
         """Cache the piece of the cells ``support`` made elsewhere from ``solution`` and ``constants`` for this
         model's wheels (a quiet stepper's anchor), unless a piece of those cells is cached already."""
         skey = tuple(support.tolist())
         if skey not in self._by_support:
-            piece = _rebuild_piece(support, solution, constants, self.spec.mass, self.spec.inertia, row)
-            piece.__dict__["key"] = skey, tuple(compress(skey, solution.in_contact.tolist()))  # Piece.key, from skey
+            piece = Piece.of(support, solution, constants, self.spec.mass, self.spec.inertia, row, skey)
             self._pieces[piece.key] = piece
             self._by_support[skey] = [piece]
 
@@ -262,9 +271,9 @@ class ParcelModel:
         """The solved normal forces of the cells ``support`` with the centre of mass at ``com`` (m), from the cache
         of geometric patterns (shared by all velocities, and by parcels of the same weight) or solved now. Raises
         TippingError when there is none."""
-        return self._solution_first(support, com)[0]
+        return self.solution_and_first(support, com)[0]
 
-    def _solution_first(self, support: np.ndarray, com) -> tuple[SupportSolution, bool]:
+    def solution_and_first(self, support: np.ndarray, com) -> tuple[SupportSolution, bool]:
         """:meth:`solution_for`, and whether it is the first of its pattern's shared solutions (which the lookup
         tries before any other: wherever it holds on these cells, it is the one found)."""
         X = np.asarray(com, dtype=float)
@@ -280,10 +289,10 @@ class ParcelModel:
             if found is not None:
                 return found[1].at(origin), found[0] == 0 and store is geometry.shared
         try:  # in the pattern's own coordinates (see _GeometryCache), its first cell at the local origin
-            sol = _solve(rel * unit, X - pts[0], self.weight, self.cells.is_line, self._line_dir)
+            sol = solve_prechecked(rel * unit, X - pts[0], self.weight, self.cells.is_line, self._line_dir)
         except TippingError as exc:  # say where, in the array's coordinates
             try:
-                _solve(pts, X, self.weight, self.cells.is_line, self._line_dir)
+                solve_prechecked(pts, X, self.weight, self.cells.is_line, self._line_dir)
             except TippingError as world:
                 raise world from None
             raise TippingError(f"the centre of mass at ({X[0]:.6g}, {X[1]:.6g}) m is on the edge of the hull of its "
@@ -331,7 +340,7 @@ class _Segment:
     """
 
     def __init__(self, model: ParcelModel, piece: Piece, y0: np.ndarray, previous: "_Segment | None" = None):
-        radius, buffer, noise_length, noise_force = model._segment_scales
+        radius, buffer, noise_length, noise_force = model.segment_scales
         self.buffer = buffer
         x, y = y0[:2].tolist()
         if previous is not None and math.hypot(x - previous.xy[0], y - previous.xy[1]) <= buffer / 2:
@@ -370,7 +379,7 @@ class _Segment:
         return out if np.ndim(y) == 2 else out[0]
 
 
-_NOISE = 1e-11
+ROUNDING_NOISE = 1e-11
 """Relative size below which an event value is treated as zero (rounding noise)."""
 
 _CHATTER_EVENTS = 50
@@ -398,8 +407,8 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
 
     Args:
         mode: ``"event"`` (piecewise, events located) or ``"fixed"`` (RK4 with step ``dt``, s). A model whose law is
-            :class:`~virtual_vehicle.engine.stickslip.StickSlipLaw` is always time-stepped at ``dt`` (a complementarity
-            problem per step), whatever the mode.
+            time-stepped (its ``time_stepper``, e.g. stick-slip: a complementarity problem per step) is always
+            stepped at ``dt``, whatever the mode.
         rtol, atol: tolerances of the adaptive integrator (event mode); atol in state units (m, rad, m/s, rad/s).
         max_step: largest step of the adaptive integrator, s.
         dt: fixed step (s) of fixed mode and of stick-slip. Event mode uses it only where support changes chatter
@@ -432,14 +441,14 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
         sample_times = sample_grid(t0, t1, sample_dt)
     if mode not in MODES:
         raise ValueError(f"mode must be 'event' or 'fixed', got {mode!r}")
-    return _integrate(model, y0, t0, t1, sample_times, mode=mode, rtol=rtol, atol=atol, max_step=max_step, dt=dt,
-                      progress=progress, max_segments=max_segments)
+    return integrate_prechecked(model, y0, t0, t1, sample_times, mode=mode, rtol=rtol, atol=atol, max_step=max_step,
+                                dt=dt, progress=progress, max_segments=max_segments)
 
 
-def _integrate(model: ParcelModel, y0: np.ndarray, t0: float, t1: float, sample_times: np.ndarray, *, mode: Mode,
-               rtol: float, atol: float, max_step: float, dt: float,
-               progress: Callable[[float], None] | None = None, max_segments: int = 1_000_000,
-               support: np.ndarray | None = None) -> Trajectory:
+def integrate_prechecked(model: ParcelModel, y0: np.ndarray, t0: float, t1: float, sample_times: np.ndarray, *,
+                         mode: Mode, rtol: float, atol: float, max_step: float, dt: float,
+                         progress: Callable[[float], None] | None = None, max_segments: int = 1_000_000,
+                         support: np.ndarray | None = None) -> Trajectory:
     """:func:`integrate` for arguments known to be valid (``y0`` a finite (6,) float array, ``t1 > t0``,
     ``sample_times`` a float array increasing within [t0, t1], ``mode`` known): a plant's calls, whose checks took
     ~30 us of a ~250 us control tick with an event. ``support``: the cells under the parcel at ``y0`` when the caller
@@ -447,9 +456,8 @@ def _integrate(model: ParcelModel, y0: np.ndarray, t0: float, t1: float, sample_
     # Flush values below 1e-100 (a velocity decaying for minutes under viscous damping reaches subnormal floats,
     # where the adaptive integrator's error norm underflows to 0/0).
     y0 = np.where(np.abs(y0) < 1e-100, 0.0, y0)
-    if isinstance(model.law, StickSlipLaw):
-
-        return run_stick_slip(model, y0, t0, t1, sample_times, progress, dt=dt)
+    if model.law.time_stepper is not None:
+        return TIME_STEPPERS[model.law.time_stepper](model, y0, t0, t1, sample_times, progress, dt=dt)
     if mode == "event":
         return _run_event(model, y0, t0, t1, sample_times, progress, max_segments, rtol=rtol, atol=atol,
                           max_step=max_step, dt=dt, support=support)

@@ -31,8 +31,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from virtual_vehicle.engine.batch import QuietStepper, QuietSteps
-from virtual_vehicle.engine.dynamics import MODES, ParcelModel, _integrate
+from virtual_vehicle.engine.batch import QuietStep, QuietStepper
+from virtual_vehicle.engine.dynamics import MODES, ParcelModel, integrate_prechecked
 from virtual_vehicle.engine.stepping import Event, Trajectory, diff_event, sample_grid, sampled_at
 from virtual_vehicle.engine.stickslip import account, masses, new_account, remember, wheel_problem
 from virtual_vehicle.errors import TippingError
@@ -51,7 +51,7 @@ from virtual_vehicle.physics.collide import (
     solve_rows,
     wheel_speed_of,
 )
-from virtual_vehicle.physics.friction import FrictionLaw, StickSlipLaw, ViscousLaw
+from virtual_vehicle.physics.laws import FrictionLaw
 
 _ADDITIVE = ("wheel_work", "friction_dissipation", "step_dissipation", "contact_work", "unconverged_steps",
              "chatter_steps")
@@ -125,13 +125,12 @@ class Plant:
         self._warm: dict[tuple[int, int, int], tuple[float, float]] = {}
         self._velocities: np.ndarray | None = None
         self._models = None
-        self._law_name = "viscous" if isinstance(law, ViscousLaw) else "coulomb"
         self._mu_max = [max(s.mu, s.mu_static or 0.0) for s in specs]
         self._gain = [push_gain(s) for s in specs]
         self._radius = np.array([s.radius for s in specs])
         self._quiet = None
         if (integration.batch and integration.mode == "event" and np.isinf(integration.max_step)
-                and not isinstance(law, StickSlipLaw)):
+                and law.time_stepper is None):
             self._quiet = QuietStepper(cells, self.specs, law, self._mu_max, gravity, integration.rtol,
                                        integration.atol)
 
@@ -182,7 +181,7 @@ class Plant:
         weight = self.specs[i].weight(self.gravity)
         store = self._solutions.get(weight)
         fresh = self._model(self.specs[i], share=False)
-        if store is not None and not any(m._geometry.shared is store for k, m in enumerate(self.base) if k != i):
+        if store is not None and not any(m.shared_solutions is store for k, m in enumerate(self.base) if k != i):
             del self._solutions[weight]
         fresh.contact_memory = self.base[i].contact_memory
         fresh.present = self.base[i].present
@@ -202,7 +201,7 @@ class Plant:
         return np.array(self._mu_max, dtype=float)
 
     def _reach(self, i, y, T, wmax, floor=0.0):
-        return point_reach(self.specs[i], y, T, law=self._law_name, mu_max=self._mu_max[i], gravity=self.gravity,
+        return point_reach(self.specs[i], y, T, law=self.law, mu_max=self._mu_max[i], gravity=self.gravity,
                            wheel_speed=wmax, speed_floor=floor)
 
     def _meet_time(self, i, j, ys, gap, H, wmax, floor) -> float:
@@ -239,7 +238,7 @@ class Plant:
         radius = self._radius[live]
 
         def reaches(T, floor):  # self._reach of every live parcel
-            return point_reaches(radius, self._lever[live], Y, T, law=self._law_name, mu_max=self._mu_max_arr[live],
+            return point_reaches(radius, self._lever[live], Y, T, law=self.law, mu_max=self._mu_max_arr[live],
                                  gravity=self.gravity, wheel_speed=wmax, speed_floor=floor[live])
 
         def candidates(T, floor):
@@ -308,22 +307,22 @@ class Plant:
         trimming each parcel's trajectory cost a few microseconds a tick). Raises ValueError when an active parcel's
         state is not six finite numbers.
         """
-        out, quiet = self._advance(ys, active, velocities, t0, t1, sample_dt, progress, sample_times)
-        for i, steps, k in quiet:
-            out[i] = steps.trajectory(k)
+        out, quiet = self.advance_blocks(ys, active, velocities, t0, t1, sample_dt, progress, sample_times)
+        for q in quiet:
+            out[q.parcel] = q.trajectory()
         if trim:
             grid = _output_grid(t0, t1, sample_dt, sample_times)
             out = [None if tr is None else _on_grid(tr, grid) for tr in out]
         return out
 
-    def _advance(self, ys: list[np.ndarray], active: list[bool], velocities: np.ndarray, t0: float, t1: float,
-                 sample_dt: float, progress: Callable[[float], None] | None = None,
-                 sample_times: np.ndarray | None = None) -> tuple[list[Trajectory | None],
-                                                                  list[tuple[int, QuietSteps, int]]]:
-        """:meth:`advance` untrimmed, with the parcels stepped only by the quiet stepper left as it stepped them: a
-        networked run takes them in from the stepper's block (a Trajectory per parcel and tick cost more than the
-        step). Returns the trajectories, None for those parcels and the inactive ones, and ``(i, steps, k)`` for
-        each of those parcels ``i``: its window is ``steps.trajectory(k)``."""
+    def advance_blocks(self, ys: list[np.ndarray], active: list[bool], velocities: np.ndarray, t0: float, t1: float,
+                       sample_dt: float, progress: Callable[[float], None] | None = None,
+                       sample_times: np.ndarray | None = None) -> tuple[list[Trajectory | None], list[QuietStep]]:
+        """:meth:`advance` untrimmed, with the parcels stepped only by the quiet stepper left in the stepper's block:
+        a run that goes one control tick at a time takes them in from there (a Trajectory per parcel and tick cost
+        more than the step). Returns the trajectories, None for those parcels and the inactive ones, and a
+        :class:`QuietStep` for each of those parcels (its window is ``q.trajectory()``). Arguments and errors as
+        :meth:`advance`'s."""
         models = self.models(velocities)
         was_active = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
         if was_active:  # checked here once: the engine takes them as they are
@@ -333,7 +332,7 @@ class Plant:
                 Y = None
             if Y is None or Y.shape != (len(was_active), 6) or not np.all(np.isfinite(Y)):
                 raise ValueError("the active parcels' states must be six finite numbers [x, y, theta, vx, vy, omega]")
-        parts: dict[int, list] = {i: [] for i in was_active}  # each window's Trajectory, or (steps, k) if quiet
+        parts: dict[int, list[Trajectory | QuietStep]] = {i: [] for i in was_active}  # each window's, in order
         grid = _output_grid(t0, t1, sample_dt, sample_times)
         t = float(t0)
         end = t1 - 1e-12 * max(1.0, abs(t1))
@@ -357,12 +356,13 @@ class Plant:
                 if len(done):
                     last = done.last()
                     for k, i in enumerate(done.idx):  # a quiet step completes: nothing tips
-                        parts[i].append((done, k))
+                        parts[i].append(QuietStep(i, done, k))
                         ys[i] = last[k]
             for i in rest:
                 known = None if self._quiet is None else self._quiet.hand_over(i, models[i], ys[i])
-                tr = _integrate(models[i], ys[i], t, te, samples, mode=integ.mode, rtol=integ.rtol, atol=integ.atol,
-                                max_step=integ.max_step, dt=integ.dt, support=known)  # all checked where they come in
+                tr = integrate_prechecked(models[i], ys[i], t, te, samples, mode=integ.mode, rtol=integ.rtol,
+                                          atol=integ.atol, max_step=integ.max_step, dt=integ.dt,
+                                          support=known)  # all checked where they come in
                 if self._quiet is not None and (tr.events or tr.status != "completed"):
                     self._quiet.forget(i)  # its anchor's piece may no longer hold
                 self._take(i, tr, ys, active, parts)
@@ -375,12 +375,12 @@ class Plant:
             if progress is not None:
                 progress(t)
         out: list[Trajectory | None] = [None] * len(ys)
-        quiet: list[tuple[int, QuietSteps, int]] = []
+        quiet: list[QuietStep] = []
         for i, p in parts.items():
-            if len(p) == 1 and type(p[0]) is tuple:
-                quiet.append((i, *p[0]))
+            if len(p) == 1 and type(p[0]) is QuietStep:
+                quiet.append(p[0])
             elif p:
-                out[i] = join([q[0].trajectory(q[1]) if type(q) is tuple else q for q in p])
+                out[i] = join([q.trajectory() if type(q) is QuietStep else q for q in p])
         return out, quiet
 
     @staticmethod
@@ -407,7 +407,7 @@ class Plant:
         """Time-step a group of parcels together from ``t0`` to ``t1``; returns {parcel: Trajectory}."""
         h = self.integration.dt
         cp = self.contact
-        stick = isinstance(self.law, StickSlipLaw)
+        stick = self.law.time_stepper is not None  # a time-stepped law's wheels join the contact problem
         n_steps = max(1, int(np.ceil((t1 - t0) / h - 1e-9)))
         Y = {i: np.array(ys[i], dtype=float) for i in members}
         log = {i: ([t0], [Y[i].copy()], [], "completed") for i in members}
@@ -552,7 +552,7 @@ class _Models:
     def __getitem__(self, i: int) -> ParcelModel:
         model = self.made.get(i)
         if model is None:
-            model = self.made[i] = self.base[i]._rewheeled(self.velocities)  # checked once, above
+            model = self.made[i] = self.base[i].with_prechecked_velocities(self.velocities)  # checked once, above
         return model
 
     def __len__(self) -> int:

@@ -34,6 +34,17 @@ class Event:
     message: str = ""
     partner: str = ""
 
+    @classmethod
+    def support(cls, t: float, state: tuple[float, ...], entered: tuple[int, ...], left: tuple[int, ...],
+                lifted: tuple[int, ...], touched: tuple[int, ...]) -> Event:
+        """``Event(t, "support", state, entered, left, lifted, touched)``: the same frozen object, made without the
+        dataclass's nine guarded field assignments (half of the ~1 us a support change's record took). The
+        arguments are taken as they are: ``t`` a float (s), the others tuples."""
+        ev = object.__new__(cls)
+        ev.__dict__.update(t=t, kind="support", state=state, entered=entered, left=left, lifted=lifted,
+                           touched=touched, message="", partner="")
+        return ev
+
 
 @dataclass
 class Trajectory:
@@ -65,22 +76,12 @@ def diff_event(t, y, old, new) -> Event | None:
     lifted, touched = (old_c - new_c) & new_s, (new_c - old_c) & old_s
     if not (entered or left or lifted or touched):
         return None
-    return _support_event(float(t), tuple(np.asarray(y, dtype=float).tolist()), _ordered(entered), _ordered(left),
-                          _ordered(lifted), _ordered(touched))
+    return Event.support(float(t), tuple(np.asarray(y, dtype=float).tolist()), _ordered(entered), _ordered(left),
+                         _ordered(lifted), _ordered(touched))
 
 
 def _ordered(ids: frozenset[int]) -> tuple[int, ...]:
     return tuple(sorted(ids)) if ids else ()
-
-
-def _support_event(t: float, state: tuple[float, ...], entered: tuple[int, ...], left: tuple[int, ...],
-                   lifted: tuple[int, ...], touched: tuple[int, ...]) -> Event:
-    """``Event(t, "support", state, entered, left, lifted, touched)``, the same object made without the frozen
-    dataclass's nine guarded field assignments (half of the ~1 us a support change's record took)."""
-    ev = object.__new__(Event)
-    ev.__dict__.update(t=t, kind="support", state=state, entered=entered, left=left, lifted=lifted, touched=touched,
-                       message="", partner="")
-    return ev
 
 
 def sample_grid(t0: float, t1: float, sample_dt: float) -> np.ndarray:

@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from virtual_vehicle.engine.stepping import Trajectory, fixed_steps
-from virtual_vehicle.physics.friction import StickSlipLaw
+from virtual_vehicle.physics.laws import StickSlipLaw
 
 __all__ = ["StickSlipLaw", "solve_contacts", "run_stick_slip"]
 
@@ -128,7 +128,8 @@ def solve_contacts(J, w, bounds, nu, minv, lam0, max_sweeps: int, tol: float):
 
 
 def run_stick_slip(model, y0, t0, t1, sample_times, progress, *, dt):
-    """Time-step one parcel under :class:`StickSlipLaw` from ``t0`` to ``t1`` (s) at step ``dt`` (s).
+    """Time-step one parcel under :class:`~virtual_vehicle.physics.laws.StickSlipLaw` from ``t0`` to ``t1`` (s) at
+    step ``dt`` (s).
 
     Returns a :class:`~virtual_vehicle.engine.stepping.Trajectory` whose ``stats`` hold the energy account (J):
     ``wheel_work``, ``friction_dissipation``, ``step_dissipation``, ``kinetic_start``, ``kinetic_end``, and the

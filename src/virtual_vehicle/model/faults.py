@@ -18,8 +18,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from virtual_vehicle.errors import ScenarioError
-
 
 @dataclass(frozen=True, eq=False)
 class Faults:
@@ -70,18 +68,18 @@ def resolve(spec, cells, sensors_per_cell: int, neighbor: np.ndarray, listed_lin
     """The faults of scenario table ``spec`` (:class:`~virtual_vehicle.config.scenario.FaultSpec`) on ``cells``: the listed
     ones plus those drawn with the rates from ``numpy.random.default_rng(spec.seed)`` (in this order: cells, wheels
     stuck, wheels free, links, sensors). ``neighbor`` is the topology's (n, P) neighbour table; ``listed_links``
-    further dead links. Raises ScenarioError for a listed item that does not exist."""
+    further dead links. Raises ValueError for a listed item that does not exist."""
     n, S = cells.n, sensors_per_cell
     rng = np.random.default_rng(spec.seed)
     dead = np.zeros(n, bool)
     for k, c in enumerate(spec.dead_cells):
-        _check_cell(c, n, f"faults.dead_cells[{k}]")
+        _check_cell(c, n, f"dead_cells[{k}]")
         dead[c] = True
     wheels = {}
     for name in ("stuck_wheels", "free_wheels"):
         mask = np.zeros((n, 2), bool)
         for k, (c, w) in enumerate(getattr(spec, name)):
-            _check_cell(c, n, f"faults.{name}[{k}]")
+            _check_cell(c, n, f"{name}[{k}]")
             mask[c, w] = True
         wheels[name] = mask
     dead |= rng.random(n) < spec.dead_cell_rate
@@ -99,31 +97,31 @@ def resolve(spec, cells, sensors_per_cell: int, neighbor: np.ndarray, listed_lin
                   stuck & ~on)
 
 
-def later(now: Faults, event, n: int, sensors_per_cell: int, where: str) -> Faults:
+def later(now: Faults, event, n: int, sensors_per_cell: int) -> Faults:
     """The faults after ``event`` (:class:`~virtual_vehicle.config.scenario.FaultEvent`) adds its own to ``now`` (a
-    fault never heals). Raises ScenarioError, naming ``where``, for an item that does not exist."""
+    fault never heals). Raises ValueError for an item that does not exist."""
     dead = now.dead_cells.copy()
     stuck = now.stuck_wheels.copy()
     on, off = now.stuck_on.copy(), now.stuck_off.copy()
     for k, c in enumerate(event.dead_cells):
-        _check_cell(c, n, f"{where}.dead_cells[{k}]")
+        _check_cell(c, n, f"dead_cells[{k}]")
         dead[c] = True
     for k, (c, w) in enumerate(event.stuck_wheels):
-        _check_cell(c, n, f"{where}.stuck_wheels[{k}]")
+        _check_cell(c, n, f"stuck_wheels[{k}]")
         stuck[c, w] = True
     for name, mask in (("stuck_on", on), ("stuck_off", off)):
         for k, (c, s) in enumerate(getattr(event, name)):
-            _check_cell(c, n, f"{where}.{name}[{k}]")
+            _check_cell(c, n, f"{name}[{k}]")
             if s >= sensors_per_cell:
-                raise ScenarioError(f"{where}.{name}[{k}]", f"no sensor {s}: cells have {sensors_per_cell}")
+                raise ValueError(f"{name}[{k}] names sensor {s}, which does not exist: cells have {sensors_per_cell}")
             mask[c, s] = True
     links = set(now.dead_links)
     for k, (c, port) in enumerate(event.dead_links):
-        _check_cell(c, n, f"{where}.dead_links[{k}]")
+        _check_cell(c, n, f"dead_links[{k}]")
         links.add((int(c), int(port)))
     return Faults(dead, stuck, now.free_wheels, tuple(sorted(links)), on, off & ~on)
 
 
-def _check_cell(c: int, n: int, where: str) -> None:
+def _check_cell(c: int, n: int, item: str) -> None:
     if c >= n:
-        raise ScenarioError(where, f"cell {c} does not exist (the array has {n})")
+        raise ValueError(f"{item} names cell {c}, which does not exist (the array has {n})")

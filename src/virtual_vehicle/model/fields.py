@@ -11,7 +11,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.model.layout import CellArray
 
 
@@ -53,7 +52,7 @@ class ReversedEnd:
         v = np.asarray(self.velocity, dtype=float)
         speed = float(np.linalg.norm(v))
         if speed == 0:
-            raise ScenarioError("field.velocity", "a reversed-end field needs a non-zero velocity")
+            raise ValueError("a reversed-end field needs a non-zero velocity")
         along = cells.positions @ (v / speed)
         end = along >= along.max() - 1e-9 * max(1.0, cells.pitch)
         out = np.tile(v, (cells.n, 1))
@@ -71,7 +70,7 @@ class PerCell:
         """(n, 2) surface velocity of every cell of ``cells`` under this field, m/s (world frame)."""
         v = np.asarray(self.values, dtype=float)
         if v.shape != (cells.n, 2):
-            raise ScenarioError("field.velocities", f"needs one [vx, vy] per cell: {cells.n} rows, got shape {v.shape}")
+            raise ValueError(f"a per-cell field needs one [vx, vy] per cell: {cells.n} rows, got shape {v.shape}")
         return v
 
 
@@ -108,7 +107,7 @@ class Squeeze:
         d = np.asarray(self.direction, dtype=float)
         norm = float(np.hypot(*d))
         if norm == 0:
-            raise ScenarioError("field.direction", "a squeeze field needs a non-zero line direction")
+            raise ValueError("a squeeze field needs a non-zero line direction")
         d = d / norm
         n = np.array([-d[1], d[0]])
         side = np.sign((cells.positions - np.asarray(self.point, dtype=float)) @ n)
@@ -163,7 +162,7 @@ class Regions:
         for k, (outline, field) in enumerate(self.regions):
             poly = shapely.Polygon(np.asarray(outline, dtype=float))
             if not poly.is_valid or poly.area <= 0:
-                raise ScenarioError(f"field.regions[{k}].outline", "is not a simple polygon with positive area")
+                raise ValueError(f"the outline of region {k} is not a simple polygon with positive area")
             inside = shapely.covers(poly, shapely.points(cells.positions)) & ~taken  # boundary cells included
             out[inside] = field.velocities(cells)[inside]
             taken |= inside

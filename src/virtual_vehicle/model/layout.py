@@ -25,10 +25,10 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
-from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.model.parcel import PointGrid
 
-_COLLINEAR_TOL = 1e-9  # m: largest distance of a cell from the best-fit line for a layout to count as a row
+COLLINEAR_TOL = 1e-9
+"""m: the largest distance of a point from the best-fit line for points to count as collinear (a layout as a row)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -62,21 +62,21 @@ class CellArray:
     def __post_init__(self) -> None:
         pos = np.array(self.positions, dtype=float)
         if pos.ndim != 2 or pos.shape[1] != 2 or len(pos) == 0:
-            raise ScenarioError("array.points", f"cell positions must be a non-empty (n, 2) array, got {pos.shape}")
+            raise ValueError(f"cell positions must be a non-empty (n, 2) array, got {pos.shape}")
         if not np.all(np.isfinite(pos)):
-            raise ScenarioError("array.points", "cell positions must be finite numbers")
+            raise ValueError("cell positions must be finite numbers")
         dirs = np.array(self.drive_directions, dtype=float)
         if dirs.shape != (len(pos), 2, 2):
-            raise ScenarioError("array.drive_angle", f"drive directions must have shape ({len(pos)}, 2, 2)")
+            raise ValueError(f"drive directions must have shape ({len(pos)}, 2, 2)")
         norms = np.linalg.norm(dirs, axis=2)
         if not np.allclose(norms, 1.0, atol=1e-9):
-            raise ScenarioError("array.drive_angle", "wheel drive directions must be unit vectors")
+            raise ValueError("wheel drive directions must be unit vectors")
         if not np.allclose(np.einsum("ij,ij->i", dirs[:, 0], dirs[:, 1]), 0.0, atol=1e-9):
-            raise ScenarioError("array.drive_angle", "the two wheels of a cell must drive in orthogonal directions")
+            raise ValueError("the two wheels of a cell must drive in orthogonal directions")
         if cKDTree(pos).query_pairs(1e-9 * max(1.0, float(np.ptp(pos)))):
-            raise ScenarioError("array.points", "two cells share the same position")
+            raise ValueError("two cells share the same position")
         if not (np.isfinite(self.pitch) and self.pitch > 0):
-            raise ScenarioError("array.pitch", f"pitch must be a positive length in m, got {self.pitch}")
+            raise ValueError(f"pitch must be a positive length in m, got {self.pitch}")
         n = len(pos)
         active = np.ones((n, 2), bool) if self.wheel_active is None else np.asarray(self.wheel_active, bool)
         cell_of = np.arange(n) if self.cell_of is None else np.asarray(self.cell_of, dtype=np.int64)
@@ -155,7 +155,7 @@ class CellArray:
     def is_line(self) -> bool:
         """True when all cells lie on one straight line (the paper's 1-D array). A parcel on such an array is
         assumed held laterally (the 1-D model: vertical force and one moment equation only)."""
-        return _collinear(self.positions)
+        return collinear(self.positions)
 
     @cached_property
     def extent(self) -> float:
@@ -170,14 +170,15 @@ class CellArray:
         return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
 
-def _collinear(points: np.ndarray, tol: float = _COLLINEAR_TOL) -> bool:
-    """True if the points ((n, 2), m) lie within ``tol`` metres of one straight line (or are a single point)."""
-    return bool(collinear(np.ascontiguousarray(points, dtype=np.float64), tol))
+def collinear(points: np.ndarray, tol: float = COLLINEAR_TOL) -> bool:
+    """True if the points ((n, 2), m) lie within ``tol`` metres of one straight line (or are a single point): the
+    test of a 1-D array and of a collinear contact set (the 1-D model of the normal forces)."""
+    return bool(_collinear_kernel(np.ascontiguousarray(points, dtype=np.float64), tol))
 
 
 @njit(cache=True)
-def collinear(points, tol):
-    """:func:`_collinear` compiled, for float64 points, without an SVD (LAPACK's took ~10-25 us on the ~12 points of
+def _collinear_kernel(points, tol):
+    """:func:`collinear` compiled, for float64 points, without an SVD (LAPACK's took ~10-25 us on the ~12 points of
     a support set, and every new support pattern asks): the RMS distance of the centred points from the best-fit line
     is that of their components across its direction, the principal axis of their 2 x 2 scatter matrix. The axis is
     found to rounding (~1e-16 rad), so the distances are too; the square root of the matrix's smaller eigenvalue (the
@@ -218,7 +219,7 @@ def grid(nx: int, ny: int, pitch: float, origin: tuple[float, float] = (0.0, 0.0
     [[0.0, 0.0], [0.1, 0.0], [0.0, 0.1], [0.1, 0.1]]
     """
     if nx < 1 or ny < 1:
-        raise ScenarioError("array.nx", f"a grid needs at least one column and one row, got {nx} x {ny}")
+        raise ValueError(f"a grid needs at least one column and one row (nx, ny >= 1), got {nx} x {ny}")
     ii, jj = np.meshgrid(np.arange(nx), np.arange(ny))
     pos = np.column_stack([ii.ravel() * pitch, jj.ravel() * pitch]) + np.asarray(origin, dtype=float)
     return CellArray(pos, _drive_directions(len(pos), drive_angle), float(pitch), shape=(ny, nx))
@@ -227,7 +228,7 @@ def grid(nx: int, ny: int, pitch: float, origin: tuple[float, float] = (0.0, 0.0
 def row(n: int, pitch: float, origin: tuple[float, float] = (0.0, 0.0), drive_angle: float = 0.0) -> CellArray:
     """A single row of ``n`` cells along +x at spacing ``pitch`` (m): the paper's 1-D array."""
     if n < 1:
-        raise ScenarioError("array.n", f"a row needs at least one cell, got {n}")
+        raise ValueError(f"a row needs at least one cell (n >= 1), got {n}")
     return grid(n, 1, pitch, origin, drive_angle)
 
 
@@ -235,7 +236,7 @@ def from_points(points, pitch: float | None = None, drive_angle: float = 0.0) ->
     """Cells at arbitrary ``points`` ((n, 2), m). ``pitch`` defaults to the median nearest-neighbour distance."""
     pos = np.asarray(points, dtype=float)
     if pos.ndim != 2 or pos.shape[-1] != 2 or len(pos) == 0:
-        raise ScenarioError("array.points", f"points must be a non-empty list of [x, y] pairs, got shape {pos.shape}")
+        raise ValueError(f"points must be a non-empty list of [x, y] pairs, got shape {pos.shape}")
     if pitch is None:
         if len(pos) == 1:
             pitch = 1.0
@@ -254,9 +255,9 @@ def separate_wheels(cells: CellArray, offsets=None) -> CellArray:
     q = cells.pitch / 4
     off = np.array([[0.0, -q], [-q, 0.0]]) if offsets is None else np.asarray(offsets, dtype=float)
     if off.shape != (2, 2) or not np.all(np.isfinite(off)):
-        raise ScenarioError("array.wheel_offsets", "needs two finite [x, y] offsets in m, one per wheel")
+        raise ValueError("wheel offsets must be two finite [x, y] offsets in m, one per wheel")
     if np.allclose(off[0], off[1]):
-        raise ScenarioError("array.wheel_offsets", "the two wheels of a cell must sit at different points")
+        raise ValueError("the two wheels of a cell must sit at different points (wheel offsets)")
     U = cells.drive_directions
     pos = cells.positions[:, None, :] + off[None, :, 0, None] * U[:, None, 0, :] + off[None, :, 1, None] * U[:, None, 1, :]
     dirs = np.empty((cells.n, 2, 2, 2))
@@ -296,7 +297,7 @@ def hexagonal(nx: int, ny: int, pitch: float, origin: tuple[float, float] = (0.0
     [[0.0, 0.0], [0.1, 0.0], [0.05, 0.0866], [0.15, 0.0866]]
     """
     if nx < 1 or ny < 1:
-        raise ScenarioError("array.nx", f"a lattice needs at least one column and one row, got {nx} x {ny}")
+        raise ValueError(f"a lattice needs at least one column and one row (nx, ny >= 1), got {nx} x {ny}")
     ii, jj = np.meshgrid(np.arange(nx), np.arange(ny))
     x, y = _sites(ii.ravel(), jj.ravel(), pitch, hexagonal=True)
     pos = np.column_stack([x, y]) + np.asarray(origin, dtype=float)
@@ -313,8 +314,7 @@ def three_wheels(cells: CellArray, radius: float | None = None) -> CellArray:
     """
     r = cells.pitch / 4 if radius is None else float(radius)
     if not (np.isfinite(r) and 0 < r < cells.pitch / 2):
-        raise ScenarioError("array.wheel_radius", f"must lie between 0 and half the pitch ({cells.pitch / 2:g} m), "
-                            f"got {r:g}")
+        raise ValueError(f"the wheel radius must lie between 0 and half the pitch ({cells.pitch / 2:g} m), got {r:g}")
     phi = -np.pi / 2 + 2 * np.pi * np.arange(3) / 3
     local_pos = r * np.column_stack([np.cos(phi), np.sin(phi)])  # (3, 2) in the cell frame
     local_dir = np.column_stack([-np.sin(phi), np.cos(phi)])  # tangential drive directions
@@ -337,7 +337,7 @@ class Belt:
     spacing: float
 
 
-def with_belts(cells: CellArray, contacts: CellArray, belts, where: str = "array.belts") -> tuple[CellArray, CellArray]:
+def with_belts(cells: CellArray, contacts: CellArray, belts) -> tuple[CellArray, CellArray]:
     """``cells`` and their contact layer ``contacts`` with plain conveyor belts (:class:`Belt`) added: each belt is one
     more cell (no controller, no network ports, always at its own speed along its length, surface held still
     sideways) whose contacts are support points on a grid over its surface, ``spacing`` apart and including its
@@ -349,7 +349,7 @@ def with_belts(cells: CellArray, contacts: CellArray, belts, where: str = "array
         a, e = np.asarray(b.start, dtype=float), np.asarray(b.end, dtype=float)
         length = float(np.hypot(*(e - a)))
         if length <= 0:
-            raise ScenarioError(f"{where}[{k}].end", "a belt needs distinct start and end points")
+            raise ValueError(f"a belt needs distinct start and end points, got {list(b.start)} twice")
         u = (e - a) / length
         v = np.array([-u[1], u[0]])
         nl = max(2, int(np.ceil(length / b.spacing - 1e-9)) + 1)
@@ -360,8 +360,8 @@ def with_belts(cells: CellArray, contacts: CellArray, belts, where: str = "array
         across = np.abs((cells.positions - a) @ v) <= b.width / 2 + 1e-12
         covered = np.flatnonzero(along & across & ~cells.belts)
         if len(covered):
-            raise ScenarioError(f"{where}[{k}]", f"the belt covers cell {covered[0]} at "
-                                f"{cells.positions[covered[0]].tolist()} m; belts feed or leave the array from beside it")
+            raise ValueError(f"the belt from {list(b.start)} to {list(b.end)} m covers cell {covered[0]} at "
+                             f"{cells.positions[covered[0]].tolist()} m; belts feed or leave the array from beside it")
         pos.append((a + e) / 2)
         dirs.append([u, v])
         speed.append(b.speed)
@@ -372,19 +372,19 @@ def with_belts(cells: CellArray, contacts: CellArray, belts, where: str = "array
     belt_cells = CellArray(np.array(pos), np.array(dirs), cells.pitch, ports=np.zeros(n_b, int),
                            belt_speed=np.array(speed, dtype=float))
     belt_contacts = CellArray(np.vstack(c_pos), np.concatenate(c_dirs), cells.pitch, cell_of=np.concatenate(c_of))
-    return combine([(cells, contacts), (belt_cells, belt_contacts)], where)
+    return combine([(cells, contacts), (belt_cells, belt_contacts)])
 
 
-def combine(parts, where: str = "array.parts") -> tuple[CellArray, CellArray | None]:
+def combine(parts) -> tuple[CellArray, CellArray | None]:
     """One array from ``parts``, a list of (cells, contacts or None) pairs that share one pitch (m): cells are
     numbered part after part, each part keeps its own kind (square, hexagonal, ...) and contact layer. Returns the
-    cells and their contact layer (None when every part is the paper's lumped cells). Raises ScenarioError naming
-    ``where`` for parts with different pitches or cells in the same place."""
+    cells and their contact layer (None when every part is the paper's lumped cells). Raises ValueError for parts
+    with different pitches or cells in the same place."""
     pitch = parts[0][0].pitch
     for k, (cells, _) in enumerate(parts):
         if not np.isclose(cells.pitch, pitch, rtol=1e-9):
-            raise ScenarioError(f"{where}[{k}].pitch", f"the parts of a mixed array share one pitch ({pitch:g} m); "
-                                f"this one has {cells.pitch:g} m")
+            raise ValueError(f"the parts of a mixed array share one pitch ({pitch:g} m); part {k} has "
+                             f"{cells.pitch:g} m")
     layers = [c if t is None else t for c, t in parts]
     offsets = np.cumsum([0] + [c.n for c, _ in parts])
     try:
@@ -399,8 +399,8 @@ def combine(parts, where: str = "array.parts") -> tuple[CellArray, CellArray | N
                              np.concatenate([t.wheel_active for t in layers]),
                              np.concatenate([t.cell_of + off for t, off in zip(layers, offsets)]),
                              np.concatenate([t.wheel_of for t in layers]))
-    except ScenarioError as exc:
-        raise ScenarioError(where, f"the parts overlap: {exc.message}") from None
+    except ValueError as exc:
+        raise ValueError(f"the parts overlap: {exc}") from None
     return cells, contacts
 
 
@@ -418,7 +418,7 @@ MAP_MARKS = "E0123P><^v"
 
 
 def from_map(text: str, pitch: float, origin: tuple[float, float] = (0.0, 0.0), lattice: str = "square",
-             drive_angle: float = 0.0, where: str = "array.map") -> tuple[CellArray, dict[str, np.ndarray]]:
+             drive_angle: float = 0.0) -> tuple[CellArray, dict[str, np.ndarray]]:
     """Cells drawn as text, one character per lattice site: the last line is the row at ``origin`` (m), lines
     above it go up in y, characters go along x at ``pitch`` (m). ``lattice`` "square" or "hex" (odd rows, counted
     from the bottom, shifted by half a pitch; rows pitch sqrt(3)/2 apart; six ports a cell). Characters: see
@@ -441,19 +441,19 @@ def from_map(text: str, pitch: float, origin: tuple[float, float] = (0.0, 0.0), 
             if ch in MAP_HOLES:
                 continue
             if ch not in MAP_CELLS:
-                raise ScenarioError(where, f"unknown character {ch!r} on line {len(lines) - j}, column {i + 1} "
-                                    f"(cells: {MAP_CELLS!r}; no cell: space or '.')")
+                raise ValueError(f"unknown character {ch!r} on line {len(lines) - j}, column {i + 1} "
+                                 f"(cells: {MAP_CELLS!r}; no cell: space or '.')")
             cols.append(i)
             rows.append(j)
             chars.append(ch)
     if not chars:
-        raise ScenarioError(where, "the map has no cells")
+        raise ValueError("the map has no cells")
     pos = np.column_stack(_sites(cols, rows, pitch, lattice == "hex")) + np.asarray(origin, dtype=float)
     chars = np.array(chars)
     ports = np.full(len(pos), 6 if lattice == "hex" else 4)
     cells = CellArray(pos, _drive_directions(len(pos), drive_angle), float(pitch), ports=ports)
     if lattice == "hex" and np.isin(chars, list(ONE_WAY)).any():
-        raise ScenarioError(where, "one-way arrows (> < ^ v) are for square lattices")
+        raise ValueError("one-way arrows (> < ^ v) are for square lattices")
     return cells, {m: chars == m for m in MAP_MARKS if (chars == m).any()}
 
 

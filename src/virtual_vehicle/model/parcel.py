@@ -15,7 +15,6 @@ import shapely
 from numba import njit
 from shapely import affinity
 
-from virtual_vehicle.errors import ScenarioError
 
 STATE_FIELDS = ("x", "y", "theta", "vx", "vy", "omega")
 """Order of the six planar state variables: position of the centre of mass (m), heading (rad), velocities (m/s,
@@ -49,22 +48,33 @@ class ParcelSpec:
         for attr, unit in (("mass", "kg"), ("inertia", "kg m^2"), ("mu", "")):
             v = getattr(self, attr)
             if not (np.isfinite(v) and v > 0):
-                raise ScenarioError(f"parcels.{self.name}.{attr}", f"must be a positive number{' in ' + unit if unit else ''}, got {v}")
+                raise ValueError(f"{attr} must be a positive number{' in ' + unit if unit else ''}, got {v}")
         if self.mu_static is not None and not (np.isfinite(self.mu_static) and self.mu_static >= self.mu):
-            raise ScenarioError(f"parcels.{self.name}.mu_static",
-                                f"must be at least the kinetic mu ({self.mu}), got {self.mu_static}")
+            raise ValueError(f"mu_static must be at least the kinetic mu ({self.mu}), got {self.mu_static}")
         fp = np.array(self.footprint, dtype=float)
         if fp.ndim != 2 or fp.shape[1] != 2 or len(fp) < 3 or not np.all(np.isfinite(fp)):
-            raise ScenarioError(f"parcels.{self.name}.footprint", "needs at least three finite [x, y] vertices")
+            raise ValueError("the footprint needs at least three finite [x, y] vertices")
         poly = shapely.Polygon(fp)
         if not poly.is_valid or poly.area <= 0:
-            raise ScenarioError(f"parcels.{self.name}.footprint", "is not a simple polygon with positive area")
+            raise ValueError("the footprint is not a simple polygon with positive area")
         if _signed_area(fp) < 0:
             fp = fp[::-1].copy()
         if not poly.contains(shapely.Point(0.0, 0.0)):
-            raise ScenarioError(f"parcels.{self.name}.footprint", "the centre of mass (body origin) must lie inside the footprint")
+            raise ValueError("the centre of mass (body origin) must lie inside the footprint")
         fp.setflags(write=False)
         object.__setattr__(self, "footprint", fp)
+
+    def derived(self, name: str, make, *args):
+        """``make(*args)``, made once for this parcel and kept under ``name``: what the layers above work out from
+        its outline (the convex parts parcel-parcel contact splits it into, say) is made once a parcel, not once a
+        use. The description itself stays as it is (frozen); only this memo grows."""
+        memo = self.__dict__.get("_derived")
+        if memo is None:
+            memo = self.__dict__["_derived"] = {}
+        value = memo.get(name)
+        if value is None:
+            value = memo[name] = make(*args)
+        return value
 
     @cached_property
     def polygon(self) -> shapely.Polygon:
@@ -130,7 +140,7 @@ def rectangle(length: float, width: float, mass: float, mu: float, inertia: floa
     """
     for attr, v in (("length", length), ("width", width)):
         if not (np.isfinite(v) and v > 0):
-            raise ScenarioError(f"parcels.{name}.{attr}", f"must be a positive length in m, got {v}")
+            raise ValueError(f"{attr} must be a positive length in m, got {v}")
     hl, hw = length / 2.0, width / 2.0
     fp = np.array([[-hl, -hw], [hl, -hw], [hl, hw], [-hl, hw]])
     if inertia is None:
@@ -206,16 +216,16 @@ def polygon(vertices, mass: float, mu: float, com=None, inertia: float | None = 
     """
     v = np.asarray(vertices, dtype=float)
     if v.ndim != 2 or v.shape[1] != 2 or len(v) < 3 or not np.all(np.isfinite(v)):
-        raise ScenarioError(f"parcels.{name}.vertices", "needs at least three finite [x, y] vertices in m")
+        raise ValueError("vertices must be at least three finite [x, y] points in m")
     shape = shapely.Polygon(v)
     if not shape.is_valid or shape.area <= 0:
-        raise ScenarioError(f"parcels.{name}.vertices", "is not a simple polygon with positive area (check the "
-                            "vertex order and that edges do not cross)")
+        raise ValueError("vertices do not outline a simple polygon with positive area (check the vertex order and "
+                         "that edges do not cross)")
     c = np.array([shape.centroid.x, shape.centroid.y]) if com is None else np.asarray(com, dtype=float)
     if not shape.contains(shapely.Point(*c)):
-        raise ScenarioError(f"parcels.{name}.com", f"the centre of mass {c.tolist()} must lie inside the outline")
+        raise ValueError(f"com, the centre of mass {c.tolist()}, must lie inside the outline")
     if not (np.isfinite(mass) and mass > 0):
-        raise ScenarioError(f"parcels.{name}.mass", f"must be a positive number in kg, got {mass}")
+        raise ValueError(f"mass must be a positive number in kg, got {mass}")
     if inertia is None:
         inertia = plate_inertia(v, mass, about=c)
     return ParcelSpec(v - c, float(mass), float(inertia), float(mu), name, mu_static)

@@ -35,6 +35,7 @@ import numpy as np
 import shapely
 
 from virtual_vehicle.model.parcel import ParcelSpec
+from virtual_vehicle.physics.laws import FrictionLaw, law_named
 
 
 @dataclass(frozen=True)
@@ -122,21 +123,20 @@ def _edge_distances(spec: ParcelSpec, pose, points):
 
 def convex_parts(spec: ParcelSpec) -> list[np.ndarray]:
     """The footprint as convex pieces in the body frame, counter-clockwise: itself when convex, else its constrained
-    Delaunay triangles (shapely)."""
-    cached = spec.__dict__.get("_convex_parts")
-    if cached is None:
-        if spec.convex:
-            cached = [spec.footprint]
-        else:
-            tris = shapely.constrained_delaunay_triangles(spec.polygon)
-            cached = []
-            for tri in shapely.get_parts(tris):
-                v = np.asarray(tri.exterior.coords)[:-1]
-                if (v[1, 0] - v[0, 0]) * (v[2, 1] - v[0, 1]) - (v[1, 1] - v[0, 1]) * (v[2, 0] - v[0, 0]) < 0:
-                    v = v[::-1]
-                cached.append(v.copy())
-        spec.__dict__["_convex_parts"] = cached
-    return cached
+    Delaunay triangles (shapely). Made once a parcel (:meth:`~virtual_vehicle.model.parcel.ParcelSpec.derived`)."""
+    return spec.derived("convex_parts", _split_convex, spec)
+
+
+def _split_convex(spec: ParcelSpec) -> list[np.ndarray]:
+    if spec.convex:
+        return [spec.footprint]
+    parts = []
+    for tri in shapely.get_parts(shapely.constrained_delaunay_triangles(spec.polygon)):
+        v = np.asarray(tri.exterior.coords)[:-1]
+        if (v[1, 0] - v[0, 0]) * (v[2, 1] - v[0, 1]) - (v[1, 1] - v[0, 1]) * (v[2, 0] - v[0, 0]) < 0:
+            v = v[::-1]
+        parts.append(v.copy())
+    return parts
 
 
 def _faces(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -214,16 +214,19 @@ def pair_contacts(i: int, spec_i: ParcelSpec, y_i, j: int, spec_j: ParcelSpec, y
     return out
 
 
+def _part_frames(spec: ParcelSpec) -> list[tuple]:
+    """Each convex part in the body frame: vertices, (normals, offsets) of its faces, centre and radius."""
+    frames = []
+    for v in convex_parts(spec):
+        n, o = _faces(v)
+        c = v.mean(axis=0)
+        frames.append((v, n, o, c, float(np.max(np.hypot(*(v - c).T)))))
+    return frames
+
+
 def _placed_parts(spec: ParcelSpec, pose):
     """Each convex part at ``pose``: world vertices, (normals, offsets) of its faces, centre and radius."""
-    cache = spec.__dict__.get("_part_frames")
-    if cache is None:
-        cache = []
-        for v in convex_parts(spec):
-            n, o = _faces(v)
-            c = v.mean(axis=0)
-            cache.append((v, n, o, c, float(np.max(np.hypot(*(v - c).T)))))
-        spec.__dict__["_part_frames"] = cache
+    cache = spec.derived("part_frames", _part_frames, spec)
     cs, sn = np.cos(pose[2]), np.sin(pose[2])
     R = np.array([[cs, -sn], [sn, cs]])
     x = np.array([pose[0], pose[1]])
@@ -240,17 +243,13 @@ def place(v: np.ndarray, pose) -> np.ndarray:
     return np.column_stack([pose[0] + c * v[:, 0] - s * v[:, 1], pose[1] + s * v[:, 0] + c * v[:, 1]])
 
 
-def point_reach(spec: ParcelSpec, y, window: float, *, law: str, mu_max: float, gravity: float,
+def point_reach(spec: ParcelSpec, y, window: float, *, law: FrictionLaw | str, mu_max: float, gravity: float,
                 wheel_speed: float, speed_floor: float = 0.0) -> tuple[float, float]:
     """Upper bounds on how far (m) any point of the parcel can move in ``window`` s driven by the wheels alone, and
-    on the speed (m/s) any point can reach in that time.
-
-    With ``S = |v| + |omega| R`` (R the footprint radius), the net wheel force is at most ``2 mu W`` (two wheels per
-    cell, normal forces summing to the weight W, paper eqs. 3-5) and the torque at most ``2 mu W R``, so
-    ``dS/dt <= k = 2 mu g (1 + m R^2 / I)`` (Coulomb and stick-slip): reach ``S0 T + k T^2 / 2``. Under the viscous
-    law each cell pushes with ``mu N |slip|`` (paper eq. 30), ``|slip| <= w + S``, so ``dS/dt <= k (w + S)`` with
-    ``k = mu g (1 + m R^2 / I)``: reach ``(S0 + w)(e^{kT} - 1)/k - w T``. ``speed_floor`` raises S0 (m/s), e.g. to
-    what a push from another parcel could give.
+    on the speed (m/s) any point can reach in that time: the friction law's own bound
+    (:meth:`~virtual_vehicle.physics.laws.base.FrictionLaw.reach`, ``law`` a law or its registered name) from
+    ``S0 = |v| + |omega| R`` (R the footprint radius) and ``rate = mu_max g (1 + m R^2 / I)``. ``speed_floor``
+    raises S0 (m/s), e.g. to what a push from another parcel could give.
 
     >>> from virtual_vehicle.model.parcel import rectangle
     >>> point_reach(rectangle(0.2, 0.2, 1.0, 0.5), [0, 0, 0, 0.1, 0, 0], 1.0, law="coulomb", mu_max=0.0,
@@ -259,8 +258,13 @@ def point_reach(spec: ParcelSpec, y, window: float, *, law: str, mu_max: float, 
     """
     R = spec.radius
     s0 = max(float(np.hypot(y[3], y[4]) + abs(y[5]) * R), speed_floor)
-    dist, speed = _reach_from(s0, lever_of(spec), window, law, mu_max, gravity, wheel_speed)
+    dist, speed = _law(law).reach(s0, window, rate=mu_max * gravity * lever_of(spec), wheel_speed=wheel_speed)
     return float(dist), float(speed)
+
+
+def _law(law: FrictionLaw | str) -> FrictionLaw:
+    """``law``, or the registered law of that name."""
+    return law_named(law) if isinstance(law, str) else law
 
 
 def lever_of(spec: ParcelSpec) -> float:
@@ -268,27 +272,15 @@ def lever_of(spec: ParcelSpec) -> float:
     return 1.0 + spec.mass * spec.radius * spec.radius / spec.inertia
 
 
-def point_reaches(radius, lever, Y, window: float, *, law: str, mu_max, gravity: float, wheel_speed: float,
-                  speed_floor=0.0) -> tuple[np.ndarray, np.ndarray]:
+def point_reaches(radius, lever, Y, window: float, *, law: FrictionLaw | str, mu_max, gravity: float,
+                  wheel_speed: float, speed_floor=0.0) -> tuple[np.ndarray, np.ndarray]:
     """:func:`point_reach` of many parcels, by the same operations elementwise (so the same numbers): ``radius``
     (m), ``lever`` (:func:`lever_of`), ``mu_max`` and ``speed_floor`` (m/s) one value each, ``Y`` (k, 6) their
     states."""
     Y = np.asarray(Y, dtype=float).reshape(-1, 6)
     s0 = np.maximum(np.hypot(Y[:, 3], Y[:, 4]) + np.abs(Y[:, 5]) * radius, speed_floor)
-    return _reach_from(s0, np.asarray(lever, dtype=float), window, law, np.asarray(mu_max, dtype=float), gravity,
-                       wheel_speed)
-
-
-def _reach_from(s0, lever, window, law, mu_max, gravity, wheel_speed):
-    """The bounds of :func:`point_reach` from the fastest point speed ``s0`` (m/s), on floats or arrays."""
-    if law == "viscous":
-        k = mu_max * gravity * lever
-        slow = k * window < 1e-12
-        safe = np.where(slow, 1.0, k)
-        return (np.where(slow, s0 * window, (s0 + wheel_speed) * np.expm1(k * window) / safe - wheel_speed * window),
-                np.where(slow, s0, (s0 + wheel_speed) * np.exp(k * window) - wheel_speed))
-    k = 2.0 * mu_max * gravity * lever
-    return s0 * window + 0.5 * k * window * window, s0 + k * window
+    rate = np.asarray(mu_max, dtype=float) * gravity * np.asarray(lever, dtype=float)
+    return _law(law).reach(s0, window, rate=rate, wheel_speed=wheel_speed)
 
 
 def wheel_speed_of(velocities: np.ndarray) -> float:
@@ -297,22 +289,13 @@ def wheel_speed_of(velocities: np.ndarray) -> float:
     return float(np.max(np.hypot(velocities[:, 0], velocities[:, 1]))) if len(velocities) else 0.0
 
 
-def reach_bounds(s0: np.ndarray, lever_mu: np.ndarray, window: float, *, law: str, gravity: float,
+def reach_bounds(s0: np.ndarray, lever_mu: np.ndarray, window: float, *, law: FrictionLaw | str, gravity: float,
                  wheel_speed: float) -> tuple[np.ndarray, np.ndarray]:
     """:func:`point_reach` for many parcels at once: ``s0`` (m/s) their fastest point speeds now and ``lever_mu``
     their ``mu_max (1 + m R^2 / I)``; returns the distance (m) and speed (m/s) bounds, arrays. (The same formulas
     as :func:`point_reach`, which stays scalar because the planner calls it inside root finding.)"""
     s0 = np.asarray(s0, dtype=float)
-    if law == "viscous":
-        k = np.asarray(lever_mu, dtype=float) * gravity
-        kt = k * window
-        slow = kt < 1e-12
-        k = np.where(slow, 1.0, k)
-        dist = np.where(slow, s0 * window, (s0 + wheel_speed) * np.expm1(kt) / k - wheel_speed * window)
-        speed = np.where(slow, s0, (s0 + wheel_speed) * np.exp(kt) - wheel_speed)
-        return dist, speed
-    k = 2.0 * np.asarray(lever_mu, dtype=float) * gravity
-    return s0 * window + 0.5 * k * window * window, s0 + k * window
+    return _law(law).reach(s0, window, rate=np.asarray(lever_mu, dtype=float) * gravity, wheel_speed=wheel_speed)
 
 
 def push_gain(spec: ParcelSpec) -> float:

@@ -35,7 +35,7 @@ import numpy as np
 from numba import njit
 
 from virtual_vehicle.errors import IntegrationError, TippingError
-from virtual_vehicle.model.layout import _collinear
+from virtual_vehicle.model.layout import collinear
 
 _REL_TOL = 1e-12  # relative tolerance for geometric ties (hull boundary, zero forces)
 _SLAB = 1e-9  # relative half-width of the band in which a load counts as on the line of its contacts
@@ -104,7 +104,7 @@ class SupportSolution:
     def contact_collinear(self) -> bool:
         """Whether the cells in contact lie on one line (or are one cell), as in every solution of the 1-D model:
         then the solution depends on the centre of mass it was solved at, not only on its pattern."""
-        return self.one_d or _collinear(self.points[self.in_contact])
+        return self.one_d or collinear(self.points[self.in_contact])
 
     def forces(self, com) -> np.ndarray:
         """Normal forces (N) of the supporting cells for centre of mass ``com`` (world coordinates, m)."""
@@ -216,14 +216,14 @@ def solve_support(points, com, weight: float, *, lateral_support: bool = False,
         raise ValueError("points and com must be finite")
     if len(pts) == 0:
         raise TippingError("no cell supports the parcel")
-    return _solve(np.ascontiguousarray(pts), com, weight, lateral_support, line_direction)
+    return solve_prechecked(np.ascontiguousarray(pts), com, weight, lateral_support, line_direction)
 
 
-def _solve(pts, com, weight: float, lateral_support: bool, line_direction) -> SupportSolution:
+def solve_prechecked(pts, com, weight: float, lateral_support: bool, line_direction) -> SupportSolution:
     """:func:`solve_support` for inputs known to be valid: ``pts`` a contiguous (m, 2) float array of finite
     positions (m >= 1), ``com`` (2,) finite, ``weight`` positive (the event engine's new pieces, whose cells and
     states are checked where they come in)."""
-    if _collinear(pts):
+    if collinear(pts):
         origin, local, xi, scale = _frame(pts, com)
         return _solve_line(origin, local, xi, weight, _REL_TOL * scale, lateral_support, line_direction)
 
@@ -379,7 +379,7 @@ def _finish(origin, local, xi, basis, mapped, weight, h_normals, h_offsets, *, o
     if not converged:
         raise IntegrationError("the normal-force contact-set iteration did not converge")
     # the contacts lie on one line only if some have lifted off, when the supports do not (most new solutions)
-    flat = one_d or (not (planar and all(in_contact.tolist())) and _collinear(local[in_contact]))  # (.all(): ~1 us)
+    flat = one_d or (not (planar and all(in_contact.tolist())) and collinear(local[in_contact]))  # (.all(): ~1 us)
     if flat and not one_d:
         plane_const, h_normals, h_offsets = _on_contact_line(local, xi, basis, in_contact, plane_lin, plane_const,
                                                              weight, h_normals, h_offsets)

@@ -21,13 +21,13 @@ from virtual_vehicle import __version__
 from virtual_vehicle.cells.hardware import WheelDrives
 from virtual_vehicle.cells.network.messages import Mailbox
 from virtual_vehicle.cells.network.programs import CellInputs, ChangedCells, tree_map
+from virtual_vehicle.cells.programs import program_of
 from virtual_vehicle.cells.sorting import encode_goal
 from virtual_vehicle.config.scenario import Setup
 from virtual_vehicle.engine.dynamics import Trajectory, sample_grid
 from virtual_vehicle.engine.plant import SUMMED_STATS, join, joined_stats, on_grid
 from virtual_vehicle.errors import VirtualVehicleError
 from virtual_vehicle.model.parcel import ParcelSpec, covered_pairs, supporting_cells
-from virtual_vehicle.physics.friction import CoulombLaw
 
 _ENERGY = ("kinetic_start", "kinetic_end", "wheel_work", "friction_dissipation", "step_dissipation", "contact_work")
 
@@ -107,25 +107,17 @@ class RunResult:
                 "chatter_steps": tr.stats.get("chatter_steps", 0),  # fixed steps across a sliding mode (event mode)
                 "coulomb_sliding_assumption_violated_at_s": pr.sliding_violation[0] if pr.sliding_violation else None,
                 "coulomb_max_reversed_slip_m_per_s": pr.sliding_violation[1] if pr.sliding_violation else None,
-                "coulomb_sliding_checked": pr.sliding_checked and isinstance(self.setup.law, CoulombLaw),
+                "coulomb_sliding_checked": pr.sliding_checked and self.setup.law.assumes_sliding,
                 **({"energy_J": {k: tr.stats[k] for k in _ENERGY},
                     "stick_slip_unconverged_steps": tr.stats["unconverged_steps"]} if "wheel_work" in tr.stats else {}),
             })
         extra = {}
-        if sc.control is not None and sc.control.program == "pose":
-            from virtual_vehicle.run.tasks import pose_report
-
-            report = pose_report(self)
+        task = None if sc.control is None else program_of(sc.control)
+        if task is not None and task.report is not None:  # the program's task report, its rows merged per parcel
+            report = task.report(self)
             for entry, row in zip(parcels, report.pop("parcels")):
                 entry.update({k: v for k, v in row.items() if k != "name"})
-            extra["pose"] = report
-        if sc.control is not None and sc.control.program == "sort":
-            from virtual_vehicle.run.tasks import sorting_report
-
-            report = sorting_report(self)
-            for entry, row in zip(parcels, report.pop("parcels")):
-                entry.update({k: v for k, v in row.items() if k != "name"})
-            extra["sorting"] = report
+            extra[task.SUMMARY] = report
         faults = self.setup.faults
         if faults is not None and faults.any():
             extra["faults"] = faults.summary()
@@ -143,7 +135,8 @@ class RunResult:
             "scenario": sc.name,
             "version": __version__,
             "friction_law": sc.friction.law,
-            "integrator": "time-stepping (stick-slip)" if sc.friction.law == "stick_slip" else sc.integrator.mode,
+            "integrator": (f"time-stepping ({self.setup.law.time_stepper.replace('_', '-')})"
+                           if self.setup.law.time_stepper else sc.integrator.mode),
             "duration_s": sc.duration,
             "cells": self.setup.cells.n,
             "parcels": parcels,
@@ -359,7 +352,7 @@ class FieldRun(_Job):
             keep = np.isin(traj.times, self.grid)  # the output samples, wherever the checkpoints cut
             keep[-1] = True
             traj = replace(traj, times=traj.times[keep], states=traj.states[keep])
-            check = coulomb_sliding_check(setup, spec, traj) if isinstance(setup.law, CoulombLaw) else None
+            check = coulomb_sliding_check(setup, spec, traj) if setup.law.assumes_sliding else None
             results.append(ParcelResult(spec, traj, check))
         return RunResult(setup, results, self.wall, {"plant": plant_totals(self.plant)},
                          scenario_text=self.scenario_text)
@@ -463,7 +456,7 @@ def wheel_loads(setup: Setup, models, states, active, speeds: np.ndarray) -> np.
     loads the wheel: Coulomb mu N in the direction of spin (paper 4.3), viscous mu N times the slip (eq. 30),
     stick-slip mu N against the slip (zero while a wheel is stuck). ``speeds`` are the wheels' surface speeds."""
     cells = setup.cells
-    law = setup.scenario.friction.law
+    law = setup.law
     load = np.zeros((cells.n, 2))
     for model, y, on in zip(models, states, active):
         if not on:
@@ -476,13 +469,7 @@ def wheel_loads(setup: Setup, models, states, active, speeds: np.ndarray) -> np.
             u = cells.drive_directions[ids, k]
             w = speeds[ids, k]
             slip = w - np.einsum("ij,ij->i", v, u)
-            if law == "coulomb":
-                f = np.sign(w)
-            elif law == "viscous":
-                f = slip
-            else:
-                f = np.where(np.abs(slip) > 1e-9, np.sign(slip), 0.0)
-            load[ids, k] += model.spec.mu * N * f
+            load[ids, k] += model.spec.mu * N * law.wheel_loads(w, slip)
     return load
 
 
@@ -638,13 +625,242 @@ def _reset_rows(state, fresh, rows: np.ndarray):
     return tree_map(reset, state, fresh)
 
 
-class NetworkRun(_Job):
+class TickedRun:
+    """A run that goes one control tick at a time, whoever decides the wheels: the parcels (arriving, carried,
+    leaving), the plant, the wheels' motors, the faults and the cells installed now, and what is recorded.
+
+    A tick is :meth:`begin` (the fault events and cell changes due take effect, the parcels due come on the array,
+    the cells read their sensors), a decision (the wheel speeds to hold: the cell programs and their network in
+    :class:`NetworkRun`, an agent in :mod:`virtual_vehicle.ui.envs`) and :meth:`finish` (belts, motors, faults, the
+    plant, the Coulomb check, the records). Both share this one code, so that an environment fed a run's commands
+    moves the parcels as the run does, to the last bit.
+
+    Args:
+        setup: the built scenario.
+        period: s between ticks.
+        end: s, where the last tick ends (default the scenario's duration).
+        grid: the output sample times (s) the parcels' tracks keep (default every tick's end).
+        topology: the cells' links at the start (default the layout's, less the scenario's dead cells and links).
+        record: keep a :class:`CellLog` row a tick (default the scenario's ``[sensors] record``).
+        states: the parcels' starting states (default the scenario's).
+        sensor_rng: draws the sensors' noise (default seeded with the scenario's sensor seed).
+    """
+
+    def __init__(self, setup: Setup, period: float, *, end: float | None = None, grid: np.ndarray | None = None,
+                 topology=None, record: bool | None = None, states=None, sensor_rng: np.random.Generator | None = None):
+        sc = setup.scenario
+        self.setup = setup
+        self.period = period
+        self.end = sc.duration if end is None else end
+        self.grid = grid
+        self.record = sc.sensors.record if record is None else record
+        self.k = 0
+        self.sensor_rng = np.random.default_rng(setup.sensors.seed) if sensor_rng is None else sensor_rng
+        self.drives = WheelDrives(setup.cells.n, sc.wheels.motor()) if sc.wheels.model == "motor" else None
+        self.ys = [y.copy() for y in (setup.states if states is None else states)]
+        self.arrive = [p.t_start for p in sc.parcels]
+        self.active = [t == 0 for t in self.arrive]
+        self.on = [i for i, a in enumerate(self.active) if a]  # the active parcels, in order
+        self.queue = sorted((i for i, t in enumerate(self.arrive) if t > 0), key=lambda i: (self.arrive[i], i))
+        self.entered = [0.0 if t == 0 else None for t in self.arrive]
+        self.plant = setup.plant()
+        self.tracks = [_Track() for _ in self.ys]
+        self.cell_log: list = []
+        self.faults = setup.faults  # these and the topology change when faults are injected during the run
+        self.sensors = setup.sensors
+        self.next_fault = 0
+        self.injected: list[dict] = []
+        self.present = setup.present  # cells installed now (None: all, always)
+        self.topology = self._links() if topology is None else topology
+        self.next_change = 0
+        self.reconfigured: list[dict] = []
+        # the paper's Coulomb assumption, checked at every output sample against that tick's wheels (4.3)
+        self.sliding: list | None = [None] * len(self.ys) if setup.law.assumes_sliding else None
+        if self.present is not None and not self.present.all():
+            self._rewire()
+
+    def span(self) -> tuple[float, float]:
+        """(start, end) of the next tick, s."""
+        t0 = self.k * self.period
+        return t0, min(self.end, t0 + self.period)
+
+    def begin(self) -> np.ndarray:
+        """The first half of the next tick, up to the decision: the fault events and cell changes due by its start
+        take effect, the parcels due come on the array, and the cells read their sensors. Returns the (n, S)
+        readings (a cell taken out reads nothing)."""
+        setup = self.setup
+        t0, _ = self.span()
+        self._inject(t0)
+        self._reconfigure(t0)
+        ys = self.ys
+        self._admit(t0)
+        on = self.on
+        sensors = self.sensors.read([setup.specs[i] for i in on], [ys[i] for i in on], self.sensor_rng)
+        if self.present is not None:
+            sensors[~self.present] = 0  # a cell taken out senses nothing
+        return sensors
+
+    def finish(self, command: np.ndarray, sensors: np.ndarray, sent: np.ndarray, received: np.ndarray) -> np.ndarray:
+        """The second half of the tick :meth:`begin` started: the cells ask for ``command`` ((n, 2) wheel surface
+        speeds along their drive directions, m/s); a dead cell does not drive, plain belts run at their own speed,
+        motor wheels follow through their dynamics, stuck wheels stay still, and the plant carries every parcel
+        over the tick under the wheels held (zero-order hold). ``sensors`` (the readings :meth:`begin` returned) and
+        ``sent`` / ``received`` ((n,) sentences) go into the cell log when it is kept. Returns the (n, 2) wheel
+        speeds the tick held, m/s (a motor wheel's mean over it)."""
+        setup, cells = self.setup, self.setup.cells
+        period = self.period
+        t0, t1 = self.span()
+        ys, active = self.ys, self.active
+        command = np.where(self.topology.alive[:, None], np.asarray(command, dtype=float), 0.0)  # dead cells: still
+        command = cells.belt_commands(command)  # plain belts run at their own speed
+        if self.drives is None:
+            wheels = command
+        else:
+            load = wheel_loads(setup, self.plant.base, ys, active, self.drives.speed)
+            wheels = self.drives.step(command, load, period)
+        if self.faults is not None:
+            wheels = self.faults.hold(wheels)  # stuck wheels (and those of dead cells) stay still
+        velocities = cells.surface_velocities(wheels)
+        if setup.contact_layer is not cells:  # separate or omni wheels, belts: each contact's own surface velocity
+            velocities = setup.contact_layer.contact_velocities(velocities)
+        if self.record:
+            self.cell_log.append((t0, sensors.astype(bool), np.array(wheels, dtype=float), command.copy(),
+                                  np.array(sent), np.array(received)))
+        if t1 > t0:
+            if self.grid is None:
+                window = np.array([t0, t1])
+            else:
+                eps = 1e-12 * max(1.0, t1)
+                window = self.grid[np.searchsorted(self.grid, t0 - eps, side="left"):
+                                   np.searchsorted(self.grid, t1 + eps, side="right")]  # output samples in this tick
+            trajectories, quiet = self.plant.advance_blocks(ys, active, velocities, t0, t1, period,
+                                                            sample_times=window)  # untrimmed: the tracks keep the grid
+            on: dict[int, np.ndarray] = {}  # by times array: the parcels stepped together share theirs
+
+            def on_window(times):
+                if len(window) and id(times) not in on:
+                    on[id(times)] = on_grid(times, window)
+                return on.get(id(times))
+
+            kept = [len(track.times) for track in self.tracks] if self.sliding is not None and len(window) else None
+            for i, tr in enumerate(trajectories):
+                if tr is not None:
+                    self.tracks[i].add(tr, window, on_window(tr.times))
+            for i, steps, k in quiet:  # those the quiet stepper alone moved, from its block
+                self.tracks[i].add_quiet(steps, k, window, on_window(steps.times))
+            if kept is not None:
+                self._check_sliding(kept, velocities)
+            gone = [i for i in self.on if not active[i]]
+            for i in gone:  # those that left the array are gone, and so is what was cached for them
+                self.plant.release(i)
+            if gone:
+                self.on = [i for i in self.on if active[i]]
+        self.k += 1
+        return wheels
+
+    def parcel_results(self) -> list[ParcelResult]:
+        """Every parcel's :class:`ParcelResult` so far: its samples on the grid and its latest state, events, the
+        Coulomb check; a parcel not yet on the array is ``"waiting"`` where it will come on."""
+        setup = self.setup
+        results = []
+        for i, (spec, track, y, t) in enumerate(zip(setup.specs, self.tracks, self.ys, self.arrive)):
+            traj = track.trajectory() if track.started else Trajectory(np.array([t]), y[None].copy(), [], "waiting", t)
+            results.append(ParcelResult(spec, traj, None if self.sliding is None else self.sliding[i],
+                                        sliding_checked=self.sliding is not None, entered_at=self.entered[i]))
+        return results
+
+    def _check_sliding(self, kept: list[int], velocities: np.ndarray) -> None:
+        """The Coulomb check (:func:`coulomb_sliding_check`) on the samples each parcel's track took this tick
+        (beyond ``kept`` of them), under this tick's contact ``velocities`` (m/s)."""
+        for i, (track, n) in enumerate(zip(self.tracks, kept)):
+            if len(track.times) > n:
+                found = _sliding(self.setup, self.setup.specs[i], track.times[n:], track.states[n:], velocities)
+                if found is not None:
+                    before = self.sliding[i]
+                    self.sliding[i] = found if before is None else (before[0], max(before[1], found[1]))
+
+    def _inject(self, t: float) -> None:
+        """Break what the scenario's fault events due by ``t`` (s) break: from this tick on, dead cells are silent
+        and still, stuck wheels held, dead links cut, stuck sensors stuck."""
+        events = self.setup.fault_events
+        while self.next_fault < len(events) and events[self.next_fault][0] <= t + 1e-9 * max(1.0, t):
+            t_event, faults = events[self.next_fault]
+            self.next_fault += 1
+            self._set_faults(faults)
+            self._rewire()
+            self.injected.append({"t_s": t_event, "at_tick_s": t, **faults.summary()})
+
+    def _set_faults(self, faults) -> None:
+        """The faults from now on, and the sensors they leave (stuck ones stuck); :meth:`_rewire` follows."""
+        self.faults = faults
+        base = self.setup.sensors
+        self.sensors = replace(base, stuck_on=base.stuck_on | faults.stuck_on,
+                               stuck_off=(base.stuck_off | faults.stuck_off) & ~(base.stuck_on | faults.stuck_on))
+
+    def _reconfigure(self, t: float) -> None:
+        """Take out and snap in the cells the scenario's changes due by ``t`` (s) name: from this tick on a removed
+        cell carries, drives, senses and says nothing; an added one starts afresh (:meth:`_cells_added`)."""
+        changes = self.setup.cell_changes
+        while self.next_change < len(changes) and changes[self.next_change][0] <= t + 1e-9 * max(1.0, t):
+            t_change, present = changes[self.next_change]
+            self.next_change += 1
+            added = present & ~self.present
+            removed = self.present & ~present
+            self.present = present
+            self._rewire()
+            self._cells_added(added)
+            self.reconfigured.append({"t_s": t_change, "at_tick_s": t, "added": np.flatnonzero(added).tolist(),
+                                      "removed": np.flatnonzero(removed).tolist()})
+
+    def _cells_added(self, added: np.ndarray) -> None:
+        """Start the cells ``added`` ((n,) bool) afresh: nothing here (an outside decision keeps no cell state)."""
+
+    def _links(self):
+        """The cells' topology now: dead and absent cells have no links, dead links are cut."""
+        from virtual_vehicle.cells.network.topology import from_layout
+
+        dead = self.faults.dead_cells if self.faults is not None else np.zeros(self.setup.cells.n, dtype=bool)
+        links = self.faults.dead_links if self.faults is not None else ()
+        if self.present is not None:
+            dead = dead | ~self.present
+        return from_layout(self.setup.cells).with_faults(dead_cells=np.flatnonzero(dead), dead_links=links)
+
+    def _rewire(self) -> None:
+        """The topology and plant after faults or a reconfiguration: dead and absent cells have no links; absent
+        cells carry nothing."""
+        if self.present is not None:
+            self.plant.set_present(self.present[self.setup.contact_layer.cell_of])
+        self.topology = self._links()
+
+    def _admit(self, t: float) -> None:
+        """Put on the array the parcels due by ``t``, first come first placed, while their place is free: no active
+        parcel overlaps it, or, when the program asks for a clearance (config ``clearance``, m), none comes that
+        close. The queue waits behind its first parcel."""
+        setup = self.setup
+        clearance = float(setup.control.config.get("clearance", 0.0)) if setup.control is not None else 0.0
+        while self.queue and self.arrive[self.queue[0]] <= t + 1e-12:
+            i = self.queue[0]
+            place = setup.specs[i].world_polygon(self.ys[i])
+            for j in self.on:
+                other = setup.specs[j].world_polygon(self.ys[j])
+                if clearance > 0 and shapely.distance(place, other) <= clearance:
+                    return
+                if clearance <= 0 and shapely.intersection(place, other).area > 1e-12:
+                    return
+            self.queue.pop(0)
+            self.active[i] = True
+            self.entered[i] = t
+            self.on = sorted([*self.on, i])
+
+
+class NetworkRun(TickedRun, _Job):
     """The state of a networked run between control ticks: everything needed to go on, so that a long run can be
-    checkpointed and resumed bit for bit."""
+    checkpointed and resumed bit for bit. Its decision at every tick is the cell programs' and their network's."""
 
     KIND = "network"
     _DERIVED = frozenset({"scenario_text", "setup", "period", "ticks", "grid", "arrive", "destinations", "plant",
-                          "topology", "faults", "sensors", "present", "next_fault", "next_change", "cell_log"})
+                          "topology", "faults", "sensors", "present", "next_fault", "next_change", "cell_log", "end",
+                          "record"})
     """What a checkpoint does not write: the setup and what follows from it and from :meth:`_position`."""
 
     def __init__(self, setup: Setup):
@@ -652,11 +868,6 @@ class NetworkRun(_Job):
         ctl = setup.control
         n, P = ctl.topology.n, ctl.topology.ports
         self.scenario_text: str | None = None
-        self.setup = setup
-        self.period = ctl.period
-        self.ticks = int(np.ceil(sc.duration / self.period - 1e-9))
-        self.grid = sample_grid(0.0, sc.duration, sc.output_dt or sc.duration / 500)  # output sample times, s
-        self.k = 0
         self.wall = 0.0
         self.state = ctl.program.init(n, P, ctl.config)
         self.inbox = Mailbox.empty(ctl.program.schema, n, P)
@@ -666,18 +877,11 @@ class NetworkRun(_Job):
         self.stepper = (ChangedCells(ctl.program) if ctl.changed_only and getattr(ctl.program, "stationary", False)
                         and hasattr(self.delivery, "exchange_changed") else None)
         self.inbox_changed: np.ndarray | None = None
-        self.sensor_rng = np.random.default_rng(setup.sensors.seed)
-        self.drives = WheelDrives(n, sc.wheels.motor()) if sc.wheels.model == "motor" else None
-        self.ys = [y.copy() for y in setup.states]
-        self.arrive = [p.t_start for p in sc.parcels]
-        self.active = [t == 0 for t in self.arrive]
-        self.on = [i for i, a in enumerate(self.active) if a]  # the active parcels, in order
-        self.queue = sorted((i for i, t in enumerate(self.arrive) if t > 0), key=lambda i: (self.arrive[i], i))
-        self.entered = [0.0 if t == 0 else None for t in self.arrive]
         self.destinations = [None if p.destination is None else encode_goal(p.destination, p.sequence)
                              for p in sc.parcels]  # what each parcel's label says
-        self.plant = setup.plant()
-        self.tracks = [_Track() for _ in self.ys]
+        super().__init__(setup, ctl.period, grid=sample_grid(0.0, sc.duration, sc.output_dt or sc.duration / 500),
+                         topology=ctl.topology)  # output sample times, s
+        self.ticks = int(np.ceil(sc.duration / self.period - 1e-9))
         keys = ("sent", "received", "bytes_sent", "bytes_received")
         self.per_tick = {k: np.zeros(self.ticks, dtype=np.int64) for k in (*keys, *_FAULTS)}
         self.per_tick["t"] = self.period * np.arange(self.ticks)
@@ -685,19 +889,6 @@ class NetworkRun(_Job):
         self.per_tick["latency_max"] = np.full(self.ticks, np.nan)
         self.per_cell = {f"cell_{k}": np.zeros(n, dtype=np.int64) for k in keys}
         self.latency = LatencyStats()
-        self.cell_log: list = []
-        self.topology = ctl.topology  # these three change when faults are injected during the run
-        self.faults = setup.faults
-        self.sensors = setup.sensors
-        self.next_fault = 0
-        self.injected: list[dict] = []
-        self.present = setup.present  # cells installed now (None: all, always)
-        self.next_change = 0
-        self.reconfigured: list[dict] = []
-        # the paper's Coulomb assumption, checked at every output sample against that tick's wheels (4.3)
-        self.sliding: list | None = [None] * len(self.ys) if isinstance(setup.law, CoulombLaw) else None
-        if self.present is not None and not self.present.all():
-            self._rewire()
 
     def _position(self) -> dict:
         return {"next_fault": self.next_fault, "next_change": self.next_change}
@@ -756,47 +947,31 @@ class NetworkRun(_Job):
         return every is not None and self.k % max(1, int(round(every / self.period))) == 0
 
     def tick(self) -> None:
-        """One control tick: sensors, program, network, wheels, plant."""
-        setup, sc, ctl = self.setup, self.setup.scenario, self.setup.control
+        """One control tick: :meth:`begin` (faults, cell changes, arrivals, sensors), the cell programs and their
+        network decide the wheel speeds, :meth:`finish` (belts, motors, faults, plant)."""
+        sensors = self.begin()
+        wheels, stats = self._decide(sensors)
+        self.finish(wheels, sensors, stats.sent, stats.received)
+
+    def _decide(self, sensors: np.ndarray):
+        """The decision of this tick: every cell steps its program on its ``sensors``, its inbox and its parcel's
+        label, and sends; the network delivers. Returns the (n, 2) wheel speeds the programs ask for (m/s) and the
+        delivery's traffic statistics of the tick (also added to the network record)."""
+        setup, ctl = self.setup, self.setup.control
         k, period = self.k, self.period
-        t0 = k * period
-        t1 = min(sc.duration, t0 + period)
-        self._inject(t0)
-        self._reconfigure(t0)
-        topo, cells = self.topology, setup.cells
-        ys, active = self.ys, self.active
-        self._admit(t0)
-        on = self.on
-        sensors = self.sensors.read([setup.specs[i] for i in on], [ys[i] for i in on], self.sensor_rng)
-        if self.present is not None:
-            sensors[~self.present] = 0  # a cell taken out senses nothing
+        t0, _ = self.span()
+        topo = self.topology
+        ys, on = self.ys, self.on
         labelled = any(self.destinations[i] is not None for i in on)
         labels = _labels(setup, [ys[i] for i in on], [setup.specs[i] for i in on],
                          [self.destinations[i] for i in on]) if labelled else None
         inputs = CellInputs(t0, sensors, self.inbox, topo.connected, ctl.config, labels)
         if self.stepper is None:
             self.state, outbox, wheels = ctl.program.step(self.state, inputs)
-        else:
+            self.inbox, stats = self.delivery.exchange(outbox, t0, period)  # what they sent, delivered
+        else:  # only the cells that changed step; the network tells whose inbox changes
             self.state, outbox, wheels, out_changed = self.stepper.step(self.state, inputs, self.inbox_changed)
-        command = np.where(topo.alive[:, None], np.asarray(wheels, dtype=float), 0.0)  # a dead cell does not drive
-        command = cells.belt_commands(command)  # plain belts run at their own speed
-        if self.drives is None:
-            wheels = command
-        else:
-            load = wheel_loads(setup, self.plant.base, ys, active, self.drives.speed)
-            wheels = self.drives.step(command, load, period)
-        if self.faults is not None:
-            wheels = self.faults.hold(wheels)  # stuck wheels (and those of dead cells) stay still
-        velocities = cells.surface_velocities(wheels)
-        if setup.contact_layer is not cells:  # separate or omni wheels, belts: each contact's own surface velocity
-            velocities = setup.contact_layer.contact_velocities(velocities)
-        if self.stepper is None:
-            self.inbox, stats = self.delivery.exchange(outbox, t0, period)
-        else:
             self.inbox, stats, self.inbox_changed = self.delivery.exchange_changed(outbox, out_changed, t0, period)
-        if sc.sensors.record:
-            self.cell_log.append((t0, sensors.astype(bool), np.array(wheels, dtype=float), command.copy(),
-                                  stats.sent.copy(), stats.received.copy()))
         for key in ("sent", "received", "bytes_sent", "bytes_received"):
             self.per_tick[key][k] = int(getattr(stats, key).sum())
             self.per_cell[f"cell_{key}"] += getattr(stats, key)
@@ -806,120 +981,23 @@ class NetworkRun(_Job):
             self.per_tick["latency_mean"][k] = stats.latencies.mean()
             self.per_tick["latency_max"][k] = stats.latencies.max()
             self.latency.add(stats.latencies)
-        if t1 > t0:
-            eps = 1e-12 * max(1.0, t1)
-            window = self.grid[np.searchsorted(self.grid, t0 - eps, side="left"):
-                               np.searchsorted(self.grid, t1 + eps, side="right")]  # output samples in this tick
-            trajectories, quiet = self.plant._advance(ys, active, velocities, t0, t1, self.period,
-                                                      sample_times=window)  # untrimmed: the tracks keep the grid
-            on: dict[int, np.ndarray] = {}  # by times array: the parcels stepped together share theirs
+        return wheels, stats
 
-            def on_window(times):
-                if len(window) and id(times) not in on:
-                    on[id(times)] = on_grid(times, window)
-                return on.get(id(times))
-
-            kept = [len(track.times) for track in self.tracks] if self.sliding is not None and len(window) else None
-            for i, tr in enumerate(trajectories):
-                if tr is not None:
-                    self.tracks[i].add(tr, window, on_window(tr.times))
-            for i, steps, k in quiet:  # those the quiet stepper alone moved, from its block
-                self.tracks[i].add_quiet(steps, k, window, on_window(steps.times))
-            if kept is not None:
-                self._check_sliding(kept, velocities)
-            gone = [i for i in self.on if not active[i]]
-            for i in gone:  # those that left the array are gone, and so is what was cached for them
-                self.plant.release(i)
-            if gone:
-                self.on = [i for i in self.on if active[i]]
-        self.k += 1
-
-    def _check_sliding(self, kept: list[int], velocities: np.ndarray) -> None:
-        """The Coulomb check (:func:`coulomb_sliding_check`) on the samples each parcel's track took this tick
-        (beyond ``kept`` of them), under this tick's contact ``velocities`` (m/s)."""
-        for i, (track, n) in enumerate(zip(self.tracks, kept)):
-            if len(track.times) > n:
-                found = _sliding(self.setup, self.setup.specs[i], track.times[n:], track.states[n:], velocities)
-                if found is not None:
-                    before = self.sliding[i]
-                    self.sliding[i] = found if before is None else (before[0], max(before[1], found[1]))
-
-    def _inject(self, t: float) -> None:
-        """Break what the scenario's fault events due by ``t`` (s) break: from this tick on, dead cells are silent
-        and still, stuck wheels held, dead links cut, stuck sensors stuck."""
-        events = self.setup.fault_events
-        while self.next_fault < len(events) and events[self.next_fault][0] <= t + 1e-9 * max(1.0, t):
-            t_event, faults = events[self.next_fault]
-            self.next_fault += 1
-            self._set_faults(faults)
-            self._rewire()
-            self.injected.append({"t_s": t_event, "at_tick_s": t, **faults.summary()})
-
-    def _set_faults(self, faults) -> None:
-        """The faults from now on, and the sensors they leave (stuck ones stuck); :meth:`_rewire` follows."""
-        self.faults = faults
-        base = self.setup.sensors
-        self.sensors = replace(base, stuck_on=base.stuck_on | faults.stuck_on,
-                               stuck_off=(base.stuck_off | faults.stuck_off) & ~(base.stuck_on | faults.stuck_on))
-
-    def _reconfigure(self, t: float) -> None:
-        """Take out and snap in the cells the scenario's changes due by ``t`` (s) name: from this tick on a removed
-        cell carries, drives, senses and says nothing; an added one starts its program afresh."""
-        changes = self.setup.cell_changes
-        while self.next_change < len(changes) and changes[self.next_change][0] <= t + 1e-9 * max(1.0, t):
-            t_change, present = changes[self.next_change]
-            self.next_change += 1
-            added = present & ~self.present
-            removed = self.present & ~present
-            self.present = present
-            self._rewire()
-            ctl = self.setup.control
-            fresh = ctl.program.init(self.topology.n, self.topology.ports, ctl.config)
-            self.state = _reset_rows(self.state, fresh, added)
-            self.reconfigured.append({"t_s": t_change, "at_tick_s": t, "added": np.flatnonzero(added).tolist(),
-                                      "removed": np.flatnonzero(removed).tolist()})
+    def _cells_added(self, added: np.ndarray) -> None:
+        """The cells ``added`` start their program afresh."""
+        ctl = self.setup.control
+        fresh = ctl.program.init(self.topology.n, self.topology.ports, ctl.config)
+        self.state = _reset_rows(self.state, fresh, added)
 
     def _rewire(self) -> None:
-        """The topology, delivery model and plant after faults or a reconfiguration: dead and absent cells have no
-        links; absent cells carry nothing."""
-        from virtual_vehicle.cells.network.topology import from_layout
-
-        dead = self.faults.dead_cells if self.faults is not None else np.zeros(self.setup.cells.n, dtype=bool)
-        links = self.faults.dead_links if self.faults is not None else ()
-        if self.present is not None:
-            dead = dead | ~self.present
-            self.plant.set_present(self.present[self.setup.contact_layer.cell_of])
-        self.topology = from_layout(self.setup.cells).with_faults(dead_cells=np.flatnonzero(dead), dead_links=links)
+        """:meth:`TickedRun._rewire`, and the delivery model on the new topology."""
+        super()._rewire()
         self.delivery.set_topology(self.topology)
-
-    def _admit(self, t: float) -> None:
-        """Put on the array the parcels due by ``t``, first come first placed, while their place is free: no active
-        parcel overlaps it, or, when the program asks for a clearance (config ``clearance``, m), none comes that
-        close. The queue waits behind its first parcel."""
-        setup = self.setup
-        clearance = float(setup.control.config.get("clearance", 0.0))
-        while self.queue and self.arrive[self.queue[0]] <= t + 1e-12:
-            i = self.queue[0]
-            place = setup.specs[i].world_polygon(self.ys[i])
-            for j in self.on:
-                other = setup.specs[j].world_polygon(self.ys[j])
-                if clearance > 0 and shapely.distance(place, other) <= clearance:
-                    return
-                if clearance <= 0 and shapely.intersection(place, other).area > 1e-12:
-                    return
-            self.queue.pop(0)
-            self.active[i] = True
-            self.entered[i] = t
-            self.on = sorted([*self.on, i])
 
     def result(self) -> RunResult:
         """The run's :class:`RunResult`: trajectories, network record and (when recorded) the cell log."""
         setup, ctl = self.setup, self.setup.control
-        results = []
-        for i, (spec, track, y, t) in enumerate(zip(setup.specs, self.tracks, self.ys, self.arrive)):
-            traj = track.trajectory() if track.started else Trajectory(np.array([t]), y[None].copy(), [], "waiting", t)
-            results.append(ParcelResult(spec, traj, None if self.sliding is None else self.sliding[i],
-                                        sliding_checked=self.sliding is not None, entered_at=self.entered[i]))
+        results = self.parcel_results()
         record = NetworkRecord(ctl.delivery_name, self.period, self.per_tick, self.per_cell, self.latency)
         stats = {"network": record.totals(), "plant": plant_totals(self.plant)}
         if self.injected:

@@ -17,12 +17,12 @@ from virtual_vehicle.engine.dynamics import ParcelModel, constants_row, integrat
 from virtual_vehicle.model.fields import Uniform
 from virtual_vehicle.model.layout import grid
 from virtual_vehicle.model.parcel import covered_pairs, rectangle
-from virtual_vehicle.physics.friction import CoulombLaw, ViscousLaw
+from virtual_vehicle.physics.laws import LAWS
 
 
 def warm_up() -> float:
     """Compile the event engine's inner loop (:mod:`virtual_vehicle.engine._kernel`), the support solve's compiled parts
-    (:mod:`virtual_vehicle.physics.contact`, :mod:`virtual_vehicle.physics.friction`), the quiet step's checks and step
+    (:mod:`virtual_vehicle.physics.contact`, :mod:`virtual_vehicle.physics.laws`), the quiet step's checks and step
     (:mod:`virtual_vehicle.engine.batch`) and the sorter's cell program (:mod:`virtual_vehicle.cells.sorting`; about a
     minute
     together, the first time on a machine) or load them from numba's cache (a fraction of a second), by integrating
@@ -34,17 +34,15 @@ def warm_up() -> float:
     start = time.perf_counter()
     cells = grid(4, 4, 0.1)
     spec = rectangle(0.25, 0.22, 1.0, 0.5)
-    model = ParcelModel(cells, spec, Uniform((0.1, 0.0)).velocities(cells), CoulombLaw())
+    model = ParcelModel(cells, spec, Uniform((0.1, 0.0)).velocities(cells), LAWS["coulomb"])
     end = integrate(model, np.array([0.15, 0.15, 0.0, 0.0, 0.0, 0.0]), 0.0, 0.01).states[-1]
     piece = model.piece_at(end)  # found again: the cache's test of a solution
-    ViscousLaw().constants_and_row(piece.solution, model.velocities[piece.support],
-                                   cells.active_directions[piece.support], 0.5, spec.mass, spec.inertia)
+    LAWS["viscous"].constants_and_row(piece.solution, model.velocities[piece.support],
+                                      cells.active_directions[piece.support], 0.5, spec.mass, spec.inertia)
     constants_row(piece.constants, piece.solution.origin, spec.mass, spec.inertia)  # as unpickling a piece does
     # the quiet step's compiled checks, with the argument types networked runs give them
     stepper = QuietStepper(cells, [spec], model.law, [spec.mu], model.weight / spec.mass, 1e-10, 1e-12)
-    stepper._anchor(0, [model], end)
-    stepper._edges_clear(np.zeros(1, dtype=np.int64), end[None], 0.01, np.zeros(1), np.zeros(1), stepper.radius,
-                         stepper.lever)
+    stepper.compile_checks(model, end)
     _kernel.quiet_steps(np.array([piece.row]), end[None], 0.01, 0.02, 1e-10, 1e-12,
                         np.array([0.01, 0.02]), np.empty((1, 2, 6)))
     covered_pairs([spec], [end], cells.grid)  # as sensing and destination labels gather cells

@@ -16,9 +16,7 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-import signal
 import tempfile
-import threading
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -35,7 +33,9 @@ from matplotlib.colors import LinearSegmentedColormap  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Polygon as PolygonPatch  # noqa: E402
 
+from virtual_vehicle.cells.programs import program_of  # noqa: E402
 from virtual_vehicle.model.layout import cell_outlines  # noqa: E402
+from virtual_vehicle.run.interrupt import Interrupts, without_sigint  # noqa: E402
 from virtual_vehicle.run.sim import RunResult  # noqa: E402
 from virtual_vehicle.ui.viz import absent_cells, dead_cells, sorter_lanes  # noqa: E402
 
@@ -181,14 +181,15 @@ def animate(result: RunResult, path: str | Path, *, fps: float = 20.0, speed: fl
             path = path.with_suffix(".gif")
         else:
             matplotlib.rcParams["animation.ffmpeg_path"] = exe
-            writer = FFMpegWriter(fps=fps, codec="libx264", extra_args=["-pix_fmt", "yuv420p"])
+            writer = _Encoder(fps=fps, codec="libx264", extra_args=["-pix_fmt", "yuv420p"])
     if writer is None:
         writer = PillowWriter(fps=fps)
-    fig, update = _scene(result, data, targets)
+    fig, update = scene(result, data, targets)
     total = len(data.times)
     drawn = [0]
 
     def draw(f):
+        stop.check()  # a Ctrl-C whose KeyboardInterrupt a finaliser swallowed still stops here
         out = update(f)
         drawn[0] = f + 1
         return out
@@ -198,22 +199,21 @@ def animate(result: RunResult, path: str | Path, *, fps: float = 20.0, speed: fl
     # written under a hidden temporary name beside the target, renamed when whole, removed on any failure
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".part" + path.suffix, dir=path.parent)
     os.close(fd)
-    old_term = _terminate_as_interrupt()
     # ffmpeg's complaints go to matplotlib's log; hold them, to show them only when they are news (not a Ctrl-C)
     held = _HeldLog(logging.getLogger("matplotlib.animation"))
+    stop = Interrupts(terminate=True)  # SIGTERM interrupts as Ctrl-C does, so the partial file is removed
     try:
-        anim.save(tmp, writer=writer, dpi=dpi,
-                  progress_callback=None if progress is None else (lambda i, n: progress((i + 1) / n)))
-        os.replace(tmp, path)
-    except BaseException as exc:  # Ctrl-C: ffmpeg dies of it too, and matplotlib then raises a second error
-        if _interrupted(exc):
+        with stop:
+            anim.save(tmp, writer=writer, dpi=dpi,
+                      progress_callback=None if progress is None else (lambda i, n: progress((i + 1) / n)))
+            os.replace(tmp, path)
+    except BaseException as exc:  # after a signal, any error (ffmpeg gone, a broken pipe) is the interrupt's doing
+        if stop.seen or _interrupted(exc):
             held.drop()
             raise AnimationInterrupted(drawn[0], total) from None
         raise
     finally:
-        held.release()
-        if old_term is not None:
-            signal.signal(signal.SIGTERM, old_term)
+        held.pass_on()
         plt.close(fig)
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -221,8 +221,9 @@ def animate(result: RunResult, path: str | Path, *, fps: float = 20.0, speed: fl
 
 
 class _HeldLog(logging.Handler):
-    """Holds the records of ``logger`` (and keeps them from its parents) until :meth:`release` passes them on;
-    :meth:`drop` forgets them."""
+    """Holds the records of ``logger`` (and keeps them from its parents) until :meth:`pass_on` passes them on;
+    :meth:`drop` forgets them. (Not ``release``: that is the lock method ``Handler.handle`` calls after each record,
+    which once made this pass every record on at once.)"""
 
     def __init__(self, logger: logging.Logger):
         super().__init__()
@@ -236,12 +237,22 @@ class _HeldLog(logging.Handler):
     def drop(self):
         self.records = []
 
-    def release(self):
+    def pass_on(self):
         self.logger.removeHandler(self)
         self.logger.propagate = self.propagate
         for record in self.records:
             self.logger.handle(record)
         self.records = []
+
+
+class _Encoder(FFMpegWriter):
+    """matplotlib's ffmpeg writer whose ffmpeg ignores SIGINT: a terminal's Ctrl-C reaches the whole process group,
+    and an ffmpeg that died of it first would leave this process a broken pipe instead of the interrupt; this process
+    stops and closes ffmpeg itself."""
+
+    def setup(self, *args, **kwargs):
+        with without_sigint():  # the disposition is inherited across fork and exec
+            super().setup(*args, **kwargs)
 
 
 def _interrupted(exc: BaseException) -> bool:
@@ -253,18 +264,6 @@ def _interrupted(exc: BaseException) -> bool:
         seen.add(id(exc))
         exc = exc.__context__
     return False
-
-
-def _terminate_as_interrupt():
-    """While an animation is written, SIGTERM interrupts it as Ctrl-C does (so the partial file is removed);
-    returns the handler to restore (None off the main thread, where signals cannot be handled)."""
-    if threading.current_thread() is not threading.main_thread():
-        return None
-
-    def handler(signum, frame):
-        raise KeyboardInterrupt
-
-    return signal.signal(signal.SIGTERM, handler)
 
 
 def traffic_range(data: FrameData) -> tuple[float, float]:
@@ -279,7 +278,7 @@ def traffic_range(data: FrameData) -> tuple[float, float]:
     return lo, hi
 
 
-def _scene(result: RunResult, data: FrameData, targets=None):
+def scene(result: RunResult, data: FrameData, targets=None):
     """The figure and the function that draws frame ``f`` of ``data`` into it (``targets``: see :func:`animate`)."""
     setup = result.setup
     sc = setup.scenario
@@ -318,7 +317,7 @@ def _scene(result: RunResult, data: FrameData, targets=None):
     crosses = ax.scatter(cells.positions[:, 0], cells.positions[:, 1], marker="x", s=float(np.clip(
         1200.0 * pitch / max(xmax - xmin, ymax - ymin, pitch), 8.0, 60.0)), linewidths=1.5, c="none", zorder=4,
         gid="dead-cells")
-    # the sorter's entries and exits (program "sort"), outlined and named
+    # the entries and exits of a program that has them (the sorter), outlined and named
     for label, colour, poly in sorter_lanes(setup, _DEST_COLOURS):
         ax.add_patch(PolygonPatch(poly, closed=True, fill=False, ec=colour, lw=2.2, ls="-", zorder=2))
         ax.text(poly[:, 0].mean(), poly[:, 1].mean(), label, ha="center", va="center", fontsize=8, color=colour,
@@ -351,9 +350,10 @@ def _scene(result: RunResult, data: FrameData, targets=None):
                       c=_lit_colours(data.lit[0]), edgecolors="none", zorder=6)
     # parcels
     names = [pr.spec.name for pr in result.parcels]
-    dests = [p.destination for p in sc.parcels] if sc.control is not None and sc.control.program == "sort" else None
-    if targets is None and sc.control is not None and sc.control.program == "pose":
-        targets = sc.control.targets
+    marks = program_of(sc.control).markers(setup) if sc.control is not None else None
+    dests = marks.destinations if marks is not None else None
+    if targets is None and marks is not None:
+        targets = marks.targets
     colours = [_DEST_COLOURS[(d or 0) % len(_DEST_COLOURS)] for d in dests] if dests else \
         [_DEST_COLOURS[k % len(_DEST_COLOURS)] for k in range(len(names))]
     if targets is not None:

@@ -40,7 +40,7 @@ def _main(version: bool = typer.Option(False, "--version", callback=_version, is
     """Simulate parcels carried by a distributed actuator array (the Virtual Vehicle)."""
 
 
-class _Phase:
+class Phase:
     """A status line on stderr for a phase of a command that takes longer than ``delay`` seconds: "LABEL ..." once
     it has, "LABEL: done in X s" when it ends (so that a long set-up, build or write shows where it is)."""
 
@@ -72,7 +72,7 @@ class _Phase:
                       markup=False)
 
 
-class _LazyProgress:
+class LazyProgress:
     """A progress bar that appears only once a run has taken longer than ``delay`` seconds."""
 
     def __init__(self, label: str, delay: float = 1.0):
@@ -93,6 +93,7 @@ class _LazyProgress:
         self.bar.update(self.task, completed=min(max(fraction, 0.0), 1.0))
 
     def close(self) -> None:
+        """Take the bar off the screen (when it appeared): the run is over."""
         if self.bar is not None:
             self.bar.stop()
 
@@ -122,9 +123,9 @@ def run(
         _check_out(out_dir, keep=(checkpoint,) if checkpoint is not None else ())
         if checkpoint is not None:
             _check_file_target(checkpoint, "--checkpoint")
-        with _Phase("reading the scenario"):
+        with Phase("reading the scenario"):
             sc, text = load_scenario(scenario)
-        with _Phase(f"building {sc.name}"):
+        with Phase(f"building {sc.name}"):
             setup = sc.build()
     except VirtualVehicleError as exc:
         _fail(exc)
@@ -134,7 +135,7 @@ def run(
         if setup.cells.n > MAX_CELL_IDS:
             _fail(VirtualVehicleError(f"--cell-ids: ids are drawn for at most {MAX_CELL_IDS} cells; this array has "
                                       f"{setup.cells.n}"))
-    bar = _LazyProgress(f"simulating {sc.name}")
+    bar = LazyProgress(f"simulating {sc.name}")
     try:
         result = run_setup(setup, progress=bar, checkpoint=checkpoint,
                            checkpoint_every=checkpoint_every if checkpoint is not None else None, scenario_text=text)
@@ -153,7 +154,7 @@ def resume_cmd(
     """Continue an interrupted run from its checkpoint; the results are those of an uninterrupted run."""
     from virtual_vehicle.run.sim import resume
 
-    bar = _LazyProgress(f"resuming {checkpoint}")
+    bar = LazyProgress(f"resuming {checkpoint}")
     try:
         formats = _formats(formats)
         _check_out(out_dir, keep=(checkpoint,))
@@ -210,11 +211,11 @@ def _report(result, out_dir: Path, plot: bool, text: str | None, formats: tuple[
     pictures = {}
     clear_run_folder(out_dir)  # a run folder holds exactly one run's files
     if plot:
-        from virtual_vehicle.ui.viz import plot_paths, plot_traffic
+        from virtual_vehicle.ui.viz import plot_paths, plot_traffic, sorter_lanes
 
         pictures["plot"] = out_dir / "paths.png"
-        with _Phase(f"drawing {pictures['plot']}"):
-            if sc.control is not None and sc.control.program == "sort":
+        with Phase(f"drawing {pictures['plot']}"):
+            if sorter_lanes(result.setup):  # a run with entries and exits: drawn as a sorting run
                 from virtual_vehicle.ui.viz import plot_sorting
 
                 plot_sorting(result, pictures["plot"], cell_ids=cell_ids)
@@ -222,9 +223,9 @@ def _report(result, out_dir: Path, plot: bool, text: str | None, formats: tuple[
                 plot_paths(result, pictures["plot"], cell_ids=cell_ids)
         if result.network is not None and result.network.per_tick["sent"].sum() > 0:
             pictures["traffic_plot"] = out_dir / "traffic.png"
-            with _Phase(f"drawing {pictures['traffic_plot']}"):
+            with Phase(f"drawing {pictures['traffic_plot']}"):
                 plot_traffic(result, pictures["traffic_plot"])
-    with _Phase(f"writing the tables to {out_dir}"):
+    with Phase(f"writing the tables to {out_dir}"):
         paths = {**write_results(result, out_dir, text, formats, extra=list(pictures.values())), **pictures}
     s = result.summary()
     out.print(f"[bold]{sc.name}[/bold]: {len(result.parcels)} parcel(s), {sc.duration:g} s simulated in "
@@ -307,7 +308,7 @@ def animate_cmd(
         setup = sc.build()
     except VirtualVehicleError as exc:
         _fail(exc)
-    bar = _LazyProgress(f"simulating {sc.name}")
+    bar = LazyProgress(f"simulating {sc.name}")
     try:
         result = run_setup(setup, progress=bar, scenario_text=text)
     except KeyboardInterrupt:
@@ -316,7 +317,7 @@ def animate_cmd(
         raise typer.Exit(code=130) from None
     finally:
         bar.close()
-    bar = _LazyProgress(f"drawing {frames} frames of {video.name}", delay=0.0)
+    bar = LazyProgress(f"drawing {frames} frames of {video.name}", delay=0.0)
     try:
         written = animate(result, video, fps=fps, speed=speed, start=start, end=end, progress=bar)
     except AnimationInterrupted as exc:
@@ -397,7 +398,7 @@ def _study(label: str, out_dir: Path, call):
     interrupt says what was kept (exit 130), also before any run started or while the summary is written."""
     from virtual_vehicle.analysis.sweep import SweepInterrupted
 
-    bar = _LazyProgress(label, delay=0.0)
+    bar = LazyProgress(label, delay=0.0)
     try:
         return call(bar)
     except VirtualVehicleError as exc:
@@ -590,24 +591,10 @@ def equilibria_cmd(
               f"written to {out_dir}/equilibria.json and force_field.png")
 
 
-_COMPARED = {
-    "sort": (("correct", "delivered to the right exit"), ("misrouted", "misrouted"), ("lost", "lost"),
-             ("collisions", "collisions"), ("throughput_per_hour", "parcels per hour"),
-             ("delivery_time_mean_s", "mean delivery time (s)"), ("delivery_time_max_s", "longest delivery time (s)"),
-             ("entry_delay_mean_s", "mean wait at the entry (s)"), ("on_array", "still on the array"),
-             ("waiting", "never put on"), ("order_inversions", "pairs left out of sequence")),
-    "pose": (("settled", "settled within 5 mm and 2 deg"), ("collisions", "collisions"),
-             ("throughput_per_hour", "parcels settled per hour"), ("final_error_mean_mm", "mean final error (mm)"),
-             ("final_error_max_mm", "largest final error (mm)"), ("final_error_mean_deg", "mean final error (deg)"),
-             ("final_error_max_deg", "largest final error (deg)"), ("settle_time_mean_s", "mean time to settle (s)"),
-             ("settle_time_max_s", "longest time to settle (s)"),
-             ("max_path_deviation_mm", "largest deviation from the path (mm)")),
-}
-
-
 @app.command()
 def compare(
-    scenario: str = typer.Argument("sorting_junction", help="A task scenario (program \"sort\" or \"pose\")."),
+    scenario: str = typer.Argument("sorting_junction", help="A task scenario (program \"sort\" or \"pose\": a "
+                                   "program with a task report that also runs centrally)."),
     out_dir: Path = typer.Option(Path("results/compare"), "--out", "-o", help="Folder for compare.json."),
     force: bool = typer.Option(False, "--force", help="Replace an earlier compare.json in the folder."),
 ) -> None:
@@ -618,20 +605,22 @@ def compare(
     from rich.table import Table
 
     from virtual_vehicle.analysis.compare import compare as compare_modes
+    from virtual_vehicle.cells.programs import PROGRAMS, program_of, with_task
     from virtual_vehicle.config.scenario import load_scenario
     from virtual_vehicle.run.files import write_atomic
 
     try:
         sc, _ = load_scenario(scenario)
-        if sc.control is None or sc.control.program not in _COMPARED:
-            raise ScenarioError("control.program", "compare needs a task scenario (program = \"sort\" or \"pose\")")
+        if sc.control is None or not program_of(sc.control).COMPARED or not program_of(sc.control).CENTRAL:
+            tasks = " or ".join(f'"{name}"' for name in with_task(PROGRAMS, central=True))
+            raise ScenarioError("control.program", f"compare needs a task scenario (program = {tasks})")
         _check_out_folder(out_dir)
         if (out_dir / "compare.json").exists() and not force:
             raise VirtualVehicleError(f"--out: {str(out_dir / 'compare.json')!r} holds an earlier comparison; "
                                       "name another folder, or give --force to replace it")
     except VirtualVehicleError as exc:
         _fail(exc)
-    bar = _LazyProgress(f"simulating {sc.name} twice")
+    bar = LazyProgress(f"simulating {sc.name} twice")
     try:
         both = compare_modes(sc, progress=bar)
     finally:
@@ -642,7 +631,7 @@ def compare(
     table.add_column("metric")
     table.add_column("distributed")
     table.add_column("central")
-    for key, label in _COMPARED[sc.control.program]:
+    for key, label in program_of(sc.control).COMPARED:
         cells = []
         for mode in ("distributed", "central"):
             v = both[mode][key]

@@ -8,8 +8,11 @@
   message to its neighbours.
 
 The task in both: bring each parcel to its target pose (x, y m, theta rad), by default the targets of a ``pose``
-scenario. Between decisions the wheels hold their speeds for ``period`` s (zero-order hold) while the plant
-integrates every parcel exactly as a run does. Reward per step, shared by all agents:
+scenario. Each decision is a control tick of a run (:class:`~virtual_vehicle.run.sim.TickedRun`, the same code a
+networked run ticks with), the agent's action in place of the cell programs and their network: the wheels hold
+their speeds for ``period`` s (zero-order hold; plain belts at their own speed, motor wheels through their
+dynamics, dead cells and stuck wheels still), the scenario's fault events and cell changes happen at their times,
+and the plant integrates every parcel exactly as a run does. Reward per step, shared by all agents:
 ``-period * sum_k (|xy_k - goal_k| / pitch + |theta_k - goal_k|)`` (s; heading error wrapped to [-pi, pi]),
 and -10 more when a parcel falls off the array. An episode terminates when every parcel is within ``tolerance``
 (m, rad) of its target or one falls off, and is truncated after ``max_steps`` decisions.
@@ -22,6 +25,8 @@ Units are SI: m, s, rad, m/s, rad/s.
 from __future__ import annotations
 
 import functools
+import math
+from dataclasses import replace
 from pathlib import Path
 
 import gymnasium
@@ -31,9 +36,8 @@ from pettingzoo import ParallelEnv
 
 from virtual_vehicle.cells.design import twist_design
 from virtual_vehicle.config.scenario import Scenario, load_scenario
-from virtual_vehicle.engine.dynamics import Trajectory
 from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.run.sim import CellLog, ParcelResult, RunResult
+from virtual_vehicle.run.sim import CellLog, RunResult, TickedRun
 
 FALL_PENALTY = 10.0
 
@@ -43,15 +47,23 @@ def _wrap(a):
 
 
 class Episode:
-    """The simulation under an environment: a scenario's array, parcels and friction, driven by wheel speeds set
-    from outside every ``period`` s. ``start_noise`` = (m, rad) spreads each reset's starting poses uniformly."""
+    """The simulation under an environment: a scenario's array, parcels, friction, wheels, faults and cell changes,
+    driven by wheel speeds set from outside every ``period`` s. ``start_noise`` = (m, rad) spreads each reset's
+    starting poses uniformly.
+
+    Each decision is one control tick of :class:`~virtual_vehicle.run.sim.TickedRun`, the code a networked run
+    ticks with, the agent's wheel speeds in place of the cell programs and their network: plain belts run at their
+    own speed, motor wheels follow through their dynamics, the scenario's fault events and cell changes happen at
+    their times (dead and absent cells do not drive, stuck wheels stay still), and the plant moves the parcels as the
+    run does. (Before, environments held belts and motors to the agent's speeds and ignored fault events and cell
+    changes.)"""
 
     def __init__(self, scenario: str | Path | Scenario = "pose_control", *, period: float = 0.05,
                  max_steps: int = 200, targets=None, tolerance=(0.005, np.radians(2.0)), vmax: float | None = None,
                  start_noise=(0.0, 0.0)):
         sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)[0]
-        if targets is None and sc.control is not None and sc.control.targets is not None:
-            targets = sc.control.targets
+        if targets is None and sc.control is not None:
+            targets = getattr(sc.control, "targets", None)  # a pose program's
         if targets is None:
             raise ScenarioError("targets", "an environment needs a target pose [x, y, theta] per parcel (or a "
                                 "scenario with program = \"pose\")")
@@ -69,12 +81,14 @@ class Episode:
         if tol.shape != (2,) or not np.all(tol > 0):
             raise ScenarioError("tolerance", "needs two positive numbers: (m, rad)")
         self.scenario = sc.model_copy(update={"control": None, "duration": period * int(max_steps)})
-        self.setup = self.scenario.build()
+        # built with its [control] (fault events and cell changes need one; the agent replaces its program) and at
+        # least the scenario's duration (its events stay within it)
+        self.setup = sc.model_copy(update={"duration": max(sc.duration, period * int(max_steps))}).build()
         self.period = float(period)
         self.max_steps = int(max_steps)
         self.targets = targets
         self.tolerance = tol
-        self.vmax = float(vmax if vmax is not None else (sc.control.speed if sc.control is not None else 0.5))
+        self.vmax = float(vmax if vmax is not None else (sc.control.top_speed() if sc.control is not None else 0.5))
         if not self.vmax > 0:
             raise ScenarioError("vmax", f"must be a positive speed in m/s, got {self.vmax}")
         self.start_noise = np.asarray(start_noise, dtype=float)
@@ -85,58 +99,50 @@ class Episode:
         self.position_bounds = (lo - reach, hi + reach)
 
     def reset(self, rng: np.random.Generator) -> None:
-        """Back to t = 0 with the scenario's starting poses (spread by ``start_noise``)."""
-        setup = self.setup
-        self.plant = setup.plant()
-        self.ys = []
-        for y in setup.states:
+        """Back to t = 0 with the scenario's starting poses (spread by ``start_noise``), faults and cells."""
+        ys = []
+        for y in self.setup.states:
             y = y.copy()
             y[:2] += rng.uniform(-1, 1, 2) * self.start_noise[0]
             y[2] += rng.uniform(-1, 1) * self.start_noise[1]
-            self.ys.append(y)
-        self.active = [True] * self.parcels
-        self.sensor_rng = np.random.default_rng(rng.integers(2**63))
-        self.k = 0
+            ys.append(y)
+        self.run = TickedRun(self.setup, self.period, end=math.inf, record=True, states=ys,
+                             sensor_rng=np.random.default_rng(rng.integers(2**63)))
         self.t = 0.0
         self.wheels = np.zeros((self.n, 2))
-        self.history = [[(0.0, y.copy())] for y in self.ys]
-        self.events = [[] for _ in self.ys]
-        self.log: list[tuple] = []
-        self.readings = self.read()
+        self.readings = self.run.begin()
 
-    def read(self) -> np.ndarray:
-        """(n, S) the sensors now (with the scenario's noise and faults)."""
-        on = [i for i in range(self.parcels) if self.active[i]]
-        return self.setup.sensors.read([self.setup.specs[i] for i in on], [self.ys[i] for i in on], self.sensor_rng)
+    @property
+    def ys(self) -> list[np.ndarray]:
+        """Every parcel's state now: x, y m, theta rad, vx, vy m/s, omega rad/s."""
+        return self.run.ys
+
+    @property
+    def active(self) -> list[bool]:
+        """Which parcels are on the array."""
+        return self.run.active
+
+    @property
+    def k(self) -> int:
+        """Decisions taken since the reset."""
+        return self.run.k
 
     def advance(self, wheels: np.ndarray, sent=None, received=None) -> tuple[float, bool]:
         """Hold ``wheels`` ((n, 2) speeds along each cell's drive directions, m/s, clipped to ``vmax``) for one
         period; returns (reward, terminated). ``sent``/``received`` (n,) messages, for the cell log only."""
-        setup = self.setup
         wheels = np.clip(np.asarray(wheels, dtype=float).reshape(self.n, 2), -self.vmax, self.vmax)
-        if setup.faults is not None:
-            wheels = setup.faults.hold(wheels)  # the scenario's stuck wheels and dead cells do not turn
         zero = np.zeros(self.n, dtype=np.int64)
-        self.log.append((self.t, self.readings.astype(bool), wheels.copy(), wheels.copy(),
-                         zero if sent is None else sent, zero if received is None else received))
-        velocities = setup.contact_layer.contact_velocities(setup.cells.surface_velocities(wheels))
-        t1 = self.period * (self.k + 1)
         was = list(self.active)
-        for i, tr in enumerate(self.plant.advance(self.ys, self.active, velocities, self.t, t1, self.period)):
-            if tr is not None:
-                self.history[i].append((float(tr.times[-1]), tr.states[-1].copy()))
-                self.events[i].extend(tr.events)
-        self.k += 1
-        self.t = t1
-        self.wheels = wheels
-        self.readings = self.read()
+        _, self.t = self.run.span()
+        self.wheels = np.array(self.run.finish(wheels, self.readings, zero if sent is None else sent,
+                                               zero if received is None else received), dtype=float)
+        self.readings = self.run.begin()  # the next tick's faults, cell changes and sensors: what the agent sees
         pos, ang = self.errors()
-        reward = -self.period * float(np.sum(pos / setup.cells.pitch + ang))
+        reward = -self.period * float(np.sum(pos / self.setup.cells.pitch + ang))
         fell = any(w and not a for w, a in zip(was, self.active))
         if fell:
             reward -= FALL_PENALTY
         return reward, fell or self.success
-
     def errors(self) -> tuple[np.ndarray, np.ndarray]:
         """Each parcel's distance (m) and heading error (rad) from its target."""
         Y = np.array(self.ys)
@@ -161,20 +167,21 @@ class Episode:
 
     def result(self) -> RunResult:
         """The episode so far as a :class:`~virtual_vehicle.run.sim.RunResult`, e.g. for
-        :func:`~virtual_vehicle.ui.animate.animate` or :func:`~virtual_vehicle.run.tables.build`: its cell log has a row
-        per
+        :func:`~virtual_vehicle.ui.animate.animate` or :func:`~virtual_vehicle.run.tables.build`: a sample per
+        decision (and the Coulomb check there, as a run makes it at its output samples); its cell log has a row per
         decision (readings then, wheel speeds held from then) and a last row for now (wheels as last held)."""
         parcels = []
-        for i, spec in enumerate(self.setup.specs):
-            times = np.array([t for t, _ in self.history[i]])
-            states = np.array([y for _, y in self.history[i]])
-            status = "running" if self.active[i] else "tipped"
-            parcels.append(ParcelResult(spec, Trajectory(times, states, list(self.events[i]), status, times[-1]),
-                                        sliding_checked=False))
+        for pr, on in zip(self.run.parcel_results(), self.active):
+            tr = pr.trajectory
+            parcels.append(replace(pr, trajectory=replace(tr, status="running" if on else "tipped")))
         sc = self.scenario.model_copy(update={"duration": max(self.t, self.period)})
         now = (self.t, self.readings.astype(bool), self.wheels.copy(), self.wheels.copy(), np.zeros(self.n, np.int64),
                np.zeros(self.n, np.int64))
-        return RunResult(sc.build(), parcels, 0.0, {}, None, CellLog.stack([*self.log, now]))
+        stats = {"faults_injected": self.run.injected} if self.run.injected else {}
+        if self.run.reconfigured:
+            stats["reconfigured"] = self.run.reconfigured
+        return RunResult(replace(self.setup, scenario=sc, control=None), parcels, 0.0, stats, None,
+                         CellLog.stack([*self.run.cell_log, now]))
 
 
 class ArrayEnv(gymnasium.Env):
@@ -276,11 +283,11 @@ def render_rgb(ep: Episode) -> np.ndarray:
     """(H, W, 3) uint8 picture of the episode now, drawn like a frame of :func:`~virtual_vehicle.ui.animate.animate`."""
     import matplotlib.pyplot as plt
 
-    from virtual_vehicle.ui.animate import _scene, frame_data
+    from virtual_vehicle.ui.animate import scene, frame_data
 
     result = ep.result()
     t = result.setup.scenario.duration if ep.k else 0.0
-    fig, _ = _scene(result, frame_data(result, [t]), ep.targets)
+    fig, _ = scene(result, frame_data(result, [t]), ep.targets)
     fig.canvas.draw()
     rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
     plt.close(fig)
@@ -292,10 +299,12 @@ class CellsEnv(ParallelEnv):
 
     Each agent observes a flat float32 vector: its S sensor readings (0/1), its two wheel speeds (m/s), and for each
     of its P ports the ``message_size`` numbers the neighbour on that port sent at the previous step (zeros where
-    there is none, or the link or neighbour is dead). Each acts with a vector of 2 + ``message_size`` numbers: its
-    wheel speeds (m/s, within +-vmax) and the message its neighbours read next step (within +-1; an all-zero
-    message counts as silence in the traffic the cell log records). Reward, task and the other arguments are those
-    of :class:`ArrayEnv`; the reward is shared by all agents. ``state()`` is the parcels' states, flattened.
+    there is none, or the link or neighbour is dead, from the start or since a fault event). Each acts with a vector
+    of 2 + ``message_size`` numbers: its wheel speeds (m/s, within +-vmax; a dead or absent cell's do not turn) and
+    the message its neighbours read next step (within +-1; an all-zero message counts as silence in the traffic the
+    cell log records). Its wheel speeds observed are those its wheels held over the last step (a motor wheel's mean).
+    Reward, task and the other arguments are those of :class:`ArrayEnv`; the reward is shared by all agents.
+    ``state()`` is the parcels' states, flattened.
     """
 
     metadata = {"render_modes": ["rgb_array"], "name": "virtual_vehicle_cells_v0"}
@@ -338,7 +347,7 @@ class CellsEnv(ParallelEnv):
         return self._act_space
 
     def _observations(self) -> dict[str, np.ndarray]:
-        ep, topo, M = self.episode, self.topology, self.message_size
+        ep, topo, M = self.episode, self.episode.run.topology, self.message_size  # the links now (faults cut some)
         inbox = np.zeros((ep.n, topo.ports, M), dtype=np.float32)
         link = topo.connected & (topo.neighbor >= 0)
         if M:
@@ -370,12 +379,13 @@ class CellsEnv(ParallelEnv):
             act = np.clip(np.asarray(act, dtype=np.float32), self._act_space.low, self._act_space.high)
             wheels[self._index[a]] = act[:2]
             outbox[self._index[a]] = act[2:]
-        link = self.topology.connected & (self.topology.neighbor >= 0)
+        topo = ep.run.topology  # the links now: a dead cell or link carries no message
+        link = topo.connected & (topo.neighbor >= 0)
         sent = np.where(np.any(outbox != 0, axis=1), link.sum(axis=1), 0) if M else None
         received = None
         if M:
             received = np.zeros(ep.n, dtype=np.int64)
-            np.add.at(received, self.topology.neighbor[link], np.repeat(sent > 0, link.sum(axis=1)))
+            np.add.at(received, topo.neighbor[link], np.repeat(sent > 0, link.sum(axis=1)))
         reward, terminated = ep.advance(wheels, sent, received)
         self.outbox = outbox
         truncated = ep.truncated and not terminated

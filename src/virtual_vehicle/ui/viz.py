@@ -15,6 +15,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Polygon as PolygonPatch  # noqa: E402
 
+from virtual_vehicle.cells.programs import program_of  # noqa: E402
 from virtual_vehicle.model.layout import cell_outlines  # noqa: E402
 from virtual_vehicle.run.files import write_atomic  # noqa: E402
 from virtual_vehicle.run.sim import RunResult  # noqa: E402
@@ -50,6 +51,7 @@ def plot_paths(result: RunResult, path: str | Path | None = None, title: str | N
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     axh = axt.twinx()
     tipped_seen = False
+    targets = program_of(setup.scenario.control).markers(setup).targets if setup.scenario.control else None
     for k, pr in enumerate(result.parcels):
         c = colors[(k + 1) % len(colors)]
         tr = pr.trajectory
@@ -67,7 +69,6 @@ def plot_paths(result: RunResult, path: str | Path | None = None, title: str | N
             ax.plot(*tr.states[-1, :2], "x", color="red", ms=9, mew=2, zorder=4,
                     label=None if tipped_seen else "tipped (red edge and cross)")
             tipped_seen = True
-        targets = setup.scenario.control.targets if setup.scenario.control is not None else None
         if targets:
             goal = pr.spec.world_polygon(targets[k])
             ax.add_patch(PolygonPatch(np.asarray(goal.exterior.coords), closed=True, fill=False, ls=":", ec="k",
@@ -156,31 +157,13 @@ def cell_raster(cells, values, fill=np.nan) -> tuple[np.ndarray, tuple[float, fl
 
 
 def sorter_lanes(setup, colours=("tab:blue", "tab:orange", "tab:green", "tab:purple")):
-    """The entries and exits of a sorting run (program ``"sort"``), as (label, colour, outline (k, 2) m): the
-    ``[control] entries`` / ``exits`` outlines when the scenario gives them, else (marks on a map) the bounding box
-    of each entry's and exit's cells, a pitch wide around their centres. Entries are grey, exit k takes
-    ``colours[k]``, as the parcels bound for it. Empty for other runs."""
-    sc = setup.scenario
-    ctl = sc.control
-    if ctl is None or ctl.program != "sort" or setup.control is None:
+    """The entries and exits of a run whose program has them (program ``"sort"``: its module's ``markers``), as
+    (label, colour, outline (k, 2) m): entries are grey, exit k takes ``colours[k]``, as the parcels bound for it.
+    Empty for other runs."""
+    if setup.scenario.control is None or setup.control is None:
         return []
-    out = []
-    if ctl.entries or ctl.exits:
-        for k, poly in enumerate(ctl.entries):
-            out.append(("entry" if len(ctl.entries) == 1 else f"entry {k}", "0.35", np.asarray(poly, float)))
-        for k, poly in enumerate(ctl.exits):
-            out.append((f"exit {k}", colours[k % len(colours)], np.asarray(poly, float)))
-        return out
-    cfg = setup.control.config
-    P, h = setup.cells.positions, setup.cells.pitch / 2
-    groups = [("entry", "0.35", np.asarray(cfg["entry"], bool))]
-    exits = np.asarray(cfg["exit"])
-    groups += [(f"exit {k}", colours[k % len(colours)], exits == k) for k in range(int(exits.max()) + 1)]
-    for label, colour, mask in groups:
-        if mask.any():
-            (x0, y0), (x1, y1) = P[mask].min(axis=0) - h, P[mask].max(axis=0) + h
-            out.append((label, colour, np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])))
-    return out
+    lanes = program_of(setup.scenario.control).markers(setup).lanes
+    return [(label, "0.35" if k < 0 else colours[k % len(colours)], poly) for label, k, poly in lanes]
 
 
 def draw_cells(ax, setup, size: float = 12, color: str = "0.45", label: str | None = "cells",

@@ -397,7 +397,8 @@ def check_program(program: CellProgram, topology, config: dict, ticks: int = 5, 
                   sensors: np.ndarray | None = None) -> None:
     """Check a program against the cell-program contract on ``topology`` (ideal rounds): the output shapes and
     dtypes are right, the program is deterministic, and it is local: relabelling the cells (permuting ids, and the
-    topology, configuration and ``sensors`` readings with them) relabels its outputs exactly. A program that
+    topology, per-cell configuration and ``sensors`` readings with them; a scalar configuration entry is every
+    cell's) relabels its outputs exactly. A program that
     declares itself ``stationary`` must also give the same outputs when only the cells that changed are stepped
     (:class:`ChangedCells`). ``sensors``: (n, S) readings held for every tick (default: nothing seen). Raises
     AssertionError."""
@@ -411,7 +412,7 @@ def check_program(program: CellProgram, topology, config: dict, ticks: int = 5, 
     nb = topology.neighbor[perm]
     relabelled = Topology(np.where(nb >= 0, inv[np.maximum(nb, 0)], -1), topology.back_port[perm],
                           topology.link_up[perm], topology.alive[perm])
-    pconfig = {k: np.asarray(v)[perm] for k, v in config.items()}
+    pconfig = {k: np.asarray(v)[perm] if np.ndim(v) else v for k, v in config.items()}  # a scalar: every cell's
     seen = np.zeros((n, 1), bool) if sensors is None else np.asarray(sensors, dtype=bool)
 
     def run(topo, cfg, seen):

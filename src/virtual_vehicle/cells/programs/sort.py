@@ -1,0 +1,281 @@
+"""Program ``"sort"``: the Virtual Vehicle sorter (:mod:`virtual_vehicle.cells.sorting`): parcels read at an entry
+ride to the exit their label names, in sequence where they carry a number; its options, builder, task report and the
+entries and exits the pictures draw. Units: m, s, m/s, parcels per hour."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+import shapely
+from pydantic import Field
+
+from virtual_vehicle.cells.programs.base import (BuildContext, ControlSetup, FieldError, Markers, Point,
+                                                 ProgramOptions, setup_for)
+
+Outline = Annotated[list[Point], Field(min_length=3)]
+
+
+class SortOptions(ProgramOptions):
+    """``program = "sort"``: the Virtual Vehicle (:mod:`virtual_vehicle.cells.sorting`): cells inside ``entries``
+    outlines read each arriving parcel's ``destination``, cells inside ``exits[k]`` are exit k (a lane reaching the
+    edge; parcels leave through the side most of its cells have open); parcels ride at ``speed`` (m/s) keeping
+    ``gap`` free cells ahead, sharing decisions over ``reach`` hops. Parcels with a ``sequence`` number leave in that
+    order: one whose number is not yet due parks where one of its carrying cells is a parking cell (inside a
+    ``parking`` outline, or ``P`` on a map) and waits there (at most three exits then). Without outlines the entries
+    (``E``), exits (``0``..``3``) and parking cells come from an ``[array]`` map. ``central`` = true runs the same
+    policies on one central computer instead (:class:`~virtual_vehicle.cells.sorting.CentralSorter`), for
+    comparison."""
+
+    program: Literal["sort"]
+    speed: Annotated[float, Field(gt=0, le=1e3)] = 0.2
+    exits: Annotated[list[Outline], Field(max_length=4)] = []
+    entries: list[Outline] = []
+    parking: list[Outline] = []
+    gap: Annotated[int, Field(ge=1, le=50)] = 2
+    reach: Annotated[int, Field(ge=1, le=62)] = 8
+    central: bool = False
+
+    def top_speed(self) -> float:
+        """The parcels' riding speed (m/s): the fastest the wheels run."""
+        return self.speed
+
+
+
+Options = SortOptions
+"""The ``[control]`` table of this program."""
+
+def _inside(outline, cells, where: str) -> np.ndarray:
+    poly = shapely.Polygon(np.asarray(outline, dtype=float))
+    if not poly.is_valid or poly.area <= 0:
+        raise FieldError(where, "is not a simple polygon with positive area")
+    inside = shapely.covers(poly, shapely.points(cells.positions))
+    if not inside.any():
+        raise FieldError(where, "contains no cell")
+    return inside
+
+
+def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
+    """Each cell is told whether it is an entry, a parking cell, which exit it belongs to and its way out, the port
+    a one-way cell forbids, and a unique installation number; the parcels' labels are checked against the exits."""
+    from virtual_vehicle.cells.sorting import PARK, Sorter
+    from virtual_vehicle.model import layout
+
+    c, cells, topo, marks = options, ctx.cells, ctx.topology, ctx.marks
+    if (not c.exits or not c.entries) and not marks:
+        raise FieldError("control", "program 'sort' needs exits = [outline, ...] and entries = [outline, ...] "
+                         "(outlines [[x, y], ...] in m), or an [array] map that marks them")
+    if np.any(cells.ports[~cells.belts] != 4):
+        raise FieldError("control.program", "the sorter runs on square lattices (four ports a cell)")
+    exit_id = np.full(cells.n, -1, dtype=np.int64)
+    if c.exits:
+        for k, outline in enumerate(c.exits):
+            inside = _inside(outline, cells, f"control.exits[{k}]")
+            exit_id[inside & (exit_id < 0)] = k
+        n_exits = len(c.exits)
+    else:  # from the map
+        n_exits = 0
+        while str(n_exits) in marks:
+            exit_id[marks[str(n_exits)]] = n_exits
+            n_exits += 1
+        if n_exits == 0 or any(str(k) in marks for k in range(n_exits, 4)):
+            raise FieldError("array.map", "program 'sort' needs exits: mark them 0, 1, ... in order on the map, "
+                             "or give control.exits")
+    exit_port = np.full(cells.n, -1, dtype=np.int64)
+    for k in range(n_exits):
+        region = np.flatnonzero(exit_id == k)
+        free = (~topo.connected[region]).sum(axis=0)  # sides of the region's cells with no neighbour, by port
+        where = f"control.exits[{k}]" if c.exits else f"array.map (exit {k})"
+        if free.max() == 0:
+            raise FieldError(where, "an exit must reach the edge of the array (parcels leave "
+                             "through a side with no neighbour)")
+        if np.sum(free == free.max()) > 1:
+            raise FieldError(where, "the way out is ambiguous (the exit touches two edges as much; "
+                             "keep it off the corner)")
+        exit_port[region] = int(np.argmax(free))  # the way out: the side most of its cells have open
+    entry = np.zeros(cells.n, dtype=bool)
+    for k, outline in enumerate(c.entries):
+        entry |= _inside(outline, cells, f"control.entries[{k}]")
+    park = np.zeros(cells.n, dtype=bool)
+    for k, outline in enumerate(c.parking):
+        park |= _inside(outline, cells, f"control.parking[{k}]")
+    if not c.parking:
+        park = marks.get("P", park)
+    if park.any() and n_exits > PARK:
+        raise FieldError("control.parking", f"with parking cells a sorter has at most {PARK} exits (the "
+                         "fourth gradient leads to the parking cells)")
+    if not c.entries:
+        entry = marks.get("E", entry)
+        if not entry.any():
+            raise FieldError("array.map", "program 'sort' needs entries: mark entry cells E on the map, or give "
+                             "control.entries")
+    forbid = np.full(cells.n, -1, dtype=np.int64)  # one-way cells: the port a parcel may not move toward
+    for arrow, against in layout.ONE_WAY.items():
+        forbid[marks.get(arrow, np.zeros(cells.n, bool))] = against
+    config = {"exit": exit_id, "exit_port": exit_port, "entry": entry, "park": park, "forbid": forbid,
+              "entry_no": np.arange(1, cells.n + 1, dtype=np.int64),  # installation numbers: unique vehicle ids
+              "clearance": (c.gap + 1) * cells.pitch}  # the loader waits for this much room around a new parcel
+    if c.central:
+        from virtual_vehicle.cells.sorting import CentralSorter
+
+        program = CentralSorter(topo, c.speed, c.gap, period=c.period)
+    else:
+        program = Sorter(c.speed, c.gap, c.reach, max_age=c.max_age, period=c.period, pitch=cells.pitch)
+    for i, p in enumerate(ctx.parcels):
+        if p.destination is not None and p.destination >= n_exits:
+            raise FieldError(f"parcels[{i}].destination", f"exit {p.destination} does not exist (the scenario has "
+                             f"{n_exits} exits, 0..{n_exits - 1})")
+    _check_sequence(ctx.parcels, park)
+    return setup_for(c, ctx, program, config)
+
+
+def _check_sequence(parcels, park: np.ndarray) -> None:
+    """Sequence numbers, where given, must be 0, 1, 2, ... (each once), on labelled parcels, with parking."""
+    numbered = [(i, p) for i, p in enumerate(parcels) if p.sequence is not None]
+    if not numbered:
+        return
+    for i, p in numbered:
+        if p.destination is None:
+            raise FieldError(f"parcels[{i}].sequence", "a sequence number goes with a destination (the label "
+                             "carries both)")
+    got = sorted(p.sequence for _, p in numbered)
+    if got != list(range(len(got))):
+        missing = sorted(set(range(len(got))) - set(got))
+        raise FieldError(f"parcels[{numbered[0][0]}].sequence", "sequence numbers must be 0, 1, 2, ... each once "
+                         f"over the parcels that have one (missing {missing[:5]}): a number never delivered would "
+                         "hold the rest forever")
+    if not park.any():
+        raise FieldError("control.parking", "parcels with sequence numbers need parking cells (P on the map, or "
+                         "control.parking outlines) to wait on")
+
+
+def report(result) -> dict:
+    """Outcome of every parcel of a sorting run and the run's totals.
+
+    A parcel is ``"delivered"`` when it left the array (tipped off the edge) with its centre of mass within 1.5
+    pitches of a cell of an exit lane, which is the exit it reached; ``"correct"`` when that exit is its
+    destination. ``"lost"``: it left the array anywhere else; ``"on_array"``: still there at the end;
+    ``"waiting"``: never put on (its place at the entry never came free). Delivery time runs from being put on the
+    array to leaving it. ``collisions`` counts pairs of parcels that started pushing each other (must be 0).
+    ``throughput_per_hour`` counts correct deliveries. With sequence numbers, ``order_inversions`` counts the pairs of
+    delivered parcels that left in the wrong order (must be 0); None when no parcel with a sequence number left.
+
+    With plain conveyor belts, a parcel leaves the array when it last rests on no cell of the array (only on belts,
+    or on nothing), judged at the trajectory's samples: handed to an exit belt by an exit lane, it is delivered
+    there, whether or not it later falls off the belt's far end.
+    """
+    setup = result.setup
+    sc = setup.scenario
+    cells = setup.cells
+    exit_id = np.asarray(setup.control.config["exit"])
+    exit_cells = np.flatnonzero(exit_id >= 0)
+    belts = cells.belts.any()
+    rows = []
+    for pr, entry in zip(result.parcels, sc.parcels):
+        tr = pr.trajectory
+        row = {"name": pr.spec.name, "destination": entry.destination, "sequence": entry.sequence,
+               "due_s": entry.t_start,
+               "entered_at_s": pr.entered_at, "outcome": "on_array", "exit": None, "correct": False,
+               "delivery_time_s": None, "collisions": sum(1 for e in tr.events if e.kind == "contact")}
+        left = _left_the_cells(setup, pr) if belts and pr.entered_at is not None else None
+        if pr.entered_at is None:
+            row["outcome"] = "waiting"
+        elif left is not None:
+            t_left, k = left
+            if k >= 0:
+                row.update(outcome="delivered", exit=k, delivery_time_s=float(t_left - pr.entered_at))
+                row["correct"] = row["exit"] == entry.destination
+            else:
+                row["outcome"] = "lost"
+        elif tr.status == "tipped" and not belts:
+            d = np.hypot(*(cells.positions[exit_cells] - tr.states[-1, :2]).T)
+            k = int(np.argmin(d)) if len(d) else -1
+            if k >= 0 and d[k] <= 1.5 * cells.pitch:
+                row.update(outcome="delivered", exit=int(exit_id[exit_cells[k]]),
+                           delivery_time_s=float(tr.t_end - pr.entered_at))
+                row["correct"] = row["exit"] == entry.destination
+            else:
+                row["outcome"] = "lost"
+        elif tr.status == "tipped":  # fell off a belt without ever reaching the cells
+            row["outcome"] = "lost"
+        rows.append(row)
+    times = [r["delivery_time_s"] for r in rows if r["delivery_time_s"] is not None]
+    out = sorted((r["entered_at_s"] + r["delivery_time_s"], r["sequence"]) for r in rows
+                 if r["sequence"] is not None and r["outcome"] == "delivered")
+    order = [q for _, q in out]
+    inversions = sum(a > b for k, a in enumerate(order) for b in order[k + 1:])
+    delays = [r["entered_at_s"] - r["due_s"] for r in rows if r["entered_at_s"] is not None]
+    correct = sum(r["correct"] for r in rows)
+    count = {k: sum(r["outcome"] == k for r in rows) for k in ("delivered", "lost", "on_array", "waiting")}
+    return {
+        "parcels": rows,
+        **count,
+        "correct": correct,
+        "misrouted": count["delivered"] - correct,
+        "collisions": int(result.stats.get("plant", {}).get("parcel_contacts", 0)),
+        "throughput_per_hour": correct / sc.duration * 3600.0,
+        "delivery_time_mean_s": float(np.mean(times)) if times else None,
+        "delivery_time_max_s": float(np.max(times)) if times else None,
+        "entry_delay_mean_s": float(np.mean(delays)) if delays else None,
+        "order_inversions": inversions if order else None,
+    }
+
+
+def _left_the_cells(setup, pr):
+    """(time s, exit) at which parcel result ``pr`` last came off the array's cells (resting on belts only, or
+    tipped), judged at its trajectory's samples: the exit is that of the last cells it rested on (-1 if none of them
+    belongs to an exit lane). None if it is still on the cells at the end."""
+    from virtual_vehicle.model.parcel import supporting_cells
+
+    layer = setup.contact_layer
+    exit_of = np.where(setup.cells.belts, -2, np.asarray(setup.control.config["exit"]))[layer.cell_of]
+    tr = pr.trajectory
+    last, under = None, None
+    for k, y in enumerate(tr.states):
+        ids = exit_of[supporting_cells(pr.spec, y, layer.positions, layer.tree)]
+        on_cells = ids[ids > -2]
+        if len(on_cells) and not (tr.status == "tipped" and k == len(tr.states) - 1):
+            last, under = k, on_cells
+    if last is None or last == len(tr.states) - 1:
+        return None
+    lanes = under[under >= 0]
+    return float(tr.times[last + 1]), int(np.bincount(lanes).argmax()) if len(lanes) else -1
+
+
+SUMMARY = "sorting"
+"""The run summary's block holding :func:`report` (per-parcel rows merged into the summary's parcels)."""
+COMPARED = (("correct", "delivered to the right exit"), ("misrouted", "misrouted"), ("lost", "lost"),
+            ("collisions", "collisions"), ("throughput_per_hour", "parcels per hour"),
+            ("delivery_time_mean_s", "mean delivery time (s)"), ("delivery_time_max_s", "longest delivery time (s)"),
+            ("entry_delay_mean_s", "mean wait at the entry (s)"), ("on_array", "still on the array"),
+            ("waiting", "never put on"), ("order_inversions", "pairs left out of sequence"))
+"""(report key, label) of what ``virtual-vehicle compare`` puts side by side."""
+CENTRAL = True
+"""``central = true`` runs the same policies on one central computer."""
+LABELS = True
+"""The cells at an entry read each parcel's label: its ``destination`` and ``sequence``."""
+
+
+def markers(setup) -> Markers:
+    """The entries (exit index -1) and exits: the ``[control] entries`` / ``exits`` outlines when the scenario
+    gives them, else (marks on a map) the bounding box of each entry's and exit's cells, a pitch wide around their
+    centres; and each parcel's destination."""
+    ctl = setup.scenario.control
+    destinations = [p.destination for p in setup.scenario.parcels]
+    lanes = []
+    if ctl.entries or ctl.exits:
+        for k, poly in enumerate(ctl.entries):
+            lanes.append(("entry" if len(ctl.entries) == 1 else f"entry {k}", -1, np.asarray(poly, float)))
+        for k, poly in enumerate(ctl.exits):
+            lanes.append((f"exit {k}", k, np.asarray(poly, float)))
+        return Markers(lanes=lanes, destinations=destinations)
+    cfg = setup.control.config
+    P, h = setup.cells.positions, setup.cells.pitch / 2
+    groups = [("entry", -1, np.asarray(cfg["entry"], bool))]
+    exits = np.asarray(cfg["exit"])
+    groups += [(f"exit {k}", k, exits == k) for k in range(int(exits.max()) + 1)]
+    for label, k, mask in groups:
+        if mask.any():
+            (x0, y0), (x1, y1) = P[mask].min(axis=0) - h, P[mask].max(axis=0) + h
+            lanes.append((label, k, np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])))
+    return Markers(lanes=lanes, destinations=destinations)

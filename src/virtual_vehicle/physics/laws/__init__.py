@@ -1,0 +1,202 @@
+"""Friction laws (paper Sections 4.3, 4.4, 5), one module each, behind one contract
+(:class:`~virtual_vehicle.physics.laws.base.FrictionLaw`), in one registry (:data:`LAWS`), each checked by
+:func:`check_law`.
+
+A new law is a module with a :class:`FrictionLaw` subclass and one line in :data:`LAWS`; it must pass
+:func:`check_law`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from virtual_vehicle.physics.contact import solve_support
+from virtual_vehicle.physics.laws import affine
+from virtual_vehicle.physics.laws.affine import J, FrictionConstants, drive_constants
+from virtual_vehicle.physics.laws.base import FrictionLaw
+from virtual_vehicle.physics.laws.coulomb import CoulombLaw, coulomb_constants
+from virtual_vehicle.physics.laws.stick_slip import StickSlipLaw
+from virtual_vehicle.physics.laws.viscous import ViscousLaw, viscous_constants
+
+LAWS: dict[str, FrictionLaw] = {
+    "coulomb": CoulombLaw(),
+    "viscous": ViscousLaw(),
+    "stick_slip": StickSlipLaw(),
+}
+"""Friction laws by name, as written in scenario files."""
+
+
+def law_named(name: str) -> FrictionLaw:
+    """The registered law ``name``; ValueError naming the choices for any other."""
+    try:
+        return LAWS[name]
+    except KeyError:
+        raise ValueError(f"unknown friction law {name!r}: one of {', '.join(map(repr, LAWS))}") from None
+
+
+def _rotation(phi: float) -> np.ndarray:
+    c, s = np.cos(phi), np.sin(phi)
+    return np.array([[c, -s], [s, c]])
+
+
+def _point_velocities(r, v, omega):
+    """Velocities (m/s) of points at levers ``r`` ((m, 2), m) from a centre of mass moving at ``v``, spinning at
+    ``omega``."""
+    return v + omega * np.column_stack([-r[:, 1], r[:, 0]])
+
+
+class _Trial:
+    """One random parcel on random wheels: ``m`` cells within the footprint radius ``R`` (m) of the centre of mass
+    carrying normal forces that sum to the weight (N), each with two orthogonal wheels turning at 0.1-1 m/s."""
+
+    def __init__(self, rng: np.random.Generator, mu: float, gravity: float):
+        self.mu, self.gravity = mu, gravity
+        m = int(rng.integers(3, 9))
+        self.R = rng.uniform(0.1, 0.5)
+        radius = self.R * np.sqrt(rng.uniform(0.0, 0.81, m))
+        angle = rng.uniform(0.0, 2 * np.pi, m)
+        self.levers = np.column_stack([radius * np.cos(angle), radius * np.sin(angle)])  # body frame, m
+        self.mass = rng.uniform(0.5, 20.0)
+        self.inertia = self.mass * self.R ** 2 * rng.uniform(0.15, 0.6)
+        self.weight = self.mass * gravity
+        self.normal = rng.dirichlet(np.ones(m)) * self.weight
+        self.U = np.stack([_rotation(a).T for a in rng.uniform(0.0, 2 * np.pi, m)])  # (m, 2, 2) rows: directions
+        speeds = rng.uniform(0.1, 1.0, (m, 2)) * rng.choice([-1.0, 1.0], (m, 2))
+        self.V = np.einsum("ik,ikj->ij", speeds, self.U)
+        self.slowest = float(np.abs(speeds).min())
+        self.state = np.array([*rng.uniform(-2, 2, 2), rng.uniform(-np.pi, np.pi), 0.0, 0.0, 0.0])
+
+    def points(self, y):
+        return y[:2] + self.levers @ _rotation(y[2]).T
+
+    def forces(self, law: FrictionLaw, y):
+        return law.cell_forces(self.points(y), self.normal, self.V, self.U, self.mu, y)
+
+    def rate(self, law: FrictionLaw, y):
+        """State derivative under the law's cell forces, the contact points fixed to the parcel."""
+        fx, fy, tau = affine.cell_wrench(self.points(y), self.forces(law, y), y[:2])
+        return np.array([y[3], y[4], y[5], fx / self.mass, fy / self.mass, tau / self.inertia])
+
+
+def _run(trial: _Trial, law: FrictionLaw, y0, window: float, steps: int):
+    """RK4 states (steps + 1, 6) of the trial's parcel from ``y0`` over ``window`` s under ``law``."""
+    h = window / steps
+    ys = [np.asarray(y0, dtype=float)]
+    for _ in range(steps):
+        y = ys[-1]
+        k1 = trial.rate(law, y)
+        k2 = trial.rate(law, y + 0.5 * h * k1)
+        k3 = trial.rate(law, y + 0.5 * h * k2)
+        k4 = trial.rate(law, y + h * k3)
+        ys.append(y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4))
+    return np.array(ys)
+
+
+def check_law(law: FrictionLaw, trials: int = 20, seed: int = 0, mu: float = 0.5, gravity: float = 9.81,
+              steps: int = 200) -> None:
+    """Check ``law`` against the friction-law contract on ``trials`` random parcels (``mu`` in the law's units,
+    ``gravity`` m/s^2). Raises AssertionError at the first failure.
+
+    - equilibrium: a parcel at rest on wheels at rest feels no force and no torque;
+    - rigid-motion invariance: rotating and translating the cells, the wheels and the parcel together rotates the
+      force with them and leaves the torque;
+    - dissipation: while the parcel is slower than its wheels (the paper's conveying regime) the contacts take
+      energy out (slip power >= 0) and, from rest, never more than the wheels put in;
+    - the reach bound (:meth:`FrictionLaw.reach`) holds against the motion integrated (RK4, ``steps`` a window)
+      from random twists;
+    - an event-driven law's constants give its wrench, and its row is those constants' (:data:`affine.ROW_FIELDS`).
+    """
+    assert isinstance(law.name, str) and law.name, "a law has a name"
+    rng = np.random.default_rng(seed)
+    for k in range(trials):
+        t = _Trial(rng, mu, gravity)
+        y = t.state
+        P = t.points(y)
+        scale = mu * t.weight * (1.0 + t.R)
+        tol = 1e-9 * scale
+
+        # equilibrium
+        rest = law.wrench(P, t.normal, np.zeros_like(t.V), t.U, mu, y)
+        assert np.all(np.abs(rest) <= 1e-12 * scale), f"trial {k}: a parcel at rest on stopped wheels feels {rest}"
+
+        # rigid-motion invariance, with the parcel moving slower than its wheels
+        twist = rng.normal(size=3)
+        twist *= 0.5 * t.slowest / (np.hypot(twist[0], twist[1]) + abs(twist[2]) * t.R)
+        y = np.array([*y[:3], *twist])
+        phi, shift = rng.uniform(-np.pi, np.pi), rng.uniform(-3, 3, 2)
+        Q = _rotation(phi)
+        moved = np.array([*(Q @ y[:2] + shift), y[2] + phi, *(Q @ y[3:5]), y[5]])
+        w0 = np.array(law.wrench(P, t.normal, t.V, t.U, mu, y))
+        w1 = np.array(law.wrench(P @ Q.T + shift, t.normal, t.V @ Q.T, t.U @ Q.T, mu, moved))
+        assert np.allclose(w1[:2], Q @ w0[:2], rtol=1e-9, atol=tol) and abs(w1[2] - w0[2]) <= tol + 1e-9 * abs(
+            w0[2]), f"trial {k}: the wrench {w0} moved rigidly became {w1}, not {[*(Q @ w0[:2]), w0[2]]}"
+
+        # dissipation, at this state and along a start from rest
+        def powers(y):
+            F = law.cell_forces(t.points(y), t.normal, t.V, t.U, mu, y)
+            u = _point_velocities(t.points(y) - y[:2], y[3:5], y[5])
+            return float(np.sum(F * t.V)), float(np.sum(F * (t.V - u))), float(np.max(np.hypot(u[:, 0], u[:, 1])))
+
+        wheel, lost, _ = powers(y)
+        assert lost >= -tol, f"trial {k}: the contacts give the parcel {-lost} W of their own"
+        window = rng.uniform(0.01, 0.5)
+        ys = _run(t, law, np.array([*t.state[:3], 0.0, 0.0, 0.0]), window, steps)
+        work = dissipated = 0.0
+        for j, yj in enumerate(ys):
+            wheel, lost, fastest = powers(yj)
+            if fastest > 0.5 * t.slowest:  # no longer the conveying regime
+                break
+            assert lost >= -tol, f"trial {k}: from rest, at {j * window / steps:g} s the contacts give {-lost} W"
+            work, dissipated = work + wheel, dissipated + lost
+        assert dissipated <= work + tol, f"trial {k}: from rest the contacts took {dissipated} (x dt), more than " \
+                                         f"the wheels' work {work}"
+
+        # the reach bound, from a random twist
+        y0 = np.array([*t.state[:3], *rng.normal(0.0, 0.3, 3)])
+        ys = _run(t, law, y0, window, steps)
+        times = np.linspace(0.0, window, steps + 1)
+        lever = 1.0 + t.mass * t.R * t.R / t.inertia
+        s0 = float(np.hypot(y0[3], y0[4]) + abs(y0[5]) * t.R)
+        dist, speed = law.reach(s0, times, rate=mu * gravity * lever, wheel_speed=float(np.max(np.hypot(*t.V.T))))
+        rim = t.R * np.column_stack([np.cos(np.linspace(0, 2 * np.pi, 16, endpoint=False)),
+                                     np.sin(np.linspace(0, 2 * np.pi, 16, endpoint=False))])
+        body = np.vstack([rim, t.levers])
+        start = y0[:2] + body @ _rotation(y0[2]).T
+        for j, yj in enumerate(ys):
+            moved_by = np.max(np.hypot(*(yj[:2] + body @ _rotation(yj[2]).T - start).T))
+            fastest = np.hypot(yj[3], yj[4]) + abs(yj[5]) * t.R
+            assert moved_by <= dist[j] * (1 + 1e-9) + 1e-12 and fastest <= speed[j] * (1 + 1e-9) + 1e-12, \
+                f"trial {k}: after {times[j]:g} s a point moved {moved_by} m at up to {fastest} m/s, beyond the " \
+                f"law's reach bound ({dist[j]} m, {speed[j]} m/s)"
+
+        # an event-driven law's constants and row
+        if law.time_stepper is None:
+            com = P.mean(axis=0)  # inside the supports' hull
+            sol = solve_support(P, com, t.weight)
+            N = sol.forces(com)
+            y = np.array([*com, *y[2:]])
+            want = law.wrench(P, N, t.V, t.U, mu, y)
+            kc = law.constants(sol, t.V, t.U, mu)
+            xi = com - sol.origin
+            got = [*kc.force(xi, y[3:5], y[5]), kc.torque(xi, y[3:5], y[5])]
+            assert np.allclose(got, want, rtol=1e-9, atol=tol), f"trial {k}: constants give {got}, cells {want}"
+            kr, row = law.constants_and_row(sol, t.V, t.U, mu, t.mass, t.inertia)
+            de = kr.d + kr.e
+            expect = {"origin_x": sol.origin[0], "origin_y": sol.origin[1], "a_xx": kr.a[0, 0], "a_xy": kr.a[0, 1],
+                      "a_yx": kr.a[1, 0], "a_yy": kr.a[1, 1], "b_x": kr.b[0], "b_y": kr.b[1], "c_xx": kr.c[0, 0],
+                      "c_xy": kr.c[0, 1], "c_yx": kr.c[1, 0], "c_yy": kr.c[1, 1], "de_x": de[0], "de_y": de[1],
+                      "f": kr.f, "damping": kr.damping, "weight": kr.weight, "moment_lin_xx": kr.moment_lin[0, 0],
+                      "moment_lin_xy": kr.moment_lin[0, 1], "moment_lin_yx": kr.moment_lin[1, 0],
+                      "moment_lin_yy": kr.moment_lin[1, 1], "moment_const_x": kr.moment_const[0],
+                      "moment_const_y": kr.moment_const[1], "second_lin_x": kr.second_lin[0],
+                      "second_lin_y": kr.second_lin[1], "second_const": kr.second_const, "inv_mass": 1.0 / t.mass,
+                      "inv_inertia": 1.0 / t.inertia}
+            assert len(row) == len(affine.ROW_FIELDS) and all(
+                np.isclose(value, expect[name], rtol=1e-12, atol=1e-12 * scale)
+                for name, value in zip(affine.ROW_FIELDS, row)), f"trial {k}: the row is not its constants'"
+            assert np.allclose([*kr.force(xi, y[3:5], y[5]), kr.torque(xi, y[3:5], y[5])], want, rtol=1e-9,
+                               atol=tol), f"trial {k}: constants_and_row's constants differ from the cells' wrench"
+
+
+__all__ = ["FrictionLaw", "FrictionConstants", "CoulombLaw", "ViscousLaw", "StickSlipLaw", "LAWS", "law_named",
+           "check_law", "coulomb_constants", "viscous_constants", "drive_constants", "J"]

@@ -1,0 +1,113 @@
+"""The contract every friction law keeps: what the engine, the planner, field design, equilibria, scaling and the
+scenario ask of a law, so that none of them asks which law it holds.
+
+Units: N, N m, m, m/s, rad/s, s. Torques are about the vertical axis through the parcel's centre of mass,
+counter-clockwise positive. A parcel's state is ``(x, y, theta, vx, vy, omega)``.
+
+A law is either *event-driven* (``time_stepper`` None): on one set of supports its wrench is affine in the parcel's
+state, given by a piece's constants (:mod:`~virtual_vehicle.physics.laws.affine`), and the event-driven engine
+integrates it between support changes; or *time-stepped*: it has modes of its own (wheels sticking or slipping)
+and names the engine's time stepper that solves it every step (the stepper then also puts the wheels into a
+group's contact problem when parcels push each other). Either way :meth:`FrictionLaw.constants` gives the
+per-support-set constants (for a time-stepped law, those of one mode, for reference) and
+:meth:`FrictionLaw.cell_forces` the exact per-cell forces of a state, which
+:func:`~virtual_vehicle.physics.laws.check_law` checks.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import numpy as np
+
+from virtual_vehicle.physics.contact import SupportSolution
+from virtual_vehicle.physics.laws.affine import FrictionConstants, cell_wrench
+
+
+class FrictionLaw(ABC):
+    """A friction law: from normal forces (N) and wheel velocities (m/s) to the forces on a parcel, and everything
+    else the simulator needs that depends on the law. Subclasses are frozen dataclasses (hashable, comparable)."""
+
+    name: str
+    """As written in scenario files (``[friction] law``)."""
+    time_stepper: str | None = None
+    """None: event-driven (affine constants per piece). Else the name of the engine's time stepper for the law."""
+    assumes_sliding: bool = False
+    """True when the law's forces hold only while every wheel slides under the parcel in its direction of spin
+    (the parcel slower than its wheels): a run then checks that assumption along each trajectory."""
+    damped: bool = False
+    """True when the wrench damps the parcel's twist (a force against its velocity): equilibria are then
+    classified by the stiffness alone (a damped node or focus); undamped ones are centres at best."""
+
+    @abstractmethod
+    def drive_vectors(self, velocities: np.ndarray, drive_directions: np.ndarray) -> np.ndarray:
+        """(n, 2) the per-cell drive vector the law's constants are built from, from cell velocities (n, 2) m/s and
+        drive directions (n, k, 2)."""
+
+    @abstractmethod
+    def cell_forces(self, points, normal, velocities, drive_directions, mu: float, state) -> np.ndarray:
+        """(m, 2) the horizontal force (N) each supporting cell at ``points`` (m) with normal force ``normal`` (N)
+        exerts on the parcel in ``state``."""
+
+    def wrench(self, points, normal, velocities, drive_directions, mu: float, state) -> tuple[float, float, float]:
+        """The net horizontal force (N, N) and torque (N m, about the centre of mass) on the parcel by direct
+        summation of :meth:`cell_forces` (eqs. 22, 24)."""
+        return cell_wrench(points, self.cell_forces(points, normal, velocities, drive_directions, mu, state),
+                           state[:2])
+
+    @abstractmethod
+    def constants(self, solution: SupportSolution, velocities: np.ndarray, drive_directions: np.ndarray,
+                  mu: float) -> FrictionConstants:
+        """The per-support-set constants of a solved support set: the parcel's wrench is then affine in its
+        state."""
+
+    @abstractmethod
+    def constants_and_row(self, solution: SupportSolution, velocities: np.ndarray, drive_directions: np.ndarray,
+                          mu: float, mass: float, inertia: float) -> tuple[FrictionConstants, tuple[float, ...]]:
+        """:meth:`constants` and the piece's constants row (:data:`~virtual_vehicle.physics.laws.affine.ROW_FIELDS`)
+        for a parcel of ``mass`` (kg) and ``inertia`` (kg m^2)."""
+
+    @abstractmethod
+    def reach(self, s0, window, *, rate, wheel_speed: float):
+        """Upper bounds on how far (m) any point of a parcel can move in ``window`` s driven by the wheels alone,
+        and on the speed (m/s) any point can reach in that time, on floats or arrays (elementwise).
+
+        ``s0``: the fastest point speed now, ``|v| + |omega| R`` (m/s, R the footprint radius); ``rate``:
+        ``mu_max g (1 + m R^2 / I)``, the law's friction coefficient times gravity times the lever of the rim
+        (m/s^2 per unit of the law's drive); ``wheel_speed``: the fastest wheel surface speed (m/s). The normal
+        forces under a parcel sum to its weight (paper eqs. 3-5) and every cell lies within R of its centre of
+        mass. The planner's safety proof rests on this being a true bound."""
+
+    def drive_bound(self, velocities: np.ndarray, drive_directions: np.ndarray) -> float:
+        """The largest per-cell drive vector's length under wheels ``velocities`` (m/s) on one support set, which
+        :meth:`piece_reach` takes as ``drive``."""
+        drive = self.drive_vectors(velocities, drive_directions)
+        return float(np.max(np.hypot(drive[:, 0], drive[:, 1])))
+
+    def piece_reach(self, rate, window: float, curve, drive, slip):
+        """What the parcel's acceleration adds to ``S0 T`` (m) over ``window`` s while one piece holds: ``rate``
+        as in :meth:`reach` (1/s or m/s^2 per unit drive, arrays), ``curve`` a bound on the centripetal terms
+        (m/s^2), ``drive`` :meth:`drive_bound` of the piece's wheels, ``slip`` a callable giving the largest slip
+        speed (m/s) under each parcel now (computed only when asked). Infinite by default: no bound of the
+        piece's own, the law's :meth:`reach` alone."""
+        return np.full(np.shape(rate), np.inf)
+
+    @abstractmethod
+    def wheel_loads(self, speed: np.ndarray, slip: np.ndarray) -> np.ndarray:
+        """The force of each wheel along its drive direction per unit ``mu N``, from its surface speed ``speed``
+        (m/s) and the slip along it (wheel speed less the parcel's speed there, m/s)."""
+
+    @abstractmethod
+    def scaled_mu(self, mu: float, length: float) -> float:
+        """The friction coefficient that keeps a run similar when every length is multiplied by ``length`` and
+        times by its square root (Froude scaling)."""
+
+    def supports(self, cells, free_wheels: bool = False) -> None:
+        """Raise ValueError when the law cannot act on ``cells`` (a contact layer: lumped cells, or one contact per
+        wheel when ``cells.separate``) or on free-spinning wheels (``free_wheels``). Every geometry by default."""
+
+    def design_wheels(self, A: np.ndarray, own: np.ndarray, want: np.ndarray, vmax: float):
+        """Wheel speeds ``x`` (2m,) within +-``vmax`` (m/s) whose wrench comes closest to ``want`` (N, N, N m), and
+        that wrench: ``A`` (3, 2m) is the wrench per unit ``mu N`` of each wheel, ``own`` (2m,) the parcel's own
+        speed along each wheel's drive direction (m/s). Raises ValueError for a law without a design."""
+        raise ValueError(f"the {self.name} law has no wrench design")

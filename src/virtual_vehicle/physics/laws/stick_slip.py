@@ -1,0 +1,33 @@
+"""Stick-slip friction (paper Section 5): each wheel sticks to the parcel or slides, a law with modes of its own,
+solved as a complementarity problem every time step by the engine's time stepper
+(:mod:`virtual_vehicle.engine.stickslip`). The parcel's ``mu`` is the kinetic coefficient and ``mu_static``
+(default ``mu``) the static one, both dimensionless. In the sliding mode every wheel pushes with its kinetic bound
+in its direction of spin: the paper's Coulomb law, whose constants, wrench and bounds it shares.
+
+Units: N, N m, m, m/s, s.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from virtual_vehicle.physics.laws.coulomb import CoulombLaw
+
+
+@dataclass(frozen=True)
+class StickSlipLaw(CoulombLaw):
+    """Stick-slip friction (paper Section 5), always time-stepped. Its per-support-set constants (for reference
+    only) are those of the sliding regime: the paper's Coulomb constants. ``max_sweeps`` and ``tolerance`` (relative
+    to the largest impulse bound) control the projected Gauss-Seidel solver."""
+
+    name: str = "stick_slip"
+    max_sweeps: int = 1000
+    tolerance: float = 1e-12
+    time_stepper = "stick_slip"
+    assumes_sliding = False  # the stepper decides which wheels slide
+
+    def wheel_loads(self, speed, slip):
+        """A sliding wheel pushes with ``mu N`` along its slip; a sticking one (no slip) is reported as none."""
+        return np.where(np.abs(slip) > 1e-9, np.sign(slip), 0.0)

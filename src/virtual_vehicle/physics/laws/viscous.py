@@ -1,0 +1,112 @@
+"""The paper's viscous law (4.4, eqs. 30-38): ``f_i = mu N_i (V_i - Xdot_c + omega J (X_i - X_c))`` with
+``J = [[0, 1], [-1, 0]]``; the driving part has the Coulomb form with ``F`` replaced by the wheel velocities ``V``,
+plus translational damping ``-mu W Xdot_c`` (eq. 33) and rotational damping ``-mu omega sum N_i |X_i - X_c|^2``
+(eq. 38). Here ``mu`` is in s/m. It acts on a lumped cell's whole slip vector, so it needs the paper's lumped cells.
+
+Units: N, N m, m, m/s, s.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import lsq_linear
+
+from virtual_vehicle.physics.laws import affine
+from virtual_vehicle.physics.laws.affine import J, FrictionConstants, drive_constants, f64
+from virtual_vehicle.physics.laws.base import FrictionLaw
+
+
+def viscous_constants(points, velocities, weight: float, mu: float) -> FrictionConstants:
+    """The viscous constants (eqs. 30-38) for wheel velocities ``velocities`` ((m, 2), m/s) at ``points`` (m),
+    all cells in contact; ``mu`` in s/m."""
+    G, h = affine.all_in_contact_map(points, weight)
+    return drive_constants(points, velocities, G, h, weight, mu, damping=mu)
+
+
+@dataclass(frozen=True)
+class ViscousLaw(FrictionLaw):
+    """The paper's viscous law (4.4): force proportional to normal force and slip velocity; ``mu`` in s/m."""
+
+    name: str = "viscous"
+    damped = True
+
+    def drive_vectors(self, velocities, drive_directions) -> np.ndarray:
+        """Per-cell wheel velocity (the V_i of eq. 30), m/s."""
+        return np.asarray(velocities, dtype=float)
+
+    def cell_forces(self, points, normal, velocities, drive_directions, mu, state) -> np.ndarray:
+        """``mu N_i`` times the slip of eq. 30."""
+        P = np.asarray(points, dtype=float)
+        X = np.asarray(state[:2], dtype=float)
+        v = np.asarray(state[3:5], dtype=float)
+        slip = np.asarray(velocities, dtype=float) - v + state[5] * (P - X) @ J.T  # eq. 30
+        return mu * np.asarray(normal)[:, None] * slip
+
+    def constants(self, solution, velocities, drive_directions, mu) -> FrictionConstants:
+        """Per-support-set constants (eqs. 30-38): the wrench is linear in the parcel's twist."""
+        return drive_constants(solution.points, velocities, solution.force_lin, solution.force_const,
+                               solution.weight, mu, damping=mu)
+
+    def constants_and_row(self, solution, velocities, drive_directions, mu, mass, inertia):
+        """See :meth:`FrictionLaw.constants_and_row`."""
+        return affine.constants_and_row(solution.points, f64(velocities), solution.force_lin, solution.force_const,
+                                        mu, mu, solution.weight, solution.origin, mass, inertia)
+
+    def reach(self, s0, window, *, rate, wheel_speed):
+        """Each cell pushes with ``mu N |slip|`` (eq. 30), ``|slip| <= w + S``, so ``dS/dt <= k (w + S)`` with
+        ``k = rate``: reach ``(S0 + w)(e^{kT} - 1)/k - w T``, speed ``(S0 + w) e^{kT} - w``."""
+        kt = rate * window
+        slow = kt < 1e-12
+        k = np.where(slow, 1.0, rate)
+        dist = np.where(slow, s0 * window, (s0 + wheel_speed) * np.expm1(kt) / k - wheel_speed * window)
+        speed = np.where(slow, s0, (s0 + wheel_speed) * np.exp(kt) - wheel_speed)
+        return dist, speed
+
+    def drive_bound(self, velocities, drive_directions) -> float:
+        """Not needed: :meth:`piece_reach` reads the slips."""
+        return 0.0
+
+    def piece_reach(self, rate, window, curve, drive, slip):
+        """Every cell under the parcel pushes with ``mu N_i u_i``, ``u_i`` its slip (eq. 30): accelerations are at
+        most ``k sigma`` at the rim (``sigma = max |u_i|``, ``k = rate``) and ``d sigma / dt <= k sigma + curve``,
+        so ``sigma_0 ((e^{kT} - 1) / k - T) + curve ((e^{kT} - 1) / k - T) / k``, by its series where kT is
+        small."""
+        sigma = slip()
+        kt = rate * window
+        big = kt > 1e-4
+        ks = np.where(big, rate, 1.0)
+        g1 = np.where(big, np.expm1(kt) / ks - window, kt * window * (0.5 + kt / 6 + kt * kt / 24))
+        g2 = np.where(big, g1 / ks, window * window * (0.5 + kt / 6 + kt * kt / 24))
+        return sigma * g1 + curve * g2
+
+    def wheel_loads(self, speed, slip):
+        """The slip itself (eq. 30)."""
+        return slip
+
+    def scaled_mu(self, mu, length):
+        """``mu`` is in s/m (eq. 30): divided by the square root of the length factor."""
+        return mu / math.sqrt(length)
+
+    def supports(self, cells, free_wheels=False):
+        """Lumped cells only: the law acts on a cell's whole slip vector, which separate, omni or free-spinning
+        wheels do not transmit."""
+        if cells.separate:
+            raise ValueError("separate and omni wheels push only along their own drive direction; the paper's "
+                             "viscous law acts on the whole slip vector of a lumped cell: use the coulomb or "
+                             "stick_slip law")
+        if free_wheels:
+            raise ValueError("free-spinning wheels need the coulomb or stick_slip law (the paper's viscous law acts "
+                             "on a cell's whole slip vector)")
+
+    def design_wheels(self, A, own, want, vmax):
+        """The slip is the wheel speed less ``own`` (eq. 30), so the wrench is affine in the wheel speeds: bounded
+        least squares within +-vmax."""
+        b = -A @ own
+        active = np.any(A != 0, axis=0)
+        sol = lsq_linear(A[:, active], want - b, bounds=(-vmax, vmax), method="bvls", tol=1e-12)
+        x = np.zeros(A.shape[1])
+        x[active] = sol.x
+        return x, A @ x + b

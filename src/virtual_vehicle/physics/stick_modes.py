@@ -1,0 +1,596 @@
+"""Exact, event-driven stick-slip of one parcel on one fixed support set: modes, their smooth dynamics, their events.
+
+Units: SI (m, s, kg, N, N m, J); a twist is (vx, vy, omega) in m/s, m/s, rad/s.
+
+Each roller wheel is a 1-D friction contact along its drive direction ``u`` (free along its axle). With ``r`` from the
+centre of mass to the wheel's contact point its Jacobian row is ``J = [u_x, u_y, r x u]``, its slip speed
+``s = J nu - w`` (``w`` the wheel's surface speed along ``u``) and its force on the parcel ``lam`` (N, along ``u``),
+``|lam| <= mu N`` with the cell's normal force ``N`` from the support set's affine map (paper eqs. 3-19).
+
+Between events the parcel is in a *mode*: each wheel sticks (``s = 0``) or slips with a known sign ``sigma`` and then
+pushes with the kinetic force ``lam = -sigma mu_k N`` (the per-wheel form of the paper's Coulomb law, eqs. 20-22:
+a wheel that outruns the parcel pushes it with ``mu N`` along its spin). Sticking wheels are linear constraints on
+the acceleration, ``J nu_dot + c = w_dot`` with ``c = -omega (v x u)`` (the lever ``r`` changes as the centre moves,
+``dr/dt = -v``); their forces come from the KKT system ``M nu_dot = J^T lam``. Three independent sticking rows fix the
+twist: the parcel rides the field rigidly, and the mode then ends only at a support event (the engine's) or where the
+wrench that riding takes (zero on a uniform field, centripetal on a turning one) leaves what the wheels can hold.
+
+**Redundant sticking wheels (the rule).** With more than three sticking wheels their forces are not unique, only
+their net wrench ``F_S`` is. Stick holds while ``F_S`` lies in the zonotope ``Z_S = {J_S^T lam : |lam_j| <= mu_s N_j}``
+(the wrenches the sticking wheels can supply within their static bounds) and breaks when ``F_S`` crosses a facet of
+``Z_S``. At that facet every wheel off the facet's plane is at its static bound, so exactly those wheels break and
+slip against their force; the wheels in the facet's plane are decided again. This is the rule the fixed-step law
+(:mod:`virtual_vehicle.engine.stickslip`) obeys: its box LCP has a unique post-step twist, and that twist sticks iff
+the required impulse lies in ``h Z_S``. The per-wheel stick forces reported are the minimum-norm ones (any other
+distribution inside the bounds has the same wrench, the same motion and the same power). With ``mu_s = mu_k`` the
+stepped law converges to this at first order through such breaks (tested). With ``mu_s > mu_k`` it does not: it
+gives the static bound next step only to wheels whose impulse was strictly inside their bound, and its projected
+Gauss-Seidel may put a redundant sticking wheel exactly at its bound while the wrench is well inside ``h Z_S``; that
+wheel is then held to ``mu_k`` although it never slid, its zonotope shrinks, and the grip breaks early (seen on a
+turning field: demotions from 0.14 s, a break 3 ms before the exact one, independent of the step). Deciding "stuck"
+from the wheel's slip after the step instead of its impulse would follow this rule.
+
+**Deciding a mode (at an event).** Slipping wheels keep their sign. Wheels at zero slip solve the acceleration-level
+box problem ``min 1/2 lam^T A lam + q^T lam`` over ``|lam| <= mu_s N`` (``A = J M^-1 J^T``), whose acceleration
+``nu_dot`` is unique (the problem is the dual of a strictly convex one in ``nu_dot``). It is solved in two stages:
+projected Gauss-Seidel identifies which wheels keep zero slip acceleration (O(sweeps m)), then the mode is solved
+exactly (one least-squares KKT solve, O(m^3)) and checked exactly (every sticking wheel's required wrench inside
+``Z_S`` by its facets, O(m^3) for m sticking wheels; every breaking wheel accelerating in its slip direction). Wheels
+that break slip with the kinetic force, and the rest are decided again with that force known, until none breaks
+(at most m rounds; one when ``mu_s = mu_k``). Enumerating the 3^m sign patterns instead would cost 3^24 solves for
+a 12-cell footprint.
+
+A stuck wheel (cannot turn) has surface speed 0; a free-spinning wheel (cannot push) has both coefficients 0 and
+takes no part (no force, no constraint, no event).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+__all__ = ["Wheels", "Mode", "ModeEvent", "StickSlipRun", "wheels_on", "decide_mode", "mode_rhs", "mode_events",
+           "simulate"]
+
+_SLIP_TOL = 1e-9  # relative to the speed scale: a wheel this close to zero slip is at zero slip
+_ACCEL_TOL = 1e-7  # relative to the acceleration scale: a slip acceleration this small is zero
+_PLANE_TOL = 1e-9  # relative: a generator this close to a facet's plane lies in it
+
+
+@dataclass(frozen=True, eq=False)
+class Wheels:
+    """The wheels under a parcel on one support set, each a 1-D friction contact.
+
+    Attributes:
+        points: (m, 2) contact points, m (world frame; the cells do not move).
+        directions: (m, 2) unit drive directions.
+        speeds: (m,) surface speed along the drive direction, m/s, at time ``t0``.
+        accels: (m,) its rate, m/s^2 (wheel speeds ramp linearly: ``speeds + accels (t - t0)``).
+        t0: s, the time ``speeds`` hold at.
+        force_lin, force_const, origin: the support set's normal-force map: the normal force (N) of each wheel's cell
+            is ``force_lin @ (X_c - origin) + force_const`` (paper eq. 19 with its contact set).
+        mu_static, mu_kinetic: (m,) coefficients; 0 and 0 for a free-spinning wheel.
+        keys: per wheel (entry, wheel index) in the cell array it came from.
+    """
+
+    points: np.ndarray
+    directions: np.ndarray
+    speeds: np.ndarray
+    accels: np.ndarray
+    t0: float
+    force_lin: np.ndarray
+    force_const: np.ndarray
+    origin: np.ndarray
+    mu_static: np.ndarray
+    mu_kinetic: np.ndarray
+    keys: tuple = ()
+
+    def __post_init__(self) -> None:
+        m = len(self.points)
+        for name, shape in (("points", (m, 2)), ("directions", (m, 2)), ("speeds", (m,)), ("accels", (m,)),
+                            ("force_lin", (m, 2)), ("force_const", (m,)), ("origin", (2,)),
+                            ("mu_static", (m,)), ("mu_kinetic", (m,))):
+            arr = np.array(getattr(self, name), dtype=float)
+            if arr.shape != shape:
+                raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
+            if not np.isfinite(arr).all():
+                raise ValueError(f"{name} must be finite")
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+        if not np.allclose(np.hypot(*self.directions.T), 1.0, atol=1e-9):
+            raise ValueError("drive directions must be unit vectors")
+        if (self.mu_kinetic < 0).any() or (self.mu_static < self.mu_kinetic).any():
+            raise ValueError("friction coefficients must satisfy 0 <= mu_kinetic <= mu_static")
+
+    @property
+    def m(self) -> int:
+        """Number of wheels."""
+        return len(self.points)
+
+    @property
+    def free(self) -> np.ndarray:
+        """(m,) True for wheels that cannot push (no friction)."""
+        return self.mu_static == 0
+
+    def normal(self, com) -> np.ndarray:
+        """(m,) normal force of each wheel's cell (N) for centre of mass ``com`` (m)."""
+        return self.force_lin @ (np.asarray(com, dtype=float) - self.origin) + self.force_const
+
+    def rows(self, com) -> np.ndarray:
+        """(m, 3) Jacobian rows ``[u_x, u_y, r x u]`` for centre of mass ``com`` (m)."""
+        r = self.points - np.asarray(com, dtype=float)
+        u = self.directions
+        return np.column_stack([u[:, 0], u[:, 1], r[:, 0] * u[:, 1] - r[:, 1] * u[:, 0]])
+
+    def surface(self, t: float) -> np.ndarray:
+        """(m,) surface speeds (m/s) at time ``t`` (s)."""
+        return self.speeds + self.accels * (t - self.t0)
+
+    def slips(self, t: float, y) -> np.ndarray:
+        """(m,) slip speeds ``J nu - w`` (m/s) at time ``t`` and state ``y`` = (x, y, theta, vx, vy, omega)."""
+        y = np.asarray(y, dtype=float)
+        return self.rows(y[:2]) @ y[3:6] - self.surface(t)
+
+
+def wheels_on(cells, support, solution, velocities, mu: float, mu_static: float | None = None, *,
+              accelerations=None, stuck=None, free=None, t0: float = 0.0) -> Wheels:
+    """The :class:`Wheels` of the entries ``support`` ((k,) indices into ``cells``, a
+    :class:`~virtual_vehicle.model.layout.CellArray`) whose solved support set is ``solution`` (a
+    :class:`~virtual_vehicle.physics.contact.SupportSolution` of ``cells.positions[support]``).
+
+    ``velocities`` (n, 2) m/s are the entries' surface velocities (as a friction law takes them) and ``accelerations``
+    (n, 2) m/s^2 their rates (default 0); each present wheel (``cells.wheel_active``) moves at their projection on its
+    drive direction. ``mu`` is kinetic, ``mu_static`` (default ``mu``) static. ``stuck`` (n, 2) bool marks wheels that
+    cannot turn (surface speed 0; a run's ``Faults.held``), ``free`` (n, 2) bool wheels that cannot push (coefficients
+    0; ``Faults.free_wheels``). Every present wheel
+    of an entry carries its entry's whole normal force, as in the paper's Coulomb law (eq. 21).
+    """
+    support = np.asarray(support, dtype=np.int64)
+    n = cells.n
+    V = np.asarray(velocities, dtype=float)
+    A = np.zeros((n, 2)) if accelerations is None else np.asarray(accelerations, dtype=float)
+    stuck = np.zeros((n, 2), bool) if stuck is None else np.asarray(stuck, bool)
+    free = np.zeros((n, 2), bool) if free is None else np.asarray(free, bool)
+    if V.shape != (n, 2) or A.shape != (n, 2) or stuck.shape != (n, 2) or free.shape != (n, 2):
+        raise ValueError(f"velocities, accelerations, stuck and free must have shape ({n}, 2)")
+    if solution.force_lin.shape != (len(support), 2):
+        raise ValueError("the support solution must be that of the supporting entries, in their order")
+    mu_s = mu if mu_static is None else mu_static
+    cols = {k: [] for k in ("points", "directions", "speeds", "accels", "force_lin", "force_const", "mu_static",
+                            "mu_kinetic")}
+    keys = []
+    for row, i in enumerate(support.tolist()):
+        for k in range(2):
+            if not cells.wheel_active[i, k]:
+                continue
+            u = cells.drive_directions[i, k]
+            cols["points"].append(cells.positions[i])
+            cols["directions"].append(u)
+            cols["speeds"].append(0.0 if stuck[i, k] else float(V[i] @ u))
+            cols["accels"].append(0.0 if stuck[i, k] else float(A[i] @ u))
+            cols["force_lin"].append(solution.force_lin[row])
+            cols["force_const"].append(solution.force_const[row])
+            cols["mu_static"].append(0.0 if free[i, k] else mu_s)
+            cols["mu_kinetic"].append(0.0 if free[i, k] else mu)
+            keys.append((i, k))
+    arrays = {k: np.array(v, dtype=float).reshape((len(v), 2) if k in ("points", "directions", "force_lin")
+                                                  else (len(v),)) for k, v in cols.items()}
+    return Wheels(origin=np.asarray(solution.origin, dtype=float), t0=float(t0), keys=tuple(keys), **arrays)
+
+
+@dataclass(frozen=True)
+class Mode:
+    """Which wheels stick and which slip: ``state[j]`` is 0 (sticks), +1 or -1 (slips, the sign of its slip speed
+    ``J nu - w``; it then pushes with ``-sign mu_k N``) or 2 (free: cannot push)."""
+
+    state: tuple[int, ...]
+
+    @property
+    def stick(self) -> np.ndarray:
+        """Indices of the sticking wheels."""
+        return np.flatnonzero(np.array(self.state, dtype=int) == 0)
+
+    @property
+    def slip(self) -> np.ndarray:
+        """Indices of the slipping wheels."""
+        s = np.array(self.state, dtype=int)
+        return np.flatnonzero((s == 1) | (s == -1))
+
+    @property
+    def signs(self) -> np.ndarray:
+        """(m,) the state as an integer array."""
+        return np.array(self.state, dtype=int)
+
+
+def _masses(mass: float, inertia: float) -> np.ndarray:
+    """(3,) generalised masses (kg, kg, kg m^2), refused unless positive (a massless parcel has no dynamics)."""
+    if not (mass > 0 and inertia > 0):
+        raise ValueError(f"mass (kg) and inertia (kg m^2) must be positive, got {mass}, {inertia}")
+    return np.array([mass, mass, inertia], dtype=float)
+
+
+def _kinematics(wheels: Wheels, t: float, y):
+    """Jacobian rows, normal forces (N), slips (m/s), the rows' rate term ``c`` (m/s^2) and wheel accelerations."""
+    y = np.asarray(y, dtype=float)
+    J = wheels.rows(y[:2])
+    N = wheels.normal(y[:2])
+    s = J @ y[3:6] - wheels.surface(t)
+    u = wheels.directions
+    c = -y[5] * (y[3] * u[:, 1] - y[4] * u[:, 0])  # d/dt (r x u) . omega with dr/dt = -v
+    return J, N, s, c, wheels.accels
+
+
+def _stick_solve(J, minv, known, rhs, S):
+    """Accelerations and stick forces of sticking set ``S``: ``M nu_dot = known + J_S^T lam_S`` with
+    ``J_S nu_dot = rhs_S``; ``lam_S`` minimum-norm (its wrench is unique). Returns (nu_dot, lam_S, F_S)."""
+    if len(S) == 0:
+        return minv * known, np.zeros(0), np.zeros(3)
+    JS = J[S]
+    A = (JS * minv) @ JS.T
+    lam = np.linalg.lstsq(A, rhs[S] - JS @ (minv * known), rcond=None)[0]
+    F = JS.T @ lam
+    return minv * (known + F), lam, F
+
+
+def mode_rhs(wheels: Wheels, mode: Mode, t: float, y, mass: float, inertia: float):
+    """The smooth dynamics in ``mode`` at time ``t`` (s), state ``y`` = (x, y, theta, vx, vy, omega).
+
+    Returns ``(y_dot, lam)``: the state's rate and every wheel's force on the parcel (N, along its direction):
+    slipping wheels the kinetic ``-sign mu_k N`` (eqs. 20-22 per wheel), sticking wheels the minimum-norm forces
+    that keep their slip acceleration zero, free wheels 0.
+    """
+    mvec = _masses(mass, inertia)
+    J, N, s, c, wdot = _kinematics(wheels, t, y)
+    sig = mode.signs
+    lam = np.zeros(wheels.m)
+    L = mode.slip
+    lam[L] = -sig[L] * wheels.mu_kinetic[L] * N[L]  # eq. 22 per wheel: mu N along the direction it outruns
+    S = mode.stick
+    nu_dot, lam_S, _ = _stick_solve(J, 1.0 / mvec, J[L].T @ lam[L], wdot - c, S)
+    lam[S] = lam_S
+    return np.concatenate([np.asarray(y, dtype=float)[3:6], nu_dot]), lam
+
+
+def _facet_spec(G) -> tuple:
+    """Which generators define the facets of the zonotope with generators the rows of ``G`` (k, 3), within their
+    span: ``(rank, anchor, index)``. Rank 3: each facet is spanned by a non-parallel pair ``index[f]``; rank 2 (the
+    span is the plane of the pair ``anchor``): each facet is parallel to one generator ``index[f]``; rank 1: the
+    facets are the segment's two ends, normal to generator ``index[0]``. Fixed for a mode, so that its event
+    functions stay the same while the generators move with the state."""
+    none = np.zeros(0, dtype=np.int64)
+    if len(G) == 0 or not np.abs(G).max() > 0:
+        return 0, None, none
+    scale = np.linalg.norm(G, axis=1)
+    sv = np.linalg.svd(G / scale.max(), compute_uv=False)
+    rank = int((sv > 1e-9 * sv[0]).sum())
+    if rank == 1:
+        return 1, None, np.array([int(np.argmax(scale))])
+    i, j = np.triu_indices(len(G), 1)
+    cross = np.cross(G[i], G[j])
+    if rank == 2:
+        best = int(np.argmax(np.linalg.norm(cross, axis=1)))
+        anchor = (int(i[best]), int(j[best]))
+        normals = np.cross(cross[best], G)
+        index = np.arange(len(G))
+    else:
+        anchor, normals, index = None, cross, np.column_stack([i, j])
+    size = np.linalg.norm(normals, axis=1)
+    keep = size > 1e-9 * size.max()
+    unit = normals[keep] / size[keep, None]
+    lead = unit[np.arange(len(unit)), np.argmax(np.abs(unit) > 1e-6, axis=1)]
+    unit = unit * np.where(lead < 0, -1.0, 1.0)[:, None]  # a facet and its opposite are one pair of events
+    _, first = np.unique(np.round(unit, 8), axis=0, return_index=True)
+    return rank, anchor, index[keep][np.sort(first)]
+
+
+def _facet_normals(G, spec) -> np.ndarray:
+    """(f, 3) unit facet normals of the zonotope of generators ``G`` for the facet choice ``spec``."""
+    rank, anchor, index = spec
+    if rank == 0:
+        return np.zeros((0, 3))
+    if rank == 1:
+        normals = G[index]
+    elif rank == 2:
+        normals = np.cross(np.cross(G[anchor[0]], G[anchor[1]]), G[index])
+    else:
+        normals = np.cross(G[index[:, 0]], G[index[:, 1]])
+    return normals / np.linalg.norm(normals, axis=1)[:, None]
+
+
+def _required(wheels: Wheels, mode: Mode, t: float, y, minv):
+    """What the mode asks of its sticking wheels at (t, y): their generators ``mu_s N J`` (k, 3) and the net wrench
+    ``F_S`` (N, N, N m) they must supply."""
+    J, N, s, c, wdot = _kinematics(wheels, t, y)
+    L, S = mode.slip, mode.stick
+    lam_L = -mode.signs[L] * wheels.mu_kinetic[L] * N[L]
+    _, _, F = _stick_solve(J, minv, J[L].T @ lam_L, wdot - c, S)
+    return (wheels.mu_static[S] * N[S])[:, None] * J[S], F
+
+
+def _slack(G, F, spec) -> np.ndarray:
+    """Per facet: the zonotope's support along its normal minus the wrench's reach (>= 0: the wrench is inside)."""
+    normals = _facet_normals(G, spec)
+    return np.abs(G @ normals.T).sum(axis=0) - np.abs(normals @ F)
+
+
+def mode_events(wheels: Wheels, mode: Mode, t: float, y, mass: float, inertia: float) -> list:
+    """Event functions ``g(t, y)`` of ``mode`` entered at time ``t`` (s) and state ``y``, for
+    :func:`scipy.integrate.solve_ivp`; each falls through zero at its event (``direction = -1``, terminal).
+
+    Per wheel in contact: its cell's normal force (N; zero where the support set's contact set changes, the
+    engine's event, which ends a :func:`simulate`). Per slipping wheel: its slip speed times its sign (m/s; zero
+    when it catches up with its wheel). Per facet of the sticking wheels' zonotope (the facets as they are at
+    (t, y)): the support of the zonotope along the facet's normal minus that of the required wrench (zero when the
+    wrench reaches the facet). Each function carries
+    ``kind`` ("support", "slip" or "stick") and ``index`` (the wheel, or the facet).
+    """
+    minv = 1.0 / _masses(mass, inertia)
+    events = []
+    for j in np.flatnonzero(wheels.normal(np.asarray(y, dtype=float)[:2]) > 0).tolist():
+        def lift(t, y, j=j):
+            return float(wheels.force_lin[j] @ (y[:2] - wheels.origin) + wheels.force_const[j])
+
+        lift.kind, lift.index, lift.direction, lift.terminal = "support", j, -1, True
+        events.append(lift)
+    for j in mode.slip.tolist():
+        def slip(t, y, j=j, sign=mode.state[j]):
+            return sign * float(wheels.rows(y[:2])[j] @ y[3:6] - wheels.surface(t)[j])
+
+        slip.kind, slip.index, slip.direction, slip.terminal = "slip", j, -1, True
+        events.append(slip)
+    if len(mode.stick):
+        spec = _facet_spec(_required(wheels, mode, t, y, minv)[0])
+        last = {}  # the integrator asks every facet at the same (t, y): one KKT solve serves them all
+
+        def slacks(t, y):
+            key = (t, y[:6].tobytes())
+            if key not in last:
+                last.clear()
+                last[key] = _slack(*_required(wheels, mode, t, y[:6], minv), spec)
+            return last[key]
+
+        for f in range(len(spec[2])):
+            def stick(t, y, f=f):
+                return float(slacks(t, y)[f])
+
+            stick.kind, stick.index, stick.direction, stick.terminal = "stick", f, -1, True
+            stick.spec = spec
+            events.append(stick)
+    return events
+
+
+def _box_accelerations(JZ, minv, known, rhs, bounds, max_sweeps=200000, tol=1e-15):
+    """Projected Gauss-Seidel on the acceleration-level box problem of the zero-slip wheels: forces ``lam`` within
+    ``|lam| <= bounds`` with the slip accelerations ``a = J_Z nu_dot - rhs`` complementary to them. Returns ``a``
+    (unique, as ``nu_dot`` is); used to identify the mode, which is then solved and checked exactly."""
+    z = (minv * known).tolist()
+    rows = JZ.tolist()
+    diag = ((JZ ** 2) * minv).sum(axis=1).tolist()
+    b = bounds.tolist()
+    r = rhs.tolist()
+    lam = [0.0] * len(rows)
+    m0, m1, m2 = (float(v) for v in minv)
+    scale = max(max(b, default=0.0), 1e-300)
+    for _ in range(max_sweeps):
+        change = 0.0
+        for j, (p, q, w) in enumerate(rows):
+            if b[j] <= 0.0 or diag[j] <= 0.0:
+                continue
+            a = p * z[0] + q * z[1] + w * z[2] - r[j]
+            new = min(max(lam[j] - a / diag[j], -b[j]), b[j])
+            d = new - lam[j]
+            if d:
+                lam[j] = new
+                z[0] += m0 * p * d
+                z[1] += m1 * q * d
+                z[2] += m2 * w * d
+                change = max(change, abs(d))
+        if change <= tol * scale:
+            break
+    return JZ @ np.array(z) - rhs
+
+
+@dataclass(frozen=True)
+class ModeEvent:
+    """A mode change: at ``time`` (s) the event function ``kind`` ("slip": a slipping wheel reached zero slip;
+    "stick": the sticking wheels' required wrench reached a facet of their zonotope) number ``index`` fell to zero,
+    and the mode changed from ``before`` to ``after``."""
+
+    time: float
+    kind: str
+    index: int
+    before: Mode
+    after: Mode
+
+
+def decide_mode(wheels: Wheels, t: float, y, mass: float, inertia: float, *, breaking: dict | None = None) -> Mode:
+    """The exact mode at time ``t`` (s) and state ``y`` = (x, y, theta, vx, vy, omega) of a parcel of ``mass`` (kg)
+    and ``inertia`` (kg m^2): wheels with non-zero slip keep its sign; wheels at zero slip stick if their static
+    bounds can hold them, else slip the way they accelerate (see the module's docstring for the method and the rule
+    for redundant sticking wheels). ``breaking`` ({wheel: sign}) names wheels known to leave stick here (the wheels
+    at their bounds on a facet the required wrench crosses); they slip with that sign.
+
+    Raises:
+        ValueError: the identified mode fails its exact check (a degenerate tie the identification could not split).
+    """
+    y = np.asarray(y, dtype=float)
+    minv = 1.0 / _masses(mass, inertia)
+    J, N, s, c, wdot = _kinematics(wheels, t, y)
+    rhs = wdot - c
+    speed = max(float(np.abs(wheels.surface(t)).max(initial=0.0)), float(np.abs(J @ y[3:]).max(initial=0.0)), 1e-3)
+    free = wheels.free | (N <= 0)
+    state = np.where(free, 2, np.sign(s).astype(int))
+    zero = (np.abs(s) <= _SLIP_TOL * speed) & ~free
+    state[zero] = 0
+    for j, sign in (breaking or {}).items():
+        state[j], zero[j] = sign, False
+    Z = np.flatnonzero(zero)
+    bounds = wheels.mu_static * np.maximum(N, 0.0)
+    accel = float(np.abs(rhs).max(initial=0.0) + (np.linalg.norm(J, axis=1) * bounds).sum() * minv.max()) + 1e-300
+    broke = []
+    while len(Z):
+        L = np.flatnonzero((state == 1) | (state == -1))
+        known = J[L].T @ (-state[L] * wheels.mu_kinetic[L] * N[L])
+        a = _box_accelerations(J[Z], minv, known, rhs[Z], bounds[Z])
+        out = np.abs(a) > _ACCEL_TOL * accel
+        if not out.any():
+            break
+        state[Z[out]] = np.sign(a[out]).astype(int)
+        broke.extend(Z[out].tolist())
+        Z = Z[~out]
+    state[Z] = 0
+    mode = Mode(tuple(int(v) for v in state))
+    _check(wheels, mode, t, y, minv, broke, accel)
+    return mode
+
+
+def _check(wheels, mode, t, y, minv, broke, accel) -> None:
+    """Raise ValueError unless ``mode`` is consistent at (t, y): the required wrench inside the sticking wheels'
+    zonotope and every wheel that broke away accelerating in the direction it slips."""
+    if len(mode.stick):
+        G, F = _required(wheels, mode, t, y, minv)
+        spec = _facet_spec(G)
+        slack = _slack(G, F, spec)
+        scale = float(np.abs(G).sum()) + 1e-300
+        if len(slack) and slack.min() < -1e-7 * scale:
+            raise ValueError(f"sticking wheels cannot supply the wrench they must at t = {t} s (slack {slack.min():g})")
+    if broke:
+        J, N, s, c, wdot = _kinematics(wheels, t, y)
+        L = mode.slip
+        lam = np.zeros(wheels.m)
+        lam[L] = -mode.signs[L] * wheels.mu_kinetic[L] * N[L]
+        nu_dot, _, _ = _stick_solve(J, minv, J[L].T @ lam[L], wdot - c, mode.stick)
+        a = J[broke] @ nu_dot + c[broke] - wdot[broke]
+        if (mode.signs[broke] * a < -1e-7 * accel).any():
+            raise ValueError(f"a wheel breaking away at t = {t} s would accelerate against its slip")
+
+
+@dataclass(frozen=True, eq=False)
+class StickSlipRun:
+    """One parcel's exact stick-slip motion on one support set.
+
+    Attributes:
+        segments: per mode, ``(t_start, t_end, mode, solution)`` with ``solution(t)`` the dense state (6 + 2: the
+            state, then the wheel work and the dissipation so far).
+        events: the :class:`ModeEvent` s, in order.
+        wheel_work: J, ``int sum lam w dt`` (the wheels' work on the parcel).
+        dissipation: J, ``int -sum lam s dt`` (friction's loss, >= 0).
+        kinetic_start, kinetic_end: J.
+        t_end: s; y_end: (6,) the final state.
+        status: "completed" (reached ``t1``) or "support" (stopped where a wheel's normal force fell to zero: the
+            support set's contact set changes there, and the engine must solve the new one and call again).
+    """
+
+    segments: list
+    events: list
+    wheel_work: float
+    dissipation: float
+    kinetic_start: float
+    kinetic_end: float
+    t_end: float
+    y_end: np.ndarray = field(repr=False)
+    status: str = "completed"
+
+    def state(self, t):
+        """(6,) state at time ``t`` (s), or (k, 6) for k times."""
+        ts = np.atleast_1d(np.asarray(t, dtype=float))
+        out = np.empty((len(ts), 6))
+        for k, tk in enumerate(ts):
+            for t_a, t_b, _, sol in self.segments:
+                if tk <= t_b or (t_a, t_b) == self.segments[-1][:2]:
+                    out[k] = sol(min(max(tk, t_a), t_b))[:6]
+                    break
+        return out[0] if np.ndim(t) == 0 else out
+
+    def mode_at(self, t: float) -> Mode:
+        """The mode in force at time ``t`` (s) (the later one at an event)."""
+        for t_a, t_b, mode, _ in self.segments:
+            if t < t_b:
+                return mode
+        return self.segments[-1][2]
+
+
+def simulate(wheels: Wheels, y0, t0: float, t1: float, mass: float, inertia: float, *, rtol: float = 1e-10,
+             atol: float = 1e-13, max_events: int = 10000) -> StickSlipRun:
+    """Integrate one parcel of ``mass`` (kg) and ``inertia`` (kg m^2) from state ``y0`` at ``t0`` to ``t1`` (s) on
+    the fixed support set of ``wheels``: each mode with :func:`scipy.integrate.solve_ivp` (DOP853, dense output) and
+    its :func:`mode_events`, the mode decided again by :func:`decide_mode` at every event. At an event the twist is
+    projected onto the new sticking wheels' constraints (a correction of the size of the root's error) so that a
+    parcel riding its wheels does so to round-off. The wheel work and the dissipation are integrated alongside. The
+    run stops early (``status`` "support", last event of kind "support") where a wheel's normal force falls to zero:
+    beyond it this support set's normal-force map no longer holds.
+
+    Raises:
+        ValueError: more than ``max_events`` events (chattering), or the integrator failed.
+    """
+    minv = 1.0 / _masses(mass, inertia)
+    mvec = 1.0 / minv
+    y = np.array(y0, dtype=float)
+    if y.shape != (6,) or not np.isfinite(y).all():
+        raise ValueError("y0 must be a finite state (x, y, theta, vx, vy, omega)")
+    mode = decide_mode(wheels, t0, y, mass, inertia)
+    y = _project(wheels, mode, t0, y, minv)
+    z = np.concatenate([y, [0.0, 0.0]])
+    kinetic_start = 0.5 * float(mvec @ y[3:] ** 2)
+    segments, events, t = [], [], float(t0)
+
+    while True:
+        def rates(t, z, mode=mode):
+            ydot, lam = mode_rhs(wheels, mode, t, z[:6], mass, inertia)
+            slip = wheels.slips(t, z[:6])
+            return np.concatenate([ydot, [float(lam @ wheels.surface(t)), -float(lam @ slip)]])
+
+        fns = mode_events(wheels, mode, t, z[:6], mass, inertia)
+        sol = solve_ivp(rates, (t, t1), z, method="DOP853", rtol=rtol, atol=atol, events=fns or None,
+                        dense_output=True)
+        if sol.status < 0:
+            raise ValueError(f"integration failed at t = {sol.t[-1]} s: {sol.message}")
+        segments.append((t, float(sol.t[-1]), mode, sol.sol))
+        t, z = float(sol.t[-1]), sol.y[:, -1].copy()
+        if sol.status == 0:
+            status = "completed"
+            break
+        hit = min((float(te[0]), k) for k, te in enumerate(sol.t_events) if len(te))[1]
+        fn = fns[hit]
+        if fn.kind == "support":
+            events.append(ModeEvent(t, fn.kind, int(fn.index), mode, mode))
+            status = "support"
+            break
+        breaking = _breaking(wheels, mode, t, z[:6], minv, fn) if fn.kind == "stick" else None
+        new = decide_mode(wheels, t, z[:6], mass, inertia, breaking=breaking)
+        z[:6] = _project(wheels, new, t, z[:6], minv)
+        events.append(ModeEvent(t, fn.kind, int(fn.index), mode, new))
+        if len(events) > max_events:
+            raise ValueError(f"more than {max_events} mode changes by t = {t} s (chattering)")
+        mode = new
+    y = z[:6]
+    return StickSlipRun(segments, events, float(z[6]), float(z[7]), kinetic_start, 0.5 * float(mvec @ y[3:] ** 2),
+                        t, y, status)
+
+
+def _breaking(wheels, mode, t, y, minv, fn) -> dict:
+    """The wheels that leave stick where the required wrench crosses facet ``fn.index``: those off the facet's plane,
+    each at its static bound ``lam_j`` there, slipping against it (sign ``-sign(lam_j)``)."""
+    G, F = _required(wheels, mode, t, y, minv)
+    rank, anchor, index = fn.spec
+    n = _facet_normals(G, (rank, anchor, index[fn.index:fn.index + 1]))[0]
+    reach = G @ n
+    off = np.abs(reach) > _PLANE_TOL * np.linalg.norm(G, axis=1)
+    side = np.sign(n @ F) or 1.0
+    S = mode.stick
+    return {int(S[k]): int(-side * np.sign(reach[k])) for k in np.flatnonzero(off)}
+
+
+def _project(wheels, mode, t, y, minv) -> np.ndarray:
+    """``y`` with its twist moved (the least change in the kinetic metric) onto the sticking wheels' constraints
+    ``J_S nu = w_S``."""
+    S = mode.stick
+    if not len(S):
+        return y
+    JS = wheels.rows(y[:2])[S]
+    gap = JS @ y[3:] - wheels.surface(t)[S]
+    out = y.copy()
+    out[3:] -= minv * (JS.T @ np.linalg.lstsq((JS * minv) @ JS.T, gap, rcond=None)[0])
+    return out
