@@ -17,6 +17,7 @@ from virtual_vehicle.cells.network.topology import from_layout
 from virtual_vehicle.config.scenario import CellChange, FaultEvent, ReconfigurationSpec, load_scenario
 from virtual_vehicle.model import layout
 from virtual_vehicle.run.sim import LatencyStats, NetworkRun
+from sorter_oracle import step_arrays, stepped_by_arrays
 
 WALL = [j * 24 + 12 for j in range(2, 10)]  # sorting_junction: a wall across the middle, rows 2..9 of column 12
 
@@ -207,29 +208,72 @@ def test_rows_that_differ_are_found_in_any_shape_and_layout(m, shape, dtype, for
     np.testing.assert_array_equal(rows_differ([x, x], [y, x], m), expected)
 
 
+class _Rows:
+    """Stationary and local: each cell keeps one row of a (n, *shape) array of ``dtype`` (Fortran-ordered if
+    ``fortran``) and, where a sensor is lit, rewrites it from a table indexed by its three sensors (for floats -0.0
+    and, in float64, a NaN with a payload among the values); it says the index and drives at it. Stepped for only
+    some cells, it hands its rows back as ``given_as`` (None: ``dtype``), as a program whose arithmetic promotes
+    them might."""
+
+    schema = Schema.of(x=(1, WordType.I16))
+    stationary = True
+
+    def __init__(self, n, shape, dtype, given_as, fortran):
+        self.n, self.shape, self.dtype, self.given_as, self.fortran = n, shape, np.dtype(dtype), given_as, fortran
+        table = np.arange(8.0) if self.dtype.kind != "b" else np.arange(8) % 2
+        if self.dtype.kind == "f" and given_as is None:  # values that only bytes tell apart
+            table[[1, 5]] = -0.0, 0.0
+            if self.dtype == np.float64:
+                table[6] = np.array(0x7FF4000000000ABC, np.uint64).view(np.float64)
+        self.table = table.astype(self.dtype)
+
+    def _order(self, a):
+        return np.asfortranarray(a) if self.fortran else np.ascontiguousarray(a)
+
+    def init(self, n, ports, config):
+        return {"row": self._order(np.zeros((n, *self.shape), self.dtype))}
+
+    def step(self, state, inputs):
+        n, P = inputs.connected.shape
+        code = np.asarray(inputs.sensors, np.int64) @ np.array([1, 2, 4])
+        element = np.arange(int(np.prod(self.shape, dtype=np.int64))).reshape(self.shape)
+        new = self.table[(code.reshape(-1, *[1] * len(self.shape)) + element) % 8]
+        lit = (code > 0).reshape(-1, *[1] * len(self.shape))
+        row = self._order(np.where(lit, new, state["row"]))
+        if n < self.n and self.given_as is not None:
+            row = self._order(row.astype(self.given_as))
+        out = Mailbox.broadcast(self.schema, code > 0, P, x=code)
+        return {"row": row}, out, np.stack([code, -code], axis=1).astype(float)
+
+
 @settings(max_examples=80, deadline=None)
 @given(st.integers(1, 40), st.sampled_from([(), (1,), (2,), (3,), (4,), (5,), (8,), (2, 3), (4, 2)]),
        st.sampled_from([np.int64, np.int32, np.int16, np.uint16, np.uint8, np.bool_, np.float64, np.float32]),
        st.sampled_from([None, np.int64, np.float64, np.int8]), st.booleans(), st.integers(0, 2**32 - 1))
-def test_rows_are_written_back_as_assigning_them_would(n, shape, dtype, given_as, fortran, seed):
-    """_put_rows copies rows as whole units of their bytes: the result is a[rows] = b, bit for bit (a NaN's payload,
-    -0.0), also for values of another dtype (cast as assignment casts them) and targets that are not contiguous."""
-    from virtual_vehicle.cells.network.programs import _put_rows
-
+def test_changed_cells_write_their_rows_back_as_assigning_them_would(n, shape, dtype, given_as, fortran, seed):
+    """The rows of the changed cells are written into the state, sentences and wheel speeds ChangedCells keeps as
+    assigning them would, bit for bit (a NaN's payload, -0.0), in any row shape and word type, also when the step
+    hands them back in another dtype (cast as assignment casts them) and into state that is not C-contiguous: every
+    tick the same as stepping every cell."""
     rng = np.random.default_rng(seed)
-    rows = np.sort(rng.choice(n, rng.integers(0, n + 1), replace=False))
-    a = rng.integers(0, 200, (n, *shape)).astype(dtype)
-    b = rng.integers(0, 200, (len(rows), *shape)).astype(dtype if given_as is None else given_as)
-    if np.dtype(dtype).kind == "f" and b.dtype == dtype and b.size:
-        b.reshape(-1)[0] = -0.0
-        if dtype == np.float64:
-            b.reshape(-1)[-1] = np.array(0x7FF4000000000ABC, np.uint64).view(np.float64)  # a NaN with a payload
-    if fortran:
-        a = np.asfortranarray(a)
-    expected = a.copy()
-    expected[rows] = b
-    _put_rows([a], [b], rows, n)
-    assert a.tobytes() == expected.tobytes() and a.dtype == expected.dtype
+    topo = from_layout(layout.grid(n, 1, 0.1))
+    program = _Rows(n, shape, dtype, given_as, fortran)
+    some = ChangedCells(program, full_share=1.0)  # never gives up comparing: every tick after the first is partial
+    state_a, state_b = program.init(n, 4, {}), program.init(n, 4, {})
+    inbox = Mailbox.empty(program.schema, n, 4)
+    sensors = np.zeros((n, 3), bool)  # the first tick (every cell) changes nothing; the next steps a proper subset
+    for k in range(6):
+        if k:
+            redrawn = rng.choice(n, int(rng.integers(1, n)) if n > 1 else 1, replace=False)
+            sensors = sensors.copy()
+            sensors[redrawn] = rng.random((len(redrawn), 3)) < rng.choice([0.1, 0.3, 0.6])
+        state_a, out_a, wheels_a = program.step(state_a, CellInputs(0.01 * k, sensors, inbox, topo.connected))
+        state_b, out_b, wheels_b, _ = some.step(state_b, CellInputs(0.01 * k, sensors, inbox, topo.connected))
+        a, b = state_a["row"], state_b["row"]
+        assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+        assert [x.tobytes() for x in out_a.arrays] == [x.tobytes() for x in out_b.arrays]
+        assert np.asarray(wheels_a).tobytes() == np.asarray(wheels_b).tobytes()
+    assert some.ticks == 6 and (n == 1 or some.stepped < 6 * n)  # rows were written back, not every cell stepped
 
 
 class _Echo:
@@ -310,8 +354,9 @@ def test_the_compiled_sorter_runs_as_its_array_statement_in_whole_runs(case):
     for compiled in (True, False):
         setup = sc.build()
         program = setup.control.program
-        program.compiled = compiled
-        if compiled:
+        if not compiled:
+            stepped_by_arrays(program)
+        else:
             step_rows = program.step_rows
 
             def counted(*args):
@@ -332,7 +377,8 @@ def test_the_compiled_sorter_runs_as_its_array_statement_in_whole_runs(case):
 
 
 def _keys(rng, shape) -> np.ndarray:
-    """Direction keys as sorters say them (sorting._key: distance, keeping the direction, a port, hops), or none."""
+    """Direction keys as sorters say them (rules.direction_key: distance, keeping the direction, a port,
+    hops), or none."""
     key = ((rng.integers(0, 260, shape) * 2 + rng.integers(0, 2, shape)) * 8 + rng.integers(0, 4, shape)) * 64 \
         + rng.integers(0, 64, shape)
     return np.where(rng.random(shape) < 0.3, 1 << 20, key)
@@ -392,7 +438,7 @@ def test_the_compiled_sorter_steps_as_its_array_statement_on_any_inputs(seed, ma
     ids from a handful, so that neighbours share them), any sensors, links, labels, exits, entries, parking and
     one-way cells, and any state, stale or fresh."""
     program, state, inputs = _random_sorter_inputs(np.random.default_rng(seed), max_age, parking, labelled)
-    _same_step(program.step(state, inputs), program._step_arrays(state, inputs))
+    _same_step(program.step(state, inputs), step_arrays(program, state, inputs))
 
 
 @settings(max_examples=100, deadline=None)
@@ -404,16 +450,15 @@ def test_the_sorter_steps_changed_cells_in_place_as_it_steps_them_gathered(seed,
     trusted, from a state already stepped so, so that only a cell's own words (a back-off counting down, a hold
     ageing) can change."""
     from virtual_vehicle.cells.network.messages import rows_differ
-    from virtual_vehicle.cells.network.programs import _rows
-    from virtual_vehicle.cells.sorting import _STATE
 
     rng = np.random.default_rng(seed)
     program, state, inputs = _random_sorter_inputs(rng, max_age, parking, True)
     n = len(inputs.sensors)
+    kept = [k for k in program.init(n, 4, {}) if k not in ("dist", "heard", "age")]  # the words a cell keeps
     if silent:
         inputs.inbox.present[:] = False
         state["age"][:] = 2**31 - 1
-        state = {**program.step(state, inputs)[0], **{k: state[k] for k in _STATE}}  # heard, age, dist settled
+        state = {**program.step(state, inputs)[0], **{k: state[k] for k in kept}}  # heard, age, dist settled
     out0, wheels0 = program.step(state, CellInputs(inputs.t, inputs.sensors, inputs.inbox, inputs.connected,
                                                    inputs.config, inputs.labels))[1:]
     rows = np.sort(rng.choice(n, int(rng.integers(1, n + 1)), replace=False))
@@ -421,7 +466,7 @@ def test_the_sorter_steps_changed_cells_in_place_as_it_steps_them_gathered(seed,
                      {k: v[rows] for k, v in inputs.config.items()}, inputs.labels[rows])
     sub_state = {k: ({w: a[rows] for w, a in v.items()} if isinstance(v, dict) else v[rows])
                  for k, v in state.items()}
-    ref_state, ref_out, ref_wheels = program._step_arrays(sub_state, sub)
+    ref_state, ref_out, ref_wheels = step_arrays(program, sub_state, sub)
     mine = {k: ({w: a.copy() for w, a in v.items()} if isinstance(v, dict) else v.copy()) for k, v in state.items()}
     outbox = Mailbox(out0.schema, out0.present.copy(), {w: a.copy() for w, a in out0.values.items()})
     wheels = np.array(wheels0)
@@ -430,7 +475,7 @@ def test_the_sorter_steps_changed_cells_in_place_as_it_steps_them_gathered(seed,
 
     def leaves(st):  # by name: init and step hold the words in different orders
         return [st["dist"], *(st["heard"][f.name] for f in program.schema.fields), st["age"],
-                *(st[k] for k in _STATE)]
+                *(st[k] for k in kept)]
 
     for a, b, c in zip(leaves(mine), leaves(ref_state), leaves(state), strict=True):
         assert np.array_equal(a[rows], b) and np.array_equal(a[others], c[others])
@@ -439,9 +484,9 @@ def test_the_sorter_steps_changed_cells_in_place_as_it_steps_them_gathered(seed,
     assert wheels[rows].tobytes() == np.asarray(ref_wheels).tobytes()
     assert np.array_equal(wheels[others], np.asarray(wheels0)[others])
     assert unsettled[others].sum() == out_changed[others].sum() == 0
-    assert unsettled[rows].tolist() == rows_differ(leaves(ref_state), [_rows(a, rows) for a in leaves(state)],
+    assert unsettled[rows].tolist() == rows_differ(leaves(ref_state), [a[rows] for a in leaves(state)],
                                                    len(rows)).tolist()
-    assert out_changed[rows].tolist() == rows_differ(ref_out.arrays, [_rows(a, rows) for a in out0.arrays],
+    assert out_changed[rows].tolist() == rows_differ(ref_out.arrays, [a[rows] for a in out0.arrays],
                                                      len(rows)).tolist()
 
 
@@ -452,7 +497,7 @@ def test_a_direction_key_naming_no_port_fails_in_both_sorters():
 
     n, P = 3, 4
     for compiled in (True, False):
-        program = Sorter(0.3, compiled=compiled)
+        program = Sorter(0.3) if compiled else stepped_by_arrays(Sorter(0.3))
         state = program.init(n, P, {})
         state["vid"][:] = 7
         state["goal"][:] = 0

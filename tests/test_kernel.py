@@ -320,7 +320,7 @@ import bench_scale
 from virtual_vehicle.engine import _kernel
 from virtual_vehicle.physics.laws import affine
 from virtual_vehicle.model import parcel
-from virtual_vehicle.cells import sorting
+from virtual_vehicle.cells.sorting import policy
 from virtual_vehicle.cells.network import delivery
 from virtual_vehicle.run.warm import warm_up
 from virtual_vehicle.config.scenario import parse_scenario
@@ -330,7 +330,7 @@ home = {n: _kernel for n in ("run_piece", "pattern", "cell_margins", "support_sl
                                       "quiet_steps")}
 home["_within"] = home["_covered"] = parcel
 home["_terms_and_row"] = affine  # the bench_scale hall is viscous
-home["_step_cells"] = sorting
+home["step_cells"] = policy
 home["_carry"] = delivery
 names = tuple(home)
 before = {n: len(getattr(home[n], n).signatures) for n in names}

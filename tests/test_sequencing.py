@@ -7,7 +7,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from virtual_vehicle.cells.network.programs import check_program
-from virtual_vehicle.cells.sorting import Sorter, _pack, _unpack, decode_goal, encode_goal
+from virtual_vehicle.cells.sorting import Sorter, decode_goal, encode_goal
+from virtual_vehicle.cells.sorting.rules import pack, unpack
 from virtual_vehicle.config.scenario import load_scenario, parse_scenario
 from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.run.sim import run
@@ -107,7 +108,7 @@ def test_one_way_arrows_are_for_square_lattices():
        st.sampled_from([6, 8]))
 def test_packed_words_fit_a_signed_32_bit_word_and_unpack_exactly(rows, bits):
     values = np.array(rows) % (1 << bits)
-    words = _pack(values, bits)
+    words = pack(values, bits)
     assert np.all(words >= -(1 << 31)) and np.all(words < 1 << 31)  # travels as an I32 word
     for q in range(4):
-        np.testing.assert_array_equal(_unpack(words, q, bits), values[:, q])
+        np.testing.assert_array_equal(unpack(words, q, bits), values[:, q])

@@ -1,0 +1,58 @@
+"""The Virtual Vehicle as a distributed cell program: parcels sorted to exits by local decisions only (paper
+Section 1 and Figure 2: each parcel moves as if it rode its own vehicle, made of whichever cells are under it).
+
+Units: SI (m/s for wheel speeds). Every rule below reads only the cell's own sensors, state and configuration and
+what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs` contract, checked by
+:func:`~virtual_vehicle.cells.network.programs.check_program`).
+
+- *Routing*: one hop-distance gradient per exit (distance vector; a cell on the array's edge counts
+  ``1 + edge_cost`` hops, so parcels travel inside the array and meet the edge only at their exit). A parcel
+  descends the gradient of its goal exit, so it finds its exit, and a detour around dead cells, without any cell
+  knowing the map.
+- *Virtual vehicle tracking*: at an entry cell a new parcel gets an id (the tick it arrived, so smaller ids are
+  older vehicles) and the goal its label gives (a barcode reader at the entry: ``labels``); the cells of a new
+  parcel settle on the smallest of the ids the entry cells made. A cell that starts seeing a parcel adopts the
+  record (id, goal) of a neighbour whose vehicle is moving into it (else the smallest id heard); elsewhere a cell
+  never changes vehicle while it sees one. Cells under one vehicle agree on its direction: every cell proposes
+  (its distance to the goal, the port toward its closest neighbour); the smallest proposal (the front cell's)
+  spreads through the vehicle within ``reach`` hops (hop-limited, so what a departed cell said is soon forgotten),
+  the current direction preferred on a tie so the vehicle does not dither.
+- *Traffic*: a vehicle moves only along cells it holds. Each front cell (whose neighbour ahead is not under the
+  same vehicle) asks that neighbour; an empty cell grants itself to the asking vehicle (the oldest when several
+  ask, every tick: the older parcel goes first at a merge, and a younger one yields even a cell it held, so two
+  vehicles never wait for each other) and passes the request on, ``gap + 1`` cells deep. A held cell reports back
+  how many held cells run ahead of it; a vehicle moves when the run ahead of every front cell is at least ``gap``
+  long (or leads off the array at its exit), else all its cells stop. Stopping and going spread through the
+  vehicle like its direction. Parcels therefore keep ``gap`` free cells between them and do not collide. Two
+  vehicles that meet head on would each hold what the other needs; a front cell that sees the cell ahead held for
+  an older vehicle that asked from the far side (the held cell tells through which port it was asked), or carrying
+  an older vehicle coming this way, makes its vehicle back off for as long as ``gap + 1`` cells take. A hold
+  lasts ``max_age`` ticks after the last request that renewed it (one tick on ideal rounds), so on a network that
+  delivers a sentence only every few ticks the chain of holds ahead of a vehicle does not fall apart between them.
+- *Exits*: a cell of the goal's exit lane drives the vehicle out through the lane's open side once the vehicle lies
+  within the lane (no cell beside it, across the way out, is under the vehicle without belonging to the lane);
+  until then such cells move the vehicle sideways into the lane. Nowhere else may a vehicle move over the edge: a
+  front cell with no neighbour ahead stops it.
+- *One-way cells* (config ``forbid``: the port a parcel on the cell may not move toward): gradients are not
+  followed against the arrow, and a side against an arrow under any carrying cell is closed to the whole vehicle.
+  Aisles drawn one-way cannot have two parcels meet head on (nor can a parcel back off against an arrow).
+- *Sequencing* (parcels whose label carries a sequence number, :func:`encode_goal`): the number due next spreads
+  through the array as the highest heard (word ``nxt``); the exit cell that lets a sequenced parcel out raises it
+  to that parcel's number plus one. A parcel whose number is not yet due follows gradient :data:`PARK` to a parking
+  cell (config ``park``) whose centre no parcel covers, and parks once a cell carrying it is one: it stops, asks
+  for no cells, and it and the cells beside it tell their neighbours there is no way through (so others route
+  around it). When its number is due it heads for its exit. Parcels therefore leave in sequence, as long as there
+  are enough parking cells for those that arrive early.
+
+The policy is written once, compiled (:mod:`.policy`, one function per phase); :class:`Sorter` runs it.
+:class:`CentralSorter` (:mod:`.central`) is the central counterpart for comparison; what both apply (the goal
+encoding, when a parcel is due, vehicle ids, the gradients' hop cost, the wheel command, the back-off) is in
+:mod:`.rules`.
+"""
+
+from virtual_vehicle.cells.network.programs import UNREACHABLE
+from virtual_vehicle.cells.sorting.central import CentralSorter
+from virtual_vehicle.cells.sorting.rules import MAX_EXITS, PARK, decode_goal, encode_goal
+from virtual_vehicle.cells.sorting.sorter import Sorter
+
+__all__ = ["MAX_EXITS", "PARK", "UNREACHABLE", "CentralSorter", "Sorter", "decode_goal", "encode_goal"]

@@ -1,0 +1,364 @@
+"""The sorter's cell policy (the rules of :mod:`virtual_vehicle.cells.sorting`), compiled, the only form of it the
+package runs: :func:`step_cells` steps cells one at a time, each through the rules' phases in order. Units: SI (m/s
+for wheel speeds).
+
+The arrays travel in a few records (named tuples, which numba compiles field by field): :class:`Words` (one array
+per sentence word, in the schema's order), :class:`CellState` (the per-cell state words), :class:`Memory` (what a
+cell keeps between ticks), :class:`Config`, :class:`Rules` (the sorter's numbers), :class:`Inputs` and
+:class:`Outputs`. The step unpacks them once, before its loop over cells: numba counts a reference each time an array
+is reached through a record, which inside the loop made the step several times slower.
+"""
+
+from __future__ import annotations
+
+from collections import namedtuple
+
+import numpy as np
+from numba import njit
+
+from virtual_vehicle.cells.network.programs import UNREACHABLE
+from virtual_vehicle.cells.sorting.rules import (BIG, ENTRY, HUGE, MAX_EXITS, NONE, PARK, direction_key, drive, due,
+                                                 hop_cost, split_goal, unpack, vehicle_id)
+
+Words = namedtuple("Words", "d nxt vid goal key stop req rdep hold ack ex blk")
+"""The sorter's sentence words, one (n, P) array each, in the schema's order."""
+CellState = namedtuple("CellState", "vid goal dir key stop hold hdep hport hage ack nxt park back bdir")
+"""The per-cell state words (n,), int64, in the order the sorter's state holds them after ``dist``, ``heard``,
+``age``."""
+Memory = namedtuple("Memory", "heard age dist cell")
+"""What a cell keeps between ticks: words last heard (:class:`Words`, int64), their ages (ticks), the exit
+gradients' distances (n, MAX_EXITS) and the :class:`CellState`."""
+Config = namedtuple("Config", "exit exit_port entry entry_no park forbid labels")
+"""Per-cell configuration (see :class:`~virtual_vehicle.cells.sorting.Sorter`) and the labels read this tick."""
+Rules = namedtuple("Rules", "tick max_age edge_cost reach gap back_ticks speed")
+"""The tick stepped and the sorter's numbers (hops and ticks; ``speed`` in m/s)."""
+Inputs = namedtuple("Inputs", "present arrived sensors connected")
+"""Which words arrived (n, P), the words (:class:`Words`), the sensors (n, S) and the live links (n, P)."""
+Outputs = namedtuple("Outputs", "present sent wheels unsettled out_changed")
+"""Where the sentences go (a presence mask and :class:`Words`), the (n, 2) wheel speeds (m/s), and per row whether
+the state and the sentences changed."""
+
+_INT32_MAX = int(np.iinfo(np.int32).max)
+
+
+@njit(cache=True)
+def _first_min(a):
+    """The index of the first smallest of ``a`` (numpy's argmin)."""
+    best = 0
+    for q in range(1, a.shape[0]):
+        if a[q] < a[best]:
+            best = q
+    return best
+
+
+@njit(cache=True)
+def _spread(own, stop_word, field, same, on, reach):
+    """Hops to the nearest cell of the same vehicle that said 0 (``own`` 0 here), forgotten beyond ``reach``:
+    ``stop_word`` its neighbours' packed ``stop`` words (field ``field``), ``same`` which of them carry its
+    vehicle."""
+    out = own
+    for q in range(same.shape[0]):
+        v = unpack(stop_word[q], field, 8)
+        nb = v + 1 if same[q] and v < reach else 255
+        out = min(out, nb)
+    return out if on else 255
+
+
+@njit(cache=True, inline="always")
+def _heard(present, word, heard_in, heard_out, i, q):
+    """Port q of cell i hears ``word`` if it arrived, else what it heard last; whether that changed."""
+    old = heard_in[i, q]
+    heard_out[i, q] = np.int64(word) if present else old
+    return heard_out[i, q] != old
+
+
+@njit(cache=True, inline="always")
+def _put(out, i, q, value):
+    """Write ``value`` (as ``out``'s type) at (i, q); whether it differs from what was there."""
+    old = out[i, q]
+    out[i, q] = value
+    return out[i, q] != old
+
+
+@njit(cache=True, inline="always")
+def _put1(out, before, i, value):
+    """Write ``value`` at ``out[i]``; whether it differs from ``before[i]`` (read first: it may be ``out``)."""
+    old = before[i]
+    out[i] = value
+    return value != old
+
+
+@njit(cache=True)
+def step_cells(rows, inp, cfg, rules, old, new, out):
+    """:meth:`~virtual_vehicle.cells.sorting.Sorter.step` for the cells ``rows``, one at a time, in the order of the
+    rules (see :mod:`virtual_vehicle.cells.sorting`): hear, route (gradients), sequence, track, propose a direction
+    (exit band, closed sides, gradient), back off head on, agree on the direction, park, hold cells ahead and
+    acknowledge, stop or go, command the wheels, say. The new :class:`Memory` of each row stepped goes to ``new``,
+    its sentence and wheel speeds to ``out``, which may hold the very arrays read (a row reads and writes only its
+    own row, each value read before it is written): then only those rows change. ``out.unsettled[i]`` and
+    ``out.out_changed[i]`` say whether row i's state and sentence differ from what they were."""
+    P = inp.present.shape[1]
+    present, words, sensors, connected = inp  # the records unpacked once, outside the loop over cells: an array
+    heard_in, age_in, dist_in, state_in = old  # reached through a record inside it costs a reference count a use
+    heard_out, age_out, dist_out, state_out = new
+    exit_id, exit_port, entry, entry_no, park_cell, forbid, labels = cfg
+    tick, max_age, edge_cost, reach, gap, back_ticks, speed = rules
+    sent_present, sent, wheels, unsettled, out_changed = out
+    n_vid, n_goal, n_dir, n_key, n_stop, n_hold, n_hdep, n_hport, n_hage, n_ack, n_nxt, n_park, n_back, n_bdir = \
+        state_out
+    w_d, w_nxt, w_vid, w_goal, w_key, w_stop, w_req, w_rdep, w_hold, w_ack, w_ex, w_blk = words
+    i_d, i_nxt, i_vid, i_goal, i_key, i_stop, i_req, i_rdep, i_hold, i_ack, i_ex, i_blk = heard_in
+    hd, hnxt, hvid, hgoal, hkey, hstop, hreq, hrdep, hhold, hack, hex_, hblk = heard_out
+    s_vid, s_goal, s_dir, s_key, s_stop, s_hold, s_hdep, s_hport, s_hage, s_ack, s_nxt, s_park, s_back, s_bdir = \
+        state_in
+    o_d, o_nxt, o_vid, o_goal, o_key, o_stop, o_req, o_rdep, o_hold, o_ack, o_ex, o_blk = sent
+    park_any = False  # over the cells stepped, as stepping those rows gathered sees them
+    for i in rows:
+        park_any = park_any or park_cell[i]
+    trusted = np.empty(P, np.bool_)
+    allowed = np.empty(P, np.bool_)
+    same_nb = np.empty(P, np.bool_)
+    open_side = np.empty(P, np.bool_)
+    score = np.empty(P, np.int64)
+    nb_entry = np.empty(P, np.int64)
+    cand = np.empty(P, np.int64)
+    req = np.empty(P, np.int64)
+    block = np.empty(P, np.int64)
+    to_req = np.empty(P, np.int64)
+    to_rdep = np.empty(P, np.int64)
+    for i in rows:
+        # -- hear: what the neighbours said (last heard, trusted while fresh)
+        changed = False
+        for q in range(P):
+            p = present[i, q]
+            changed |= _heard(p, w_d[i, q], i_d, hd, i, q)
+            changed |= _heard(p, w_nxt[i, q], i_nxt, hnxt, i, q)
+            changed |= _heard(p, w_vid[i, q], i_vid, hvid, i, q)
+            changed |= _heard(p, w_goal[i, q], i_goal, hgoal, i, q)
+            changed |= _heard(p, w_key[i, q], i_key, hkey, i, q)
+            changed |= _heard(p, w_stop[i, q], i_stop, hstop, i, q)
+            changed |= _heard(p, w_req[i, q], i_req, hreq, i, q)
+            changed |= _heard(p, w_rdep[i, q], i_rdep, hrdep, i, q)
+            changed |= _heard(p, w_hold[i, q], i_hold, hhold, i, q)
+            changed |= _heard(p, w_ack[i, q], i_ack, hack, i, q)
+            changed |= _heard(p, w_ex[i, q], i_ex, hex_, i, q)
+            changed |= _heard(p, w_blk[i, q], i_blk, hblk, i, q)
+            old = age_in[i, q]
+            age_out[i, q] = 0 if p else min(old + 1, _INT32_MAX)
+            changed |= age_out[i, q] != old
+            trusted[q] = (age_out[i, q] <= max_age) and connected[i, q]
+            allowed[q] = q != forbid[i]
+        # -- routing: one gradient per exit
+        lit = False
+        for s in range(sensors.shape[1]):
+            lit = lit or sensors[i, s]
+        linked = True
+        for q in range(P):
+            linked = linked and connected[i, q]
+        cost = hop_cost(linked, exit_id[i], edge_cost)
+        for e in range(MAX_EXITS):
+            source = exit_id[i] == e
+            if e == PARK and park_any:
+                source = park_cell[i] and not sensors[i, 0]
+            best = UNREACHABLE
+            for q in range(P):
+                best = min(best, unpack(hd[i, q], e, 8) if (trusted[q] and allowed[q]) else UNREACHABLE)
+            old = dist_in[i, e]
+            dist_out[i, e] = 0 if source else min(best + cost, UNREACHABLE)
+            changed |= dist_out[i, e] != old
+        # -- sequencing
+        most = hnxt[i, 0] if trusted[0] else 0
+        for q in range(1, P):
+            most = max(most, hnxt[i, q] if trusted[q] else 0)
+        nxt = max(s_nxt[i], most)
+        # -- tracking
+        vid, goal = s_vid[i], s_goal[i]
+        if not lit:
+            vid, goal = NONE, NONE
+        for q in range(P):
+            toward = (hkey[i, q] < BIG) and ((hkey[i, q] // 64) % 8 == (q + 2) % 4)
+            has = trusted[q] and hvid[i, q] >= 0
+            score[q] = ((0 if toward else HUGE) + hvid[i, q]) if has else 2 * HUGE
+            nb_entry[q] = hvid[i, q] if (has and hex_[i, q] == ENTRY) else HUGE
+        pick = _first_min(score)
+        found = score[pick] < 2 * HUGE
+        best_vid = hvid[i, pick]
+        entry_min = nb_entry[0]
+        for q in range(1, P):
+            entry_min = min(entry_min, nb_entry[q])
+        if lit and vid < 0 and found:
+            vid = best_vid
+            goal = hgoal[i, pick]
+        if lit and vid >= 0 and entry_min < vid:
+            k = _first_min(nb_entry)
+            vid = entry_min
+            goal = hgoal[i, k]
+        if lit and vid < 0 and entry[i] and labels[i] >= 0:
+            vid = vehicle_id(tick, entry_no[i])
+            goal = labels[i]
+        on = lit and vid >= 0 and goal >= 0
+        for q in range(P):
+            same_nb[q] = trusted[q] and hvid[i, q] == vid and on
+        g0 = max(goal, 0)
+        goal_exit, seq = split_goal(g0)
+        turn = due(seq, nxt)
+        target = goal_exit if turn else -99
+        # -- direction
+        g = goal_exit if turn else PARK
+        ep = exit_port[i]
+        mine = on and exit_id[i] == target and ep >= 0
+        into_band = NONE
+        for c in range(2):
+            sp = (ep + 1) % 4 if c == 0 else (ep + 3) % 4
+            beside = mine and same_nb[sp] and hex_[i, sp] != target
+            if beside and into_band < 0:
+                into_band = (sp + 2) % 4
+        at_exit = mine and into_band < 0
+        core = on and sensors[i, 0]
+        for q in range(P):
+            own_block = core and (not connected[i, q] or not allowed[q])
+            own_block = own_block and not (at_exit and q == ep)
+            relayed = 63
+            if on:
+                for p in range(P):
+                    b = unpack(hblk[i, p], q, 6)
+                    relayed = min(relayed, b + 1 if (same_nb[p] and b < reach) else 63)
+            block[q] = 0 if own_block else relayed
+            if not on:
+                block[q] = 63
+            open_side[q] = trusted[q] and block[q] > reach
+            cand[q] = unpack(hd[i, q], g, 8) if open_side[q] else BIG
+        port = _first_min(cand)
+        movable = cand[port] < UNREACHABLE
+        if into_band >= 0:
+            prop_port, prop_d = into_band, 0
+        elif at_exit:
+            prop_port, prop_d = ep, 1
+        else:
+            prop_port, prop_d = (port if movable else NONE), cand[port] + 3
+        # head on: back off
+        sdir = s_dir[i]
+        pd = max(sdir, 0)
+        ahead_vid = hhold[i, pd] if trusted[pd] else NONE
+        ahead_from = (hack[i, pd] >> 8) - 1
+        coming = ((hkey[i, pd] < BIG) and ((hkey[i, pd] // 64) % 8 == (pd + 2) % 4)
+                  and hvid[i, pd] == ahead_vid)
+        head_on = (on and sdir >= 0 and ahead_vid >= 0 and ahead_vid < vid and not same_nb[pd]
+                   and (ahead_from == pd or coming))
+        back = max(s_back[i] - 1, 0) if on else 0
+        bdir = (pd + 2) % 4 if head_on else s_bdir[i]
+        if head_on:
+            back = back_ticks
+        backing = back > 0 and open_side[max(bdir, 0)] and bdir >= 0
+        if backing:
+            prop_port, prop_d = bdir, 0
+        own_key = BIG
+        if on and prop_port >= 0:
+            own_key = direction_key(prop_d, 1 if prop_port == sdir else 0, max(prop_port, 0), 0)
+        least = 0
+        for q in range(P):  # one more hop; forget beyond reach
+            nk = hkey[i, q] if same_nb[q] else BIG
+            nk = nk + 1 if nk % 64 < reach else BIG
+            least = nk if q == 0 else min(least, nk)
+        key = min(own_key, least)
+        if not on:
+            key = BIG
+        direction = (key // 64) % 8 if key < BIG else NONE
+        if direction >= P:  # a key word from no sorter (the oracle fails here too)
+            raise IndexError("a direction key names a port the cell does not have")
+        # -- traffic
+        ahead_ok_port = direction >= 0
+        dp = max(direction, 0)
+        ahead_is_mine = same_nb[dp] and ahead_ok_port
+        own_park = 0 if (on and not turn and core and park_cell[i]) else 255
+        park = _spread(own_park, hstop[i], 1, same_nb, on, reach)
+        parked = on and park <= reach
+        front = on and ahead_ok_port and not ahead_is_mine and not parked
+        off_array = front and not connected[i, dp] and exit_id[i] == target and dp == ep
+        for q in range(P):
+            req[q] = np.int64(w_req[i, q]) if (present[i, q] and trusted[q] and w_req[i, q] >= 0) else HUGE
+        choice = _first_min(req)
+        new_hold = req[choice] if req[choice] < HUGE else NONE
+        hport = choice if new_hold >= 0 else NONE
+        hdep = np.int64(w_rdep[i, max(hport, 0)]) if new_hold >= 0 else 0
+        keep = s_hold[i] >= 0 and s_hage[i] < max_age and (new_hold < 0 or s_hold[i] < new_hold)
+        if keep:
+            new_hold, hport, hdep = s_hold[i], s_hport[i], s_hdep[i]
+        hage = s_hage[i] + 1 if keep else 0
+        if lit:
+            new_hold = NONE
+        if new_hold < 0:
+            hport = NONE
+        L = gap + 1
+        fwd = (hport + 2) % 4
+        fp = max(fwd, 0)
+        succ = new_hold >= 0 and trusted[fp] and hhold[i, fp] == new_hold
+        edge = new_hold >= 0 and not connected[i, fp]
+        run_ahead = hack[i, fp] & 255 if succ else 0
+        ack = (L if edge else min(L, 1 + run_ahead)) if new_hold >= 0 else 0
+        ahead_hold = hhold[i, dp]
+        ahead_ack = hack[i, dp] & 255
+        go_front = off_array or (trusted[dp] and ahead_hold == vid and ahead_ack >= gap)
+        own_stop = 0 if (front and not go_front and (core or connected[i, dp])) else 255
+        stop = _spread(0 if own_park == 0 else own_stop, hstop[i], 0, same_nb, on, reach)
+        moving = on and direction >= 0 and stop > reach
+        # -- outputs
+        wheels[i, 0] = wheels[i, 1] = 0.0
+        if moving:
+            axis, sign = drive(dp)
+            wheels[i, axis] = sign * speed
+        if off_array and go_front and seq >= 0:
+            nxt = max(nxt, seq + 1)
+        beside_parked = False
+        for q in range(P):
+            beside_parked = beside_parked or (trusted[q] and unpack(hstop[i, q], 1, 8) <= reach)
+        beside_parked = beside_parked and not (on and not parked)
+        word = 0
+        for e in range(MAX_EXITS):
+            said = UNREACHABLE if (parked or beside_parked) else min(dist_out[i, e], UNREACHABLE)
+            word += said << (8 * e)
+        if word >= 1 << 31:
+            word -= 1 << 32
+        blk = 0
+        for q in range(P):
+            blk += min(block[q], 63) << (6 * q)
+        if blk >= 1 << 31:
+            blk -= 1 << 32
+        for q in range(P):  # requests: front cells ask the cell ahead, held cells pass it on until gap deep
+            to_req[q], to_rdep[q] = NONE, 0
+        if front and connected[i, dp]:
+            to_req[dp], to_rdep[dp] = vid, 1
+        if new_hold >= 0 and hdep < L and connected[i, fp]:
+            to_req[fwd], to_rdep[fwd] = new_hold, hdep + 1
+        sent_new = False
+        for q in range(P):
+            sent_new |= not sent_present[i, q]
+            sent_present[i, q] = True
+            sent_new |= _put(o_d, i, q, word)
+            sent_new |= _put(o_nxt, i, q, nxt)
+            sent_new |= _put(o_vid, i, q, vid if on else NONE)
+            sent_new |= _put(o_goal, i, q, goal if on else NONE)
+            sent_new |= _put(o_key, i, q, min(key, 2**31 - 1))
+            sent_new |= _put(o_stop, i, q, min(stop, 255) + (min(park, 255) << 8))
+            sent_new |= _put(o_req, i, q, to_req[q])
+            sent_new |= _put(o_rdep, i, q, to_rdep[q])
+            sent_new |= _put(o_hold, i, q, vid if (lit and on) else new_hold)
+            sent_new |= _put(o_ack, i, q, min(ack, 255) + ((hport + 1) << 8))
+            sent_new |= _put(o_ex, i, q, ENTRY if entry[i] else exit_id[i])
+            sent_new |= _put(o_blk, i, q, blk)
+        out_changed[i] = sent_new
+        changed |= _put1(n_vid, s_vid, i, vid)
+        changed |= _put1(n_goal, s_goal, i, goal)
+        changed |= _put1(n_dir, s_dir, i, direction if (moving or direction >= 0) else NONE)
+        changed |= _put1(n_key, s_key, i, key)
+        changed |= _put1(n_stop, s_stop, i, stop)
+        changed |= _put1(n_hold, s_hold, i, new_hold)
+        changed |= _put1(n_hdep, s_hdep, i, hdep)
+        changed |= _put1(n_hport, s_hport, i, hport)
+        changed |= _put1(n_hage, s_hage, i, hage)
+        changed |= _put1(n_ack, s_ack, i, ack)
+        changed |= _put1(n_nxt, s_nxt, i, nxt)
+        changed |= _put1(n_park, s_park, i, park)
+        changed |= _put1(n_back, s_back, i, back)
+        changed |= _put1(n_bdir, s_bdir, i, bdir)
+        unsettled[i] = changed

@@ -1,0 +1,94 @@
+"""What the distributed sorter (:class:`~virtual_vehicle.cells.sorting.Sorter`) and its central counterpart
+(:class:`~virtual_vehicle.cells.sorting.CentralSorter`) both apply, written once: the goal a label encodes, when a
+sequenced parcel is due, a new vehicle's id, what a hop costs in the exit gradients, the wheel command that moves a
+parcel through a port, and how long a parcel backs off. The small rules are ``register_jitable``: plain Python when
+the central sorter calls them, compiled into the cells' step when it does. Units: SI."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba.extending import register_jitable
+
+MAX_EXITS = 4
+PARK = MAX_EXITS - 1
+"""In a sequenced run (parcels with sequence numbers), gradient PARK leads to a free parking cell, not to exit 3."""
+NONE = -1
+BIG = 1 << 20  # above any direction key
+HUGE = 1 << 40  # above any vehicle id
+ENTRY = -2  # the "ex" word of an entry cell
+
+
+def decode_goal(goal):
+    """(exit, sequence number) of goal words: ``exit + 4 (sequence + 1)``; sequence -1 for an unsequenced parcel."""
+    return split_goal(np.asarray(goal, dtype=np.int64))
+
+
+def encode_goal(exit: int, sequence: int | None) -> int:
+    """The label a reader at the entry sees: the exit, and the sequence number when the parcel has one."""
+    return int(exit) + (0 if sequence is None else 4 * (int(sequence) + 1))
+
+
+@register_jitable
+def split_goal(goal):
+    """(exit, sequence number) of a non-negative goal word (or an array of them): see :func:`decode_goal`."""
+    return goal % 4, goal // 4 - 1
+
+
+@register_jitable
+def due(seq, nxt):
+    """Whether a parcel with sequence number ``seq`` (-1: none) may head for its exit when ``nxt`` is due next:
+    else it waits on a parking cell."""
+    return seq < 0 or seq <= nxt
+
+
+@register_jitable
+def vehicle_id(tick, number):
+    """A new vehicle's id: the tick it was made (so smaller ids are older vehicles, which go first at a merge),
+    times 1024, plus the number of the cell that made it modulo 1024 (so two entries' vehicles differ)."""
+    return tick * 1024 + number % 1024
+
+
+def tick_of(t: float, period: float) -> int:
+    """The control tick at time ``t`` (s) of a program with control period ``period`` (s; 0: always tick 0)."""
+    return int(round(t / period)) if period else 0
+
+
+@register_jitable
+def hop_cost(linked, exit_id, edge_cost):
+    """Hops a step into a cell counts in the exit gradients: 1, and ``edge_cost`` more on the array's edge (a cell
+    not ``linked`` on every side) unless it is an exit cell (``exit_id`` >= 0), so parcels travel inside the array
+    and meet the edge only at their exit. Scalars or arrays alike."""
+    return 1 + edge_cost * (1 - (linked | (exit_id >= 0)))
+
+
+@register_jitable
+def drive(port):
+    """The wheel command that moves a parcel out through ``port`` (0: +x, 1: +y, 2: -x, 3: -y): the drive axis (0:
+    x, 1: y) and the sign of the wheel surface speed along it."""
+    return port % 2, 1.0 if port < 2 else -1.0
+
+
+def back_off_ticks(distance: float, speed: float, period: float) -> int:
+    """Ticks a parcel backs off for when it meets an older one head on: long enough to travel ``distance`` (m; the
+    gap and one more cell) at ``speed`` (m/s), ticking every ``period`` (s)."""
+    return int(np.ceil(distance / (speed * period)))
+
+
+def pack(values, bits: int = 8) -> np.ndarray:
+    """Small non-negative integers (n, k), each below 2**bits, packed into one signed 32-bit word per row."""
+    v = np.asarray(values, dtype=np.int64)
+    word = sum(v[:, q] << (bits * q) for q in range(v.shape[1]))
+    return np.where(word >= 1 << 31, word - (1 << 32), word)
+
+
+@register_jitable
+def unpack(words, q, bits=8):
+    """Field q of words packed by :func:`pack` (one word or an array of them)."""
+    return ((words & 0xFFFFFFFF) >> (bits * q)) & ((1 << bits) - 1)
+
+
+@register_jitable
+def direction_key(dist, same, port, hops):
+    """Direction proposals ordered by distance to the goal, then keeping the current direction (``same`` 1), then
+    port; ``hops`` (below 64) from the cell that proposed it."""
+    return ((dist * 2 + (1 - same)) * 8 + port) * 64 + hops

@@ -1,0 +1,169 @@
+"""The distributed sorter (:class:`Sorter`): the cell program that runs the compiled policy
+(:mod:`virtual_vehicle.cells.sorting.policy`; the rules in :mod:`virtual_vehicle.cells.sorting`). Units: SI."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from virtual_vehicle.cells.network.messages import DTYPE, Mailbox, Schema
+from virtual_vehicle.cells.network.programs import UNREACHABLE, CellInputs
+from virtual_vehicle.cells.network.sentence import WordType
+from virtual_vehicle.cells.sorting import policy
+from virtual_vehicle.cells.sorting.rules import BIG, MAX_EXITS, NONE, back_off_ticks, tick_of
+
+
+class Sorter:
+    """Distributed sorting program (the rules: :mod:`virtual_vehicle.cells.sorting`).
+
+    Args:
+        speed: wheel surface speed of a moving vehicle, m/s.
+        gap: free cells a vehicle keeps ahead of it.
+        reach: hops over which a vehicle's cells share direction and stop/go (at least its size in cells).
+        max_age: ticks a neighbour's words are trusted after it was last heard (0 on ideal rounds).
+        edge_cost: extra hops a cell on the edge of the array (not an exit) counts in the gradients.
+        period: the control period (s): a vehicle's id is the tick it was made (times 1024, plus its entry cell's
+            installation number modulo 1024), so smaller ids are older vehicles.
+        pitch: the cell pitch (m), known to every cell: a vehicle that meets an older one head on backs off for the
+            time it takes to travel ``gap + 1`` pitches.
+
+    Sensor 0 of every cell must be its centre (the default layout): a cell whose centre is covered carries the
+    parcel; the others only see its edge.
+
+    Config (per cell): ``exit`` exit id or -1; ``exit_port`` the way out of the array for an exit cell (the
+    side through which its exit lane leaves);
+    ``entry`` bool; ``entry_no`` an entry cell's installation number; ``park`` bool, a parking cell (optional);
+    ``forbid`` the port a parcel on a one-way cell may not move toward, -1 for none (optional). Inputs: ``labels``
+    (the label read at entry cells, :func:`~virtual_vehicle.cells.sorting.rules.encode_goal`; -1 for none).
+
+    Stationary (see :mod:`virtual_vehicle.cells.network.programs`): the tick's time enters only a new vehicle's id,
+    given
+    by a cell whose own id word then changes, so a cell whose state a step left unchanged repeats its outputs when
+    its inputs do.
+    """
+
+    stationary = True
+
+    schema = Schema.of(d=(1, WordType.I32), nxt=(4, WordType.I16),
+                       vid=(5, WordType.I32), goal=(6, WordType.I16), key=(7, WordType.I32),
+                       stop=(8, WordType.U16), req=(9, WordType.I32), rdep=(10, WordType.U8),
+                       hold=(11, WordType.I32), ack=(12, WordType.U16), ex=(13, WordType.I16),
+                       blk=(14, WordType.I32))
+    """Words: ``d`` the four gradients' hop distances (one byte each), ``nxt`` the sequence number due next at the
+    exits, ``stop`` the hops to the nearest stopping cell of the vehicle (low byte) and to its parking cell (high
+    byte), ``ack`` the run of held cells ahead (low byte) and the port the hold was asked through plus one (high
+    byte), the rest as their names say (see the module notes)."""
+    _words = tuple(f.name for f in schema.fields)
+    _types = tuple(DTYPE[f.type] for f in schema.fields)
+    """The words' names and numpy types, in the schema's order (as the compiled step takes them)."""
+
+    def __init__(self, speed: float, gap: int = 2, reach: int = 8, max_age: int = 0, edge_cost: int = 3,
+                 period: float = 0.01, pitch: float = 0.1):
+        if not speed > 0:
+            raise ValueError("speed must be positive (m/s)")
+        if not 1 <= reach <= 62:
+            raise ValueError("reach must be 1..62 hops")
+        self.speed = float(speed)
+        self.gap = int(gap)
+        self.reach = int(reach)
+        self.max_age = int(max_age)
+        self.edge_cost = int(edge_cost)
+        self.period = float(period)
+        self.back_ticks = back_off_ticks((self.gap + 1) * pitch, self.speed, self.period)
+        """Ticks a vehicle backs off for when it meets an older one head on: the gap and one more cell."""
+
+    def init(self, n, ports, config):
+        """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each (see
+        :class:`~virtual_vehicle.cells.network.programs.CellProgram`)."""
+        if ports != 4:
+            raise ValueError("the sorter runs on square lattices (four ports a cell)")
+        P = ports
+        return {"dist": np.full((n, MAX_EXITS), UNREACHABLE, dtype=np.int64),
+                "heard": {f.name: np.zeros((n, P), dtype=np.int64) for f in self.schema.fields},
+                "age": np.full((n, P), np.iinfo(np.int32).max, dtype=np.int64),
+                "vid": np.full(n, NONE, dtype=np.int64), "goal": np.full(n, NONE, dtype=np.int64),
+                "dir": np.full(n, NONE, dtype=np.int64), "key": np.full(n, BIG, dtype=np.int64),
+                "stop": np.full(n, 255, dtype=np.int64), "hold": np.full(n, NONE, dtype=np.int64),
+                "hdep": np.zeros(n, dtype=np.int64), "hport": np.full(n, NONE, dtype=np.int64),
+                "hage": np.zeros(n, dtype=np.int64), "back": np.zeros(n, dtype=np.int64),
+                "bdir": np.full(n, NONE, dtype=np.int64),
+                "ack": np.zeros(n, dtype=np.int64), "nxt": np.zeros(n, dtype=np.int64),
+                "park": np.full(n, 255, dtype=np.int64)}
+
+    def step(self, state, inputs: CellInputs):
+        """One control tick for every cell at once: new state, the sentences to send, and the (n, 2) wheel speeds (m/s
+        along each drive direction); see :class:`~virtual_vehicle.cells.network.programs.CellProgram`. Compiled
+        (:func:`~virtual_vehicle.cells.sorting.policy.step_cells`)."""
+        n, P = inputs.inbox.present.shape
+        heard = state["heard"]
+        new = {"dist": np.empty((n, MAX_EXITS), np.int64),
+               "heard": {w: np.empty((n, P), np.int64) for w in self._words},
+               "age": np.empty((n, P), np.int64), **{k: np.empty(n, np.int64) for k in _STATE}}
+        out = Mailbox(self.schema, np.empty((n, P), bool),
+                      {w: np.empty((n, P), t) for w, t in zip(self._words, self._types)})
+        wheels = np.zeros((n, 2))
+        self._run(state, inputs, np.arange(n), new, out, wheels)
+        return {"dist": new["dist"], "heard": {k: new["heard"][k] for k in heard}, "age": new["age"],
+                **{k: new[k] for k in _STATE}}, out, wheels
+
+    def step_rows(self, state, inputs: CellInputs, rows: np.ndarray, outbox: Mailbox, wheels: np.ndarray):
+        """Step only the cells ``rows`` (indices into the full inputs), writing their new state, sentences and wheel
+        speeds into ``state``, ``outbox`` and ``wheels`` in place (as :class:`~virtual_vehicle.cells.network.programs.
+        ChangedCells` keeps them): what :meth:`step` gives those rows when given their rows of everything, with
+        no rows gathered nor written back. Returns two (n,) masks, the rows whose state and whose sentences changed
+        (False for the others), or None when the arrays are not the sorter's own kinds (int64 state, the schema's
+        word types, C-contiguous, writeable), to step the rows the general way."""
+        kept = [state["dist"], *state["heard"].values(), state["age"], *(state[k] for k in _STATE)]
+        if (tuple(state["heard"]) != self._words or any(a.dtype != np.int64 for a in kept)
+                or any(outbox.values[w].dtype != t for w, t in zip(self._words, self._types))
+                or outbox.present.dtype != bool or wheels.dtype != np.float64
+                or not all(a.flags.c_contiguous and a.flags.writeable for a in (*kept, wheels, *outbox.arrays))):
+            return None
+        return self._run(state, inputs, np.asarray(rows, dtype=np.int64), state, outbox, wheels)
+
+    def _run(self, state, inputs, rows, new, out, wheels):
+        """Step ``rows`` (:func:`~virtual_vehicle.cells.sorting.policy.step_cells`), the new state into ``new`` (a
+        state dict), the sentences into ``out`` and the wheel speeds into ``wheels``; returns the (unsettled,
+        out_changed) masks."""
+        inbox = inputs.inbox
+        n, P = inbox.present.shape
+        if P != 4:
+            raise ValueError("the sorter runs on square lattices (four ports a cell)")
+        cfg = inputs.config
+
+        def cells(name, default, dtype):
+            return _arg(cfg[name] if name in cfg else default, dtype)
+
+        def memory(st, arg):  # the new state is written in place: its arrays are passed as they are
+            return policy.Memory(policy.Words(*(arg(st["heard"][w], np.int64) for w in self._words)),
+                                 arg(st["age"], np.int64), arg(st["dist"], np.int64),
+                                 policy.CellState(*(arg(st[k], np.int64) for k in _STATE)))
+
+        labels = np.full(n, NONE) if getattr(inputs, "labels", None) is None else inputs.labels
+        unsettled, out_changed = np.zeros(n, bool), np.zeros(n, bool)
+        policy.step_cells(
+            rows,
+            policy.Inputs(_arg(inbox.present, bool),
+                          policy.Words(*(_arg(inbox.values[w], t) for w, t in zip(self._words, self._types))),
+                          _arg(inputs.sensors, bool), _arg(inputs.connected, bool)),
+            policy.Config(cells("exit", np.full(n, NONE), np.int64), cells("exit_port", np.full(n, NONE), np.int64),
+                          cells("entry", np.zeros(n, bool), bool), cells("entry_no", np.zeros(n), np.int64),
+                          cells("park", np.zeros(n, bool), bool), cells("forbid", np.full(n, NONE), np.int64),
+                          _arg(labels, np.int64)),
+            policy.Rules(tick_of(inputs.t, self.period), self.max_age, self.edge_cost, self.reach, self.gap,
+                         self.back_ticks, self.speed),
+            memory(state, _arg), memory(new, lambda a, dtype: a),
+            policy.Outputs(out.present, policy.Words(*(out.values[w] for w in self._words)), wheels, unsettled,
+                           out_changed))
+        return unsettled, out_changed
+
+
+def _arg(a, dtype) -> np.ndarray:
+    """``a`` as :func:`~virtual_vehicle.cells.sorting.policy.step_cells` takes it: C-contiguous, writeable (a
+    read-only array is another compiled signature), of ``dtype``; copied only when it is not so already."""
+    a = np.ascontiguousarray(a, dtype=dtype)
+    return a if a.flags.writeable else a.copy()
+
+
+_STATE = policy.CellState._fields
+"""The sorter's per-cell state words after ``dist``, ``heard`` and ``age``, in the order the compiled step takes
+them."""

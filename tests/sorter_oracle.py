@@ -1,0 +1,261 @@
+"""The sorter's rules in array operations: an oracle for the compiled policy
+(:mod:`virtual_vehicle.cells.sorting.policy`), which the tests step side by side with it on random states and in
+whole runs. Written independently of the compiled phases, for every cell at once; only the packed word format
+(:func:`~virtual_vehicle.cells.sorting.rules.pack`), the goal encoding and the constants are shared."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+from virtual_vehicle.cells.network.messages import Mailbox
+from virtual_vehicle.cells.network.programs import UNREACHABLE, CellInputs
+from virtual_vehicle.cells.sorting import Sorter, decode_goal
+from virtual_vehicle.cells.sorting.rules import BIG as _BIG
+from virtual_vehicle.cells.sorting.rules import ENTRY as _ENTRY
+from virtual_vehicle.cells.sorting.rules import HUGE as _HUGE
+from virtual_vehicle.cells.sorting.rules import MAX_EXITS, PARK, pack
+from virtual_vehicle.cells.sorting.rules import NONE as _NONE
+
+
+def _across(ufunc, a: np.ndarray) -> np.ndarray:
+    """``ufunc`` reduced over axis 1 (a cell's ports or sensors), column by column. Axis 1 must not be empty."""
+    return functools.reduce(ufunc, [a[:, q] for q in range(a.shape[1])])
+
+
+def _weighted_gradient(dist_in, present, is_source, cost, cap: int = UNREACHABLE):
+    """Distance-vector step with a per-cell cost (hops): a source is at 0, any other cell at its cost plus the
+    smallest distance it trusts from a neighbour, capped (unreachable)."""
+    heard = np.where(present, dist_in.astype(np.int64), cap)
+    best = _across(np.minimum, heard) if heard.shape[1] else np.full(len(is_source), cap)
+    return np.where(is_source, 0, np.minimum(best + cost, cap)).astype(np.int64)
+
+
+def _unpack(words, q: int, bits: int = 8) -> np.ndarray:
+    """Field q of words packed by :func:`~virtual_vehicle.cells.sorting.rules.pack`."""
+    return ((np.asarray(words, dtype=np.int64) & 0xFFFFFFFF) >> (bits * q)) & ((1 << bits) - 1)
+
+
+def _key(dist, same, port, hops):
+    """Direction proposals ordered by distance to the goal, then keeping the current direction, then port."""
+    return ((dist * 2 + (1 - same)) * 8 + port) * 64 + hops
+
+
+def stepped_by_arrays(program: Sorter) -> Sorter:
+    """``program`` made to step by :func:`step_arrays` (and never in place), for whole runs side by side."""
+    program.step = functools.partial(step_arrays, program)
+    program.step_rows = lambda *args: None
+    return program
+
+
+def step_arrays(sorter: Sorter, state, inputs: CellInputs):
+    """:meth:`Sorter.step` in array operations (the numbers those of ``sorter``): the rules of
+    :mod:`virtual_vehicle.cells.sorting` stated for every cell at once, which the compiled step is tested against."""
+    inbox = inputs.inbox
+    n, P = inbox.present.shape
+    cfg = inputs.config
+    exit_id = np.asarray(cfg.get("exit", np.full(n, _NONE)), dtype=np.int64)
+    exit_port = np.asarray(cfg.get("exit_port", np.full(n, _NONE)), dtype=np.int64)
+    entry = np.asarray(cfg.get("entry", np.zeros(n, bool)), dtype=bool)
+    entry_no = np.asarray(cfg.get("entry_no", np.zeros(n)), dtype=np.int64)
+    park_cell = np.asarray(cfg.get("park", np.zeros(n, bool)), dtype=bool)
+    forbid = np.asarray(cfg.get("forbid", np.full(n, _NONE)), dtype=np.int64)
+    allowed = np.arange(P)[None, :] != forbid[:, None]  # one-way cells: not against the arrow
+    labels = np.full(n, _NONE) if getattr(inputs, "labels", None) is None else np.asarray(inputs.labels)
+    rows = np.arange(n)
+    # -- what the neighbours said (last heard, trusted while fresh)
+    heard = {k: np.where(inbox.present, inbox.values[k].astype(np.int64), v) for k, v in state["heard"].items()}
+    age = np.where(inbox.present, 0, np.minimum(state["age"] + 1, np.iinfo(np.int32).max))
+    trusted = (age <= sorter.max_age) & inputs.connected
+    # -- routing: one gradient per exit
+    # A cell at the edge of the array (a side with no neighbour) costs more, so parcels travel inside it and
+    # meet the edge only at their exit.
+    # In a sequenced run gradient PARK leads to a parking cell that no parcel covers.
+    lit = _across(np.logical_or, np.asarray(inputs.sensors, dtype=bool))
+    cost = np.where(_across(np.logical_and, inputs.connected) | (exit_id >= 0), 1, 1 + sorter.edge_cost)
+    source = [exit_id == e for e in range(MAX_EXITS)]
+    if park_cell.any():  # free while no parcel covers its centre (a parcel parks once it does)
+        source[PARK] = park_cell & ~np.asarray(inputs.sensors, dtype=bool)[:, 0]
+    heard_d = [_unpack(heard["d"], e) for e in range(MAX_EXITS)]  # (n, P) each: the neighbours' gradients
+    dist = np.stack([_weighted_gradient(heard_d[e], trusted & allowed, source[e], cost)
+                     for e in range(MAX_EXITS)], axis=1)
+    # -- sequencing: the number due next at the exits, the highest any neighbour knows
+    nxt = np.maximum(state["nxt"], _across(np.maximum, np.where(trusted, heard["nxt"], 0)) if P else 0)
+    # -- tracking
+    vid, goal = state["vid"].copy(), state["goal"].copy()
+    vid[~lit] = _NONE
+    goal[~lit] = _NONE
+    # A cell that starts seeing a parcel takes the record of a neighbour whose vehicle is moving into it (else
+    # the smallest id around). At the entry one new parcel may get several ids in its first tick: cells next to
+    # entry cells settle on the smallest id those hold. Elsewhere a cell never changes vehicle while it sees one.
+    toward = (heard["key"] < _BIG) & ((heard["key"] // 64) % 8 == (np.arange(P)[None, :] + 2) % 4)
+    has = trusted & (heard["vid"] >= 0)
+    score = np.where(has, np.where(toward, 0, _HUGE) + heard["vid"], 2 * _HUGE)
+    pick = np.argmin(score, axis=1)
+    found = score[rows, pick] < 2 * _HUGE
+    best_vid = heard["vid"][rows, pick]
+    nb_entry = np.where(has & (heard["ex"] == _ENTRY), heard["vid"], _HUGE)
+    entry_min = _across(np.minimum, nb_entry) if P else np.full(n, _HUGE)
+    adopt = lit & (vid < 0) & found
+    vid[adopt] = best_vid[adopt]
+    goal[adopt] = heard["goal"][rows, pick][adopt]
+    merge = lit & (vid >= 0) & (entry_min < vid)
+    if merge.any():
+        k = np.argmin(nb_entry, axis=1)
+        vid[merge] = entry_min[merge]
+        goal[merge] = heard["goal"][rows, k][merge]
+    fresh = lit & (vid < 0) & entry & (labels >= 0)
+    # ids order vehicles by age (the tick they were made), which is the priority at a merge
+    tick = int(round(inputs.t / sorter.period)) if sorter.period else 0
+    vid[fresh] = tick * 1024 + entry_no[fresh] % 1024
+    goal[fresh] = labels[fresh]
+    on = lit & (vid >= 0) & (goal >= 0)
+    same_nb = trusted & (heard["vid"] == vid[:, None]) & on[:, None]
+    # A sequenced parcel whose number is not yet due heads for a free parking cell instead of its exit.
+    goal_exit, seq = decode_goal(np.maximum(goal, 0))
+    turn = (seq < 0) | (seq <= nxt)
+    target = np.where(turn, goal_exit, -99)  # the exit it heads for now (none while it must wait)
+    # -- direction: own proposal, then the smallest heard from the same vehicle (hop-limited)
+    g = np.where(turn, goal_exit, PARK)
+    nb_d = np.stack(heard_d)[g, rows]  # (n, P): each cell's neighbours on the gradient it follows
+    # At its exit a vehicle leaves through the edge once it lies within the exit's band: no cell beside an exit
+    # cell (across the way out) is under the same vehicle without being part of that exit. Until then the exit
+    # cells that see such a neighbour move the vehicle away from it, into the band. These proposals come first
+    # (distance 0: into the band; 1: out), then the gradient's (the chosen neighbour's distance + 3).
+    side = np.stack([(exit_port + 1) % 4, (exit_port + 3) % 4], axis=1)
+    mine = on & (exit_id == target) & (exit_port >= 0)
+    into_band = np.full(n, _NONE)
+    for c in range(2):
+        sp = side[:, c]
+        beside = mine & same_nb[rows, sp] & (heard["ex"][rows, sp] != target)
+        into_band = np.where(beside & (into_band < 0), (sp + 2) % 4, into_band)
+    at_exit = mine & (into_band < 0)
+    # The vehicle is a body, not a point: a side on which any cell carrying it (centre sensor lit) has no
+    # neighbour (the array's edge, a dead cell, a cut link) is closed to the whole vehicle (spread hop-limited,
+    # like stopping), except the way out at its exit. Each cell proposes its open side toward the neighbour
+    # nearest the goal, ranked by that neighbour's distance: the front's proposals win, and a vehicle that
+    # cannot go on sidesteps.
+    core = on & np.asarray(inputs.sensors, dtype=bool)[:, 0]  # the cell carries the parcel (centre sensor lit)
+    own_block = core[:, None] & (~inputs.connected | ~allowed)
+    own_block &= ~(at_exit[:, None] & (np.arange(P)[None, :] == exit_port[:, None]))
+    # only cells under a vehicle relay closed sides (the others say 63): computed on those rows alone
+    under = np.flatnonzero(on)
+    nb_block = np.stack([_unpack(heard["blk"][under], q, 6) for q in range(P)], axis=-1)  # (from port, side)
+    relayed = np.full((n, P), 63, dtype=np.int64)
+    relayed[under] = _across(np.minimum, np.where(same_nb[under, :, None] & (nb_block < sorter.reach),
+                                                  nb_block + 1, 63))
+    block = np.where(own_block, 0, relayed)
+    block = np.where(on[:, None], block, 63)
+    open_side = trusted & (block > sorter.reach)
+    cand = np.where(open_side, nb_d, _BIG)
+    port = np.argmin(cand, axis=1)
+    movable = cand[rows, port] < UNREACHABLE
+    prop_port = np.where(into_band >= 0, into_band, np.where(at_exit, exit_port, np.where(movable, port, _NONE)))
+    prop_d = np.where(into_band >= 0, 0, np.where(at_exit, 1, cand[rows, port] + 3))
+    # Head on: the cell ahead (in last tick's direction) is held for an older vehicle that asked for it from the
+    # far side, or carries an older vehicle heading this way. Hold-based traffic alone would wait forever: the
+    # younger vehicle backs off, for long enough to clear the other's gap and one more cell.
+    pd = np.maximum(state["dir"], 0)
+    ahead_vid = np.where(trusted[rows, pd], heard["hold"][rows, pd], _NONE)
+    ahead_from = (heard["ack"][rows, pd] >> 8) - 1
+    coming = ((heard["key"][rows, pd] < _BIG) & ((heard["key"][rows, pd] // 64) % 8 == (pd + 2) % 4)
+              & (heard["vid"][rows, pd] == ahead_vid))
+    head_on = (on & (state["dir"] >= 0) & (ahead_vid >= 0) & (ahead_vid < vid) & ~same_nb[rows, pd]
+               & ((ahead_from == pd) | coming))
+    back = np.where(on, np.maximum(state["back"] - 1, 0), 0)
+    bdir = np.where(head_on, (pd + 2) % 4, state["bdir"])
+    back = np.where(head_on, sorter.back_ticks, back)
+    backing = (back > 0) & open_side[rows, np.maximum(bdir, 0)] & (bdir >= 0)
+    prop_port = np.where(backing, bdir, prop_port)
+    prop_d = np.where(backing, 0, prop_d)
+    own_key = np.where(on & (prop_port >= 0), _key(prop_d, prop_port == state["dir"], np.maximum(prop_port, 0), 0),
+                       _BIG)
+    nb_key = np.where(same_nb, heard["key"], _BIG)
+    nb_key = np.where(nb_key % 64 < sorter.reach, nb_key + 1, _BIG)  # one more hop; forget beyond reach
+    key = np.minimum(own_key, _across(np.minimum, nb_key)) if P else own_key
+    key = np.where(on, key, _BIG)
+    direction = np.where(key < _BIG, (key // 64) % 8, _NONE)
+    # -- traffic: requests ahead, holds, acknowledgements
+    ahead_ok_port = (direction >= 0)
+    dp = np.maximum(direction, 0)
+    ahead_is_mine = same_nb[rows, dp] & ahead_ok_port
+    # a waiting parcel parks where a cell that carries it is a parking cell; parked, it asks for nothing and is
+    # an obstacle to the others
+    own_park = np.where(on & ~turn & core & park_cell, 0, 255)
+    park = _spread(sorter, own_park, _unpack(heard["stop"], 1), same_nb, on)
+    parked = on & (park <= sorter.reach)
+    front = on & ahead_ok_port & ~ahead_is_mine & ~parked
+    # leaving the array: only out of an exit cell of the goal (anywhere else the edge stops the vehicle)
+    off_array = front & ~inputs.connected[rows, dp] & (exit_id == target) & (dp == exit_port)
+    # requests that arrived: from a neighbour's front cell or a held cell passing it on
+    req = np.where(inbox.present & trusted & (inbox.values["req"] >= 0), inbox.values["req"].astype(np.int64),
+                   _HUGE)  # requests are events: only what arrived this tick
+    choice = np.argmin(req, axis=1)  # the oldest vehicle asking (smallest id) gets the cell, always
+    new_hold = np.where(req[rows, choice] < _HUGE, req[rows, choice], _NONE)
+    hport = np.where(new_hold >= 0, choice, _NONE)
+    hdep = np.where(new_hold >= 0, inbox.values["rdep"].astype(np.int64)[rows, np.maximum(hport, 0)], 0)
+    # On a slow network a request does not arrive every tick: a hold lasts max_age ticks after it was last asked
+    # for (on ideal rounds, one tick), unless an older vehicle asks meanwhile.
+    keep = (state["hold"] >= 0) & (state["hage"] < sorter.max_age) & ((new_hold < 0) | (state["hold"] < new_hold))
+    new_hold = np.where(keep, state["hold"], new_hold)
+    hport = np.where(keep, state["hport"], hport)
+    hdep = np.where(keep, state["hdep"], hdep)
+    hage = np.where(keep, state["hage"] + 1, 0)
+    new_hold = np.where(lit, _NONE, new_hold)  # a cell under a parcel is that parcel's, not anyone's to hold
+    hport = np.where(new_hold >= 0, hport, _NONE)
+    # acknowledgement: how many held cells run ahead from here (the whole chain when it reaches the edge)
+    L = sorter.gap + 1  # one cell of look-ahead beyond the gap keeps a moving vehicle's chain ahead of it
+    fwd = (hport + 2) % 4
+    fp = np.maximum(fwd, 0)
+    succ = (new_hold >= 0) & trusted[rows, fp] & (heard["hold"][rows, fp] == new_hold)
+    edge = (new_hold >= 0) & ~inputs.connected[rows, fp]
+    run_ahead = np.where(succ, heard["ack"][rows, fp] & 255, 0)
+    ack = np.where(new_hold >= 0, np.where(edge, L, np.minimum(L, 1 + run_ahead)), 0)
+    # a front cell may go when the cell ahead is held for its vehicle with a full free run, or at the exit edge
+    ahead_hold = heard["hold"][rows, dp]
+    ahead_ack = heard["ack"][rows, dp] & 255
+    go_front = off_array | (trusted[rows, dp] & (ahead_hold == vid) & (ahead_ack >= sorter.gap))
+    # a cell that only sees the parcel's edge may hang over the array's edge or a dead cell: only cells that
+    # carry the parcel, or that have a neighbour ahead to ask, can stop it
+    own_stop = np.where(front & ~go_front & (core | inputs.connected[rows, dp]), 0, 255)
+    stop = _spread(sorter, np.where(own_park == 0, 0, own_stop), _unpack(heard["stop"], 0), same_nb, on)
+    moving = on & (direction >= 0) & (stop > sorter.reach)
+    # -- outputs
+    wheels = np.zeros((n, 2))
+    sign = np.array([1.0, 1.0, -1.0, -1.0])
+    axis = np.array([0, 1, 0, 1])
+    wheels[rows[moving], axis[dp[moving]]] = sign[dp[moving]] * sorter.speed
+    # the exit cell that lets a sequenced parcel out makes the next number due
+    leaving = off_array & go_front & (seq >= 0)
+    nxt = np.where(leaving, np.maximum(nxt, seq + 1), nxt)
+    send = np.ones(n, dtype=bool)
+    # no way through a parked parcel, nor through a gap of one cell beside it (too narrow for a parcel)
+    beside_parked = _across(np.logical_or, trusted & (_unpack(heard["stop"], 1) <= sorter.reach)) & ~(on & ~parked)
+    said = np.where((parked | beside_parked)[:, None], UNREACHABLE, np.minimum(dist, UNREACHABLE))
+    out = Mailbox.broadcast(sorter.schema, send, P, d=pack(said), nxt=nxt, vid=np.where(on, vid, _NONE),
+                            goal=np.where(on, goal, _NONE), key=np.minimum(key, 2**31 - 1),
+                            stop=np.minimum(stop, 255) + (np.minimum(park, 255) << 8), req=np.full(n, _NONE),
+                            rdep=np.zeros(n),
+                            hold=np.where(lit & on, vid, new_hold),
+                            ack=np.minimum(ack, 255) + ((hport + 1) << 8),
+                            ex=np.where(entry, _ENTRY, exit_id),
+                            blk=pack(np.minimum(block, 63), 6))
+    # requests: front cells ask the cell ahead (depth 1); held cells pass it on until gap deep
+    ask = front & inputs.connected[rows, dp]
+    out.values["req"][rows[ask], dp[ask]] = vid[ask]
+    out.values["rdep"][rows[ask], dp[ask]] = 1
+    pass_on = (new_hold >= 0) & (hdep < L) & inputs.connected[rows, fp]
+    out.values["req"][rows[pass_on], fwd[pass_on]] = new_hold[pass_on]
+    out.values["rdep"][rows[pass_on], fwd[pass_on]] = hdep[pass_on] + 1
+    new_state = {"dist": dist, "heard": heard, "age": age, "vid": vid, "goal": goal,
+                 "dir": np.where(moving | (direction >= 0), direction, _NONE), "key": key, "stop": stop,
+                 "hold": new_hold, "hdep": hdep, "hport": hport, "hage": hage, "ack": ack, "nxt": nxt,
+                 "park": park, "back": back, "bdir": bdir}
+    return new_state, out, wheels
+
+def _spread(sorter: Sorter, own, heard, same_nb, on):
+    """Hops to the nearest cell of the same vehicle that said 0 (``own`` 0 here), forgotten beyond ``reach``."""
+    nb = np.where(same_nb & (heard < sorter.reach), heard + 1, 255)
+    out = np.minimum(own, _across(np.minimum, nb)) if nb.shape[1] else own
+    return np.where(on, out, 255)
