@@ -19,7 +19,7 @@ from virtual_vehicle.engine.batch import QuietStepper
 from virtual_vehicle.engine.dynamics import Event, ParcelModel, Trajectory, constants_row, integrate
 from virtual_vehicle.engine.plant import Integration, Plant
 from virtual_vehicle.model import layout, parcel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics import laws
 from virtual_vehicle.physics.collide import point_reach, reach_bounds, wheel_speed_of
 from virtual_vehicle.run.sim import run, run_network
 
@@ -28,7 +28,7 @@ from bench_scale import scenario as scale_scenario  # noqa: E402
 
 CELLS = layout.grid(12, 12, 0.1)
 SPEC = parcel.rectangle(0.33, 0.24, 1.5, 0.8)
-LAWS = {"viscous": friction.ViscousLaw(), "coulomb": friction.CoulombLaw()}
+LAWS = {"viscous": laws.ViscousLaw(), "coulomb": laws.CoulombLaw()}
 
 
 def _field(seed: int) -> np.ndarray:

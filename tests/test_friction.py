@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from virtual_vehicle.engine._kernel import accelerations
 from virtual_vehicle.engine.dynamics import constants_row
 from virtual_vehicle.physics.contact import solve_support
-from virtual_vehicle.physics.friction import LAWS, CoulombLaw, ViscousLaw, coulomb_constants, viscous_constants
+from virtual_vehicle.physics.laws import LAWS, CoulombLaw, ViscousLaw, coulomb_constants, viscous_constants
 
 D = 0.1
 X2x2 = np.array([[-D / 2, -D / 2], [D / 2, -D / 2], [-D / 2, D / 2], [D / 2, D / 2]])  # eq. 20

@@ -19,7 +19,7 @@ from virtual_vehicle.engine import _kernel as kernel
 from virtual_vehicle.engine import dynamics
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics import laws
 from virtual_vehicle.run.warm import warm_up
 
 CELLS = layout.grid(30, 30, 0.1)
@@ -103,7 +103,7 @@ def test_a_segment_reads_the_supports_off_its_event_values_while_its_candidates_
     beyond it (nor without values)."""
     cells = layout.grid(30, 30, 0.1)
     spec = parcel.rectangle(0.4, 0.3, 2.0, 1.0)
-    m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), friction.CoulombLaw())
+    m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), laws.CoulombLaw())
     y0 = np.array([1.12, 1.47, 0.3, 0, 0, 0])
     seg = dynamics._Segment(m, m.piece_at(y0), y0)
     rng = np.random.default_rng(4)
@@ -127,7 +127,7 @@ def test_a_segment_keeps_its_predecessors_candidates_only_within_half_the_buffer
     new ones. Either way it reads the supports off its event values as support_at finds them."""
     cells = layout.grid(30, 30, 0.1)
     spec = parcel.rectangle(0.4, 0.3, 2.0, 1.0)
-    m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), friction.CoulombLaw())
+    m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), laws.CoulombLaw())
     y0 = np.array([1.12, 1.47, 0.3, 0, 0, 0])
     first = dynamics._Segment(m, m.piece_at(y0), y0)
     near = y0 + np.array([0.03, -0.03, 0.4, 0, 0, 0])  # 0.042 m away: within half of the 0.1 m buffer
@@ -256,7 +256,7 @@ def test_compiled_dop853_takes_scipys_steps():
     large stages) and has the same dense output; here on a viscous piece in steps that grow from 1 ms, up to the
     bound."""
     spec = SHAPES["rectangle"]
-    m = ParcelModel(CELLS, spec, fields.Inward((1.5, 1.5), 0.2).velocities(CELLS), friction.ViscousLaw())
+    m = ParcelModel(CELLS, spec, fields.Inward((1.5, 1.5), 0.2).velocities(CELLS), laws.ViscousLaw())
     y0 = np.array([1.52, 1.47, 0.3, 0.3, -0.2, 1.0])
     piece = m.piece_at(y0)
     ref = DOP853(piece.rhs, 0.0, y0, 1.0, rtol=1e-10, atol=1e-12, first_step=1e-3)
@@ -285,7 +285,7 @@ def test_a_run_handed_back_for_progress_is_the_same_run(monkeypatch):
     """With a progress callback the kernel returns to Python every few steps of a piece (here every 2) and is
     resumed where it stopped: the trajectory is the same to the last bit, and progress moves forward."""
     spec = SHAPES["rectangle"]
-    m = ParcelModel(CELLS, spec, fields.Inward((1.5, 1.5), 0.2).velocities(CELLS), friction.ViscousLaw())
+    m = ParcelModel(CELLS, spec, fields.Inward((1.5, 1.5), 0.2).velocities(CELLS), laws.ViscousLaw())
     y0 = np.array([1.12, 1.47, 0.3, 0.0, 0.0, 0.0])
     seen: list[float] = []
     quiet = integrate(m, y0, 0.0, 20.0, sample_dt=0.5, rtol=1e-12, atol=1e-14)
@@ -356,7 +356,7 @@ def test_max_step_bounds_every_compiled_step():
     """``max_step`` caps the compiled integrator's steps (scipy's rule): a viscous piece that one long step would
     cross takes at least one step per ``max_step``, and ends where the uncapped run ends (to the tolerance)."""
     spec = SHAPES["rectangle"]
-    m = ParcelModel(CELLS, spec, fields.Inward((1.5, 1.5), 0.2).velocities(CELLS), friction.ViscousLaw())
+    m = ParcelModel(CELLS, spec, fields.Inward((1.5, 1.5), 0.2).velocities(CELLS), laws.ViscousLaw())
     y0 = np.array([1.52, 1.47, 0.3, 0.0, 0.0, 0.0])
     free = integrate(m, y0, 0.0, 0.2, sample_dt=0.2)
     capped = integrate(m, y0, 0.0, 0.2, sample_dt=0.2, max_step=1e-3)
