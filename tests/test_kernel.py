@@ -20,6 +20,8 @@ from virtual_vehicle.engine import dynamics
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
 from virtual_vehicle.physics import laws
+from virtual_vehicle.physics.contact import solve_support
+from virtual_vehicle.physics.laws import affine
 from virtual_vehicle.run.warm import warm_up
 
 CELLS = layout.grid(30, 30, 0.1)
@@ -385,3 +387,55 @@ def test_the_compiled_pattern_is_numpys_and_sees_whole_cell_translations(seed, m
     np.testing.assert_array_equal(rel, np.round((P - P[0]) / unit).astype(np.int64))
     moved = (row + dy) * 120 + (col + dx)
     assert kernel.pattern(cells.positions, moved.astype(np.int64), unit)[2].tobytes() == rel.tobytes()
+
+
+def test_each_row_field_has_its_place_by_name():
+    """The row's order is written once, in ROW_FIELDS: each field's ``R_`` place is its index there, one a field."""
+    places = {name[2:].lower(): value for name, value in vars(affine).items() if name.startswith("R_")}
+    assert places == {name: k for k, name in enumerate(affine.ROW_FIELDS)} and affine.ROW_LENGTH == len(places)
+
+
+def test_the_compiled_accelerations_read_the_row_as_python_does():
+    """The compiled accelerations take the row's places as constants when compiled (numba's cache knows only the
+    kernel's file): on a row of distinct values they read what the Python function reads now, so a stale cache
+    compiled for another order of ROW_FIELDS fails here. The row writer puts each constant at its place."""
+    rng = np.random.default_rng(4)
+    row = rng.uniform(0.5, 2.0, affine.ROW_LENGTH)
+    for state in rng.normal(0, 0.3, (10, 5)):
+        assert kernel.accelerations_compiled(row, *state) == kernel.accelerations(tuple(row.tolist()), *state)
+    a, b, c, d, e, moment_lin, moment_const, second_lin = (rng.normal(size=s) for s in
+                                                           ((2, 2), 2, (2, 2), 2, 2, (2, 2), 2, 2))
+    written = affine.row(a, b, c, d, e, 0.7, 0.3, 9.0, moment_lin, moment_const, second_lin, 0.4, np.array([1.0, 2.0]),
+                         0.5, 0.25)
+    named = dict(zip(affine.ROW_FIELDS, written.tolist()))
+    assert [named[f"a_{ij}"] for ij in ("xx", "xy", "yx", "yy")] == a.ravel().tolist()
+    assert [named[f"c_{ij}"] for ij in ("xx", "xy", "yx", "yy")] == c.ravel().tolist()
+    assert [named[f"moment_lin_{ij}"] for ij in ("xx", "xy", "yx", "yy")] == moment_lin.ravel().tolist()
+    assert [named["de_x"], named["de_y"]] == (d + e).tolist() and [named["b_x"], named["b_y"]] == b.tolist()
+    assert [named["moment_const_x"], named["moment_const_y"], named["second_lin_x"], named["second_lin_y"]] == \
+        [*moment_const.tolist(), *second_lin.tolist()]
+    assert [named[n] for n in ("f", "damping", "weight", "second_const", "origin_x", "origin_y", "inv_mass",
+                               "inv_inertia")] == [0.7, 0.3, 9.0, 0.4, 1.0, 2.0, 0.5, 0.25]
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000), st.sampled_from(["coulomb", "viscous", "stick_slip"]))
+def test_the_accelerations_of_a_laws_row_are_its_wrench_over_mass_and_inertia(seed, law_name):
+    """kernel.accelerations of the row a law makes (constants_and_row) at a random state: the direct per-cell
+    wrench (eqs. 22, 24) over the mass and the inertia."""
+    rng = np.random.default_rng(seed)
+    m = int(rng.integers(3, 12))
+    P = rng.uniform(-0.5, 0.5, size=(m, 2)) + rng.uniform(-2, 2, size=2)
+    angle = rng.uniform(0, np.pi)
+    c, s = np.cos(angle), np.sin(angle)
+    U = np.broadcast_to(np.array([[c, s], [-s, c]]), (m, 2, 2))
+    V = rng.uniform(-1, 1, size=(m, 2))
+    W, mu, mass, inertia = 15.0, 0.4, 2.5, 0.3
+    law = laws.LAWS[law_name]  # stick-slip: the sliding regime's, Coulomb's
+    com = P.mean(axis=0) + 0.3 * (P[0] - P.mean(axis=0))
+    sol = solve_support(P, com, W)
+    state = np.array([*com, 0.0, *rng.uniform(-1, 1, size=2), rng.uniform(-3, 3)])
+    fx, fy, tau = law.wrench(P, sol.forces(com), V, U, mu, state)
+    _, row = law.constants_and_row(sol, V, U, mu, mass, inertia)
+    np.testing.assert_allclose(kernel.accelerations(row, *com, *state[3:]), [fx / mass, fy / mass, tau / inertia],
+                               atol=1e-10 * W / min(mass, inertia))

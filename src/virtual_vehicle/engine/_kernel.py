@@ -28,6 +28,37 @@ import numpy as np
 from numba import njit
 from scipy.integrate import DOP853
 
+from virtual_vehicle.physics.laws.affine import (
+    R_A_XX,
+    R_A_XY,
+    R_A_YX,
+    R_A_YY,
+    R_B_X,
+    R_B_Y,
+    R_C_XX,
+    R_C_XY,
+    R_C_YX,
+    R_C_YY,
+    R_DAMPING,
+    R_DE_X,
+    R_DE_Y,
+    R_F,
+    R_INV_INERTIA,
+    R_INV_MASS,
+    R_MOMENT_CONST_X,
+    R_MOMENT_CONST_Y,
+    R_MOMENT_LIN_XX,
+    R_MOMENT_LIN_XY,
+    R_MOMENT_LIN_YX,
+    R_MOMENT_LIN_YY,
+    R_ORIGIN_X,
+    R_ORIGIN_Y,
+    R_SECOND_CONST,
+    R_SECOND_LIN_X,
+    R_SECOND_LIN_Y,
+    R_WEIGHT,
+)
+
 RECTANGLE, CONVEX, POLYGON = 0, 1, 2
 """Footprint kinds: margins in closed form, from half-planes, or as a signed distance to a simple polygon."""
 
@@ -60,11 +91,21 @@ _SAFETY, _MIN_FACTOR, _MAX_FACTOR = 0.9, 0.2, 10.0
 def accelerations(row, x, y, vx, vy, om):
     """Linear and angular acceleration (m/s^2, m/s^2, rad/s^2) at centre of mass (x, y) (m) moving at (vx, vy) (m/s)
     and spinning at ``om`` (rad/s), from a piece's :func:`~virtual_vehicle.engine.dynamics.constants_row`. Works on
-    floats
-    (one parcel) and on arrays (one entry per parcel, ``row`` a sequence of arrays), with the same arithmetic, and
-    compiled (:data:`accelerations_compiled`)."""
-    (ox, oy, a11, a12, a21, a22, b1, b2, c11, c12, c21, c22, e1, e2, f0, mu, W, K11, K12, K21, K22, k1, k2,
-     s1, s2, s0, inv_m, inv_i) = row
+    floats (one parcel) and on arrays (one entry per parcel, ``row`` a sequence of arrays), with the same arithmetic,
+    and compiled (:data:`accelerations_compiled`). The row is read by field name (the ``R_`` places of
+    :data:`~virtual_vehicle.physics.laws.affine.ROW_FIELDS`), which compiled code takes as constants when it is
+    compiled: numba's cache knows only this file, so after reordering ROW_FIELDS clear the ``__pycache__`` (the
+    compiled reading is tested against this one)."""
+    ox, oy = row[R_ORIGIN_X], row[R_ORIGIN_Y]  # by name (ROW_FIELDS): constants to the compiled code
+    a11, a12, a21, a22 = row[R_A_XX], row[R_A_XY], row[R_A_YX], row[R_A_YY]
+    b1, b2 = row[R_B_X], row[R_B_Y]
+    c11, c12, c21, c22 = row[R_C_XX], row[R_C_XY], row[R_C_YX], row[R_C_YY]
+    e1, e2, f0 = row[R_DE_X], row[R_DE_Y], row[R_F]
+    mu, W = row[R_DAMPING], row[R_WEIGHT]
+    K11, K12, K21, K22 = row[R_MOMENT_LIN_XX], row[R_MOMENT_LIN_XY], row[R_MOMENT_LIN_YX], row[R_MOMENT_LIN_YY]
+    k1, k2 = row[R_MOMENT_CONST_X], row[R_MOMENT_CONST_Y]
+    s1, s2, s0 = row[R_SECOND_LIN_X], row[R_SECOND_LIN_Y], row[R_SECOND_CONST]
+    inv_m, inv_i = row[R_INV_MASS], row[R_INV_INERTIA]
     X1 = x - ox
     X2 = y - oy
     fx = a11 * X1 + a12 * X2 + b1  # eq. 23
@@ -736,12 +777,13 @@ def _workspace():
 
 @njit(cache=True)
 def quiet_steps(rows, Y, t, t_bound, rtol, atol, sample_times, out):
-    """For each parcel k, with constants ``rows[k]`` (:func:`~virtual_vehicle.engine.dynamics.constants_row`, (n, 28)) at
-    state ``Y[k]`` (n, 6), the first step :func:`run_piece` takes from ``t`` to ``t_bound`` (s) on a new piece, when
-    that step reaches ``t_bound`` and DOP853 accepts it whole: then ``out[k, j]`` is its dense output at
-    ``sample_times[j]`` (in [t, t_bound]), as :func:`run_piece` samples it. The same code as :func:`run_piece`'s,
-    so a window with no event ends where the event engine ends it, to the last bit. Returns which parcels' steps
-    were accepted and the right-hand-side evaluations each took."""
+    """For each parcel k, with constants ``rows[k]`` (:func:`~virtual_vehicle.engine.dynamics.constants_row`,
+    (n, :data:`~virtual_vehicle.physics.laws.affine.ROW_LENGTH`)) at state ``Y[k]`` (n, 6), the first step
+    :func:`run_piece` takes from ``t`` to ``t_bound`` (s) on a new piece, when that step reaches ``t_bound`` and
+    DOP853 accepts it whole: then ``out[k, j]`` is its dense output at ``sample_times[j]`` (in [t, t_bound]), as
+    :func:`run_piece` samples it. The same code as :func:`run_piece`'s, so a window with no event ends where the
+    event engine ends it, to the last bit. Returns which parcels' steps were accepted and the right-hand-side
+    evaluations each took."""
     n = Y.shape[0]
     accepted = np.zeros(n, np.bool_)
     K, F, f, y_new, f_new, work = _workspace()
