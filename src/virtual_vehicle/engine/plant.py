@@ -462,9 +462,9 @@ class Plant:
             if not len(rows):
                 V = nu
             else:
-                law = self.law if stick else cp
-                lam, V, sweeps, ok = solve_rows(rows, nu, 1.0 / mass, law.max_sweeps, cp.tolerance if not stick
-                                                else min(cp.tolerance, law.tolerance))
+                limits = self.law.stepper_options() if stick else cp  # the law's solver limits join the contacts'
+                lam, V, sweeps, ok = solve_rows(rows, nu, 1.0 / mass, limits.max_sweeps, cp.tolerance if not stick
+                                                else min(cp.tolerance, limits.tolerance))
                 self.record.unconverged_contact_steps += not ok
                 self._warm = {key: v for key, v in self._warm.items() if not (key[0] in slot and key[1] in slot)}
                 self._warm.update({(c.i, c.j, c.feature): (float(lam[k]), float(lam[k + 1])) for k, c in normals})
