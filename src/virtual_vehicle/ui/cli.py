@@ -187,12 +187,13 @@ def _check_out(out_dir: Path, keep: tuple[Path, ...] = ()) -> None:
 
 
 def _check_out_folder(out_dir: Path, option: str = "--out") -> None:
-    """Fail before anything runs when the folder ``option`` names is a file (or a folder under one)."""
-    parent = out_dir
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if not parent.is_dir():
-        raise VirtualVehicleError(f"{option}: {str(parent)!r} is a file, not a folder")
+    """Fail before anything runs when the folder ``option`` names is a file (or a folder under one): see
+    :func:`~virtual_vehicle.run.io.check_folder`."""
+    from virtual_vehicle.run.io import check_folder
+
+    problem = check_folder(out_dir)
+    if problem is not None:
+        raise VirtualVehicleError(f"{option}: {problem}")
 
 
 def _check_file_target(path: Path, option: str) -> None:
