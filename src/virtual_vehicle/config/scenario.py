@@ -1027,7 +1027,12 @@ def _format_validation(exc: ValidationError) -> ScenarioError:
             msg = f"missing: name the program every cell runs, one of {names}"
         elif err["type"] in _BOUNDS and isinstance(err.get("ctx", {}).get(_BOUNDS[err["type"]][0]), (int, float)):
             key, words = _BOUNDS[err["type"]]
-            msg = f"must be {words} {err['ctx'][key]:g}, got {err.get('input')!r}"
+            bound, given = err["ctx"][key], err.get("input")
+            if key == "ge" and 0 < bound <= 1e-6 and isinstance(given, (int, float)) and given <= 0:
+                # a tiny floor is there against underflow; what a zero or negative value lacks is its sign
+                msg = f"must be positive (at least {bound:g}), got {given!r}"
+            else:
+                msg = f"must be {words} {bound:g}, got {given!r}"
         elif err["type"] == "union_tag_invalid":
             msg = f"unknown kind {err.get('input', {}).get('kind') if isinstance(err.get('input'), dict) else ''!r}; " + msg
         first_field = first_field or loc
