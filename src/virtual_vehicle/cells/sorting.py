@@ -133,8 +133,7 @@ class Sorter:
     (the label read at entry cells, :func:`encode_goal`; -1 for none).
 
     Stationary (see :mod:`virtual_vehicle.cells.network.programs`): the tick's time enters only a new vehicle's id,
-    given
-    by a cell whose own id word then changes, so a cell whose state a step left unchanged repeats its outputs when
+    given by a cell whose own id word then changes, so a cell whose state a step left unchanged repeats its outputs when
     its inputs do.
     """
 

@@ -4,13 +4,11 @@ Units: SI (m, s, kg, N, rad). State ``[x, y, theta, vx, vy, omega]``.
 
 :func:`run_piece` integrates one piece (one support set and contact set, eqs. 23/29/33/38 as the constants row of
 :func:`~virtual_vehicle.engine.dynamics.constants_row`) with scipy's DOP853 scheme (same tableau, error norm and
-step-size
-rule as ``scipy.integrate.DOP853``; sums taken in plain loops, so results agree with scipy's to rounding, not to the
-last bit), samples every step's dense output for the first sign change of an event value, locates it by Brent's
+step-size rule as ``scipy.integrate.DOP853``; sums taken in plain loops, so results agree with scipy's to rounding, not
+to the last bit), samples every step's dense output for the first sign change of an event value, locates it by Brent's
 method and probes past it, as :mod:`virtual_vehicle.engine.dynamics` documents. In Python each of the ~100 support
-changes
-a second of an oscillating Coulomb parcel cost about a millisecond, mostly in array calls on a handful of numbers;
-compiled, a piece's own work takes a few tens of microseconds, and most of what remains is the Python between
+changes a second of an oscillating Coulomb parcel cost about a millisecond, mostly in array calls on a handful of
+numbers; compiled, a piece's own work takes a few tens of microseconds, and most of what remains is the Python between
 pieces (which cells, the support solve, the friction constants).
 
 Event values of a segment (:class:`~virtual_vehicle.engine.dynamics._Segment`), in order: the footprint margin of every
@@ -183,8 +181,8 @@ class Segment(NamedTuple):
 
 
 def outline(spec) -> tuple:
-    """The footprint of parcel ``spec`` (:class:`~virtual_vehicle.model.parcel.ParcelSpec`) as :class:`Segment` holds it:
-    (kind, convex, half, normals, offsets, vertices), lengths in m."""
+    """The footprint of parcel ``spec`` (:class:`~virtual_vehicle.model.parcel.ParcelSpec`) as :class:`Segment` holds
+    it: (kind, convex, half, normals, offsets, vertices), lengths in m."""
     def arr(a, shape):
         return np.ascontiguousarray(a, dtype=np.float64).reshape(shape)
 
@@ -198,13 +196,12 @@ def outline(spec) -> tuple:
 
 def make_segment(footprint: tuple, radius: float, candidates: np.ndarray, sol, center: np.ndarray, buffer: float,
                  noise_length: float, noise_force: float, ids: np.ndarray) -> tuple:
-    """The fields of the :class:`Segment` (in its order, as a plain tuple: numba types a plain tuple in compiled
-    code, a named one in Python, ~1.5 us more a call; :func:`run_piece` names them again) of a parcel of footprint
-    ``footprint`` (its :func:`outline`) and ``radius`` (m) with candidate cells ``candidates`` ((nc, 2) float64, m)
-    on support solution ``sol`` (whose arrays are float64 and contiguous, as :mod:`virtual_vehicle.physics.contact`
-    makes
-    them), its candidates gathered within ``radius + buffer`` of ``center`` (m), whose cell ids are ``ids`` ((nc,)
-    int64); event values below ``noise_length`` (m) or ``noise_force`` (N) are rounding noise."""
+    """The fields of the :class:`Segment` (in its order, as a plain tuple: numba types a plain tuple in compiled code, a
+    named one in Python, ~1.5 us more a call; :func:`run_piece` names them again) of a parcel of footprint ``footprint``
+    (its :func:`outline`) and ``radius`` (m) with candidate cells ``candidates`` ((nc, 2) float64, m) on support
+    solution ``sol`` (whose arrays are float64 and contiguous, as :mod:`virtual_vehicle.physics.contact` makes them),
+    its candidates gathered within ``radius + buffer`` of ``center`` (m), whose cell ids are ``ids`` ((nc,) int64);
+    event values below ``noise_length`` (m) or ``noise_force`` (N) are rounding noise."""
     return (*footprint, candidates, sol.origin, sol.basis, sol.plane_lin, sol.plane_const, sol.hull_normals,
             sol.hull_offsets, center, float(buffer), float(radius + 2 * buffer), float(noise_length),
             float(noise_force), sol.spring_lin, sol.spring_gradient, ids)
@@ -819,8 +816,7 @@ def run_piece(row, fields, y_base, t, y, t_bound, h_abs, first_step, rtol, atol,
 
     Returns (outcome, t, y, h_abs, last step, evaluations, next_sample, probe time, probe state, the cells under the
     footprint at the probe (ids, as :meth:`~virtual_vehicle.engine.dynamics._Segment.support` finds them from the
-    probe's
-    event values), whether those tell: the values clear of rounding noise and the probe within the candidates'
+    probe's event values), whether those tell: the values clear of rounding noise and the probe within the candidates'
     reach). On ``EVENT`` (t, y) is the restart point just past it.
     """
     seg = Segment(*fields)
@@ -893,8 +889,7 @@ def edges_clear(positions, near, normals, offsets, y, window, reach, accel, radi
     """Whether no cell ``near`` (ids into ``positions``, (n, 2) m) of a convex parcel at state ``y`` can cross its
     outline (body-frame outward unit ``normals`` (k, 2), ``offsets`` (k,) m) within ``window`` s, edge by edge: the
     bound of :meth:`virtual_vehicle.engine.batch.QuietStepper._edges_clear`, which documents it, for one parcel
-    (``reach``
-    and ``accel`` in m, ``radius`` m, ``lever`` = 1 + m R^2 / I, ``noise`` m)."""
+    (``reach`` and ``accel`` in m, ``radius`` m, ``lever`` = 1 + m R^2 / I, ``noise`` m)."""
     c, s = math.cos(y[2]), math.sin(y[2])
     drift = accel / lever
     turn = abs(y[5]) * window + (accel - drift) / radius

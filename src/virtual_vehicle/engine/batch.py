@@ -5,18 +5,16 @@ Units: SI (m, s, kg, N, rad).
 A networked run advances the plant one control tick at a time, and most ticks of most parcels are *quiet*: no cell
 enters or leaves the footprint, none lifts off or touches down, and the centre of mass stays inside the supports. For
 such a window the event-driven engine (:func:`~virtual_vehicle.engine.dynamics.integrate`) finds no event and takes one
-DOP853 step over it, but spends most of a millisecond setting that step up. :class:`QuietStepper` proves windows
-quiet and takes that same step for all quiet parcels in one call (:func:`~virtual_vehicle.engine._kernel.quiet_steps`,
-the
-engine's own compiled step and dense output, so the states are the engine's to the last bit), with each parcel's
-piece constants (:func:`~virtual_vehicle.engine.dynamics.constants_row`) as the rows of an array.
+DOP853 step over it, but spends most of a millisecond setting that step up. :class:`QuietStepper` proves windows quiet
+and takes that same step for all quiet parcels in one call (:func:`~virtual_vehicle.engine._kernel.quiet_steps`, the
+engine's own compiled step and dense output, so the states are the engine's to the last bit), with each parcel's piece
+constants (:func:`~virtual_vehicle.engine.dynamics.constants_row`) as the rows of an array.
 
 The proof is a bound, not a sample. Let ``r`` bound how far any point of a parcel can move in the window (the
 planner has already ruled out pushes from other parcels). Two bounds hold, and the smaller is used:
 
 - the friction law's alone (:func:`~virtual_vehicle.physics.collide.reach_bounds`), which also bounds every point's
-speed
-  by ``S_max`` over the window;
+  speed by ``S_max`` over the window;
 - the piece's (the law's :meth:`~virtual_vehicle.physics.laws.base.FrictionLaw.piece_reach`), valid while the
   piece holds (which is what is being proven: the first moment it would stop holding comes after the window, by
   continuity). With ``k = mu g (1 + m R^2 / I)``, ``S0 = |v| + |omega| R`` now and
@@ -390,13 +388,12 @@ class QuietStepper:
 
     def step(self, models, base, idx: list[int], ys, velocities: np.ndarray, t: float, te: float,
              samples: np.ndarray, wheel_speed: float | None = None) -> tuple[QuietSteps, list[int]]:
-        """Advance the parcels ``idx`` (states ``ys[i]``, no other parcel within reach) from ``t`` to ``te`` (s)
-        under contact-layer ``velocities`` (m/s): returns those stepped here (sampled at ``samples``, the window's
-        ends among them) and the parcels left for the event-driven engine. ``models[i]`` is parcel i's model under these
-        velocities (asked for only to make an anchor), ``base[i]`` any model of it (for the friction constants).
-        ``wheel_speed``: the fastest of ``velocities`` (m/s, :func:`~virtual_vehicle.physics.collide.wheel_speed_of`),
-        when
-        the caller knows it."""
+        """Advance the parcels ``idx`` (states ``ys[i]``, no other parcel within reach) from ``t`` to ``te`` (s) under
+        contact-layer ``velocities`` (m/s): returns those stepped here (sampled at ``samples``, the window's ends among
+        them) and the parcels left for the event-driven engine. ``models[i]`` is parcel i's model under these velocities
+        (asked for only to make an anchor), ``base[i]`` any model of it (for the friction constants). ``wheel_speed``:
+        the fastest of ``velocities`` (m/s, :func:`~virtual_vehicle.physics.collide.wheel_speed_of`), when the caller
+        knows it."""
         times = np.concatenate([[t], samples[(samples > t) & (samples < te)], [te]])
         if not idx:
             return QuietSteps([], times, np.empty((0, len(times), 6)), [], 0, []), []

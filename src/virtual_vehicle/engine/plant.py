@@ -2,16 +2,13 @@
 
 Units: SI (m, s, kg, N, N s, J).
 
-:meth:`Plant.advance` moves all parcels from ``t0`` to ``t1`` under constant wheel velocities. Time is cut into
-windows. In each window a parcel that cannot come within ``margin`` of any other (a rigorous bound on how far any
-point of it can move, :func:`~virtual_vehicle.physics.collide.point_reach`) is integrated on its own by the
-single-parcel
-engine (:func:`~virtual_vehicle.engine.dynamics.integrate`: event-driven, fixed-step or stick-slip, as configured), so a
-run
+:meth:`Plant.advance` moves all parcels from ``t0`` to ``t1`` under constant wheel velocities. Time is cut into windows.
+In each window a parcel that cannot come within ``margin`` of any other (a rigorous bound on how far any point of it can
+move, :func:`~virtual_vehicle.physics.collide.point_reach`) is integrated on its own by the single-parcel engine
+(:func:`~virtual_vehicle.engine.dynamics.integrate`: event-driven, fixed-step or stick-slip, as configured), so a run
 whose parcels never meet is exactly the run without this module. Parcels that might meet are grouped (connected
 components) and time-stepped together at ``dt`` with the contact problem of :mod:`virtual_vehicle.physics.collide` (for
-the
-stick-slip law the wheels' rows join the same complementarity problem; for the Coulomb and viscous laws the wheels
+the stick-slip law the wheels' rows join the same complementarity problem; for the Coulomb and viscous laws the wheels
 give each parcel its free velocity ``nu + h a``, paper eqs. 23/29 per support set).
 
 Events of a grouped parcel (support changes, tipping) are logged at the end of the step in which they happened, as in
@@ -61,11 +58,10 @@ SUMMED_STATS = (*_ADDITIVE, "sweeps_max", "kinetic_start")
 
 @dataclass(frozen=True)
 class Integration:
-    """How single parcels are integrated (see :func:`~virtual_vehicle.engine.dynamics.integrate`) and the step ``dt`` (s)
-    of fixed-step, stick-slip and grouped parcels. ``batch``: in event mode (Coulomb or viscous law, no
+    """How single parcels are integrated (see :func:`~virtual_vehicle.engine.dynamics.integrate`) and the step ``dt``
+    (s) of fixed-step, stick-slip and grouped parcels. ``batch``: in event mode (Coulomb or viscous law, no
     ``max_step``), windows proven quiet are stepped for all parcels at once (:mod:`virtual_vehicle.engine.batch`: the
-    same
-    single DOP853 step the event-driven engine would take, all in one compiled call)."""
+    same single DOP853 step the event-driven engine would take, all in one compiled call)."""
 
     mode: str = "event"
     rtol: float = 1e-10
@@ -223,8 +219,7 @@ class Plant:
 
         No parcel can come within ``margin`` of a parcel outside its group before the window ends (bounds of
         :func:`~virtual_vehicle.physics.collide.point_reach`). Pairs that could meet within ``min_window`` are grouped;
-        the
-        window then lasts until the first moment any other pair could meet, at most ``window`` s (or, when no two
+        the window then lasts until the first moment any other pair could meet, at most ``window`` s (or, when no two
         parcels can meet before ``t1``, all the way to ``t1``).
         """
         live = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()

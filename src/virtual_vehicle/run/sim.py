@@ -1,8 +1,7 @@
 """The Simulator: runs a validated scenario and records what happened to every parcel.
 
-Units: SI. A constant field is run as one plant interval; a networked run advances the plant one control tick at
-a time. The plant (:mod:`virtual_vehicle.engine.plant`) integrates each parcel on its own while it cannot meet another
-and
+Units: SI. A constant field is run as one plant interval; a networked run advances the plant one control tick at a time.
+The plant (:mod:`virtual_vehicle.engine.plant`) integrates each parcel on its own while it cannot meet another and
 resolves contact between parcels when it can.
 """
 
