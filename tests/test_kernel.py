@@ -439,3 +439,92 @@ def test_the_accelerations_of_a_laws_row_are_its_wrench_over_mass_and_inertia(se
     _, row = law.constants_and_row(sol, V, U, mu, mass, inertia)
     np.testing.assert_allclose(kernel.accelerations(row, *com, *state[3:]), [fx / mass, fy / mass, tau / inertia],
                                atol=1e-10 * W / min(mass, inertia))
+
+# The quiet stepper's compiled step and edge checks (virtual_vehicle.engine.batch): parcels on a 12 x 12 array.
+BATCH_CELLS = layout.grid(12, 12, 0.1)
+BATCH_SPEC = parcel.rectangle(0.33, 0.24, 1.5, 0.8)
+BATCH_PENTAGON = parcel.polygon([[0.0, 0.0], [0.3, 0.0], [0.36, 0.16], [0.15, 0.27], [-0.04, 0.14]], 1.2, 0.7)
+
+
+def _batch_field(seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(-0.3, 0.3, (BATCH_CELLS.n, 2))
+
+
+def _quiet_pieces(law, seed, n=20):
+    """n parcels' states and their pieces under a random field, placed at random inside the array."""
+    rng = np.random.default_rng(seed)
+    model = ParcelModel(BATCH_CELLS, BATCH_SPEC, _batch_field(seed), law)
+    ys, rows = [], []
+    for _ in range(n):
+        y = np.array([*rng.uniform(0.35, 0.75, 2), rng.uniform(-np.pi, np.pi), *rng.normal(0, 0.1, 2),
+                      rng.normal(0, 0.5)])
+        piece = model.piece_at(y)
+        ys.append(y)
+        rows.append(dynamics.constants_row(piece.constants, piece.solution.origin, BATCH_SPEC.mass, BATCH_SPEC.inertia))
+    return model, np.array(ys), rows
+
+
+def _quiet_steps(rows, Y, t, t_bound, taus):
+    out = np.full((len(Y), len(taus), 6), np.nan)
+    accepted, evals = kernel.quiet_steps(np.array(rows), Y, t, t_bound, 1e-10, 1e-12, np.asarray(taus), out)
+    return accepted, out, evals
+
+
+@pytest.mark.parametrize("law", ["viscous", "coulomb"])
+def test_quiet_steps_are_scipys_dop853_step(law):
+    """Each parcel's step is the one scipy's DOP853 takes from the same state with the whole window as its first
+    step (to rounding: scipy sums stages with BLAS), kept exactly when scipy keeps it, and its dense output is
+    scipy's; a refused step writes nothing."""
+    model, Y, rows = _quiet_pieces(laws.LAWS[law], 3)
+    h = 0.05  # long enough that some steps fail the error test
+    taus = np.array([0.0, 0.3 * h, 0.77 * h, h])
+    accepted, out, evals = _quiet_steps(rows, Y, 0.0, h, taus)
+    assert evals == 16  # the first derivative, 11 stages, the end's, and 3 more for the dense output
+    for n, y0 in enumerate(Y):
+        solver = DOP853(model.piece_at(y0).rhs, 0.0, y0, h, rtol=1e-10, atol=1e-12, first_step=h)
+        solver.step()
+        assert accepted[n] == (solver.t == h)  # scipy kept the whole step exactly when its error test passed
+        if solver.t == h:
+            np.testing.assert_allclose(out[n, -1], solver.y, rtol=1e-13, atol=1e-15)
+            np.testing.assert_allclose(out[n], solver.dense_output()(taus).T, rtol=1e-13, atol=1e-15)
+            assert out[n, 0].tolist() == y0.tolist()
+        else:
+            assert np.isnan(out[n]).all()
+    assert accepted.any() and not accepted.all()
+
+
+def test_a_step_too_long_for_the_tolerance_or_short_of_the_end_is_refused():
+    _, Y, rows = _quiet_pieces(laws.LAWS["viscous"], 4)
+    assert not _quiet_steps(rows, Y, 0.0, 2.0, [0.0, 2.0])[0].any()
+    t, t_bound = -0.0019132392605720027, 0.0008155261736351271  # t + (t_bound - t) falls short of t_bound by
+    assert t + (t_bound - t) < t_bound  # rounding: the engine would take a second, tiny step
+    assert not _quiet_steps(rows, Y, t, t_bound, [t, t_bound])[0].any()
+    assert _quiet_steps(rows, Y, 0.0, t_bound - t, [0.0, t_bound - t])[0].all()  # the same window from 0
+
+
+def test_the_edges_of_many_parcels_in_one_call_are_each_parcels_own():
+    """edges_clear_many against edges_clear parcel by parcel, with few cells a parcel (padded rows) and two outlines
+    (four and five edges, padded)."""
+    rng = np.random.default_rng(3)
+    # few cells a parcel, over a window of 0.1 s that leaves ~40 % undecided: a cell or an edge dropped or
+    # borrowed from a neighbour changes decisions
+    points = rng.uniform(-0.2, 0.2, (40, 2))
+    outlines = [BATCH_SPEC.halfplanes, BATCH_PENTAGON.halfplanes]
+    near = [rng.choice(len(points), rng.integers(1, 4), replace=False) for _ in range(200)]
+    shape = rng.integers(0, 2, len(near))
+    padded = np.full((len(near), 3), len(points))
+    for k, n in enumerate(near):
+        padded[k, :len(n)] = n
+    normals, offsets = np.zeros((len(near), 5, 2)), np.zeros((len(near), 5))
+    for k, o in enumerate(shape):
+        normals[k, :len(outlines[o][1])], offsets[k, :len(outlines[o][1])] = outlines[o]
+    counts = np.array([len(outlines[o][1]) for o in shape])
+    Y = np.column_stack([rng.normal(0, 0.02, (len(near), 2)), rng.uniform(-np.pi, np.pi, len(near)),
+                         rng.normal(0, 0.3, (len(near), 2)), rng.normal(0, 0.5, len(near))])
+    r, accel = rng.uniform(0, 0.02, len(near)), rng.uniform(0, 0.002, len(near))
+    R, lever, noise = np.full(len(near), 0.2), np.full(len(near), 3.0), np.full(len(near), 1e-11)
+    together = kernel.edges_clear_many(points, padded, np.array([len(n) for n in near]), normals, offsets, counts,
+                                        Y, 0.1, r, accel, R, lever, noise)
+    alone = [kernel.edges_clear(points, near[k], *outlines[shape[k]], Y[k], 0.1, r[k], accel[k], R[k], lever[k],
+                                 noise[k]) for k in range(len(near))]
+    assert together.tolist() == alone and 0.2 < np.mean(alone) < 0.8

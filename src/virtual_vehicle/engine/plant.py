@@ -170,6 +170,12 @@ class Plant:
             self._quiet.forget()
         self._velocities = self._models = None  # models made from the old base are made again
 
+    @property
+    def shared_weights(self) -> dict[float, int]:
+        """The stores of solved supports the plant keeps for parcels of one weight: weight (N) -> how many support
+        patterns its store holds. A store goes when :meth:`release` lets the last parcel of its weight go."""
+        return {weight: len(store) for weight, store in self._solutions.items()}
+
     def release(self, i: int) -> None:
         """Forget what parcel ``i``'s model has cached (its own solved supports, pieces): it has left the array, and
         a long run should hold memory for the parcels on it, not for every parcel it ever carried. The supports it

@@ -606,7 +606,7 @@ def _state_classes() -> dict[str, type]:
     from virtual_vehicle.engine.dynamics import Event
     from virtual_vehicle.engine.plant import PlantRecord
 
-    return {c.__name__: c for c in (Event, Trajectory, PlantRecord, LatencyStats, _Track, Mailbox, Topology,
+    return {c.__name__: c for c in (Event, Trajectory, PlantRecord, LatencyStats, ParcelTrack, Mailbox, Topology,
                                     IdealRounds, WireLevel, _Sentence, ChangedCells, WheelDrives)}
 
 
@@ -663,7 +663,7 @@ class TickedRun:
         self.queue = sorted((i for i, t in enumerate(self.arrive) if t > 0), key=lambda i: (self.arrive[i], i))
         self.entered = [0.0 if t == 0 else None for t in self.arrive]
         self.plant = setup.plant()
-        self.tracks = [_Track() for _ in self.ys]
+        self.tracks = [ParcelTrack() for _ in self.ys]
         self.cell_log: list = []
         self.faults = setup.faults  # these and the topology change when faults are injected during the run
         self.sensors = setup.sensors
@@ -1011,7 +1011,7 @@ class NetworkRun(TickedRun, _Job):
 _SUMMED = frozenset(SUMMED_STATS)
 
 
-class _Track:
+class ParcelTrack:
     """One parcel's trajectory as a networked run goes: only the samples on the output grid and the latest state
     are kept (a run of an hour at 100 Hz would otherwise hold a piece per tick), events, status and the energy and
     solver counts (added up as :func:`~virtual_vehicle.engine.plant.join` does)."""
