@@ -407,7 +407,7 @@ class QuietStepper:
                               & self._convex[idx])
         if len(look):  # too near some cell for one radius: ask which way each edge moves
             cells_clear[look] = self.edges_clear(idx[look], Y[look], window, r[look], accel[look], R[look],
-                                                  self.lever[idx[look]])
+                                                 self.lever[idx[look]])
         return held & cells_clear
 
     def edges_clear(self, idx, Y, window, r, accel, R, lever) -> np.ndarray:
@@ -434,7 +434,7 @@ class QuietStepper:
         edges whether the cells stay clear of them for 10 ms (the branch a step takes only near cells)."""
         self.measure(0, [model], y)
         self.edges_clear(np.zeros(1, dtype=np.int64), y[None], 0.01, np.zeros(1), np.zeros(1), self.radius,
-                          self.lever)
+                         self.lever)
 
     def step(self, models, base, idx: list[int], ys, velocities: np.ndarray, t: float, te: float,
              samples: np.ndarray, wheel_speed: float | None = None) -> tuple[QuietSteps, list[int]]:
