@@ -1042,6 +1042,7 @@ class ParcelTrack:
 
     @property
     def started(self) -> bool:
+        """Whether the track has taken in a tick yet."""
         return self._piece is not None or self._quiet is not None
 
     def _sample(self, times: np.ndarray, states: np.ndarray) -> None:
@@ -1095,6 +1096,8 @@ class ParcelTrack:
         return first
 
     def trajectory(self) -> Trajectory:
+        """The parcel's trajectory so far: the samples kept on the output grid and the latest state, the events, and
+        the counts and stats added up over the ticks."""
         times, states = list(self.times), list(self.states)
         end = float(self.piece.times[-1])
         if not times or end > times[-1]:
