@@ -54,7 +54,8 @@ class EntryPoint:
     result: object = field(default=None, repr=False)
 
 
-def _modules() -> list:
+def package_modules() -> list:
+    """Every module of the package (imported), where :func:`timed_kernels` looks for compiled functions."""
     import virtual_vehicle
 
     return [virtual_vehicle] + [importlib.import_module(m.name)
@@ -87,7 +88,7 @@ def timed_kernels():
         timed.__wrapped__ = dispatcher
         return timed
 
-    for mod in _modules():
+    for mod in package_modules():
         for name, obj in list(vars(mod).items()):
             if isinstance(obj, CPUDispatcher):
                 if id(obj) not in wrappers:

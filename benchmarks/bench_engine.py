@@ -17,7 +17,7 @@ import numpy as np
 
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics import laws
 from virtual_vehicle.physics.contact import normal_forces
 from virtual_vehicle.physics.reference import paper_normal_forces
 
@@ -37,7 +37,7 @@ def crossing(mode: str, theta: float = 0.0, **kw):
     velocities = fields.Uniform((0.2, 0.0)).velocities(cells)
 
     def run():
-        model = ParcelModel(cells, spec, velocities, friction.ViscousLaw())  # fresh: nothing cached between runs
+        model = ParcelModel(cells, spec, velocities, laws.ViscousLaw())  # fresh: nothing cached between runs
         return integrate(model, [0.52, 1.47, theta, 0, 0, 0], 0.0, 5.0, mode=mode, sample_dt=0.01, **kw)
 
     return best_of(run, 5 if mode == "event" else 2)

@@ -15,7 +15,7 @@ import numpy as np
 
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics import laws
 
 
 def traps(cells, size=4):
@@ -49,7 +49,7 @@ def cost(law, n_parcels, duration=1.0):
 def main() -> None:
     print("# Cost per simulated second: stick-slip (1 ms steps) vs the paper's Coulomb law (event-driven)")
     print(f"{'law':<28}{'parcels':>8}{'wall s / sim s':>16}{'per parcel':>12}{'segments/steps':>16}")
-    for name, law in (("Coulomb (paper), event", friction.CoulombLaw()), ("stick-slip, dt = 1 ms", friction.StickSlipLaw())):
+    for name, law in (("Coulomb (paper), event", laws.CoulombLaw()), ("stick-slip, dt = 1 ms", laws.StickSlipLaw())):
         for n in (1, 50):
             c, steps = cost(law, n)
             print(f"{name:<28}{n:>8}{c:>16.3f}{c / n:>12.4f}{steps:>16}")

@@ -20,7 +20,7 @@ import numpy as np
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
 from virtual_vehicle.model.parcel import supporting_cells
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics import laws
 from virtual_vehicle.physics.reference import paper_normal_forces
 from virtual_vehicle.run.warm import warm_up
 
@@ -37,7 +37,7 @@ Y0 = np.array([0.52, 1.47, 0.3, 0.0, 0.0, 0.0])  # a tilted box: many support ch
 FIELDS_B = {"coulomb": fields.Inward((1.5, 1.5), 3.0).velocities(CELLS),
             "viscous": fields.Inward((1.5, 1.5), 0.2).velocities(CELLS)}
 Y0_IN = np.array([1.12, 1.47, 0.3, 0.0, 0.0, 0.0])
-LAWS = {"coulomb": friction.CoulombLaw(), "viscous": friction.ViscousLaw()}
+LAWS = {"coulomb": laws.CoulombLaw(), "viscous": laws.ViscousLaw()}
 
 
 def literal_rhs(law):

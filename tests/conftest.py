@@ -12,7 +12,7 @@ from hypothesis import assume, settings
 from virtual_vehicle.engine import dynamics
 from virtual_vehicle.engine.dynamics import ParcelModel
 from virtual_vehicle.errors import TippingError
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics import laws
 
 # Every run draws the same examples on any machine: derandomized (examples follow from each test's name), no example
 # database (a failure found once cannot make later runs differ, and no .hypothesis/ folder is written), the failing
@@ -32,7 +32,7 @@ def segment_at():
     """``segment_at(cells, spec, x, y, th)``: (model, piece, event-engine segment, state) of parcel ``spec`` at rest
     at pose (x, y, th) on still wheels under the Coulomb law; the hypothesis example is dropped where it tips."""
     def make(cells, spec, x, y, th):
-        m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), friction.CoulombLaw())
+        m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), laws.CoulombLaw())
         y0 = np.array([x, y, th, 0.0, 0.0, 0.0])
         try:
             piece = m.piece_at(y0)

@@ -1,6 +1,6 @@
-"""Quiet windows stepped together (issue 8, performance): the batched step is scipy's DOP853 step and the event
-engine's to the last bit, a window the stepper calls quiet has no event in the event-driven engine either, and runs
-with and without batching agree."""
+"""Quiet windows stepped together (issue 8, performance): the batched step is the event engine's to the last bit
+(and scipy's DOP853 step: test_kernel), a window the stepper calls quiet has no event in the event-driven engine
+either, and runs with and without batching agree."""
 
 from __future__ import annotations
 
@@ -11,15 +11,13 @@ import numpy as np
 import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
-from scipy.integrate import DOP853
 
 from virtual_vehicle.config.scenario import load_scenario, parse_scenario
-from virtual_vehicle.engine import _kernel
 from virtual_vehicle.engine.batch import QuietStepper
-from virtual_vehicle.engine.dynamics import Event, ParcelModel, Trajectory, constants_row, integrate
+from virtual_vehicle.engine.dynamics import Event, ParcelModel, Trajectory, integrate
 from virtual_vehicle.engine.plant import Integration, Plant
 from virtual_vehicle.model import layout, parcel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics import laws
 from virtual_vehicle.physics.collide import point_reach, reach_bounds, wheel_speed_of
 from virtual_vehicle.run.sim import run, run_network
 
@@ -28,7 +26,7 @@ from bench_scale import scenario as scale_scenario  # noqa: E402
 
 CELLS = layout.grid(12, 12, 0.1)
 SPEC = parcel.rectangle(0.33, 0.24, 1.5, 0.8)
-LAWS = {"viscous": friction.ViscousLaw(), "coulomb": friction.CoulombLaw()}
+LAWS = {"viscous": laws.ViscousLaw(), "coulomb": laws.CoulombLaw()}
 
 
 def _field(seed: int) -> np.ndarray:
@@ -37,55 +35,12 @@ def _field(seed: int) -> np.ndarray:
 
 
 def _pieces(law, seed, n=20):
-    """n parcels' states and their pieces under a random field, placed at random inside the array."""
+    """n parcels' states under a random field, placed at random inside the array, and their model."""
     rng = np.random.default_rng(seed)
     model = ParcelModel(CELLS, SPEC, _field(seed), law)
-    ys, rows = [], []
-    for _ in range(n):
-        y = np.array([*rng.uniform(0.35, 0.75, 2), rng.uniform(-np.pi, np.pi), *rng.normal(0, 0.1, 2),
-                      rng.normal(0, 0.5)])
-        piece = model.piece_at(y)
-        ys.append(y)
-        rows.append(constants_row(piece.constants, piece.solution.origin, SPEC.mass, SPEC.inertia))
-    return model, np.array(ys), rows
-
-
-def _quiet_steps(rows, Y, t, t_bound, taus):
-    out = np.full((len(Y), len(taus), 6), np.nan)
-    accepted, evals = _kernel.quiet_steps(np.array(rows), Y, t, t_bound, 1e-10, 1e-12, np.asarray(taus), out)
-    return accepted, out, evals
-
-
-@pytest.mark.parametrize("law", ["viscous", "coulomb"])
-def test_quiet_steps_are_scipys_dop853_step(law):
-    """Each parcel's step is the one scipy's DOP853 takes from the same state with the whole window as its first
-    step (to rounding: scipy sums stages with BLAS), kept exactly when scipy keeps it, and its dense output is
-    scipy's; a refused step writes nothing."""
-    model, Y, rows = _pieces(LAWS[law], 3)
-    h = 0.05  # long enough that some steps fail the error test
-    taus = np.array([0.0, 0.3 * h, 0.77 * h, h])
-    accepted, out, evals = _quiet_steps(rows, Y, 0.0, h, taus)
-    assert evals == 16  # the first derivative, 11 stages, the end's, and 3 more for the dense output
-    for n, y0 in enumerate(Y):
-        solver = DOP853(model.piece_at(y0).rhs, 0.0, y0, h, rtol=1e-10, atol=1e-12, first_step=h)
-        solver.step()
-        assert accepted[n] == (solver.t == h)  # scipy kept the whole step exactly when its error test passed
-        if solver.t == h:
-            np.testing.assert_allclose(out[n, -1], solver.y, rtol=1e-13, atol=1e-15)
-            np.testing.assert_allclose(out[n], solver.dense_output()(taus).T, rtol=1e-13, atol=1e-15)
-            assert out[n, 0].tolist() == y0.tolist()
-        else:
-            assert np.isnan(out[n]).all()
-    assert accepted.any() and not accepted.all()
-
-
-def test_a_step_too_long_for_the_tolerance_or_short_of_the_end_is_refused():
-    _, Y, rows = _pieces(LAWS["viscous"], 4)
-    assert not _quiet_steps(rows, Y, 0.0, 2.0, [0.0, 2.0])[0].any()
-    t, t_bound = -0.0019132392605720027, 0.0008155261736351271  # t + (t_bound - t) falls short of t_bound by
-    assert t + (t_bound - t) < t_bound  # rounding: the engine would take a second, tiny step
-    assert not _quiet_steps(rows, Y, t, t_bound, [t, t_bound])[0].any()
-    assert _quiet_steps(rows, Y, 0.0, t_bound - t, [0.0, t_bound - t])[0].all()  # the same window from 0
+    ys = [np.array([*rng.uniform(0.35, 0.75, 2), rng.uniform(-np.pi, np.pi), *rng.normal(0, 0.1, 2),
+                    rng.normal(0, 0.5)]) for _ in range(n)]
+    return model, np.array(ys)
 
 
 def test_reach_bounds_are_point_reach_for_many_parcels():
@@ -178,7 +133,7 @@ def _edge_decided(model, law, y0, window) -> bool:
     """Whether the stepper calls this window quiet although one clearance radius could not prove it."""
     stepper = QuietStepper(CELLS, [model.spec], LAWS[law], [model.spec.mu], 9.81, 1e-10, 1e-12)
     quiet = _quiet_matches_engine(model, law, y0, window)
-    a = stepper._anchor(0, [model], y0)
+    a = stepper.measure(0, [model], y0)
     wheel_speed = float(np.max(np.hypot(model.velocities[:, 0], model.velocities[:, 1])))
     r, _ = stepper.reach([0], y0[None], window, model.velocities, wheel_speed)
     return quiet and a.clear <= r[0]
@@ -238,59 +193,43 @@ def test_a_convex_polygon_runs_past_cells_edge_by_edge():
 
 
 def test_the_edges_of_many_parcels_at_once_are_each_parcels_own():
-    """The edge-by-edge check of many parcels in one compiled call decides each as its own call does: parcels of
-    two outlines (four and five edges) through the stepper's columns, and, for a check that each parcel reads its
-    own cells and edges, parcels with one to three cells near them, each cell deciding."""
+    """The edge-by-edge check of many parcels in one compiled call decides each as its own stepper does for it
+    alone: parcels of two outlines (four and five edges) through the stepper's columns, each anchored twice (the
+    columns written over), with different numbers of cells near them and under them (padded rows)."""
     rng = np.random.default_rng(3)
     specs = [SPEC, PENTAGON] * 15
     stepper = QuietStepper(CELLS, specs, LAWS["viscous"], [s.mu for s in specs], 9.81, 1e-10, 1e-12)
-    anchors, Y = [], []
+    anchors, models, Y = [], [], []
     for i, spec in enumerate(specs):
         v = rng.uniform(0.0, 0.4) * np.array([np.cos(h := rng.uniform(-np.pi, np.pi)), np.sin(h)])
         model = ParcelModel(CELLS, spec, np.tile(v, (CELLS.n, 1)), LAWS["viscous"])
         y = np.array([*rng.uniform(0.35, 0.75, 2), rng.uniform(-np.pi, np.pi), *v, rng.normal(0, 0.2)])
         first = np.array([*rng.uniform(0.35, 0.75, 2), rng.uniform(-np.pi, np.pi), *v, 0.0])
-        anchors.append(stepper._anchor(i, [model] * len(specs), first))  # measured elsewhere first: written over
-        anchors.append(stepper._anchor(i, [model] * len(specs), y))
+        anchors.append(stepper.measure(i, [model] * len(specs), first))  # measured elsewhere first: written over
+        anchors.append(stepper.measure(i, [model] * len(specs), y))
+        models.append(model)
         Y.append(y)
     anchors, Y, window = anchors[1::2], np.array(Y), 0.01
+    columns = stepper.columns
     for k, a in enumerate(anchors):  # the rows written over hold the latest anchor's cells, padded with the sentinel
-        count = stepper._near_count[k]
-        assert count == len(a.near) and stepper._near[k, :count].tolist() == a.near.tolist()
-        assert set(stepper._near[k, count:].tolist()) <= {CELLS.n}
-        assert stepper._support[k, :len(a.support)].tolist() == a.support.tolist()
-        assert set(stepper._support[k, len(a.support):].tolist()) <= {CELLS.n}
+        count = columns.near_count[k]
+        assert count == len(a.near) and columns.near[k, :count].tolist() == a.near.tolist()
+        assert set(columns.near[k, count:].tolist()) <= {CELLS.n}
+        assert columns.support[k, :len(a.support)].tolist() == a.support.tolist()
+        assert set(columns.support[k, len(a.support):].tolist()) <= {CELLS.n}
     assert len({len(a.near) for a in anchors}) > 1 and len({len(a.support) for a in anchors}) > 1
     r, accel = rng.uniform(0.0, 0.004, len(specs)), rng.uniform(0.0, 0.001, len(specs))
-    together = stepper._edges_clear(np.arange(len(specs)), Y, window, r, accel, stepper.radius, stepper.lever)
-    alone = [_kernel.edges_clear(CELLS.positions, a.near, *a.halfplanes, y, window, r[k], accel[k],
-                                 stepper.radius[k], stepper.lever[k], a.noise)
-             for k, (a, y) in enumerate(zip(anchors, Y))]
+    together = stepper.edges_clear(np.arange(len(specs)), Y, window, r, accel, stepper.radius, stepper.lever)
+    alone = []
+    for k, (spec, model, y) in enumerate(zip(specs, models, Y)):
+        own = QuietStepper(CELLS, [spec], LAWS["viscous"], [spec.mu], 9.81, 1e-10, 1e-12)
+        a = own.measure(0, [model], y)
+        assert a.near.tolist() == anchors[k].near.tolist()  # the same anchor, no padding
+        alone.append(bool(own.edges_clear(np.zeros(1, dtype=np.int64), y[None], window, r[k:k + 1],
+                                          accel[k:k + 1], own.radius, own.lever)[0]))
     assert together.tolist() == alone and 0 < sum(alone) < len(alone)
-    assert stepper._edges_clear(np.arange(len(specs))[::-1], Y[::-1], window, r[::-1], accel[::-1],
-                                stepper.radius[::-1], stepper.lever[::-1]).tolist() == alone[::-1]
-    # few cells a parcel, over a window of 0.1 s that leaves ~40 % undecided: a cell or an edge dropped or
-    # borrowed from a neighbour changes decisions
-    points = rng.uniform(-0.2, 0.2, (40, 2))
-    outlines = [SPEC.halfplanes, PENTAGON.halfplanes]
-    near = [rng.choice(len(points), rng.integers(1, 4), replace=False) for _ in range(200)]
-    shape = rng.integers(0, 2, len(near))
-    padded = np.full((len(near), 3), len(points))
-    for k, n in enumerate(near):
-        padded[k, :len(n)] = n
-    normals, offsets = np.zeros((len(near), 5, 2)), np.zeros((len(near), 5))
-    for k, o in enumerate(shape):
-        normals[k, :len(outlines[o][1])], offsets[k, :len(outlines[o][1])] = outlines[o]
-    counts = np.array([len(outlines[o][1]) for o in shape])
-    Y = np.column_stack([rng.normal(0, 0.02, (len(near), 2)), rng.uniform(-np.pi, np.pi, len(near)),
-                         rng.normal(0, 0.3, (len(near), 2)), rng.normal(0, 0.5, len(near))])
-    r, accel = rng.uniform(0, 0.02, len(near)), rng.uniform(0, 0.002, len(near))
-    R, lever, noise = np.full(len(near), 0.2), np.full(len(near), 3.0), np.full(len(near), 1e-11)
-    together = _kernel.edges_clear_many(points, padded, np.array([len(n) for n in near]), normals, offsets, counts,
-                                        Y, 0.1, r, accel, R, lever, noise)
-    alone = [_kernel.edges_clear(points, near[k], *outlines[shape[k]], Y[k], 0.1, r[k], accel[k], R[k], lever[k],
-                                 noise[k]) for k in range(len(near))]
-    assert together.tolist() == alone and 0.2 < np.mean(alone) < 0.8
+    assert stepper.edges_clear(np.arange(len(specs))[::-1], Y[::-1], window, r[::-1], accel[::-1],
+                               stepper.radius[::-1], stepper.lever[::-1]).tolist() == alone[::-1]
 
 
 def test_a_parcel_at_rest_between_cell_centres_is_quiet():
@@ -379,12 +318,12 @@ def test_supports_shared_by_weight_go_with_the_last_parcel_of_that_weight():
     ys[2][1] = 0.9
     plant.advance(ys, [True] * 3, _field(3), 0.0, 0.01, 0.01)
     light, big = (s.weight(9.81) for s in (SPEC, heavy))
-    assert set(plant._solutions) == {light, big} and all(plant._solutions.values())
+    assert set(plant.shared_weights) == {light, big} and all(n > 0 for n in plant.shared_weights.values())
     plant.release(0)
-    assert light in plant._solutions  # parcel 1 still shares them
+    assert light in plant.shared_weights  # parcel 1 still shares them
     plant.release(1)
     plant.release(2)
-    assert plant._solutions == {}
+    assert plant.shared_weights == {}
     assert plant.base[0].solves == 0 and plant.base[0].shared_solutions == {}  # fresh, and its own
 
 
@@ -456,18 +395,18 @@ def test_a_plant_refuses_states_and_modes_it_cannot_use(batch):
 def test_the_reach_of_many_parcels_at_once_is_each_parcels_own(law):
     """The checks bound many parcels' reach in one go, their anchors' cells padded to the widest: the same floats as
     for each parcel alone, anchored by a stepper of its own (no padding)."""
-    model, Y, _ = _pieces(LAWS[law], seed=3, n=12)
+    model, Y = _pieces(LAWS[law], seed=3, n=12)
     Y[:, 2] = np.linspace(0.0, np.pi / 2, len(Y))  # turned: supports of different sizes, so some are padded
     stepper = QuietStepper(CELLS, [SPEC] * len(Y), LAWS[law], [SPEC.mu] * len(Y), 9.81, 1e-10, 1e-12)
     models = [model] * len(Y)
     for i, y in enumerate(Y):
-        stepper._refresh(i, stepper._anchor(i, models, y), models, model.velocities)
+        stepper.refresh(i, stepper.measure(i, models, y), models, model.velocities)
     sizes = {len(a.support) for a in stepper.anchors.values()}
     assert len(sizes) > 1
     together = stepper.reach(list(range(len(Y))), Y, 0.01, model.velocities, 0.3)
     for i, y in enumerate(Y):
         alone = QuietStepper(CELLS, [SPEC], LAWS[law], [SPEC.mu], 9.81, 1e-10, 1e-12)
-        alone._refresh(0, alone._anchor(0, [model], y), [model], model.velocities)
+        alone.refresh(0, alone.measure(0, [model], y), [model], model.velocities)
         r, accel = alone.reach([0], y[None], 0.01, model.velocities, 0.3)
         assert (r[0], accel[0]) == (together[0][i], together[1][i])
 
@@ -477,22 +416,24 @@ def test_the_stepper_sees_wheels_change_in_place_and_keeps_a_read_only_array():
     and not looked for again in the same read-only array (a plant's, kept as it is)."""
     stepper = QuietStepper(CELLS, [SPEC], LAWS["viscous"], [SPEC.mu], 9.81, 1e-10, 1e-12)
     v = _field(1)
-    stepper._see(v)
-    first = stepper._changes
+    assert stepper.changes == 0 and stepper.seen is None
+    stepper.see(v)
+    first = stepper.changes
+    assert first == 1 and stepper.seen is not v and stepper.seen.tolist() == v.tolist()  # a copy of a writable one
     v[5, 1] += 0.1  # in place
-    stepper._see(v)
-    assert stepper._changes == first + 1 and stepper._changed_at[5] == first + 1
-    assert stepper._changed_at[4] == first and stepper._changed_at[-1] == -1  # the sentinel stays
+    stepper.see(v)
+    assert stepper.changes == first + 1 and stepper.changed_at[5] == first + 1
+    assert stepper.changed_at[4] == first and stepper.changed_at[-1] == -1  # the sentinel stays
     frozen = v.copy()
     frozen.setflags(write=False)
-    stepper._see(frozen)  # the same values: nothing changed, and the array itself is kept
-    assert stepper._changes == first + 1 and stepper._seen is frozen
-    stepper._see(frozen)
-    assert stepper._changes == first + 1
+    stepper.see(frozen)  # the same values: nothing changed, and the array itself is kept
+    assert stepper.changes == first + 1 and stepper.seen is frozen
+    stepper.see(frozen)
+    assert stepper.changes == first + 1
     other = _field(2)
     other.setflags(write=False)
-    stepper._see(other)
-    assert stepper._changes == first + 2 and stepper._seen is other
+    stepper.see(other)
+    assert stepper.changes == first + 2 and stepper.seen is other
 
 
 @pytest.mark.parametrize("law", ["viscous", "coulomb"])
@@ -503,20 +444,20 @@ def test_an_anchor_measured_again_on_the_same_cells_keeps_its_constants(law):
     model = ParcelModel(CELLS, SPEC, _field(1), LAWS[law])
     stepper = QuietStepper(CELLS, [SPEC], LAWS[law], [SPEC.mu], 9.81, 1e-10, 1e-12)
     y0 = np.array([0.55, 0.52, 0.3, 0.05, 0.0, 0.1])
-    first = stepper._anchor(0, [model], y0)
-    stepper._see(model.velocities)
-    stepper._refresh(0, first, [model], model.velocities)
-    drive = stepper._drive[0]
+    first = stepper.measure(0, [model], y0)
+    stepper.see(model.velocities)
+    stepper.refresh(0, first, [model], model.velocities)
+    drive = stepper.columns.drive[0]
     assert (drive > 0) == (law == "coulomb")
     nudged = y0 + np.array([1e-4, 0.0, 0.0, 0.0, 0.0, 0.0])  # the same cells under it
-    again = stepper._anchor(0, [model], nudged)
+    again = stepper.measure(0, [model], nudged)
     assert np.array_equal(again.support, first.support)
-    assert again.constants is first.constants and again.row == first.row and stepper._made[0] == stepper._changes
-    assert stepper._drive[0] == drive
+    assert again.constants is first.constants and again.row == first.row
+    assert stepper.columns.made[0] == stepper.changes and stepper.columns.drive[0] == drive
     moved = y0 + np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0])  # a pitch along: other cells
-    elsewhere = stepper._anchor(0, [model], moved)
+    elsewhere = stepper.measure(0, [model], moved)
     assert not np.array_equal(elsewhere.support, first.support)
-    assert elsewhere.constants is None and stepper._made[0] == -1 and stepper._drive[0] == 0.0
+    assert elsewhere.constants is None and stepper.columns.made[0] == -1 and stepper.columns.drive[0] == 0.0
 
 
 def test_an_anchor_measured_again_takes_its_solution_again_only_where_the_cache_would_find_it():
@@ -568,7 +509,7 @@ def test_a_parcel_handed_to_the_engine_brings_its_anchors_piece(law):
     made = ParcelModel(CELLS, SPEC, _field(1), LAWS[law]).piece_at(y0)  # made afresh
     assert piece.key == made.key and piece.row == made.row
     assert piece.key == (tuple(piece.support.tolist()), tuple(piece.support[piece.solution.in_contact].tolist()))
-    stepper._see(_field(2))  # new wheels, before the checks remake the anchor's constants
+    stepper.see(_field(2))  # new wheels, before the checks remake the anchor's constants
     later = model.with_velocities(_field(2))
     stepper.hand_over(0, later)
     assert later.pieces_cached == 0
@@ -591,12 +532,12 @@ def test_the_fastest_wheel_is_found_once_a_set_of_velocities_and_given_to_the_pl
 def test_chatter_steps_add_up_across_control_ticks():
     """A parcel at rest with two edges exactly on cell centres chatters (see test_dynamics): the fixed steps the
     engine takes across it are counted per tick and summed over the run, as a networked run records them."""
-    from virtual_vehicle.run.sim import _Track
+    from virtual_vehicle.run.sim import ParcelTrack
 
     hl, hw = SPEC.half_extents
     field = np.random.default_rng(7).uniform(-0.3, 0.3, (CELLS.n, 2))
     plant = Plant(CELLS, [SPEC], LAWS["viscous"], integration=Integration(dt=1e-4))
-    ys, active, track, counts = [np.array([0.4 + hl, 0.4 + hw, 0.0, 0.0, 0.0, 0.0])], [True], _Track(), []
+    ys, active, track, counts = [np.array([0.4 + hl, 0.4 + hw, 0.0, 0.0, 0.0, 0.0])], [True], ParcelTrack(), []
     for k in range(3):
         tr = plant.advance(ys, active, field, 0.01 * k, 0.01 * (k + 1), 0.01)[0]
         counts.append(tr.stats.get("chatter_steps", 0))
@@ -625,14 +566,14 @@ def _piece(kind: str, t: float, n: int, rng) -> Trajectory:
 @example(["quiet", "summed", "quiet"], [False, True] * 6, 2)
 def test_a_track_takes_quiet_steps_from_their_block_as_it_takes_their_trajectories(kinds, sampled, seed):
     """A networked run takes a tick the quiet stepper alone took straight from the stepper's block
-    (_Track.add_quiet), without making its Trajectory: the parcel's trajectory at the end is the same in every
+    (ParcelTrack.add_quiet), without making its Trajectory: the parcel's trajectory at the end is the same in every
     field as when each tick's Trajectory is taken in (samples on the grid, events, counts, the stats the run sums
     and those the latest piece sets), whatever pieces come before and after."""
     from virtual_vehicle.engine.batch import QuietSteps
-    from virtual_vehicle.run.sim import _Track
+    from virtual_vehicle.run.sim import ParcelTrack
 
     rng = np.random.default_rng(seed)
-    by_block, by_piece = _Track(), _Track()
+    by_block, by_piece = ParcelTrack(), ParcelTrack()
     for k, kind in enumerate(kinds):
         t = 0.01 * k
         grid = np.array([t + 0.005]) if sampled[k] else np.empty(0)

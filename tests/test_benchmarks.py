@@ -74,7 +74,7 @@ def test_the_ceiling_benchmark_times_every_piece_and_puts_the_kernels_back():
         assert _kernel.run_piece is not original and _kernel.run_piece.__wrapped__ is original
         tr = integrate(model, bench_perf.Y0_IN, 0.0, 0.5, sample_dt=0.5)
     assert _kernel.run_piece is original
-    assert not [(mod.__name__, name) for mod in bench_ceiling._modules() for name, obj in vars(mod).items()
+    assert not [(mod.__name__, name) for mod in bench_ceiling.package_modules() for name, obj in vars(mod).items()
                 if callable(obj) and hasattr(obj, "__wrapped__") and isinstance(obj.__wrapped__, CPUDispatcher)]
     entry = stats["virtual_vehicle.engine._kernel.run_piece"]
     assert entry.calls == tr.segments > 20 and entry.seconds > 0

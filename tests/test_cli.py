@@ -369,6 +369,8 @@ def test_networked_coulomb_runs_check_sliding_and_the_cli_warns(tmp_path):
     assert p["coulomb_max_reversed_slip_m_per_s"] > 0.05
     assert s["coulomb_sliding"]["checked"] and s["coulomb_sliding"]["parcels_violating"] == 1
     assert "warning: the Coulomb law's assumption" in result.stderr and '[friction] law = "viscous"' in result.stderr
+    said = result.stdout + result.stderr  # said once, naming the parcel (its own line used to repeat it)
+    assert said.count("outran a wheel") == 1 and said.count("viscous") == 1 and "(p from t=0.25 s)" in result.stderr
     path.write_text(SORT_COULOMB + '[friction]\nlaw = "viscous"\n')
     viscous = runner.invoke(app, ["run", str(path), "--out", str(tmp_path / "v"), "--no-plot"])
     assert viscous.exit_code == 0 and "warning" not in viscous.stderr

@@ -12,7 +12,7 @@ from virtual_vehicle.engine.plant import Integration, Plant
 from virtual_vehicle.model import layout
 from virtual_vehicle.model.parcel import polygon, rectangle
 from virtual_vehicle.physics.collide import ContactParams, outline_distance, overlap_area, pair_contacts
-from virtual_vehicle.physics.friction import LAWS
+from virtual_vehicle.physics.laws import LAWS
 from virtual_vehicle.run.sim import run
 
 G = 9.81

@@ -11,7 +11,7 @@ from virtual_vehicle.cells.design import twist_design, wrench_design, wrench_mat
 from virtual_vehicle.config.scenario import parse_scenario
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics import laws
 
 G = 9.81
 
@@ -63,7 +63,7 @@ def model_wrench(cells, spec, design, law, state):
 def test_viscous_wrench_design_is_exact_when_feasible():
     cells = layout.grid(10, 10, 0.1)
     spec = parcel.rectangle(0.35, 0.3, 2.0, 0.5)
-    law = friction.ViscousLaw()
+    law = laws.ViscousLaw()
     rng = np.random.default_rng(3)
     for _ in range(5):  # a wrench some wheel speeds within the limit produce is reproduced exactly
         speeds = rng.uniform(-0.4, 0.4, size=(cells.n, 2))
@@ -81,10 +81,10 @@ def test_coulomb_wrench_design_is_the_best_spin_pattern():
     state = np.array([0.05, 0.05, 0.0, 0, 0, 0])
     A, support, _ = wrench_matrix(cells, spec, state)
     for target in ([0.0, 0.0, 0.2], [3.0, -1.0, 0.0], [10.0, 10.0, 0.0]):
-        d = wrench_design(cells, spec, state, target, friction.CoulombLaw(), vmax=0.3)
+        d = wrench_design(cells, spec, state, target, laws.CoulombLaw(), vmax=0.3)
         brute = min(np.linalg.norm(A @ np.array(s) - target) for s in itertools.product((-1, 0, 1), repeat=8))
         assert abs(d.residual - brute) < 1e-12
-        np.testing.assert_allclose(model_wrench(cells, spec, d, friction.CoulombLaw(), state), d.achieved, atol=1e-12)
+        np.testing.assert_allclose(model_wrench(cells, spec, d, laws.CoulombLaw(), state), d.achieved, atol=1e-12)
 
 
 def test_twist_design_is_the_viscous_steady_state():
@@ -95,7 +95,7 @@ def test_twist_design_is_the_viscous_steady_state():
     state = np.array([0.75, 0.75, 0.2, *want])
     d = twist_design(cells, spec, state, want)
     assert d.scale == 1.0
-    np.testing.assert_allclose(model_wrench(cells, spec, d, friction.ViscousLaw(), state), 0, atol=1e-12)
+    np.testing.assert_allclose(model_wrench(cells, spec, d, laws.ViscousLaw(), state), 0, atol=1e-12)
     limited = twist_design(cells, spec, state, want, vmax=0.04)
     assert limited.scale < 1 and np.abs(limited.wheel_speeds).max() <= 0.04 + 1e-15
     # Released at rest, the parcel converges to the twist when it is one a free rigid body can keep: a
@@ -103,7 +103,7 @@ def test_twist_design_is_the_viscous_steady_state():
     # force, hence slip: the design is instantaneous and is re-made every control tick).
     for twist in ((0.05, 0.02, 0.0), (0.0, 0.0, 0.3)):
         field = fields.Twist((0.75, 0.75), twist).velocities(cells)
-        tr = integrate(ParcelModel(cells, spec, field, friction.ViscousLaw(), G), [0.75, 0.75, 0.2, 0, 0, 0], 0, 3.0)
+        tr = integrate(ParcelModel(cells, spec, field, laws.ViscousLaw(), G), [0.75, 0.75, 0.2, 0, 0, 0], 0, 3.0)
         np.testing.assert_allclose(tr.states[-1, 3:], twist, atol=1e-9)
 
 
@@ -114,7 +114,7 @@ def test_paper_2x2_inward_field_equilibrium():
     cells = layout.grid(2, 2, d)
     spec = parcel.rectangle(0.3, 0.3, 1.0, mu)
     v = fields.Inward((0.05, 0.05), 0.2).velocities(cells)
-    eqs = equilibria(cells, spec, v, friction.CoulombLaw(), bounds=(0.0, 0.0, 0.1, 0.1),
+    eqs = equilibria(cells, spec, v, laws.CoulombLaw(), bounds=(0.0, 0.0, 0.1, 0.1),
                      headings=np.linspace(0, np.pi / 2, 10), step=0.01)
     assert len(eqs) == 1
     e = eqs[0]
@@ -129,7 +129,7 @@ def test_released_parcels_settle_where_the_analysis_says(start):
     cells = layout.grid(6, 6, 0.1)
     spec = parcel.rectangle(0.35, 0.2, 1.0, 0.5)
     v = fields.Inward((0.25, 0.25), 0.2).velocities(cells)
-    law = friction.ViscousLaw()
+    law = laws.ViscousLaw()
     eqs = equilibria(cells, spec, v, law, bounds=(0.15, 0.15, 0.35, 0.35), headings=np.linspace(0, 2 * np.pi, 73),
                      step=0.025)
     assert any(e.rotation == "unstable" for e in eqs) and any(e.rotation == "stable" for e in eqs)

@@ -12,7 +12,7 @@ from virtual_vehicle.engine import dynamics
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.errors import TippingError
 from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics import contact, friction
+from virtual_vehicle.physics import contact, laws
 
 G = 9.81
 
@@ -27,7 +27,7 @@ def test_paper_2x2_inward_is_an_isotropic_oscillator_without_torque():
     d, mu = 0.1, 0.5
     cells = layout.grid(2, 2, d, origin=(-d / 2, -d / 2))
     spec = parcel.rectangle(0.3, 0.3, 1.0, mu)
-    m = model(cells, spec, fields.Inward((0, 0), 0.5), friction.CoulombLaw())
+    m = model(cells, spec, fields.Inward((0, 0), 0.5), laws.CoulombLaw())
     x0, y0, th0 = 0.02, -0.01, 0.1
     tr = integrate(m, [x0, y0, th0, 0, 0, 0], 0, 2.0, sample_dt=0.01)
     w = np.sqrt(2 * mu * G / d)  # stiffness 2 mu W / d over mass m (eq. 23 with the 2x2 a-hat)
@@ -42,7 +42,7 @@ def test_viscous_uniform_field_relaxes_to_wheel_speed():
     mu, V = 1.0, 0.2
     cells = layout.grid(30, 30, 0.1)
     spec = parcel.rectangle(0.4, 0.3, 2.0, mu)
-    m = model(cells, spec, fields.Uniform((V, 0.0)), friction.ViscousLaw())
+    m = model(cells, spec, fields.Uniform((V, 0.0)), laws.ViscousLaw())
     tr = integrate(m, [0.52, 1.47, 0.0, 0, 0, 0], 0, 5.0, sample_dt=0.05)
     t = tr.times
     k = mu * G
@@ -61,7 +61,7 @@ def test_a_load_starting_on_a_row_of_cells_shares_it_as_soon_as_it_leaves_the_ro
     hold throughout."""
     cells = layout.grid(60, 60, 0.1)
     spec = parcel.rectangle(0.25, 0.2, 1.0, 1.0)
-    m = model(cells, spec, fields.Uniform((0.2, 0.05)), friction.ViscousLaw())
+    m = model(cells, spec, fields.Uniform((0.2, 0.05)), laws.ViscousLaw())
     tr = integrate(m, [x, y, 0.0, 0, 0, 0], 0, 0.1, sample_dt=0.01, max_segments=50)
     np.testing.assert_allclose(tr.states[:, 3:5], np.outer(1 - np.exp(-G * tr.times), [0.2, 0.05]), atol=1e-10)
     assert np.max(np.abs(tr.states[:, [2, 5]])) < 1e-12  # no turning
@@ -78,7 +78,7 @@ def test_viscous_spin_decays_at_the_rate_of_eq38():
     d, mu, mass = 0.1, 0.8, 3.0
     cells = layout.grid(2, 2, d, origin=(-d / 2, -d / 2))
     spec = parcel.rectangle(0.5, 0.5, mass, mu)  # the four cells stay under it while it turns
-    m = model(cells, spec, fields.Uniform((0.0, 0.0)), friction.ViscousLaw())
+    m = model(cells, spec, fields.Uniform((0.0, 0.0)), laws.ViscousLaw())
     tr = integrate(m, [0, 0, 0, 0, 0, 2.0], 0, 1.0, sample_dt=0.1)
     rate = mu * (mass * G) * (d**2 / 2) / spec.inertia  # sum N_i r_i^2 = W (d^2 / 2)
     np.testing.assert_allclose(tr.states[:, 5], 2.0 * np.exp(-rate * tr.times), rtol=1e-9)
@@ -90,7 +90,7 @@ def test_row_viscous_is_a_damped_oscillator_within_one_support_set():
     p, mu, mass, v = 0.1, 1.0, 1.0, 1.0
     cells = layout.row(8, p)
     spec = parcel.rectangle(0.35, 0.1, mass, mu)
-    m = model(cells, spec, fields.ReversedEnd((v, 0.0)), friction.ViscousLaw())
+    m = model(cells, spec, fields.ReversedEnd((v, 0.0)), laws.ViscousLaw())
     # over cells at s = 0.5, 0.6, 0.7: N_end = W/3 + W (x - 0.6)(0.1)/0.02 and f = mu v (W - 2 N_end) - mu W xdot
     W = mass * G
     s = np.array([0.5, 0.6, 0.7])
@@ -195,7 +195,7 @@ def test_row_coulomb_matches_piecewise_analytic_reference():
     cells = layout.row(8, p)
     spec = parcel.rectangle(L, 0.1, mass, mu)
     field = fields.ReversedEnd((1.0, 0.0))
-    m = model(cells, spec, field, friction.CoulombLaw())
+    m = model(cells, spec, field, laws.CoulombLaw())
     tr = integrate(m, [0.57, 0, 0, 0, 0, 0], 0, 1.2, sample_dt=0.1)
     assert len(tr.events) >= 5, "the test must cross support changes"
     F = np.sign(field.velocities(cells)[:, 0])
@@ -211,7 +211,7 @@ def test_event_driven_converges_and_fixed_step_converges_to_it():
     order with a step-phase-dependent scatter: fit the order over many steps and bound the error by C dt."""
     cells = layout.grid(8, 6, 0.1)
     spec = parcel.rectangle(0.35, 0.25, 1.5, 0.5)
-    m = model(cells, spec, fields.Inward((0.42, 0.27), 0.6), friction.CoulombLaw())
+    m = model(cells, spec, fields.Inward((0.42, 0.27), 0.6), laws.CoulombLaw())
     y0 = [0.3, 0.2, 0.3, 0.1, 0.0, 0.5]
     T = 0.5
     exact = integrate(m, y0, 0, T, rtol=1e-13, atol=1e-15).states[-1]
@@ -233,7 +233,7 @@ def test_fixed_step_converges_to_the_analytic_row_reference():
     L, mass, mu = 0.35, 1.0, 0.3
     cells = layout.row(8, 0.1)
     field = fields.ReversedEnd((1.0, 0.0))
-    m = model(cells, parcel.rectangle(L, 0.1, mass, mu), field, friction.CoulombLaw())
+    m = model(cells, parcel.rectangle(L, 0.1, mass, mu), field, laws.CoulombLaw())
     F = np.sign(field.velocities(cells)[:, 0])
     ref = reference_row(cells.positions[:, 0], F, L, mass, mu, 0.57, 0.6, [0.6])[0]
     dts = 2e-3 / 2 ** np.arange(6)
@@ -246,7 +246,7 @@ def test_fixed_step_converges_to_the_analytic_row_reference():
 def test_coulomb_row_conserves_energy_turning_points_repeat():
     cells = layout.row(8, 0.1)
     spec = parcel.rectangle(0.35, 0.1, 1.0, 0.3)
-    m = model(cells, spec, fields.ReversedEnd((1.0, 0.0)), friction.CoulombLaw())
+    m = model(cells, spec, fields.ReversedEnd((1.0, 0.0)), laws.CoulombLaw())
     tr = integrate(m, [0.57, 0, 0, 0, 0, 0], 0, 8.0, sample_dt=1e-3)
     x, v = tr.states[:, 0], tr.states[:, 3]
     turns = np.flatnonzero(np.sign(v[1:]) != np.sign(v[:-1]))
@@ -265,7 +265,7 @@ def test_a_support_pattern_is_solved_in_its_own_coordinates_wherever_it_is_met()
     spec = parcel.rectangle(0.33, 0.24, 1.5, 0.8)
     sols = []
     for shift in ((0.0, 0.0), (2.3, 3.1)):
-        m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), friction.ViscousLaw())  # fresh: nothing shared
+        m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), laws.ViscousLaw())  # fresh: nothing shared
         y = np.array([0.613 + shift[0], 0.587 + shift[1], 0.37, 0, 0, 0])
         support = m.support_at(y)
         sol = m.solution_for(support, y[:2])
@@ -285,7 +285,7 @@ def test_a_parcel_tipping_off_a_pattern_is_told_where_in_the_arrays_coordinates(
     when only the pattern's own solve (rounding apart) finds it outside its supports."""
     cells = layout.grid(30, 30, 0.1)
     spec = parcel.rectangle(0.4, 0.3, 2.0, 1.0)
-    m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), friction.CoulombLaw())
+    m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), laws.CoulombLaw())
     y = np.array([2.03, 1.47, 0.3, 0, 0, 0])
     with pytest.raises(TippingError, match=r"\(2\.03, 1\.47\) m is"):
         m.solution_for(m.support_at(y)[:3], y[:2])  # three cells on one side: outside their hull
@@ -306,7 +306,7 @@ def test_a_piece_made_by_the_engine_knows_its_key():
     stepper's anchor: what Piece.key computes, with lift-off."""
     cells = layout.grid(30, 30, 0.1)
     model = ParcelModel(cells, parcel.rectangle(0.4, 0.3, 2.0, 1.0), fields.Inward((1.5, 1.5), 3.0).velocities(cells),
-                        friction.CoulombLaw())
+                        laws.CoulombLaw())
     tr = integrate(model, np.array([1.12, 1.47, 0.3, 0.0, 0.0, 0.0]), 0.0, 1.0, sample_dt=0.002)
     edge = [np.array([x, 1.47, 0.1, 0.0, 0.0, 0.0]) for x in np.linspace(0.005, 0.03, 6)]  # the centre of mass near
     found = {}  # the first column, the parcel over the array's edge: lift-off
@@ -325,7 +325,7 @@ def test_a_piece_made_by_the_engine_knows_its_key():
 def test_viscous_row_settles_where_the_end_cell_carries_half():
     cells = layout.row(8, 0.1)
     spec = parcel.rectangle(0.35, 0.1, 1.0, 1.0)
-    m = model(cells, spec, fields.ReversedEnd((1.0, 0.0)), friction.ViscousLaw())
+    m = model(cells, spec, fields.ReversedEnd((1.0, 0.0)), laws.ViscousLaw())
     tr = integrate(m, [0.45, 0, 0, 0, 0, 0], 0, 6.0)
     x_e = 0.55 + 0.25 * 0.05 / 0.15
     assert tr.status == "completed"
@@ -340,7 +340,7 @@ def test_support_changes_happen_at_their_exact_geometric_positions():
     L = 0.33
     cells = layout.grid(12, 4, 0.1)
     spec = parcel.rectangle(L, 0.25, 1.0, 1.0)
-    m = model(cells, spec, fields.Uniform((0.6, 0.0)), friction.ViscousLaw())
+    m = model(cells, spec, fields.Uniform((0.6, 0.0)), laws.ViscousLaw())
     tr = integrate(m, [0.2, 0.15, 0, 0, 0, 0], 0, 1.5)
     cols = cells.positions[:, 0]
     assert len(tr.events) >= 10
@@ -358,7 +358,7 @@ def test_support_changes_happen_at_their_exact_geometric_positions():
 def test_parcel_pushed_off_the_end_tips_at_the_last_cells():
     cells = layout.grid(6, 3, 0.08)
     spec = parcel.rectangle(0.3, 0.2, 1.5, 0.4)
-    m = model(cells, spec, fields.ReversedEnd((1.0, 0.0)), friction.CoulombLaw())
+    m = model(cells, spec, fields.ReversedEnd((1.0, 0.0)), laws.CoulombLaw())
     tr = integrate(m, [0.17, 0.08, 0, 0, 0, 0], 0, 3.0)
     assert tr.status == "tipped" and tr.events[-1].kind == "tip"
     assert abs(tr.states[-1, 0] - 0.40) < 1e-9  # centre of mass over the last column
@@ -370,7 +370,7 @@ def test_parcel_pushed_off_the_end_tips_at_the_last_cells():
 def test_start_off_supports_is_a_tip_event_not_a_crash():
     cells = layout.grid(3, 3, 0.1)
     spec = parcel.rectangle(0.15, 0.15, 1.0, 0.5)
-    m = model(cells, spec, fields.Uniform((0.1, 0.0)), friction.CoulombLaw())
+    m = model(cells, spec, fields.Uniform((0.1, 0.0)), laws.CoulombLaw())
     tr = integrate(m, [0.5, 0.5, 0, 0, 0, 0], 0, 1.0)
     assert tr.status == "tipped" and tr.t_end == 0.0
 
@@ -378,7 +378,7 @@ def test_start_off_supports_is_a_tip_event_not_a_crash():
 def test_rejects_bad_arguments():
     cells = layout.grid(3, 3, 0.1)
     spec = parcel.rectangle(0.25, 0.25, 1.0, 0.5)
-    m = model(cells, spec, fields.Uniform((0.1, 0.0)), friction.CoulombLaw())
+    m = model(cells, spec, fields.Uniform((0.1, 0.0)), laws.CoulombLaw())
     with pytest.raises(ValueError, match="mode"):
         integrate(m, [0.1, 0.1, 0, 0, 0, 0], 0, 1.0, mode="magic")
     with pytest.raises(ValueError, match="six finite"):
@@ -386,13 +386,13 @@ def test_rejects_bad_arguments():
     with pytest.raises(ValueError, match="after"):
         integrate(m, [0.1, 0.1, 0, 0, 0, 0], 1.0, 1.0)
     with pytest.raises(ValueError, match="velocities"):
-        ParcelModel(cells, spec, np.zeros((2, 2)), friction.CoulombLaw())
+        ParcelModel(cells, spec, np.zeros((2, 2)), laws.CoulombLaw())
 
 
 def test_fixed_and_event_modes_agree_on_events():
     cells = layout.grid(12, 4, 0.1)
     spec = parcel.rectangle(0.33, 0.25, 1.0, 1.0)
-    m = model(cells, spec, fields.Uniform((0.6, 0.0)), friction.ViscousLaw())
+    m = model(cells, spec, fields.Uniform((0.6, 0.0)), laws.ViscousLaw())
     ev = integrate(m, [0.2, 0.15, 0, 0, 0, 0], 0, 1.5)
     fx = integrate(m, [0.2, 0.15, 0, 0, 0, 0], 0, 1.5, mode="fixed", dt=1e-3)
     assert [e.entered for e in ev.events] == [e.entered for e in fx.events]
@@ -408,7 +408,7 @@ def test_support_change_records_are_the_dataclass_s_own():
     lists are sorted whatever order the sets give, empty ones empty tuples."""
     cells = layout.grid(12, 4, 0.1)
     spec = parcel.rectangle(0.33, 0.25, 1.0, 1.0)
-    m = model(cells, spec, fields.Uniform((0.6, 0.0)), friction.ViscousLaw())
+    m = model(cells, spec, fields.Uniform((0.6, 0.0)), laws.ViscousLaw())
     tr = integrate(m, [0.2, 0.15, 0.1, 0, 0, 0], 0, 1.5)
     support = [e for e in tr.events if e.kind == "support"]
     assert len(support) > 10
@@ -432,7 +432,7 @@ def test_chattering_supports_are_crossed_in_fixed_steps_and_converge():
     cells = layout.grid(12, 12, 0.1)
     spec = parcel.rectangle(0.33, 0.24, 1.5, 0.8)
     field = np.random.default_rng(7).uniform(-0.3, 0.3, (cells.n, 2))
-    m = ParcelModel(cells, spec, field, friction.ViscousLaw(), G)
+    m = ParcelModel(cells, spec, field, laws.ViscousLaw(), G)
     y0 = [0.4 + 0.165, 0.4 + 0.12, 0.0, 0.0, 0.0, 0.0]
     samples = np.linspace(0.0, 0.05, 6)
     ends = {}

@@ -46,7 +46,7 @@ def scenario(extra: str = "", mass: str = "1.0", x: str = "0.15", duration: str 
 
 # (case id, scenario text (None: a directory), the field or problem the one message must name)
 SCENARIOS = [
-    ("negative-mass", scenario(mass="-1.0"), "parcels[0].mass"),
+    ("negative-mass", scenario(mass="-1.0"), "parcels[0].mass: must be positive (at least 1e-12), got -1.0"),
     ("tiny-mass", scenario(mass="1e-300"), "parcels[0].mass: must be at least 1e-12"),
     ("unknown-friction-law", scenario(extra='[friction]\nlaw = "rubber"'), "friction.law"),
     ("parcel-off-the-array", scenario(x="5.0"), "parcels[0].x"),
@@ -135,7 +135,8 @@ def test_compare_over_an_earlier_comparison(tmp_path):
     one_error(runner.invoke(app, ["compare", "sorting_junction", "--out", str(out)]), "--force")
 
 
-@pytest.mark.parametrize("case", ["tiny-mass", "directory-as-scenario", "huge-allocation", "coarse-fixed-dt"])
+@pytest.mark.parametrize("case", ["negative-mass", "tiny-mass", "directory-as-scenario", "huge-allocation",
+                                  "coarse-fixed-dt"])
 def test_the_console_script_says_it_once(tmp_path, case):
     _, text, needle = next(c for c in SCENARIOS if c[0] == case)
     path = write(tmp_path, text)

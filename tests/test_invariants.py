@@ -12,11 +12,11 @@ from hypothesis import strategies as st
 from virtual_vehicle.config.scenario import bundled_scenarios, load_scenario
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import layout, parcel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics import laws
 from virtual_vehicle.run import files, io
 from virtual_vehicle.run.sim import run
 
-LAWS = {"coulomb": friction.CoulombLaw(), "viscous": friction.ViscousLaw(), "stick_slip": friction.StickSlipLaw()}
+LAWS = {"coulomb": laws.CoulombLaw(), "viscous": laws.ViscousLaw(), "stick_slip": laws.StickSlipLaw()}
 
 
 def rot(a):
@@ -67,8 +67,8 @@ def test_cell_numbering_does_not_matter():
     shuffled = layout.CellArray(cells.positions[perm], cells.drive_directions[perm], cells.pitch)
     spec = parcel.rectangle(0.33, 0.27, 1.2, 1.0)
     y0 = [0.42, 0.31, 0.2, 0.05, 0.0, 0.3]
-    a = simulate(cells, spec, V, friction.ViscousLaw(), y0)
-    b = simulate(shuffled, spec, V[perm], friction.ViscousLaw(), y0)
+    a = simulate(cells, spec, V, laws.ViscousLaw(), y0)
+    b = simulate(shuffled, spec, V[perm], laws.ViscousLaw(), y0)
     np.testing.assert_allclose(a.states, b.states, atol=1e-9)
     # shuffled cell k is original cell perm[k]
     assert [tuple(sorted(perm[list(e.entered)].tolist())) for e in b.events] == [e.entered for e in a.events]

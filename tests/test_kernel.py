@@ -19,7 +19,9 @@ from virtual_vehicle.engine import _kernel as kernel
 from virtual_vehicle.engine import dynamics
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics import laws
+from virtual_vehicle.physics.contact import solve_support
+from virtual_vehicle.physics.laws import affine
 from virtual_vehicle.run.warm import warm_up
 
 CELLS = layout.grid(30, 30, 0.1)
@@ -103,7 +105,7 @@ def test_a_segment_reads_the_supports_off_its_event_values_while_its_candidates_
     beyond it (nor without values)."""
     cells = layout.grid(30, 30, 0.1)
     spec = parcel.rectangle(0.4, 0.3, 2.0, 1.0)
-    m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), friction.CoulombLaw())
+    m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), laws.CoulombLaw())
     y0 = np.array([1.12, 1.47, 0.3, 0, 0, 0])
     seg = dynamics._Segment(m, m.piece_at(y0), y0)
     rng = np.random.default_rng(4)
@@ -127,7 +129,7 @@ def test_a_segment_keeps_its_predecessors_candidates_only_within_half_the_buffer
     new ones. Either way it reads the supports off its event values as support_at finds them."""
     cells = layout.grid(30, 30, 0.1)
     spec = parcel.rectangle(0.4, 0.3, 2.0, 1.0)
-    m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), friction.CoulombLaw())
+    m = ParcelModel(cells, spec, np.zeros((cells.n, 2)), laws.CoulombLaw())
     y0 = np.array([1.12, 1.47, 0.3, 0, 0, 0])
     first = dynamics._Segment(m, m.piece_at(y0), y0)
     near = y0 + np.array([0.03, -0.03, 0.4, 0, 0, 0])  # 0.042 m away: within half of the 0.1 m buffer
@@ -256,7 +258,7 @@ def test_compiled_dop853_takes_scipys_steps():
     large stages) and has the same dense output; here on a viscous piece in steps that grow from 1 ms, up to the
     bound."""
     spec = SHAPES["rectangle"]
-    m = ParcelModel(CELLS, spec, fields.Inward((1.5, 1.5), 0.2).velocities(CELLS), friction.ViscousLaw())
+    m = ParcelModel(CELLS, spec, fields.Inward((1.5, 1.5), 0.2).velocities(CELLS), laws.ViscousLaw())
     y0 = np.array([1.52, 1.47, 0.3, 0.3, -0.2, 1.0])
     piece = m.piece_at(y0)
     ref = DOP853(piece.rhs, 0.0, y0, 1.0, rtol=1e-10, atol=1e-12, first_step=1e-3)
@@ -285,7 +287,7 @@ def test_a_run_handed_back_for_progress_is_the_same_run(monkeypatch):
     """With a progress callback the kernel returns to Python every few steps of a piece (here every 2) and is
     resumed where it stopped: the trajectory is the same to the last bit, and progress moves forward."""
     spec = SHAPES["rectangle"]
-    m = ParcelModel(CELLS, spec, fields.Inward((1.5, 1.5), 0.2).velocities(CELLS), friction.ViscousLaw())
+    m = ParcelModel(CELLS, spec, fields.Inward((1.5, 1.5), 0.2).velocities(CELLS), laws.ViscousLaw())
     y0 = np.array([1.12, 1.47, 0.3, 0.0, 0.0, 0.0])
     seen: list[float] = []
     quiet = integrate(m, y0, 0.0, 20.0, sample_dt=0.5, rtol=1e-12, atol=1e-14)
@@ -356,7 +358,7 @@ def test_max_step_bounds_every_compiled_step():
     """``max_step`` caps the compiled integrator's steps (scipy's rule): a viscous piece that one long step would
     cross takes at least one step per ``max_step``, and ends where the uncapped run ends (to the tolerance)."""
     spec = SHAPES["rectangle"]
-    m = ParcelModel(CELLS, spec, fields.Inward((1.5, 1.5), 0.2).velocities(CELLS), friction.ViscousLaw())
+    m = ParcelModel(CELLS, spec, fields.Inward((1.5, 1.5), 0.2).velocities(CELLS), laws.ViscousLaw())
     y0 = np.array([1.52, 1.47, 0.3, 0.0, 0.0, 0.0])
     free = integrate(m, y0, 0.0, 0.2, sample_dt=0.2)
     capped = integrate(m, y0, 0.0, 0.2, sample_dt=0.2, max_step=1e-3)
@@ -385,3 +387,144 @@ def test_the_compiled_pattern_is_numpys_and_sees_whole_cell_translations(seed, m
     np.testing.assert_array_equal(rel, np.round((P - P[0]) / unit).astype(np.int64))
     moved = (row + dy) * 120 + (col + dx)
     assert kernel.pattern(cells.positions, moved.astype(np.int64), unit)[2].tobytes() == rel.tobytes()
+
+
+def test_each_row_field_has_its_place_by_name():
+    """The row's order is written once, in ROW_FIELDS: each field's ``R_`` place is its index there, one a field."""
+    places = {name[2:].lower(): value for name, value in vars(affine).items() if name.startswith("R_")}
+    assert places == {name: k for k, name in enumerate(affine.ROW_FIELDS)} and affine.ROW_LENGTH == len(places)
+
+
+def test_the_compiled_accelerations_read_the_row_as_python_does():
+    """The compiled accelerations take the row's places as constants when compiled (numba's cache knows only the
+    kernel's file): on a row of distinct values they read what the Python function reads now, so a stale cache
+    compiled for another order of ROW_FIELDS fails here. The row writer puts each constant at its place."""
+    rng = np.random.default_rng(4)
+    row = rng.uniform(0.5, 2.0, affine.ROW_LENGTH)
+    for state in rng.normal(0, 0.3, (10, 5)):
+        assert kernel.accelerations_compiled(row, *state) == kernel.accelerations(tuple(row.tolist()), *state)
+    a, b, c, d, e, moment_lin, moment_const, second_lin = (rng.normal(size=s) for s in
+                                                           ((2, 2), 2, (2, 2), 2, 2, (2, 2), 2, 2))
+    written = affine.row(a, b, c, d, e, 0.7, 0.3, 9.0, moment_lin, moment_const, second_lin, 0.4, np.array([1.0, 2.0]),
+                         0.5, 0.25)
+    named = dict(zip(affine.ROW_FIELDS, written.tolist()))
+    assert [named[f"a_{ij}"] for ij in ("xx", "xy", "yx", "yy")] == a.ravel().tolist()
+    assert [named[f"c_{ij}"] for ij in ("xx", "xy", "yx", "yy")] == c.ravel().tolist()
+    assert [named[f"moment_lin_{ij}"] for ij in ("xx", "xy", "yx", "yy")] == moment_lin.ravel().tolist()
+    assert [named["de_x"], named["de_y"]] == (d + e).tolist() and [named["b_x"], named["b_y"]] == b.tolist()
+    assert [named["moment_const_x"], named["moment_const_y"], named["second_lin_x"], named["second_lin_y"]] == \
+        [*moment_const.tolist(), *second_lin.tolist()]
+    assert [named[n] for n in ("f", "damping", "weight", "second_const", "origin_x", "origin_y", "inv_mass",
+                               "inv_inertia")] == [0.7, 0.3, 9.0, 0.4, 1.0, 2.0, 0.5, 0.25]
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000), st.sampled_from(["coulomb", "viscous", "stick_slip"]))
+def test_the_accelerations_of_a_laws_row_are_its_wrench_over_mass_and_inertia(seed, law_name):
+    """kernel.accelerations of the row a law makes (constants_and_row) at a random state: the direct per-cell
+    wrench (eqs. 22, 24) over the mass and the inertia."""
+    rng = np.random.default_rng(seed)
+    m = int(rng.integers(3, 12))
+    P = rng.uniform(-0.5, 0.5, size=(m, 2)) + rng.uniform(-2, 2, size=2)
+    angle = rng.uniform(0, np.pi)
+    c, s = np.cos(angle), np.sin(angle)
+    U = np.broadcast_to(np.array([[c, s], [-s, c]]), (m, 2, 2))
+    V = rng.uniform(-1, 1, size=(m, 2))
+    W, mu, mass, inertia = 15.0, 0.4, 2.5, 0.3
+    law = laws.LAWS[law_name]  # stick-slip: the sliding regime's, Coulomb's
+    com = P.mean(axis=0) + 0.3 * (P[0] - P.mean(axis=0))
+    sol = solve_support(P, com, W)
+    state = np.array([*com, 0.0, *rng.uniform(-1, 1, size=2), rng.uniform(-3, 3)])
+    fx, fy, tau = law.wrench(P, sol.forces(com), V, U, mu, state)
+    _, row = law.constants_and_row(sol, V, U, mu, mass, inertia)
+    np.testing.assert_allclose(kernel.accelerations(row, *com, *state[3:]), [fx / mass, fy / mass, tau / inertia],
+                               atol=1e-10 * W / min(mass, inertia))
+
+# The quiet stepper's compiled step and edge checks (virtual_vehicle.engine.batch): parcels on a 12 x 12 array.
+BATCH_CELLS = layout.grid(12, 12, 0.1)
+BATCH_SPEC = parcel.rectangle(0.33, 0.24, 1.5, 0.8)
+BATCH_PENTAGON = parcel.polygon([[0.0, 0.0], [0.3, 0.0], [0.36, 0.16], [0.15, 0.27], [-0.04, 0.14]], 1.2, 0.7)
+
+
+def _batch_field(seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(-0.3, 0.3, (BATCH_CELLS.n, 2))
+
+
+def _quiet_pieces(law, seed, n=20):
+    """n parcels' states and their pieces under a random field, placed at random inside the array."""
+    rng = np.random.default_rng(seed)
+    model = ParcelModel(BATCH_CELLS, BATCH_SPEC, _batch_field(seed), law)
+    ys, rows = [], []
+    for _ in range(n):
+        y = np.array([*rng.uniform(0.35, 0.75, 2), rng.uniform(-np.pi, np.pi), *rng.normal(0, 0.1, 2),
+                      rng.normal(0, 0.5)])
+        piece = model.piece_at(y)
+        ys.append(y)
+        rows.append(dynamics.constants_row(piece.constants, piece.solution.origin, BATCH_SPEC.mass, BATCH_SPEC.inertia))
+    return model, np.array(ys), rows
+
+
+def _quiet_steps(rows, Y, t, t_bound, taus):
+    out = np.full((len(Y), len(taus), 6), np.nan)
+    accepted, evals = kernel.quiet_steps(np.array(rows), Y, t, t_bound, 1e-10, 1e-12, np.asarray(taus), out)
+    return accepted, out, evals
+
+
+@pytest.mark.parametrize("law", ["viscous", "coulomb"])
+def test_quiet_steps_are_scipys_dop853_step(law):
+    """Each parcel's step is the one scipy's DOP853 takes from the same state with the whole window as its first
+    step (to rounding: scipy sums stages with BLAS), kept exactly when scipy keeps it, and its dense output is
+    scipy's; a refused step writes nothing."""
+    model, Y, rows = _quiet_pieces(laws.LAWS[law], 3)
+    h = 0.05  # long enough that some steps fail the error test
+    taus = np.array([0.0, 0.3 * h, 0.77 * h, h])
+    accepted, out, evals = _quiet_steps(rows, Y, 0.0, h, taus)
+    assert evals == 16  # the first derivative, 11 stages, the end's, and 3 more for the dense output
+    for n, y0 in enumerate(Y):
+        solver = DOP853(model.piece_at(y0).rhs, 0.0, y0, h, rtol=1e-10, atol=1e-12, first_step=h)
+        solver.step()
+        assert accepted[n] == (solver.t == h)  # scipy kept the whole step exactly when its error test passed
+        if solver.t == h:
+            np.testing.assert_allclose(out[n, -1], solver.y, rtol=1e-13, atol=1e-15)
+            np.testing.assert_allclose(out[n], solver.dense_output()(taus).T, rtol=1e-13, atol=1e-15)
+            assert out[n, 0].tolist() == y0.tolist()
+        else:
+            assert np.isnan(out[n]).all()
+    assert accepted.any() and not accepted.all()
+
+
+def test_a_step_too_long_for_the_tolerance_or_short_of_the_end_is_refused():
+    _, Y, rows = _quiet_pieces(laws.LAWS["viscous"], 4)
+    assert not _quiet_steps(rows, Y, 0.0, 2.0, [0.0, 2.0])[0].any()
+    t, t_bound = -0.0019132392605720027, 0.0008155261736351271  # t + (t_bound - t) falls short of t_bound by
+    assert t + (t_bound - t) < t_bound  # rounding: the engine would take a second, tiny step
+    assert not _quiet_steps(rows, Y, t, t_bound, [t, t_bound])[0].any()
+    assert _quiet_steps(rows, Y, 0.0, t_bound - t, [0.0, t_bound - t])[0].all()  # the same window from 0
+
+
+def test_the_edges_of_many_parcels_in_one_call_are_each_parcels_own():
+    """edges_clear_many against edges_clear parcel by parcel, with few cells a parcel (padded rows) and two outlines
+    (four and five edges, padded)."""
+    rng = np.random.default_rng(3)
+    # few cells a parcel, over a window of 0.1 s that leaves ~40 % undecided: a cell or an edge dropped or
+    # borrowed from a neighbour changes decisions
+    points = rng.uniform(-0.2, 0.2, (40, 2))
+    outlines = [BATCH_SPEC.halfplanes, BATCH_PENTAGON.halfplanes]
+    near = [rng.choice(len(points), rng.integers(1, 4), replace=False) for _ in range(200)]
+    shape = rng.integers(0, 2, len(near))
+    padded = np.full((len(near), 3), len(points))
+    for k, n in enumerate(near):
+        padded[k, :len(n)] = n
+    normals, offsets = np.zeros((len(near), 5, 2)), np.zeros((len(near), 5))
+    for k, o in enumerate(shape):
+        normals[k, :len(outlines[o][1])], offsets[k, :len(outlines[o][1])] = outlines[o]
+    counts = np.array([len(outlines[o][1]) for o in shape])
+    Y = np.column_stack([rng.normal(0, 0.02, (len(near), 2)), rng.uniform(-np.pi, np.pi, len(near)),
+                         rng.normal(0, 0.3, (len(near), 2)), rng.normal(0, 0.5, len(near))])
+    r, accel = rng.uniform(0, 0.02, len(near)), rng.uniform(0, 0.002, len(near))
+    R, lever, noise = np.full(len(near), 0.2), np.full(len(near), 3.0), np.full(len(near), 1e-11)
+    together = kernel.edges_clear_many(points, padded, np.array([len(n) for n in near]), normals, offsets, counts,
+                                        Y, 0.1, r, accel, R, lever, noise)
+    alone = [kernel.edges_clear(points, near[k], *outlines[shape[k]], Y[k], 0.1, r[k], accel[k], R[k], lever[k],
+                                 noise[k]) for k in range(len(near))]
+    assert together.tolist() == alone and 0.2 < np.mean(alone) < 0.8

@@ -14,7 +14,16 @@ from virtual_vehicle.model import layout
 from virtual_vehicle.model.fields import Uniform
 from virtual_vehicle.model.parcel import rectangle
 from virtual_vehicle.physics.collide import point_reach
-from virtual_vehicle.physics.laws import LAWS, CoulombLaw, FrictionLaw, ViscousLaw, check_law
+from virtual_vehicle.physics.laws import (
+    LAWS,
+    CoulombLaw,
+    FrictionLaw,
+    StepperOptions,
+    StickSlipLaw,
+    ViscousLaw,
+    affine,
+    check_law,
+)
 from virtual_vehicle.physics.laws.affine import constants_and_row, drive_constants, f64
 
 
@@ -168,15 +177,57 @@ class UndampedRowLaw(ViscousLaw):
 
     def constants_and_row(self, solution, velocities, drive_directions, mu, mass, inertia):
         k, row = super().constants_and_row(solution, velocities, drive_directions, mu, mass, inertia)
-        return k, (*row[:15], 0.0, *row[16:])
+        return k, (*row[:affine.R_DAMPING], 0.0, *row[affine.R_DAMPING + 1:])
+
+
+@dataclass(frozen=True)
+class OptionlessLaw(StickSlipLaw):
+    """Broken: time-stepped, but hands its stepper nothing."""
+
+    name: str = "optionless"
+
+    def stepper_options(self):
+        return None
 
 
 @pytest.mark.parametrize("law, what", [(BackwardsLaw(), "give"), (ShortReachLaw(), "reach bound"),
                                        (LopsidedLaw(), "moved rigidly"), (CreepLaw(), "at rest"),
-                                       (UndampedRowLaw(), "row")])
+                                       (UndampedRowLaw(), "row"), (OptionlessLaw(), "stepper"),
+                                       (CoulombLaw(), None)])
 def test_check_law_fails_a_broken_law(law, what):
+    if what is None:  # the law each broken one is made from passes
+        check_law(law, trials=10)
+        return
     with pytest.raises(AssertionError, match=what):
         check_law(law, trials=10)
+
+
+@dataclass(frozen=True)
+class HastyStickSlipLaw(StickSlipLaw):
+    """Stick-slip whose solver gives up after one sweep, told the stepper only through its stepper options."""
+
+    name: str = "hasty_stick_slip"
+
+    def stepper_options(self):
+        return StepperOptions(1, self.tolerance)
+
+
+def test_a_plant_steps_parcels_pushing_each_other_with_the_solver_limits_the_law_hands_it():
+    """The plant's grouped steps (parcels in contact, the wheels in the same problem) take the sweeps and tolerance
+    from the law's stepper options: one sweep leaves many steps unconverged that the stick-slip law's own limits
+    converge."""
+    cells = layout.grid(14, 6, 0.1)
+    specs = [rectangle(0.25, 0.22, 1.0, 0.5, name="a"), rectangle(0.25, 0.22, 1.0, 0.5, name="b")]
+    velocities = np.where(cells.positions[:, :1] < 0.55, [[0.3, 0.0]], [[0.0, 0.0]])
+    unconverged = {}
+    for law in (StickSlipLaw(), HastyStickSlipLaw()):
+        plant = Plant(cells, specs, law, 9.81, Integration(dt=1e-3))
+        ys = [np.array([0.3, 0.3, 0.0, 0.0, 0.0, 0.0]), np.array([0.58, 0.3, 0.0, 0.0, 0.0, 0.0])]
+        for k in range(30):
+            plant.advance(ys, [True, True], velocities, 0.02 * k, 0.02 * (k + 1), 0.02)
+        assert plant.record.grouped_steps > 0
+        unconverged[law.name] = plant.record.unconverged_contact_steps
+    assert unconverged["hasty_stick_slip"] > 10 * unconverged["stick_slip"] + 100  # measured: 540 against 4
 
 
 def test_a_law_refuses_geometry_it_cannot_act_on():

@@ -13,7 +13,7 @@ from virtual_vehicle.config.scenario import MapArray, load_scenario, parse_scena
 from virtual_vehicle.engine.dynamics import ParcelModel
 from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.model import layout, parcel
-from virtual_vehicle.physics.friction import CoulombLaw
+from virtual_vehicle.physics.laws import CoulombLaw
 from virtual_vehicle.physics.reference import paper_normal_forces
 from virtual_vehicle.run.sim import run
 

@@ -15,7 +15,7 @@ from virtual_vehicle.config.scenario import CellChange, ReconfigurationSpec, loa
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics import laws
 from virtual_vehicle.run.sim import NetworkRun, run
 
 WALL = [j * 24 + 12 for j in range(2, 10)]  # sorting_junction: a wall across the middle, rows 2..9 of column 12
@@ -104,7 +104,7 @@ def test_a_cell_taken_out_carries_nothing():
     holds whatever the supports."""
     cells = layout.grid(12, 8, 0.1)
     spec = parcel.rectangle(0.4, 0.3, 2.0, 1.0)
-    model = ParcelModel(cells, spec, fields.Uniform((0.2, 0.0)).velocities(cells), friction.ViscousLaw())
+    model = ParcelModel(cells, spec, fields.Uniform((0.2, 0.0)).velocities(cells), laws.ViscousLaw())
     present = np.ones(cells.n, bool)
     hole = 3 * 12 + 5
     present[hole] = False

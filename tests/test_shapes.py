@@ -11,7 +11,7 @@ from virtual_vehicle.config.scenario import parse_scenario
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics import laws
 from virtual_vehicle.physics.contact import normal_forces
 
 L_SHAPE = [[0, 0], [0.4, 0], [0.4, 0.15], [0.15, 0.15], [0.15, 0.3], [0, 0.3]]
@@ -70,7 +70,7 @@ def test_cells_in_the_notch_do_not_support():
 def test_events_of_an_l_shape_are_exactly_on_its_outline():
     spec = parcel.polygon(L_SHAPE, 2.0, 1.0)
     cells = layout.grid(20, 12, 0.1)
-    m = ParcelModel(cells, spec, fields.Uniform((0.3, 0.1)).velocities(cells), friction.ViscousLaw())
+    m = ParcelModel(cells, spec, fields.Uniform((0.3, 0.1)).velocities(cells), laws.ViscousLaw())
     tr = integrate(m, [0.4, 0.4, 0.2, 0, 0, 0.5], 0, 2.0)
     assert tr.status == "completed" and len(tr.events) > 20
     for e in tr.events:

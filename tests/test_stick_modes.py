@@ -12,7 +12,7 @@ from virtual_vehicle.config.scenario import load_scenario
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.engine.stickslip import solve_contacts
 from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics import contact, friction
+from virtual_vehicle.physics import contact, laws
 from virtual_vehicle.physics.stick_modes import Wheels, decide_mode, mode_rhs, simulate, wheels_on
 
 G = 9.81
@@ -67,7 +67,7 @@ def test_fixed_step_law_converges_at_first_order():
     """The per-step box LCP of engine.stickslip, run at dt, dt/2, dt/4, dt/8, approaches the exact solution with
     observed order 1 through three stick events (the wheels under the parcel never change)."""
     V, y0 = _twist_scene()
-    model = ParcelModel(SQUARE, BOX, V, friction.StickSlipLaw(), G)
+    model = ParcelModel(SQUARE, BOX, V, laws.StickSlipLaw(), G)
     piece = model.piece_at(y0)
     run = simulate(wheels_on(SQUARE, piece.support, piece.solution, V, BOX.mu, BOX.mu_static), y0, 0, 0.3,
                    BOX.mass, BOX.inertia)
@@ -77,7 +77,7 @@ def test_fixed_step_law_converges_at_first_order():
     ref = run.state(ts)
     errs = []
     for dt in (4e-4, 2e-4, 1e-4, 5e-5):
-        tr = integrate(ParcelModel(SQUARE, BOX, V, friction.StickSlipLaw(), G), y0, 0, 0.3, dt=dt, sample_times=ts)
+        tr = integrate(ParcelModel(SQUARE, BOX, V, laws.StickSlipLaw(), G), y0, 0, 0.3, dt=dt, sample_times=ts)
         assert len(tr.events) == 0  # the same support set throughout
         errs.append(np.abs(tr.states - ref).max())
     order = np.log2(np.array(errs[:-1]) / errs[1:])
@@ -101,7 +101,7 @@ def test_fixed_step_law_converges_through_stick_breaks():
     assert [e.kind for e in run.events] == ["stick", "stick"] and len(run.events[0].before.stick) == 7
     ts = np.linspace(0, T, 42)
     ref = run.state(ts)
-    errs = [np.abs(integrate(ParcelModel(SQUARE, spec, V, friction.StickSlipLaw(), G), y0, 0, T, dt=dt,
+    errs = [np.abs(integrate(ParcelModel(SQUARE, spec, V, laws.StickSlipLaw(), G), y0, 0, T, dt=dt,
                              sample_times=ts).states - ref).max() for dt in (2e-4, 1e-4, 5e-5)]
     order = np.log2(np.array(errs[:-1]) / errs[1:])
     assert np.all(np.abs(order - 1) < 0.1), (errs, order)
@@ -117,7 +117,7 @@ def test_a_lift_off_ends_the_run_where_the_engine_sees_it():
     forces = contact.solve_support(SQUARE.positions, run.y_end[:2], spec.weight(G)).forces(run.y_end[:2])
     assert abs(forces[lifted]) < 1e-9 * spec.weight(G) and (np.delete(forces, lifted) > 0.1).all()
     dt = 1e-4
-    first = integrate(ParcelModel(SQUARE, spec, V, friction.StickSlipLaw(), G), y0, 0, 0.6, dt=dt).events[0]
+    first = integrate(ParcelModel(SQUARE, spec, V, laws.StickSlipLaw(), G), y0, 0, 0.6, dt=dt).events[0]
     assert first.lifted == (lifted,) and abs(first.t - run.t_end) <= dt
 
 
@@ -226,7 +226,7 @@ def test_every_wheel_slipping_gives_the_papers_coulomb_constants(kind):
     speeds = wheels.surface(0.0)
     assert len(mode.stick) == 0 and np.array_equal(mode.signs, -np.sign(speeds))
     ydot, lam = mode_rhs(wheels, mode, 0.0, y, spec.mass, spec.inertia)
-    k = friction.CoulombLaw().constants(sol, V, cells.active_directions, spec.mu)
+    k = laws.CoulombLaw().constants(sol, V, cells.active_directions, spec.mu)
     xi = com - sol.origin
     wrench = ydot[3:] * [spec.mass, spec.mass, spec.inertia]
     np.testing.assert_allclose(wrench, [*k.force(xi), k.torque(xi)], rtol=1e-12, atol=1e-12)

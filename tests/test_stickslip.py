@@ -7,13 +7,13 @@ import pytest
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.engine.stickslip import solve_contacts
 from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics import laws
 
 G = 9.81
 
 
 def model(cells, spec, field, law=None):
-    return ParcelModel(cells, spec, field.velocities(cells), law or friction.StickSlipLaw(), G)
+    return ParcelModel(cells, spec, field.velocities(cells), law or laws.StickSlipLaw(), G)
 
 
 def test_uniform_field_accelerates_then_rides_at_exactly_wheel_speed():
@@ -70,7 +70,7 @@ def test_reduces_to_the_papers_coulomb_law_while_sliding():
     spec = parcel.rectangle(0.3, 0.3, 1.0, 0.5)
     field = fields.Inward((0, 0), 2.0)
     y0 = [0.02, -0.01, 0.1, 0, 0, 0]
-    ref = integrate(model(cells, spec, field, friction.CoulombLaw()), y0, 0, 0.5, sample_dt=0.01).states
+    ref = integrate(model(cells, spec, field, laws.CoulombLaw()), y0, 0, 0.5, sample_dt=0.01).states
     errs = []
     for dt in (2e-3, 5e-4, 1.25e-4):
         st = integrate(model(cells, spec, field), y0, 0, 0.5, dt=dt, sample_dt=0.01).states
@@ -106,8 +106,8 @@ def test_a_run_split_into_ticks_is_the_same_run():
     spec = parcel.rectangle(0.33, 0.27, 1.3, 0.3, mu_static=0.6)
     V = fields.Inward((0.45, 0.35), 0.2).velocities(cells)
     y0 = np.array([0.42, 0.33, 0.2, 0.0, 0.0, 0.0])
-    whole = integrate(ParcelModel(cells, spec, V, friction.StickSlipLaw(), G), y0, 0, 0.5, dt=1e-3, sample_dt=0.01)
-    base = ParcelModel(cells, spec, V, friction.StickSlipLaw(), G)
+    whole = integrate(ParcelModel(cells, spec, V, laws.StickSlipLaw(), G), y0, 0, 0.5, dt=1e-3, sample_dt=0.01)
+    base = ParcelModel(cells, spec, V, laws.StickSlipLaw(), G)
     y = y0
     for k in range(50):
         y = integrate(base.with_velocities(V), y, k * 0.01, (k + 1) * 0.01, dt=1e-3, sample_dt=0.01).states[-1]

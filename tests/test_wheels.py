@@ -7,7 +7,7 @@ from virtual_vehicle.config.scenario import load_scenario, parse_scenario
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics import laws
 from virtual_vehicle.run.sim import run
 
 D = 0.1
@@ -30,7 +30,7 @@ def test_contact_layer_geometry_and_velocities():
 def wrench(cells, field, X, law=None):
     spec = parcel.rectangle(0.3, 0.3, 1.0, 0.5)
     m = ParcelModel(cells, spec, cells.contact_velocities(field.velocities(layout.grid(2, 2, D, (-D / 2, -D / 2)))),
-                    law or friction.CoulombLaw())
+                    law or laws.CoulombLaw())
     y = np.array([*X, 0.0, 0, 0, 0])
     d = m.piece_at(y).rhs(0, y)
     return d[3:5] * spec.mass, d[5] * spec.inertia
@@ -57,7 +57,7 @@ def test_stick_slip_on_separate_wheels_rides_at_wheel_speed():
     cells = layout.grid(20, 6, D)
     c = layout.separate_wheels(cells)
     spec = parcel.rectangle(0.35, 0.25, 1.0, 0.5)
-    m = ParcelModel(c, spec, c.contact_velocities(fields.Uniform((0.3, 0.0)).velocities(cells)), friction.StickSlipLaw())
+    m = ParcelModel(c, spec, c.contact_velocities(fields.Uniform((0.3, 0.0)).velocities(cells)), laws.StickSlipLaw())
     tr = integrate(m, [0.3, 0.25, 0.0, 0.0, 0.05, 0.0], 0, 0.6, dt=1e-3)
     np.testing.assert_allclose(tr.states[-1, 3:], [0.3, 0.0, 0.0], atol=1e-9)  # stuck: x at wheel speed, y held
 

@@ -307,7 +307,8 @@ def _connect(scheduler: str | None, workers: int | None):
                                    dashboard_address=":0", silence_logs=logging.ERROR)
         try:
             client = Client(cluster)
-            client.register_plugin(_ignore_sigint_plugin(), name="virtual-vehicle-ignore-sigint")  # workers restarted too
+            # on every worker, restarted ones too
+            client.register_plugin(_ignore_sigint_plugin(), name="virtual-vehicle-ignore-sigint")
             return client, cluster
         except BaseException:
             cluster.close()

@@ -4,11 +4,9 @@ along waypoints (paper Section 1: every parcel rides its own virtual vehicle, ma
 Units: SI (m, rad, s; wheel speeds in m/s).
 
 Every rule reads only the cell's own row (:mod:`virtual_vehicle.cells.network.programs` contract): its sensors, its
-state,
-its configuration, set when it was installed (``position``: where its centre is; ``sensor_points``: where its
-sensors are; ``directions``: its wheels' drive directions), and what its neighbours said last tick. Like the
-central controller (:class:`~virtual_vehicle.cells.control.PoseControl`), every cell holds the job list: for parcel k,
-its
+state, its configuration, set when it was installed (``position``: where its centre is; ``sensor_points``: where its
+sensors are; ``directions``: its wheels' drive directions), and what its neighbours said last tick. Like the central
+controller (:class:`~virtual_vehicle.cells.control.PoseControl`), every cell holds the job list: for parcel k, its
 outline, the pose the loader puts it down at, its target and its waypoints. No cell knows where a parcel is now.
 
 - *Record*: a cell that sees a parcel (any sensor lit) holds a record: the job k, its estimate of the parcel's pose

@@ -248,9 +248,9 @@ PartSpec = Annotated[Union[GridArray, RowArray, PointsArray, HexArray, MapArray]
 
 
 class MixedArray(_ArrayBase):
-    """Several arrays joined into one (:func:`~virtual_vehicle.model.layout.combine`): ``parts`` is a list of array tables
-    of any other kind (square grids, rows, points, hexagonal lattices, maps) with one pitch; cells are numbered part
-    after part and each keeps its wheels and ports, so square and hexagonal cells that meet talk across the seam.
+    """Several arrays joined into one (:func:`~virtual_vehicle.model.layout.combine`): ``parts`` is a list of array
+    tables of any other kind (square grids, rows, points, hexagonal lattices, maps) with one pitch; cells are numbered
+    part after part and each keeps its wheels and ports, so square and hexagonal cells that meet talk across the seam.
     ``belts`` as for :class:`GridArray` (on the whole array, not on its parts)."""
 
     kind: Literal["mixed"]
@@ -279,13 +279,12 @@ class FrictionSpec(_Strict):
 
 class IntegratorSpec(_Strict):
     """``mode``: ``"event"`` (piecewise, support changes located; default) or ``"fixed"`` (RK4 at step ``dt``, s).
-    ``rtol``/``atol`` (state units) and ``max_step`` (s) tune the event-driven integrator. ``batch`` (default true):
-    in event mode without ``max_step``, control ticks proven free of support changes are stepped for all parcels at
-    once (the event engine's own single DOP853 step, in one compiled call; see :mod:`virtual_vehicle.engine.batch`);
-    false
+    ``rtol``/``atol`` (state units) and ``max_step`` (s) tune the event-driven integrator. ``batch`` (default true): in
+    event mode without ``max_step``, control ticks proven free of support changes are stepped for all parcels at once
+    (the event engine's own single DOP853 step, in one compiled call; see :mod:`virtual_vehicle.engine.batch`); false
     integrates every parcel on its own. Where support changes chatter (a sliding mode: a parcel held on a boundary
-    between support sets whose pieces each push it into the other), event mode crosses that boundary in fixed RK4
-    steps of ``dt`` and counts them as the parcel's ``chatter_steps``.
+    between support sets whose pieces each push it into the other), event mode crosses that boundary in fixed RK4 steps
+    of ``dt`` and counts them as the parcel's ``chatter_steps``.
 
     ``dt`` must resolve the scene: at most ``pitch / (10 v_max)``, a tenth of a cell at the fastest speed known
     before the run (wheels and belts of a constant field, the program's ``speed``, the diffusion ``sources``, the
@@ -352,8 +351,7 @@ class SensorSpec(_Strict):
 class WheelSpec(_Strict):
     """How the wheels follow their commands: ``model = "ideal"`` (actual speed = commanded) or ``"motor"`` (a DC
     gearmotor per wheel with PWM limit, encoder and PI loop; see :class:`~virtual_vehicle.cells.hardware.MotorParams`
-    for
-    the parameters below, SI units). With a constant ``[field]``, motors are commanded every ``period`` (s); with
+    for the parameters below, SI units). With a constant ``[field]``, motors are commanded every ``period`` (s); with
     ``[control]`` its period is used.
 
     Motor parameters: ``supply_voltage`` (V, the H-bridge's limit); ``resistance`` (ohm), ``torque_constant``
@@ -440,16 +438,15 @@ class ReconfigurationSpec(_Strict):
 
 
 class ParcelEntry(_Strict):
-    """A parcel, called ``name`` (unique in the scenario): either a rectangle, ``length`` along its body x and ``width`` (m), or any simple outline
-    ``vertices`` ([[x, y], ...] m, convex or not) with optional centre of mass ``com`` (m, same frame; default the
-    centroid); ``mass`` (kg), ``mu`` (friction
-    coefficient, see :class:`FrictionSpec`), optional ``mu_static`` (stick-slip), optional ``inertia`` (kg m^2,
-    default uniform plate), and its initial
-    state: centre of mass ``x``, ``y`` (m), heading ``theta`` (rad), ``vx``, ``vy`` (m/s), ``omega`` (rad/s).
-    ``t_start`` (s): when the parcel is put on the array (networked runs; it waits while its place is taken);
-    ``destination``: the exit (0..3) its label names, read by the cells at an entry (program ``"sort"``);
-    ``sequence``: its place in the order in which parcels must leave (0, 1, 2, ... over the parcels that have one:
-    a parcel whose number is not yet due waits on a parking cell)."""
+    """A parcel, called ``name`` (unique in the scenario): either a rectangle, ``length`` along its body x and ``width``
+    (m), or any simple outline ``vertices`` ([[x, y], ...] m, convex or not) with optional centre of mass ``com`` (m,
+    same frame; default the centroid); ``mass`` (kg), ``mu`` (friction coefficient, see :class:`FrictionSpec`), optional
+    ``mu_static`` (stick-slip), optional ``inertia`` (kg m^2, default uniform plate), and its initial state: centre of
+    mass ``x``, ``y`` (m), heading ``theta`` (rad), ``vx``, ``vy`` (m/s), ``omega`` (rad/s). ``t_start`` (s): when the
+    parcel is put on the array (networked runs; it waits while its place is taken); ``destination``: the exit (0..3) its
+    label names, read by the cells at an entry (program ``"sort"``); ``sequence``: its place in the order in which
+    parcels must leave (0, 1, 2, ... over the parcels that have one: a parcel whose number is not yet due waits on a
+    parking cell)."""
 
     name: Annotated[str, Field(min_length=1, max_length=64)]
     length: Length | None = None
@@ -1027,7 +1024,12 @@ def _format_validation(exc: ValidationError) -> ScenarioError:
             msg = f"missing: name the program every cell runs, one of {names}"
         elif err["type"] in _BOUNDS and isinstance(err.get("ctx", {}).get(_BOUNDS[err["type"]][0]), (int, float)):
             key, words = _BOUNDS[err["type"]]
-            msg = f"must be {words} {err['ctx'][key]:g}, got {err.get('input')!r}"
+            bound, given = err["ctx"][key], err.get("input")
+            if key == "ge" and 0 < bound <= 1e-6 and isinstance(given, (int, float)) and given <= 0:
+                # a tiny floor is there against underflow; what a zero or negative value lacks is its sign
+                msg = f"must be positive (at least {bound:g}), got {given!r}"
+            else:
+                msg = f"must be {words} {bound:g}, got {given!r}"
         elif err["type"] == "union_tag_invalid":
             msg = f"unknown kind {err.get('input', {}).get('kind') if isinstance(err.get('input'), dict) else ''!r}; " + msg
         first_field = first_field or loc

@@ -4,13 +4,11 @@ Units: SI (m, s, kg, N, rad). State ``[x, y, theta, vx, vy, omega]``.
 
 :func:`run_piece` integrates one piece (one support set and contact set, eqs. 23/29/33/38 as the constants row of
 :func:`~virtual_vehicle.engine.dynamics.constants_row`) with scipy's DOP853 scheme (same tableau, error norm and
-step-size
-rule as ``scipy.integrate.DOP853``; sums taken in plain loops, so results agree with scipy's to rounding, not to the
-last bit), samples every step's dense output for the first sign change of an event value, locates it by Brent's
+step-size rule as ``scipy.integrate.DOP853``; sums taken in plain loops, so results agree with scipy's to rounding, not
+to the last bit), samples every step's dense output for the first sign change of an event value, locates it by Brent's
 method and probes past it, as :mod:`virtual_vehicle.engine.dynamics` documents. In Python each of the ~100 support
-changes
-a second of an oscillating Coulomb parcel cost about a millisecond, mostly in array calls on a handful of numbers;
-compiled, a piece's own work takes a few tens of microseconds, and most of what remains is the Python between
+changes a second of an oscillating Coulomb parcel cost about a millisecond, mostly in array calls on a handful of
+numbers; compiled, a piece's own work takes a few tens of microseconds, and most of what remains is the Python between
 pieces (which cells, the support solve, the friction constants).
 
 Event values of a segment (:class:`~virtual_vehicle.engine.dynamics._Segment`), in order: the footprint margin of every
@@ -27,6 +25,37 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 from scipy.integrate import DOP853
+
+from virtual_vehicle.physics.laws.affine import (
+    R_A_XX,
+    R_A_XY,
+    R_A_YX,
+    R_A_YY,
+    R_B_X,
+    R_B_Y,
+    R_C_XX,
+    R_C_XY,
+    R_C_YX,
+    R_C_YY,
+    R_DAMPING,
+    R_DE_X,
+    R_DE_Y,
+    R_F,
+    R_INV_INERTIA,
+    R_INV_MASS,
+    R_MOMENT_CONST_X,
+    R_MOMENT_CONST_Y,
+    R_MOMENT_LIN_XX,
+    R_MOMENT_LIN_XY,
+    R_MOMENT_LIN_YX,
+    R_MOMENT_LIN_YY,
+    R_ORIGIN_X,
+    R_ORIGIN_Y,
+    R_SECOND_CONST,
+    R_SECOND_LIN_X,
+    R_SECOND_LIN_Y,
+    R_WEIGHT,
+)
 
 RECTANGLE, CONVEX, POLYGON = 0, 1, 2
 """Footprint kinds: margins in closed form, from half-planes, or as a signed distance to a simple polygon."""
@@ -60,11 +89,21 @@ _SAFETY, _MIN_FACTOR, _MAX_FACTOR = 0.9, 0.2, 10.0
 def accelerations(row, x, y, vx, vy, om):
     """Linear and angular acceleration (m/s^2, m/s^2, rad/s^2) at centre of mass (x, y) (m) moving at (vx, vy) (m/s)
     and spinning at ``om`` (rad/s), from a piece's :func:`~virtual_vehicle.engine.dynamics.constants_row`. Works on
-    floats
-    (one parcel) and on arrays (one entry per parcel, ``row`` a sequence of arrays), with the same arithmetic, and
-    compiled (:data:`accelerations_compiled`)."""
-    (ox, oy, a11, a12, a21, a22, b1, b2, c11, c12, c21, c22, e1, e2, f0, mu, W, K11, K12, K21, K22, k1, k2,
-     s1, s2, s0, inv_m, inv_i) = row
+    floats (one parcel) and on arrays (one entry per parcel, ``row`` a sequence of arrays), with the same arithmetic,
+    and compiled (:data:`accelerations_compiled`). The row is read by field name (the ``R_`` places of
+    :data:`~virtual_vehicle.physics.laws.affine.ROW_FIELDS`), which compiled code takes as constants when it is
+    compiled: numba's cache knows only this file, so after reordering ROW_FIELDS clear the ``__pycache__`` (the
+    compiled reading is tested against this one)."""
+    ox, oy = row[R_ORIGIN_X], row[R_ORIGIN_Y]  # by name (ROW_FIELDS): constants to the compiled code
+    a11, a12, a21, a22 = row[R_A_XX], row[R_A_XY], row[R_A_YX], row[R_A_YY]
+    b1, b2 = row[R_B_X], row[R_B_Y]
+    c11, c12, c21, c22 = row[R_C_XX], row[R_C_XY], row[R_C_YX], row[R_C_YY]
+    e1, e2, f0 = row[R_DE_X], row[R_DE_Y], row[R_F]
+    mu, W = row[R_DAMPING], row[R_WEIGHT]
+    K11, K12, K21, K22 = row[R_MOMENT_LIN_XX], row[R_MOMENT_LIN_XY], row[R_MOMENT_LIN_YX], row[R_MOMENT_LIN_YY]
+    k1, k2 = row[R_MOMENT_CONST_X], row[R_MOMENT_CONST_Y]
+    s1, s2, s0 = row[R_SECOND_LIN_X], row[R_SECOND_LIN_Y], row[R_SECOND_CONST]
+    inv_m, inv_i = row[R_INV_MASS], row[R_INV_INERTIA]
     X1 = x - ox
     X2 = y - oy
     fx = a11 * X1 + a12 * X2 + b1  # eq. 23
@@ -142,8 +181,8 @@ class Segment(NamedTuple):
 
 
 def outline(spec) -> tuple:
-    """The footprint of parcel ``spec`` (:class:`~virtual_vehicle.model.parcel.ParcelSpec`) as :class:`Segment` holds it:
-    (kind, convex, half, normals, offsets, vertices), lengths in m."""
+    """The footprint of parcel ``spec`` (:class:`~virtual_vehicle.model.parcel.ParcelSpec`) as :class:`Segment` holds
+    it: (kind, convex, half, normals, offsets, vertices), lengths in m."""
     def arr(a, shape):
         return np.ascontiguousarray(a, dtype=np.float64).reshape(shape)
 
@@ -157,13 +196,12 @@ def outline(spec) -> tuple:
 
 def make_segment(footprint: tuple, radius: float, candidates: np.ndarray, sol, center: np.ndarray, buffer: float,
                  noise_length: float, noise_force: float, ids: np.ndarray) -> tuple:
-    """The fields of the :class:`Segment` (in its order, as a plain tuple: numba types a plain tuple in compiled
-    code, a named one in Python, ~1.5 us more a call; :func:`run_piece` names them again) of a parcel of footprint
-    ``footprint`` (its :func:`outline`) and ``radius`` (m) with candidate cells ``candidates`` ((nc, 2) float64, m)
-    on support solution ``sol`` (whose arrays are float64 and contiguous, as :mod:`virtual_vehicle.physics.contact`
-    makes
-    them), its candidates gathered within ``radius + buffer`` of ``center`` (m), whose cell ids are ``ids`` ((nc,)
-    int64); event values below ``noise_length`` (m) or ``noise_force`` (N) are rounding noise."""
+    """The fields of the :class:`Segment` (in its order, as a plain tuple: numba types a plain tuple in compiled code, a
+    named one in Python, ~1.5 us more a call; :func:`run_piece` names them again) of a parcel of footprint ``footprint``
+    (its :func:`outline`) and ``radius`` (m) with candidate cells ``candidates`` ((nc, 2) float64, m) on support
+    solution ``sol`` (whose arrays are float64 and contiguous, as :mod:`virtual_vehicle.physics.contact` makes them),
+    its candidates gathered within ``radius + buffer`` of ``center`` (m), whose cell ids are ``ids`` ((nc,) int64);
+    event values below ``noise_length`` (m) or ``noise_force`` (N) are rounding noise."""
     return (*footprint, candidates, sol.origin, sol.basis, sol.plane_lin, sol.plane_const, sol.hull_normals,
             sol.hull_offsets, center, float(buffer), float(radius + 2 * buffer), float(noise_length),
             float(noise_force), sol.spring_lin, sol.spring_gradient, ids)
@@ -736,12 +774,13 @@ def _workspace():
 
 @njit(cache=True)
 def quiet_steps(rows, Y, t, t_bound, rtol, atol, sample_times, out):
-    """For each parcel k, with constants ``rows[k]`` (:func:`~virtual_vehicle.engine.dynamics.constants_row`, (n, 28)) at
-    state ``Y[k]`` (n, 6), the first step :func:`run_piece` takes from ``t`` to ``t_bound`` (s) on a new piece, when
-    that step reaches ``t_bound`` and DOP853 accepts it whole: then ``out[k, j]`` is its dense output at
-    ``sample_times[j]`` (in [t, t_bound]), as :func:`run_piece` samples it. The same code as :func:`run_piece`'s,
-    so a window with no event ends where the event engine ends it, to the last bit. Returns which parcels' steps
-    were accepted and the right-hand-side evaluations each took."""
+    """For each parcel k, with constants ``rows[k]`` (:func:`~virtual_vehicle.engine.dynamics.constants_row`,
+    (n, :data:`~virtual_vehicle.physics.laws.affine.ROW_LENGTH`)) at state ``Y[k]`` (n, 6), the first step
+    :func:`run_piece` takes from ``t`` to ``t_bound`` (s) on a new piece, when that step reaches ``t_bound`` and
+    DOP853 accepts it whole: then ``out[k, j]`` is its dense output at ``sample_times[j]`` (in [t, t_bound]), as
+    :func:`run_piece` samples it. The same code as :func:`run_piece`'s, so a window with no event ends where the
+    event engine ends it, to the last bit. Returns which parcels' steps were accepted and the right-hand-side
+    evaluations each took."""
     n = Y.shape[0]
     accepted = np.zeros(n, np.bool_)
     K, F, f, y_new, f_new, work = _workspace()
@@ -777,8 +816,7 @@ def run_piece(row, fields, y_base, t, y, t_bound, h_abs, first_step, rtol, atol,
 
     Returns (outcome, t, y, h_abs, last step, evaluations, next_sample, probe time, probe state, the cells under the
     footprint at the probe (ids, as :meth:`~virtual_vehicle.engine.dynamics._Segment.support` finds them from the
-    probe's
-    event values), whether those tell: the values clear of rounding noise and the probe within the candidates'
+    probe's event values), whether those tell: the values clear of rounding noise and the probe within the candidates'
     reach). On ``EVENT`` (t, y) is the restart point just past it.
     """
     seg = Segment(*fields)
@@ -851,8 +889,7 @@ def edges_clear(positions, near, normals, offsets, y, window, reach, accel, radi
     """Whether no cell ``near`` (ids into ``positions``, (n, 2) m) of a convex parcel at state ``y`` can cross its
     outline (body-frame outward unit ``normals`` (k, 2), ``offsets`` (k,) m) within ``window`` s, edge by edge: the
     bound of :meth:`virtual_vehicle.engine.batch.QuietStepper._edges_clear`, which documents it, for one parcel
-    (``reach``
-    and ``accel`` in m, ``radius`` m, ``lever`` = 1 + m R^2 / I, ``noise`` m)."""
+    (``reach`` and ``accel`` in m, ``radius`` m, ``lever`` = 1 + m R^2 / I, ``noise`` m)."""
     c, s = math.cos(y[2]), math.sin(y[2])
     drift = accel / lever
     turn = abs(y[5]) * window + (accel - drift) / radius

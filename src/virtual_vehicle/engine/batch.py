@@ -5,18 +5,16 @@ Units: SI (m, s, kg, N, rad).
 A networked run advances the plant one control tick at a time, and most ticks of most parcels are *quiet*: no cell
 enters or leaves the footprint, none lifts off or touches down, and the centre of mass stays inside the supports. For
 such a window the event-driven engine (:func:`~virtual_vehicle.engine.dynamics.integrate`) finds no event and takes one
-DOP853 step over it, but spends most of a millisecond setting that step up. :class:`QuietStepper` proves windows
-quiet and takes that same step for all quiet parcels in one call (:func:`~virtual_vehicle.engine._kernel.quiet_steps`,
-the
-engine's own compiled step and dense output, so the states are the engine's to the last bit), with each parcel's
-piece constants (:func:`~virtual_vehicle.engine.dynamics.constants_row`) as the rows of an array.
+DOP853 step over it, but spends most of a millisecond setting that step up. :class:`QuietStepper` proves windows quiet
+and takes that same step for all quiet parcels in one call (:func:`~virtual_vehicle.engine._kernel.quiet_steps`, the
+engine's own compiled step and dense output, so the states are the engine's to the last bit), with each parcel's piece
+constants (:func:`~virtual_vehicle.engine.dynamics.constants_row`) as the rows of an array.
 
 The proof is a bound, not a sample. Let ``r`` bound how far any point of a parcel can move in the window (the
 planner has already ruled out pushes from other parcels). Two bounds hold, and the smaller is used:
 
 - the friction law's alone (:func:`~virtual_vehicle.physics.collide.reach_bounds`), which also bounds every point's
-speed
-  by ``S_max`` over the window;
+  speed by ``S_max`` over the window;
 - the piece's (the law's :meth:`~virtual_vehicle.physics.laws.base.FrictionLaw.piece_reach`), valid while the
   piece holds (which is what is being proven: the first moment it would stop holding comes after the window, by
   continuity). With ``k = mu g (1 + m R^2 / I)``, ``S0 = |v| + |omega| R`` now and
@@ -42,7 +40,7 @@ At an *anchor* state the stepper measures:
 Footprint points have moved at most ``P = |dX_c| + |d theta| R`` since the anchor; the window is quiet when
 ``slack > |dX_c| + r`` and ``clear > P + r``. Then the piece holds throughout and the motion is one smooth ODE.
 Where ``clear`` is too small (a cell a millimetre behind or beside an edge), a convex footprint gets a second,
-edge-by-edge look (:meth:`QuietStepper._edges_clear`): each edge moves along its normal by the velocity's component
+edge-by-edge look (:meth:`QuietStepper.edges_clear`): each edge moves along its normal by the velocity's component
 there, give or take what acceleration and turning add, so only the edges moving toward a cell count against it. It
 needs every cell that could matter in the anchor's list: ``|dX_c| + r`` below the search buffer.
 Windows not proven quiet, and quiet ones whose single step fails the error test, go to the event-driven engine.
@@ -172,6 +170,23 @@ class QuietStep(NamedTuple):
         return self.steps.trajectory(self.k)
 
 
+class AnchorColumns(NamedTuple):
+    """The anchors' measures by parcel, as :class:`QuietStepper`'s checks read them for all parcels at once (a row
+    by parcel; cell rows padded with the sentinel id ``cells.n``)."""
+
+    support: np.ndarray
+    """(parcels, k) each anchor's cells under the footprint (ids)."""
+    near: np.ndarray
+    """(parcels, k) a convex footprint's cells within radius + buffer of its anchor (ids), for the edge checks."""
+    near_count: np.ndarray
+    """(parcels,) how many of ``near``'s row are the anchor's."""
+    drive: np.ndarray
+    """(parcels,) the law's drive bound under each anchor's wheels (Coulomb: the largest ``|F_i|``), 0 until made."""
+    made: np.ndarray
+    """(parcels,) the :attr:`QuietStepper.changes` count after which each anchor's constants were made (-1: not yet;
+    the checks make them)."""
+
+
 class QuietStepper:
     """Steps the quiet windows of separately moving parcels together (see the module docstring).
 
@@ -218,6 +233,35 @@ class QuietStepper:
         self._changed_at[-1] = -1
         self._seen: np.ndarray | None = None  # the velocities last seen
 
+    @property
+    def columns(self) -> AnchorColumns:
+        """The anchors' measures as the checks read them, by parcel (read-only views)."""
+        def frozen(a: np.ndarray) -> np.ndarray:
+            v = a.view()
+            v.setflags(write=False)
+            return v
+
+        return AnchorColumns(*(frozen(a) for a in (self._support, self._near, self._near_count, self._drive,
+                                                    self._made)))
+
+    @property
+    def changes(self) -> int:
+        """How many times the wheel velocities shown to :meth:`see` changed (the first showing counts as one)."""
+        return self._changes
+
+    @property
+    def changed_at(self) -> np.ndarray:
+        """(cells + 1,) read-only: the :attr:`changes` count at which each cell's wheels last changed; the last entry,
+        the sentinel cell's that pads the columns, stays -1."""
+        v = self._changed_at.view()
+        v.setflags(write=False)
+        return v
+
+    @property
+    def seen(self) -> np.ndarray | None:
+        """The wheel velocities (m/s) last seen: a read-only array as it was given, else a copy; None before any."""
+        return self._seen
+
     def forget(self, i: int | None = None) -> None:
         """Drop parcel ``i``'s anchor (all anchors when None): it was moved another way, or the array changed."""
         if i is None:
@@ -225,7 +269,10 @@ class QuietStepper:
         else:
             self.anchors.pop(i, None)
 
-    def _anchor(self, i, models, y) -> _Anchor | None:
+    def measure(self, i, models, y) -> _Anchor | None:
+        """Measure parcel ``i``'s anchor at state ``y`` (``models[i]`` its model; :func:`anchor`) and keep it in
+        :attr:`anchors` and the columns; None (and no anchor) when the parcel tips there. Measured again on the same
+        cells and solved pattern, the anchor keeps the constants made for them (and their drive)."""
         old = self.anchors.get(i)
         a = anchor(models[i], y, self.length, old)
         if a is None:
@@ -268,7 +315,7 @@ class QuietStepper:
             model.adopt(a.support, a.solution, a.constants, a.row)
         return a.support if y is not None and a.pose.tolist() == y[:3].tolist() else None
 
-    def _see(self, velocities: np.ndarray) -> None:
+    def see(self, velocities: np.ndarray) -> None:
         """Note the cells whose wheel velocities differ from those last seen (all of them the first time). A
         read-only array is kept as it is (a plant's, the same object while its wheels stay: nothing to compare);
         any other is copied."""
@@ -290,8 +337,9 @@ class QuietStepper:
         elif changed:
             self._seen = np.array(velocities, dtype=float)
 
-    def _refresh(self, i, a: _Anchor, base, velocities) -> None:
-        """Remake the anchor's constants (and largest Coulomb drive) for the wheels under it now."""
+    def refresh(self, i, a: _Anchor, base, velocities) -> None:
+        """Remake parcel ``i``'s anchor ``a``'s constants (and the law's drive bound) for the wheels ``velocities``
+        (m/s) under it now, from its model ``base[i]``; the checks do this when the wheels under it changed."""
         v = velocities[a.support]
         model = base[i]
         self._made[i] = self._changes
@@ -341,7 +389,7 @@ class QuietStepper:
         parcels = np.asarray(idx)[sel]
         changed = self._changed_at[self._support[parcels]].max(axis=1) > self._made[parcels]
         for n in np.flatnonzero(changed):  # the wheels under it changed (or it is new): remake its constants
-            self._refresh(idx[sel[n]], anchors[sel[n]], base, velocities)
+            self.refresh(idx[sel[n]], anchors[sel[n]], base, velocities)
         ok[have] = self._quiet(parcels, Y[sel], window, velocities, wheel_speed)
         return ok
 
@@ -358,11 +406,11 @@ class QuietStepper:
         look = np.flatnonzero(held & ~cells_clear & (moved + r < self._room[idx]) & np.isfinite(accel)
                               & self._convex[idx])
         if len(look):  # too near some cell for one radius: ask which way each edge moves
-            cells_clear[look] = self._edges_clear(idx[look], Y[look], window, r[look], accel[look], R[look],
-                                                  self.lever[idx[look]])
+            cells_clear[look] = self.edges_clear(idx[look], Y[look], window, r[look], accel[look], R[look],
+                                                 self.lever[idx[look]])
         return held & cells_clear
 
-    def _edges_clear(self, idx, Y, window, r, accel, R, lever) -> np.ndarray:
+    def edges_clear(self, idx, Y, window, r, accel, R, lever) -> np.ndarray:
         """Whether no cell near each convex parcel ``idx`` (an array; anchored, as the columns keep them) can cross
         its outline in ``window`` s, edge by edge.
 
@@ -384,19 +432,18 @@ class QuietStepper:
         """Compile (or load from numba's cache) the compiled checks :meth:`step` runs, with the argument types it
         gives them, at a time of the caller's choosing: anchor parcel 0 (``model``'s) at state ``y`` and ask its
         edges whether the cells stay clear of them for 10 ms (the branch a step takes only near cells)."""
-        self._anchor(0, [model], y)
-        self._edges_clear(np.zeros(1, dtype=np.int64), y[None], 0.01, np.zeros(1), np.zeros(1), self.radius,
-                          self.lever)
+        self.measure(0, [model], y)
+        self.edges_clear(np.zeros(1, dtype=np.int64), y[None], 0.01, np.zeros(1), np.zeros(1), self.radius,
+                         self.lever)
 
     def step(self, models, base, idx: list[int], ys, velocities: np.ndarray, t: float, te: float,
              samples: np.ndarray, wheel_speed: float | None = None) -> tuple[QuietSteps, list[int]]:
-        """Advance the parcels ``idx`` (states ``ys[i]``, no other parcel within reach) from ``t`` to ``te`` (s)
-        under contact-layer ``velocities`` (m/s): returns those stepped here (sampled at ``samples``, the window's
-        ends among them) and the parcels left for the event-driven engine. ``models[i]`` is parcel i's model under these
-        velocities (asked for only to make an anchor), ``base[i]`` any model of it (for the friction constants).
-        ``wheel_speed``: the fastest of ``velocities`` (m/s, :func:`~virtual_vehicle.physics.collide.wheel_speed_of`),
-        when
-        the caller knows it."""
+        """Advance the parcels ``idx`` (states ``ys[i]``, no other parcel within reach) from ``t`` to ``te`` (s) under
+        contact-layer ``velocities`` (m/s): returns those stepped here (sampled at ``samples``, the window's ends among
+        them) and the parcels left for the event-driven engine. ``models[i]`` is parcel i's model under these velocities
+        (asked for only to make an anchor), ``base[i]`` any model of it (for the friction constants). ``wheel_speed``:
+        the fastest of ``velocities`` (m/s, :func:`~virtual_vehicle.physics.collide.wheel_speed_of`), when the caller
+        knows it."""
         times = np.concatenate([[t], samples[(samples > t) & (samples < te)], [te]])
         if not idx:
             return QuietSteps([], times, np.empty((0, len(times), 6)), [], 0, []), []
@@ -405,17 +452,17 @@ class QuietStepper:
             wheel_speed = wheel_speed_of(velocities)
         Y = np.array([ys[i] for i in idx], dtype=float)
         Y = np.where(np.abs(Y) < 1e-100, 0.0, Y)  # as integrate() does
-        self._see(velocities)
+        self.see(velocities)
         anchors = [self.anchors.get(i) for i in idx]
         for k, i in enumerate(idx):
             if anchors[k] is None:
-                anchors[k] = self._anchor(i, models, Y[k])
+                anchors[k] = self.measure(i, models, Y[k])
         ok = self._check(idx, np.arange(len(idx)), Y, anchors, window, base, velocities, wheel_speed)
         failed = np.flatnonzero(~ok)
         moved = failed[(self._pose[np.asarray(idx)[failed]] != Y[failed, :3]).any(axis=1)].tolist()
         stale = [k for k in moved if anchors[k] is not None]
         for k in stale:  # an old anchor may have run out: measure again where the parcel is
-            anchors[k] = self._anchor(idx[k], models, Y[k])
+            anchors[k] = self.measure(idx[k], models, Y[k])
         if stale:
             ok[stale] = self._check(idx, np.array(stale), Y, anchors, window, base, velocities, wheel_speed)
         quiet = np.flatnonzero(ok)

@@ -12,10 +12,9 @@ Constants are cached per (support set, contact set), so a configuration seen aga
 
 Two integrators share the model:
 - ``"event"``: adaptive 8th-order Dormand-Prince (scipy's DOP853 scheme) on each smooth piece, events located by
-  root finding on the dense output, restarted with the new constants. The piece's inner loop (steps, event search
-  and location) is compiled (:mod:`virtual_vehicle.engine._kernel`); the support changes between pieces stay in Python
-  (with the support solve's and the friction constants' arithmetic compiled in :mod:`~virtual_vehicle.physics.contact`
-  and
+  root finding on the dense output, restarted with the new constants. The piece's inner loop (steps, event search and
+  location) is compiled (:mod:`virtual_vehicle.engine._kernel`); the support changes between pieces stay in Python (with
+  the support solve's and the friction constants' arithmetic compiled in :mod:`~virtual_vehicle.physics.contact` and
   :mod:`~virtual_vehicle.physics.laws.affine`);
 - ``"fixed"``: classical RK4 at a fixed step that looks up the supports at every stage and never locates events,
   for comparison (first-order accurate across support changes).
@@ -210,8 +209,8 @@ class ParcelModel:
 
     @cached_property
     def outline(self) -> tuple:
-        """The parcel's footprint as the compiled engine takes it (:func:`~virtual_vehicle.engine._kernel.outline`), made
-        once a model and shared by its :meth:`with_velocities` copies."""
+        """The parcel's footprint as the compiled engine takes it (:func:`~virtual_vehicle.engine._kernel.outline`),
+        made once a model and shared by its :meth:`with_velocities` copies."""
         return _kernel.outline(self.spec)
 
     @cached_property

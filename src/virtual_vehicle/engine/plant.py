@@ -2,16 +2,13 @@
 
 Units: SI (m, s, kg, N, N s, J).
 
-:meth:`Plant.advance` moves all parcels from ``t0`` to ``t1`` under constant wheel velocities. Time is cut into
-windows. In each window a parcel that cannot come within ``margin`` of any other (a rigorous bound on how far any
-point of it can move, :func:`~virtual_vehicle.physics.collide.point_reach`) is integrated on its own by the
-single-parcel
-engine (:func:`~virtual_vehicle.engine.dynamics.integrate`: event-driven, fixed-step or stick-slip, as configured), so a
-run
+:meth:`Plant.advance` moves all parcels from ``t0`` to ``t1`` under constant wheel velocities. Time is cut into windows.
+In each window a parcel that cannot come within ``margin`` of any other (a rigorous bound on how far any point of it can
+move, :func:`~virtual_vehicle.physics.collide.point_reach`) is integrated on its own by the single-parcel engine
+(:func:`~virtual_vehicle.engine.dynamics.integrate`: event-driven, fixed-step or stick-slip, as configured), so a run
 whose parcels never meet is exactly the run without this module. Parcels that might meet are grouped (connected
 components) and time-stepped together at ``dt`` with the contact problem of :mod:`virtual_vehicle.physics.collide` (for
-the
-stick-slip law the wheels' rows join the same complementarity problem; for the Coulomb and viscous laws the wheels
+the stick-slip law the wheels' rows join the same complementarity problem; for the Coulomb and viscous laws the wheels
 give each parcel its free velocity ``nu + h a``, paper eqs. 23/29 per support set).
 
 Events of a grouped parcel (support changes, tipping) are logged at the end of the step in which they happened, as in
@@ -62,11 +59,10 @@ SUMMED_STATS = (*_ADDITIVE, "sweeps_max", "kinetic_start")
 
 @dataclass(frozen=True)
 class Integration:
-    """How single parcels are integrated (see :func:`~virtual_vehicle.engine.dynamics.integrate`) and the step ``dt`` (s)
-    of fixed-step, stick-slip and grouped parcels. ``batch``: in event mode (Coulomb or viscous law, no
+    """How single parcels are integrated (see :func:`~virtual_vehicle.engine.dynamics.integrate`) and the step ``dt``
+    (s) of fixed-step, stick-slip and grouped parcels. ``batch``: in event mode (Coulomb or viscous law, no
     ``max_step``), windows proven quiet are stepped for all parcels at once (:mod:`virtual_vehicle.engine.batch`: the
-    same
-    single DOP853 step the event-driven engine would take, all in one compiled call)."""
+    same single DOP853 step the event-driven engine would take, all in one compiled call)."""
 
     mode: str = "event"
     rtol: float = 1e-10
@@ -226,6 +222,12 @@ class Plant:
             self._quiet.forget()
         self._velocities = self._models = None  # models made from the old base are made again
 
+    @property
+    def shared_weights(self) -> dict[float, int]:
+        """The stores of solved supports the plant keeps for parcels of one weight: weight (N) -> how many support
+        patterns its store holds. A store goes when :meth:`release` lets the last parcel of its weight go."""
+        return {weight: len(store) for weight, store in self._solutions.items()}
+
     def release(self, i: int) -> None:
         """Forget what parcel ``i``'s model has cached (its own solved supports, pieces): it has left the array, and
         a long run should hold memory for the parcels on it, not for every parcel it ever carried. The supports it
@@ -275,8 +277,7 @@ class Plant:
 
         No parcel can come within ``margin`` of a parcel outside its group before the window ends (bounds of
         :func:`~virtual_vehicle.physics.collide.point_reach`). Pairs that could meet within ``min_window`` are grouped;
-        the
-        window then lasts until the first moment any other pair could meet, at most ``window`` s (or, when no two
+        the window then lasts until the first moment any other pair could meet, at most ``window`` s (or, when no two
         parcels can meet before ``t1``, all the way to ``t1``).
         """
         live = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
@@ -514,9 +515,9 @@ class Plant:
             if not len(rows):
                 V = nu
             else:
-                law = self.law if stick else cp
-                lam, V, sweeps, ok = solve_rows(rows, nu, 1.0 / mass, law.max_sweeps, cp.tolerance if not stick
-                                                else min(cp.tolerance, law.tolerance))
+                limits = self.law.stepper_options() if stick else cp  # the law's solver limits join the contacts'
+                lam, V, sweeps, ok = solve_rows(rows, nu, 1.0 / mass, limits.max_sweeps, cp.tolerance if not stick
+                                                else min(cp.tolerance, limits.tolerance))
                 self.record.unconverged_contact_steps += not ok
                 self._warm = {key: v for key, v in self._warm.items() if not (key[0] in slot and key[1] in slot)}
                 self._warm.update({(c.i, c.j, c.feature): (float(lam[k]), float(lam[k + 1])) for k, c in normals})

@@ -135,7 +135,7 @@ def run_stick_slip(model, y0, t0, t1, sample_times, progress, *, dt):
     ``wheel_work``, ``friction_dissipation``, ``step_dissipation``, ``kinetic_start``, ``kinetic_end``, and the
     solver's ``sweeps_max`` and ``unconverged_steps``.
     """
-    law = model.law
+    limits = model.law.stepper_options()
     mass = masses(model.spec)
     minv = 1.0 / mass
     acc = new_account()
@@ -143,7 +143,7 @@ def run_stick_slip(model, y0, t0, t1, sample_times, progress, *, dt):
     def step(piece, t, y, h):
         J, w, bounds, lam0, keys = wheel_problem(model, piece, y, h)
         nu = y[3:]
-        lam, nu_p, sweeps, ok = solve_contacts(J, w, bounds, nu, minv, lam0, law.max_sweeps, law.tolerance)
+        lam, nu_p, sweeps, ok = solve_contacts(J, w, bounds, nu, minv, lam0, limits.max_sweeps, limits.tolerance)
         acc["sweeps_max"] = max(acc["sweeps_max"], sweeps)
         acc["unconverged_steps"] += not ok
         account(acc, lam, J @ nu_p - w, w, nu_p - nu, mass)

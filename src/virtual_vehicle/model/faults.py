@@ -65,9 +65,9 @@ class Faults:
 
 
 def resolve(spec, cells, sensors_per_cell: int, neighbor: np.ndarray, listed_links=()) -> Faults:
-    """The faults of scenario table ``spec`` (:class:`~virtual_vehicle.config.scenario.FaultSpec`) on ``cells``: the listed
-    ones plus those drawn with the rates from ``numpy.random.default_rng(spec.seed)`` (in this order: cells, wheels
-    stuck, wheels free, links, sensors). ``neighbor`` is the topology's (n, P) neighbour table; ``listed_links``
+    """The faults of scenario table ``spec`` (:class:`~virtual_vehicle.config.scenario.FaultSpec`) on ``cells``: the
+    listed ones plus those drawn with the rates from ``numpy.random.default_rng(spec.seed)`` (in this order: cells,
+    wheels stuck, wheels free, links, sensors). ``neighbor`` is the topology's (n, P) neighbour table; ``listed_links``
     further dead links. Raises ValueError for a listed item that does not exist."""
     n, S = cells.n, sensors_per_cell
     rng = np.random.default_rng(spec.seed)

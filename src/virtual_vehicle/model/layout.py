@@ -427,8 +427,10 @@ def from_map(text: str, pitch: float, origin: tuple[float, float] = (0.0, 0.0), 
     of its cells.
 
     >>> cells, marks = from_map("oo0\\nE.o", 0.1)
-    >>> cells.positions.tolist(), marks["E"].tolist(), marks["0"].tolist()
-    ([[0.0, 0.0], [0.2, 0.0], [0.0, 0.1], [0.1, 0.1], [0.2, 0.1]], [True, False, False, False, False], [False, False, False, False, True])
+    >>> cells.positions.tolist()
+    [[0.0, 0.0], [0.2, 0.0], [0.0, 0.1], [0.1, 0.1], [0.2, 0.1]]
+    >>> marks["E"].tolist(), marks["0"].tolist()
+    ([True, False, False, False, False], [False, False, False, False, True])
     """
     lines = text.split("\n")
     while lines and not lines[0].strip():

@@ -39,11 +39,9 @@ def _ours(name: str) -> bool:
     return name in RUN_FILES or (name.startswith(".") and any(name.startswith(f".{f}.") for f in RUN_FILES))
 
 
-def check_run_folder(out_dir: str | Path, keep: tuple[Path, ...] = ()) -> str | None:
-    """Why ``out_dir`` cannot take a run's files, or None when it can (without touching anything): it must be a
-    folder or not exist yet (its first existing parent a folder), and be empty, or an earlier run's folder (it has
-    that run's manifest run.json), or hold nothing but a run's files (an interrupted run's: those
-    :func:`clear_run_folder` removes) and the files in ``keep`` (a checkpoint kept there)."""
+def check_folder(out_dir: str | Path) -> str | None:
+    """Why ``out_dir`` cannot be a folder to write into, or None when it can (without touching anything): it must be
+    a folder or not exist yet, its first existing parent a folder (not a file)."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         return f"{str(out)!r} is a file, not a folder"
@@ -52,6 +50,18 @@ def check_run_folder(out_dir: str | Path, keep: tuple[Path, ...] = ()) -> str | 
         parent = parent.parent
     if not parent.is_dir():
         return f"{str(parent)!r} is a file, so {str(out)!r} cannot be a folder"
+    return None
+
+
+def check_run_folder(out_dir: str | Path, keep: tuple[Path, ...] = ()) -> str | None:
+    """Why ``out_dir`` cannot take a run's files, or None when it can (without touching anything): it must be a
+    folder or not exist yet (its first existing parent a folder), and be empty, or an earlier run's folder (it has
+    that run's manifest run.json), or hold nothing but a run's files (an interrupted run's: those
+    :func:`clear_run_folder` removes) and the files in ``keep`` (a checkpoint kept there)."""
+    out = Path(out_dir)
+    problem = check_folder(out)
+    if problem is not None:
+        return problem
     if out.is_dir() and not (out / "run.json").is_file():  # an earlier run's folder is known by its manifest
         kept = {Path(k).resolve() for k in keep}
         foreign = sorted(e.name for e in out.iterdir() if not _ours(e.name) and e.resolve() not in kept)

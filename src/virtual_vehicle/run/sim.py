@@ -1,8 +1,7 @@
 """The Simulator: runs a validated scenario and records what happened to every parcel.
 
-Units: SI. A constant field is run as one plant interval; a networked run advances the plant one control tick at
-a time. The plant (:mod:`virtual_vehicle.engine.plant`) integrates each parcel on its own while it cannot meet another
-and
+Units: SI. A constant field is run as one plant interval; a networked run advances the plant one control tick at a time.
+The plant (:mod:`virtual_vehicle.engine.plant`) integrates each parcel on its own while it cannot meet another and
 resolves contact between parcels when it can.
 """
 
@@ -699,7 +698,7 @@ class TickedRun:
         self.queue = sorted((i for i, t in enumerate(self.arrive) if t > 0), key=lambda i: (self.arrive[i], i))
         self.entered = [0.0 if t == 0 else None for t in self.arrive]
         self.plant = setup.plant()
-        self.tracks = [_Track() for _ in self.ys]
+        self.tracks = [ParcelTrack() for _ in self.ys]
         self.cell_log: list = []
         self.faults = setup.faults  # these and the topology change when faults are injected during the run
         self.sensors = setup.sensors
@@ -724,7 +723,7 @@ class TickedRun:
         when each came on (``entered`` (N,) s, NaN before), the Coulomb check so far (``sliding``: which parcels
         broke it, first time s and worst slip m/s; None when not checked), the fault events and cell changes
         applied (``injected``, ``reconfigured``: their summaries), the sensors' random generator, the motors
-        (:meth:`WheelDrives.to_data`, None without), the parcels' tracks (:meth:`_Track.to_data`), the plant's state
+        (:meth:`WheelDrives.to_data`, None without), the parcels' tracks (:meth:`ParcelTrack.to_data`), the plant's state
         and the cell log as columns (None when empty)."""
         N = len(self.ys)
         sliding = None
@@ -782,7 +781,7 @@ class TickedRun:
                 ("t", "f", (T,)), ("readings", "b", (T, n, None)), ("wheels", "f", (T, n, 2)),
                 ("commands", "f", (T, n, 2)), ("sent", "i", (T, n)), ("received", "i", (T, n)))]
             log = list(zip(*columns))
-        self.tracks = [_Track.from_data(d, f"{where}.tracks[{i}]") for i, d in enumerate(tracks)]
+        self.tracks = [ParcelTrack.from_data(d, f"{where}.tracks[{i}]") for i, d in enumerate(tracks)]
         self.sensor_rng = rng_from_data(s["sensor_rng"], f"{where}.sensor_rng")
         self.plant.restore(s["plant"])
         self.k, self.ys, self.active, self.on, self.queue = k, [row.copy() for row in ys], active, on, queue
@@ -1124,7 +1123,7 @@ class NetworkRun(TickedRun, _Job):
 _SUMMED = frozenset(SUMMED_STATS)
 
 
-class _Track:
+class ParcelTrack:
     """One parcel's trajectory as a networked run goes: only the samples on the output grid and the latest state
     are kept (a run of an hour at 100 Hz would otherwise hold a piece per tick), events, status and the energy and
     solver counts (added up as :func:`~virtual_vehicle.engine.plant.join` does)."""
@@ -1155,6 +1154,7 @@ class _Track:
 
     @property
     def started(self) -> bool:
+        """Whether the track has taken in a tick yet."""
         return self._piece is not None or self._quiet is not None
 
     def _sample(self, times: np.ndarray, states: np.ndarray) -> None:
@@ -1219,7 +1219,7 @@ class _Track:
                 "stats_pieces": [tr.to_data() for tr in self.stats_pieces]}
 
     @classmethod
-    def from_data(cls, d, where: str = "track") -> "_Track":
+    def from_data(cls, d, where: str = "track") -> "ParcelTrack":
         """The track :meth:`to_data` wrote; raises ValueError for data of other keys, dtypes or shapes."""
         d = fields(d, ("times", "states", "events", "piece", "segments", "rhs_evals", "stats_pieces"), where)
         track = cls()
@@ -1235,6 +1235,8 @@ class _Track:
         return track
 
     def trajectory(self) -> Trajectory:
+        """The parcel's trajectory so far: the samples kept on the output grid and the latest state, the events, and
+        the counts and stats added up over the ticks."""
         times, states = list(self.times), list(self.states)
         end = float(self.piece.times[-1])
         if not times or end > times[-1]:

@@ -187,12 +187,13 @@ def _check_out(out_dir: Path, keep: tuple[Path, ...] = ()) -> None:
 
 
 def _check_out_folder(out_dir: Path, option: str = "--out") -> None:
-    """Fail before anything runs when the folder ``option`` names is a file (or a folder under one)."""
-    parent = out_dir
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if not parent.is_dir():
-        raise VirtualVehicleError(f"{option}: {str(parent)!r} is a file, not a folder")
+    """Fail before anything runs when the folder ``option`` names is a file (or a folder under one): see
+    :func:`~virtual_vehicle.run.io.check_folder`."""
+    from virtual_vehicle.run.io import check_folder
+
+    problem = check_folder(out_dir)
+    if problem is not None:
+        raise VirtualVehicleError(f"{option}: {problem}")
 
 
 def _check_file_target(path: Path, option: str) -> None:
@@ -244,9 +245,6 @@ def _report(result, out_dir: Path, plot: bool, text: str | None, formats: tuple[
             when = p["settled_within_5mm_2deg_at_s"]
             out.print(f"    target error {p['final_error_mm']:.2f} mm, {p['final_error_deg']:.2f} deg; "
                       + (f"within 5 mm and 2 deg from t={when:.3g} s" if when is not None else "not settled"))
-        if p["coulomb_sliding_assumption_violated_at_s"] is not None:
-            out.print(f"    note: from t={p['coulomb_sliding_assumption_violated_at_s']:.4g} s the parcel outran a "
-                      "wheel; the paper's Coulomb law assumes it never does (use the viscous or stick_slip law)")
     if "sorting" in s:
         so = s["sorting"]
         out.print(f"  sorting: {so['correct']} delivered to the right exit, {so['misrouted']} misrouted, {so['lost']} "
@@ -259,10 +257,13 @@ def _report(result, out_dir: Path, plot: bool, text: str | None, formats: tuple[
                   f"received, mean latency {lat}, {net['dropped']} dropped, {net['corrupted']} corrupted")
     out.print(f"results written to {out_dir}/: " + ", ".join(sorted({p.name for p in paths.values()})))
     slide = s["coulomb_sliding"]
-    if slide["parcels_violating"]:
+    if slide["parcels_violating"]:  # said once, here (the parcels' lines above leave it out)
+        late = [f"{p['name']} from t={p['coulomb_sliding_assumption_violated_at_s']:.4g} s" for p in s["parcels"]
+                if p["coulomb_sliding_assumption_violated_at_s"] is not None]
+        which = "; ".join(late[:5]) + (f"; {len(late) - 5} more" if len(late) > 5 else "")
         err.print(f"[yellow]warning[/yellow]: the Coulomb law's assumption that every wheel slides under the parcel "
-                  f"(paper 4.3) failed for {slide['parcels_violating']} of {len(s['parcels'])} parcel(s), first at "
-                  f"t={slide['first_violation_s']:.4g} s (a parcel outran a wheel by up to "
+                  f"(paper 4.3) failed for {slide['parcels_violating']} of {len(s['parcels'])} parcel(s) "
+                  f"({escape(which)}), first at t={slide['first_violation_s']:.4g} s (a parcel outran a wheel by up to "
                   f"{slide['max_reversed_slip_m_per_s']:.3g} m/s): their motion is not physical from then on; use "
                   + escape('[friction] law = "viscous" or "stick_slip"'), highlight=False)
 

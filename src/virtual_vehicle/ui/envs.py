@@ -189,8 +189,7 @@ class ArrayEnv(gymnasium.Env):
 
     Args:
         scenario: a bundled scenario name, a TOML path or a :class:`~virtual_vehicle.config.scenario.Scenario` (its
-        array,
-            parcels, friction and sensors; its field or control is replaced by the agent).
+            array, parcels, friction and sensors; its field or control is replaced by the agent).
         observe: ``"sensors"`` ((n, S) int8 readings), ``"poses"`` ((P, 6) x, y m, theta rad wrapped to
             [-pi, pi), vx, vy m/s, omega rad/s) or ``"both"`` (a dict of the two).
         action: ``"wheels"`` ((n, 2) wheel surface speeds, m/s, within +-vmax) or ``"twist"`` ((P, 3) vx, vy m/s,

@@ -376,8 +376,9 @@ def plot_force_field(cells, spec, velocities, law, heading: float, eqs=(), path:
                      bounds=None, step: float | None = None, gravity: float = 9.81, title: str | None = None):
     """The force (arrows, N) and torque (colour, N m) a field induces on ``spec`` at rest with heading ``heading``
     (rad), over centre-of-mass positions (m) in ``bounds`` = (xmin, ymin, xmax, ymax), with the equilibria ``eqs``
-    (:func:`~virtual_vehicle.analysis.equilibria.equilibria`) marked: filled = stable or marginal, hollow = neutral,
-    x = unstable; labelled with their headings in degrees when there are at most 12. Saves a PNG to ``path`` if given; returns the figure."""
+    (:func:`~virtual_vehicle.analysis.equilibria.equilibria`) marked: filled = stable or marginal, hollow = neutral, x =
+    unstable; labelled with their headings in degrees when there are at most 12. Saves a PNG to ``path`` if given;
+    returns the figure."""
     from virtual_vehicle.engine.dynamics import ParcelModel
     from virtual_vehicle.errors import TippingError
 
@@ -440,9 +441,8 @@ def plot_force_field(cells, spec, velocities, law, heading: float, eqs=(), path:
 def plot_similarity(rows: list[dict], title: str, path: str | Path | None = None):
     """Overlay the first parcel's dimensionless path of every member of a similarity family (rows of
     :func:`~virtual_vehicle.analysis.scaling.similarity_study`): x / L and y / L against t / sqrt(L / g), one line style
-    per
-    scale, labelled with its pitch (m) and parcel mass (kg). Similar runs draw one curve. Saves a PNG to ``path``
-    if given; returns the figure."""
+    per scale, labelled with its pitch (m) and parcel mass (kg). Similar runs draw one curve. Saves a PNG to ``path`` if
+    given; returns the figure."""
     fig, ax = plt.subplots(figsize=(8, 4.5), dpi=110)
     styles = ["-", "--", ":", "-."]
     for k, r in enumerate(rows):
@@ -460,11 +460,11 @@ def plot_similarity(rows: list[dict], title: str, path: str | Path | None = None
 
 
 def fault_study_outcomes(rows: list[dict]) -> dict[str, np.ndarray]:
-    """Mean parcels per run of each outcome, per row of a fault study (:func:`~virtual_vehicle.analysis.sweep.fault_study`):
-    ``delivered`` (to the right exit), ``misrouted``, ``lost`` and ``not_delivered`` (still on the array or never put
-    on at the end of the run: parcels due minus delivered, misrouted and lost), which sum to ``parcels_due``. When
-    the rows carry ``on_array`` and ``waiting`` (mean parcels per run), ``not_delivered`` is split into those two.
-    NaN where a rate has no finished run."""
+    """Mean parcels per run of each outcome, per row of a fault study
+    (:func:`~virtual_vehicle.analysis.sweep.fault_study`): ``delivered`` (to the right exit), ``misrouted``, ``lost``
+    and ``not_delivered`` (still on the array or never put on at the end of the run: parcels due minus delivered,
+    misrouted and lost), which sum to ``parcels_due``. When the rows carry ``on_array`` and ``waiting`` (mean parcels
+    per run), ``not_delivered`` is split into those two. NaN where a rate has no finished run."""
     def col(key):
         return np.array([np.nan if r.get(key) is None else r[key] for r in rows], dtype=float)
 
@@ -485,11 +485,11 @@ _OUTCOME_STYLE = {"delivered": ("delivered to the right exit", "tab:green"),
 
 
 def plot_fault_study(rows: list[dict], kind: str, title: str, path: str | Path | None = None):
-    """A fault study (:func:`~virtual_vehicle.analysis.sweep.fault_study`): left, the fraction of parcels delivered to the
-    right exit (mean and one standard deviation over the fault seeds) against the failure rate; middle, what became
-    of the parcels due (mean per run, stacked: delivered, misrouted, lost, and those stuck on the array or never
-    put on, :func:`fault_study_outcomes`) with the collisions per run; right, the mean delivery time (s) on an axis
-    from 0, its spread over the rates written out. Saves a PNG to ``path`` if given."""
+    """A fault study (:func:`~virtual_vehicle.analysis.sweep.fault_study`): left, the fraction of parcels delivered to
+    the right exit (mean and one standard deviation over the fault seeds) against the failure rate; middle, what became
+    of the parcels due (mean per run, stacked: delivered, misrouted, lost, and those stuck on the array or never put on,
+    :func:`fault_study_outcomes`) with the collisions per run; right, the mean delivery time (s) on an axis from 0, its
+    spread over the rates written out. Saves a PNG to ``path`` if given."""
     rate = np.array([r["rate"] for r in rows])
 
     def col(key):

@@ -141,10 +141,9 @@ class WireLevel:
     def set_topology(self, topology: Topology) -> None:
         """Cells died, were taken out or snapped in, links were cut (see
         :class:`~virtual_vehicle.cells.network.delivery.Delivery`), now. A cell that goes loses what it had queued
-        (counted
-        as dropped) and any transfer it was part of is broken off (the sender keeps its sentence and tries again); a
-        transfer over a link that is cut likewise; a cell that comes starts polling with empty queues. Sentences
-        queued for a port whose link is gone time out and are dropped as for any silent neighbour."""
+        (counted as dropped) and any transfer it was part of is broken off (the sender keeps its sentence and tries
+        again); a transfer over a link that is cut likewise; a cell that comes starts polling with empty queues.
+        Sentences queued for a port whose link is gone time out and are dropped as for any silent neighbour."""
         old, t = self.topology, self.now
         self.topology = topology
         P = topology.ports

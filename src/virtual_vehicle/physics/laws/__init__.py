@@ -13,7 +13,7 @@ import numpy as np
 from virtual_vehicle.physics.contact import solve_support
 from virtual_vehicle.physics.laws import affine
 from virtual_vehicle.physics.laws.affine import J, FrictionConstants, drive_constants
-from virtual_vehicle.physics.laws.base import FrictionLaw
+from virtual_vehicle.physics.laws.base import FrictionLaw, StepperOptions
 from virtual_vehicle.physics.laws.coulomb import CoulombLaw, coulomb_constants
 from virtual_vehicle.physics.laws.stick_slip import StickSlipLaw
 from virtual_vehicle.physics.laws.viscous import ViscousLaw, viscous_constants
@@ -104,9 +104,17 @@ def check_law(law: FrictionLaw, trials: int = 20, seed: int = 0, mu: float = 0.5
       energy out (slip power >= 0) and, from rest, never more than the wheels put in;
     - the reach bound (:meth:`FrictionLaw.reach`) holds against the motion integrated (RK4, ``steps`` a window)
       from random twists;
-    - an event-driven law's constants give its wrench, and its row is those constants' (:data:`affine.ROW_FIELDS`).
+    - an event-driven law's constants give its wrench, and its row is those constants' (:data:`affine.ROW_FIELDS`);
+    - a time-stepped law hands its stepper its options (:meth:`FrictionLaw.stepper_options`), an event-driven one
+      none.
     """
     assert isinstance(law.name, str) and law.name, "a law has a name"
+    options = law.stepper_options()
+    if law.time_stepper is None:
+        assert options is None, "an event-driven law hands no time stepper options"
+    else:
+        assert isinstance(options, StepperOptions) and int(options.max_sweeps) >= 1 and options.tolerance > 0, \
+            f"a time-stepped law hands its stepper StepperOptions with max_sweeps >= 1, tolerance > 0: {options}"
     rng = np.random.default_rng(seed)
     for k in range(trials):
         t = _Trial(rng, mu, gravity)
@@ -198,5 +206,5 @@ def check_law(law: FrictionLaw, trials: int = 20, seed: int = 0, mu: float = 0.5
                                atol=tol), f"trial {k}: constants_and_row's constants differ from the cells' wrench"
 
 
-__all__ = ["FrictionLaw", "FrictionConstants", "CoulombLaw", "ViscousLaw", "StickSlipLaw", "LAWS", "law_named",
-           "check_law", "coulomb_constants", "viscous_constants", "drive_constants", "J"]
+__all__ = ["FrictionLaw", "StepperOptions", "FrictionConstants", "CoulombLaw", "ViscousLaw", "StickSlipLaw", "LAWS",
+           "law_named", "check_law", "coulomb_constants", "viscous_constants", "drive_constants", "J"]

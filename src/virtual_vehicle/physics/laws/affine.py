@@ -32,6 +32,29 @@ ROW_FIELDS = ("origin_x", "origin_y", "a_xx", "a_xy", "a_yx", "a_yy", "b_x", "b_
 the local origin (m), eqs. 23 and 29's constants (``de`` is ``d + e``), the damping (s/m) and weight (N), the moments
 of eqs. 33 and 38, then 1 / mass (1/kg) and 1 / inertia (1/(kg m^2))."""
 
+ROW_LENGTH = len(ROW_FIELDS)
+"""How many floats a piece's constants row holds."""
+
+
+def _place(name: str) -> int:
+    """Where field ``name`` of :data:`ROW_FIELDS` sits in a row."""
+    return ROW_FIELDS.index(name)
+
+
+# Each field's place in a row, by its name in ROW_FIELDS: module-level integers, so that compiled code (the row's
+# writer, row(), and its reader, the engine's accelerations) indexes with constants, and the order is ROW_FIELDS'.
+R_ORIGIN_X, R_ORIGIN_Y = _place("origin_x"), _place("origin_y")
+R_A_XX, R_A_XY, R_A_YX, R_A_YY = _place("a_xx"), _place("a_xy"), _place("a_yx"), _place("a_yy")
+R_B_X, R_B_Y = _place("b_x"), _place("b_y")
+R_C_XX, R_C_XY, R_C_YX, R_C_YY = _place("c_xx"), _place("c_xy"), _place("c_yx"), _place("c_yy")
+R_DE_X, R_DE_Y, R_F = _place("de_x"), _place("de_y"), _place("f")
+R_DAMPING, R_WEIGHT = _place("damping"), _place("weight")
+R_MOMENT_LIN_XX, R_MOMENT_LIN_XY = _place("moment_lin_xx"), _place("moment_lin_xy")
+R_MOMENT_LIN_YX, R_MOMENT_LIN_YY = _place("moment_lin_yx"), _place("moment_lin_yy")
+R_MOMENT_CONST_X, R_MOMENT_CONST_Y = _place("moment_const_x"), _place("moment_const_y")
+R_SECOND_LIN_X, R_SECOND_LIN_Y, R_SECOND_CONST = _place("second_lin_x"), _place("second_lin_y"), _place("second_const")
+R_INV_MASS, R_INV_INERTIA = _place("inv_mass"), _place("inv_inertia")
+
 _TERMS = 24
 """How many floats the packed terms hold ahead of the row in :func:`_terms_and_row`'s output."""
 
@@ -157,12 +180,20 @@ def pack_terms(a, b, c, d, e, f, moment_lin, moment_const, second_lin, second_co
 @njit(cache=True)
 def row(a, b, c, d, e, f, damping, weight, moment_lin, moment_const, second_lin, second_const, origin, inv_mass,
         inv_inertia):
-    """A piece's constants as one array, in the order of :data:`ROW_FIELDS`."""
-    return np.array([origin[0], origin[1], a[0, 0], a[0, 1], a[1, 0], a[1, 1], b[0], b[1],
-                     c[0, 0], c[0, 1], c[1, 0], c[1, 1], d[0] + e[0], d[1] + e[1], f, damping, weight,
-                     moment_lin[0, 0], moment_lin[0, 1], moment_lin[1, 0], moment_lin[1, 1],
-                     moment_const[0], moment_const[1], second_lin[0], second_lin[1], second_const,
-                     inv_mass, inv_inertia])
+    """A piece's constants as one array, in the order of :data:`ROW_FIELDS` (each written at its ``R_`` place)."""
+    out = np.empty(ROW_LENGTH)
+    out[R_ORIGIN_X], out[R_ORIGIN_Y] = origin[0], origin[1]
+    out[R_A_XX], out[R_A_XY], out[R_A_YX], out[R_A_YY] = a[0, 0], a[0, 1], a[1, 0], a[1, 1]
+    out[R_B_X], out[R_B_Y] = b[0], b[1]
+    out[R_C_XX], out[R_C_XY], out[R_C_YX], out[R_C_YY] = c[0, 0], c[0, 1], c[1, 0], c[1, 1]
+    out[R_DE_X], out[R_DE_Y], out[R_F] = d[0] + e[0], d[1] + e[1], f
+    out[R_DAMPING], out[R_WEIGHT] = damping, weight
+    out[R_MOMENT_LIN_XX], out[R_MOMENT_LIN_XY] = moment_lin[0, 0], moment_lin[0, 1]
+    out[R_MOMENT_LIN_YX], out[R_MOMENT_LIN_YY] = moment_lin[1, 0], moment_lin[1, 1]
+    out[R_MOMENT_CONST_X], out[R_MOMENT_CONST_Y] = moment_const[0], moment_const[1]
+    out[R_SECOND_LIN_X], out[R_SECOND_LIN_Y], out[R_SECOND_CONST] = second_lin[0], second_lin[1], second_const
+    out[R_INV_MASS], out[R_INV_INERTIA] = inv_mass, inv_inertia
+    return out
 
 
 @njit(cache=True)

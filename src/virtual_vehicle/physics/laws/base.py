@@ -17,11 +17,22 @@ per-support-set constants (for a time-stepped law, those of one mode, for refere
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from typing import NamedTuple
 
 import numpy as np
 
 from virtual_vehicle.physics.contact import SupportSolution
 from virtual_vehicle.physics.laws.affine import FrictionConstants, cell_wrench
+
+
+class StepperOptions(NamedTuple):
+    """What a time-stepped law hands the engine's stepper for the contact problem it solves every step (the wheels'
+    own, and a group's when parcels push each other): the projected Gauss-Seidel solver's limits."""
+
+    max_sweeps: int
+    """Most sweeps over the rows before a step is given up as unconverged."""
+    tolerance: float
+    """Convergence: the largest change of an impulse in a sweep, relative to the largest impulse bound."""
 
 
 class FrictionLaw(ABC):
@@ -38,6 +49,12 @@ class FrictionLaw(ABC):
     damped: bool = False
     """True when the wrench damps the parcel's twist (a force against its velocity): equilibria are then
     classified by the stiffness alone (a damped node or focus); undamped ones are centres at best."""
+
+    def stepper_options(self) -> StepperOptions | None:
+        """What the law's time stepper takes from it (:class:`StepperOptions`), so that the engine asks the law no
+        attribute of its own; None for an event-driven law (``time_stepper`` None), which a time-stepped law
+        overrides."""
+        return None
 
     @abstractmethod
     def drive_vectors(self, velocities: np.ndarray, drive_directions: np.ndarray) -> np.ndarray:

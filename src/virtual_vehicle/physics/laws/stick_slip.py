@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from virtual_vehicle.physics.laws.base import StepperOptions
 from virtual_vehicle.physics.laws.coulomb import CoulombLaw
 
 
@@ -27,6 +28,10 @@ class StickSlipLaw(CoulombLaw):
     tolerance: float = 1e-12
     time_stepper = "stick_slip"
     assumes_sliding = False  # the stepper decides which wheels slide
+
+    def stepper_options(self) -> StepperOptions:
+        """The solver's limits, ``max_sweeps`` and ``tolerance``."""
+        return StepperOptions(self.max_sweeps, self.tolerance)
 
     def wheel_loads(self, speed, slip):
         """A sliding wheel pushes with ``mu N`` along its slip; a sticking one (no slip) is reported as none."""
