@@ -25,7 +25,7 @@ from virtual_vehicle.engine.stepping import Event, Trajectory
 from virtual_vehicle.model import layout
 from virtual_vehicle.model.parcel import rectangle
 from virtual_vehicle.physics.collide import ContactParams
-from virtual_vehicle.physics.friction import LAWS
+from virtual_vehicle.physics.laws import LAWS
 from virtual_vehicle.run import checkpoint
 from virtual_vehicle.run.sim import FieldRun, LatencyStats, NetworkRun
 
