@@ -1,6 +1,6 @@
 """The seed paper's own results (Luntz, Messner, Choset, "Virtual Vehicle: parcel manipulation and dynamics with a
-distributed actuator array", SPIE 1997), Section 4, and the 1-D row of the authors' earlier paper it recalls in
-Section 2: each computed with the package's physics and engine, beside a closed form derived by hand.
+distributed actuator array", 1997), Section 4, and the 1-D row of the authors' earlier paper it recalls in
+Section 2 (its ref. 13): each computed with the package's physics and engine, beside a closed form derived by hand.
 
 Units: SI (m, s, rad, N, N/m, kg).
 """
@@ -19,7 +19,7 @@ from virtual_vehicle.config.scenario import load_scenario
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 
 SEED = ("J. Luntz, W. Messner, H. Choset, \"Virtual Vehicle: parcel manipulation and dynamics with a distributed "
-        "actuator array\", Proc. SPIE 3201, 1997")
+        "actuator array\" (1997)")
 
 
 def inward_2x2(out: Path) -> Result:
@@ -236,8 +236,8 @@ def row_oscillator(out: Path) -> Result:
     c, v = numbers["Coulomb"], numbers["viscous"]
     return Result(
         "row_oscillator", "The end-reversed row: a harmonic oscillator that changes with the supports",
-        f"{SEED}, Section 2 (recalling J. Luntz, W. Messner, \"A distributed control system for flexible materials "
-        "handling\", IEEE Control Systems 17, 1997)",
+        f"{SEED}, Section 2, recalling its ref. 13 (J. Luntz, W. Messner, H. Choset, \"Parcel manipulation and "
+        "dynamics with a distributed actuator array: the virtual vehicle\", Proc. IEEE ICRA 1997)",
         "\"Using both friction laws, the resulting parcel dynamics are that of a simple or damped harmonic "
         "oscillator, where the frequency, center of oscillation, and damping constant are constants which change as "
         "the parcel shifts from one set of supports to another.\"",
