@@ -85,7 +85,8 @@ def inward_2x2(out: Path) -> Result:
         "R = [0 0 0 0] (eq. 26), so the torque vanishes; with eq. 23 the parcel oscillates at sqrt(2 mu g / d) "
         "(derived here, not in the paper)",
         f"max |R_i| = {numbers['R_max_abs_m']:.1g} m; |a_xy / a_xx| = {numbers['a_offdiag_over_diag']:.1g}; "
-        f"zero torque over {turn / np.pi:.3g} pi rad of heading (all); heading drift {numbers['theta_drift_rad']:.1g} rad; "
+        f"zero torque over {turn / np.pi:.3g} pi rad of heading (all); heading drift "
+        f"{numbers['theta_drift_rad']:.1g} rad; "
         f"omega {omega_x:.7g} / {omega_y:.7g} rad/s (x / y) vs {omega_closed:.7g}",
         passed, "R and a_xy to 1e-12; a_xx, a_yy to 1e-9 of -2 mu W / d; omega to 1e-4 (period read from the "
         "trajectory's zero crossings)", numbers, [figure, table])

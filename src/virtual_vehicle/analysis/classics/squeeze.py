@@ -41,12 +41,17 @@ SPEED = 0.2
 
 
 def random_polygon(rng: np.random.Generator, radius: float, mass: float = 1.0, mu: float = 0.5) -> ParcelSpec:
-    """A random star-shaped polygon of 4 to 8 vertices at 0.4 to 1 times ``radius`` (m) from its centre, as a
-    uniform plate of ``mass`` kg (viscous coefficient ``mu``, s/m)."""
-    k = int(rng.integers(4, 9))
-    angles = np.sort(rng.uniform(0, 2 * np.pi, k))
-    radii = rng.uniform(0.4, 1.0, k) * radius
-    return parcel.polygon(np.column_stack([radii * np.cos(angles), radii * np.sin(angles)]), mass, mu)
+    """A random polygon of 4 to 8 vertices at 0.4 to 1 times ``radius`` (m) from a centre, in the order of their
+    angles about it, as a uniform plate of ``mass`` kg (viscous coefficient ``mu``, s/m). A draw whose outline is
+    not simple or whose centroid falls outside it is drawn again."""
+    while True:
+        k = int(rng.integers(4, 9))
+        angles = np.sort(rng.uniform(0, 2 * np.pi, k))
+        radii = rng.uniform(0.4, 1.0, k) * radius
+        try:
+            return parcel.polygon(np.column_stack([radii * np.cos(angles), radii * np.sin(angles)]), mass, mu)
+        except ValueError:
+            continue
 
 
 def bisector_torque(outline, theta: float) -> tuple[float, float]:
@@ -261,7 +266,8 @@ def squeeze_fields(out: Path, parts: int = 8, pitch: float = 0.005, radius: floa
         "squeeze line bisects its area and the centres of area of the two halves lie on a line perpendicular to "
         "it; stable where the torque turns the part back; squeezes in sequence orient a part up to symmetry",
         f"every bisector orientation of {parts} random polygons found within {np.degrees(worst):.2f} deg, offset "
-        f"within {1e3 * worst_offset:.2f} mm (cells {1e3 * pitch:g} mm, parts of {1e3 * radius:g} mm radius); the counts agree for {counts_agree}/{parts}: discreteness adds "
+        f"within {1e3 * worst_offset:.2f} mm (cells {1e3 * pitch:g} mm, parts of {1e3 * radius:g} mm radius); the "
+        f"counts agree for {counts_agree}/{parts}: discreteness adds "
         f"{sum(extras)} stable orientations where the torque is shallow; {plan_text}",
         passed, "every stable heading of the bisector construction has one of the package within 3 deg (extra ones "
         "are reported, not failed); the plan "
@@ -315,6 +321,7 @@ def _figure(path: Path, specs, curves, plan, pitch) -> Path:
         fp = np.vstack([spec.footprint, spec.footprint[:1]])
         a.plot(fp[:, 0] + 0.2 * (k % 3), fp[:, 1] - 0.2 * (k // 3), lw=1.5)
         a.text(0.2 * (k % 3), -0.095 - 0.2 * (k // 3), f"part {k}", ha="center", va="top", fontsize=8)
+    a.set_ylim(-0.2 * ((min(len(specs), 6) - 1) // 3) - 0.13, 0.1)  # room for the lowest row's names
     a.set_aspect("equal")
     a.set_xlabel("x (m)")
     a.set_ylabel("y (m)")
@@ -325,7 +332,7 @@ def _figure(path: Path, specs, curves, plan, pitch) -> Path:
         a.plot(start, np.degrees(plan["after_first_rad"]), "o", mfc="none", label="after squeeze 1 (line at 0 deg)")
         a.plot(start, np.degrees(plan["after_second_rad"]), "x", ms=8,
                label=f"after squeeze 2 (line at {np.degrees(plan['alpha_rad']):.1f} deg)")
-        a.axhline(np.degrees(plan["predicted_rad"]), color="k", ls="--", lw=0.8, label="planned orientation")
+        a.axhline(np.degrees(plan["predicted_rad"]), color="k", ls="--", lw=0.8, label="planned (torque curve of the line at 0 deg)")
         a.set_xlabel("start heading (deg)")
         a.set_ylabel("heading modulo 180 (deg)")
         a.set_ylim(0, 180)
