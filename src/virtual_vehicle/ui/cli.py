@@ -642,6 +642,43 @@ def compare(
     out.print(f"written to {out_dir}/compare.json")
 
 
+@app.command(name="reproduce")
+def reproduce_cmd(
+    names: Optional[list[str]] = typer.Argument(None, help="Classic results to reproduce (default: all): "
+                                                "inward_2x2, row_oscillator, squeeze, elliptic."),
+    out_dir: Path = typer.Option(Path("results/classics"), "--out", "-o", help="Folder for the results (one "
+                                 "sub-folder each)."),
+) -> None:
+    """Reproduce the field's classic results with this package's physics; write each one's figure and table and
+    print the source's statement beside ours. Exits 1 when one does not reproduce."""
+    from rich.table import Table
+
+    from virtual_vehicle.analysis.classics import CLASSICS, reproduce
+
+    unknown = [n for n in names or () if n not in CLASSICS]
+    try:
+        if unknown:
+            raise VirtualVehicleError(f"no classic result named {', '.join(map(repr, unknown))}; choose from "
+                                      f"{', '.join(CLASSICS)}")
+        _check_out_folder(out_dir)
+    except VirtualVehicleError as exc:
+        _fail(exc)
+    results = []
+    for name in dict.fromkeys(names or CLASSICS):
+        with Phase(f"reproducing {name}", delay=0):
+            results.extend(reproduce([name], out_dir))
+    table = Table(title="classic results", show_lines=True)
+    for col in ("name", "source's statement", "ours", "result"):
+        table.add_column(col, overflow="fold")
+    for r in results:
+        table.add_row(r.name, escape(f"{r.statement}\n({r.source})"), escape(r.ours),
+                      "[green]reproduced[/green]" if r.passed else "[red]NOT reproduced[/red]")
+    out.print(table)
+    out.print(f"figures and tables in {out_dir}/NAME/", highlight=False, markup=False)
+    if not all(r.passed for r in results):
+        raise typer.Exit(code=1)
+
+
 @app.command()
 def scenarios() -> None:
     """List the bundled scenarios."""
