@@ -54,7 +54,7 @@ from virtual_vehicle.physics.collide import (
 from virtual_vehicle.physics.laws import FrictionLaw
 
 _ADDITIVE = ("wheel_work", "friction_dissipation", "step_dissipation", "contact_work", "unconverged_steps",
-             "chatter_steps")
+             "chatter_steps", "mode_changes")
 SUMMED_STATS = (*_ADDITIVE, "sweeps_max", "kinetic_start")
 """Trajectory stats that :func:`join` does not simply take from the last piece."""
 

@@ -52,7 +52,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 __all__ = ["Wheels", "Mode", "ModeEvent", "StickSlipRun", "wheels_on", "decide_mode", "mode_rhs", "mode_events",
-           "simulate"]
+           "simulate", "stick_facets", "breaking_wheels", "project_twist"]
 
 _SLIP_TOL = 1e-9  # relative to the speed scale: a wheel this close to zero slip is at zero slip
 _ACCEL_TOL = 1e-7  # relative to the acceleration scale: a slip acceleration this small is zero
@@ -558,7 +558,7 @@ def simulate(wheels: Wheels, y0, t0: float, t1: float, mass: float, inertia: flo
             events.append(ModeEvent(t, fn.kind, int(fn.index), mode, mode))
             status = "support"
             break
-        breaking = _breaking(wheels, mode, t, z[:6], minv, fn) if fn.kind == "stick" else None
+        breaking = _breaking(wheels, mode, t, z[:6], minv, fn.spec, fn.index) if fn.kind == "stick" else None
         new = decide_mode(wheels, t, z[:6], mass, inertia, breaking=breaking)
         z[:6] = _project(wheels, new, t, z[:6], minv)
         events.append(ModeEvent(t, fn.kind, int(fn.index), mode, new))
@@ -570,12 +570,12 @@ def simulate(wheels: Wheels, y0, t0: float, t1: float, mass: float, inertia: flo
                         t, y, status)
 
 
-def _breaking(wheels, mode, t, y, minv, fn) -> dict:
-    """The wheels that leave stick where the required wrench crosses facet ``fn.index``: those off the facet's plane,
-    each at its static bound ``lam_j`` there, slipping against it (sign ``-sign(lam_j)``)."""
+def _breaking(wheels, mode, t, y, minv, spec, facet) -> dict:
+    """The wheels that leave stick where the required wrench crosses facet ``facet`` of ``spec``: those off the
+    facet's plane, each at its static bound ``lam_j`` there, slipping against it (sign ``-sign(lam_j)``)."""
     G, F = _required(wheels, mode, t, y, minv)
-    rank, anchor, index = fn.spec
-    n = _facet_normals(G, (rank, anchor, index[fn.index:fn.index + 1]))[0]
+    rank, anchor, index = spec
+    n = _facet_normals(G, (rank, anchor, index[facet:facet + 1]))[0]
     reach = G @ n
     off = np.abs(reach) > _PLANE_TOL * np.linalg.norm(G, axis=1)
     side = np.sign(n @ F) or 1.0
@@ -594,3 +594,23 @@ def _project(wheels, mode, t, y, minv) -> np.ndarray:
     out = y.copy()
     out[3:] -= minv * (JS.T @ np.linalg.lstsq((JS * minv) @ JS.T, gap, rcond=None)[0])
     return out
+
+
+def stick_facets(wheels: Wheels, mode: Mode, t: float, y, mass: float, inertia: float) -> tuple:
+    """The facet choice ``(rank, anchor, index)`` of the sticking wheels' zonotope of ``mode`` at (t, y), indices
+    into ``mode.stick`` (see :func:`mode_events`: fixed for the mode, as the facets keep their generators while
+    the state moves). For an engine that evaluates the facets' slacks itself."""
+    return _facet_spec(_required(wheels, mode, t, y, 1.0 / _masses(mass, inertia))[0])
+
+
+def breaking_wheels(wheels: Wheels, mode: Mode, t: float, y, mass: float, inertia: float, spec: tuple,
+                    facet: int) -> dict:
+    """``{wheel: sign}`` of the wheels that leave stick where the required wrench of ``mode`` crosses facet
+    ``facet`` of the facet choice ``spec`` (:func:`stick_facets`) at (t, y): :func:`decide_mode`'s ``breaking``."""
+    return _breaking(wheels, mode, t, np.asarray(y, dtype=float), 1.0 / _masses(mass, inertia), spec, facet)
+
+
+def project_twist(wheels: Wheels, mode: Mode, t: float, y, mass: float, inertia: float) -> np.ndarray:
+    """``y`` (x, y, theta, vx, vy, omega) with its twist moved, the least in the kinetic metric, onto the sticking
+    wheels' constraints of ``mode`` at time ``t`` (s): what :func:`simulate` does at every mode change."""
+    return _project(wheels, mode, t, np.asarray(y, dtype=float), 1.0 / _masses(mass, inertia))
