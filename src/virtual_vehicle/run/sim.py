@@ -136,7 +136,8 @@ class RunResult:
             "version": __version__,
             "friction_law": sc.friction.law,
             "integrator": (f"time-stepping ({self.setup.law.time_stepper.replace('_', '-')})"
-                           if self.setup.law.time_stepper else sc.integrator.mode),
+                           if self.setup.law.time_stepper and (sc.integrator.mode == "fixed" or not self.setup.law.modes)
+                           else sc.integrator.mode),
             "duration_s": sc.duration,
             "cells": self.setup.cells.n,
             "parcels": parcels,
