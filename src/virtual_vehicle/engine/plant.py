@@ -473,8 +473,9 @@ class Plant:
                     if i in wheels:
                         first, J, w, bounds, keys = wheels[i]
                         li = lam[first:first + len(w)]
-                        account(acc[i], li, J @ V[b] - w, w, V[b] - Y[i][3:], mass[b])
-                        remember(models[i], keys, li, bounds)
+                        slip = J @ V[b] - w
+                        account(acc[i], li, slip, w, V[b] - Y[i][3:], mass[b])
+                        remember(models[i], keys, li, slip, w)
                         acc[i]["sweeps_max"] = max(acc[i]["sweeps_max"], sweeps)
                         acc[i]["unconverged_steps"] += not ok
                 for k, c in normals:  # work of the contact impulses on each parcel over the step

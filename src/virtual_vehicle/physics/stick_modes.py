@@ -22,13 +22,12 @@ their net wrench ``F_S`` is. Stick holds while ``F_S`` lies in the zonotope ``Z_
 slip against their force; the wheels in the facet's plane are decided again. This is the rule the fixed-step law
 (:mod:`virtual_vehicle.engine.stickslip`) obeys: its box LCP has a unique post-step twist, and that twist sticks iff
 the required impulse lies in ``h Z_S``. The per-wheel stick forces reported are the minimum-norm ones (any other
-distribution inside the bounds has the same wrench, the same motion and the same power). With ``mu_s = mu_k`` the
-stepped law converges to this at first order through such breaks (tested). With ``mu_s > mu_k`` it does not: it
-gives the static bound next step only to wheels whose impulse was strictly inside their bound, and its projected
-Gauss-Seidel may put a redundant sticking wheel exactly at its bound while the wrench is well inside ``h Z_S``; that
-wheel is then held to ``mu_k`` although it never slid, its zonotope shrinks, and the grip breaks early (seen on a
-turning field: demotions from 0.14 s, a break 3 ms before the exact one, independent of the step). Deciding "stuck"
-from the wheel's slip after the step instead of its impulse would follow this rule.
+distribution inside the bounds has the same wrench, the same motion and the same power). The stepped law converges
+to this at first order through such breaks (tested), also with ``mu_s > mu_k`` since it gives the static bound next
+step to every wheel whose slip after the step is zero. (It once judged by the impulse, strictly inside the bound:
+its projected Gauss-Seidel may put a redundant sticking wheel exactly at its bound while the wrench is well inside
+``h Z_S``; that wheel was then held to ``mu_k`` although it never slid, its zonotope shrank, and the grip broke
+early, 3 ms before the exact break on a turning field whatever the step.)
 
 **Deciding a mode (at an event).** Slipping wheels keep their sign. Wheels at zero slip solve the acceleration-level
 box problem ``min 1/2 lam^T A lam + q^T lam`` over ``|lam| <= mu_s N`` (``A = J M^-1 J^T``), whose acceleration

@@ -87,7 +87,7 @@ class RunResult:
 
     def summary(self) -> dict:
         """A JSON-ready summary: per-parcel outcome, start/end state, distance, events; run totals."""
-        sc = self.setup.scenario
+        sc, law = self.setup.scenario, self.setup.law
         parcels = []
         for pr in self.parcels:
             tr = pr.trajectory
@@ -135,8 +135,8 @@ class RunResult:
             "scenario": sc.name,
             "version": __version__,
             "friction_law": sc.friction.law,
-            "integrator": (f"time-stepping ({self.setup.law.time_stepper.replace('_', '-')})"
-                           if self.setup.law.time_stepper and (sc.integrator.mode == "fixed" or not self.setup.law.modes)
+            "integrator": (f"time-stepping ({law.time_stepper.replace('_', '-')})"
+                           if law.time_stepper and (sc.integrator.mode == "fixed" or not law.modes)
                            else sc.integrator.mode),
             "duration_s": sc.duration,
             "cells": self.setup.cells.n,
