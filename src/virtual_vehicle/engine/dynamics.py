@@ -462,7 +462,7 @@ def integrate_prechecked(model: ParcelModel, y0: np.ndarray, t0: float, t1: floa
     law = model.law
     if mode == "event" and law.modes:
         return _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, rtol=rtol, atol=atol,
-                          max_step=max_step, support=support)
+                          max_step=max_step, dt=dt, support=support)
     if law.time_stepper is not None:
         return TIME_STEPPERS[law.time_stepper](model, y0, t0, t1, sample_times, progress, dt=dt)
     if mode == "event":
@@ -611,7 +611,7 @@ def _mode_arrays(wheels, mode, t, y, mass, inertia, minv):
     return md, _kernel.mode_event_count(md), spec
 
 
-def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol, atol, max_step,
+def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol, atol, max_step, dt,
                support=None) -> Trajectory:
     """Event mode for a law with modes (stick-slip): on each piece (support set) the law's wheels
     (:meth:`~virtual_vehicle.physics.laws.base.FrictionLaw.wheel_contacts`) are in a mode (each sticks or slips with
@@ -620,7 +620,9 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     mode event, and at a support event with the new piece's wheels, the next mode is decided by the complementarity
     rule (:func:`~virtual_vehicle.physics.stick_modes.decide_mode`) and the twist projected onto its sticking
     wheels. The stats hold the energy account (J) as the time stepper's do (its step dissipation 0: there is no
-    step), the mode changes and ``mode_events``: (time, kind "slip" or "stick", mode before, mode after) each."""
+    step), the mode changes and ``mode_events``: (time, kind "slip" or "stick", mode before, mode after) each. Where
+    the rule cannot decide a mode, the run crosses a few fixed steps (:func:`_undecided_steps`), counted in
+    ``stats["undecided_steps"]``."""
     law, spec = model.law, model.spec
     mass, inertia = spec.mass, spec.inertia
     minv = np.array([1.0 / mass, 1.0 / mass, 1.0 / inertia])
@@ -628,17 +630,18 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     events: list[Event] = []
     mode_events: list[tuple] = []
     t = float(t0)
-    z = np.concatenate([y0, [0.0, 0.0]])
+    z = np.concatenate([y0, [0.0, 0.0, 0.0]])  # and the energy account: wheel work, friction, fixed steps' loss (J)
     kinetic_start = 0.5 * (mass * (y0[3] ** 2 + y0[4] ** 2) + inertia * y0[5] ** 2)
-    segments = nfev = same_time = 0
+    segments = nfev = same_time = fallback_steps = 0
     h = t1 - t0
     status = "completed"
 
     def decide(wheels, t, z, breaking=None):
+        """The mode at (t, z), z's twist projected onto it; None where the rule cannot decide one."""
         try:
             mode = decide_mode(wheels, t, z[:6], mass, inertia, breaking=breaking)
-        except ValueError as exc:
-            raise IntegrationError(f"no consistent stick-slip mode at t={t:.9g} s: {exc}") from None
+        except ValueError:
+            return None
         z[:6] = project_twist(wheels, mode, t, z[:6], mass, inertia)
         return mode
 
@@ -665,15 +668,27 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         if segments > max_segments:
             raise IntegrationError(f"more than {max_segments} support and mode changes: events accumulate near "
                                    f"t={t:.9g} s")
+        if mode is None:  # undecided: cross a few fixed steps of the law's stepper, then decide again
+            t, status, steps = _undecided_steps(model, wheels, z, t, t1, dt, rec, events, progress)
+            fallback_steps += steps
+            if status == "tipped" or t >= t1:
+                break
+            y_probe = z[:6].copy()
+            piece = model.piece_at(y_probe)  # tipping would have ended the steps
+            wheels = wheels_of(piece)
+            mode = decide(wheels, t, z)
+            new_piece = True
+            continue
         if new_piece:
             seg = _Segment(model, piece, y_probe, seg)
             base = np.ascontiguousarray(y_probe, dtype=float)
         md, n_ev, facets = _mode_arrays(wheels, mode, t, z[:6], mass, inertia, minv)
         first, h_abs = min(h, t1 - t), 0.0
         while True:
-            (outcome, t, z, h_abs, last, evals, rec.next, t_probe, y_probe, under, told,
-             which) = _kernel.run_mode(md, n_ev, seg.fields, base, t, z, t1, h_abs, first, rtol, atol, max_step,
+            (outcome, t, z8, h_abs, last, evals, rec.next, t_probe, y_probe, under, told,
+             which) = _kernel.run_mode(md, n_ev, seg.fields, base, t, z[:8], t1, h_abs, first, rtol, atol, max_step,
                                        max_steps, rec.sample_times, rec.next, rec.samples)
+            z[:8] = z8
             nfev += evals
             first = 0.0
             if last:
@@ -700,7 +715,7 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             same_time = same_time + 1 if mode_events and t - mode_events[-1][0] <= 1e-12 * max(1.0, t) else 0
             if same_time > _MODE_CHATTER:
                 raise IntegrationError(f"stick-slip modes chatter at t={t:.9g} s")
-            mode_events.append((t, kind, mode.state, new_mode.state))
+            mode_events.append((t, kind, mode.state, None if new_mode is None else new_mode.state))
             mode, new_piece = new_mode, False
             if t >= t1:
                 break
@@ -727,7 +742,32 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
              "kinetic_end": 0.5 * float(mass * (y[3] ** 2 + y[4] ** 2) + inertia * y[5] ** 2),
              "mode_changes": len(mode_events), "mode_events": mode_events, "pieces_cached": model.pieces_cached,
              "solves": model.solves}
-    return Trajectory(*rec.arrays(), events, status, t, segments, nfev, stats)
+    if fallback_steps:
+        stats["step_dissipation"] = float(z[8])
+        stats["undecided_steps"] = fallback_steps
+    return Trajectory(*rec.arrays(), events, status, t, segments, nfev + 4 * fallback_steps, stats)
+
+
+def _undecided_steps(model, wheels, z, t, t1, dt, rec, events, progress):
+    """Where the complementarity rule cannot decide a mode (its exact check fails: a tie its identification could
+    not split, as among the many redundant omni wheels of hexagonal cells), cross ``_CHATTER_STEPS`` steps of
+    ``dt`` with the law's time stepper, each wheel starting stuck where its slip is zero; the state ``z`` (with the
+    energy account, a ninth entry for the steps' own dissipation) moves on in place. Returns (t, status, steps)."""
+    law = model.law
+    slips = wheels.slips(t, z[:6])
+    speed = max(float(np.abs(wheels.surface(t)).max(initial=0.0)), 1e-3)
+    model.contact_memory = {"lam": {}, "stuck": dict(zip(wheels.keys, (np.abs(slips) <= 1e-9 * speed).tolist()))}
+    t_end = min(t1, t + _CHATTER_STEPS * dt)
+    due = rec.pending_until(t_end)
+    tr = TIME_STEPPERS[law.time_stepper](model, z[:6].copy(), t, t_end, due, progress, dt=dt)
+    kept = int(np.count_nonzero(due <= tr.t_end))
+    rec.add(tr.times[:kept], tr.states[:kept])
+    events.extend(tr.events)
+    z[:6] = tr.states[-1]
+    z[6] += tr.stats["wheel_work"]
+    z[7] += tr.stats["friction_dissipation"]
+    z[8] += tr.stats["step_dissipation"]
+    return tr.t_end, tr.status, tr.segments
 
 
 def _rk4(model):

@@ -435,20 +435,32 @@ def mode_events(wheels: Wheels, mode: Mode, t: float, y, mass: float, inertia: f
 def _box_accelerations(JZ, minv, known, rhs, bounds, max_sweeps=200000, tol=1e-15):
     """Projected Gauss-Seidel on the acceleration-level box problem of the zero-slip wheels: forces ``lam`` within
     ``|lam| <= bounds`` with the slip accelerations ``a = J_Z nu_dot - rhs`` complementary to them. Returns ``a``
-    (unique, as ``nu_dot`` is); used to identify the mode, which is then solved and checked exactly."""
-    z = (minv * known).tolist()
-    rows = JZ.tolist()
-    diag = ((JZ ** 2) * minv).sum(axis=1).tolist()
-    b = bounds.tolist()
-    r = rhs.tolist()
-    lam = [0.0] * len(rows)
-    m0, m1, m2 = (float(v) for v in minv)
-    scale = max(max(b, default=0.0), 1e-300)
+    (unique, as ``nu_dot`` is); used to identify the mode, which is then solved and checked exactly. Compiled
+    (:func:`_sweeps`): many redundant wheels (hexagonal omni cells) take thousands of sweeps."""
+    JZ = np.ascontiguousarray(JZ, dtype=float)
+    diag = ((JZ ** 2) * minv).sum(axis=1)
+    z = _sweeps(JZ, np.ascontiguousarray(minv, dtype=float), np.ascontiguousarray(minv * known, dtype=float),
+                np.ascontiguousarray(rhs, dtype=float), np.ascontiguousarray(bounds, dtype=float), diag,
+                int(max_sweeps), float(tol))
+    return JZ @ z - rhs
+
+
+@njit(cache=True)
+def _sweeps(rows, minv, z0, r, b, diag, max_sweeps, tol):
+    """The sweeps of :func:`_box_accelerations` from acceleration ``z0`` (3,) with every force at 0: returns the
+    acceleration (3,) they converge to (a sweep's largest force change at most ``tol`` times the largest bound)."""
+    z = z0.copy()
+    lam = np.zeros(rows.shape[0])
+    m0, m1, m2 = minv[0], minv[1], minv[2]
+    scale = 1e-300
+    for j in range(b.shape[0]):
+        scale = max(scale, b[j])
     for _ in range(max_sweeps):
         change = 0.0
-        for j, (p, q, w) in enumerate(rows):
+        for j in range(rows.shape[0]):
             if b[j] <= 0.0 or diag[j] <= 0.0:
                 continue
+            p, q, w = rows[j, 0], rows[j, 1], rows[j, 2]
             a = p * z[0] + q * z[1] + w * z[2] - r[j]
             new = min(max(lam[j] - a / diag[j], -b[j]), b[j])
             d = new - lam[j]
@@ -460,7 +472,7 @@ def _box_accelerations(JZ, minv, known, rhs, bounds, max_sweeps=200000, tol=1e-1
                 change = max(change, abs(d))
         if change <= tol * scale:
             break
-    return JZ @ np.array(z) - rhs
+    return z
 
 
 @dataclass(frozen=True)
