@@ -187,3 +187,17 @@ def test_fixed_step_law_converges_through_stick_breaks_and_a_lift_off(mu_static)
     order = np.log2(np.array(errs[:-1]) / errs[1:])
     print(f"mu_static {mu_static}: errors {errs} m, observed order {order}")
     assert np.all(np.abs(order - 1) < 0.15), (errs, order)
+
+
+def test_a_scenario_run_reports_the_exact_law():
+    """stick_slip_pickup through the simulator: event mode, one mode change, the closed-form energy account (no step
+    dissipation), support changes where the carton's edges cross cell centres."""
+    from virtual_vehicle.run.sim import run
+
+    res = run(load_scenario("stick_slip_pickup")[0].build())
+    summary = res.summary()
+    carton = summary["parcels"][0]
+    assert summary["integrator"] == "event" and carton["stick_slip_mode_changes"] == 1
+    energy = carton["energy_J"]
+    assert energy["step_dissipation"] == 0 and abs(energy["friction_dissipation"] - 0.3**2 / 2) < 1e-12
+    assert carton["support_changes"] == 9

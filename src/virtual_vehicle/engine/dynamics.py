@@ -620,9 +620,9 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     mode event, and at a support event with the new piece's wheels, the next mode is decided by the complementarity
     rule (:func:`~virtual_vehicle.physics.stick_modes.decide_mode`) and the twist projected onto its sticking
     wheels. The stats hold the energy account (J) as the time stepper's do (its step dissipation 0: there is no
-    step), the mode changes and ``mode_events``: (time, kind "slip" or "stick", mode before, mode after) each. Where
-    the rule cannot decide a mode, the run crosses a few fixed steps (:func:`_undecided_steps`), counted in
-    ``stats["undecided_steps"]``."""
+    step), the mode changes and ``mode_events`` (this call's): (time, kind "slip" or "stick", mode before, mode
+    after) each. Where the rule cannot decide a mode, the run crosses a few fixed steps (:func:`_undecided_steps`),
+    counted in ``stats["undecided_steps"]``."""
     law, spec = model.law, model.spec
     mass, inertia = spec.mass, spec.inertia
     minv = np.array([1.0 / mass, 1.0 / mass, 1.0 / inertia])

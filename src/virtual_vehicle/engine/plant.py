@@ -54,7 +54,7 @@ from virtual_vehicle.physics.collide import (
 from virtual_vehicle.physics.laws import FrictionLaw
 
 _ADDITIVE = ("wheel_work", "friction_dissipation", "step_dissipation", "contact_work", "unconverged_steps",
-             "chatter_steps", "mode_changes")
+             "chatter_steps", "mode_changes", "undecided_steps")
 SUMMED_STATS = (*_ADDITIVE, "sweeps_max", "kinetic_start")
 """Trajectory stats that :func:`join` does not simply take from the last piece."""
 
@@ -617,4 +617,5 @@ def joined_stats(segs: list[Trajectory]) -> dict:
         stats["sweeps_max"] = max(s.stats.get("sweeps_max", 0) for s in segs)
     if "kinetic_start" in segs[0].stats:
         stats["kinetic_start"] = segs[0].stats["kinetic_start"]
+    stats.pop("mode_events", None)  # one integrate call's list: joined, only their count (mode_changes) is kept
     return stats

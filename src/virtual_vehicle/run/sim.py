@@ -109,7 +109,8 @@ class RunResult:
                 "coulomb_max_reversed_slip_m_per_s": pr.sliding_violation[1] if pr.sliding_violation else None,
                 "coulomb_sliding_checked": pr.sliding_checked and self.setup.law.assumes_sliding,
                 **({"energy_J": {k: tr.stats[k] for k in _ENERGY},
-                    "stick_slip_unconverged_steps": tr.stats["unconverged_steps"]} if "wheel_work" in tr.stats else {}),
+                    "stick_slip_unconverged_steps": tr.stats["unconverged_steps"],
+                    "stick_slip_mode_changes": tr.stats.get("mode_changes", 0)} if "wheel_work" in tr.stats else {}),
             })
         extra = {}
         task = None if sc.control is None else program_of(sc.control)
