@@ -597,10 +597,15 @@ def _mode_arrays(wheels, mode, t, y, mass, inertia, minv):
     S = mode.stick
     chosen: list[int] = []
     if len(S):
-        J = wheels.rows(y[:2])[S]
-        for k in range(len(S)):
-            sv = np.linalg.svd(J[chosen + [k]], compute_uv=False)
-            if (sv > 1e-9 * sv[0]).sum() > len(chosen):
+        basis: list[np.ndarray] = []  # orthonormal, of the rows chosen so far (Gram-Schmidt, twice for rounding)
+        for k, row in enumerate(wheels.rows(y[:2])[S]):
+            rest = row.copy()
+            for _ in range(2):
+                for q in basis:
+                    rest -= (rest @ q) * q
+            size = float(np.sqrt(rest @ rest))
+            if size > 1e-9 * float(np.sqrt(row @ row)):
+                basis.append(rest / size)
                 chosen.append(k)
                 if len(chosen) == 3:
                     break

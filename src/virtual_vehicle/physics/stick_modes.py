@@ -256,15 +256,31 @@ def _facet_spec(G) -> tuple:
     G = np.ascontiguousarray(G, dtype=float)
     if len(G) == 0 or not np.abs(G).max() > 0:
         return 0, None, none
+    key = G.tobytes()
+    if key in _LAST_FACETS:  # the same generators asked again (deciding a mode checks it, its events then ask)
+        return _LAST_FACETS[key]
+    _LAST_FACETS.clear()
+    _LAST_FACETS[key] = spec = _facets_of(G)
+    return spec
+
+
+_LAST_FACETS: dict[bytes, tuple] = {}
+"""The last generators :func:`_facet_spec` was asked about, by their bytes, and its answer (its arrays read-only)."""
+
+
+def _facets_of(G) -> tuple:
+    """:func:`_facet_spec` of generators ``G`` (k, 3) with some non-zero, computed."""
     scale = np.linalg.norm(G, axis=1)
     sv = np.linalg.svd(G / scale.max(), compute_uv=False)
     rank = int((sv > 1e-9 * sv[0]).sum())
     a0, a1, unit, index = _facet_candidates(G, scale, rank)
     if rank == 1:
-        return 1, None, index[:, 0]
-    first = _first_distinct(np.round(unit, 8))
-    index = index[first]
-    return rank, ((a0, a1) if rank == 2 else None), (index[:, 0] if rank == 2 else index)
+        index = index[:, 0]
+    else:
+        index = index[_first_distinct(np.round(unit, 8))]
+        index = index[:, 0] if rank == 2 else index
+    index.setflags(write=False)
+    return rank, ((int(a0), int(a1)) if rank == 2 else None), index
 
 
 @njit(cache=True)
