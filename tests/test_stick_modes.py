@@ -77,7 +77,8 @@ def test_fixed_step_law_converges_at_first_order():
     ref = run.state(ts)
     errs = []
     for dt in (4e-4, 2e-4, 1e-4, 5e-5):
-        tr = integrate(ParcelModel(SQUARE, BOX, V, laws.StickSlipLaw(), G), y0, 0, 0.3, dt=dt, sample_times=ts)
+        tr = integrate(ParcelModel(SQUARE, BOX, V, laws.StickSlipLaw(), G), y0, 0, 0.3, dt=dt, sample_times=ts,
+                       mode="fixed")
         assert len(tr.events) == 0  # the same support set throughout
         errs.append(np.abs(tr.states - ref).max())
     order = np.log2(np.array(errs[:-1]) / errs[1:])
@@ -101,7 +102,7 @@ def test_fixed_step_law_converges_through_stick_breaks():
     assert [e.kind for e in run.events] == ["stick", "stick"] and len(run.events[0].before.stick) == 7
     ts = np.linspace(0, T, 42)
     ref = run.state(ts)
-    errs = [np.abs(integrate(ParcelModel(SQUARE, spec, V, laws.StickSlipLaw(), G), y0, 0, T, dt=dt,
+    errs = [np.abs(integrate(ParcelModel(SQUARE, spec, V, laws.StickSlipLaw(), G), y0, 0, T, dt=dt, mode="fixed",
                              sample_times=ts).states - ref).max() for dt in (2e-4, 1e-4, 5e-5)]
     order = np.log2(np.array(errs[:-1]) / errs[1:])
     assert np.all(np.abs(order - 1) < 0.1), (errs, order)
@@ -117,7 +118,8 @@ def test_a_lift_off_ends_the_run_where_the_engine_sees_it():
     forces = contact.solve_support(SQUARE.positions, run.y_end[:2], spec.weight(G)).forces(run.y_end[:2])
     assert abs(forces[lifted]) < 1e-9 * spec.weight(G) and (np.delete(forces, lifted) > 0.1).all()
     dt = 1e-4
-    first = integrate(ParcelModel(SQUARE, spec, V, laws.StickSlipLaw(), G), y0, 0, 0.6, dt=dt).events[0]
+    first = integrate(ParcelModel(SQUARE, spec, V, laws.StickSlipLaw(), G), y0, 0, 0.6, dt=dt,
+                      mode="fixed").events[0]
     assert first.lifted == (lifted,) and abs(first.t - run.t_end) <= dt
 
 

@@ -1,4 +1,5 @@
-"""Stick-slip friction (paper Section 5) as a per-step complementarity problem: sticking at exactly the wheel speed,
+"""Stick-slip friction (paper Section 5) as a per-step complementarity problem (fixed mode; event mode runs it
+exactly, tests/test_stick_events.py): sticking at exactly the wheel speed,
 stopping on stopped wheels, exact energy accounting, and the paper's Coulomb law while every wheel slides."""
 
 import numpy as np
@@ -20,7 +21,7 @@ def test_uniform_field_accelerates_then_rides_at_exactly_wheel_speed():
     mu, w, dt = 0.5, 0.3, 1e-3
     cells = layout.grid(30, 6, 0.1)
     m = model(cells, parcel.rectangle(0.35, 0.25, 1.0, mu), fields.Uniform((w, 0.0)))
-    tr = integrate(m, [0.3, 0.25, 0, 0, 0, 0], 0, 1.0, dt=dt, sample_dt=dt)
+    tr = integrate(m, [0.3, 0.25, 0, 0, 0, 0], 0, 1.0, dt=dt, sample_dt=dt, mode="fixed")
     v = tr.states[:, 3]
     assert v.max() <= w + 1e-12  # no overshoot
     t_star = w / (mu * G)
@@ -38,7 +39,7 @@ def test_stopped_wheels_decelerate_and_stop():
     mu, v0, dt = 0.4, 0.5, 1e-3
     cells = layout.grid(30, 6, 0.1)
     m = model(cells, parcel.rectangle(0.35, 0.25, 2.0, mu), fields.Uniform((0.0, 0.0)))
-    tr = integrate(m, [0.3, 0.25, 0, v0, 0, 0], 0, 0.5, dt=dt, sample_dt=dt)
+    tr = integrate(m, [0.3, 0.25, 0, v0, 0, 0], 0, 0.5, dt=dt, sample_dt=dt, mode="fixed")
     t_stop = v0 / (mu * G)
     v = tr.states[:, 3]
     assert v.min() >= -1e-12  # never reverses (to the solver's tolerance)
@@ -52,7 +53,7 @@ def test_energy_is_accounted_for_exactly():
     cells = layout.grid(10, 8, 0.1)
     spec = parcel.rectangle(0.33, 0.27, 1.3, 0.45, mu_static=0.6)
     m = model(cells, spec, fields.Inward((0.45, 0.35), 0.4))
-    tr = integrate(m, [0.3, 0.25, 0.4, 0.2, -0.1, 1.5], 0, 1.5, dt=5e-4)
+    tr = integrate(m, [0.3, 0.25, 0.4, 0.2, -0.1, 1.5], 0, 1.5, dt=5e-4, mode="fixed")
     s = tr.stats
     gained = s["kinetic_end"] - s["kinetic_start"]
     assert s["friction_dissipation"] >= 0 and s["step_dissipation"] >= 0
@@ -73,7 +74,7 @@ def test_reduces_to_the_papers_coulomb_law_while_sliding():
     ref = integrate(model(cells, spec, field, laws.CoulombLaw()), y0, 0, 0.5, sample_dt=0.01).states
     errs = []
     for dt in (2e-3, 5e-4, 1.25e-4):
-        st = integrate(model(cells, spec, field), y0, 0, 0.5, dt=dt, sample_dt=0.01).states
+        st = integrate(model(cells, spec, field), y0, 0, 0.5, dt=dt, sample_dt=0.01, mode="fixed").states
         errs.append(np.abs(st - ref)[:, :2].max())
     assert errs[0] > errs[1] > errs[2] and errs[2] < 2e-4, errs
     assert errs[0] / errs[2] > 8  # ~first order over a factor 16 in dt
@@ -106,11 +107,13 @@ def test_a_run_split_into_ticks_is_the_same_run():
     spec = parcel.rectangle(0.33, 0.27, 1.3, 0.3, mu_static=0.6)
     V = fields.Inward((0.45, 0.35), 0.2).velocities(cells)
     y0 = np.array([0.42, 0.33, 0.2, 0.0, 0.0, 0.0])
-    whole = integrate(ParcelModel(cells, spec, V, laws.StickSlipLaw(), G), y0, 0, 0.5, dt=1e-3, sample_dt=0.01)
+    whole = integrate(ParcelModel(cells, spec, V, laws.StickSlipLaw(), G), y0, 0, 0.5, dt=1e-3, sample_dt=0.01,
+                      mode="fixed")
     base = ParcelModel(cells, spec, V, laws.StickSlipLaw(), G)
     y = y0
     for k in range(50):
-        y = integrate(base.with_velocities(V), y, k * 0.01, (k + 1) * 0.01, dt=1e-3, sample_dt=0.01).states[-1]
+        y = integrate(base.with_velocities(V), y, k * 0.01, (k + 1) * 0.01, dt=1e-3, sample_dt=0.01,
+                      mode="fixed").states[-1]
     np.testing.assert_allclose(y, whole.states[-1], atol=1e-10)
 
 

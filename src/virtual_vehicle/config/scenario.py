@@ -272,7 +272,8 @@ FieldSpec = Annotated[Union[UniformField, InwardField, ReversedEndField, PerCell
 class FrictionSpec(_Strict):
     """``law``: ``"coulomb"`` (paper 4.3; parcel ``mu`` dimensionless), ``"viscous"`` (paper 4.4; ``mu`` in s/m) or
     ``"stick_slip"`` (paper Section 5: wheels stick or slide, parcel ``mu`` kinetic and ``mu_static`` static,
-    dimensionless; time-stepped at ``integrator.dt``)."""
+    dimensionless; exact, event by event, in event mode; time-stepped at ``integrator.dt`` in fixed mode and where
+    parcels push each other)."""
 
     law: Literal[tuple(LAWS)] = "coulomb"  # the registered laws
 
@@ -288,7 +289,7 @@ class IntegratorSpec(_Strict):
 
     ``dt`` must resolve the scene: at most ``pitch / (10 v_max)``, a tenth of a cell at the fastest speed known
     before the run (wheels and belts of a constant field, the program's ``speed``, the diffusion ``sources``, the
-    parcels' starting speeds); with ``mode = "fixed"`` or the stick-slip law also at most ``output_dt`` (when given)
+    parcels' starting speeds); with ``mode = "fixed"`` also at most ``output_dt`` (when given)
     and the duration. A coarser step would jump over support changes and evaluate the parcel where it never was."""
 
     mode: Literal["event", "fixed"] = "event"
@@ -696,15 +697,15 @@ def fastest_speed(setup: "Setup") -> float:
 
 
 def _check_step(setup: "Setup") -> None:
-    """``integrator.dt`` must resolve the scene. The fixed step (``mode = "fixed"``; every step of the stick-slip
-    law; in event mode the steps across chattering support changes and of parcels stepped together in contact)
+    """``integrator.dt`` must resolve the scene. The fixed step (``mode = "fixed"``, the stick-slip law's steps
+    there; in event mode the steps across chattering support changes and of parcels stepped together in contact)
     looks the supports up only at its RK4 stages and logs support changes at its ends: a step that carries a parcel
     across a cell jumps over support changes, and its stages evaluate the parcel where it never was (off its
     supports: with ``dt = 0.5`` s the prototype's box "tipped at t=0 s", its RK4 stage half a metre away). So a
     step carries a parcel at the fastest known speed (:func:`fastest_speed`) at most a tenth of a pitch:
     ``dt <= pitch / (10 v_max)`` (measured on the prototype: at the bound, 0.016 s, fixed RK4 keeps all 37
     support changes of the event-driven run within 1.3 mm; five times it drops support changes, ten times it is
-    7 cm off). Where dt is the integration step (fixed mode, stick-slip), it is also at most ``output_dt`` when
+    7 cm off). Where dt is the integration step (fixed mode), it is also at most ``output_dt`` when
     one is given (else the samples would be interpolated between steps and claim a resolution the run never had;
     the default spacing, duration/500, is the program's choice, so there only ``dt <= duration``)."""
     sc = setup.scenario
@@ -716,7 +717,7 @@ def _check_step(setup: "Setup") -> None:
                             f"({v:g} m/s) would cross {dt * v / pitch:.3g} cells ({pitch:g} m pitch) in one step; "
                             f"the step must be at most pitch / ({STEPS_PER_CELL} x speed) = "
                             f"{pitch / (STEPS_PER_CELL * v):.3g} s")
-    if sc.integrator.mode == "fixed" or setup.law.time_stepper is not None:
+    if sc.integrator.mode == "fixed" or (setup.law.time_stepper is not None and not setup.law.modes):
         limit, what = (sc.output_dt, "the output spacing (output_dt") if sc.output_dt else (sc.duration, "the run ("
                                                                                               "duration")
         if dt > limit * (1 + 1e-9):
@@ -743,8 +744,8 @@ def memory_estimate(setup: "Setup") -> dict[str, float]:
     - ``control.period``: networked runs' per-tick network record (12 numbers of 8 bytes a tick);
     - ``sensors.record``: the cell log of recorded networked runs (every cell's sensors, wheel speeds, commands and
       sentence counts every tick: S + 48 bytes a cell);
-    - ``integrator.dt``: a constant-field run in fixed-step mode or with the stick-slip law keeps every step of
-      every parcel (about 200 bytes a step) until it samples them.
+    - ``integrator.dt``: a constant-field run in fixed-step mode (or with a law that is only time-stepped) keeps
+      every step of every parcel (about 200 bytes a step) until it samples them.
     """
     sc = setup.scenario
     parcels = len(setup.specs)
@@ -756,7 +757,7 @@ def memory_estimate(setup: "Setup") -> dict[str, float]:
         est["control.period"] = ticks * 12 * 8
         if sc.sensors.record:
             est["sensors.record"] = ticks * setup.cells.n * (setup.sensors.count + 48)
-    elif sc.integrator.mode == "fixed" or setup.law.time_stepper is not None:
+    elif sc.integrator.mode == "fixed" or (setup.law.time_stepper is not None and not setup.law.modes):
         est["integrator.dt"] = np.ceil(sc.duration / sc.integrator.dt) * parcels * 200
     return {k: float(v) for k, v in est.items()}
 

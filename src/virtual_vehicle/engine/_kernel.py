@@ -925,3 +925,398 @@ def edges_clear_many(positions, near, near_count, normals, offsets, edge_count, 
         out[k] = edges_clear(positions, near[k, :near_count[k]], normals[k, :e], offsets[k, :e], Y[k], window,
                              reach[k], accel[k], radius[k], lever[k], noise[k])
     return out
+
+
+# -- A law with modes (stick-slip, :mod:`virtual_vehicle.physics.stick_modes`): one mode of one piece ---------------
+#
+# A mode is passed as the plain tuple :func:`mode_fields` makes: (points (m, 2) m, directions (m, 2), surface speeds
+# (m,) m/s at time t0, their rates (m,) m/s^2, t0 s, the normal-force map force_lin (m, 2) N/m, force_const (m,) N and
+# origin (2,) m, mu_static (m,), mu_kinetic (m,), state (m,) int64 (0 sticks, +-1 slips with that sign, 2 free),
+# independent sticking rows (r,) int64 (r <= 3), all sticking wheels (k,) int64, and the facet choice of their
+# zonotope: rank, anchor (2,) int64, index (f, 2) int64, then the inverse masses (3,) 1/kg, 1/kg, 1/(kg m^2)).
+# The state integrated is 8 long: the parcel's six, then the wheels' work and the friction dissipation so far (J).
+
+MODE_EVENT = 6
+"""Outcome of :func:`run_mode`: a mode event (a slipping wheel's slip reached zero, or the sticking wheels' required
+wrench a facet of their zonotope) ended the mode; the Python side decides the next mode there."""
+_C, _C_EXTRA = (np.ascontiguousarray(a, dtype=np.float64) for a in (DOP853.C, DOP853.C_EXTRA))
+_MODE_STATE = 8
+
+
+def mode_fields(wheels, state, rows, stick, spec, minv) -> tuple:
+    """The tuple :func:`run_mode` takes for ``wheels`` (a :class:`~virtual_vehicle.physics.stick_modes.Wheels`) in
+    mode ``state`` ((m,) ints), with independent sticking rows ``rows``, sticking wheels ``stick`` and the facet
+    choice ``spec`` (rank, anchor or None, (f, 2) or (f,) indices into ``stick``) of their zonotope, for inverse
+    masses ``minv`` (3,)."""
+    def arr(a, dtype=np.float64):
+        return np.ascontiguousarray(a, dtype=dtype)
+
+    rank, anchor, index = spec
+    index = arr(index, np.int64)
+    index = index.reshape(len(index), -1) if index.size else np.zeros((0, 2), np.int64)
+    if index.shape[1] == 1:
+        index = np.column_stack([index, index])
+    return (arr(wheels.points).reshape(-1, 2), arr(wheels.directions).reshape(-1, 2), arr(wheels.speeds),
+            arr(wheels.accels), float(wheels.t0), arr(wheels.force_lin).reshape(-1, 2), arr(wheels.force_const),
+            arr(wheels.origin), arr(wheels.mu_static), arr(wheels.mu_kinetic), arr(state, np.int64),
+            arr(rows, np.int64), arr(stick, np.int64), int(rank),
+            arr((0, 0) if anchor is None else anchor, np.int64), index.reshape(-1, 2), arr(minv))
+
+
+@njit(cache=True)
+def _mode_dynamics(md, t, z, F_S):
+    """Accelerations of mode ``md`` at time ``t`` (s), state ``z``: returns (ax, ay, alpha, wheel power, friction
+    power lost) in m/s^2, rad/s^2, W, W and fills ``F_S`` (3,) with the sticking wheels' net wrench (N, N, N m).
+
+    Slipping wheels push with ``-sign mu_k N`` along their directions (eq. 22 per wheel, eq. 19 for N); the sticking
+    rows ``J_R nu_dot + c = w_dot`` (``c = -omega (v x u)``) fix their forces, solved in closed form (at most three
+    independent rows); the other sticking wheels' rows follow from these (their dependence does not change as the
+    centre moves, as ``J(X) = J(0) T(X)`` with T invertible)."""
+    (P, U, w0, wa, t0, FL, FC, origin, mus, muk, state, R, S, rank, anchor, index, minv) = md
+    x0, x1, vx, vy, om = z[0] - origin[0], z[1] - origin[1], z[3], z[4], z[5]
+    kx = ky = kt = 0.0
+    work = lost = 0.0
+    for j in range(state.shape[0]):
+        sj = state[j]
+        if sj == 1 or sj == -1:
+            N = FL[j, 0] * x0 + FL[j, 1] * x1 + FC[j]
+            lam = -sj * muk[j] * N  # eq. 22 per wheel: mu N along the direction it outruns the parcel
+            ux, uy = U[j, 0], U[j, 1]
+            arm = (P[j, 0] - z[0]) * uy - (P[j, 1] - z[1]) * ux
+            kx += lam * ux
+            ky += lam * uy
+            kt += lam * arm
+            w = w0[j] + wa[j] * (t - t0)
+            work += lam * w
+            lost -= lam * (ux * vx + uy * vy + arm * om - w)
+    F_S[0] = F_S[1] = F_S[2] = 0.0
+    r = R.shape[0]
+    if r > 0:
+        J = np.empty((3, 3))
+        A = np.empty((3, 3))
+        b = np.empty(3)
+        for a in range(r):
+            j = R[a]
+            ux, uy = U[j, 0], U[j, 1]
+            J[a, 0], J[a, 1], J[a, 2] = ux, uy, (P[j, 0] - z[0]) * uy - (P[j, 1] - z[1]) * ux
+            c = -om * (vx * uy - vy * ux)  # d/dt (r x u) omega, with dr/dt = -v
+            b[a] = wa[j] - c - (J[a, 0] * minv[0] * kx + J[a, 1] * minv[1] * ky + J[a, 2] * minv[2] * kt)
+        for a in range(r):
+            for q in range(r):
+                A[a, q] = J[a, 0] * minv[0] * J[q, 0] + J[a, 1] * minv[1] * J[q, 1] + J[a, 2] * minv[2] * J[q, 2]
+        lam = _solve_small(A, b, r)
+        for a in range(r):
+            F_S[0] += J[a, 0] * lam[a]
+            F_S[1] += J[a, 1] * lam[a]
+            F_S[2] += J[a, 2] * lam[a]
+        work += F_S[0] * vx + F_S[1] * vy + F_S[2] * om  # sticking wheels: sum lam w = sum lam J nu (no slip)
+    return minv[0] * (kx + F_S[0]), minv[1] * (ky + F_S[1]), minv[2] * (kt + F_S[2]), work, lost
+
+
+@njit(cache=True)
+def _solve_small(A, b, r):
+    """``A[:r, :r] x = b[:r]`` by Gaussian elimination with partial pivoting (r <= 3, A symmetric positive
+    definite: the sticking rows are independent)."""
+    M = A.copy()
+    x = b.copy()
+    for c in range(r):
+        p = c
+        for i in range(c + 1, r):
+            if abs(M[i, c]) > abs(M[p, c]):
+                p = i
+        if p != c:
+            for k in range(r):
+                M[c, k], M[p, k] = M[p, k], M[c, k]
+            x[c], x[p] = x[p], x[c]
+        for i in range(c + 1, r):
+            f = M[i, c] / M[c, c]
+            for k in range(c, r):
+                M[i, k] -= f * M[c, k]
+            x[i] -= f * x[c]
+    out = np.zeros(r)
+    for i in range(r - 1, -1, -1):
+        acc = x[i]
+        for k in range(i + 1, r):
+            acc -= M[i, k] * out[k]
+        out[i] = acc / M[i, i]
+    return out
+
+
+@njit(cache=True)
+def _mode_rhs(md, t, z, out):
+    """The 8-long state's rate in mode ``md``: velocities, accelerations, wheel power and friction loss (W)."""
+    F_S = np.empty(3)
+    ax, ay, al, work, lost = _mode_dynamics(md, t, z, F_S)
+    out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7] = z[3], z[4], z[5], ax, ay, al, work, lost
+
+
+def mode_event_count(md) -> int:
+    """Number of mode event values of ``md``: one per slipping wheel, then one per facet of the sticking wheels'
+    zonotope."""
+    state, S, index = md[10], md[12], md[15]
+    return int(np.count_nonzero(np.abs(state) == 1)) + (len(index) if len(S) else 0)
+
+
+@njit(cache=True)
+def mode_values(md, t, z, out):
+    """Mode event values of ``md`` at time ``t`` (s), state ``z`` into ``out``; each falls through zero at its event.
+    Per slipping wheel its slip speed times its sign (m/s); per facet of the sticking wheels' zonotope (generators
+    ``mu_s N J``) its support along the facet's normal less the required wrench's (N or N m): the rule of
+    :mod:`virtual_vehicle.physics.stick_modes`."""
+    (P, U, w0, wa, t0, FL, FC, origin, mus, muk, state, R, S, rank, anchor, index, minv) = md
+    x0, x1 = z[0] - origin[0], z[1] - origin[1]
+    n = 0
+    for j in range(state.shape[0]):
+        sj = state[j]
+        if sj == 1 or sj == -1:
+            ux, uy = U[j, 0], U[j, 1]
+            arm = (P[j, 0] - z[0]) * uy - (P[j, 1] - z[1]) * ux
+            out[n] = sj * (ux * z[3] + uy * z[4] + arm * z[5] - w0[j] - wa[j] * (t - t0))
+            n += 1
+    k = S.shape[0]
+    if k == 0:
+        return
+    F_S = np.empty(3)
+    _mode_dynamics(md, t, z, F_S)
+    G = np.empty((k, 3))
+    for a in range(k):
+        j = S[a]
+        g = mus[j] * (FL[j, 0] * x0 + FL[j, 1] * x1 + FC[j])
+        ux, uy = U[j, 0], U[j, 1]
+        G[a, 0], G[a, 1], G[a, 2] = g * ux, g * uy, g * ((P[j, 0] - z[0]) * uy - (P[j, 1] - z[1]) * ux)
+    nrm = np.empty(3)
+    for f in range(index.shape[0]):
+        p, q = index[f, 0], index[f, 1]
+        if rank == 1:
+            nrm[0], nrm[1], nrm[2] = G[p, 0], G[p, 1], G[p, 2]
+        elif rank == 2:
+            a0, a1 = anchor[0], anchor[1]
+            px = G[a0, 1] * G[a1, 2] - G[a0, 2] * G[a1, 1]  # the span's normal
+            py = G[a0, 2] * G[a1, 0] - G[a0, 0] * G[a1, 2]
+            pz = G[a0, 0] * G[a1, 1] - G[a0, 1] * G[a1, 0]
+            nrm[0] = py * G[p, 2] - pz * G[p, 1]
+            nrm[1] = pz * G[p, 0] - px * G[p, 2]
+            nrm[2] = px * G[p, 1] - py * G[p, 0]
+        else:
+            nrm[0] = G[p, 1] * G[q, 2] - G[p, 2] * G[q, 1]
+            nrm[1] = G[p, 2] * G[q, 0] - G[p, 0] * G[q, 2]
+            nrm[2] = G[p, 0] * G[q, 1] - G[p, 1] * G[q, 0]
+        size = math.sqrt(nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2])
+        support = 0.0
+        for a in range(k):
+            support += abs(G[a, 0] * nrm[0] + G[a, 1] * nrm[1] + G[a, 2] * nrm[2])
+        out[n + f] = (support - abs(F_S[0] * nrm[0] + F_S[1] * nrm[1] + F_S[2] * nrm[2])) / size
+
+
+@njit(cache=True)
+def _mode_stage(md, t, y, h, K, a, s, c, work):
+    """Stage ``s`` of a Runge-Kutta step of mode ``md`` (node ``c``): ``K[s] = rhs(t + c h, y + h sum a_i K_i)``."""
+    for j in range(_MODE_STATE):
+        dy = 0.0
+        for i in range(s):
+            dy += K[i, j] * a[i]
+        work[j] = y[j] + dy * h
+    _mode_rhs(md, t + c * h, work, K[s])
+
+
+@njit(cache=True)
+def _mode_trial(md, t, y, f, h, rtol, atol, K, y_new, f_new, work):
+    """:func:`_trial` for the 8-long state of a mode (the same DOP853 scheme and error norm)."""
+    K[0] = f
+    for s in range(1, _N_STAGES):
+        _mode_stage(md, t, y, h, K, _A[s], s, _C[s], work)
+    for j in range(_MODE_STATE):
+        acc = 0.0
+        for i in range(_N_STAGES):
+            acc += K[i, j] * _B[i]
+        y_new[j] = y[j] + h * acc
+    _mode_rhs(md, t + h, y_new, f_new)
+    K[_N_STAGES] = f_new
+    err5 = err3 = 0.0
+    for j in range(_MODE_STATE):
+        scale = atol + max(abs(y[j]), abs(y_new[j])) * rtol
+        e5 = e3 = 0.0
+        for i in range(_N_STAGES + 1):
+            e5 += K[i, j] * _E5[i]
+            e3 += K[i, j] * _E3[i]
+        err5 += (e5 / scale) ** 2
+        err3 += (e3 / scale) ** 2
+    if err5 == 0 and err3 == 0:
+        return 0.0
+    return abs(h) * err5 / math.sqrt((err5 + 0.01 * err3) * _MODE_STATE)
+
+
+@njit(cache=True)
+def _mode_step(md, t, y, f, t_bound, h_abs, rtol, atol, max_step, K, y_new, f_new, work):
+    """:func:`_dop853_step` for a mode: (ok, t_new, h_abs for the next step, evaluations)."""
+    min_step = 10 * abs(np.nextafter(t, np.inf) - t)
+    if h_abs > max_step:
+        h_abs = max_step
+    elif h_abs < min_step:
+        h_abs = min_step
+    rejected = False
+    nfev = 0
+    while True:
+        if h_abs < min_step:
+            return False, t, h_abs, nfev
+        t_new = t + h_abs
+        if t_new - t_bound > 0:
+            t_new = t_bound
+        h = t_new - t
+        h_abs = abs(h)
+        norm = _mode_trial(md, t, y, f, h, rtol, atol, K, y_new, f_new, work)
+        nfev += _N_STAGES
+        if norm < 1:
+            factor = _MAX_FACTOR if norm == 0 else min(_MAX_FACTOR, _SAFETY * norm ** _ERROR_EXPONENT)
+            if rejected:
+                factor = min(1.0, factor)
+            return True, t_new, h_abs * factor, nfev
+        factor = _SAFETY * norm ** _ERROR_EXPONENT
+        h_abs *= factor if factor > _MIN_FACTOR else _MIN_FACTOR
+        rejected = True
+
+
+@njit(cache=True)
+def _mode_dense(md, t_old, y_old, f_old, y_new, f_new, h, K, F, work):
+    """:func:`_dense` for a mode's 8-long state; evaluations made."""
+    for e in range(_A_EXTRA.shape[0]):
+        _mode_stage(md, t_old, y_old, h, K, _A_EXTRA[e], _N_STAGES + 1 + e, _C_EXTRA[e], work)
+    for j in range(_MODE_STATE):
+        delta = y_new[j] - y_old[j]
+        F[0, j] = delta
+        F[1, j] = h * f_old[j] - delta
+        F[2, j] = 2 * delta - h * (f_new[j] + f_old[j])
+        for r in range(_D.shape[0]):
+            acc = 0.0
+            for i in range(_N_EXTENDED):
+                acc += _D[r, i] * K[i, j]
+            F[3 + r, j] = h * acc
+    return _A_EXTRA.shape[0]
+
+
+@njit(cache=True)
+def _dense_all(F, y_old, t_old, h, t, out):
+    """:func:`dense_at` for every column of ``F`` (the 8-long state of a mode)."""
+    x = (t - t_old) / h
+    for j in range(out.shape[0]):
+        out[j] = 0.0
+    nF = F.shape[0]
+    for i in range(nF):
+        w = x if i % 2 == 0 else 1 - x
+        for j in range(out.shape[0]):
+            out[j] = (out[j] + F[nF - 1 - i, j]) * w
+    for j in range(out.shape[0]):
+        out[j] += y_old[j]
+
+
+@njit(cache=True)
+def _mode_crossing(md, F, z_old, t_old, h, t_lo, t_hi, v_lo, n_ev):
+    """The earliest mode event in (t_lo, t_hi] of the step (dense output ``F`` from ``z_old`` at ``t_old``, length
+    ``h``), whose values at ``t_lo`` are ``v_lo``: (found, time just past its root, which value). The step is sampled
+    at ``SUBSAMPLES`` points for a value falling from positive to <= 0; each such value's root in the first bracket
+    is bisected to rounding and the earliest taken. (A value that dips through zero and back between two samples is
+    not seen: a slipping wheel would have to catch up with its wheel and fall behind again within an eighth of a
+    step.)"""
+    y = np.empty(_MODE_STATE)
+    v = np.empty(n_ev)
+    prev = v_lo.copy()
+    t_a = t_lo
+    eps = np.finfo(np.float64).eps
+    for s in range(1, SUBSAMPLES + 1):
+        t_b = t_lo + (t_hi - t_lo) * s / SUBSAMPLES if s < SUBSAMPLES else t_hi
+        _dense_all(F, z_old, t_old, h, t_b, y)
+        mode_values(md, t_b, y, v)
+        best, which = np.inf, -1
+        for k in range(n_ev):
+            if prev[k] > 0 and not v[k] > 0:
+                lo, hi = t_a, t_b
+                while hi - lo > max(4 * eps * abs(hi), 1e-15):
+                    mid = 0.5 * (lo + hi)
+                    if mid <= lo or mid >= hi:
+                        break
+                    _dense_all(F, z_old, t_old, h, mid, y)
+                    mode_values(md, mid, y, v)
+                    if v[k] > 0:
+                        lo = mid
+                    else:
+                        hi = mid
+                if hi < best:
+                    best, which = hi, k
+                _dense_all(F, z_old, t_old, h, t_b, y)
+                mode_values(md, t_b, y, v)
+        if which >= 0:
+            return True, best, which
+        prev[:] = v
+        t_a = t_b
+    return False, t_hi, -1
+
+
+@njit(cache=True)
+def run_mode(md, n_ev, fields, y_base, t, z, t_bound, h_abs, first_step, rtol, atol, max_step, max_steps,
+             sample_times, next_sample, samples):
+    """:func:`run_piece` for one mode ``md`` (:func:`mode_fields`, with ``n_ev`` mode event values) of a law with
+    modes on one piece (segment ``fields``): DOP853 on the 8-long state ``z`` (the parcel's six, the wheels' work
+    and the friction dissipation, J) until its first support event (as :func:`run_piece` finds and locates them),
+    its first mode event (:func:`_mode_crossing`), ``max_steps`` steps or ``t_bound``.
+
+    Returns (outcome, t, z, h_abs, last step, evaluations, next_sample, probe time, probe state, the cells under
+    the footprint at the probe, whether those tell, the mode event's value index). On ``EVENT`` and ``MODE_EVENT``
+    (t, z) is the restart point just past it."""
+    seg = Segment(*fields)
+    g0 = np.empty(seg.candidates.shape[0] + seg.basis.shape[0] + seg.hull_offsets.shape[0] + 1)
+    values(seg, y_base[:6].copy(), g0)
+    g0 = g0 > 0
+    n = g0.shape[0]
+    K = np.empty((_N_EXTENDED, _MODE_STATE))
+    F = np.empty((_D.shape[0] + 3, _MODE_STATE))
+    f, z_new, f_new, work = np.empty(8), np.empty(8), np.empty(8), np.empty(8)
+    z = z.copy()
+    _mode_rhs(md, t, z, f)
+    v_lo = np.empty(n_ev)
+    mode_values(md, t, z, v_lo)
+    nfev = 1
+    if first_step > 0:
+        h_abs = first_step
+    last = 0.0
+    y_probe = np.empty(6)
+    none = np.empty(0, np.int64)
+    steps = 0
+    while t < t_bound:
+        if steps == max_steps:
+            return PAUSED, t, z, h_abs, last, nfev, next_sample, t, y_probe, none, False, -1
+        ok, t_new, h_next, evals = _mode_step(md, t, z, f, t_bound, h_abs, rtol, atol, max_step, K, z_new, f_new,
+                                              work)
+        nfev += evals
+        if not ok:
+            return FAILED, t, z, h_abs, last, nfev, next_sample, t, y_probe, none, False, -1
+        steps += 1
+        h = t_new - t
+        last = h
+        nfev += _mode_dense(md, t, z, f, z_new, f_new, h, K, F, work)
+        moded, t_mode, which = _mode_crossing(md, F, z, t, h, t, t_new, v_lo, n_ev) if n_ev else (False, t_new, -1)
+        t_end = t_mode if moded else t_new
+        found, t_a, t_b, changed, g_a, g_b = _first_change(seg, F, z, t, h, g0, t, t_end, f, f_new)
+        t_reach = t_end
+        if found:
+            outcome, t_reach, t_probe, g, clear = _locate(seg, F, z, t, h, g0, t_a, t_b, changed, g_a, g_b)
+            if outcome != REACHED:
+                return outcome, t_reach, z, h_next, last, nfev, next_sample, t, y_probe, none, False, -1
+        while next_sample < sample_times.shape[0] and sample_times[next_sample] <= t_reach:
+            dense_at(F, z, t, h, sample_times[next_sample], samples[next_sample])
+            next_sample += 1
+        if found or moded:
+            z_restart = np.empty(_MODE_STATE)
+            _dense_all(F, z, t, h, t_reach, z_restart)
+            if not found:
+                return MODE_EVENT, t_reach, z_restart, h_next, last, nfev, next_sample, t_reach, y_probe, none, \
+                    False, which
+            dense_at(F, z, t, h, t_probe, y_probe)
+            told = clear and g[n - 1] > 0
+            return EVENT, t_reach, z_restart, h_next, last, nfev, next_sample, t_probe, y_probe, \
+                _positive(seg.ids, g) if told else none, told, -1
+        t = t_new
+        z[:] = z_new
+        f[:] = f_new
+        mode_values(md, t, z, v_lo)
+        h_abs = h_next
+    return REACHED, t, z, h_abs, last, nfev, next_sample, t, y_probe, none, False, -1

@@ -40,6 +40,7 @@ from virtual_vehicle.model.layout import CellArray
 from virtual_vehicle.model.parcel import ParcelSpec
 from virtual_vehicle.physics.contact import SupportSolution, solve_prechecked
 from virtual_vehicle.physics.laws import FrictionConstants, FrictionLaw, affine
+from virtual_vehicle.physics.stick_modes import breaking_wheels, decide_mode, project_twist, stick_facets
 
 TIME_STEPPERS = {"stick_slip": run_stick_slip}
 """The engine's time steppers by the name a time-stepped law gives (its ``time_stepper``): each solves the law's
@@ -405,9 +406,11 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
     """Integrate one parcel from state ``y0`` at ``t0`` to ``t1`` (s).
 
     Args:
-        mode: ``"event"`` (piecewise, events located) or ``"fixed"`` (RK4 with step ``dt``, s). A model whose law is
-            time-stepped (its ``time_stepper``, e.g. stick-slip: a complementarity problem per step) is always
-            stepped at ``dt``, whatever the mode.
+        mode: ``"event"`` (piecewise, events located) or ``"fixed"`` (RK4 with step ``dt``, s). A law with modes
+            (its ``modes``, e.g. stick-slip) runs exactly in event mode, mode by mode (each wheel sticking or
+            slipping; mode events located as support events are), and in fixed mode with its time stepper (its
+            ``time_stepper``: a complementarity problem per step at ``dt``). A law without modes but with a time
+            stepper is always stepped at ``dt``.
         rtol, atol: tolerances of the adaptive integrator (event mode); atol in state units (m, rad, m/s, rad/s).
         max_step: largest step of the adaptive integrator, s.
         dt: fixed step (s) of fixed mode and of stick-slip. Event mode uses it only where support changes chatter
@@ -455,8 +458,12 @@ def integrate_prechecked(model: ParcelModel, y0: np.ndarray, t0: float, t1: floa
     # Flush values below 1e-100 (a velocity decaying for minutes under viscous damping reaches subnormal floats,
     # where the adaptive integrator's error norm underflows to 0/0).
     y0 = np.where(np.abs(y0) < 1e-100, 0.0, y0)
-    if model.law.time_stepper is not None:
-        return TIME_STEPPERS[model.law.time_stepper](model, y0, t0, t1, sample_times, progress, dt=dt)
+    law = model.law
+    if mode == "event" and law.modes:
+        return _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, rtol=rtol, atol=atol,
+                          max_step=max_step, dt=dt, support=support)
+    if law.time_stepper is not None:
+        return TIME_STEPPERS[law.time_stepper](model, y0, t0, t1, sample_times, progress, dt=dt)
     if mode == "event":
         return _run_event(model, y0, t0, t1, sample_times, progress, max_segments, rtol=rtol, atol=atol,
                           max_step=max_step, dt=dt, support=support)
@@ -573,6 +580,198 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     if chatter_steps:
         stats["chatter_steps"] = chatter_steps
     return Trajectory(*rec.arrays(), events, status, t, segments, nfev + 4 * chatter_steps, stats)
+
+
+_MODE_CHATTER = 1000
+"""Mode events in a row at one time (within 1e-12 s) after which a law with modes is said to chatter (a mode
+decided that its own events end at once): the run stops with an IntegrationError instead of looping."""
+
+
+def _mode_arrays(wheels, mode, t, y, mass, inertia, minv):
+    """What the compiled engine takes for ``mode`` of ``wheels`` entered at (t, y): the fields
+    (:func:`~virtual_vehicle.engine._kernel.mode_fields`), the number of mode event values and the facet choice of
+    the sticking wheels' zonotope. The sticking rows kept are a maximal independent subset (at most three), chosen
+    in order; the others follow from them for the whole mode (their dependence does not change as the centre
+    moves)."""
+    S = mode.stick
+    chosen: list[int] = []
+    if len(S):
+        basis: list[np.ndarray] = []  # orthonormal, of the rows chosen so far (Gram-Schmidt, twice for rounding)
+        for k, row in enumerate(wheels.rows(y[:2])[S]):
+            rest = row.copy()
+            for _ in range(2):
+                for q in basis:
+                    rest -= (rest @ q) * q
+            size = float(np.sqrt(rest @ rest))
+            if size > 1e-9 * float(np.sqrt(row @ row)):
+                basis.append(rest / size)
+                chosen.append(k)
+                if len(chosen) == 3:
+                    break
+        spec = stick_facets(wheels, mode, t, y, mass, inertia)
+    else:
+        spec = (0, None, np.zeros((0, 2), np.int64))
+    md = _kernel.mode_fields(wheels, mode.signs, S[chosen], S, spec, minv)
+    return md, _kernel.mode_event_count(md), spec
+
+
+def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol, atol, max_step, dt,
+               support=None) -> Trajectory:
+    """Event mode for a law with modes (stick-slip): on each piece (support set) the law's wheels
+    (:meth:`~virtual_vehicle.physics.laws.base.FrictionLaw.wheel_contacts`) are in a mode (each sticks or slips with
+    a known sign, :mod:`~virtual_vehicle.physics.stick_modes`); each mode is integrated by the compiled DOP853
+    (:func:`~virtual_vehicle.engine._kernel.run_mode`) with its mode events and the piece's support events. At a
+    mode event, and at a support event with the new piece's wheels, the next mode is decided by the complementarity
+    rule (:func:`~virtual_vehicle.physics.stick_modes.decide_mode`) and the twist projected onto its sticking
+    wheels. The stats hold the energy account (J) as the time stepper's do (its step dissipation 0: there is no
+    step), the mode changes and ``mode_events`` (this call's): (time, kind "slip" or "stick", mode before, mode
+    after) each. Where the rule cannot decide a mode, the run crosses a few fixed steps (:func:`_undecided_steps`),
+    counted in ``stats["undecided_steps"]``."""
+    law, spec = model.law, model.spec
+    mass, inertia = spec.mass, spec.inertia
+    minv = np.array([1.0 / mass, 1.0 / mass, 1.0 / inertia])
+    rec = _Recorder(sample_times)
+    events: list[Event] = []
+    mode_events: list[tuple] = []
+    t = float(t0)
+    z = np.concatenate([y0, [0.0, 0.0, 0.0]])  # and the energy account: wheel work, friction, fixed steps' loss (J)
+    kinetic_start = 0.5 * (mass * (y0[3] ** 2 + y0[4] ** 2) + inertia * y0[5] ** 2)
+    segments = nfev = same_time = fallback_steps = 0
+    h = t1 - t0
+    status = "completed"
+
+    def decide(wheels, t, z, breaking=None):
+        """The mode at (t, z), z's twist projected onto it; None where the rule cannot decide one."""
+        try:
+            mode = decide_mode(wheels, t, z[:6], mass, inertia, breaking=breaking)
+        except ValueError:
+            return None
+        z[:6] = project_twist(wheels, mode, t, z[:6], mass, inertia)
+        return mode
+
+    def wheels_of(piece):
+        return law.wheel_contacts(model.cells, piece.support, piece.solution, model.velocities, spec.mu,
+                                  spec.mu_static)
+
+    try:
+        piece = model.piece_at(z[:6]) if support is None else model.piece_for(support, z[:6])
+    except TippingError as exc:
+        events.append(Event(t, "tip", tuple(map(float, y0)), message=str(exc)))
+        piece = None
+        status = "tipped"
+    max_steps = _PAUSE_STEPS if progress is not None else _NO_PAUSE
+    seg = None
+    y_probe = z[:6].copy()
+    base = y_probe
+    if piece is not None:
+        wheels = wheels_of(piece)
+        mode = decide(wheels, t, z)
+        new_piece = True
+    while piece is not None:
+        segments += 1
+        if segments > max_segments:
+            raise IntegrationError(f"more than {max_segments} support and mode changes: events accumulate near "
+                                   f"t={t:.9g} s")
+        if mode is None:  # undecided: cross a few fixed steps of the law's stepper, then decide again
+            t, status, steps = _undecided_steps(model, wheels, z, t, t1, dt, rec, events, progress)
+            fallback_steps += steps
+            if status == "tipped" or t >= t1:
+                break
+            y_probe = z[:6].copy()
+            piece = model.piece_at(y_probe)  # tipping would have ended the steps
+            wheels = wheels_of(piece)
+            mode = decide(wheels, t, z)
+            new_piece = True
+            continue
+        if new_piece:
+            seg = _Segment(model, piece, y_probe, seg)
+            base = np.ascontiguousarray(y_probe, dtype=float)
+        md, n_ev, facets = _mode_arrays(wheels, mode, t, z[:6], mass, inertia, minv)
+        first, h_abs = min(h, t1 - t), 0.0
+        while True:
+            (outcome, t, z8, h_abs, last, evals, rec.next, t_probe, y_probe, under, told,
+             which) = _kernel.run_mode(md, n_ev, seg.fields, base, t, z[:8], t1, h_abs, first, rtol, atol, max_step,
+                                       max_steps, rec.sample_times, rec.next, rec.samples)
+            z[:8] = z8
+            nfev += evals
+            first = 0.0
+            if last:
+                h = last
+            if outcome == _kernel.FAILED:
+                raise IntegrationError(f"integrator failed at t={t:.9g} s")
+            if outcome == _kernel.NOT_FINITE:
+                raise IntegrationError(f"an event function is not finite at t={t:.9g} s")
+            if outcome == _kernel.NO_CONVERGENCE:
+                raise IntegrationError(f"locating an event near t={t:.9g} s did not converge")
+            if progress is not None:
+                progress(t)
+            if outcome != _kernel.PAUSED:
+                break
+        if outcome == _kernel.REACHED:
+            break
+        if outcome == _kernel.MODE_EVENT:
+            slipping = int(np.count_nonzero(np.abs(mode.signs) == 1))
+            breaking, kind = None, "slip"
+            if which >= slipping:
+                kind = "stick"
+                breaking = breaking_wheels(wheels, mode, t, z[:6], mass, inertia, facets, which - slipping)
+            new_mode = decide(wheels, t, z, breaking)
+            same_time = same_time + 1 if mode_events and t - mode_events[-1][0] <= 1e-12 * max(1.0, t) else 0
+            if same_time > _MODE_CHATTER:
+                raise IntegrationError(f"stick-slip modes chatter at t={t:.9g} s")
+            mode_events.append((t, kind, mode.state, None if new_mode is None else new_mode.state))
+            mode, new_piece = new_mode, False
+            if t >= t1:
+                break
+            continue
+        try:
+            new = model.piece_for(under, y_probe) if told else model.piece_at(y_probe)
+        except TippingError as exc:
+            events.append(Event(t, "tip", tuple(map(float, z[:6])), message=str(exc)))
+            status = "tipped"
+            break
+        ev = diff_event(t, z[:6], piece, new)
+        if ev is not None:
+            events.append(ev)
+        if new is not piece:
+            piece, wheels = new, wheels_of(new)
+            mode = decide(wheels, t, z)
+        new_piece = True
+        if t >= t1:
+            break
+    rec.final(t, z[:6])
+    y = z[:6]
+    stats = {"wheel_work": float(z[6]), "friction_dissipation": float(z[7]), "step_dissipation": 0.0,
+             "contact_work": 0.0, "sweeps_max": 0, "unconverged_steps": 0, "kinetic_start": float(kinetic_start),
+             "kinetic_end": 0.5 * float(mass * (y[3] ** 2 + y[4] ** 2) + inertia * y[5] ** 2),
+             "mode_changes": len(mode_events), "mode_events": mode_events, "pieces_cached": model.pieces_cached,
+             "solves": model.solves}
+    if fallback_steps:
+        stats["step_dissipation"] = float(z[8])
+        stats["undecided_steps"] = fallback_steps
+    return Trajectory(*rec.arrays(), events, status, t, segments, nfev + 4 * fallback_steps, stats)
+
+
+def _undecided_steps(model, wheels, z, t, t1, dt, rec, events, progress):
+    """Where the complementarity rule cannot decide a mode (its exact check fails: a tie its identification could
+    not split, as among the many redundant omni wheels of hexagonal cells), cross ``_CHATTER_STEPS`` steps of
+    ``dt`` with the law's time stepper, each wheel starting stuck where its slip is zero; the state ``z`` (with the
+    energy account, a ninth entry for the steps' own dissipation) moves on in place. Returns (t, status, steps)."""
+    law = model.law
+    slips = wheels.slips(t, z[:6])
+    speed = max(float(np.abs(wheels.surface(t)).max(initial=0.0)), 1e-3)
+    model.contact_memory = {"lam": {}, "stuck": dict(zip(wheels.keys, (np.abs(slips) <= 1e-9 * speed).tolist()))}
+    t_end = min(t1, t + _CHATTER_STEPS * dt)
+    due = rec.pending_until(t_end)
+    tr = TIME_STEPPERS[law.time_stepper](model, z[:6].copy(), t, t_end, due, progress, dt=dt)
+    kept = int(np.count_nonzero(due <= tr.t_end))
+    rec.add(tr.times[:kept], tr.states[:kept])
+    events.extend(tr.events)
+    z[:6] = tr.states[-1]
+    z[6] += tr.stats["wheel_work"]
+    z[7] += tr.stats["friction_dissipation"]
+    z[8] += tr.stats["step_dissipation"]
+    return tr.t_end, tr.status, tr.segments
 
 
 def _rk4(model):

@@ -52,7 +52,7 @@ from virtual_vehicle.physics.collide import (
 from virtual_vehicle.physics.laws import FrictionLaw
 
 _ADDITIVE = ("wheel_work", "friction_dissipation", "step_dissipation", "contact_work", "unconverged_steps",
-             "chatter_steps")
+             "chatter_steps", "mode_changes", "undecided_steps")
 SUMMED_STATS = (*_ADDITIVE, "sweeps_max", "kinetic_start")
 """Trajectory stats that :func:`join` does not simply take from the last piece."""
 
@@ -526,8 +526,9 @@ class Plant:
                     if i in wheels:
                         first, J, w, bounds, keys = wheels[i]
                         li = lam[first:first + len(w)]
-                        account(acc[i], li, J @ V[b] - w, w, V[b] - Y[i][3:], mass[b])
-                        remember(models[i], keys, li, bounds)
+                        slip = J @ V[b] - w
+                        account(acc[i], li, slip, w, V[b] - Y[i][3:], mass[b])
+                        remember(models[i], keys, li, slip, w)
                         acc[i]["sweeps_max"] = max(acc[i]["sweeps_max"], sweeps)
                         acc[i]["unconverged_steps"] += not ok
                 for k, c in normals:  # work of the contact impulses on each parcel over the step
@@ -669,4 +670,5 @@ def joined_stats(segs: list[Trajectory]) -> dict:
         stats["sweeps_max"] = max(s.stats.get("sweeps_max", 0) for s in segs)
     if "kinetic_start" in segs[0].stats:
         stats["kinetic_start"] = segs[0].stats["kinetic_start"]
+    stats.pop("mode_events", None)  # one integrate call's list: joined, only their count (mode_changes) is kept
     return stats

@@ -22,13 +22,12 @@ their net wrench ``F_S`` is. Stick holds while ``F_S`` lies in the zonotope ``Z_
 slip against their force; the wheels in the facet's plane are decided again. This is the rule the fixed-step law
 (:mod:`virtual_vehicle.engine.stickslip`) obeys: its box LCP has a unique post-step twist, and that twist sticks iff
 the required impulse lies in ``h Z_S``. The per-wheel stick forces reported are the minimum-norm ones (any other
-distribution inside the bounds has the same wrench, the same motion and the same power). With ``mu_s = mu_k`` the
-stepped law converges to this at first order through such breaks (tested). With ``mu_s > mu_k`` it does not: it
-gives the static bound next step only to wheels whose impulse was strictly inside their bound, and its projected
-Gauss-Seidel may put a redundant sticking wheel exactly at its bound while the wrench is well inside ``h Z_S``; that
-wheel is then held to ``mu_k`` although it never slid, its zonotope shrinks, and the grip breaks early (seen on a
-turning field: demotions from 0.14 s, a break 3 ms before the exact one, independent of the step). Deciding "stuck"
-from the wheel's slip after the step instead of its impulse would follow this rule.
+distribution inside the bounds has the same wrench, the same motion and the same power). The stepped law converges
+to this at first order through such breaks (tested), also with ``mu_s > mu_k`` since it gives the static bound next
+step to every wheel whose slip after the step is zero. (It once judged by the impulse, strictly inside the bound:
+its projected Gauss-Seidel may put a redundant sticking wheel exactly at its bound while the wrench is well inside
+``h Z_S``; that wheel was then held to ``mu_k`` although it never slid, its zonotope shrank, and the grip broke
+early, 3 ms before the exact break on a turning field whatever the step.)
 
 **Deciding a mode (at an event).** Slipping wheels keep their sign. Wheels at zero slip solve the acceleration-level
 box problem ``min 1/2 lam^T A lam + q^T lam`` over ``|lam| <= mu_s N`` (``A = J M^-1 J^T``), whose acceleration
@@ -46,13 +45,15 @@ takes no part (no force, no constraint, no event).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 from scipy.integrate import solve_ivp
 
 __all__ = ["Wheels", "Mode", "ModeEvent", "StickSlipRun", "wheels_on", "decide_mode", "mode_rhs", "mode_events",
-           "simulate"]
+           "simulate", "stick_facets", "breaking_wheels", "project_twist"]
 
 _SLIP_TOL = 1e-9  # relative to the speed scale: a wheel this close to zero slip is at zero slip
 _ACCEL_TOL = 1e-7  # relative to the acceleration scale: a slip acceleration this small is zero
@@ -158,26 +159,16 @@ def wheels_on(cells, support, solution, velocities, mu: float, mu_static: float 
     if solution.force_lin.shape != (len(support), 2):
         raise ValueError("the support solution must be that of the supporting entries, in their order")
     mu_s = mu if mu_static is None else mu_static
-    cols = {k: [] for k in ("points", "directions", "speeds", "accels", "force_lin", "force_const", "mu_static",
-                            "mu_kinetic")}
-    keys = []
-    for row, i in enumerate(support.tolist()):
-        for k in range(2):
-            if not cells.wheel_active[i, k]:
-                continue
-            u = cells.drive_directions[i, k]
-            cols["points"].append(cells.positions[i])
-            cols["directions"].append(u)
-            cols["speeds"].append(0.0 if stuck[i, k] else float(V[i] @ u))
-            cols["accels"].append(0.0 if stuck[i, k] else float(A[i] @ u))
-            cols["force_lin"].append(solution.force_lin[row])
-            cols["force_const"].append(solution.force_const[row])
-            cols["mu_static"].append(0.0 if free[i, k] else mu_s)
-            cols["mu_kinetic"].append(0.0 if free[i, k] else mu)
-            keys.append((i, k))
-    arrays = {k: np.array(v, dtype=float).reshape((len(v), 2) if k in ("points", "directions", "force_lin")
-                                                  else (len(v),)) for k, v in cols.items()}
-    return Wheels(origin=np.asarray(solution.origin, dtype=float), t0=float(t0), keys=tuple(keys), **arrays)
+    row, k = np.nonzero(cells.wheel_active[support])  # each entry's wheels in order (one array pass: at every event)
+    i = support[row]
+    u = cells.drive_directions[i, k]
+    held, loose = stuck[i, k], free[i, k]
+    return Wheels(points=cells.positions[i], directions=u,
+                  speeds=np.where(held, 0.0, np.einsum("ij,ij->i", V[i], u)),
+                  accels=np.where(held, 0.0, np.einsum("ij,ij->i", A[i], u)), t0=float(t0),
+                  force_lin=solution.force_lin[row], force_const=solution.force_const[row],
+                  origin=np.asarray(solution.origin, dtype=float), mu_static=np.where(loose, 0.0, float(mu_s)),
+                  mu_kinetic=np.where(loose, 0.0, float(mu)), keys=tuple(zip(i.tolist(), k.tolist())))
 
 
 @dataclass(frozen=True)
@@ -258,31 +249,127 @@ def _facet_spec(G) -> tuple:
     span: ``(rank, anchor, index)``. Rank 3: each facet is spanned by a non-parallel pair ``index[f]``; rank 2 (the
     span is the plane of the pair ``anchor``): each facet is parallel to one generator ``index[f]``; rank 1: the
     facets are the segment's two ends, normal to generator ``index[0]``. Fixed for a mode, so that its event
-    functions stay the same while the generators move with the state."""
+    functions stay the same while the generators move with the state. Parallel facets (equal unit normals to 1e-8,
+    up to sign) are one pair of events: the first of them is kept. Compiled (:func:`_facet_candidates`,
+    :func:`_first_distinct`): it runs twice at every event of a run, and in numpy it took ~1-2 ms for 24 wheels."""
     none = np.zeros(0, dtype=np.int64)
+    G = np.ascontiguousarray(G, dtype=float)
     if len(G) == 0 or not np.abs(G).max() > 0:
         return 0, None, none
+    key = G.tobytes()
+    if key in _LAST_FACETS:  # the same generators asked again (deciding a mode checks it, its events then ask)
+        return _LAST_FACETS[key]
+    _LAST_FACETS.clear()
+    _LAST_FACETS[key] = spec = _facets_of(G)
+    return spec
+
+
+_LAST_FACETS: dict[bytes, tuple] = {}
+"""The last generators :func:`_facet_spec` was asked about, by their bytes, and its answer (its arrays read-only)."""
+
+
+def _facets_of(G) -> tuple:
+    """:func:`_facet_spec` of generators ``G`` (k, 3) with some non-zero, computed."""
     scale = np.linalg.norm(G, axis=1)
     sv = np.linalg.svd(G / scale.max(), compute_uv=False)
     rank = int((sv > 1e-9 * sv[0]).sum())
+    a0, a1, unit, index = _facet_candidates(G, scale, rank)
     if rank == 1:
-        return 1, None, np.array([int(np.argmax(scale))])
-    i, j = np.triu_indices(len(G), 1)
-    cross = np.cross(G[i], G[j])
-    if rank == 2:
-        best = int(np.argmax(np.linalg.norm(cross, axis=1)))
-        anchor = (int(i[best]), int(j[best]))
-        normals = np.cross(cross[best], G)
-        index = np.arange(len(G))
+        index = index[:, 0]
     else:
-        anchor, normals, index = None, cross, np.column_stack([i, j])
-    size = np.linalg.norm(normals, axis=1)
-    keep = size > 1e-9 * size.max()
-    unit = normals[keep] / size[keep, None]
-    lead = unit[np.arange(len(unit)), np.argmax(np.abs(unit) > 1e-6, axis=1)]
-    unit = unit * np.where(lead < 0, -1.0, 1.0)[:, None]  # a facet and its opposite are one pair of events
-    _, first = np.unique(np.round(unit, 8), axis=0, return_index=True)
-    return rank, anchor, index[keep][np.sort(first)]
+        index = index[_first_distinct(np.round(unit, 8))]
+        index = index[:, 0] if rank == 2 else index
+    index.setflags(write=False)
+    return rank, ((int(a0), int(a1)) if rank == 2 else None), index
+
+
+@njit(cache=True)
+def _facet_candidates(G, scale, rank):
+    """The candidate facets of the zonotope of generators ``G`` (k, 3) of lengths ``scale`` and rank ``rank``:
+    (anchor pair, their unit normals (p, 3) with the sign that makes the first component above 1e-6 positive,
+    their generators (p, 2): a pair for rank 3, one generator twice for rank 2 (normal to it within the plane of
+    the anchor pair, the pair of largest cross product), the longest generator for rank 1)."""
+    k = G.shape[0]
+    if rank == 1:
+        out = np.empty((1, 2), np.int64)
+        out[0, 0] = out[0, 1] = np.argmax(scale)
+        return 0, 0, np.zeros((0, 3)), out
+    pairs = k * (k - 1) // 2
+    cross = np.empty((pairs, 3))
+    index = np.empty((pairs, 2), np.int64)
+    p = 0
+    best, a0, a1 = -1.0, 0, 0
+    for a in range(k):
+        for b in range(a + 1, k):
+            cross[p] = _cross3(G[a], G[b])
+            index[p, 0], index[p, 1] = a, b
+            size = math.sqrt(cross[p, 0] ** 2 + cross[p, 1] ** 2 + cross[p, 2] ** 2)
+            if size > best:
+                best, a0, a1 = size, a, b
+            p += 1
+    if rank == 2:
+        plane = _cross3(G[a0], G[a1])
+        normals = np.empty((k, 3))
+        index = np.empty((k, 2), np.int64)
+        for a in range(k):
+            normals[a] = _cross3(plane, G[a])
+            index[a, 0] = index[a, 1] = a
+    else:
+        normals = cross
+    n = normals.shape[0]
+    size = np.empty(n)
+    for q in range(n):
+        size[q] = math.sqrt(normals[q, 0] ** 2 + normals[q, 1] ** 2 + normals[q, 2] ** 2)
+    largest = size.max()
+    count = 0
+    for q in range(n):
+        count += size[q] > 1e-9 * largest
+    unit = np.empty((count, 3))
+    kept = np.empty((count, 2), np.int64)
+    c = 0
+    for q in range(n):
+        if not size[q] > 1e-9 * largest:
+            continue
+        for e in range(3):
+            unit[c, e] = normals[q, e] / size[q]
+        lead = unit[c, 0]
+        for e in range(3):
+            if abs(unit[c, e]) > 1e-6:
+                lead = unit[c, e]
+                break
+        if lead < 0:
+            for e in range(3):
+                unit[c, e] = -unit[c, e]
+        kept[c] = index[q]
+        c += 1
+    return a0, a1, unit, kept
+
+
+@njit(cache=True)
+def _cross3(a, b):
+    out = np.empty(3)
+    out[0] = a[1] * b[2] - a[2] * b[1]
+    out[1] = a[2] * b[0] - a[0] * b[2]
+    out[2] = a[0] * b[1] - a[1] * b[0]
+    return out
+
+
+@njit(cache=True)
+def _first_distinct(key):
+    """Positions of the rows of ``key`` (p, 3) equal to no earlier row, in order."""
+    keep = np.empty(key.shape[0], np.int64)
+    n = 0
+    for q in range(key.shape[0]):
+        new = True
+        for r in range(n):
+            s = keep[r]
+            if key[s, 0] == key[q, 0] and key[s, 1] == key[q, 1] and key[s, 2] == key[q, 2]:
+                new = False
+                break
+        if new:
+            keep[n] = q
+            n += 1
+    return keep[:n]
 
 
 def _facet_normals(G, spec) -> np.ndarray:
@@ -364,20 +451,32 @@ def mode_events(wheels: Wheels, mode: Mode, t: float, y, mass: float, inertia: f
 def _box_accelerations(JZ, minv, known, rhs, bounds, max_sweeps=200000, tol=1e-15):
     """Projected Gauss-Seidel on the acceleration-level box problem of the zero-slip wheels: forces ``lam`` within
     ``|lam| <= bounds`` with the slip accelerations ``a = J_Z nu_dot - rhs`` complementary to them. Returns ``a``
-    (unique, as ``nu_dot`` is); used to identify the mode, which is then solved and checked exactly."""
-    z = (minv * known).tolist()
-    rows = JZ.tolist()
-    diag = ((JZ ** 2) * minv).sum(axis=1).tolist()
-    b = bounds.tolist()
-    r = rhs.tolist()
-    lam = [0.0] * len(rows)
-    m0, m1, m2 = (float(v) for v in minv)
-    scale = max(max(b, default=0.0), 1e-300)
+    (unique, as ``nu_dot`` is); used to identify the mode, which is then solved and checked exactly. Compiled
+    (:func:`_sweeps`): many redundant wheels (hexagonal omni cells) take thousands of sweeps."""
+    JZ = np.ascontiguousarray(JZ, dtype=float)
+    diag = ((JZ ** 2) * minv).sum(axis=1)
+    z = _sweeps(JZ, np.ascontiguousarray(minv, dtype=float), np.ascontiguousarray(minv * known, dtype=float),
+                np.ascontiguousarray(rhs, dtype=float), np.ascontiguousarray(bounds, dtype=float), diag,
+                int(max_sweeps), float(tol))
+    return JZ @ z - rhs
+
+
+@njit(cache=True)
+def _sweeps(rows, minv, z0, r, b, diag, max_sweeps, tol):
+    """The sweeps of :func:`_box_accelerations` from acceleration ``z0`` (3,) with every force at 0: returns the
+    acceleration (3,) they converge to (a sweep's largest force change at most ``tol`` times the largest bound)."""
+    z = z0.copy()
+    lam = np.zeros(rows.shape[0])
+    m0, m1, m2 = minv[0], minv[1], minv[2]
+    scale = 1e-300
+    for j in range(b.shape[0]):
+        scale = max(scale, b[j])
     for _ in range(max_sweeps):
         change = 0.0
-        for j, (p, q, w) in enumerate(rows):
+        for j in range(rows.shape[0]):
             if b[j] <= 0.0 or diag[j] <= 0.0:
                 continue
+            p, q, w = rows[j, 0], rows[j, 1], rows[j, 2]
             a = p * z[0] + q * z[1] + w * z[2] - r[j]
             new = min(max(lam[j] - a / diag[j], -b[j]), b[j])
             d = new - lam[j]
@@ -389,7 +488,7 @@ def _box_accelerations(JZ, minv, known, rhs, bounds, max_sweeps=200000, tol=1e-1
                 change = max(change, abs(d))
         if change <= tol * scale:
             break
-    return JZ @ np.array(z) - rhs
+    return z
 
 
 @dataclass(frozen=True)
@@ -558,7 +657,7 @@ def simulate(wheels: Wheels, y0, t0: float, t1: float, mass: float, inertia: flo
             events.append(ModeEvent(t, fn.kind, int(fn.index), mode, mode))
             status = "support"
             break
-        breaking = _breaking(wheels, mode, t, z[:6], minv, fn) if fn.kind == "stick" else None
+        breaking = _breaking(wheels, mode, t, z[:6], minv, fn.spec, fn.index) if fn.kind == "stick" else None
         new = decide_mode(wheels, t, z[:6], mass, inertia, breaking=breaking)
         z[:6] = _project(wheels, new, t, z[:6], minv)
         events.append(ModeEvent(t, fn.kind, int(fn.index), mode, new))
@@ -570,12 +669,12 @@ def simulate(wheels: Wheels, y0, t0: float, t1: float, mass: float, inertia: flo
                         t, y, status)
 
 
-def _breaking(wheels, mode, t, y, minv, fn) -> dict:
-    """The wheels that leave stick where the required wrench crosses facet ``fn.index``: those off the facet's plane,
-    each at its static bound ``lam_j`` there, slipping against it (sign ``-sign(lam_j)``)."""
+def _breaking(wheels, mode, t, y, minv, spec, facet) -> dict:
+    """The wheels that leave stick where the required wrench crosses facet ``facet`` of ``spec``: those off the
+    facet's plane, each at its static bound ``lam_j`` there, slipping against it (sign ``-sign(lam_j)``)."""
     G, F = _required(wheels, mode, t, y, minv)
-    rank, anchor, index = fn.spec
-    n = _facet_normals(G, (rank, anchor, index[fn.index:fn.index + 1]))[0]
+    rank, anchor, index = spec
+    n = _facet_normals(G, (rank, anchor, index[facet:facet + 1]))[0]
     reach = G @ n
     off = np.abs(reach) > _PLANE_TOL * np.linalg.norm(G, axis=1)
     side = np.sign(n @ F) or 1.0
@@ -594,3 +693,23 @@ def _project(wheels, mode, t, y, minv) -> np.ndarray:
     out = y.copy()
     out[3:] -= minv * (JS.T @ np.linalg.lstsq((JS * minv) @ JS.T, gap, rcond=None)[0])
     return out
+
+
+def stick_facets(wheels: Wheels, mode: Mode, t: float, y, mass: float, inertia: float) -> tuple:
+    """The facet choice ``(rank, anchor, index)`` of the sticking wheels' zonotope of ``mode`` at (t, y), indices
+    into ``mode.stick`` (see :func:`mode_events`: fixed for the mode, as the facets keep their generators while
+    the state moves). For an engine that evaluates the facets' slacks itself."""
+    return _facet_spec(_required(wheels, mode, t, y, 1.0 / _masses(mass, inertia))[0])
+
+
+def breaking_wheels(wheels: Wheels, mode: Mode, t: float, y, mass: float, inertia: float, spec: tuple,
+                    facet: int) -> dict:
+    """``{wheel: sign}`` of the wheels that leave stick where the required wrench of ``mode`` crosses facet
+    ``facet`` of the facet choice ``spec`` (:func:`stick_facets`) at (t, y): :func:`decide_mode`'s ``breaking``."""
+    return _breaking(wheels, mode, t, np.asarray(y, dtype=float), 1.0 / _masses(mass, inertia), spec, facet)
+
+
+def project_twist(wheels: Wheels, mode: Mode, t: float, y, mass: float, inertia: float) -> np.ndarray:
+    """``y`` (x, y, theta, vx, vy, omega) with its twist moved, the least in the kinetic metric, onto the sticking
+    wheels' constraints of ``mode`` at time ``t`` (s): what :func:`simulate` does at every mode change."""
+    return _project(wheels, mode, t, np.asarray(y, dtype=float), 1.0 / _masses(mass, inertia))

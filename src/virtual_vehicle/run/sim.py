@@ -88,7 +88,7 @@ class RunResult:
 
     def summary(self) -> dict:
         """A JSON-ready summary: per-parcel outcome, start/end state, distance, events; run totals."""
-        sc = self.setup.scenario
+        sc, law = self.setup.scenario, self.setup.law
         parcels = []
         for pr in self.parcels:
             tr = pr.trajectory
@@ -110,7 +110,8 @@ class RunResult:
                 "coulomb_max_reversed_slip_m_per_s": pr.sliding_violation[1] if pr.sliding_violation else None,
                 "coulomb_sliding_checked": pr.sliding_checked and self.setup.law.assumes_sliding,
                 **({"energy_J": {k: tr.stats[k] for k in _ENERGY},
-                    "stick_slip_unconverged_steps": tr.stats["unconverged_steps"]} if "wheel_work" in tr.stats else {}),
+                    "stick_slip_unconverged_steps": tr.stats["unconverged_steps"],
+                    "stick_slip_mode_changes": tr.stats.get("mode_changes", 0)} if "wheel_work" in tr.stats else {}),
             })
         extra = {}
         task = None if sc.control is None else program_of(sc.control)
@@ -136,8 +137,9 @@ class RunResult:
             "scenario": sc.name,
             "version": __version__,
             "friction_law": sc.friction.law,
-            "integrator": (f"time-stepping ({self.setup.law.time_stepper.replace('_', '-')})"
-                           if self.setup.law.time_stepper else sc.integrator.mode),
+            "integrator": (f"time-stepping ({law.time_stepper.replace('_', '-')})"
+                           if law.time_stepper and (sc.integrator.mode == "fixed" or not law.modes)
+                           else sc.integrator.mode),
             "duration_s": sc.duration,
             "cells": self.setup.cells.n,
             "parcels": parcels,

@@ -6,9 +6,11 @@ counter-clockwise positive. A parcel's state is ``(x, y, theta, vx, vy, omega)``
 
 A law is either *event-driven* (``time_stepper`` None): on one set of supports its wrench is affine in the parcel's
 state, given by a piece's constants (:mod:`~virtual_vehicle.physics.laws.affine`), and the event-driven engine
-integrates it between support changes; or *time-stepped*: it has modes of its own (wheels sticking or slipping)
-and names the engine's time stepper that solves it every step (the stepper then also puts the wheels into a
-group's contact problem when parcels push each other). Either way :meth:`FrictionLaw.constants` gives the
+integrates it between support changes; or it has *modes* of its own (wheels sticking or slipping, ``modes``): the
+event-driven engine then integrates it mode by mode from its wheels (:meth:`FrictionLaw.wheel_contacts`, the
+exact modes of :mod:`~virtual_vehicle.physics.stick_modes`), and it names the engine's time stepper that solves it
+every step instead (``time_stepper``: fixed mode, and a group's contact problem when parcels push each other).
+Either way :meth:`FrictionLaw.constants` gives the
 per-support-set constants (for a time-stepped law, those of one mode, for reference) and
 :meth:`FrictionLaw.cell_forces` the exact per-cell forces of a state, which
 :func:`~virtual_vehicle.physics.laws.check_law` checks.
@@ -43,6 +45,10 @@ class FrictionLaw(ABC):
     """As written in scenario files (``[friction] law``)."""
     time_stepper: str | None = None
     """None: event-driven (affine constants per piece). Else the name of the engine's time stepper for the law."""
+    modes: bool = False
+    """True for a law with modes of its own (each wheel sticks or slips): the event engine then integrates it mode
+    by mode on each support set, from the wheels :meth:`wheel_contacts` gives, and its ``time_stepper`` is the
+    fixed-step alternative (fixed mode, and parcels stepped together in contact)."""
     assumes_sliding: bool = False
     """True when the law's forces hold only while every wheel slides under the parcel in its direction of spin
     (the parcel slower than its wheels): a run then checks that assumption along each trajectory."""
@@ -118,6 +124,13 @@ class FrictionLaw(ABC):
     def scaled_mu(self, mu: float, length: float) -> float:
         """The friction coefficient that keeps a run similar when every length is multiplied by ``length`` and
         times by its square root (Froude scaling)."""
+
+    def wheel_contacts(self, cells, support, solution, velocities, mu: float, mu_static: float | None = None):
+        """For a law with :attr:`modes`: the wheels of the entries ``support`` of ``cells`` on their solved support
+        set ``solution``, each a 1-D friction contact (a :class:`~virtual_vehicle.physics.stick_modes.Wheels`),
+        under surface velocities ``velocities`` ((n, 2) m/s, all entries), kinetic ``mu`` and static
+        ``mu_static``. Raises ValueError for a law without modes."""
+        raise ValueError(f"the {self.name} law has no modes")
 
     def supports(self, cells, free_wheels: bool = False) -> None:
         """Raise ValueError when the law cannot act on ``cells`` (a contact layer: lumped cells, or one contact per

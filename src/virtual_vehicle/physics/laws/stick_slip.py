@@ -1,6 +1,8 @@
-"""Stick-slip friction (paper Section 5): each wheel sticks to the parcel or slides, a law with modes of its own,
-solved as a complementarity problem every time step by the engine's time stepper
-(:mod:`virtual_vehicle.engine.stickslip`). The parcel's ``mu`` is the kinetic coefficient and ``mu_static``
+"""Stick-slip friction (paper Section 5): each wheel sticks to the parcel or slides, a law with modes of its own. The
+event-driven engine integrates it exactly, mode by mode (:mod:`virtual_vehicle.physics.stick_modes`: each wheel
+sticks or slips with a known sign between events); fixed mode, and parcels pushing each other, solve it as a
+complementarity problem every time step instead (the engine's time stepper,
+:mod:`virtual_vehicle.engine.stickslip`). The parcel's ``mu`` is the kinetic coefficient and ``mu_static``
 (default ``mu``) the static one, both dimensionless. In the sliding mode every wheel pushes with its kinetic bound
 in its direction of spin: the paper's Coulomb law, whose constants, wrench and bounds it shares.
 
@@ -15,18 +17,21 @@ import numpy as np
 
 from virtual_vehicle.physics.laws.base import StepperOptions
 from virtual_vehicle.physics.laws.coulomb import CoulombLaw
+from virtual_vehicle.physics.stick_modes import Wheels, wheels_on
 
 
 @dataclass(frozen=True)
 class StickSlipLaw(CoulombLaw):
-    """Stick-slip friction (paper Section 5), always time-stepped. Its per-support-set constants (for reference
-    only) are those of the sliding regime: the paper's Coulomb constants. ``max_sweeps`` and ``tolerance`` (relative
+    """Stick-slip friction (paper Section 5), a law with modes: exact between events in event mode, time-stepped in
+    fixed mode. Its per-support-set constants (for reference only) are those of the sliding regime: the paper's
+    Coulomb constants. ``max_sweeps`` and ``tolerance`` (relative
     to the largest impulse bound) control the projected Gauss-Seidel solver."""
 
     name: str = "stick_slip"
     max_sweeps: int = 1000
     tolerance: float = 1e-12
     time_stepper = "stick_slip"
+    modes = True
     assumes_sliding = False  # the stepper decides which wheels slide
 
     def stepper_options(self) -> StepperOptions:
@@ -36,3 +41,9 @@ class StickSlipLaw(CoulombLaw):
     def wheel_loads(self, speed, slip):
         """A sliding wheel pushes with ``mu N`` along its slip; a sticking one (no slip) is reported as none."""
         return np.where(np.abs(slip) > 1e-9, np.sign(slip), 0.0)
+
+    def wheel_contacts(self, cells, support, solution, velocities, mu, mu_static=None) -> Wheels:
+        """Each present wheel of the supporting entries a 1-D friction contact along its drive direction, moving at
+        its entry's surface velocity projected on it (a stuck wheel's is 0 already; a free one is not present),
+        carrying its entry's whole normal force (eq. 21): :func:`~virtual_vehicle.physics.stick_modes.wheels_on`."""
+        return wheels_on(cells, support, solution, velocities, mu, mu_static)

@@ -1,0 +1,203 @@
+"""The stick-slip law run event-driven by the engine (integrate's event mode): each wheel sticks or slips between
+events, across support changes. Checked against what it did not write: the one-support-set reference
+(physics.stick_modes.simulate), the pickup's closed form, the fixed-step complementarity law as dt -> 0, the energy
+balance, and the paper's Coulomb law while every wheel slips."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from virtual_vehicle.config.scenario import load_scenario
+from virtual_vehicle.engine.dynamics import ParcelModel, integrate
+from virtual_vehicle.model import fields, layout, parcel
+from virtual_vehicle.physics import contact, friction
+from virtual_vehicle.physics.stick_modes import simulate, wheels_on
+
+G = 9.81
+D = 0.1
+SQUARE = layout.grid(2, 2, D, origin=(-D / 2, -D / 2))  # four cells a 0.3 m square parcel always covers near (0, 0)
+BOX = parcel.rectangle(0.3, 0.3, 1.0, 0.4, mu_static=0.5)
+
+
+def stick_slip(cells, spec, V, law=None):
+    return ParcelModel(cells, spec, V, law or friction.StickSlipLaw(), G)
+
+
+def reference(cells, spec, V, y0, T, **kw):
+    """stick_modes.simulate on the support set of every cell of ``cells`` (the parcel stays over all of them)."""
+    sol = contact.solve_support(cells.positions, np.asarray(y0[:2], dtype=float), spec.weight(G))
+    wheels = wheels_on(cells, np.arange(cells.n), sol, V, spec.mu, spec.mu_static, **kw)
+    return simulate(wheels, y0, 0.0, T, spec.mass, spec.inertia)
+
+
+@pytest.mark.parametrize("scene", ["slips_catch_up", "stick_breaks"])
+def test_engine_agrees_with_the_reference_on_one_support_set(scene):
+    """Three wheels catching up (slip events), or seven redundant sticking wheels whose wrench leaves their zonotope
+    twice (stick events): the engine's trajectory and mode changes are the reference's to 1e-8 m."""
+    if scene == "slips_catch_up":
+        spec, T = BOX, 0.3
+        V = fields.Twist((0.01, 0.0), (0.05, -0.03, 1.0)).velocities(SQUARE)
+        y0 = np.array([0.01, -0.005, 0.1, -0.1, 0.05, -0.5])
+    else:
+        spec, T = parcel.rectangle(0.3, 0.3, 1.0, 0.4, mu_static=0.4), 0.41
+        V = fields.Twist((0.02, 0.0), (0, 0, 8.0)).velocities(SQUARE) + [[0, 0], [0, 0], [0, 0], [0.3, 0]]
+        y0 = np.array([0, 0, 0, 0, -8.0 * 0.02, 8.0])
+    run = reference(SQUARE, spec, V, y0, T)
+    ts = np.linspace(0, T, 41)
+    tr = integrate(stick_slip(SQUARE, spec, V), y0, 0, T, sample_times=ts)
+    assert tr.status == "completed" and tr.events == []  # one support set throughout
+    assert np.abs(tr.states[:, :2] - run.state(ts)[:, :2]).max() <= 1e-8
+    assert np.abs(tr.states - run.state(ts)).max() <= 1e-7
+    mine = tr.stats["mode_events"]
+    assert [k for _, k, _, _ in mine] == [e.kind for e in run.events]
+    assert [after for *_, after in mine] == [e.after.state for e in run.events]
+    np.testing.assert_allclose([t for t, *_ in mine], [e.time for e in run.events], atol=1e-9)
+    assert abs(tr.stats["wheel_work"] - run.wheel_work) <= 1e-8 and abs(tr.stats["friction_dissipation"]
+                                                                          - run.dissipation) <= 1e-8
+
+
+def test_pickup_closed_form_across_support_changes():
+    """stick_slip_pickup: the carton accelerates at mu_k g until t* = v / (mu_k g), its one mode change, then rides
+    at exactly the wheel speed over the cells it crosses; half the wheels' work is lost to friction."""
+    setup = load_scenario("stick_slip_pickup")[0].build()
+    spec, y0, cells, V = setup.specs[0], setup.states[0], setup.contact_layer, setup.velocities
+    g, v, mu = setup.scenario.gravity, 0.3, setup.specs[0].mu
+    T, t_star = setup.scenario.duration, v / (mu * g)
+    ts = np.linspace(0, T, 301)
+    tr = integrate(ParcelModel(cells, spec, V, setup.law, g), y0, 0, T, sample_times=ts)
+    assert tr.status == "completed" and len(tr.events) >= 5  # it crosses cells
+    (t_mode, kind, before, after), = tr.stats["mode_events"]
+    assert kind == "slip" and abs(t_mode - t_star) <= 1e-12 and set(after) == {0}
+    x = y0[0] + np.where(ts < t_star, 0.5 * mu * g * ts**2, v * ts - 0.5 * v * t_star)
+    np.testing.assert_allclose(tr.states[:, 0], x, atol=1e-11)
+    np.testing.assert_allclose(tr.states[:, 3], np.minimum(mu * g * ts, v), atol=1e-11)
+    np.testing.assert_allclose(tr.states[ts > t_star, 3], v, atol=1e-13)  # exactly the wheel speed
+    assert np.abs(tr.states[:, [1, 2, 4, 5]] - [y0[1], y0[2], 0, 0]).max() < 1e-13
+    s = tr.stats
+    np.testing.assert_allclose([s["wheel_work"], s["friction_dissipation"], s["kinetic_end"]],
+                               [spec.mass * v**2, spec.mass * v**2 / 2, spec.mass * v**2 / 2], rtol=1e-9)
+
+
+def _crossing():
+    cells = layout.grid(30, 30, 0.1)
+    spec = parcel.rectangle(0.4, 0.3, 2.0, 0.5)
+    return cells, spec, fields.Uniform((0.2, 0.0)).velocities(cells), [0.52, 1.47, 0.3, 0, 0, 0]
+
+
+def _turning():
+    cells = layout.grid(30, 30, 0.1)
+    spec = parcel.rectangle(0.4, 0.3, 2.0, 0.5)
+    return cells, spec, fields.Twist((1.5, 1.5), (0, 0, 0.4)).velocities(cells), [1.5, 1.0, 0.0, 0, 0, 0]
+
+
+@pytest.mark.parametrize("scene", [_crossing, _turning])
+def test_fixed_step_law_converges_to_the_event_driven_one(scene):
+    """mu_s = mu_k: the fixed-step complementarity law (fixed mode) approaches the exact event-driven run at first
+    order as dt halves, through the catch-up and some twenty support changes."""
+    cells, spec, V, y0 = scene()
+    T = 1.5
+    ts = np.linspace(0, T, 51)
+    exact = integrate(stick_slip(cells, spec, V), y0, 0, T, sample_times=ts)
+    assert len(exact.events) >= 15 and exact.stats["mode_changes"] >= 1
+    errs = [np.abs(integrate(stick_slip(cells, spec, V), y0, 0, T, sample_times=ts, dt=dt, mode="fixed").states[:, :2]
+                   - exact.states[:, :2]).max() for dt in (2e-3, 1e-3, 5e-4)]
+    order = np.log2(np.array(errs[:-1]) / errs[1:])
+    print(f"{scene.__name__}: errors {errs} m, observed order {order}")
+    assert np.all(np.abs(order - 1) < 0.1), (errs, order)
+
+
+def test_energy_account_closes_across_support_changes():
+    """With rotation, lift-offs, support changes and mu_s > mu_k: wheel work = kinetic energy gained + friction
+    dissipation, the dissipation >= 0 (no step dissipation: there is no step)."""
+    cells = layout.grid(10, 8, 0.1)
+    spec = parcel.rectangle(0.33, 0.27, 1.3, 0.45, mu_static=0.6)
+    tr = integrate(stick_slip(cells, spec, fields.Inward((0.45, 0.35), 0.4).velocities(cells)),
+                   [0.3, 0.25, 0.4, 0.2, -0.1, 1.5], 0, 1.5)
+    s = tr.stats
+    assert tr.status == "completed" and len(tr.events) > 5 and s["mode_changes"] > 0
+    gained = s["kinetic_end"] - s["kinetic_start"]
+    assert s["friction_dissipation"] > 0 and s["step_dissipation"] == 0
+    assert abs(s["wheel_work"] - gained - s["friction_dissipation"]) <= 1e-8 * abs(s["wheel_work"])
+
+
+def test_every_wheel_slipping_is_the_papers_coulomb_law():
+    """Wheels much faster than the parcel never let it catch up: the event-driven stick-slip run is the paper's
+    Coulomb run (eqs. 20-29), with no mode change."""
+    cells = layout.grid(2, 2, D, origin=(-D / 2, -D / 2))
+    spec = parcel.rectangle(0.3, 0.3, 1.0, 0.5)
+    V = fields.Inward((0, 0), 2.0).velocities(cells)
+    y0 = [0.02, -0.01, 0.1, 0, 0, 0]
+    coulomb = integrate(stick_slip(cells, spec, V, friction.CoulombLaw()), y0, 0, 0.5, sample_dt=0.01)
+    mine = integrate(stick_slip(cells, spec, V), y0, 0, 0.5, sample_dt=0.01)
+    assert mine.stats["mode_changes"] == 0
+    assert np.abs(mine.states - coulomb.states).max() < 1e-9
+
+
+def test_stuck_and_free_wheels_are_the_references_faults():
+    """A stuck wheel (held at speed 0, as the run's faults hold it) and a free-spinning one (taken out of the contact
+    layer, as a scenario's faults take it) in the engine give stick_modes' wheels_on(stuck=, free=) run."""
+    V = fields.Twist((0.01, 0.0), (0.05, -0.03, 1.0)).velocities(SQUARE)
+    stuck = np.zeros((4, 2), bool)
+    free = np.zeros((4, 2), bool)
+    stuck[1, 0] = free[2, 1] = True
+    y0 = np.array([0.01, -0.005, 0.1, -0.1, 0.05, -0.5])
+    run = reference(SQUARE, BOX, V, y0, 0.3, stuck=stuck, free=free)
+    held = V - np.einsum("ik,ikj->ij", np.where(stuck, np.einsum("ij,ikj->ik", V, SQUARE.drive_directions), 0.0),
+                         SQUARE.drive_directions)  # zero along each stuck wheel
+    cells = dataclasses.replace(SQUARE, wheel_active=SQUARE.wheel_active & ~free)
+    ts = np.linspace(0, 0.3, 31)
+    tr = integrate(stick_slip(cells, BOX, held), y0, 0, 0.3, sample_times=ts)
+    assert len(run.events) > 0 and len(tr.stats["mode_events"]) == len(run.events)
+    assert np.abs(tr.states[:, :2] - run.state(ts)[:, :2]).max() <= 1e-8
+
+
+def test_a_run_split_into_ticks_is_the_same_run():
+    """mu_s > mu_k, sticking across control-tick boundaries: integrating tick by tick (as the co-simulation does)
+    gives the whole run's trajectory; the mode is decided again from the state at each tick."""
+    cells = layout.grid(10, 8, 0.1)
+    spec = parcel.rectangle(0.33, 0.27, 1.3, 0.3, mu_static=0.6)
+    V = fields.Inward((0.45, 0.35), 0.2).velocities(cells)
+    y0 = np.array([0.42, 0.33, 0.2, 0.0, 0.0, 0.0])
+    whole = integrate(stick_slip(cells, spec, V), y0, 0, 0.5, sample_dt=0.01)
+    base = stick_slip(cells, spec, V)
+    y = y0
+    for k in range(50):
+        y = integrate(base.with_velocities(V), y, k * 0.01, (k + 1) * 0.01, sample_dt=0.01).states[-1]
+    np.testing.assert_allclose(y, whole.states[-1], atol=1e-9)
+
+
+@pytest.mark.parametrize("mu_static", [0.4, 0.5])
+def test_fixed_step_law_converges_through_stick_breaks_and_a_lift_off(mu_static):
+    """A kicked turn: one cell's wheel faster than the rest slips, the seven others ride until the centripetal
+    wrench leaves their zonotope (twice), a cell lifts off, a wheel catches up. The fixed-step law converges to the
+    event-driven run at first order, also with mu_s > mu_k (it keeps the static bound for every wheel whose slip
+    after a step is zero: judged by its impulse, a redundant sticking wheel at its bound lost it and the grip broke
+    early whatever the step)."""
+    spec = parcel.rectangle(0.3, 0.3, 1.0, 0.4, mu_static=mu_static)
+    V = fields.Twist((0.02, 0.0), (0, 0, 8.0)).velocities(SQUARE) + [[0, 0], [0, 0], [0, 0], [0.3, 0]]
+    y0 = np.array([0, 0, 0, 0, -8.0 * 0.02, 8.0])
+    T = 0.5
+    ts = np.linspace(0, T, 51)
+    exact = integrate(stick_slip(SQUARE, spec, V), y0, 0, T, sample_times=ts)
+    assert [k for _, k, _, _ in exact.stats["mode_events"]] == ["stick", "stick", "slip"]
+    assert len(exact.events) == 1 and exact.events[0].lifted  # the lift-off, between the second break and the slip
+    errs = [np.abs(integrate(stick_slip(SQUARE, spec, V), y0, 0, T, sample_times=ts, dt=dt, mode="fixed").states[:, :2]
+                   - exact.states[:, :2]).max() for dt in (2e-4, 1e-4, 5e-5)]
+    order = np.log2(np.array(errs[:-1]) / errs[1:])
+    print(f"mu_static {mu_static}: errors {errs} m, observed order {order}")
+    assert np.all(np.abs(order - 1) < 0.15), (errs, order)
+
+
+def test_a_scenario_run_reports_the_exact_law():
+    """stick_slip_pickup through the simulator: event mode, one mode change, the closed-form energy account (no step
+    dissipation), support changes where the carton's edges cross cell centres."""
+    from virtual_vehicle.run.sim import run
+
+    res = run(load_scenario("stick_slip_pickup")[0].build())
+    summary = res.summary()
+    carton = summary["parcels"][0]
+    assert summary["integrator"] == "event" and carton["stick_slip_mode_changes"] == 1
+    energy = carton["energy_J"]
+    assert energy["step_dissipation"] == 0 and abs(energy["friction_dissipation"] - 0.3**2 / 2) < 1e-12
+    assert carton["support_changes"] == 9
