@@ -18,7 +18,7 @@ import numpy as np
 from virtual_vehicle.engine import _kernel, dynamics
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics import friction
+from virtual_vehicle.physics import laws
 
 CELLS = layout.grid(30, 30, 0.1)
 V = fields.Uniform((0.2, 0.0)).velocities(CELLS)
@@ -78,7 +78,7 @@ def profile(repeat: int = 5) -> None:
              "decide_mode (the next mode, Python)": (dynamics, "decide_mode"),
              "project_twist": (dynamics, "project_twist"),
              "mode arrays and zonotope facets": (dynamics, "_mode_arrays"),
-             "wheels of a new support set": (friction.StickSlipLaw, "wheel_contacts"),
+             "wheels of a new support set": (laws.StickSlipLaw, "wheel_contacts"),
              "support lookup and solve (piece_for)": (ParcelModel, "piece_for"),
              "support events' segment": (dynamics._Segment, "__init__")}
     spent = {name: 0.0 for name in parts}

@@ -11,7 +11,7 @@ import pytest
 from virtual_vehicle.config.scenario import load_scenario
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
-from virtual_vehicle.physics import contact, friction
+from virtual_vehicle.physics import contact, laws
 from virtual_vehicle.physics.stick_modes import simulate, wheels_on
 
 G = 9.81
@@ -21,7 +21,7 @@ BOX = parcel.rectangle(0.3, 0.3, 1.0, 0.4, mu_static=0.5)
 
 
 def stick_slip(cells, spec, V, law=None):
-    return ParcelModel(cells, spec, V, law or friction.StickSlipLaw(), G)
+    return ParcelModel(cells, spec, V, law or laws.StickSlipLaw(), G)
 
 
 def reference(cells, spec, V, y0, T, **kw):
@@ -128,7 +128,7 @@ def test_every_wheel_slipping_is_the_papers_coulomb_law():
     spec = parcel.rectangle(0.3, 0.3, 1.0, 0.5)
     V = fields.Inward((0, 0), 2.0).velocities(cells)
     y0 = [0.02, -0.01, 0.1, 0, 0, 0]
-    coulomb = integrate(stick_slip(cells, spec, V, friction.CoulombLaw()), y0, 0, 0.5, sample_dt=0.01)
+    coulomb = integrate(stick_slip(cells, spec, V, laws.CoulombLaw()), y0, 0, 0.5, sample_dt=0.01)
     mine = integrate(stick_slip(cells, spec, V), y0, 0, 0.5, sample_dt=0.01)
     assert mine.stats["mode_changes"] == 0
     assert np.abs(mine.states - coulomb.states).max() < 1e-9
