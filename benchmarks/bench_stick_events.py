@@ -34,7 +34,7 @@ def spec(law: str):
 
 
 def run(law: str, mode: str, theta: float = 0.0, dt: float = 1e-3):
-    model = ParcelModel(CELLS, spec(law), V, friction.LAWS[law])  # fresh: nothing cached between runs
+    model = ParcelModel(CELLS, spec(law), V, laws.LAWS[law])  # fresh: nothing cached between runs
     return integrate(model, [*Y0[:2], theta, *Y0[3:]], 0.0, T, mode=mode, dt=dt, sample_dt=0.01)
 
 
