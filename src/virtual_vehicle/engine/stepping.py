@@ -94,11 +94,13 @@ class Trajectory:
 
     def to_data(self) -> dict:
         """This trajectory as data: its arrays, its events as columns (:meth:`Event.to_columns`), its status and
-        counts, and its stats (names to plain numbers)."""
+        counts, and its stats (names to plain numbers). A stick-slip call's own list of mode changes
+        (``stats["mode_events"]``) is not written: joining pieces drops it too, keeping its count ``mode_changes``."""
         return {"times": self.times, "states": self.states, "events": Event.to_columns(self.events),
                 "status": self.status, "t_end": float(self.t_end), "segments": int(self.segments),
                 "rhs_evals": int(self.rhs_evals),
-                "stats": {k: v.item() if isinstance(v, np.generic) else v for k, v in self.stats.items()}}
+                "stats": {k: v.item() if isinstance(v, np.generic) else v for k, v in self.stats.items()
+                          if k != "mode_events"}}
 
     @classmethod
     def from_data(cls, d, where: str = "trajectory") -> Trajectory:
