@@ -97,8 +97,8 @@ def test_reach_bounds_are_point_reach_for_many_parcels():
                          for y, m in zip(ys, mu)])
         R = SPEC.radius
         s0 = np.array([np.hypot(y[3], y[4]) + abs(y[5]) * R for y in ys])
-        got = reach_bounds(s0, mu * (1 + SPEC.mass * R * R / SPEC.inertia), 0.02, law=law, gravity=9.81,
-                           wheel_speed=0.4)
+        lever = 1 + SPEC.mass * R * R / SPEC.inertia
+        got = reach_bounds(s0, mu * lever, 0.02, law=law, gravity=9.81, wheel_speed=0.4, lever=np.full(6, lever))
         np.testing.assert_allclose(np.column_stack(got), want, rtol=1e-14)
 
 

@@ -53,7 +53,7 @@ class SoftCoulombLaw(FrictionLaw):
         return constants_and_row(solution.points, drive, solution.force_lin, solution.force_const, mu, 0.0,
                                  solution.weight, solution.origin, mass, inertia)
 
-    def reach(self, s0, window, *, rate, wheel_speed):
+    def reach(self, s0, window, *, rate, wheel_speed, lever=None):
         k = 2.0 * rate  # |drive| <= 2 with two wheels a cell, normal forces summing to the weight
         return s0 * window + 0.5 * k * window * window, s0 + k * window
 
@@ -133,8 +133,8 @@ class ShortReachLaw(ViscousLaw):
 
     name: str = "short_reach"
 
-    def reach(self, s0, window, *, rate, wheel_speed):
-        dist, speed = super().reach(s0, window, rate=rate, wheel_speed=wheel_speed)
+    def reach(self, s0, window, *, rate, wheel_speed, lever=None):
+        dist, speed = super().reach(s0, window, rate=rate, wheel_speed=wheel_speed, lever=lever)
         return 0.5 * dist, speed
 
 
@@ -171,9 +171,22 @@ class UndampedRowLaw(ViscousLaw):
         return k, (*row[:15], 0.0, *row[16:])
 
 
+@dataclass(frozen=True)
+class SteadyReachLaw(ViscousLaw):
+    """Broken: claims a parcel never gets faster than its start allows (the energy bound without what uneven
+    wheels put in), which holds on a uniform field only."""
+
+    name: str = "steady_reach"
+
+    def reach(self, s0, window, *, rate, wheel_speed, lever=None):
+        dist, speed = super().reach(s0, window, rate=rate, wheel_speed=wheel_speed)
+        steady = np.sqrt(lever) * s0
+        return np.minimum(dist, steady * window), np.minimum(speed, steady)
+
+
 @pytest.mark.parametrize("law, what", [(BackwardsLaw(), "give"), (ShortReachLaw(), "reach bound"),
                                        (LopsidedLaw(), "moved rigidly"), (CreepLaw(), "at rest"),
-                                       (UndampedRowLaw(), "row")])
+                                       (UndampedRowLaw(), "row"), (SteadyReachLaw(), "reach bound")])
 def test_check_law_fails_a_broken_law(law, what):
     with pytest.raises(AssertionError, match=what):
         check_law(law, trials=10)
