@@ -43,7 +43,6 @@ from virtual_vehicle.physics.collide import (
     lever_of,
     overlap_area,
     pair_contacts,
-    place,
     point_reaches,
     push_gain,
     solve_rows,
@@ -199,6 +198,28 @@ class Plant:
     def _mu_max_arr(self) -> np.ndarray:
         return np.array(self._mu_max, dtype=float)
 
+    @cached_property
+    def _vertices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every parcel's footprint vertices in one array (body frame, m), the parcel each belongs to, and where
+        each parcel's run of them starts."""
+        counts = np.array([len(s.footprint) for s in self.specs])
+        return (np.concatenate([s.footprint for s in self.specs]), np.repeat(np.arange(len(self.specs)), counts),
+                np.concatenate([[0], np.cumsum(counts)]))
+
+    def _outlines(self, live: list[int], Y: np.ndarray) -> np.ndarray:
+        """The footprints of parcels ``live`` at poses ``Y`` (their rows), as shapely polygons made in one call
+        (one by one took ~0.2 ms a parcel): :func:`~virtual_vehicle.physics.collide.place`'s arithmetic, vertex by
+        vertex."""
+        verts, _, start = self._vertices
+        idx = np.asarray(live)
+        counts = start[idx + 1] - start[idx]
+        rows = np.repeat(np.arange(len(idx)), counts)
+        take = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts) + start[idx][rows]
+        v = verts[take]
+        c, s = np.cos(Y[:, 2])[rows], np.sin(Y[:, 2])[rows]
+        xy = np.column_stack([Y[rows, 0] + c * v[:, 0] - s * v[:, 1], Y[rows, 1] + s * v[:, 0] + c * v[:, 1]])
+        return shapely.polygons(shapely.linearrings(xy, indices=rows))
+
     def plan(self, ys, active, velocities, t: float, t1: float,
              wheel_speed: float | None = None) -> tuple[float, list[list[int]]]:
         """The next window's length (s) and the groups of parcels to step together in it (``wheel_speed``: the
@@ -251,9 +272,9 @@ class Plant:
 
         shapes = []
 
-        def outlines():  # the footprints where they are, made once per plan and only when needed
+        def outlines():  # the footprints where they are, made once per plan (all at once) and only when needed
             if not shapes:
-                shapes.append(np.array([shapely.Polygon(place(self.specs[i].footprint, ys[i])) for i in live]))
+                shapes.append(self._outlines(live, Y))
             return shapes[0]
 
         def closing(pairs, gaps, T, floor):  # how far each pair's reaches overshoot its gap in T s (m, T per pair)
