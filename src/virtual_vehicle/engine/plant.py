@@ -199,18 +199,17 @@ class Plant:
         return np.array(self._mu_max, dtype=float)
 
     @cached_property
-    def _vertices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Every parcel's footprint vertices in one array (body frame, m), the parcel each belongs to, and where
-        each parcel's run of them starts."""
+    def _vertices(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every parcel's footprint vertices in one array (body frame, m) and where each parcel's run of them
+        starts (one entry more than parcels)."""
         counts = np.array([len(s.footprint) for s in self.specs])
-        return (np.concatenate([s.footprint for s in self.specs]), np.repeat(np.arange(len(self.specs)), counts),
-                np.concatenate([[0], np.cumsum(counts)]))
+        return np.concatenate([s.footprint for s in self.specs]), np.concatenate([[0], np.cumsum(counts)])
 
     def _outlines(self, live: list[int], Y: np.ndarray) -> np.ndarray:
         """The footprints of parcels ``live`` at poses ``Y`` (their rows), as shapely polygons made in one call
         (one by one took ~0.2 ms a parcel): :func:`~virtual_vehicle.physics.collide.place`'s arithmetic, vertex by
         vertex."""
-        verts, _, start = self._vertices
+        verts, start = self._vertices
         idx = np.asarray(live)
         counts = start[idx + 1] - start[idx]
         rows = np.repeat(np.arange(len(idx)), counts)
