@@ -14,7 +14,9 @@ Cases (the figures of ``RESULTS.md``):
   first second is mostly routing set-up);
 - ``scale1``: the same hall with one parcel (mostly empty floor);
 - ``coulomb1``: one Coulomb parcel oscillating in the inward field for 5 s (``bench_perf.py`` (b)), the fastest of
-  five runs in each process.
+  five runs in each process;
+- ``pairs200``, ``pairs200coulomb``: 200 parcels on 100 x 100 cells under a constant uniform field for 1 s, viscous
+  and Coulomb law (``bench_pairs.py``'s largest: the plant's planner over many parcels).
 
 Run: ``python benchmarks/alternate.py a16f5ef HEAD --case scale200 --rounds 6``.
 """
@@ -50,10 +52,27 @@ wall = time.perf_counter() - start
 print(json.dumps({{{{"wall": wall, "end": res.parcels[-1].trajectory.states[-1].tolist()}}}}))
 """
 
+_PAIRS = """
+import json, sys, time
+sys.path.insert(0, {bench!r})
+import bench_pairs
+from virtual_vehicle.config.scenario import parse_scenario
+from virtual_vehicle.run.sim import run
+from virtual_vehicle.run.warm import warm_up
+setup = parse_scenario(bench_pairs.scenario(200, {law!r}, 1.0)).build()
+warm_up()
+start = time.perf_counter()
+res = run(setup)
+wall = time.perf_counter() - start
+print(json.dumps({{{{"wall": wall, "end": res.parcels[-1].trajectory.states[-1].tolist()}}}}))
+"""
+
 CASES = {
     "scale200": _SCALE.format(parcels=200, seconds=1.0, bench="{bench}"),
     "steady200": _SCALE.format(parcels=200, seconds=4.0, bench="{bench}"),
     "scale1": _SCALE.format(parcels=1, seconds=1.0, bench="{bench}"),
+    "pairs200": _PAIRS.format(law="viscous", bench="{bench}"),
+    "pairs200coulomb": _PAIRS.format(law="coulomb", bench="{bench}"),
     "coulomb1": """
 import json, sys, time
 sys.path.insert(0, {bench!r})

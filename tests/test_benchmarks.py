@@ -101,3 +101,15 @@ def test_a_call_s_price_is_its_arguments_in_and_each_array_out(monkeypatch):
                                      result=(np.zeros(2), 3.0, (np.zeros(1), np.zeros(1))))
     assert bench_ceiling.call_price(entry) == 4e-6 + 3 * 0.25e-6
     assert bench_ceiling.call_price(bench_ceiling.EntryPoint(result=7)) == 1e-6
+
+
+@pytest.mark.parametrize("law", ["viscous", "coulomb"])
+def test_the_pairs_benchmark_runs_its_whole_time_within_the_laws_assumptions(law):
+    """bench_pairs: every parcel runs the whole time reported, none overlaps another unnoticed, and under the
+    Coulomb law every parcel stays slower than its wheels (the paper's sliding assumption) for the 1.5 s the
+    benchmark allows."""
+    import bench_pairs
+
+    r = bench_pairs.one(25, law, 1.5)
+    assert r["whole_time"] == 25 and r["undetected_overlaps"] == 0
+    assert r["sliding_kept"] == 25

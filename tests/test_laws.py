@@ -62,7 +62,7 @@ class SoftCoulombLaw(FrictionLaw):
         return constants_and_row(solution.points, drive, solution.force_lin, solution.force_const, mu, 0.0,
                                  solution.weight, solution.origin, mass, inertia)
 
-    def reach(self, s0, window, *, rate, wheel_speed):
+    def reach(self, s0, window, *, rate, wheel_speed, lever=None):
         k = 2.0 * rate  # |drive| <= 2 with two wheels a cell, normal forces summing to the weight
         return s0 * window + 0.5 * k * window * window, s0 + k * window
 
@@ -142,8 +142,8 @@ class ShortReachLaw(ViscousLaw):
 
     name: str = "short_reach"
 
-    def reach(self, s0, window, *, rate, wheel_speed):
-        dist, speed = super().reach(s0, window, rate=rate, wheel_speed=wheel_speed)
+    def reach(self, s0, window, *, rate, wheel_speed, lever=None):
+        dist, speed = super().reach(s0, window, rate=rate, wheel_speed=wheel_speed, lever=lever)
         return 0.5 * dist, speed
 
 
@@ -190,10 +190,23 @@ class OptionlessLaw(StickSlipLaw):
         return None
 
 
+@dataclass(frozen=True)
+class SteadyReachLaw(ViscousLaw):
+    """Broken: claims a parcel never gets faster than its start allows (the energy bound without what uneven
+    wheels put in), which holds on a uniform field only."""
+
+    name: str = "steady_reach"
+
+    def reach(self, s0, window, *, rate, wheel_speed, lever=None):
+        dist, speed = super().reach(s0, window, rate=rate, wheel_speed=wheel_speed)
+        steady = np.sqrt(lever) * s0
+        return np.minimum(dist, steady * window), np.minimum(speed, steady)
+
+
 @pytest.mark.parametrize("law, what", [(BackwardsLaw(), "give"), (ShortReachLaw(), "reach bound"),
                                        (LopsidedLaw(), "moved rigidly"), (CreepLaw(), "at rest"),
                                        (UndampedRowLaw(), "row"), (OptionlessLaw(), "stepper"),
-                                       (CoulombLaw(), None)])
+                                       (SteadyReachLaw(), "reach bound"), (CoulombLaw(), None)])
 def test_check_law_fails_a_broken_law(law, what):
     if what is None:  # the law each broken one is made from passes
         check_law(law, trials=10)

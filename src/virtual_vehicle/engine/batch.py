@@ -361,7 +361,7 @@ class QuietStepper:
         k = self.lever_mu[idx] * self.gravity
         s0 = np.hypot(Y[:, 3], Y[:, 4]) + np.abs(Y[:, 5]) * R
         r_law, s_max = reach_bounds(s0, self.lever_mu[idx], window, law=self.law, gravity=self.gravity,
-                                    wheel_speed=wheel_speed)
+                                    wheel_speed=wheel_speed, lever=self.lever[idx])
         if self.cells.is_line:  # a row may hold the parcel laterally: the law's bound only
             return r_law, np.full(len(idx), np.inf)
         c = s_max * s_max / R

@@ -23,7 +23,6 @@ from typing import Callable
 
 import numpy as np
 import shapely
-from scipy.optimize import brentq
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -42,11 +41,10 @@ from virtual_vehicle.physics.collide import (
     lever_of,
     overlap_area,
     pair_contacts,
-    place,
-    point_reach,
     point_reaches,
     push_gain,
     solve_rows,
+    wheel_frame,
     wheel_speed_of,
 )
 from virtual_vehicle.physics.laws import FrictionLaw
@@ -254,21 +252,26 @@ class Plant:
     def _mu_max_arr(self) -> np.ndarray:
         return np.array(self._mu_max, dtype=float)
 
-    def _reach(self, i, y, T, wmax, floor=0.0):
-        return point_reach(self.specs[i], y, T, law=self.law, mu_max=self._mu_max[i], gravity=self.gravity,
-                           wheel_speed=wmax, speed_floor=floor)
+    @cached_property
+    def _vertices(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every parcel's footprint vertices in one array (body frame, m) and where each parcel's run of them
+        starts (one entry more than parcels)."""
+        counts = np.array([len(s.footprint) for s in self.specs])
+        return np.concatenate([s.footprint for s in self.specs]), np.concatenate([[0], np.cumsum(counts)])
 
-    def _meet_time(self, i, j, ys, gap, H, wmax, floor) -> float:
-        """Earliest time (s, at most H; inf if later) at which parcels i and j could close ``gap`` (m)."""
-        if gap <= 0:
-            return 0.0
-
-        def closing(T):
-            return self._reach(i, ys[i], T, wmax, floor[i])[0] + self._reach(j, ys[j], T, wmax, floor[j])[0] - gap
-
-        if closing(H) < 0:
-            return np.inf
-        return float(brentq(closing, 0.0, H, xtol=1e-9))
+    def _outlines(self, live: list[int], Y: np.ndarray) -> np.ndarray:
+        """The footprints of parcels ``live`` at poses ``Y`` (their rows), as shapely polygons made in one call
+        (one by one took ~0.2 ms a parcel): :func:`~virtual_vehicle.physics.collide.place`'s arithmetic, vertex by
+        vertex."""
+        verts, start = self._vertices
+        idx = np.asarray(live)
+        counts = start[idx + 1] - start[idx]
+        rows = np.repeat(np.arange(len(idx)), counts)
+        take = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts) + start[idx][rows]
+        v = verts[take]
+        c, s = np.cos(Y[:, 2])[rows], np.sin(Y[:, 2])[rows]
+        xy = np.column_stack([Y[rows, 0] + c * v[:, 0] - s * v[:, 1], Y[rows, 1] + s * v[:, 0] + c * v[:, 1]])
+        return shapely.polygons(shapely.linearrings(xy, indices=rows))
 
     def plan(self, ys, active, velocities, t: float, t1: float,
              wheel_speed: float | None = None) -> tuple[float, list[list[int]]]:
@@ -276,23 +279,35 @@ class Plant:
         fastest of ``velocities``, m/s, when the caller knows it).
 
         No parcel can come within ``margin`` of a parcel outside its group before the window ends (bounds of
-        :func:`~virtual_vehicle.physics.collide.point_reach`). Pairs that could meet within ``min_window`` are grouped;
-        the window then lasts until the first moment any other pair could meet, at most ``window`` s (or, when no two
-        parcels can meet before ``t1``, all the way to ``t1``).
+        :func:`~virtual_vehicle.physics.collide.point_reach`). Pairs that could meet within ``min_window`` are
+        grouped; the window then lasts until the first moment any other pair could meet, at most ``window`` s (or,
+        when no two parcels can meet before ``t1``, all the way to ``t1``).
+
+        Work linear in parcels: candidate pairs come from a k-d tree over the centres (pairs within the largest
+        footprint radius plus reach, then each pair's own), their gaps from the outlines in one vectorised call,
+        and their meet times from one bisection over all of them at once (:func:`meet_times`), never a root
+        finder called pair by pair. Under a law relative to its wheels (``galilean``) speeds are measured against
+        the wheels' common velocity (:func:`~virtual_vehicle.physics.collide.wheel_frame`), which carries every
+        parcel alike and so closes no gap: parcels riding a uniform field get whole windows.
         """
         live = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
         horizon = t1 - t
         if len(live) < 2:
             return horizon, []
         cp = self.contact
-        wmax = wheel_speed_of(velocities) if wheel_speed is None else wheel_speed
         Y = np.array([ys[i] for i in live], dtype=float)
         tree = cKDTree(Y[:, :2])
+        if self.law.galilean:  # bound motion relative to the wheels' common velocity: it moves all parcels alike
+            frame, wmax = wheel_frame(np.asarray(velocities, dtype=float))
+            Y[:, 3:5] -= frame
+        else:
+            wmax = wheel_speed_of(velocities) if wheel_speed is None else wheel_speed
         radius = self._radius[live]
+        lever, mu_max = self._lever[live], self._mu_max_arr[live]
 
-        def reaches(T, floor):  # self._reach of every live parcel
-            return point_reaches(radius, self._lever[live], Y, T, law=self.law, mu_max=self._mu_max_arr[live],
-                                 gravity=self.gravity, wheel_speed=wmax, speed_floor=floor[live])
+        def reaches(T, floor):  # point_reach of every live parcel
+            return point_reaches(radius, lever, Y, T, law=self.law, mu_max=mu_max, gravity=self.gravity,
+                                 wheel_speed=wmax, speed_floor=floor[live])
 
         def candidates(T, floor):
             reach = reaches(T, floor)[0]
@@ -310,22 +325,26 @@ class Plant:
 
         shapes = []
 
-        def outlines():  # the footprints where they are, made once per plan and only when needed
+        def outlines():  # the footprints where they are, made once per plan (all at once) and only when needed
             if not shapes:
-                shapes.append(np.array([shapely.Polygon(place(self.specs[i].footprint, ys[i])) for i in live]))
+                shapes.append(self._outlines(live, Y))
             return shapes[0]
 
+        def closing(pairs, gaps, T, floor):  # how far each pair's reaches overshoot its gap in T s (m, T per pair)
+            both = np.concatenate([pairs[:, 0], pairs[:, 1]])
+            f = floor[live][both]
+            r = point_reaches(radius[both], lever[both], Y[both], np.concatenate([T, T]), law=self.law,
+                              mu_max=mu_max[both], gravity=self.gravity, wheel_speed=wmax, speed_floor=f)[0]
+            return r[:len(pairs)] + r[len(pairs):] - gaps
+
         floor = np.zeros(len(self.specs))
-        if not len(candidates(horizon, floor)[0]):
-            return horizon, []
         H = min(horizon, cp.window)
+        soon = min(cp.min_window, H)
         own = np.zeros(len(self.specs))  # fastest point speed each parcel's wheels alone can give it within H
         own[live] = reaches(H, np.zeros(len(self.specs)))[1]
         labels = np.arange(len(live))
         for _ in range(len(live)):  # components only grow, so this ends
-            pairs, gaps = candidates(H, floor)
-            T = np.array([self._meet_time(live[a], live[b], ys, g, H, wmax, floor) for (a, b), g in zip(pairs, gaps)])
-            close = pairs[T < min(cp.min_window, H)] if len(pairs) else pairs
+            close, _ = candidates(soon, floor)  # the pairs whose reaches overshoot their gap by ``soon``
             graph = coo_matrix((np.ones(len(close)), (close[:, 0], close[:, 1])) if len(close) else ([], ([], [])),
                                shape=(len(live), len(live)))
             new = connected_components(graph, directed=False)[1]
@@ -339,8 +358,22 @@ class Plant:
             sizes = np.bincount(new)
             for k, i in enumerate(live):
                 floor[i] = self._gain[i] * fastest[new[k]] if sizes[new[k]] > 1 else 0.0
-        across = T[labels[pairs[:, 0]] != labels[pairs[:, 1]]] if len(pairs) else T
-        W = float(min(H, across.min())) if len(across) else H
+        # The first moment two parcels of different groups could meet: look over doubling horizons, so that only
+        # the pairs that could meet within twice that moment are ever examined (over the whole window, every pair
+        # of a fast-moving crowd would be).
+        limit = H if len(close) else horizon  # parcels stepped together stop at H; alone, at t1 if nothing meets
+        h = soon
+        while True:
+            pairs, gaps = candidates(h, floor)
+            across = labels[pairs[:, 0]] != labels[pairs[:, 1]] if len(pairs) else np.zeros(0, dtype=bool)
+            if across.any():  # each of them can meet by h, and no pair left out can
+                apart, gaps_apart = pairs[across], gaps[across]
+                W = min(H, meet_times(lambda sel, T: closing(apart[sel], gaps_apart[sel], T, floor), gaps_apart, h))
+                break
+            if h >= limit:
+                W = limit
+                break
+            h = min(2.0 * h, limit)
         out: dict[int, list[int]] = {}
         for k, i in enumerate(live):
             out.setdefault(int(labels[k]), []).append(i)
@@ -590,6 +623,34 @@ class Plant:
             for a, b in ((i, j), (j, i)):
                 log[a][2].append(Event(t, "release", tuple(map(float, Y[a])), partner=self.specs[b].name))
         self._touching = (self._touching - mine) | (mine & near_pairs) | pushing
+
+
+def meet_times(closing: Callable[[np.ndarray, np.ndarray], np.ndarray], gaps: np.ndarray, H: float,
+               xtol: float = 1e-9) -> float:
+    """The earliest moment (s, at most ``H``) by which any of several pairs could close its gap, never later than
+    it: pairs ``k`` with gap ``gaps[k]`` (m; 0 when already within reach) whose reaches overshoot the gap by
+    ``closing(sel, T)`` (m) after ``T[j]`` s for the pairs ``sel[j]``, nondecreasing in T (reach bounds grow
+    with time). One bisection over all pairs at once, to ``xtol`` s; a pair whose lower end passes the smallest
+    upper end of any pair cannot hold the earliest meeting and drops out, so a lattice of pairs alike costs the
+    same ~30 vectorised steps as one pair."""
+    if np.any(gaps <= 0):
+        return 0.0
+    sel = np.arange(len(gaps))
+    lo = np.zeros(len(gaps))
+    hi = np.full(len(gaps), float(H))
+    meet = closing(sel, hi) >= 0
+    if not meet.any():
+        return float(H)
+    sel, lo, hi = sel[meet], lo[meet], hi[meet]
+    while True:
+        keep = lo <= hi.min()  # the others meet after some pair surely has
+        sel, lo, hi = sel[keep], lo[keep], hi[keep]
+        if float(np.max(hi - lo)) <= xtol:
+            return float(lo.min())
+        mid = 0.5 * (lo + hi)
+        hit = closing(sel, mid) >= 0
+        hi = np.where(hit, mid, hi)
+        lo = np.where(hit, lo, mid)
 
 
 class _Models:

@@ -248,8 +248,9 @@ def point_reach(spec: ParcelSpec, y, window: float, *, law: FrictionLaw | str, m
     """Upper bounds on how far (m) any point of the parcel can move in ``window`` s driven by the wheels alone, and
     on the speed (m/s) any point can reach in that time: the friction law's own bound
     (:meth:`~virtual_vehicle.physics.laws.base.FrictionLaw.reach`, ``law`` a law or its registered name) from
-    ``S0 = |v| + |omega| R`` (R the footprint radius) and ``rate = mu_max g (1 + m R^2 / I)``. ``speed_floor``
-    raises S0 (m/s), e.g. to what a push from another parcel could give.
+    ``S0 = |v| + |omega| R`` (R the footprint radius), ``rate = mu_max g (1 + m R^2 / I)`` and the parcel's lever
+    ``1 + m R^2 / I`` (:func:`lever_of`). ``speed_floor`` raises S0 (m/s), e.g. to what a push from another parcel
+    could give.
 
     >>> from virtual_vehicle.model.parcel import rectangle
     >>> point_reach(rectangle(0.2, 0.2, 1.0, 0.5), [0, 0, 0, 0.1, 0, 0], 1.0, law="coulomb", mu_max=0.0,
@@ -258,7 +259,8 @@ def point_reach(spec: ParcelSpec, y, window: float, *, law: FrictionLaw | str, m
     """
     R = spec.radius
     s0 = max(float(np.hypot(y[3], y[4]) + abs(y[5]) * R), speed_floor)
-    dist, speed = _law(law).reach(s0, window, rate=mu_max * gravity * lever_of(spec), wheel_speed=wheel_speed)
+    lever = lever_of(spec)
+    dist, speed = _law(law).reach(s0, window, rate=mu_max * gravity * lever, wheel_speed=wheel_speed, lever=lever)
     return float(dist), float(speed)
 
 
@@ -279,8 +281,9 @@ def point_reaches(radius, lever, Y, window: float, *, law: FrictionLaw | str, mu
     states."""
     Y = np.asarray(Y, dtype=float).reshape(-1, 6)
     s0 = np.maximum(np.hypot(Y[:, 3], Y[:, 4]) + np.abs(Y[:, 5]) * radius, speed_floor)
-    rate = np.asarray(mu_max, dtype=float) * gravity * np.asarray(lever, dtype=float)
-    return _law(law).reach(s0, window, rate=rate, wheel_speed=wheel_speed)
+    lever = np.asarray(lever, dtype=float)
+    rate = np.asarray(mu_max, dtype=float) * gravity * lever
+    return _law(law).reach(s0, window, rate=rate, wheel_speed=wheel_speed, lever=lever)
 
 
 def wheel_speed_of(velocities: np.ndarray) -> float:
@@ -289,13 +292,26 @@ def wheel_speed_of(velocities: np.ndarray) -> float:
     return float(np.max(np.hypot(velocities[:, 0], velocities[:, 1]))) if len(velocities) else 0.0
 
 
+def wheel_frame(velocities: np.ndarray) -> tuple[np.ndarray, float]:
+    """A frame velocity (m/s, (2,)) near all of ``velocities`` ((n, 2), m/s) and the largest wheel speed relative
+    to it (m/s): the middle of their bounding box when that is closer to them all than rest is, else rest and
+    :func:`wheel_speed_of`. On a uniform field the frame is the field and the relative speed 0."""
+    if not len(velocities):
+        return np.zeros(2), 0.0
+    centre = 0.5 * (velocities.min(axis=0) + velocities.max(axis=0))
+    spread = float(np.max(np.hypot(velocities[:, 0] - centre[0], velocities[:, 1] - centre[1])))
+    fastest = wheel_speed_of(velocities)
+    return (centre, spread) if spread < fastest else (np.zeros(2), fastest)
+
+
 def reach_bounds(s0: np.ndarray, lever_mu: np.ndarray, window: float, *, law: FrictionLaw | str, gravity: float,
-                 wheel_speed: float) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`point_reach` for many parcels at once: ``s0`` (m/s) their fastest point speeds now and ``lever_mu``
-    their ``mu_max (1 + m R^2 / I)``; returns the distance (m) and speed (m/s) bounds, arrays. (The same formulas
-    as :func:`point_reach`, which stays scalar because the planner calls it inside root finding.)"""
+                 wheel_speed: float, lever=None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`point_reach` for many parcels at once: ``s0`` (m/s) their fastest point speeds now, ``lever_mu``
+    their ``mu_max (1 + m R^2 / I)`` and ``lever`` their ``1 + m R^2 / I`` (None: the law's bound without it);
+    returns the distance (m) and speed (m/s) bounds, arrays (the same formulas as :func:`point_reach`)."""
     s0 = np.asarray(s0, dtype=float)
-    return _law(law).reach(s0, window, rate=np.asarray(lever_mu, dtype=float) * gravity, wheel_speed=wheel_speed)
+    return _law(law).reach(s0, window, rate=np.asarray(lever_mu, dtype=float) * gravity, wheel_speed=wheel_speed,
+                           lever=None if lever is None else np.asarray(lever, dtype=float))
 
 
 def push_gain(spec: ParcelSpec) -> float:

@@ -8,6 +8,8 @@ A new law is a module with a :class:`FrictionLaw` subclass and one line in :data
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from virtual_vehicle.physics.contact import solve_support
@@ -92,6 +94,27 @@ def _run(trial: _Trial, law: FrictionLaw, y0, window: float, steps: int):
     return np.array(ys)
 
 
+def _reach_holds(law: FrictionLaw, t: _Trial, y0, window: float, steps: int, frame, what: str) -> None:
+    """Assert that ``law.reach`` bounds how far the trial's points move from ``y0`` in ``window`` s, and how fast,
+    relative to a frame moving at ``frame`` (m/s; the reach then takes speeds relative to it), by RK4."""
+    ys = _run(t, law, y0, window, steps)
+    times = np.linspace(0.0, window, steps + 1)
+    lever = 1.0 + t.mass * t.R * t.R / t.inertia
+    s0 = float(np.hypot(*(y0[3:5] - frame)) + abs(y0[5]) * t.R)
+    wheels = float(np.max(np.hypot(*(t.V - frame).T)))
+    dist, speed = law.reach(s0, times, rate=t.mu * t.gravity * lever, wheel_speed=wheels, lever=lever)
+    rim = t.R * np.column_stack([np.cos(np.linspace(0, 2 * np.pi, 16, endpoint=False)),
+                                 np.sin(np.linspace(0, 2 * np.pi, 16, endpoint=False))])
+    body = np.vstack([rim, t.levers])
+    start = y0[:2] + body @ _rotation(y0[2]).T
+    for j, yj in enumerate(ys):
+        moved_by = np.max(np.hypot(*(yj[:2] - frame * times[j] + body @ _rotation(yj[2]).T - start).T))
+        fastest = np.hypot(*(yj[3:5] - frame)) + abs(yj[5]) * t.R
+        assert moved_by <= dist[j] * (1 + 1e-9) + 1e-12 and fastest <= speed[j] * (1 + 1e-9) + 1e-12, \
+            f"{what}: after {times[j]:g} s a point moved {moved_by} m at up to {fastest} m/s, beyond the law's " \
+            f"reach bound ({dist[j]} m, {speed[j]} m/s)"
+
+
 def check_law(law: FrictionLaw, trials: int = 20, seed: int = 0, mu: float = 0.5, gravity: float = 9.81,
               steps: int = 200) -> None:
     """Check ``law`` against the friction-law contract on ``trials`` random parcels (``mu`` in the law's units,
@@ -102,8 +125,10 @@ def check_law(law: FrictionLaw, trials: int = 20, seed: int = 0, mu: float = 0.5
       force with them and leaves the torque;
     - dissipation: while the parcel is slower than its wheels (the paper's conveying regime) the contacts take
       energy out (slip power >= 0) and, from rest, never more than the wheels put in;
-    - the reach bound (:meth:`FrictionLaw.reach`) holds against the motion integrated (RK4, ``steps`` a window)
-      from random twists;
+    - the reach bound (:meth:`FrictionLaw.reach`, given the parcel's lever) holds against the motion integrated
+      (RK4, ``steps`` a window) from random twists, over short windows and long ones (1-3 s, from faster twists),
+      and for a law that says it is relative to its wheels (:attr:`FrictionLaw.galilean`) also on wheels all
+      carried at a random common velocity, measured in the frame moving with them;
     - an event-driven law's constants give its wrench, and its row is those constants' (:data:`affine.ROW_FIELDS`);
     - a time-stepped law hands its stepper its options (:meth:`FrictionLaw.stepper_options`), an event-driven one
       none.
@@ -161,21 +186,20 @@ def check_law(law: FrictionLaw, trials: int = 20, seed: int = 0, mu: float = 0.5
 
         # the reach bound, from a random twist
         y0 = np.array([*t.state[:3], *rng.normal(0.0, 0.3, 3)])
-        ys = _run(t, law, y0, window, steps)
-        times = np.linspace(0.0, window, steps + 1)
-        lever = 1.0 + t.mass * t.R * t.R / t.inertia
-        s0 = float(np.hypot(y0[3], y0[4]) + abs(y0[5]) * t.R)
-        dist, speed = law.reach(s0, times, rate=mu * gravity * lever, wheel_speed=float(np.max(np.hypot(*t.V.T))))
-        rim = t.R * np.column_stack([np.cos(np.linspace(0, 2 * np.pi, 16, endpoint=False)),
-                                     np.sin(np.linspace(0, 2 * np.pi, 16, endpoint=False))])
-        body = np.vstack([rim, t.levers])
-        start = y0[:2] + body @ _rotation(y0[2]).T
-        for j, yj in enumerate(ys):
-            moved_by = np.max(np.hypot(*(yj[:2] + body @ _rotation(yj[2]).T - start).T))
-            fastest = np.hypot(yj[3], yj[4]) + abs(yj[5]) * t.R
-            assert moved_by <= dist[j] * (1 + 1e-9) + 1e-12 and fastest <= speed[j] * (1 + 1e-9) + 1e-12, \
-                f"trial {k}: after {times[j]:g} s a point moved {moved_by} m at up to {fastest} m/s, beyond the " \
-                f"law's reach bound ({dist[j]} m, {speed[j]} m/s)"
+        _reach_holds(law, t, y0, window, steps, np.zeros(2), f"trial {k}")
+
+        # the reach bound over long windows from fast twists (where a bound that grows with time is far off), and
+        # for a law relative to its wheels (FrictionLaw.galilean) seen from a frame moving with them too
+        more = np.random.default_rng([seed, k])  # its own draws: the trials above stay what they were
+        y0 = np.array([*t.state[:3], *more.normal(0.0, 1.0, 3)])
+        _reach_holds(law, t, y0, more.uniform(1.0, 3.0), 2 * steps, np.zeros(2), f"trial {k}, long window")
+        if law.galilean:
+            frame = more.uniform(-2.0, 2.0, 2)
+            carried = copy.copy(t)
+            carried.V = t.V + frame  # every wheel's velocity plus the frame's
+            y0 = np.array([*t.state[:3], *(frame + more.normal(0.0, 0.3, 2)), more.normal(0.0, 0.3)])
+            _reach_holds(law, carried, y0, more.uniform(0.2, 2.0), 2 * steps, frame,
+                         f"trial {k}, in a frame moving at {frame} m/s")
 
         # an event-driven law's constants and row
         if law.time_stepper is None:

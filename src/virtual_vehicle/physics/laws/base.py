@@ -55,6 +55,11 @@ class FrictionLaw(ABC):
     damped: bool = False
     """True when the wrench damps the parcel's twist (a force against its velocity): equilibria are then
     classified by the stiffness alone (a damped node or focus); undamped ones are centres at best."""
+    galilean: bool = False
+    """True when the forces depend on the wheels' and the parcel's velocities only through the slip between them:
+    seen from a frame moving at a constant velocity the law is the same, with the wheel velocities taken in that
+    frame, so :meth:`reach` bounds motion relative to it (the planner then bounds how far parcels move relative
+    to the wheels' common velocity, which on a uniform field is how far they stray from riding it)."""
 
     def stepper_options(self) -> StepperOptions | None:
         """What the law's time stepper takes from it (:class:`StepperOptions`), so that the engine asks the law no
@@ -91,15 +96,16 @@ class FrictionLaw(ABC):
         for a parcel of ``mass`` (kg) and ``inertia`` (kg m^2)."""
 
     @abstractmethod
-    def reach(self, s0, window, *, rate, wheel_speed: float):
+    def reach(self, s0, window, *, rate, wheel_speed: float, lever=None):
         """Upper bounds on how far (m) any point of a parcel can move in ``window`` s driven by the wheels alone,
         and on the speed (m/s) any point can reach in that time, on floats or arrays (elementwise).
 
         ``s0``: the fastest point speed now, ``|v| + |omega| R`` (m/s, R the footprint radius); ``rate``:
         ``mu_max g (1 + m R^2 / I)``, the law's friction coefficient times gravity times the lever of the rim
-        (m/s^2 per unit of the law's drive); ``wheel_speed``: the fastest wheel surface speed (m/s). The normal
-        forces under a parcel sum to its weight (paper eqs. 3-5) and every cell lies within R of its centre of
-        mass. The planner's safety proof rests on this being a true bound."""
+        (m/s^2 per unit of the law's drive); ``wheel_speed``: the fastest wheel surface speed (m/s); ``lever``:
+        that lever ``1 + m R^2 / I`` (dimensionless) when the caller knows it (None: a bound without it). The
+        normal forces under a parcel sum to its weight (paper eqs. 3-5) and every cell lies within R of its centre
+        of mass. The planner's safety proof rests on this being a true bound."""
 
     def drive_bound(self, velocities: np.ndarray, drive_directions: np.ndarray) -> float:
         """The largest per-cell drive vector's length under wheels ``velocities`` (m/s) on one support set, which

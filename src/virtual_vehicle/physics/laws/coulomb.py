@@ -118,9 +118,10 @@ class CoulombLaw(FrictionLaw):
                                        1.0 / mass, 1.0 / inertia)
         return FrictionConstants(terms[:24], 0.0, solution.weight), tuple(terms[24:].tolist())
 
-    def reach(self, s0, window, *, rate, wheel_speed):
+    def reach(self, s0, window, *, rate, wheel_speed, lever=None):
         """Two wheels a cell and normal forces summing to W (eqs. 3-5) bound the net force by ``2 mu W`` and the
-        torque by ``2 mu W R``, so ``dS/dt <= k = 2 rate``: reach ``S0 T + k T^2 / 2``, speed ``S0 + k T``."""
+        torque by ``2 mu W R``, so ``dS/dt <= k = 2 rate``: reach ``S0 T + k T^2 / 2``, speed ``S0 + k T`` (the
+        wheels push whatever the parcel's speed, so neither ``wheel_speed`` nor ``lever`` tightens it)."""
         k = 2.0 * rate
         return s0 * window + 0.5 * k * window * window, s0 + k * window
 

@@ -32,6 +32,7 @@ class ViscousLaw(FrictionLaw):
 
     name: str = "viscous"
     damped = True
+    galilean = True  # eq. 30: the force is the slip's
 
     def drive_vectors(self, velocities, drive_directions) -> np.ndarray:
         """Per-cell wheel velocity (the V_i of eq. 30), m/s."""
@@ -55,15 +56,36 @@ class ViscousLaw(FrictionLaw):
         return affine.constants_and_row(solution.points, f64(velocities), solution.force_lin, solution.force_const,
                                         mu, mu, solution.weight, solution.origin, mass, inertia)
 
-    def reach(self, s0, window, *, rate, wheel_speed):
-        """Each cell pushes with ``mu N |slip|`` (eq. 30), ``|slip| <= w + S``, so ``dS/dt <= k (w + S)`` with
-        ``k = rate``: reach ``(S0 + w)(e^{kT} - 1)/k - w T``, speed ``(S0 + w) e^{kT} - w``."""
+    def reach(self, s0, window, *, rate, wheel_speed, lever=None):
+        """The smaller of two bounds, both true whatever the supports (forces ``mu N_i u_i``, ``u_i`` the slip at
+        cell i, eq. 30; normal forces summing to at most W):
+
+        - growth: ``|u_i| <= w + S``, so ``dS/dt <= k (w + S)`` with ``k = rate``: reach
+          ``(S0 + w)(e^{kT} - 1)/k - w T``, speed ``(S0 + w) e^{kT} - w``. Tight for short windows; it grows
+          exponentially, so alone it shrinks a planner's windows to a few hundredths of a second.
+        - energy (with ``lever`` = ``1 + m R^2 / I``): the contacts' power on the parcel is
+          ``sum_i mu N_i p_i . (V_i - p_i)`` (``p_i`` the parcel's point velocity over cell i), at most
+          ``mu W (w A - A^2) <= mu W w^2 / 4`` (``A^2 = sum N_i |p_i|^2 / W``): the slip dissipates all but a
+          quarter of what the wheels could put in. So the kinetic energy ``E <= m S0^2 / 2 + mu W w^2 t / 4``
+          (``I <= m R^2``) and, as ``S^2 <= (lever / m) 2 E``, ``S(t)^2 <= lever S0^2 + rate w^2 t / 2``: speed
+          grows like the square root of time at most, and the reach is its integral
+          ``(2 T / 3) (x + sqrt(x y) + y) / (sqrt(x) + sqrt(y))`` with ``y = lever S0^2``, ``x = y + rate w^2 T / 2``.
+          The law is :attr:`galilean`, so seen from a frame moving with the wheels' common velocity ``w`` is their
+          speed relative to it: 0 on a uniform field, where the parcel's speed relative to the field never grows
+          past ``sqrt(lever) S0`` (it relaxes to the field)."""
         kt = rate * window
         slow = kt < 1e-12
         k = np.where(slow, 1.0, rate)
         dist = np.where(slow, s0 * window, (s0 + wheel_speed) * np.expm1(kt) / k - wheel_speed * window)
         speed = np.where(slow, s0, (s0 + wheel_speed) * np.exp(kt) - wheel_speed)
-        return dist, speed
+        if lever is None:  # the parcel's inertia unknown: the growth bound alone
+            return dist, speed
+        y = lever * np.square(s0)
+        x = y + 0.5 * rate * wheel_speed * wheel_speed * window  # eq. 30: S^2 <= lever S0^2 + rate w^2 t / 2
+        rx, ry = np.sqrt(x), np.sqrt(y)
+        both = rx + ry
+        energy = np.where(both > 0, (2.0 / 3.0) * window * (x + rx * ry + y) / np.where(both > 0, both, 1.0), 0.0)
+        return np.minimum(dist, energy), np.minimum(speed, rx)
 
     def drive_bound(self, velocities, drive_directions) -> float:
         """Not needed: :meth:`piece_reach` reads the slips."""
