@@ -280,6 +280,7 @@ def _figure(path: Path, specs, coarse, fine, worst_open, worst_closed, ok, n) ->
     a.set_xticks(x, [s.name.removeprefix("part") for s in specs], fontsize=8)
     a.set_xlabel("part (even: rectangles, odd: polygons)")
     a.set_ylabel("heading error reached (deg)")
+    a.set_ylim(0, 1.3 * np.degrees(np.nanmax([worst_open[:, 1], worst_closed[:, 1]])))  # room for the legend
     a.set_title(f"heading error reached, worse of two starts\n(target unstable on the {1e3 * PITCH:g} mm array for "
                 f"{100 * n['fraction_target_unstable_discrete']:.0f} % of the parts)", fontsize=9)
     a.legend(fontsize=8)
