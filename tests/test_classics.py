@@ -1,5 +1,6 @@
 """The field's classic results (issue 35), each against its source's own statement: the seed paper's 2x2 inward
-field and end-reversed row, squeeze fields (Böhringer, Donald et al. 1994), elliptic fields (Kavraki 1997), and the
+field and end-reversed row, squeeze fields (Böhringer, Donald et al. 1994), elliptic fields (Kavraki 1997), the
+orientation lost to discreteness (Luntz, Messner, Choset 2001), the stick-slip law against the paper's laws, and the
 ``reproduce`` command. Tolerances are those the sources allow (closed forms: numerical; continuous theories on a
 discrete array: a few degrees at 5 mm cells under 80 mm parts)."""
 
@@ -10,7 +11,9 @@ import pytest
 from typer.testing import CliRunner
 
 from virtual_vehicle.analysis.classics import CLASSICS, reproduce
-from virtual_vehicle.analysis.classics import elliptic, seed_paper, squeeze
+from virtual_vehicle.analysis.classics import elliptic, laws, orientation, seed_paper, squeeze
+from virtual_vehicle.engine.dynamics import ParcelModel
+from virtual_vehicle.physics.laws import LAWS
 from virtual_vehicle.model.parcel import rectangle
 from virtual_vehicle.ui.cli import app
 
@@ -125,8 +128,57 @@ def test_continuous_elliptic_orientation_of_a_bar():
     assert elliptic.continuous_orientation(bar, (0.5, 1.0)) == pytest.approx(0.0, abs=1e-12)
 
 
+def test_open_loop_field_positions_exactly_on_a_discrete_array():
+    """The designed field is linear, so with the normal forces balancing the weight and its moment (eqs. 4-5) the
+    force on a part at rest is mu W times the field at its centre of mass, whatever cells carry it (eq. 30)."""
+    cells = orientation.array_around((0.5, 0.5, 0.3), 0.12, orientation.PITCH)
+    for spec in orientation.family(4):
+        v = orientation.design_field(cells.positions, spec, (0.5, 0.5, 0.3))
+        model = ParcelModel(cells, spec, v, LAWS["viscous"])
+        for pose in ((0.47, 0.53, 0.1), (0.55, 0.44, 1.2), (0.5, 0.5, -0.4)):
+            y = np.array([*pose, 0.0, 0.0, 0.0])
+            acc = model.piece_at(y).rhs(0.0, y)
+            expected = spec.mu * spec.weight(G) * orientation.design_field(np.array([pose[:2]]), spec,
+                                                                           (0.5, 0.5, 0.3))[0]
+            np.testing.assert_allclose(acc[3:5] * spec.mass, expected, rtol=1e-9, atol=1e-12)
+
+
+def test_discreteness_destabilises_orientation_and_closed_loop_restores_it(tmp_path):
+    """Luntz, Messner, Choset 2001: the field that orients every part on a (here 5 mm) fine array leaves the target
+    heading unstable for many parts on 5 cm cells; open loop then positions precisely but orients poorly, and the
+    pose program on the cells' own sensors brings the heading back within a few degrees."""
+    r = orientation.discreteness_orientation(tmp_path, parts=6)
+    n = r.numbers
+    assert n["parts_not_tipping"] == 6
+    assert n["fraction_target_unstable_fine"] == 0 and n["nearest_stable_fine_max_deg"] < 1.5
+    assert n["fraction_target_unstable_discrete"] >= 1 / 3
+    assert n["open_position_max_mm"] < 0.1 and n["open_heading_mean_deg"] > 3
+    assert n["closed_heading_mean_deg"] < 0.5 * n["open_heading_mean_deg"] and n["closed_heading_max_deg"] < 4
+    rows = read_csv(tmp_path / "orientation.csv")
+    assert len(rows) == 6 and sum(x["target_unstable_discrete"] == "1" for x in rows) >= 2
+    assert (tmp_path / "orientation.png").stat().st_size > 10_000 and r.passed
+
+
+def test_coulomb_runs_away_stick_slip_rides_at_wheel_speed_viscous_relaxes(tmp_path):
+    """A parcel put down at rest on wheels at V: the paper's Coulomb law accelerates it at mu g past V for ever;
+    stick-slip accelerates it at mu g until V / (mu g) and then holds it at V exactly; viscous approaches V as
+    V (1 - exp(-mu g t)) and stays below it."""
+    r = laws.realistic_law(tmp_path, duration=0.4)
+    for scene in ("stick_slip_pickup", "crossing_30x30"):
+        c, s, v = (r.numbers[scene][law] for law in ("coulomb", "stick_slip", "viscous"))
+        assert c["max_speed_over_wheel"] > 2 and c["acceleration_over_mu_g"] == pytest.approx(1, rel=1e-3)
+        assert s["slip_acceleration_over_mu_g"] == pytest.approx(1, rel=1e-3)
+        assert s["speed_after_pickup_max_error_m_per_s"] < 1e-12 and s["max_speed_over_wheel"] < 1 + 1e-12
+        assert v["max_speed_over_wheel"] < 1 and v["max_error_to_closed_form_m_per_s"] < 1e-7
+    rows = read_csv(tmp_path / "realistic_law.csv")
+    after = [float(x["vx"]) for x in rows if x["law"] == "stick_slip" and x["scene"] == "stick_slip_pickup"
+             and float(x["t"]) > 0.1]
+    assert after and all(v == 0.3 for v in after)
+    assert (tmp_path / "realistic_law.png").stat().st_size > 10_000 and r.passed
+
+
 def test_reproduce_names_the_results_and_refuses_unknown_ones(tmp_path):
-    assert list(CLASSICS) == ["inward_2x2", "row_oscillator", "squeeze", "elliptic"]
+    assert list(CLASSICS) == ["inward_2x2", "row_oscillator", "squeeze", "elliptic", "orientation", "realistic_law"]
     with pytest.raises(ValueError, match="'nope'.*inward_2x2"):
         reproduce(["nope"], tmp_path)
     res = CliRunner().invoke(app, ["reproduce", "nope", "--out", str(tmp_path)])

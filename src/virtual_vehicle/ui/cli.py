@@ -645,7 +645,8 @@ def compare(
 @app.command(name="reproduce")
 def reproduce_cmd(
     names: Optional[list[str]] = typer.Argument(None, help="Classic results to reproduce (default: all): "
-                                                "inward_2x2, row_oscillator, squeeze, elliptic."),
+                                                "inward_2x2, row_oscillator, squeeze, elliptic, orientation, "
+                                                "realistic_law."),
     out_dir: Path = typer.Option(Path("results/classics"), "--out", "-o", help="Folder for the results (one "
                                  "sub-folder each)."),
 ) -> None:

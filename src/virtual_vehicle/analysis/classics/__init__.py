@@ -12,6 +12,8 @@ from pathlib import Path
 
 from virtual_vehicle.analysis.classics.base import Result
 from virtual_vehicle.analysis.classics.elliptic import elliptic_fields
+from virtual_vehicle.analysis.classics.laws import realistic_law
+from virtual_vehicle.analysis.classics.orientation import discreteness_orientation
 from virtual_vehicle.analysis.classics.seed_paper import inward_2x2, row_oscillator
 from virtual_vehicle.analysis.classics.squeeze import squeeze_fields
 
@@ -20,6 +22,8 @@ CLASSICS: dict[str, Callable[[Path], Result]] = {
     "row_oscillator": row_oscillator,
     "squeeze": squeeze_fields,
     "elliptic": elliptic_fields,
+    "orientation": discreteness_orientation,
+    "realistic_law": realistic_law,
 }
 """Each classic result by name, in the order ``reproduce`` runs them."""
 
