@@ -28,6 +28,8 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_friction.py
 	$(BIN)/python benchmarks/bench_scale.py
 	$(BIN)/python benchmarks/bench_ceiling.py
+	$(BIN)/python benchmarks/bench_stick_events.py
+	$(BIN)/python benchmarks/bench_pairs.py
 
 fuzz: $(STAMP)
 	$(BIN)/python benchmarks/fuzz_sentences.py
