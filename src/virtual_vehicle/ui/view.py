@@ -391,8 +391,10 @@ def _cell_colours(live: LiveRun, colour_by: str, memory: dict) -> tuple[np.ndarr
         elif before is not None and live.t < t_before:
             rate = np.zeros(n)
         memory["rate"] = rate
-        # the ramp starts at the common (heartbeat) level, so that the cells busy with parcels stand out
-        low, top = (np.percentile(rate, (1, 99)) if n else (0.0, 0.0))
+        # the ramp starts at the common (heartbeat) level of the working cells, so that those busy with parcels
+        # stand out (the silent dead cells would pull it to zero)
+        working = rate[~(live.dead() | live.absent())]
+        low, top = np.percentile(working, (1, 99)) if len(working) else (0.0, 0.0)
         if top > low:
             rgb = _ramp((rate - low) / (top - low), _EMPTY, (230, 120, 20))
             note = f"traffic: white {low:.3g} .. orange {top:.3g} sentences received per s per cell"
@@ -405,8 +407,9 @@ def _cell_colours(live: LiveRun, colour_by: str, memory: dict) -> tuple[np.ndarr
         note = f"hop distance to the nearest exit: green 0 .. pale {top:.0f} hops (grey: no way out)"
     else:
         k = np.nan_to_num(v).astype(np.int64)
-        rgb = np.where((k == 0)[:, None], np.asarray(_EMPTY, float), _STATE_COLOURS[k % len(_STATE_COLOURS)])
-        note = "program state: the program's first per-cell word (sorter: the parcel a cell carries), a colour each"
+        rgb = np.where((k <= 0)[:, None], np.asarray(_EMPTY, float), _STATE_COLOURS[k % len(_STATE_COLOURS)])
+        note = ("program state: the program's first per-cell word (sorter: the parcel a cell carries), a colour for "
+                "each value above 0")
     rgb[live.absent()] = _ABSENT
     rgb[live.dead()] = _DEAD
     return rgb, note + "; dead cells black, cells taken out grey"
@@ -419,21 +422,27 @@ def _parcel_data(live: LiveRun) -> tuple[dict, dict]:
     waiting = set(live.waiting())
     on = {"xs": [], "ys": [], "fill": [], "line": [], "width": [], "x": [], "y": [], "label": []}
     wait = {"xs": [], "ys": [], "x": [], "y": [], "label": []}
+    places: dict[tuple, list[str]] = {}
     for i in [*run.on, *sorted(waiting)]:
         spec, y = setup.specs[i], run.ys[i]
         ring = np.asarray(spec.world_polygon(y).exterior.coords)
         colour = "#777777" if dests[i] is None else _EXIT_COLOURS[dests[i] % len(_EXIT_COLOURS)]
         label = spec.name if dests[i] is None else f"{spec.name}→{dests[i]}"
-        if i in waiting:
-            for key, value in (("xs", ring[:, 0]), ("ys", ring[:, 1]), ("x", y[0]), ("y", y[1]),
-                               ("label", f"{label} waits")):
-                wait[key].append(value)
+        if i in waiting:  # one label a place, under it (the parcel that holds the place keeps its own)
+            wait["xs"].append(ring[:, 0])
+            wait["ys"].append(ring[:, 1])
+            place = (round(float(y[0]), 6), round(float(ring[:, 1].min()), 6))
+            places.setdefault(place, []).append(label)
             continue
         still = math.hypot(y[3], y[4]) < STILL and abs(y[5]) * spec.radius < STILL
         for key, value in (("xs", ring[:, 0]), ("ys", ring[:, 1]), ("fill", colour),
                            ("line", "#d62728" if still else colour), ("width", 3.5 if still else 1.5),
                            ("x", y[0]), ("y", y[1]), ("label", label)):
             on[key].append(value)
+    for (x, bottom), labels in places.items():
+        wait["x"].append(x)
+        wait["y"].append(bottom)
+        wait["label"].append(f"{labels[0]} waits" if len(labels) == 1 else f"{len(labels)} wait: {labels[0]}, ...")
     return on, wait
 
 
@@ -480,23 +489,23 @@ def _build_page(doc, viewer: Viewer) -> None:
               line_width="width")
     p.scatter("x", "y", source=sensors, size=max(3.0, min(7.0, 0.08 * pitch * width / (hi[0] - lo[0]))),
               color="#d62728")
-    for src in (parcels, waiting):
+    for src, baseline, colour in ((parcels, "middle", "black"), (waiting, "top", "#d62728")):
         p.text("x", "y", text="label", source=src, text_font_size="12px", text_align="center",
-               text_baseline="middle", text_color="black", background_fill_color="white",
-               background_fill_alpha=0.75)
+               text_baseline=baseline, text_color=colour, background_fill_color="white",
+               background_fill_alpha=0.8)
 
     charts = []
     series = ColumnDataSource({"t": [], "rtf": [], "delivered": [], "waiting": [], "on": []}, name="series")
-    for title, keys in (("real-time factor (simulated s per real s)", (("rtf", "#444444"),)),
+    for title, keys in (("real-time factor (simulated s per s spent simulating)", (("rtf", "#444444"),)),
                         ("parcels", (("delivered", "#2ca02c"), ("on", "#1f77b4"), ("waiting", "#d62728")))):
         c = figure(title=title, width=420, height=220, x_axis_label="simulated time (s)", tools="")
         for key, colour in keys:
-            c.line("t", key, source=series, color=colour, line_width=2,
-                   legend_label=key if len(keys) > 1 else None) if len(keys) > 1 else \
-                c.line("t", key, source=series, color=colour, line_width=2)
-        if len(keys) > 1:
-            c.legend.location = "top_left"
-            c.legend.label_text_font_size = "10px"
+            c.line("t", key, source=series, color=colour, line_width=2, **({"legend_label": key} if len(keys) > 1
+                                                                            else {}))
+        if len(keys) > 1:  # above the chart, not over its lines
+            c.legend.orientation = "horizontal"
+            c.legend.label_text_font_size = "11px"
+            c.add_layout(c.legend[0], "above")
         charts.append(c)
 
     status = Div(name="status", text="", styles={"font-family": "monospace", "font-size": "13px"})
