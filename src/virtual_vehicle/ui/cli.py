@@ -353,7 +353,7 @@ def view_cmd(
     recorded: the run folder written when the run ends holds the changed scenario, which 'virtual-vehicle run'
     replays to the same tables. Ctrl-C before the end finishes the run and writes it (Ctrl-C again: nothing
     written, exit 130)."""
-    from virtual_vehicle.ui.view import LiveRun, Viewer
+    from virtual_vehicle.ui.view import LOOPBACK, LiveRun, Viewer
 
     try:
         formats = _formats(formats)
@@ -376,7 +376,7 @@ def view_cmd(
     viewer.playing = not paused
     viewer.start()
     out.print(f"[bold]{live.scenario.name}[/bold] live at {viewer.url}", highlight=False, soft_wrap=True)
-    if host not in ("127.0.0.1", "localhost", "::1"):
+    if host not in LOOPBACK:
         err.print(f"warning: served on {host}, reachable from other machines (with the token)", highlight=False)
     sys.stdout.flush()
     try:

@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import shapely
 from scipy.spatial import cKDTree
 
 from virtual_vehicle.config.scenario import FaultEvent, ParcelEntry, Scenario, dump_toml, load_scenario, parse_text
@@ -40,6 +41,8 @@ sorter: which parcel the cell carries) or the hop distance to the nearest exit (
 SPEEDS = (0.1, 10.0)
 """The range of simulated seconds per real second the page's speed slider sets (``math.inf``: as fast as it
 runs)."""
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+"""Addresses that serve the page to this machine alone."""
 STILL = 1e-3
 """m/s: a parcel on the array slower than this is outlined as standing still."""
 
@@ -208,8 +211,6 @@ class LiveRun:
         if destination is not None and not 0 <= destination < max(1, self.exits()):
             raise ValueError(f"no exit {destination}: the scenario has {self.exits()}")
         sc = self.scenario
-        import shapely
-
         outline = shapely.Polygon(lanes[entry][1])
         there = [p for p in sc.parcels if outline.covers(shapely.Point(p.x, p.y))]
         template = there[0] if there else sc.parcels[0] if sc.parcels else ParcelEntry(length=0.2, width=0.2, mass=1.0)
@@ -282,8 +283,11 @@ class Viewer:
         for attempt in range(5):
             self.port = _free_port(host) if port is None else port
             try:
+                # on loopback the page's own origins only; exposed, the name others reach it by is not known
+                # here, so any origin (the signed session token still guards every connection)
+                origins = ([f"{host}:{self.port}", f"localhost:{self.port}"] if host in LOOPBACK else ["*"])
                 self.server = Server({"/": self._page}, io_loop=self.loop, address=host, port=self.port,
-                                     allow_websocket_origin=[f"{host}:{self.port}", f"localhost:{self.port}"],
+                                     allow_websocket_origin=origins,
                                      sign_sessions=True, secret_key=self._key, generate_session_ids=False,
                                      session_token_expiration=24 * 3600)
                 break
@@ -391,16 +395,16 @@ def _cell_colours(live: LiveRun, colour_by: str, memory: dict) -> tuple[np.ndarr
         elif before is not None and live.t < t_before:
             rate = np.zeros(n)
         memory["rate"] = rate
-        # the ramp starts at the common (heartbeat) level of the working cells, so that those busy with parcels
-        # stand out (the silent dead cells would pull it to zero)
+        # the ramp starts at the common (heartbeat) level of the working cells, their median, so that only those
+        # busier than most stand out (the silent dead cells and the edges' fewer neighbours would pull it down)
         working = rate[~(live.dead() | live.absent())]
-        low, top = np.percentile(working, (1, 99)) if len(working) else (0.0, 0.0)
+        low, top = np.percentile(working, (50, 99)) if len(working) else (0.0, 0.0)
         if top > low:
             rgb = _ramp((rate - low) / (top - low), _EMPTY, (230, 120, 20))
-            note = f"traffic: white {low:.3g} .. orange {top:.3g} sentences received per s per cell"
+            note = f"traffic: white {low:.3g} (the median) .. orange {top:.3g} sentences received per s per cell"
         else:
             rgb = np.tile(np.asarray(_EMPTY, float), (n, 1))
-            note = f"traffic: every cell {top:.3g} sentences received per s"
+            note = f"traffic: no cell above the median, {low:.3g} sentences received per s"
     elif colour_by == "hop distance":
         top = max(float(np.nanmax(v)) if np.isfinite(v).any() else 1.0, 1.0)
         rgb = _ramp(v / top, (40, 150, 90), (250, 240, 190))
@@ -450,7 +454,7 @@ def _build_page(doc, viewer: Viewer) -> None:
     """The page of one browser session: the array, the charts and the controls, refreshed every frame."""
     from bokeh.events import Tap
     from bokeh.layouts import column, row
-    from bokeh.models import (Button, ColumnDataSource, Div, Select, Slider, Toggle)
+    from bokeh.models import Button, ColumnDataSource, Div, NumeralTickFormatter, Select, Slider, Toggle
     from bokeh.plotting import figure
 
     live = viewer.live
@@ -495,10 +499,15 @@ def _build_page(doc, viewer: Viewer) -> None:
                background_fill_alpha=0.8)
 
     charts = []
-    series = ColumnDataSource({"t": [], "rtf": [], "delivered": [], "waiting": [], "on": []}, name="series")
-    for title, keys in (("real-time factor (simulated s per s spent simulating)", (("rtf", "#444444"),)),
+    series = ColumnDataSource({"t": [], "rtf": [], "delivered": [], "waiting": [], "on": [], "sentences": []},
+                              name="series")
+    for title, keys in (("real-time factor (simulated s per s simulating)", (("rtf", "#444444"),)),
+                        ("sentences received per simulated s", (("sentences", "#e6781e"),)),
                         ("parcels", (("delivered", "#2ca02c"), ("on", "#1f77b4"), ("waiting", "#d62728")))):
-        c = figure(title=title, width=420, height=220, x_axis_label="simulated time (s)", tools="")
+        c = figure(title=title, width=420, height=190 if len(keys) == 1 else 240, x_axis_label="simulated time (s)",
+                   tools="")
+        c.yaxis.formatter = NumeralTickFormatter(format="0.[0]a")  # 108k, not 1.08000000001e+5
+        c.y_range.start = 0
         for key, colour in keys:
             c.line("t", key, source=series, color=colour, line_width=2, **({"legend_label": key} if len(keys) > 1
                                                                             else {}))
@@ -586,8 +595,12 @@ def _build_page(doc, viewer: Viewer) -> None:
         n_wait = len(wait["x"])
         last = series.data["t"][-1] if len(series.data["t"]) else -1.0
         if live.t > last:
+            heard = float(run.per_cell["cell_received"].sum())
+            before, t_before = state.get("heard", (heard, live.t))
+            rate = round((heard - before) / (live.t - t_before)) if live.t > t_before and heard >= before else None
+            state["heard"] = (heard, live.t)
             series.stream({"t": [live.t], "rtf": [rtf], "delivered": [live.delivered()], "waiting": [n_wait],
-                           "on": [len(on["x"])]}, rollover=5000)
+                           "on": [len(on["x"])], "sentences": [rate]}, rollover=5000)
         play.label = "pause" if viewer.playing and not live.done else "play"
         end = live.run.setup.scenario.duration
         status.text = (f"t = {live.t:.2f} s of {end:g} s &nbsp; real-time factor {rtf:.3g} &nbsp; on the array "
