@@ -16,7 +16,8 @@ Tornado, which Dask's distributed scheduler already brings, and its signed sessi
 The page: the cells as one image layer (coloured by traffic, the program's state or the hop distance to the
 nearest exit; dead cells black, cells taken out dark grey), lit sensors, entries and exits, the parcels (outlines,
 names, destinations; those due but not yet let on, and those standing still, outlined in red), and live charts of
-the real-time factor and of the parcels delivered and waiting against simulated time. Units: m, s.
+the real-time factor, the sentences received per second and the parcels that left the array (delivered), are on it
+and wait, against simulated time. Units: m, s.
 """
 
 from __future__ import annotations
@@ -75,7 +76,7 @@ class LiveRun:
             sc, text = load_scenario(scenario)
         if sc.control is None:
             raise ValueError("the viewer steps a networked run: the scenario needs a [control] table")
-        self.original, self.text = sc, text
+        self.text = text
         self.actions: list[dict] = []
         self.wall = 0.0  # s of real time spent ticking, replays left out
         self._make(sc, 0)
@@ -122,7 +123,7 @@ class LiveRun:
         return [i for i in self.run.queue if self.run.arrive[i] <= self.t + 1e-12]
 
     def delivered(self) -> int:
-        """Parcels that came on and have left the array."""
+        """Parcels that came on and have left the array (through an exit or, lost, over an edge)."""
         return sum(1 for e, a in zip(self.run.entered, self.run.active) if e is not None and not a)
 
     def cell_at(self, x: float, y: float) -> int | None:
@@ -499,11 +500,11 @@ def _build_page(doc, viewer: Viewer) -> None:
                background_fill_alpha=0.8)
 
     charts = []
-    series = ColumnDataSource({"t": [], "rtf": [], "delivered": [], "waiting": [], "on": [], "sentences": []},
+    series = ColumnDataSource({"t": [], "rtf": [], "left": [], "waiting": [], "on": [], "sentences": []},
                               name="series")
     for title, keys in (("real-time factor (simulated s per s simulating)", (("rtf", "#444444"),)),
                         ("sentences received per simulated s", (("sentences", "#e6781e"),)),
-                        ("parcels", (("delivered", "#2ca02c"), ("on", "#1f77b4"), ("waiting", "#d62728")))):
+                        ("parcels", (("left", "#2ca02c"), ("on", "#1f77b4"), ("waiting", "#d62728")))):
         c = figure(title=title, width=420, height=190 if len(keys) == 1 else 240, x_axis_label="simulated time (s)",
                    tools="")
         c.yaxis.formatter = NumeralTickFormatter(format="0.[0]a")  # 108k, not 1.08000000001e+5
@@ -599,12 +600,12 @@ def _build_page(doc, viewer: Viewer) -> None:
             before, t_before = state.get("heard", (heard, live.t))
             rate = round((heard - before) / (live.t - t_before)) if live.t > t_before and heard >= before else None
             state["heard"] = (heard, live.t)
-            series.stream({"t": [live.t], "rtf": [rtf], "delivered": [live.delivered()], "waiting": [n_wait],
+            series.stream({"t": [live.t], "rtf": [rtf], "left": [live.delivered()], "waiting": [n_wait],
                            "on": [len(on["x"])], "sentences": [rate]}, rollover=5000)
         play.label = "pause" if viewer.playing and not live.done else "play"
         end = live.run.setup.scenario.duration
         status.text = (f"t = {live.t:.2f} s of {end:g} s &nbsp; real-time factor {rtf:.3g} &nbsp; on the array "
-                       f"{len(on['x'])} &nbsp; waiting {n_wait} &nbsp; delivered {live.delivered()} &nbsp; "
+                       f"{len(on['x'])} &nbsp; waiting {n_wait} &nbsp; left {live.delivered()} &nbsp; "
                        f"{'ended' if live.done else 'running' if viewer.playing else 'paused'}"
                        + (f"<br>{viewer.message}" if viewer.message else ""))
         legend.text = (f"{note}. Red dots: sensors lit. Parcels coloured by their exit; red thick outline: standing "
