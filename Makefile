@@ -12,6 +12,9 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	@# the viewer's browser test drives Debian's Chromium; where it cannot be installed (no apt, not root) it is skipped
+	-command -v chromium >/dev/null || { apt-get update -qq && apt-get install -y -qq chromium >/dev/null; } \
+		|| echo "no Chromium: the viewer's browser test will be skipped"
 	$(BIN)/python -c "from virtual_vehicle.run.warm import warm_up; print(f'event engine ready in {warm_up():.1f} s')"
 	touch $(STAMP)
 

@@ -168,11 +168,26 @@ def test_a_cell_that_dies_mid_run_goes_silent_and_still_from_then_on(tmp_path):
         assert np.array_equal(a.trajectory.states, b.trajectory.states)
 
 
+def test_a_revived_cell_talks_and_drives_again():
+    from virtual_vehicle.config.scenario import FaultEvent
+
+    sc, _ = load_scenario("sorting_junction")
+    cell = 5 * 24 + 12
+    events = [FaultEvent(t=2.0, dead_cells=[cell]), FaultEvent(t=4.0, revived_cells=[cell])]
+    sc = sc.model_copy(update={"duration": 6.0, "sensors": sc.sensors.model_copy(update={"record": True}),
+                               "faults": sc.faults.model_copy(update={"events": events})})
+    log = run(sc.build()).cell_log
+    dead, back = (log.t >= 2.0 - 1e-9) & (log.t < 4.0 - 1e-9), log.t >= 4.0 - 1e-9
+    assert log.sent[dead, cell].sum() == 0 and log.sent[back, cell].sum() > 0
+
+
 @pytest.mark.parametrize("name, event, message", [
     ("sorting_junction", {"t": 50.0, "dead_cells": [1]}, "not before the end"),
     ("sorting_junction", {"t": 1.0, "dead_cells": [9999]}, r"faults\.events\[0\]\.dead_cells\[0\]"),
     ("sorting_junction", {"t": 1.0, "stuck_on": [[0, 7]]}, "no sensor 7"),
     ("crossing_30x30", {"t": 1.0, "dead_cells": [1]}, "need \\[control\\]"),
+    ("sorting_junction", {"t": 1.0, "dead_cells": [3], "revived_cells": [3]}, "the same event kills"),
+    ("sorting_junction", {"t": 1.0, "revived_cells": [9999]}, r"revived_cells\[0\]"),
 ])
 def test_bad_fault_events_are_named(name, event, message):
     with pytest.raises(ScenarioError, match=message):

@@ -384,7 +384,8 @@ class WheelSpec(_Strict):
 
 class FaultEvent(_Strict):
     """Faults that appear at time ``t`` (s) of a networked run and stay: ``dead_cells``, ``stuck_wheels``,
-    ``dead_links`` ([cell id, port]) and stuck sensors ``stuck_on`` / ``stuck_off`` ([cell id, sensor index])."""
+    ``dead_links`` ([cell id, port]) and stuck sensors ``stuck_on`` / ``stuck_off`` ([cell id, sensor index]);
+    ``revived_cells``: dead cells repaired then (they drive, sense and talk again; a cell cannot be in both lists)."""
 
     t: Annotated[float, Field(gt=0, le=1e7)]
     dead_cells: list[Annotated[int, Field(ge=0)]] = []
@@ -392,6 +393,7 @@ class FaultEvent(_Strict):
     dead_links: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=5)]]] = []
     stuck_on: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)]]] = []
     stuck_off: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)]]] = []
+    revived_cells: list[Annotated[int, Field(ge=0)]] = []
 
 
 class FaultSpec(_Strict):

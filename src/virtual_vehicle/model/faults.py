@@ -98,14 +98,20 @@ def resolve(spec, cells, sensors_per_cell: int, neighbor: np.ndarray, listed_lin
 
 
 def later(now: Faults, event, n: int, sensors_per_cell: int) -> Faults:
-    """The faults after ``event`` (:class:`~virtual_vehicle.config.scenario.FaultEvent`) adds its own to ``now`` (a
-    fault never heals). Raises ValueError for an item that does not exist."""
+    """The faults after ``event`` (:class:`~virtual_vehicle.config.scenario.FaultEvent`) adds its own to ``now``; a
+    fault never heals by itself, but the cells the event lists as ``revived_cells`` (repaired) are dead no more.
+    Raises ValueError for an item that does not exist or a cell both killed and revived."""
     dead = now.dead_cells.copy()
     stuck = now.stuck_wheels.copy()
     on, off = now.stuck_on.copy(), now.stuck_off.copy()
     for k, c in enumerate(event.dead_cells):
         _check_cell(c, n, f"dead_cells[{k}]")
         dead[c] = True
+    for k, c in enumerate(event.revived_cells):
+        _check_cell(c, n, f"revived_cells[{k}]")
+        if c in event.dead_cells:
+            raise ValueError(f"revived_cells[{k}] names cell {c}, which the same event kills")
+        dead[c] = False
     for k, (c, w) in enumerate(event.stuck_wheels):
         _check_cell(c, n, f"stuck_wheels[{k}]")
         stuck[c, w] = True

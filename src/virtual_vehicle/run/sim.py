@@ -560,6 +560,22 @@ def resume(checkpoint: str | Path, progress: Callable[[float], None] | None = No
     return job.run(progress, checkpoint=path, checkpoint_every=checkpoint_every or every)
 
 
+def carry_on(job: "_Job", setup: Setup) -> "_Job":
+    """A run of ``setup`` (of ``job``'s own class) that takes up exactly where ``job`` is, through its checkpoint
+    state: for a setup that differs from the job's only in what has not happened yet (fault events after now), as a
+    viewer records a fault while the run goes on. Raises VirtualVehicleError for a state that does not fit."""
+    from virtual_vehicle.run.checkpoint import CheckpointError, unpack
+
+    document, arrays = unpack(job.checkpoint_bytes(1.0))
+    fresh = type(job)(setup)
+    fresh.scenario_text = job.scenario_text
+    try:
+        fresh._restore(document["position"], document["state"], arrays)
+    except (CheckpointError, KeyError, TypeError, ValueError) as exc:
+        raise VirtualVehicleError(f"the run cannot go on under the changed scenario: {exc}") from None
+    return fresh
+
+
 def _load(data: bytes, setup: Setup | None = None, where: str = "checkpoint") -> tuple["_Job", float]:
     """The run a checkpoint's bytes hold and its checkpoint interval (s). ``setup``: the run's own (a checkpointing
     run going on from what it wrote); None: built from the checkpoint's scenario. Raises VirtualVehicleError."""

@@ -336,6 +336,63 @@ def animate_cmd(
     out.print(f"[bold]{sc.name}[/bold]: animation written to {written}{note}")
 
 
+@app.command(name="view")
+def view_cmd(
+    scenario: str = typer.Argument(..., help="Scenario TOML file or bundled scenario name (with [control])."),
+    out_dir: Path = typer.Option(Path("results/view"), "--out", "-o", help="Folder for the run's results, written "
+                                 "when it ends."),
+    host: str = typer.Option("127.0.0.1", help="Address to serve the page on; another than 127.0.0.1 exposes it "
+                             "to the network (the token still guards it)."),
+    port: Optional[int] = typer.Option(None, min=1, max=65535, help="Port (default: a free one)."),
+    paused: bool = typer.Option(False, help="Start paused."),
+    plot: bool = typer.Option(True, help="Write paths.png with the results."),
+    formats: list[str] = typer.Option(["parquet", "csv"], "--format", help="Table formats to write: parquet, csv."),
+) -> None:
+    """Run a scenario live and watch and steer it in a browser: prints the page's address with its access token.
+    Play, pause, one tick, speed; click a cell to kill or revive it, drop a parcel at an entry. Everything done is
+    recorded: the run folder written when the run ends holds the changed scenario, which 'virtual-vehicle run'
+    replays to the same tables. Ctrl-C before the end finishes the run and writes it (Ctrl-C again: nothing
+    written, exit 130)."""
+    from virtual_vehicle.ui.view import LOOPBACK, LiveRun, Viewer
+
+    try:
+        formats = _formats(formats)
+        _check_out(out_dir)
+        with Phase("building the scenario"):
+            live = LiveRun(scenario)
+    except VirtualVehicleError as exc:
+        _fail(exc)
+    except ValueError as exc:
+        _fail(VirtualVehicleError(str(exc)))
+
+    def write(result) -> str:
+        _report(result, out_dir, plot, result.scenario_text, formats)
+        return f"the run has ended: its folder is written to {out_dir}"
+
+    try:
+        viewer = Viewer(live, host=host, port=port, on_done=write)
+    except OSError as exc:
+        _fail(VirtualVehicleError(f"--host/--port: cannot serve on {host}:{port or 'a free port'}: {exc}"))
+    viewer.playing = not paused
+    viewer.start()
+    out.print(f"[bold]{live.scenario.name}[/bold] live at {viewer.url}", highlight=False, soft_wrap=True)
+    if host not in LOOPBACK:
+        err.print(f"warning: served on {host}, reachable from other machines (with the token)", highlight=False)
+    sys.stdout.flush()
+    try:
+        viewer.loop.start()
+    except KeyboardInterrupt:
+        viewer.stop()
+        if viewer.result is None:
+            err.print(f"stopped at t = {live.t:g} s: finishing the run to write it (Ctrl-C again: nothing written)",
+                      highlight=False)
+            try:
+                write(live.result())
+            except KeyboardInterrupt:
+                err.print("interrupted: nothing written", highlight=False)
+                raise typer.Exit(code=130) from None
+
+
 @app.command(name="layout")
 def layout_cmd(
     scenario: Optional[str] = typer.Argument(None, help="Scenario TOML file or bundled scenario name (default: the "

@@ -111,13 +111,16 @@ MAX_CELL_IDS = 2_000
 
 def dead_cells(setup, t: float | None = None) -> np.ndarray:
     """(n,) bool: cells dead at time ``t`` (s) of the run of ``setup``: listed or drawn in ``[faults]`` and, from
-    their times on, those of ``[[faults.events]]``; ``t`` None: dead at any time of the run."""
+    their times on, those of ``[[faults.events]]`` (each event's faults are all those of its time, so a cell revived
+    by an event is dead no more); ``t`` None: dead at any time of the run."""
     n = setup.cells.n
     faults = setup.faults
     dead = np.zeros(n, bool) if faults is None else np.asarray(faults.dead_cells, bool).copy()
     for te, later in setup.fault_events or ():
-        if t is None or te <= t:
+        if t is None:
             dead |= np.asarray(later.dead_cells, bool)
+        elif te <= t:
+            dead = np.asarray(later.dead_cells, bool).copy()
     return dead
 
 

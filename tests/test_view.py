@@ -1,0 +1,197 @@
+"""The live viewer (``virtual-vehicle view``): what it records replays with ``run`` to the same tables, its page
+refuses a request without the token and listens on 127.0.0.1, and in a real browser a paused run stops, a clicked
+cell dies and a dropped parcel comes on."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from virtual_vehicle.config.scenario import load_scenario, parse_text
+from virtual_vehicle.run import tables
+from virtual_vehicle.run.sim import run
+from virtual_vehicle.ui.view import LiveRun, Viewer
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+def short_junction(duration: float = 2.0):
+    sc, _ = load_scenario("sorting_junction")
+    return sc.model_copy(update={"duration": duration})
+
+
+def same_tables(a, b) -> None:
+    ta, tb = tables.build(a), tables.build(b)
+    assert ta.keys() == tb.keys()
+    for name in ta:
+        assert ta[name].equals(tb[name]), name
+
+
+def test_a_kill_a_drop_and_a_revival_replay_with_run_to_the_same_tables():
+    live = LiveRun(short_junction())
+    live.advance(0.5, budget=1e9)
+    assert live.t == pytest.approx(0.5)
+    cell = live.cell_at(0.45, 0.55)
+    assert live.toggle(cell) == "kill" and live.dead()[cell]
+    live.advance(0.3, budget=1e9)
+    name = live.drop(entry=0, destination=1)
+    assert name not in {p.name for p in short_junction().parcels}
+    live.advance(0.3, budget=1e9)
+    assert live.toggle(cell) == "revive" and not live.dead()[cell]
+    result = live.result()
+    sc = parse_text(result.scenario_text)
+    kill, revive = sc.faults.events
+    assert (kill.t, kill.dead_cells) == (pytest.approx(0.5), [cell])
+    assert (revive.t, revive.revived_cells) == (pytest.approx(1.1), [cell])
+    dropped = sc.parcels[-1]
+    assert (dropped.name, dropped.t_start, dropped.destination) == (name, pytest.approx(0.8), 1)
+    assert [a["kind"] for a in live.actions] == ["kill", "drop", "revive"]
+    same_tables(result, run(sc.build(), scenario_text=result.scenario_text))
+    with pytest.raises(ValueError, match="ended"):
+        live.toggle(cell)
+
+
+def test_a_cell_killed_at_the_start_is_listed_dead_and_nothing_done_keeps_the_file():
+    live = LiveRun("sorting_junction")
+    assert live.scenario_text == load_scenario("sorting_junction")[1]
+    live.toggle(5)
+    assert live.scenario.faults.dead_cells == [5] and not live.scenario.faults.events and live.dead()[5]
+    live.toggle(5)
+    assert live.scenario.faults.dead_cells == [] and not live.dead()[5]
+
+
+def test_steering_outside_the_array_or_its_lanes_is_refused():
+    live = LiveRun(short_junction())
+    assert live.cell_at(-1.0, -1.0) is None
+    with pytest.raises(ValueError, match="no cell"):
+        live.toggle(10_000)
+    with pytest.raises(ValueError, match="no entry"):
+        live.drop(entry=3)
+    with pytest.raises(ValueError, match="no exit"):
+        live.drop(entry=0, destination=3)
+    assert live.actions == []
+    with pytest.raises(ValueError, match=r"\[control\]"):
+        LiveRun("paper_2x2_inward")
+
+
+@pytest.fixture
+def viewer():
+    """A viewer of a short sorting run served on its own loop in a thread."""
+    made = {}
+    ready = threading.Event()
+
+    def serve():
+        asyncio.set_event_loop(asyncio.new_event_loop())
+        v = Viewer(LiveRun(short_junction()))
+        v.playing = False
+        v.start()
+        made["viewer"] = v
+        ready.set()
+        v.loop.start()
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    assert ready.wait(60)
+    v = made["viewer"]
+    yield v
+    v.loop.add_callback(v.stop)
+    v.loop.add_callback(v.loop.stop)
+    thread.join(10)
+
+
+def status(url: str) -> int:
+    try:
+        with urllib.request.urlopen(url, timeout=30) as r:
+            return r.status
+    except urllib.error.HTTPError as exc:
+        return exc.code
+
+
+def test_the_page_needs_its_token(viewer):
+    base = f"http://127.0.0.1:{viewer.port}/"
+    assert status(viewer.url) == 200
+    assert status(base) == 403
+    assert status(base + "?bokeh-session-id=" + viewer.token[:-4] + "AAAA") == 403
+
+
+def test_it_listens_on_127_0_0_1_only(viewer):
+    assert viewer.url.startswith(f"http://127.0.0.1:{viewer.port}/?bokeh-session-id=")
+    tcp = Path("/proc/net/tcp")
+    if not tcp.exists():
+        pytest.skip("no /proc/net/tcp to read the listening address from")
+    listening = [line.split()[1] for line in tcp.read_text().splitlines()[1:] if line.split()[3] == "0A"]
+    mine = [a for a in listening if int(a.split(":")[1], 16) == viewer.port]
+    assert mine == ["0100007F:%04X" % viewer.port]  # 127.0.0.1 in the kernel's byte order, nothing else
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium installed (Debian package chromium: the Makefile's set-up "
+                    "installs it where it can)")
+def test_in_a_browser_pause_kill_a_cell_and_drop_a_parcel(tmp_path):
+    sync_api = pytest.importorskip("playwright.sync_api", reason="Playwright is a dev dependency")
+    out = tmp_path / "view"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parents[1] / "src"),
+                                                         os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen([sys.executable, "-m", "virtual_vehicle.ui.cli", "view", "sorting_junction", "--out",
+                             str(out), "--format", "csv", "--no-plot"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)
+    try:
+        url = None
+        for line in proc.stdout:
+            found = re.search(r"http://\S+", line)
+            if found:
+                url = found.group(0)
+                break
+        assert url is not None and url.startswith("http://127.0.0.1:")
+        with sync_api.sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=CHROMIUM, args=[
+                "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
+                "--disable-component-update", "--disable-sync"])
+            page = browser.new_page(viewport={"width": 1500, "height": 950})
+            page.goto(url)
+            line = page.locator("text=/on the array [1-9]/")
+            line.wait_for(timeout=120_000)  # parcels drawn
+            page.get_by_role("button", name="pause").click()
+            page.locator("text=paused").wait_for(timeout=30_000)
+            t = re.search(r"t = ([0-9.]+) s", line.inner_text()).group(1)
+            time.sleep(1.5)
+            assert re.search(r"t = ([0-9.]+) s", line.inner_text()).group(1) == t  # simulated time stopped
+            box = page.locator("canvas").first.bounding_box()
+            page.mouse.click(box["x"] + box["width"] * 0.5, box["y"] + box["height"] * 0.45)
+            killed = page.locator("text=/kill cell [0-9]+/")
+            killed.wait_for(timeout=30_000)
+            cell = int(re.search(r"kill cell ([0-9]+)", killed.inner_text()).group(1))
+            assert f"t={float(t):g} s: kill cell {cell}" in killed.inner_text()
+            page.get_by_role("button", name="drop a parcel").click()
+            page.locator("text=/drop v00 at entry 0 for exit 0/").wait_for(timeout=120_000)
+            page.screenshot(path=str(tmp_path / "paused.png"))
+            page.get_by_role("button", name="play").click()
+            page.wait_for_function(  # drawn on the array (the page's parcel source), with its destination
+                "() => Bokeh.documents[0].get_model_by_name('parcels').data.label.includes('v00→0')", timeout=120_000)
+            browser.close()
+        proc.send_signal(signal.SIGINT)  # finish the run and write it
+        _, err = proc.communicate(timeout=600)
+        assert proc.returncode == 0, err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    sc = parse_text((out / "scenario.toml").read_text())
+    event = sc.faults.events[0]
+    assert (event.t, event.dead_cells) == (pytest.approx(float(t)), [cell])
+    assert sc.parcels[-1].name == "v00"
+    again = tmp_path / "again"
+    subprocess.run([sys.executable, "-m", "virtual_vehicle.ui.cli", "run", str(out / "scenario.toml"), "--out",
+                    str(again), "--format", "csv", "--no-plot"], check=True, env=env, capture_output=True)
+    for name in ("trajectories", "events", "network", "cell_traffic"):
+        assert (out / f"{name}.csv").read_bytes() == (again / f"{name}.csv").read_bytes(), name
