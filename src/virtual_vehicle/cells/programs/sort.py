@@ -25,7 +25,8 @@ class SortOptions(ProgramOptions):
     ``parking`` outline, or ``P`` on a map) and waits there (at most three exits then). Without outlines the entries
     (``E``), exits (``0``..``3``) and parking cells come from an ``[array]`` map. ``central`` = true runs the same
     policies on one central computer instead (:class:`~virtual_vehicle.cells.sorting.CentralSorter`), for
-    comparison."""
+    comparison. A cell sends on a link only when what it says there changed, and everything every ``heartbeat``
+    (s; 0: every tick), which repairs a lost sentence: traffic follows activity, not the number of cells."""
 
     program: Literal["sort"]
     speed: Annotated[float, Field(gt=0, le=1e3)] = 0.2
@@ -35,6 +36,7 @@ class SortOptions(ProgramOptions):
     gap: Annotated[int, Field(ge=1, le=50)] = 2
     reach: Annotated[int, Field(ge=1, le=62)] = 8
     central: bool = False
+    heartbeat: Annotated[float, Field(ge=0, le=60)] = 1.0
 
     def top_speed(self) -> float:
         """The parcels' riding speed (m/s): the fastest the wheels run."""
@@ -120,7 +122,8 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
 
         program = CentralSorter(topo, c.speed, c.gap, period=c.period)
     else:
-        program = Sorter(c.speed, c.gap, c.reach, max_age=c.max_age, period=c.period, pitch=cells.pitch)
+        program = Sorter(c.speed, c.gap, c.reach, max_age=c.max_age, period=c.period, pitch=cells.pitch,
+                         heartbeat=c.heartbeat)
     for i, p in enumerate(ctx.parcels):
         if p.destination is not None and p.destination >= n_exits:
             raise FieldError(f"parcels[{i}].destination", f"exit {p.destination} does not exist (the scenario has "
