@@ -251,12 +251,14 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # say only what changed on a port since it was last sent there, and everything at the heartbeat
     beat = (tick + entry_no) % sorter.heartbeat_ticks == 0  # staggered by installation number
     differs = np.stack([out.values[k].astype(np.int64) != v for k, v in state["said"].items()]).any(axis=0)
-    out.present[:] = beat[:, None] | differs
+    # a new sentence goes out again for ``repeats`` ticks, so that one loss does not cost a heartbeat
+    out.present[:] = beat[:, None] | differs | (state["again"] > 0)
+    again = np.where(differs, sorter.repeats, np.maximum(state["again"] - 1, 0))
     said = {k: np.where(differs, out.values[k].astype(np.int64), v) for k, v in state["said"].items()}
     new_state = {"dist": dist, "heard": heard, "heard_at": heard_at, "vid": vid, "goal": goal,
                  "dir": np.where(moving | (direction >= 0), direction, _NONE), "key": key, "stop": stop,
                  "hold": new_hold, "hdep": hdep, "hport": hport, "hage": hage, "ack": ack, "nxt": nxt,
-                 "park": park, "back": back, "bdir": bdir, "said": said}
+                 "park": park, "back": back, "bdir": bdir, "said": said, "again": again}
     return new_state, out, wheels
 
 def _spread(sorter: Sorter, own, heard, same_nb, on):

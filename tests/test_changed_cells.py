@@ -415,6 +415,7 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool):
     state["heard_at"] = round(t / 0.01) - rng.choice([0, 1, 2, 5, 2**40], (n, P))  # the tick each port last heard
     for w, (lo, hi) in _WORDS.items():  # what was last said on each port: some words as they will be, some not
         state["said"][w] = np.where(rng.random((n, P)) < 0.3, -(1 << 40), rng.integers(lo, hi + 1, (n, P)))
+    state["again"] = rng.choice([0, 0, 1, 2], (n, P))
     for k, (lo, hi) in {"vid": (-1, 8), "goal": (-1, 40), "dir": (-1, 3), "back": (0, 6), "bdir": (-1, 3),
                         "hold": (-1, 8), "hage": (0, 4), "hport": (-1, 3), "hdep": (0, 4), "nxt": (0, 6)}.items():
         state[k] = rng.integers(lo, hi + 1, n)
@@ -460,7 +461,7 @@ def test_the_sorter_steps_changed_cells_in_place_as_it_steps_them_gathered(seed,
     rng = np.random.default_rng(seed)
     program, state, inputs = _random_sorter_inputs(rng, max_age, parking, True)
     n = len(inputs.sensors)
-    kept = [k for k in program.init(n, 4, {}) if k not in ("dist", "heard", "heard_at", "said")]  # its own words
+    kept = [k for k in program.init(n, 4, {}) if k not in ("dist", "heard", "heard_at", "said", "again")]
     if silent:
         inputs.inbox.present[:] = False
         state["heard_at"][:] = -(1 << 40)
@@ -482,7 +483,7 @@ def test_the_sorter_steps_changed_cells_in_place_as_it_steps_them_gathered(seed,
 
     def leaves(st):  # by name: init and step hold the words in different orders
         return [st["dist"], *(st["heard"][f.name] for f in program.schema.fields), st["heard_at"],
-                *(st[k] for k in kept), *(st["said"][f.name] for f in program.schema.fields)]
+                *(st[k] for k in kept), *(st["said"][f.name] for f in program.schema.fields), st["again"]]
 
     for a, b, c in zip(leaves(mine), leaves(ref_state), leaves(state), strict=True):
         assert np.array_equal(a[rows], b) and np.array_equal(a[others], c[others])

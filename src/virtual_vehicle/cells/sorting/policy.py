@@ -26,16 +26,18 @@ Words = namedtuple("Words", "d nxt vid goal key stop req rdep hold ack ex blk")
 CellState = namedtuple("CellState", "vid goal dir key stop hold hdep hport hage ack nxt park back bdir")
 """The per-cell state words (n,), int64, in the order the sorter's state holds them after ``dist``, ``heard``,
 ``age``."""
-Memory = namedtuple("Memory", "heard heard_at dist cell said")
+Memory = namedtuple("Memory", "heard heard_at dist cell said again")
 """What a cell keeps between ticks: words last heard (:class:`Words`, int64), the tick each port last heard one (a
 tick, not an age, so that a silent neighbour leaves the state as it is), the exit
-gradients' distances (n, MAX_EXITS), the :class:`CellState` and the words it last sent on each port (:class:`Words`,
-int64): it sends again only what changed, and everything at its heartbeat."""
+gradients' distances (n, MAX_EXITS), the :class:`CellState`, the words it last sent on each port (:class:`Words`,
+int64; it sends again only what changed, and everything at its heartbeat) and how many ticks more it repeats a
+port's new sentence (n, P), so that one lost sentence does not leave a neighbour a heartbeat behind."""
 Config = namedtuple("Config", "exit exit_port entry entry_no park forbid labels")
 """Per-cell configuration (see :class:`~virtual_vehicle.cells.sorting.Sorter`) and the labels read this tick."""
-Rules = namedtuple("Rules", "tick max_age edge_cost reach gap back_ticks speed heartbeat trust")
+Rules = namedtuple("Rules", "tick max_age edge_cost reach gap back_ticks speed heartbeat trust repeats")
 """The tick stepped and the sorter's numbers (hops and ticks; ``speed`` in m/s; ``heartbeat`` the ticks between two
-sentences of a cell with nothing new to say, ``trust`` the ticks a neighbour's last sentence is trusted)."""
+sentences of a cell with nothing new to say, ``trust`` the ticks a neighbour's last sentence is trusted, ``repeats``
+the ticks a new sentence is sent again after it changed)."""
 Inputs = namedtuple("Inputs", "present arrived sensors connected")
 """Which words arrived (n, P), the words (:class:`Words`), the sensors (n, S) and the live links (n, P)."""
 Outputs = namedtuple("Outputs", "present sent wheels unsettled out_changed")
@@ -114,10 +116,10 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     ``out.out_changed[i]`` say whether row i's state and sentence differ from what they were."""
     P = inp.present.shape[1]
     present, words, sensors, connected = inp  # the records unpacked once, outside the loop over cells: an array
-    heard_in, at_in, dist_in, state_in, said_in = old  # reached through a record inside it costs a reference
-    heard_out, at_out, dist_out, state_out, said_out = new  # count a use
+    heard_in, at_in, dist_in, state_in, said_in, again_in = old  # reached through a record inside it costs a reference
+    heard_out, at_out, dist_out, state_out, said_out, again_out = new  # count a use
     exit_id, exit_port, entry, entry_no, park_cell, forbid, labels = cfg
-    tick, max_age, edge_cost, reach, gap, back_ticks, speed, heartbeat, trust = rules
+    tick, max_age, edge_cost, reach, gap, back_ticks, speed, heartbeat, trust, repeats = rules
     sent_present, sent, wheels, unsettled, out_changed = out
     n_vid, n_goal, n_dir, n_key, n_stop, n_hold, n_hdep, n_hport, n_hage, n_ack, n_nxt, n_park, n_back, n_bdir = \
         state_out
@@ -346,8 +348,8 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             to_req[dp], to_rdep[dp] = vid, 1
         if new_hold >= 0 and hdep < L and connected[i, fp]:
             to_req[fwd], to_rdep[fwd] = new_hold, hdep + 1
-        # say: on a port only what changed since it last sent there, and everything at its heartbeat (which
-        # repairs a lost sentence); the words are written whether sent or not
+        # say: on a port only what changed since it last sent there (and again for ``repeats`` ticks), and
+        # everything at its heartbeat, which repairs a lost sentence; the words are written whether sent or not
         beat = heartbeat_due(tick, entry_no[i], heartbeat)
         sent_new = False
         for q in range(P):
@@ -357,7 +359,10 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
                    np.int64(min(ack, 255) + ((hport + 1) << 8)), np.int64(ENTRY if entry[i] else exit_id[i]),
                    np.int64(blk))
             send, differs = _say(told, now, beat, i, q)
-            changed |= differs
+            old_again = again_in[i, q]
+            again_out[i, q] = repeats if differs else max(old_again - 1, 0)
+            send = send or old_again > 0
+            changed |= differs or again_out[i, q] != old_again
             sent_new |= sent_present[i, q] != send
             sent_present[i, q] = send
             sent_new |= _put(o_d, i, q, now[0])

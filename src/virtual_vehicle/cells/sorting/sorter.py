@@ -28,6 +28,8 @@ class Sorter:
         heartbeat: the longest a cell stays silent (s): it sends on a port only when its sentence there changed, and
             every sentence at least this often, which repairs a lost one (0: every tick). A neighbour's last
             sentence is trusted for ``max_age`` ticks plus two heartbeats, so one lost heartbeat does not drop it.
+        repeats: ticks a cell sends a port's sentence again after it changed (with a heartbeat): a change is lost
+            only when all of them are.
 
     Sensor 0 of every cell must be its centre (the default layout): a cell whose centre is covered carries the
     parcel; the others only see its edge.
@@ -59,7 +61,8 @@ class Sorter:
     """The words' names and numpy types, in the schema's order (as the compiled step takes them)."""
 
     def __init__(self, speed: float, gap: int = 2, reach: int = 8, max_age: int = 0, edge_cost: int = 3,
-                 period: float = 0.01, pitch: float = 0.1, heartbeat: float = 0.0):
+                 period: float = 0.01, pitch: float = 0.1, heartbeat: float = 0.0,
+                 repeats: int = 2):
         if not speed > 0:
             raise ValueError("speed must be positive (m/s)")
         if not 1 <= reach <= 62:
@@ -74,6 +77,10 @@ class Sorter:
             raise ValueError("heartbeat must be non-negative (s)")
         self.heartbeat_ticks = max(1, tick_of(heartbeat, self.period))
         """Ticks between two sentences of a cell with nothing new to say (1: it sends every tick)."""
+        if not 0 <= repeats <= 1000:
+            raise ValueError("repeats must be 0..1000 ticks")
+        self.repeats = int(repeats) if self.heartbeat_ticks > 1 else 0
+        """Ticks a new sentence is sent again (none when every tick sends everything anyway)."""
         self.trust = self.max_age + 2 * (self.heartbeat_ticks - 1)
         """Ticks a neighbour's last sentence is trusted after it arrived."""
         self.back_ticks = back_off_ticks((self.gap + 1) * pitch, self.speed, self.period)
@@ -97,7 +104,8 @@ class Sorter:
                 "ack": np.zeros(n, dtype=np.int64), "nxt": np.zeros(n, dtype=np.int64),
                 "park": np.full(n, 255, dtype=np.int64),
                 # nothing said yet: the first tick says everything
-                "said": {f.name: np.full((n, P), _NEVER, dtype=np.int64) for f in self.schema.fields}}
+                "said": {f.name: np.full((n, P), _NEVER, dtype=np.int64) for f in self.schema.fields},
+                "again": np.zeros((n, P), dtype=np.int64)}
 
     def due(self, t: float, state, config: dict) -> np.ndarray:
         """The (n,) cells that must be stepped at time ``t`` (s) whatever changed: those that stop trusting a
@@ -121,13 +129,13 @@ class Sorter:
         new = {"dist": np.empty((n, MAX_EXITS), np.int64),
                "heard": {w: np.empty((n, P), np.int64) for w in self._words},
                "heard_at": np.empty((n, P), np.int64), **{k: np.empty(n, np.int64) for k in _STATE},
-               "said": {w: np.empty((n, P), np.int64) for w in self._words}}
+               "said": {w: np.empty((n, P), np.int64) for w in self._words}, "again": np.empty((n, P), np.int64)}
         out = Mailbox(self.schema, np.empty((n, P), bool),
                       {w: np.empty((n, P), t) for w, t in zip(self._words, self._types)})
         wheels = np.zeros((n, 2))
         self._run(state, inputs, np.arange(n), new, out, wheels)
         return {"dist": new["dist"], "heard": {k: new["heard"][k] for k in heard}, "heard_at": new["heard_at"],
-                **{k: new[k] for k in _STATE}, "said": new["said"]}, out, wheels
+                **{k: new[k] for k in _STATE}, "said": new["said"], "again": new["again"]}, out, wheels
 
     def step_rows(self, state, inputs: CellInputs, rows: np.ndarray, outbox: Mailbox, wheels: np.ndarray):
         """Step only the cells ``rows`` (indices into the full inputs), writing their new state, sentences and wheel
@@ -137,7 +145,7 @@ class Sorter:
         (False for the others), or None when the arrays are not the sorter's own kinds (int64 state, the schema's
         word types, C-contiguous, writeable), to step the rows the general way."""
         kept = [state["dist"], *state["heard"].values(), state["heard_at"], *(state[k] for k in _STATE),
-                *state["said"].values()]
+                *state["said"].values(), state["again"]]
         if (tuple(state["heard"]) != self._words or tuple(state["said"]) != self._words
                 or any(a.dtype != np.int64 for a in kept)
                 or any(outbox.values[w].dtype != t for w, t in zip(self._words, self._types))
@@ -163,7 +171,8 @@ class Sorter:
             return policy.Memory(policy.Words(*(arg(st["heard"][w], np.int64) for w in self._words)),
                                  arg(st["heard_at"], np.int64), arg(st["dist"], np.int64),
                                  policy.CellState(*(arg(st[k], np.int64) for k in _STATE)),
-                                 policy.Words(*(arg(st["said"][w], np.int64) for w in self._words)))
+                                 policy.Words(*(arg(st["said"][w], np.int64) for w in self._words)),
+                                 arg(st["again"], np.int64))
 
         labels = np.full(n, NONE) if getattr(inputs, "labels", None) is None else inputs.labels
         unsettled, out_changed = np.zeros(n, bool), np.zeros(n, bool)
@@ -177,7 +186,8 @@ class Sorter:
                           cells("park", np.zeros(n, bool), bool), cells("forbid", np.full(n, NONE), np.int64),
                           _arg(labels, np.int64)),
             policy.Rules(tick_of(inputs.t, self.period), self.max_age, self.edge_cost, self.reach, self.gap,
-                         self.back_ticks, self.speed, self.heartbeat_ticks, self.trust),
+                         self.back_ticks, self.speed, self.heartbeat_ticks, self.trust,
+                         self.repeats),
             memory(state, _arg), memory(new, lambda a, dtype: a),
             policy.Outputs(out.present, policy.Words(*(out.values[w] for w in self._words)), wheels, unsettled,
                            out_changed))
