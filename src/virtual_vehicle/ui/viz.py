@@ -219,10 +219,10 @@ def draw_cells(ax, setup, size: float = 12, color: str = "0.45", label: str | No
 def plot_sorting(result: RunResult, path: str | Path | None = None, cell_ids: bool = False):
     """A sorting run (program ``"sort"``): left, the array with its entry (grey) and exit lanes (one colour each),
     every parcel's path coloured by its destination, a filled dot where it left the array (at the right exit) or a
-    red cross (elsewhere), and hollow squares for parcels still on it, the cells under parcels that stood still
-    past the scenario's ``wait_bound`` (red squares where they wait on each other), dead cells crossed out
-    (``cell_ids``: each cell's id written beside it); right, parcels delivered to the right exit and parcels on the array against time
-    (s). Saves a PNG to ``path`` if given; returns the figure."""
+    red cross (elsewhere), and hollow squares for parcels still on it, the cells under parcels that stood still past
+    the scenario's ``wait_bound`` (red squares where they wait on each other), dead cells crossed out (``cell_ids``:
+    each cell's id written beside it); right, parcels delivered to the right exit and parcels on the array against
+    time (s). Saves a PNG to ``path`` if given; returns the figure."""
     from virtual_vehicle.run.tasks import sorting_report
 
     setup = result.setup

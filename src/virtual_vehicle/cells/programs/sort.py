@@ -232,12 +232,13 @@ def report(result) -> dict:
 def stalls(result, rows: list[dict] | None = None) -> list[dict]:
     """Parcels that stood still on the array longer than the scenario's ``wait_bound`` (s), grouped: parcels whose
     stands overlap in time and that lie within ``gap + 2`` pitches of each other (outline to outline) wait on each
-    other, a cycle of holds no one of them can break alone (kind ``"deadlock"``); a parcel
-    that waits alone is kind ``"waiting"`` (a dead end, a missing bay, a route that never opens). Each group names
-    its ``parcels``, the ``cells`` under them (centres covered), ``t_s`` when the last of them stopped and
-    ``waited_s`` how long all of them stood still together (until they moved again or the run ended). Judged at
-    the trajectory's samples; standing still: the centre within a quarter pitch of where it stopped. ``rows``: the
-    report's per-parcel rows (computed when not given)."""
+    other, a cycle of holds no one of them can break alone (kind ``"deadlock"``); a parcel that waits alone is kind
+    ``"waiting"`` (a dead end, a missing bay, a route that never opens). Judged from where the parcels stand, not
+    from the cells' holds: a queue stalled behind one stuck parcel is one group with it. Each group names its
+    ``parcels``, the ``cells`` under them (centres covered), ``t_s`` when the last of them stopped and ``waited_s``
+    how long all of them stood still together (until they moved again or the run ended). Judged at the trajectory's
+    samples; standing still: the centre within a quarter pitch of where it stopped. ``rows``: the report's
+    per-parcel rows (computed when not given)."""
     setup = result.setup
     sc, cells = setup.scenario, setup.cells
     ctl = sc.control
