@@ -235,3 +235,17 @@ def test_two_streams_meeting_head_on_give_way_instead_of_deadlocking(central):
     report = sorting_report(run(sc.build()))
     assert report["collisions"] == 0 and report["lost"] == 0 and report["misrouted"] == 0
     assert report["correct"] == 6, report  # every one, none left waiting
+
+
+def test_the_sorter_delivers_as_many_through_ten_percent_sentence_loss():
+    """Sentences sent on change, repeated twice, and a heartbeat: a lost sentence no longer leaves a vehicle's cells
+    disagreeing (sending every tick and trusting only this tick's, 5 % loss delivered nothing)."""
+    from virtual_vehicle.config.scenario import load_scenario
+    from virtual_vehicle.run.tasks import sorting_report
+
+    sc, _ = load_scenario("sorting_junction")
+    reports = {loss: sorting_report(run(sc.model_copy(update={"duration": 20.0, "control": sc.control.model_copy(
+        update={"loss_rate": loss})}).build())) for loss in (0.0, 0.1)}
+    ideal, lossy = reports[0.0], reports[0.1]
+    assert ideal["correct"] >= 4 and lossy["correct"] >= ideal["correct"]
+    assert lossy["collisions"] == lossy["misrouted"] == lossy["lost"] == 0 and lossy["stalls"] == []
