@@ -66,8 +66,9 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     rows = np.arange(n)
     # -- what the neighbours said (last heard, trusted while fresh)
     heard = {k: np.where(inbox.present, inbox.values[k].astype(np.int64), v) for k, v in state["heard"].items()}
-    age = np.where(inbox.present, 0, np.minimum(state["age"] + 1, np.iinfo(np.int32).max))
-    trusted = (age <= sorter.max_age) & inputs.connected
+    tick = int(round(inputs.t / sorter.period)) if sorter.period else 0
+    heard_at = np.where(inbox.present, tick, state["heard_at"])  # the tick each port last heard a sentence
+    trusted = (tick - heard_at <= sorter.trust) & inputs.connected
     # -- routing: one gradient per exit
     # A cell at the edge of the array (a side with no neighbour) costs more, so parcels travel inside it and
     # meet the edge only at their exit.
@@ -107,7 +108,6 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
         goal[merge] = heard["goal"][rows, k][merge]
     fresh = lit & (vid < 0) & entry & (labels >= 0)
     # ids order vehicles by age (the tick they were made), which is the priority at a merge
-    tick = int(round(inputs.t / sorter.period)) if sorter.period else 0
     vid[fresh] = tick * 1024 + entry_no[fresh] % 1024
     goal[fresh] = labels[fresh]
     on = lit & (vid >= 0) & (goal >= 0)
@@ -189,12 +189,12 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # leaving the array: only out of an exit cell of the goal (anywhere else the edge stops the vehicle)
     off_array = front & ~inputs.connected[rows, dp] & (exit_id == target) & (dp == exit_port)
     # requests that arrived: from a neighbour's front cell or a held cell passing it on
-    req = np.where(inbox.present & trusted & (inbox.values["req"] >= 0), inbox.values["req"].astype(np.int64),
-                   _HUGE)  # requests are events: only what arrived this tick
+    req = np.where(trusted & (heard["req"] >= 0), heard["req"],
+                   _HUGE)  # a request stands until its sender says otherwise: it sends only what changed
     choice = np.argmin(req, axis=1)  # the oldest vehicle asking (smallest id) gets the cell, always
     new_hold = np.where(req[rows, choice] < _HUGE, req[rows, choice], _NONE)
     hport = np.where(new_hold >= 0, choice, _NONE)
-    hdep = np.where(new_hold >= 0, inbox.values["rdep"].astype(np.int64)[rows, np.maximum(hport, 0)], 0)
+    hdep = np.where(new_hold >= 0, heard["rdep"][rows, np.maximum(hport, 0)], 0)
     # On a slow network a request does not arrive every tick: a hold lasts max_age ticks after it was last asked
     # for (on ideal rounds, one tick), unless an older vehicle asks meanwhile.
     keep = (state["hold"] >= 0) & (state["hage"] < sorter.max_age) & ((new_hold < 0) | (state["hold"] < new_hold))
@@ -248,10 +248,17 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     pass_on = (new_hold >= 0) & (hdep < L) & inputs.connected[rows, fp]
     out.values["req"][rows[pass_on], fwd[pass_on]] = new_hold[pass_on]
     out.values["rdep"][rows[pass_on], fwd[pass_on]] = hdep[pass_on] + 1
-    new_state = {"dist": dist, "heard": heard, "age": age, "vid": vid, "goal": goal,
+    # say only what changed on a port since it was last sent there, and everything at the heartbeat
+    beat = (tick + entry_no) % sorter.heartbeat_ticks == 0  # staggered by installation number
+    differs = np.stack([out.values[k].astype(np.int64) != v for k, v in state["said"].items()]).any(axis=0)
+    # a new sentence goes out again for ``repeats`` ticks, so that one loss does not cost a heartbeat
+    out.present[:] = beat[:, None] | differs | (state["again"] > 0)
+    again = np.where(differs, sorter.repeats, np.maximum(state["again"] - 1, 0))
+    said = {k: np.where(differs, out.values[k].astype(np.int64), v) for k, v in state["said"].items()}
+    new_state = {"dist": dist, "heard": heard, "heard_at": heard_at, "vid": vid, "goal": goal,
                  "dir": np.where(moving | (direction >= 0), direction, _NONE), "key": key, "stop": stop,
                  "hold": new_hold, "hdep": hdep, "hport": hport, "hage": hage, "ack": ack, "nxt": nxt,
-                 "park": park, "back": back, "bdir": bdir}
+                 "park": park, "back": back, "bdir": bdir, "said": said, "again": again}
     return new_state, out, wheels
 
 def _spread(sorter: Sorter, own, heard, same_nb, on):

@@ -39,7 +39,8 @@ CASES = {
         faults=load_scenario("sorting_junction")[0].faults.model_copy(update={"events": [
             FaultEvent(t=2.0, dead_cells=[100], dead_links=[(60, 0)], stuck_on=[(200, 0)])]})),
     "lossy rounds": lambda: _scenario("sorting_junction", 4.0, control={"loss_rate": 0.002}),
-    "very lossy rounds": lambda: _scenario("sorting_junction", 3.0, control={"loss_rate": 0.05}),
+    "very lossy rounds": lambda: _scenario("sorting_junction", 3.0, control={"loss_rate": 0.05, "heartbeat": 0.0}),
+    "lossy rounds, heartbeat": lambda: _scenario("sorting_junction", 3.0, control={"loss_rate": 0.05}),
 }
 
 
@@ -67,7 +68,8 @@ def test_stepping_only_the_cells_that_changed_gives_the_same_run(case):
     some = jobs[True].stepper
     n = jobs[True].setup.cells.n
     assert some.ticks == jobs[True].ticks
-    if case == "very lossy rounds":  # every cell hears something new every tick: it gave up comparing for a while
+    if case == "very lossy rounds":  # every cell says everything every tick and hears something new: it gave up
+        # comparing for a while
         assert some.backoff == some.max_backoff and some.stepped == n * some.ticks
     else:
         assert some.stepped < 0.5 * n * some.ticks  # most cells were not stepped: the comparison means something
@@ -331,9 +333,9 @@ def test_changed_cells_gives_up_comparing_in_turmoil_and_comes_back_when_it_calm
 def _same_step(mine, ref) -> None:
     """Two sorter steps' outputs are the same: state (keys in order, dtypes, values), sentences, wheel speeds."""
     (s1, o1, w1), (s2, o2, w2) = mine, ref
-    assert list(s1) == list(s2) and list(s1["heard"]) == list(s2["heard"])
+    assert list(s1) == list(s2) and list(s1["heard"]) == list(s2["heard"]) and list(s1["said"]) == list(s2["said"])
     for k in s1:
-        for a, b in ([(s1[k][w], s2[k][w]) for w in s1[k]] if k == "heard" else [(s1[k], s2[k])]):
+        for a, b in ([(s1[k][w], s2[k][w]) for w in s1[k]] if isinstance(s1[k], dict) else [(s1[k], s2[k])]):
             assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b), k
     assert list(o1.values) == list(o2.values) and o1.present.tolist() == o2.present.tolist()
     for w in o1.values:
@@ -403,12 +405,17 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool):
     from virtual_vehicle.cells.sorting import Sorter
 
     n, P = 40, 4
-    program = Sorter(0.3, gap=int(rng.integers(1, 4)), reach=int(rng.integers(2, 9)), max_age=max_age)
+    program = Sorter(0.3, gap=int(rng.integers(1, 4)), reach=int(rng.integers(2, 9)), max_age=max_age,
+                     heartbeat=float(rng.choice([0.0, 0.03])))  # every tick, or every third: some cells say nothing
     state = program.init(n, P, {})
     for w, (lo, hi) in _WORDS.items():
         state["heard"][w] = rng.integers(lo, hi + 1, (n, P))
     state["heard"].update(_said(rng, (n, P)))
-    state["age"] = rng.choice([0, 1, 2, 5, 2**31 - 1], (n, P))
+    t = float(rng.integers(0, 10**5)) * 0.01
+    state["heard_at"] = round(t / 0.01) - rng.choice([0, 1, 2, 5, 2**40], (n, P))  # the tick each port last heard
+    for w, (lo, hi) in _WORDS.items():  # what was last said on each port: some words as they will be, some not
+        state["said"][w] = np.where(rng.random((n, P)) < 0.3, -(1 << 40), rng.integers(lo, hi + 1, (n, P)))
+    state["again"] = rng.choice([0, 0, 1, 2], (n, P))
     for k, (lo, hi) in {"vid": (-1, 8), "goal": (-1, 40), "dir": (-1, 3), "back": (0, 6), "bdir": (-1, 3),
                         "hold": (-1, 8), "hage": (0, 4), "hport": (-1, 3), "hdep": (0, 4), "nxt": (0, 6)}.items():
         state[k] = rng.integers(lo, hi + 1, n)
@@ -426,7 +433,7 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool):
     if parking:
         config["park"] = rng.random(n) < 0.2
     labels = rng.integers(-1, 40, n) if labelled else None
-    inputs = CellInputs(float(rng.integers(0, 10**5)) * 0.01, rng.random((n, 5)) < 0.4, inbox,
+    inputs = CellInputs(t, rng.random((n, 5)) < 0.4, inbox,
                         rng.random((n, P)) < 0.85, config, labels)
     return program, state, inputs
 
@@ -454,11 +461,12 @@ def test_the_sorter_steps_changed_cells_in_place_as_it_steps_them_gathered(seed,
     rng = np.random.default_rng(seed)
     program, state, inputs = _random_sorter_inputs(rng, max_age, parking, True)
     n = len(inputs.sensors)
-    kept = [k for k in program.init(n, 4, {}) if k not in ("dist", "heard", "age")]  # the words a cell keeps
+    kept = [k for k in program.init(n, 4, {}) if k not in ("dist", "heard", "heard_at", "said", "again")]
     if silent:
         inputs.inbox.present[:] = False
-        state["age"][:] = 2**31 - 1
-        state = {**program.step(state, inputs)[0], **{k: state[k] for k in kept}}  # heard, age, dist settled
+        state["heard_at"][:] = -(1 << 40)
+        state = {**program.step(state, inputs)[0], **{k: state[k] for k in kept}}  # heard, heard_at, dist, said
+        state = {**program.step(state, inputs)[0], **{k: state[k] for k in kept}}  # settled
     out0, wheels0 = program.step(state, CellInputs(inputs.t, inputs.sensors, inputs.inbox, inputs.connected,
                                                    inputs.config, inputs.labels))[1:]
     rows = np.sort(rng.choice(n, int(rng.integers(1, n + 1)), replace=False))
@@ -474,8 +482,8 @@ def test_the_sorter_steps_changed_cells_in_place_as_it_steps_them_gathered(seed,
     others = np.setdiff1d(np.arange(n), rows)
 
     def leaves(st):  # by name: init and step hold the words in different orders
-        return [st["dist"], *(st["heard"][f.name] for f in program.schema.fields), st["age"],
-                *(st[k] for k in kept)]
+        return [st["dist"], *(st["heard"][f.name] for f in program.schema.fields), st["heard_at"],
+                *(st[k] for k in kept), *(st["said"][f.name] for f in program.schema.fields), st["again"]]
 
     for a, b, c in zip(leaves(mine), leaves(ref_state), leaves(state), strict=True):
         assert np.array_equal(a[rows], b) and np.array_equal(a[others], c[others])

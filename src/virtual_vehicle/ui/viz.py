@@ -222,9 +222,10 @@ def draw_cells(ax, setup, size: float = 12, color: str = "0.45", label: str | No
 def plot_sorting(result: RunResult, path: str | Path | None = None, cell_ids: bool = False):
     """A sorting run (program ``"sort"``): left, the array with its entry (grey) and exit lanes (one colour each),
     every parcel's path coloured by its destination, a filled dot where it left the array (at the right exit) or a
-    red cross (elsewhere), and hollow squares for parcels still on it, dead cells crossed out (``cell_ids``: each
-    cell's id written beside it); right, parcels delivered to the right exit and parcels on the array against time
-    (s). Saves a PNG to ``path`` if given; returns the figure."""
+    red cross (elsewhere), and hollow squares for parcels still on it, the cells under parcels that stood still past
+    the scenario's ``wait_bound`` (red squares where they wait on each other), dead cells crossed out (``cell_ids``:
+    each cell's id written beside it); right, parcels delivered to the right exit and parcels on the array against
+    time (s). Saves a PNG to ``path`` if given; returns the figure."""
     from virtual_vehicle.run.tasks import sorting_report
 
     setup = result.setup
@@ -255,6 +256,15 @@ def plot_sorting(result: RunResult, path: str | Path | None = None, cell_ids: bo
         else:
             end = pr.spec.world_polygon(tr.states[-1])
             ax.add_patch(PolygonPatch(np.asarray(end.exterior.coords), closed=True, fill=False, ec=c, lw=1.2))
+    for k, stall in enumerate(report.get("stalls") or []):  # parcels that stood still past the bound
+        where = P[stall["cells"]] if stall["cells"] else np.zeros((0, 2))
+        if len(where):
+            deadlock = stall["kind"] == "deadlock"
+            ax.scatter(where[:, 0], where[:, 1], s=90, marker="s", facecolors="none", zorder=4,
+                       edgecolors="red" if deadlock else "darkorange", lw=1.5,
+                       label=None if k else "stalled (red: deadlocked) from the time shown")
+            ax.annotate(f"{', '.join(stall['parcels'])} {stall['t_s']:.1f} s", where.mean(axis=0), fontsize=7,
+                        color="red" if deadlock else "darkorange", ha="center", va="bottom", zorder=5)
     ax.set_aspect("equal")
     ax.margins(0.05)
     ax.set_xlabel("x (m)")

@@ -13,10 +13,12 @@ ports lead to a neighbour, and its local configuration (set when it was installe
 must compute row i of its outputs from row i of its inputs only: no cell has an address, knows its position, or sees
 another cell's state except through sentences. :func:`check_program` tests a program against this contract.
 
-A program may also declare ``stationary = True``: a cell whose step left its state unchanged, given the same
-sensors, inbox, links, configuration and label again, returns the same outputs whatever the tick's time, and its
-state holds only per-cell arrays. :class:`ChangedCells` then steps only the cells whose inputs or state changed (on
-a sorting floor, those near parcels and where routing is still settling), which gives the same run to the last bit.
+A program may also declare ``stationary = True``: a cell whose step left its state unchanged, given the same sensors,
+inbox, links, configuration and label again, returns the same outputs whatever the tick's time, and its state holds
+only per-cell arrays. A program whose cells act on a clock as well (a heartbeat) names the cells the time wakes with
+``due(t, state, config)`` ((n,) bool, or None for none). :class:`ChangedCells` then steps only the cells whose inputs
+or state changed (on a sorting floor, those near parcels and where routing is still settling), which gives the same
+run to the last bit.
 """
 
 from __future__ import annotations
@@ -261,8 +263,9 @@ class ChangedCells:
 
     A cell is stepped when its state changed in its last step, a sentence on any of its ports differs from last
     tick's (``inbox_changed``, or found by comparison when the delivery model cannot tell), or its sensors or label
-    changed. Every cell is stepped when the links or the configuration changed (other objects: they are not compared
-    element by element), or when the state passed in is not the one this object returned (the run reset some cells).
+    changed, or the program's ``due`` names it. Every cell is stepped when the links or the configuration changed
+    (other objects: they are not compared element by element), or when the state passed in is not the one this
+    object returned (the run reset some cells).
 
     A program may also offer ``step_rows(state, inputs, rows, outbox, wheels)``: step only the cells ``rows`` of the
     full inputs, writing their new state, sentences and wheel speeds into this object's own ``state``, ``outbox``
@@ -327,6 +330,10 @@ class ChangedCells:
                 return self._full(state, inputs, sensors, labels, compare)
             inbox_changed = rows_differ(inputs.inbox.arrays, last["inbox"], n)
         changed = last["unsettled"] | inbox_changed | rows_differ([sensors], [last["sensors"]], n)
+        due = getattr(self.program, "due", None)  # cells the time wakes (a heartbeat), whatever changed
+        woken = None if due is None else due(inputs.t, state, inputs.config)
+        if woken is not None:
+            changed |= woken
         if labels is not None:
             changed |= labels != last["labels"]
         rows = np.flatnonzero(changed)

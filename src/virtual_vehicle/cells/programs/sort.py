@@ -25,7 +25,9 @@ class SortOptions(ProgramOptions):
     ``parking`` outline, or ``P`` on a map) and waits there (at most three exits then). Without outlines the entries
     (``E``), exits (``0``..``3``) and parking cells come from an ``[array]`` map. ``central`` = true runs the same
     policies on one central computer instead (:class:`~virtual_vehicle.cells.sorting.CentralSorter`), for
-    comparison."""
+    comparison. A cell sends on a link only when what it says there changed, and everything every ``heartbeat``
+    (s; 0: every tick), which repairs a lost sentence: traffic follows activity, not the number of cells. A parcel
+    on the array that stands still longer than ``wait_bound`` (s) is reported as stalled (see :func:`stalls`)."""
 
     program: Literal["sort"]
     speed: Annotated[float, Field(gt=0, le=1e3)] = 0.2
@@ -35,6 +37,8 @@ class SortOptions(ProgramOptions):
     gap: Annotated[int, Field(ge=1, le=50)] = 2
     reach: Annotated[int, Field(ge=1, le=62)] = 8
     central: bool = False
+    heartbeat: Annotated[float, Field(ge=0, le=60)] = 1.0
+    wait_bound: Annotated[float, Field(gt=0, le=1e6)] = 10.0
 
     def top_speed(self) -> float:
         """The parcels' riding speed (m/s): the fastest the wheels run."""
@@ -120,7 +124,8 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
 
         program = CentralSorter(topo, c.speed, c.gap, period=c.period)
     else:
-        program = Sorter(c.speed, c.gap, c.reach, max_age=c.max_age, period=c.period, pitch=cells.pitch)
+        program = Sorter(c.speed, c.gap, c.reach, max_age=c.max_age, period=c.period, pitch=cells.pitch,
+                         heartbeat=c.heartbeat)
     for i, p in enumerate(ctx.parcels):
         if p.destination is not None and p.destination >= n_exits:
             raise FieldError(f"parcels[{i}].destination", f"exit {p.destination} does not exist (the scenario has "
@@ -200,6 +205,7 @@ def report(result) -> dict:
             row["outcome"] = "lost"
         rows.append(row)
     times = [r["delivery_time_s"] for r in rows if r["delivery_time_s"] is not None]
+    net = result.stats.get("network", {})
     out = sorted((r["entered_at_s"] + r["delivery_time_s"], r["sequence"]) for r in rows
                  if r["sequence"] is not None and r["outcome"] == "delivered")
     order = [q for _, q in out]
@@ -218,7 +224,70 @@ def report(result) -> dict:
         "delivery_time_max_s": float(np.max(times)) if times else None,
         "entry_delay_mean_s": float(np.mean(delays)) if delays else None,
         "order_inversions": inversions if order else None,
+        "sentences_per_s": net["sentences_sent"] / sc.duration if "sentences_sent" in net else None,
+        "stalls": stalls(result, rows),
     }
+
+
+def stalls(result, rows: list[dict] | None = None) -> list[dict]:
+    """Parcels that stood still on the array longer than the scenario's ``wait_bound`` (s), grouped: parcels whose
+    stands overlap in time and that lie within ``gap + 2`` pitches of each other (outline to outline) wait on each
+    other, a cycle of holds no one of them can break alone (kind ``"deadlock"``); a parcel that waits alone is kind
+    ``"waiting"`` (a dead end, a missing bay, a route that never opens). Judged from where the parcels stand, not
+    from the cells' holds: a queue stalled behind one stuck parcel is one group with it. Each group names its
+    ``parcels``, the ``cells`` under them (centres covered), ``t_s`` when the last of them stopped and ``waited_s``
+    how long all of them stood still together (until they moved again or the run ended). Judged at the trajectory's
+    samples; standing still: the centre within a quarter pitch of where it stopped. ``rows``: the report's
+    per-parcel rows (computed when not given)."""
+    setup = result.setup
+    sc, cells = setup.scenario, setup.cells
+    ctl = sc.control
+    if rows is None:
+        rows = report(result)["parcels"]
+    pitch = cells.pitch
+    eps = 0.25 * pitch
+    stands = []  # (parcel index, t0, t1, state at t0)
+    for k, (pr, row) in enumerate(zip(result.parcels, rows)):
+        if row["entered_at_s"] is None:
+            continue
+        tr = pr.trajectory
+        t_end = tr.t_end if row["delivery_time_s"] is None else row["entered_at_s"] + row["delivery_time_s"]
+        keep = (tr.times >= row["entered_at_s"]) & (tr.times <= t_end)
+        times, states = tr.times[keep], tr.states[keep]
+        a = 0
+        for j in range(1, len(times) + 1):
+            if j == len(times) or np.hypot(*(states[j, :2] - states[a, :2])) > eps:
+                if times[j - 1] - times[a] > ctl.wait_bound:
+                    stands.append((k, float(times[a]), float(times[j - 1]), states[a]))
+                a = j
+    # parcels standing at the same time near each other wait on each other: connected groups
+    reach = (ctl.gap + 2) * pitch
+    polys = [shapely.Polygon(result.parcels[k].spec.world_polygon(st).exterior.coords) for k, _, _, st in stands]
+    group = list(range(len(stands)))
+
+    def root(u):
+        while group[u] != u:
+            u = group[u]
+        return u
+
+    for u, (ku, a0, a1, _) in enumerate(stands):
+        for v, (kv, b0, b1, _) in enumerate(stands[:u]):
+            near = polys[u].distance(polys[v]) <= reach
+            if ku != kv and near and max(a0, b0) < min(a1, b1):
+                group[root(u)] = root(v)
+    out = []
+    for g in sorted({root(u) for u in range(len(stands))}):
+        members = [stands[u] for u in range(len(stands)) if root(u) == g]
+        names = sorted({result.parcels[k].spec.name for k, *_ in members})
+        under = set()
+        for u in range(len(stands)):
+            if root(u) == g:
+                under |= set(np.flatnonzero(shapely.covers(polys[u], shapely.points(cells.positions))).tolist())
+        t0 = max(m[1] for m in members)
+        t1 = min(m[2] for m in members) if len(names) > 1 else members[0][2]
+        out.append({"kind": "deadlock" if len(names) > 1 else "waiting", "parcels": names, "cells": sorted(under),
+                    "t_s": t0, "waited_s": max(t1 - t0, 0.0)})
+    return out
 
 
 def _left_the_cells(setup, pr):
@@ -248,7 +317,8 @@ COMPARED = (("correct", "delivered to the right exit"), ("misrouted", "misrouted
             ("collisions", "collisions"), ("throughput_per_hour", "parcels per hour"),
             ("delivery_time_mean_s", "mean delivery time (s)"), ("delivery_time_max_s", "longest delivery time (s)"),
             ("entry_delay_mean_s", "mean wait at the entry (s)"), ("on_array", "still on the array"),
-            ("waiting", "never put on"), ("order_inversions", "pairs left out of sequence"))
+            ("waiting", "never put on"), ("order_inversions", "pairs left out of sequence"),
+            ("sentences_per_s", "sentences sent per second"))
 """(report key, label) of what ``virtual-vehicle compare`` puts side by side."""
 CENTRAL = True
 """``central = true`` runs the same policies on one central computer."""

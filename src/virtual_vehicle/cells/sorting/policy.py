@@ -18,6 +18,7 @@ from numba import njit
 
 from virtual_vehicle.cells.network.programs import UNREACHABLE
 from virtual_vehicle.cells.sorting.rules import (BIG, ENTRY, HUGE, MAX_EXITS, NONE, PARK, direction_key, drive, due,
+                                                 heartbeat_due,
                                                  hop_cost, split_goal, unpack, vehicle_id)
 
 Words = namedtuple("Words", "d nxt vid goal key stop req rdep hold ack ex blk")
@@ -25,21 +26,23 @@ Words = namedtuple("Words", "d nxt vid goal key stop req rdep hold ack ex blk")
 CellState = namedtuple("CellState", "vid goal dir key stop hold hdep hport hage ack nxt park back bdir")
 """The per-cell state words (n,), int64, in the order the sorter's state holds them after ``dist``, ``heard``,
 ``age``."""
-Memory = namedtuple("Memory", "heard age dist cell")
-"""What a cell keeps between ticks: words last heard (:class:`Words`, int64), their ages (ticks), the exit
-gradients' distances (n, MAX_EXITS) and the :class:`CellState`."""
+Memory = namedtuple("Memory", "heard heard_at dist cell said again")
+"""What a cell keeps between ticks: words last heard (:class:`Words`, int64), the tick each port last heard one (a
+tick, not an age, so that a silent neighbour leaves the state as it is), the exit
+gradients' distances (n, MAX_EXITS), the :class:`CellState`, the words it last sent on each port (:class:`Words`,
+int64; it sends again only what changed, and everything at its heartbeat) and how many ticks more it repeats a
+port's new sentence (n, P), so that one lost sentence does not leave a neighbour a heartbeat behind."""
 Config = namedtuple("Config", "exit exit_port entry entry_no park forbid labels")
 """Per-cell configuration (see :class:`~virtual_vehicle.cells.sorting.Sorter`) and the labels read this tick."""
-Rules = namedtuple("Rules", "tick max_age edge_cost reach gap back_ticks speed")
-"""The tick stepped and the sorter's numbers (hops and ticks; ``speed`` in m/s)."""
+Rules = namedtuple("Rules", "tick max_age edge_cost reach gap back_ticks speed heartbeat trust repeats")
+"""The tick stepped and the sorter's numbers (hops and ticks; ``speed`` in m/s; ``heartbeat`` the ticks between two
+sentences of a cell with nothing new to say, ``trust`` the ticks a neighbour's last sentence is trusted, ``repeats``
+the ticks a new sentence is sent again after it changed)."""
 Inputs = namedtuple("Inputs", "present arrived sensors connected")
 """Which words arrived (n, P), the words (:class:`Words`), the sensors (n, S) and the live links (n, P)."""
 Outputs = namedtuple("Outputs", "present sent wheels unsettled out_changed")
 """Where the sentences go (a presence mask and :class:`Words`), the (n, 2) wheel speeds (m/s), and per row whether
 the state and the sentences changed."""
-
-_INT32_MAX = int(np.iinfo(np.int32).max)
-
 
 @njit(cache=True)
 def _first_min(a):
@@ -88,6 +91,20 @@ def _put1(out, before, i, value):
     return value != old
 
 
+@njit(cache=True, inline="always")
+def _say(told, now, beat, i, q):
+    """Whether cell i sends the words ``now`` on port q: at its heartbeat (``beat``) or when any differs from what it
+    last sent there (``told``: the (last sent, new) :class:`Words` records), which then becomes what it sent; and
+    whether it differed."""
+    said_in, said_out = told
+    differs = False
+    for w in range(len(now)):
+        differs = differs or said_in[w][i, q] != now[w]
+    for w in range(len(now)):
+        said_out[w][i, q] = now[w] if differs else said_in[w][i, q]
+    return beat or differs, differs
+
+
 @njit(cache=True)
 def step_cells(rows, inp, cfg, rules, old, new, out):
     """:meth:`~virtual_vehicle.cells.sorting.Sorter.step` for the cells ``rows``, one at a time, in the order of the
@@ -99,10 +116,10 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     ``out.out_changed[i]`` say whether row i's state and sentence differ from what they were."""
     P = inp.present.shape[1]
     present, words, sensors, connected = inp  # the records unpacked once, outside the loop over cells: an array
-    heard_in, age_in, dist_in, state_in = old  # reached through a record inside it costs a reference count a use
-    heard_out, age_out, dist_out, state_out = new
+    heard_in, at_in, dist_in, state_in, said_in, again_in = old  # reached through a record inside it costs a reference
+    heard_out, at_out, dist_out, state_out, said_out, again_out = new  # count a use
     exit_id, exit_port, entry, entry_no, park_cell, forbid, labels = cfg
-    tick, max_age, edge_cost, reach, gap, back_ticks, speed = rules
+    tick, max_age, edge_cost, reach, gap, back_ticks, speed, heartbeat, trust, repeats = rules
     sent_present, sent, wheels, unsettled, out_changed = out
     n_vid, n_goal, n_dir, n_key, n_stop, n_hold, n_hdep, n_hport, n_hage, n_ack, n_nxt, n_park, n_back, n_bdir = \
         state_out
@@ -111,6 +128,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     hd, hnxt, hvid, hgoal, hkey, hstop, hreq, hrdep, hhold, hack, hex_, hblk = heard_out
     s_vid, s_goal, s_dir, s_key, s_stop, s_hold, s_hdep, s_hport, s_hage, s_ack, s_nxt, s_park, s_back, s_bdir = \
         state_in
+    told = (said_in, said_out)  # what each port last sent, and where the step writes it
     o_d, o_nxt, o_vid, o_goal, o_key, o_stop, o_req, o_rdep, o_hold, o_ack, o_ex, o_blk = sent
     park_any = False  # over the cells stepped, as stepping those rows gathered sees them
     for i in rows:
@@ -143,10 +161,10 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             changed |= _heard(p, w_ack[i, q], i_ack, hack, i, q)
             changed |= _heard(p, w_ex[i, q], i_ex, hex_, i, q)
             changed |= _heard(p, w_blk[i, q], i_blk, hblk, i, q)
-            old = age_in[i, q]
-            age_out[i, q] = 0 if p else min(old + 1, _INT32_MAX)
-            changed |= age_out[i, q] != old
-            trusted[q] = (age_out[i, q] <= max_age) and connected[i, q]
+            old = at_in[i, q]
+            at_out[i, q] = tick if p else old
+            changed |= at_out[i, q] != old
+            trusted[q] = (tick - at_out[i, q] <= trust) and connected[i, q]
             allowed[q] = q != forbid[i]
         # -- routing: one gradient per exit
         lit = False
@@ -275,12 +293,12 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         parked = on and park <= reach
         front = on and ahead_ok_port and not ahead_is_mine and not parked
         off_array = front and not connected[i, dp] and exit_id[i] == target and dp == ep
-        for q in range(P):
-            req[q] = np.int64(w_req[i, q]) if (present[i, q] and trusted[q] and w_req[i, q] >= 0) else HUGE
+        for q in range(P):  # a request stands until its sender says otherwise (it sends only what changed)
+            req[q] = hreq[i, q] if (trusted[q] and hreq[i, q] >= 0) else HUGE
         choice = _first_min(req)
         new_hold = req[choice] if req[choice] < HUGE else NONE
         hport = choice if new_hold >= 0 else NONE
-        hdep = np.int64(w_rdep[i, max(hport, 0)]) if new_hold >= 0 else 0
+        hdep = hrdep[i, max(hport, 0)] if new_hold >= 0 else 0
         keep = s_hold[i] >= 0 and s_hage[i] < max_age and (new_hold < 0 or s_hold[i] < new_hold)
         if keep:
             new_hold, hport, hdep = s_hold[i], s_hport[i], s_hdep[i]
@@ -330,22 +348,35 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             to_req[dp], to_rdep[dp] = vid, 1
         if new_hold >= 0 and hdep < L and connected[i, fp]:
             to_req[fwd], to_rdep[fwd] = new_hold, hdep + 1
+        # say: on a port only what changed since it last sent there (and again for ``repeats`` ticks), and
+        # everything at its heartbeat, which repairs a lost sentence; the words are written whether sent or not
+        beat = heartbeat_due(tick, entry_no[i], heartbeat)
         sent_new = False
         for q in range(P):
-            sent_new |= not sent_present[i, q]
-            sent_present[i, q] = True
-            sent_new |= _put(o_d, i, q, word)
-            sent_new |= _put(o_nxt, i, q, nxt)
-            sent_new |= _put(o_vid, i, q, vid if on else NONE)
-            sent_new |= _put(o_goal, i, q, goal if on else NONE)
-            sent_new |= _put(o_key, i, q, min(key, 2**31 - 1))
-            sent_new |= _put(o_stop, i, q, min(stop, 255) + (min(park, 255) << 8))
-            sent_new |= _put(o_req, i, q, to_req[q])
-            sent_new |= _put(o_rdep, i, q, to_rdep[q])
-            sent_new |= _put(o_hold, i, q, vid if (lit and on) else new_hold)
-            sent_new |= _put(o_ack, i, q, min(ack, 255) + ((hport + 1) << 8))
-            sent_new |= _put(o_ex, i, q, ENTRY if entry[i] else exit_id[i])
-            sent_new |= _put(o_blk, i, q, blk)
+            now = (np.int64(word), np.int64(nxt), np.int64(vid if on else NONE), np.int64(goal if on else NONE),
+                   np.int64(min(key, 2**31 - 1)), np.int64(min(stop, 255) + (min(park, 255) << 8)),
+                   np.int64(to_req[q]), np.int64(to_rdep[q]), np.int64(vid if (lit and on) else new_hold),
+                   np.int64(min(ack, 255) + ((hport + 1) << 8)), np.int64(ENTRY if entry[i] else exit_id[i]),
+                   np.int64(blk))
+            send, differs = _say(told, now, beat, i, q)
+            old_again = again_in[i, q]
+            again_out[i, q] = repeats if differs else max(old_again - 1, 0)
+            send = send or old_again > 0
+            changed |= differs or again_out[i, q] != old_again
+            sent_new |= sent_present[i, q] != send
+            sent_present[i, q] = send
+            sent_new |= _put(o_d, i, q, now[0])
+            sent_new |= _put(o_nxt, i, q, now[1])
+            sent_new |= _put(o_vid, i, q, now[2])
+            sent_new |= _put(o_goal, i, q, now[3])
+            sent_new |= _put(o_key, i, q, now[4])
+            sent_new |= _put(o_stop, i, q, now[5])
+            sent_new |= _put(o_req, i, q, now[6])
+            sent_new |= _put(o_rdep, i, q, now[7])
+            sent_new |= _put(o_hold, i, q, now[8])
+            sent_new |= _put(o_ack, i, q, now[9])
+            sent_new |= _put(o_ex, i, q, now[10])
+            sent_new |= _put(o_blk, i, q, now[11])
         out_changed[i] = sent_new
         changed |= _put1(n_vid, s_vid, i, vid)
         changed |= _put1(n_goal, s_goal, i, goal)

@@ -48,6 +48,13 @@ def vehicle_id(tick, number):
     return tick * 1024 + number % 1024
 
 
+@register_jitable
+def heartbeat_due(tick, number, heartbeat):
+    """Whether the cell with installation number ``number`` sends everything at ``tick`` (its heartbeat, every
+    ``heartbeat`` ticks, staggered by the number so that the cells do not all send at once). Scalars or arrays."""
+    return (tick + number) % heartbeat == 0
+
+
 def tick_of(t: float, period: float) -> int:
     """The control tick at time ``t`` (s) of a program with control period ``period`` (s; 0: always tick 0)."""
     return int(round(t / period)) if period else 0

@@ -9,7 +9,7 @@ from virtual_vehicle.cells.network.messages import DTYPE, Mailbox, Schema
 from virtual_vehicle.cells.network.programs import UNREACHABLE, CellInputs
 from virtual_vehicle.cells.network.sentence import WordType
 from virtual_vehicle.cells.sorting import policy
-from virtual_vehicle.cells.sorting.rules import BIG, MAX_EXITS, NONE, back_off_ticks, tick_of
+from virtual_vehicle.cells.sorting.rules import BIG, MAX_EXITS, NONE, back_off_ticks, heartbeat_due, tick_of
 
 
 class Sorter:
@@ -25,6 +25,11 @@ class Sorter:
             installation number modulo 1024), so smaller ids are older vehicles.
         pitch: the cell pitch (m), known to every cell: a vehicle that meets an older one head on backs off for the
             time it takes to travel ``gap + 1`` pitches.
+        heartbeat: the longest a cell stays silent (s): it sends on a port only when its sentence there changed, and
+            every sentence at least this often, which repairs a lost one (0: every tick). A neighbour's last
+            sentence is trusted for ``max_age`` ticks plus two heartbeats, so one lost heartbeat does not drop it.
+        repeats: ticks a cell sends a port's sentence again after it changed (with a heartbeat): a change is lost
+            only when all of them are.
 
     Sensor 0 of every cell must be its centre (the default layout): a cell whose centre is covered carries the
     parcel; the others only see its edge.
@@ -36,9 +41,8 @@ class Sorter:
     (the label read at entry cells, :func:`~virtual_vehicle.cells.sorting.rules.encode_goal`; -1 for none).
 
     Stationary (see :mod:`virtual_vehicle.cells.network.programs`): the tick's time enters only a new vehicle's id,
-    given
-    by a cell whose own id word then changes, so a cell whose state a step left unchanged repeats its outputs when
-    its inputs do.
+    given by a cell whose own id word then changes, and the heartbeat, at the ticks :meth:`due` names; so a cell whose
+    state a step left unchanged repeats its outputs when its inputs do, but at those ticks.
     """
 
     stationary = True
@@ -57,7 +61,8 @@ class Sorter:
     """The words' names and numpy types, in the schema's order (as the compiled step takes them)."""
 
     def __init__(self, speed: float, gap: int = 2, reach: int = 8, max_age: int = 0, edge_cost: int = 3,
-                 period: float = 0.01, pitch: float = 0.1):
+                 period: float = 0.01, pitch: float = 0.1, heartbeat: float = 0.0,
+                 repeats: int = 2):
         if not speed > 0:
             raise ValueError("speed must be positive (m/s)")
         if not 1 <= reach <= 62:
@@ -68,6 +73,16 @@ class Sorter:
         self.max_age = int(max_age)
         self.edge_cost = int(edge_cost)
         self.period = float(period)
+        if not heartbeat >= 0:
+            raise ValueError("heartbeat must be non-negative (s)")
+        self.heartbeat_ticks = max(1, tick_of(heartbeat, self.period))
+        """Ticks between two sentences of a cell with nothing new to say (1: it sends every tick)."""
+        if not 0 <= repeats <= 1000:
+            raise ValueError("repeats must be 0..1000 ticks")
+        self.repeats = int(repeats) if self.heartbeat_ticks > 1 else 0
+        """Ticks a new sentence is sent again (none when every tick sends everything anyway)."""
+        self.trust = self.max_age + 2 * (self.heartbeat_ticks - 1)
+        """Ticks a neighbour's last sentence is trusted after it arrived."""
         self.back_ticks = back_off_ticks((self.gap + 1) * pitch, self.speed, self.period)
         """Ticks a vehicle backs off for when it meets an older one head on: the gap and one more cell."""
 
@@ -79,7 +94,7 @@ class Sorter:
         P = ports
         return {"dist": np.full((n, MAX_EXITS), UNREACHABLE, dtype=np.int64),
                 "heard": {f.name: np.zeros((n, P), dtype=np.int64) for f in self.schema.fields},
-                "age": np.full((n, P), np.iinfo(np.int32).max, dtype=np.int64),
+                "heard_at": np.full((n, P), _NEVER, dtype=np.int64),
                 "vid": np.full(n, NONE, dtype=np.int64), "goal": np.full(n, NONE, dtype=np.int64),
                 "dir": np.full(n, NONE, dtype=np.int64), "key": np.full(n, BIG, dtype=np.int64),
                 "stop": np.full(n, 255, dtype=np.int64), "hold": np.full(n, NONE, dtype=np.int64),
@@ -87,7 +102,23 @@ class Sorter:
                 "hage": np.zeros(n, dtype=np.int64), "back": np.zeros(n, dtype=np.int64),
                 "bdir": np.full(n, NONE, dtype=np.int64),
                 "ack": np.zeros(n, dtype=np.int64), "nxt": np.zeros(n, dtype=np.int64),
-                "park": np.full(n, 255, dtype=np.int64)}
+                "park": np.full(n, 255, dtype=np.int64),
+                # nothing said yet: the first tick says everything
+                "said": {f.name: np.full((n, P), _NEVER, dtype=np.int64) for f in self.schema.fields},
+                "again": np.zeros((n, P), dtype=np.int64)}
+
+    def due(self, t: float, state, config: dict) -> np.ndarray:
+        """The (n,) cells that must be stepped at time ``t`` (s) whatever changed: those that stop trusting a
+        silent neighbour now, those whose heartbeat is now, and those whose heartbeat was last tick (to fall silent
+        again)."""
+        tick = tick_of(t, self.period)
+        woken = np.any(tick - state["heard_at"] == self.trust + 1, axis=1)
+        if self.heartbeat_ticks > 1:
+            n = len(woken)
+            number = np.broadcast_to(np.asarray(config.get("entry_no", 0), dtype=np.int64), (n,))
+            woken |= heartbeat_due(tick, number, self.heartbeat_ticks)
+            woken |= heartbeat_due(tick - 1, number, self.heartbeat_ticks)
+        return woken
 
     def step(self, state, inputs: CellInputs):
         """One control tick for every cell at once: new state, the sentences to send, and the (n, 2) wheel speeds (m/s
@@ -97,13 +128,14 @@ class Sorter:
         heard = state["heard"]
         new = {"dist": np.empty((n, MAX_EXITS), np.int64),
                "heard": {w: np.empty((n, P), np.int64) for w in self._words},
-               "age": np.empty((n, P), np.int64), **{k: np.empty(n, np.int64) for k in _STATE}}
+               "heard_at": np.empty((n, P), np.int64), **{k: np.empty(n, np.int64) for k in _STATE},
+               "said": {w: np.empty((n, P), np.int64) for w in self._words}, "again": np.empty((n, P), np.int64)}
         out = Mailbox(self.schema, np.empty((n, P), bool),
                       {w: np.empty((n, P), t) for w, t in zip(self._words, self._types)})
         wheels = np.zeros((n, 2))
         self._run(state, inputs, np.arange(n), new, out, wheels)
-        return {"dist": new["dist"], "heard": {k: new["heard"][k] for k in heard}, "age": new["age"],
-                **{k: new[k] for k in _STATE}}, out, wheels
+        return {"dist": new["dist"], "heard": {k: new["heard"][k] for k in heard}, "heard_at": new["heard_at"],
+                **{k: new[k] for k in _STATE}, "said": new["said"], "again": new["again"]}, out, wheels
 
     def step_rows(self, state, inputs: CellInputs, rows: np.ndarray, outbox: Mailbox, wheels: np.ndarray):
         """Step only the cells ``rows`` (indices into the full inputs), writing their new state, sentences and wheel
@@ -112,8 +144,10 @@ class Sorter:
         no rows gathered nor written back. Returns two (n,) masks, the rows whose state and whose sentences changed
         (False for the others), or None when the arrays are not the sorter's own kinds (int64 state, the schema's
         word types, C-contiguous, writeable), to step the rows the general way."""
-        kept = [state["dist"], *state["heard"].values(), state["age"], *(state[k] for k in _STATE)]
-        if (tuple(state["heard"]) != self._words or any(a.dtype != np.int64 for a in kept)
+        kept = [state["dist"], *state["heard"].values(), state["heard_at"], *(state[k] for k in _STATE),
+                *state["said"].values(), state["again"]]
+        if (tuple(state["heard"]) != self._words or tuple(state["said"]) != self._words
+                or any(a.dtype != np.int64 for a in kept)
                 or any(outbox.values[w].dtype != t for w, t in zip(self._words, self._types))
                 or outbox.present.dtype != bool or wheels.dtype != np.float64
                 or not all(a.flags.c_contiguous and a.flags.writeable for a in (*kept, wheels, *outbox.arrays))):
@@ -135,8 +169,10 @@ class Sorter:
 
         def memory(st, arg):  # the new state is written in place: its arrays are passed as they are
             return policy.Memory(policy.Words(*(arg(st["heard"][w], np.int64) for w in self._words)),
-                                 arg(st["age"], np.int64), arg(st["dist"], np.int64),
-                                 policy.CellState(*(arg(st[k], np.int64) for k in _STATE)))
+                                 arg(st["heard_at"], np.int64), arg(st["dist"], np.int64),
+                                 policy.CellState(*(arg(st[k], np.int64) for k in _STATE)),
+                                 policy.Words(*(arg(st["said"][w], np.int64) for w in self._words)),
+                                 arg(st["again"], np.int64))
 
         labels = np.full(n, NONE) if getattr(inputs, "labels", None) is None else inputs.labels
         unsettled, out_changed = np.zeros(n, bool), np.zeros(n, bool)
@@ -150,7 +186,8 @@ class Sorter:
                           cells("park", np.zeros(n, bool), bool), cells("forbid", np.full(n, NONE), np.int64),
                           _arg(labels, np.int64)),
             policy.Rules(tick_of(inputs.t, self.period), self.max_age, self.edge_cost, self.reach, self.gap,
-                         self.back_ticks, self.speed),
+                         self.back_ticks, self.speed, self.heartbeat_ticks, self.trust,
+                         self.repeats),
             memory(state, _arg), memory(new, lambda a, dtype: a),
             policy.Outputs(out.present, policy.Words(*(out.values[w] for w in self._words)), wheels, unsettled,
                            out_changed))
@@ -163,6 +200,10 @@ def _arg(a, dtype) -> np.ndarray:
     a = np.ascontiguousarray(a, dtype=dtype)
     return a if a.flags.writeable else a.copy()
 
+
+_NEVER = -(1 << 40)
+"""What a cell has said on a port before it first sends there (no word, 32 bits at most, equals it), and the tick
+it heard a port that never spoke."""
 
 _STATE = policy.CellState._fields
 """The sorter's per-cell state words after ``dist``, ``heard`` and ``age``, in the order the compiled step takes

@@ -1,0 +1,41 @@
+"""The sorter's runs name the parcels that stand still past the scenario's bound (``sorting.stalls``): parcels that
+wait on each other as a deadlock, a parcel waiting alone as waiting; a healthy run names none."""
+
+from __future__ import annotations
+
+from virtual_vehicle.config.scenario import load_scenario, parse_scenario
+from virtual_vehicle.run.sim import run
+from virtual_vehicle.run.tasks import sorting_report
+
+
+def one_way_head_on() -> dict:
+    """An aisle drawn one-way from both ends toward an exit lane leaving north from its middle, entries at both
+    ends: the first parcel from each side meets the other head on beside the lane and neither may back off against
+    its arrows."""
+    lane = "." * 11 + "{}" + "." * 11
+    aisle = ">" * 13 + "<" * 13
+    inner = "EEE" + ">" * 10 + "<" * 10 + "EEE"
+    rows = [lane.format("0000")] * 2 + [lane.format("oooo")] * 3 + [aisle, inner, inner, aisle]
+    parcels = [{"name": name, "length": 0.25, "width": 0.22, "mass": 1.0, "mu": 2.0, "x": x, "y": 0.15,
+                "t_start": 0.0, "destination": 0} for name, x in (("west", 0.13), ("east", 2.47))]
+    return {"name": "one_way_head_on", "duration": 14.0, "output_dt": 0.05,
+            "array": {"kind": "map", "pitch": 0.1, "map": "\n".join(rows)},
+            "control": {"program": "sort", "period": 0.01, "speed": 0.3, "gap": 2, "wait_bound": 4.0},
+            "friction": {"law": "viscous"}, "parcels": parcels}
+
+
+def test_parcels_meeting_head_on_on_one_way_aisles_are_named_as_a_deadlock():
+    report = sorting_report(run(parse_scenario(one_way_head_on()).build()))
+    deadlocks = [s for s in report["stalls"] if s["kind"] == "deadlock"]
+    assert report["correct"] < 2, report  # they did not get past each other
+    assert len(deadlocks) == 1, report["stalls"]
+    d = deadlocks[0]
+    assert d["parcels"] == ["east", "west"] and d["waited_s"] > 4.0 and 0.0 < d["t_s"] < 10.0
+    assert len(d["cells"]) >= 4  # the cells under both parcels
+
+
+def test_a_healthy_sorting_run_names_no_stalls():
+    sc, _ = load_scenario("sorting_junction")
+    report = sorting_report(run(sc.model_copy(update={"duration": 12.0}).build()))
+    assert report["correct"] >= 2 and report["stalls"] == []
+    assert 0 < report["sentences_per_s"] < 288 * 4 * 100 / 10  # far below every port every tick
