@@ -22,7 +22,9 @@ class Event:
     ``kind`` is ``"support"`` (cells entered / left the footprint, lifted off / touched down), ``"tip"`` (the
     parcel's centre of mass left its supports; the parcel falls off the array and is no longer simulated), or, in
     multi-parcel runs (:mod:`virtual_vehicle.engine.plant`), ``"contact"`` / ``"release"`` (it started / stopped pushing
-    against the parcel named ``partner``). Times in s, state as ``[x, y, theta, vx, vy, omega]``.
+    against the parcel named ``partner``); a law with modes (stick-slip) adds ``"stick"`` (wheels caught up with the
+    parcel) and ``"slip"`` (wheels broke away), their entries in ``entered`` and named "entry:wheel" in ``message``.
+    Times in s, state as ``[x, y, theta, vx, vy, omega]``.
     """
 
     t: float
