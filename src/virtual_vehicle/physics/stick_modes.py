@@ -795,18 +795,51 @@ def _known_c(J, N, muk, state):
 
 @njit(cache=True)
 def _lstsq_wrench(JS, minv, gap):
-    """``J_S^T lam`` for the minimum-norm least-squares ``lam`` of ``(J_S M^-1 J_S^T) lam = gap`` (numpy's default
-    cut-off: singular values below eps k of the largest are zero), as :func:`_stick_solve` and :func:`_project`."""
+    """``J_S^T lam`` for the minimum-norm least-squares ``lam`` of ``(J_S M^-1 J_S^T) lam = gap``, as
+    :func:`_stick_solve` and :func:`_project` (numpy's ``lstsq``) give it, without a k x k factorisation: with
+    ``B = J_S M^-1/2`` the wrench is ``M^1/2 B^+ gap``, and ``B^+ gap`` lies in the span of the independent rows
+    ``J_R`` (:func:`_independent_c`), so it is ``J_R^T alpha`` with ``alpha`` the least-squares solution of
+    ``(J_S M^-1 J_R^T) alpha = gap`` (k x r, r <= 3, full column rank: a Gram-Schmidt QR, twice for rounding)."""
     k = JS.shape[0]
-    A = np.empty((k, k))
-    for a in range(k):
-        for b in range(k):
-            A[a, b] = JS[a, 0] * minv[0] * JS[b, 0] + JS[a, 1] * minv[1] * JS[b, 1] + JS[a, 2] * minv[2] * JS[b, 2]
-    lam = np.linalg.lstsq(A, gap, rcond=np.finfo(np.float64).eps * k)[0]
+    R = _independent_c(JS, np.arange(k))
+    r = R.shape[0]
     F = np.zeros(3)
+    if r == 0:
+        return F
+    C = np.empty((k, r))
     for a in range(k):
+        for b in range(r):
+            q = R[b]
+            C[a, b] = JS[a, 0] * minv[0] * JS[q, 0] + JS[a, 1] * minv[1] * JS[q, 1] + JS[a, 2] * minv[2] * JS[q, 2]
+    Q = C.copy()
+    T = np.zeros((r, r))
+    for b in range(r):
+        for _ in range(2):
+            for e in range(b):
+                d = 0.0
+                for a in range(k):
+                    d += Q[a, e] * Q[a, b]
+                T[e, b] += d
+                for a in range(k):
+                    Q[a, b] -= d * Q[a, e]
+        size = 0.0
+        for a in range(k):
+            size += Q[a, b] ** 2
+        size = math.sqrt(size)
+        T[b, b] = size
+        for a in range(k):
+            Q[a, b] /= size
+    alpha = np.empty(r)
+    for b in range(r - 1, -1, -1):
+        acc = 0.0
+        for a in range(k):
+            acc += Q[a, b] * gap[a]
+        for e in range(b + 1, r):
+            acc -= T[b, e] * alpha[e]
+        alpha[b] = acc / T[b, b]
+    for b in range(r):
         for e in range(3):
-            F[e] += JS[a, e] * lam[a]
+            F[e] += JS[R[b], e] * alpha[b]
     return F
 
 
