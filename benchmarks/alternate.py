@@ -15,6 +15,8 @@ Cases (the figures of ``RESULTS.md``):
 - ``scale1``: the same hall with one parcel (mostly empty floor);
 - ``coulomb1``: one Coulomb parcel oscillating in the inward field for 5 s (``bench_perf.py`` (b)), the fastest of
   five runs in each process.
+- ``stick1``: one stick-slip parcel crossing 30 x 30 for 5 s event-driven (``bench_stick_events.py`` (ii)), the
+  fastest of five runs in each process.
 
 Run: ``python benchmarks/alternate.py a16f5ef HEAD --case scale200 --rounds 6``.
 """
@@ -66,6 +68,17 @@ for _ in range(5):
                    sample_dt=5.0)
     walls.append(time.perf_counter() - start)
 print(json.dumps({{"wall": min(walls), "end": tr.states[-1].tolist()}}))
+""",
+    "stick1": """
+import json, sys, time
+sys.path.insert(0, {bench!r})
+import bench_stick_events as b
+walls = []
+for _ in range(6):  # the first compiles and warms
+    start = time.perf_counter()
+    tr = b.run("stick_slip", "event")
+    walls.append(time.perf_counter() - start)
+print(json.dumps({{"wall": min(walls[1:]), "end": tr.states[-1].tolist()}}))
 """,
 }
 
