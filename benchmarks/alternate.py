@@ -16,7 +16,9 @@ Cases (the figures of ``RESULTS.md``):
 - ``coulomb1``: one Coulomb parcel oscillating in the inward field for 5 s (``bench_perf.py`` (b)), the fastest of
   five runs in each process;
 - ``pairs200``, ``pairs200coulomb``: 200 parcels on 100 x 100 cells under a constant uniform field for 1 s, viscous
-  and Coulomb law (``bench_pairs.py``'s largest: the plant's planner over many parcels).
+  and Coulomb law (``bench_pairs.py``'s largest: the plant's planner over many parcels);
+- ``stick1``: one stick-slip parcel crossing 30 x 30 for 5 s event-driven (``bench_stick_events.py`` (ii)), the
+  fastest of five runs in each process.
 
 Run: ``python benchmarks/alternate.py a16f5ef HEAD --case scale200 --rounds 6``.
 """
@@ -85,6 +87,17 @@ for _ in range(5):
                    sample_dt=5.0)
     walls.append(time.perf_counter() - start)
 print(json.dumps({{"wall": min(walls), "end": tr.states[-1].tolist()}}))
+""",
+    "stick1": """
+import json, sys, time
+sys.path.insert(0, {bench!r})
+import bench_stick_events as b
+walls = []
+for _ in range(6):  # the first compiles and warms
+    start = time.perf_counter()
+    tr = b.run("stick_slip", "event")
+    walls.append(time.perf_counter() - start)
+print(json.dumps({{"wall": min(walls[1:]), "end": tr.states[-1].tolist()}}))
 """,
 }
 

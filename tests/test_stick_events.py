@@ -20,6 +20,10 @@ SQUARE = layout.grid(2, 2, D, origin=(-D / 2, -D / 2))  # four cells a 0.3 m squ
 BOX = parcel.rectangle(0.3, 0.3, 1.0, 0.4, mu_static=0.5)
 
 
+def support_events(tr):
+    return [e for e in tr.events if e.kind == "support"]
+
+
 def stick_slip(cells, spec, V, law=None):
     return ParcelModel(cells, spec, V, law or laws.StickSlipLaw(), G)
 
@@ -46,7 +50,7 @@ def test_engine_agrees_with_the_reference_on_one_support_set(scene):
     run = reference(SQUARE, spec, V, y0, T)
     ts = np.linspace(0, T, 41)
     tr = integrate(stick_slip(SQUARE, spec, V), y0, 0, T, sample_times=ts)
-    assert tr.status == "completed" and tr.events == []  # one support set throughout
+    assert tr.status == "completed" and support_events(tr) == []  # one support set throughout
     assert np.abs(tr.states[:, :2] - run.state(ts)[:, :2]).max() <= 1e-8
     assert np.abs(tr.states - run.state(ts)).max() <= 1e-7
     mine = tr.stats["mode_events"]
@@ -66,9 +70,13 @@ def test_pickup_closed_form_across_support_changes():
     T, t_star = setup.scenario.duration, v / (mu * g)
     ts = np.linspace(0, T, 301)
     tr = integrate(ParcelModel(cells, spec, V, setup.law, g), y0, 0, T, sample_times=ts)
-    assert tr.status == "completed" and len(tr.events) >= 5  # it crosses cells
+    assert tr.status == "completed" and len(support_events(tr)) >= 5  # it crosses cells
     (t_mode, kind, before, after), = tr.stats["mode_events"]
     assert kind == "slip" and abs(t_mode - t_star) <= 1e-12 and set(after) == {0}
+    caught, = [e for e in tr.events if e.kind in ("stick", "slip")]  # the run's event: the x wheels grip at t*
+    assert caught.kind == "stick" and caught.t == t_mode
+    assert len(caught.message.split()) == sum(b in (1, -1) for b in before) > 0
+    assert {pair.split(":")[1] for pair in caught.message.split()} == {"0"}  # the wheels driving along x
     x = y0[0] + np.where(ts < t_star, 0.5 * mu * g * ts**2, v * ts - 0.5 * v * t_star)
     np.testing.assert_allclose(tr.states[:, 0], x, atol=1e-11)
     np.testing.assert_allclose(tr.states[:, 3], np.minimum(mu * g * ts, v), atol=1e-11)
@@ -99,7 +107,7 @@ def test_fixed_step_law_converges_to_the_event_driven_one(scene):
     T = 1.5
     ts = np.linspace(0, T, 51)
     exact = integrate(stick_slip(cells, spec, V), y0, 0, T, sample_times=ts)
-    assert len(exact.events) >= 15 and exact.stats["mode_changes"] >= 1
+    assert len(support_events(exact)) >= 15 and exact.stats["mode_changes"] >= 1
     errs = [np.abs(integrate(stick_slip(cells, spec, V), y0, 0, T, sample_times=ts, dt=dt, mode="fixed").states[:, :2]
                    - exact.states[:, :2]).max() for dt in (2e-3, 1e-3, 5e-4)]
     order = np.log2(np.array(errs[:-1]) / errs[1:])
@@ -115,7 +123,7 @@ def test_energy_account_closes_across_support_changes():
     tr = integrate(stick_slip(cells, spec, fields.Inward((0.45, 0.35), 0.4).velocities(cells)),
                    [0.3, 0.25, 0.4, 0.2, -0.1, 1.5], 0, 1.5)
     s = tr.stats
-    assert tr.status == "completed" and len(tr.events) > 5 and s["mode_changes"] > 0
+    assert tr.status == "completed" and len(support_events(tr)) > 5 and s["mode_changes"] > 0
     gained = s["kinetic_end"] - s["kinetic_start"]
     assert s["friction_dissipation"] > 0 and s["step_dissipation"] == 0
     assert abs(s["wheel_work"] - gained - s["friction_dissipation"]) <= 1e-8 * abs(s["wheel_work"])
@@ -181,7 +189,8 @@ def test_fixed_step_law_converges_through_stick_breaks_and_a_lift_off(mu_static)
     ts = np.linspace(0, T, 51)
     exact = integrate(stick_slip(SQUARE, spec, V), y0, 0, T, sample_times=ts)
     assert [k for _, k, _, _ in exact.stats["mode_events"]] == ["stick", "stick", "slip"]
-    assert len(exact.events) == 1 and exact.events[0].lifted  # the lift-off, between the second break and the slip
+    lift, = support_events(exact)
+    assert lift.lifted  # the lift-off, between the second break and the slip
     errs = [np.abs(integrate(stick_slip(SQUARE, spec, V), y0, 0, T, sample_times=ts, dt=dt, mode="fixed").states[:, :2]
                    - exact.states[:, :2]).max() for dt in (2e-4, 1e-4, 5e-5)]
     order = np.log2(np.array(errs[:-1]) / errs[1:])
@@ -201,3 +210,31 @@ def test_a_scenario_run_reports_the_exact_law():
     energy = carton["energy_J"]
     assert energy["step_dissipation"] == 0 and abs(energy["friction_dissipation"] - 0.3**2 / 2) < 1e-12
     assert carton["support_changes"] == 9
+
+
+def test_mode_changes_are_the_runs_events():
+    """Every mode change of a run is in its events (and so in its event table), in time order with the support
+    events: a "stick" event where wheels catch up with the parcel, a "slip" one where they break away, naming the
+    wheels as "entry:wheel"; the stick breaks and the catch-up of the kicked turn appear in the order they happen."""
+    from virtual_vehicle.run import tables
+    from virtual_vehicle.run.sim import run
+
+    spec = parcel.rectangle(0.3, 0.3, 1.0, 0.4, mu_static=0.4)
+    V = fields.Twist((0.02, 0.0), (0, 0, 8.0)).velocities(SQUARE) + [[0, 0], [0, 0], [0, 0], [0.3, 0]]
+    tr = integrate(stick_slip(SQUARE, spec, V), [0, 0, 0, 0, -8.0 * 0.02, 8.0], 0, 0.5)
+    modes = [e for e in tr.events if e.kind in ("stick", "slip")]
+    assert [e.t for e in tr.events] == sorted(e.t for e in tr.events)
+    changes = tr.stats["mode_events"]
+    assert {e.t for e in modes} == {t for t, *_ in changes}
+    for t, _, before, after in changes:
+        gripped = {j for j, (a, b) in enumerate(zip(before, after)) if a in (1, -1) and b == 0}
+        named = [e for e in modes if e.t == t and e.kind == "stick"]
+        assert len(named) == (1 if gripped else 0)
+        if gripped:
+            assert len(named[0].message.split()) == len(gripped)
+            assert all(int(pair.split(":")[0]) in named[0].entered for pair in named[0].message.split())
+    assert [e.kind for e in modes][:2] == ["slip", "slip"]  # the grip breaks twice before a wheel catches up
+    assert modes[-1].kind == "stick"
+    res = run(load_scenario("stick_slip_pickup")[0].build())
+    kinds = tables.events(res).column("kind").to_pylist()
+    assert kinds.count("stick") == 1 and kinds.count("slip") == 0

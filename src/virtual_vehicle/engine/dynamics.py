@@ -40,7 +40,7 @@ from virtual_vehicle.model.layout import CellArray
 from virtual_vehicle.model.parcel import ParcelSpec
 from virtual_vehicle.physics.contact import SupportSolution, solve_prechecked
 from virtual_vehicle.physics.laws import FrictionConstants, FrictionLaw, affine
-from virtual_vehicle.physics.stick_modes import breaking_wheels, decide_mode, project_twist, stick_facets
+from virtual_vehicle.physics.stick_modes import breaking_kernel, decide_kernel
 
 TIME_STEPPERS = {"stick_slip": run_stick_slip}
 """The engine's time steppers by the name a time-stepped law gives (its ``time_stepper``): each solves the law's
@@ -587,32 +587,36 @@ _MODE_CHATTER = 1000
 decided that its own events end at once): the run stops with an IntegrationError instead of looping."""
 
 
-def _mode_arrays(wheels, mode, t, y, mass, inertia, minv):
-    """What the compiled engine takes for ``mode`` of ``wheels`` entered at (t, y): the fields
-    (:func:`~virtual_vehicle.engine._kernel.mode_fields`), the number of mode event values and the facet choice of
-    the sticking wheels' zonotope. The sticking rows kept are a maximal independent subset (at most three), chosen
-    in order; the others follow from them for the whole mode (their dependence does not change as the centre
-    moves)."""
-    S = mode.stick
-    chosen: list[int] = []
-    if len(S):
-        basis: list[np.ndarray] = []  # orthonormal, of the rows chosen so far (Gram-Schmidt, twice for rounding)
-        for k, row in enumerate(wheels.rows(y[:2])[S]):
-            rest = row.copy()
-            for _ in range(2):
-                for q in basis:
-                    rest -= (rest @ q) * q
-            size = float(np.sqrt(rest @ rest))
-            if size > 1e-9 * float(np.sqrt(row @ row)):
-                basis.append(rest / size)
-                chosen.append(k)
-                if len(chosen) == 3:
-                    break
-        spec = stick_facets(wheels, mode, t, y, mass, inertia)
-    else:
-        spec = (0, None, np.zeros((0, 2), np.int64))
-    md = _kernel.mode_fields(wheels, mode.signs, S[chosen], S, spec, minv)
-    return md, _kernel.mode_event_count(md), spec
+def _mode_tuple(wheels, mode, minv):
+    """What the compiled engine takes for ``mode`` (as :func:`~virtual_vehicle.physics.stick_modes.decide_kernel`
+    returns it) of the wheel arrays ``wheels``: the fields (:func:`~virtual_vehicle.engine._kernel.mode_fields`'
+    order) and the number of mode event values. The sticking rows kept are a maximal independent subset (at most
+    three), chosen in order; the others follow from them for the whole mode (their dependence does not change as
+    the centre moves)."""
+    state, rows, stick, rank, anchor, index = mode
+    md = (*wheels, state, stick[rows], stick, rank, anchor, index, minv)
+    return md, int(np.count_nonzero(np.abs(state) == 1)) + (len(index) if len(stick) else 0)
+
+
+def _wheel_keys(model, piece) -> list:
+    """(entry, wheel index) of each wheel of ``piece`` in the order of the law's wheel arrays."""
+    row, k = np.nonzero(model.cells.wheel_active[piece.support])
+    return list(zip(piece.support[row].tolist(), k.tolist()))
+
+
+def _mode_change_events(t, y, before, after, keys) -> list:
+    """The run's events of one mode change at time ``t`` (s), state ``y``: a ``"stick"`` event naming the wheels that
+    caught up with the parcel (slipping before, sticking after), a ``"slip"`` one those that broke away (sticking
+    before, or slipping the other way), each as "entry:wheel" pairs in its message (the entries' ids in
+    ``entered``); none for a side without wheels."""
+    out = []
+    for kind, moved in (("stick", [j for j, (a, b) in enumerate(zip(before, after)) if b == 0 and a in (1, -1)]),
+                        ("slip", [j for j, (a, b) in enumerate(zip(before, after)) if b in (1, -1) and a != b
+                                  and a != 2])):
+        if moved:
+            out.append(Event(t, kind, tuple(map(float, y)), entered=tuple(sorted({keys[j][0] for j in moved})),
+                             message=" ".join(f"{keys[j][0]}:{keys[j][1]}" for j in moved)))
+    return out
 
 
 def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol, atol, max_step, dt,
@@ -622,8 +626,10 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     a known sign, :mod:`~virtual_vehicle.physics.stick_modes`); each mode is integrated by the compiled DOP853
     (:func:`~virtual_vehicle.engine._kernel.run_mode`) with its mode events and the piece's support events. At a
     mode event, and at a support event with the new piece's wheels, the next mode is decided by the complementarity
-    rule (:func:`~virtual_vehicle.physics.stick_modes.decide_mode`) and the twist projected onto its sticking
-    wheels. The stats hold the energy account (J) as the time stepper's do (its step dissipation 0: there is no
+    rule (:func:`~virtual_vehicle.physics.stick_modes.decide_kernel`, the compiled form of
+    :func:`~virtual_vehicle.physics.stick_modes.decide_mode`) and the twist projected onto its sticking wheels. Each
+    mode change is also one or two of the run's events (:func:`_mode_change_events`: ``"stick"`` where wheels catch
+    up with the parcel, ``"slip"`` where they break away). The stats hold the energy account (J) as the time stepper's do (its step dissipation 0: there is no
     step), the mode changes and ``mode_events`` (this call's): (time, kind "slip" or "stick", mode before, mode
     after) each. Where the rule cannot decide a mode, the run crosses a few fixed steps (:func:`_undecided_steps`),
     counted in ``stats["undecided_steps"]``."""
@@ -640,18 +646,20 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     h = t1 - t0
     status = "completed"
 
-    def decide(wheels, t, z, breaking=None):
-        """The mode at (t, z), z's twist projected onto it; None where the rule cannot decide one."""
-        try:
-            mode = decide_mode(wheels, t, z[:6], mass, inertia, breaking=breaking)
-        except ValueError:
+    nobody = np.zeros(0, np.int64)
+
+    def decide(wheels, t, z, breaking=nobody, signs=nobody):
+        """The mode at (t, z) as :func:`decide_kernel` gives it (state, independent sticking rows, sticking wheels,
+        facet choice), z's twist projected onto it; None where the rule cannot decide one."""
+        ok, state, y, *mode = decide_kernel(*wheels, minv, t, z[:6], breaking, signs)
+        if not ok:
             return None
-        z[:6] = project_twist(wheels, mode, t, z[:6], mass, inertia)
-        return mode
+        z[:6] = y
+        return (state, *mode)
 
     def wheels_of(piece):
-        return law.wheel_contacts(model.cells, piece.support, piece.solution, model.velocities, spec.mu,
-                                  spec.mu_static)
+        return law.wheel_arrays(model.cells, piece.support, piece.solution, model.velocities, spec.mu,
+                                spec.mu_static)
 
     try:
         piece = model.piece_at(z[:6]) if support is None else model.piece_for(support, z[:6])
@@ -673,7 +681,9 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             raise IntegrationError(f"more than {max_segments} support and mode changes: events accumulate near "
                                    f"t={t:.9g} s")
         if mode is None:  # undecided: cross a few fixed steps of the law's stepper, then decide again
-            t, status, steps = _undecided_steps(model, wheels, z, t, t1, dt, rec, events, progress)
+            contacts = law.wheel_contacts(model.cells, piece.support, piece.solution, model.velocities, spec.mu,
+                                          spec.mu_static)
+            t, status, steps = _undecided_steps(model, contacts, z, t, t1, dt, rec, events, progress)
             fallback_steps += steps
             if status == "tipped" or t >= t1:
                 break
@@ -686,7 +696,7 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         if new_piece:
             seg = _Segment(model, piece, y_probe, seg)
             base = np.ascontiguousarray(y_probe, dtype=float)
-        md, n_ev, facets = _mode_arrays(wheels, mode, t, z[:6], mass, inertia, minv)
+        md, n_ev = _mode_tuple(wheels, mode, minv)
         first, h_abs = min(h, t1 - t), 0.0
         while True:
             (outcome, t, z8, h_abs, last, evals, rec.next, t_probe, y_probe, under, told,
@@ -710,16 +720,23 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         if outcome == _kernel.REACHED:
             break
         if outcome == _kernel.MODE_EVENT:
-            slipping = int(np.count_nonzero(np.abs(mode.signs) == 1))
-            breaking, kind = None, "slip"
+            state, _, stick, rank, anchor, index = mode
+            slipping = int(np.count_nonzero(np.abs(state) == 1))
+            kind = "slip"
             if which >= slipping:
                 kind = "stick"
-                breaking = breaking_wheels(wheels, mode, t, z[:6], mass, inertia, facets, which - slipping)
-            new_mode = decide(wheels, t, z, breaking)
+                new_mode = decide(wheels, t, z, *breaking_kernel(*wheels, minv, t, z[:6], state, stick, rank, anchor,
+                                                                 index, which - slipping))
+            else:
+                new_mode = decide(wheels, t, z)
             same_time = same_time + 1 if mode_events and t - mode_events[-1][0] <= 1e-12 * max(1.0, t) else 0
             if same_time > _MODE_CHATTER:
                 raise IntegrationError(f"stick-slip modes chatter at t={t:.9g} s")
-            mode_events.append((t, kind, mode.state, None if new_mode is None else new_mode.state))
+            before = tuple(state.tolist())
+            after = None if new_mode is None else tuple(new_mode[0].tolist())
+            mode_events.append((t, kind, before, after))
+            if after is not None:
+                events.extend(_mode_change_events(t, z[:6], before, after, _wheel_keys(model, piece)))
             mode, new_piece = new_mode, False
             if t >= t1:
                 break

@@ -731,5 +731,5 @@ def joined_stats(segs: list[Trajectory]) -> dict:
         stats["sweeps_max"] = max(s.stats.get("sweeps_max", 0) for s in segs)
     if "kinetic_start" in segs[0].stats:
         stats["kinetic_start"] = segs[0].stats["kinetic_start"]
-    stats.pop("mode_events", None)  # one integrate call's list: joined, only their count (mode_changes) is kept
+    stats.pop("mode_events", None)  # one call's list: joined, its count is kept (the changes are in the events)
     return stats

@@ -22,7 +22,9 @@ class Event:
     ``kind`` is ``"support"`` (cells entered / left the footprint, lifted off / touched down), ``"tip"`` (the
     parcel's centre of mass left its supports; the parcel falls off the array and is no longer simulated), or, in
     multi-parcel runs (:mod:`virtual_vehicle.engine.plant`), ``"contact"`` / ``"release"`` (it started / stopped pushing
-    against the parcel named ``partner``). Times in s, state as ``[x, y, theta, vx, vy, omega]``.
+    against the parcel named ``partner``); a law with modes (stick-slip) adds ``"stick"`` (wheels caught up with the
+    parcel) and ``"slip"`` (wheels broke away), their entries in ``entered`` and named "entry:wheel" in ``message``.
+    Times in s, state as ``[x, y, theta, vx, vy, omega]``.
     """
 
     t: float
@@ -76,7 +78,7 @@ class Trajectory:
 
     Attributes:
         times: (k,) sample times, s. states: (k, 6) states at those times.
-        events: support changes and tipping, in time order.
+        events: support changes, tipping and (a law with modes) wheels gripping or slipping, in time order.
         status: ``"completed"`` (reached the end time) or ``"tipped"``.
         t_end: time the parcel stopped being simulated, s.
         segments: smooth pieces integrated (event mode) or steps taken (fixed mode).
@@ -95,7 +97,8 @@ class Trajectory:
     def to_data(self) -> dict:
         """This trajectory as data: its arrays, its events as columns (:meth:`Event.to_columns`), its status and
         counts, and its stats (names to plain numbers). A stick-slip call's own list of mode changes
-        (``stats["mode_events"]``) is not written: joining pieces drops it too, keeping its count ``mode_changes``."""
+        (``stats["mode_events"]``) is not written: joining pieces drops it too, keeping its count ``mode_changes``
+        (the changes themselves are in its events, as ``"stick"`` and ``"slip"``)."""
         return {"times": self.times, "states": self.states, "events": Event.to_columns(self.events),
                 "status": self.status, "t_end": float(self.t_end), "segments": int(self.segments),
                 "rhs_evals": int(self.rhs_evals),

@@ -53,7 +53,8 @@ from numba import njit
 from scipy.integrate import solve_ivp
 
 __all__ = ["Wheels", "Mode", "ModeEvent", "StickSlipRun", "wheels_on", "decide_mode", "mode_rhs", "mode_events",
-           "simulate", "stick_facets", "breaking_wheels", "project_twist"]
+           "simulate", "stick_facets", "breaking_wheels", "project_twist", "wheel_arrays", "arrays_of", "decide_kernel",
+           "breaking_kernel", "decide_compiled"]
 
 _SLIP_TOL = 1e-9  # relative to the speed scale: a wheel this close to zero slip is at zero slip
 _ACCEL_TOL = 1e-7  # relative to the acceleration scale: a slip acceleration this small is zero
@@ -713,3 +714,376 @@ def project_twist(wheels: Wheels, mode: Mode, t: float, y, mass: float, inertia:
     """``y`` (x, y, theta, vx, vy, omega) with its twist moved, the least in the kinetic metric, onto the sticking
     wheels' constraints of ``mode`` at time ``t`` (s): what :func:`simulate` does at every mode change."""
     return _project(wheels, mode, t, np.asarray(y, dtype=float), 1.0 / _masses(mass, inertia))
+
+
+# --- The mode decision compiled ------------------------------------------------------------------------------------
+# The functions above are the readable reference; those below do the same in one compiled call (the engine decides a
+# mode at every event and support change, where the reference's Python took ~1.5 ms). They take a wheel set as the
+# ten arrays of :func:`wheel_arrays` (``Wheels``' fields, in its order), so that the engine builds no objects.
+
+
+def wheel_arrays(cells, support, solution, velocities, mu: float, mu_static: float | None = None) -> tuple:
+    """:func:`wheels_on`'s wheel set (no stuck or free wheels, no accelerations, ``t0`` 0) as the tuple
+    ``(points, directions, speeds, accels, t0, force_lin, force_const, origin, mu_static, mu_kinetic)`` (SI units as
+    :class:`Wheels`), built in compiled code and unchecked: what the engine passes to :func:`decide_kernel`."""
+    mu_s = mu if mu_static is None else mu_static
+    return _wheel_arrays(cells.wheel_active, cells.drive_directions, cells.positions,
+                         np.ascontiguousarray(velocities, dtype=float), np.asarray(support, dtype=np.int64),
+                         np.ascontiguousarray(solution.force_lin, dtype=float),
+                         np.ascontiguousarray(solution.force_const, dtype=float),
+                         np.ascontiguousarray(solution.origin, dtype=float), float(mu), float(mu_s))
+
+
+def arrays_of(wheels: Wheels) -> tuple:
+    """The ten arrays of :func:`wheel_arrays` of a :class:`Wheels`."""
+    return (np.ascontiguousarray(wheels.points), np.ascontiguousarray(wheels.directions),
+            np.ascontiguousarray(wheels.speeds), np.ascontiguousarray(wheels.accels), float(wheels.t0),
+            np.ascontiguousarray(wheels.force_lin), np.ascontiguousarray(wheels.force_const),
+            np.ascontiguousarray(wheels.origin), np.ascontiguousarray(wheels.mu_static),
+            np.ascontiguousarray(wheels.mu_kinetic))
+
+
+@njit(cache=True)
+def _wheel_arrays(active, directions, positions, V, support, force_lin, force_const, origin, mu, mu_s):
+    """The wheels of entries ``support``, each present wheel in entry order (as ``np.nonzero`` of ``active``)."""
+    m = 0
+    for r in range(support.shape[0]):
+        for k in range(2):
+            m += active[support[r], k]
+    P, U = np.empty((m, 2)), np.empty((m, 2))
+    w, FL, FC = np.empty(m), np.empty((m, 2)), np.empty(m)
+    j = 0
+    for r in range(support.shape[0]):
+        i = support[r]
+        for k in range(2):
+            if not active[i, k]:
+                continue
+            P[j, 0], P[j, 1] = positions[i, 0], positions[i, 1]
+            U[j, 0], U[j, 1] = directions[i, k, 0], directions[i, k, 1]
+            w[j] = V[i, 0] * U[j, 0] + V[i, 1] * U[j, 1]
+            FL[j, 0], FL[j, 1], FC[j] = force_lin[r, 0], force_lin[r, 1], force_const[r]
+            j += 1
+    return P, U, w, np.zeros(m), 0.0, FL, FC, origin.copy(), np.full(m, mu_s), np.full(m, mu)
+
+
+@njit(cache=True)
+def _kinematics_c(P, U, w0, wa, t0, FL, FC, origin, t, y):
+    """:func:`_kinematics` compiled: rows J (m, 3), normal forces N, slips s, rate terms c, surface speeds w."""
+    m = P.shape[0]
+    J, N, s, c, w = np.empty((m, 3)), np.empty(m), np.empty(m), np.empty(m), np.empty(m)
+    for j in range(m):
+        ux, uy = U[j, 0], U[j, 1]
+        J[j, 0], J[j, 1], J[j, 2] = ux, uy, (P[j, 0] - y[0]) * uy - (P[j, 1] - y[1]) * ux
+        N[j] = FL[j, 0] * (y[0] - origin[0]) + FL[j, 1] * (y[1] - origin[1]) + FC[j]
+        w[j] = w0[j] + wa[j] * (t - t0)
+        s[j] = J[j, 0] * y[3] + J[j, 1] * y[4] + J[j, 2] * y[5] - w[j]
+        c[j] = -y[5] * (y[3] * uy - y[4] * ux)  # d/dt (r x u) . omega with dr/dt = -v
+    return J, N, s, c, w
+
+
+@njit(cache=True)
+def _known_c(J, N, muk, state):
+    """The slipping wheels' kinetic wrench (eq. 22 per wheel: ``-sign mu_k N`` along each direction)."""
+    known = np.zeros(3)
+    for j in range(state.shape[0]):
+        if state[j] == 1 or state[j] == -1:
+            lam = -state[j] * muk[j] * N[j]
+            for e in range(3):
+                known[e] += J[j, e] * lam
+    return known
+
+
+@njit(cache=True)
+def _lstsq_wrench(JS, minv, gap):
+    """``J_S^T lam`` for the minimum-norm least-squares ``lam`` of ``(J_S M^-1 J_S^T) lam = gap``, as
+    :func:`_stick_solve` and :func:`_project` (numpy's ``lstsq``) give it, without a k x k factorisation: with
+    ``B = J_S M^-1/2`` the wrench is ``M^1/2 B^+ gap``, and ``B^+ gap`` lies in the span of the independent rows
+    ``J_R`` (:func:`_independent_c`), so it is ``J_R^T alpha`` with ``alpha`` the least-squares solution of
+    ``(J_S M^-1 J_R^T) alpha = gap`` (k x r, r <= 3, full column rank: a Gram-Schmidt QR, twice for rounding)."""
+    k = JS.shape[0]
+    R = _independent_c(JS, np.arange(k))
+    r = R.shape[0]
+    F = np.zeros(3)
+    if r == 0:
+        return F
+    C = np.empty((k, r))
+    for a in range(k):
+        for b in range(r):
+            q = R[b]
+            C[a, b] = JS[a, 0] * minv[0] * JS[q, 0] + JS[a, 1] * minv[1] * JS[q, 1] + JS[a, 2] * minv[2] * JS[q, 2]
+    Q = C.copy()
+    T = np.zeros((r, r))
+    for b in range(r):
+        for _ in range(2):
+            for e in range(b):
+                d = 0.0
+                for a in range(k):
+                    d += Q[a, e] * Q[a, b]
+                T[e, b] += d
+                for a in range(k):
+                    Q[a, b] -= d * Q[a, e]
+        size = 0.0
+        for a in range(k):
+            size += Q[a, b] ** 2
+        size = math.sqrt(size)
+        T[b, b] = size
+        for a in range(k):
+            Q[a, b] /= size
+    alpha = np.empty(r)
+    for b in range(r - 1, -1, -1):
+        acc = 0.0
+        for a in range(k):
+            acc += Q[a, b] * gap[a]
+        for e in range(b + 1, r):
+            acc -= T[b, e] * alpha[e]
+        alpha[b] = acc / T[b, b]
+    for b in range(r):
+        for e in range(3):
+            F[e] += JS[R[b], e] * alpha[b]
+    return F
+
+
+@njit(cache=True)
+def _required_c(J, N, c, wa, mus, muk, state, S, minv):
+    """:func:`_required` compiled: the generators ``mu_s N J`` (k, 3) of sticking wheels ``S``, the net wrench
+    ``F_S`` they must supply and the slipping wheels' wrench."""
+    known = _known_c(J, N, muk, state)
+    k = S.shape[0]
+    JS, G, gap = np.empty((k, 3)), np.empty((k, 3)), np.empty(k)
+    for a in range(k):
+        j = S[a]
+        acc = 0.0
+        for e in range(3):
+            JS[a, e] = J[j, e]
+            G[a, e] = mus[j] * N[j] * J[j, e]
+            acc += J[j, e] * minv[e] * known[e]
+        gap[a] = (wa[j] - c[j]) - acc
+    return G, (_lstsq_wrench(JS, minv, gap) if k else np.zeros(3)), known
+
+
+@njit(cache=True)
+def _facets_c(G):
+    """:func:`_facet_spec` compiled: (rank, anchor (2,), index (f, 2); rank 1 and 2 repeat their one generator)."""
+    k = G.shape[0]
+    anchor = np.zeros(2, np.int64)
+    largest = 0.0
+    for a in range(k):
+        for e in range(3):
+            largest = max(largest, abs(G[a, e]))
+    if k == 0 or not largest > 0:
+        return 0, anchor, np.zeros((0, 2), np.int64)
+    scale = np.empty(k)
+    for a in range(k):
+        scale[a] = math.sqrt(G[a, 0] ** 2 + G[a, 1] ** 2 + G[a, 2] ** 2)
+    sv = np.linalg.svd(G / scale.max(), full_matrices=False)[1]
+    rank = 0
+    for v in sv:
+        rank += v > 1e-9 * sv[0]
+    a0, a1, unit, index = _facet_candidates(G, scale, rank)
+    if rank == 1:
+        return 1, anchor, index
+    keep = _first_distinct(np.rint(unit * 1e8) / 1e8)  # np.round(unit, 8), as the reference
+    anchor[0], anchor[1] = a0, a1
+    out = np.empty((keep.shape[0], 2), np.int64)
+    for f in range(keep.shape[0]):
+        out[f, 0], out[f, 1] = index[keep[f], 0], index[keep[f], 1]
+    return rank, anchor, out
+
+
+@njit(cache=True)
+def _normal_c(G, rank, anchor, p, q):
+    """The unit normal of the facet of generators ``p``, ``q`` (:func:`_facet_normals`)."""
+    if rank == 1:
+        n = G[p].copy()
+    elif rank == 2:
+        n = _cross3(_cross3(G[anchor[0]], G[anchor[1]]), G[p])
+    else:
+        n = _cross3(G[p], G[q])
+    return n / math.sqrt(n[0] ** 2 + n[1] ** 2 + n[2] ** 2)
+
+
+@njit(cache=True)
+def _min_slack_c(G, F, rank, anchor, index):
+    """The least of :func:`_slack` over the facets (inf without facets)."""
+    least = np.inf
+    for f in range(index.shape[0]):
+        n = _normal_c(G, rank, anchor, index[f, 0], index[f, 1])
+        support = 0.0
+        for a in range(G.shape[0]):
+            support += abs(G[a, 0] * n[0] + G[a, 1] * n[1] + G[a, 2] * n[2])
+        least = min(least, support - abs(n[0] * F[0] + n[1] * F[1] + n[2] * F[2]))
+    return least
+
+
+@njit(cache=True)
+def _independent_c(J, S):
+    """Positions in ``S`` of a maximal independent subset of its rows (at most three), chosen in order by
+    Gram-Schmidt (twice, for rounding), a row kept when its part off the others exceeds 1e-9 of its length."""
+    basis = np.empty((3, 3))
+    chosen = np.empty(3, np.int64)
+    r = 0
+    for a in range(S.shape[0]):
+        row = J[S[a]]
+        rest = row.copy()
+        for _ in range(2):
+            for b in range(r):
+                d = rest[0] * basis[b, 0] + rest[1] * basis[b, 1] + rest[2] * basis[b, 2]
+                for e in range(3):
+                    rest[e] -= d * basis[b, e]
+        size = math.sqrt(rest[0] ** 2 + rest[1] ** 2 + rest[2] ** 2)
+        if size > 1e-9 * math.sqrt(row[0] ** 2 + row[1] ** 2 + row[2] ** 2):
+            basis[r] = rest / size
+            chosen[r] = a
+            r += 1
+            if r == 3:
+                break
+    return chosen[:r].copy()
+
+
+@njit(cache=True)
+def _all_stick_c(J, N, c, wa, mus, muk, state, Z, minv, rhs, accel):
+    """True where every zero-slip wheel ``Z`` clearly sticks: their constraints are consistent (the exact solve
+    leaves no slip acceleration, to a thousandth of the identification's threshold) and the wrench they must supply
+    lies inside their zonotope by more than rounding. Then the box problem's unique acceleration keeps all of them at
+    zero slip, which its sweeps would find (slowly where many wheels are redundant: ~0.1-0.6 ms for 24). Returns
+    that and what the exact check needs then: the generators, the required wrench, the slipping wheels' wrench and
+    the facet choice."""
+    G, F, known = _required_c(J, N, c, wa, mus, muk, state, Z, minv)
+    rank, anchor, index = 0, np.zeros(2, np.int64), np.zeros((0, 2), np.int64)
+    for a in range(Z.shape[0]):
+        j = Z[a]
+        acc = -rhs[j]
+        for e in range(3):
+            acc += J[j, e] * minv[e] * (known[e] + F[e])
+        if abs(acc) > 1e-3 * _ACCEL_TOL * accel:
+            return False, G, F, known, rank, anchor, index
+    rank, anchor, index = _facets_c(G)
+    inside = _min_slack_c(G, F, rank, anchor, index) > 1e-9 * (np.abs(G).sum() + 1e-300)
+    return inside, G, F, known, rank, anchor, index
+
+
+@njit(cache=True)
+def decide_kernel(P, U, w0, wa, t0, FL, FC, origin, mus, muk, minv, t, y, breaking, signs):
+    """:func:`decide_mode` and :func:`project_twist` in one compiled call, for the wheel set of :func:`wheel_arrays`
+    at time ``t`` (s), state ``y`` (6,), inverse masses ``minv`` (1/kg, 1/kg, 1/(kg m^2)); ``breaking`` (b,) wheels
+    known to leave stick with slip signs ``signs`` (b,). The same two stages as the reference: projected
+    Gauss-Seidel identifies the wheels that keep zero slip acceleration (skipped where all of them clearly stick,
+    :func:`_all_stick_c`), then the mode is solved and checked exactly (the required wrench inside the sticking
+    wheels' zonotope by its facets, every breaking wheel accelerating the way it slips).
+
+    Returns (ok, state (m,) as :attr:`Mode.state`, ``y`` with its twist projected onto the sticking constraints,
+    the sticking wheels' independent rows (positions in the sticking wheels, :func:`_independent_c`), the sticking
+    wheels, and their zonotope's facet choice: rank, anchor (2,), index (f, 2)). ``ok`` False where the reference
+    raises (the mode fails its check); the rest is then meaningless."""
+    m = P.shape[0]
+    J, N, s, c, w = _kinematics_c(P, U, w0, wa, t0, FL, FC, origin, t, y)
+    rhs = wa - c
+    speed = 1e-3
+    for j in range(m):
+        speed = max(speed, abs(w[j]), abs(J[j, 0] * y[3] + J[j, 1] * y[4] + J[j, 2] * y[5]))
+    state = np.empty(m, np.int64)
+    zero = np.zeros(m, np.bool_)
+    for j in range(m):
+        if mus[j] == 0 or N[j] <= 0:
+            state[j] = 2
+        elif abs(s[j]) <= _SLIP_TOL * speed:
+            state[j], zero[j] = 0, True
+        else:
+            state[j] = 1 if s[j] > 0 else -1
+    for b in range(breaking.shape[0]):
+        state[breaking[b]], zero[breaking[b]] = signs[b], False
+    bounds = np.empty(m)
+    reach = 0.0
+    top = 0.0
+    for j in range(m):
+        bounds[j] = mus[j] * max(N[j], 0.0)
+        reach += math.sqrt(J[j, 0] ** 2 + J[j, 1] ** 2 + J[j, 2] ** 2) * bounds[j]
+        top = max(top, abs(rhs[j]))
+    accel = top + reach * minv.max() + 1e-300
+    broke = np.zeros(m, np.bool_)
+    Z = np.flatnonzero(zero)
+    fast = False
+    while Z.shape[0]:
+        fast, G, F, known, rank, anchor, index = _all_stick_c(J, N, c, wa, mus, muk, state, Z, minv, rhs, accel)
+        if fast:
+            break  # the identification's answer known without its sweeps
+        known = _known_c(J, N, muk, state)
+        JZ = np.ascontiguousarray(J[Z])
+        diag = np.empty(Z.shape[0])
+        for a in range(Z.shape[0]):
+            diag[a] = JZ[a, 0] ** 2 * minv[0] + JZ[a, 1] ** 2 * minv[1] + JZ[a, 2] ** 2 * minv[2]
+        z = _sweeps(JZ, minv, minv * known, rhs[Z], bounds[Z], diag, 200000, 1e-15)
+        keep = np.ones(Z.shape[0], np.bool_)
+        for a in range(Z.shape[0]):
+            acc = JZ[a, 0] * z[0] + JZ[a, 1] * z[1] + JZ[a, 2] * z[2] - rhs[Z[a]]
+            if abs(acc) > _ACCEL_TOL * accel:
+                state[Z[a]] = 1 if acc > 0 else -1
+                broke[Z[a]] = True
+                keep[a] = False
+        if keep.all():
+            break
+        Z = Z[keep]
+    S = np.flatnonzero(state == 0)
+    ok = True
+    if not fast:  # (else the sticking wheels are Z, checked inside their zonotope already)
+        rank, anchor, index = 0, np.zeros(2, np.int64), np.zeros((0, 2), np.int64)
+        G, F, known = _required_c(J, N, c, wa, mus, muk, state, S, minv)
+        if S.shape[0]:
+            rank, anchor, index = _facets_c(G)
+            if _min_slack_c(G, F, rank, anchor, index) < -1e-7 * (np.abs(G).sum() + 1e-300):
+                ok = False
+    for j in range(m):
+        if broke[j]:
+            acc = c[j] - wa[j]
+            for e in range(3):
+                acc += J[j, e] * minv[e] * (known[e] + F[e])
+            if state[j] * acc < -1e-7 * accel:
+                ok = False
+    out = y.copy()
+    if S.shape[0]:
+        JS, gap = np.empty((S.shape[0], 3)), np.empty(S.shape[0])
+        for a in range(S.shape[0]):
+            JS[a] = J[S[a]]
+            gap[a] = s[S[a]]
+        F = _lstsq_wrench(JS, minv, gap)
+        for e in range(3):
+            out[3 + e] -= minv[e] * F[e]
+    return ok, state, out, _independent_c(J, S), S, rank, anchor, index
+
+
+@njit(cache=True)
+def breaking_kernel(P, U, w0, wa, t0, FL, FC, origin, mus, muk, minv, t, y, state, S, rank, anchor, index, facet):
+    """:func:`breaking_wheels` compiled, for a mode given as :func:`decide_kernel` returns it: the wheels (b,) that
+    leave stick where the required wrench crosses facet ``facet`` and their slip signs (b,)."""
+    J, N, s, c, w = _kinematics_c(P, U, w0, wa, t0, FL, FC, origin, t, y)
+    G, F, _ = _required_c(J, N, c, wa, mus, muk, state, S, minv)
+    n = _normal_c(G, rank, anchor, index[facet, 0], index[facet, 1])
+    along = n[0] * F[0] + n[1] * F[1] + n[2] * F[2]
+    side = 1.0 if along >= 0 else -1.0  # np.sign(0) or 1.0
+    wheels, signs = np.empty(S.shape[0], np.int64), np.empty(S.shape[0], np.int64)
+    b = 0
+    for a in range(S.shape[0]):
+        r = G[a, 0] * n[0] + G[a, 1] * n[1] + G[a, 2] * n[2]
+        if abs(r) > _PLANE_TOL * math.sqrt(G[a, 0] ** 2 + G[a, 1] ** 2 + G[a, 2] ** 2):
+            wheels[b], signs[b] = S[a], int(-side * (1.0 if r > 0 else -1.0))
+            b += 1
+    return wheels[:b].copy(), signs[:b].copy()
+
+
+def decide_compiled(wheels: Wheels, t: float, y, mass: float, inertia: float, *,
+                    breaking: dict | None = None) -> tuple:
+    """:func:`decide_mode`, :func:`project_twist` and :func:`stick_facets` in one compiled call
+    (:func:`decide_kernel`): returns (mode, ``y`` (6,) with its twist projected onto the mode's sticking wheels,
+    the facet choice (rank, anchor or None, index (f, 2) into ``mode.stick``; rank 1 and 2 repeat the generator)).
+
+    Raises:
+        ValueError: where :func:`decide_mode` does (the identified mode fails its exact check).
+    """
+    minv = 1.0 / _masses(mass, inertia)
+    items = list((breaking or {}).items())
+    ok, state, out, _, _, rank, anchor, index = decide_kernel(
+        *arrays_of(wheels), minv, float(t), np.array(y, dtype=float), np.array([j for j, _ in items], np.int64),
+        np.array([s for _, s in items], np.int64))
+    if not ok:
+        raise ValueError(f"the mode identified at t = {t} s fails its exact check")
+    return Mode(tuple(state.tolist())), out, (rank, (int(anchor[0]), int(anchor[1])) if rank == 2 else None, index)

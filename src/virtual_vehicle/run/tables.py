@@ -7,8 +7,10 @@ it holds. Units are SI. The tables and their columns:
 ``trajectories`` (one row per output sample and parcel)
     parcel (name), t (s), x, y (m, centre of mass), theta (rad), vx, vy (m/s), omega (rad/s).
 ``events`` (one row per event)
-    parcel, t (s), kind (support | tip | contact | release), entered, left, lifted, touched (lists of cell ids),
-    partner (the other parcel of a contact, or empty), the state at the event (x .. omega as above), message.
+    parcel, t (s), kind (support | tip | contact | release | stick | slip), entered, left, lifted, touched (lists of
+    cell ids), partner (the other parcel of a contact, or empty), the state at the event (x .. omega as above),
+    message. A law with modes (stick-slip) adds its mode changes: ``stick`` where wheels catch up with the parcel,
+    ``slip`` where they break away; ``entered`` lists their cells and ``message`` names them "cell:wheel".
 ``network`` (networked runs; one row per control tick)
     t (s), sent, received (sentences), bytes_sent, bytes_received, lost, corrupted, undetected, dropped,
     unaddressed (sentences), latency_mean, latency_max (s; null when nothing arrived).

@@ -138,6 +138,12 @@ class FrictionLaw(ABC):
         ``mu_static``. Raises ValueError for a law without modes."""
         raise ValueError(f"the {self.name} law has no modes")
 
+    def wheel_arrays(self, cells, support, solution, velocities, mu: float, mu_static: float | None = None) -> tuple:
+        """:meth:`wheel_contacts` as the plain arrays the compiled mode decision takes
+        (:func:`~virtual_vehicle.physics.stick_modes.wheel_arrays`), built without objects: what the engine asks at
+        every support change. Raises ValueError for a law without modes."""
+        raise ValueError(f"the {self.name} law has no modes")
+
     def supports(self, cells, free_wheels: bool = False) -> None:
         """Raise ValueError when the law cannot act on ``cells`` (a contact layer: lumped cells, or one contact per
         wheel when ``cells.separate``) or on free-spinning wheels (``free_wheels``). Every geometry by default."""

@@ -17,7 +17,7 @@ import numpy as np
 
 from virtual_vehicle.physics.laws.base import StepperOptions
 from virtual_vehicle.physics.laws.coulomb import CoulombLaw
-from virtual_vehicle.physics.stick_modes import Wheels, wheels_on
+from virtual_vehicle.physics.stick_modes import Wheels, wheel_arrays, wheels_on
 
 
 @dataclass(frozen=True)
@@ -47,3 +47,7 @@ class StickSlipLaw(CoulombLaw):
         its entry's surface velocity projected on it (a stuck wheel's is 0 already; a free one is not present),
         carrying its entry's whole normal force (eq. 21): :func:`~virtual_vehicle.physics.stick_modes.wheels_on`."""
         return wheels_on(cells, support, solution, velocities, mu, mu_static)
+
+    def wheel_arrays(self, cells, support, solution, velocities, mu, mu_static=None) -> tuple:
+        """:meth:`wheel_contacts`' wheels as plain arrays (:func:`~virtual_vehicle.physics.stick_modes.wheel_arrays`)."""
+        return wheel_arrays(cells, support, solution, velocities, mu, mu_static)
