@@ -607,14 +607,14 @@ def _wheel_keys(model, piece) -> list:
 def _mode_change_events(t, y, before, after, keys) -> list:
     """The run's events of one mode change at time ``t`` (s), state ``y``: a ``"stick"`` event naming the wheels that
     caught up with the parcel (slipping before, sticking after), a ``"slip"`` one those that broke away (sticking
-    before, or slipping the other way), each as "entry:wheel" pairs in its message (the entries' ids in
-    ``entered``); none for a side without wheels."""
+    before, or slipping the other way), each as "entry:wheel" pairs in its message (``entered`` stays empty: it means
+    cells entering the footprint); none for a side without wheels."""
     out = []
     for kind, moved in (("stick", [j for j, (a, b) in enumerate(zip(before, after)) if b == 0 and a in (1, -1)]),
                         ("slip", [j for j, (a, b) in enumerate(zip(before, after)) if b in (1, -1) and a != b
                                   and a != 2])):
         if moved:
-            out.append(Event(t, kind, tuple(map(float, y)), entered=tuple(sorted({keys[j][0] for j in moved})),
+            out.append(Event(t, kind, tuple(map(float, y)),
                              message=" ".join(f"{keys[j][0]}:{keys[j][1]}" for j in moved)))
     return out
 
@@ -630,8 +630,11 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     :func:`~virtual_vehicle.physics.stick_modes.decide_mode`) and the twist projected onto its sticking wheels. Each
     mode change is also one or two of the run's events (:func:`_mode_change_events`: ``"stick"`` where wheels catch
     up with the parcel, ``"slip"`` where they break away). The stats hold the energy account (J) as the time stepper's do (its step dissipation 0: there is no
-    step), the mode changes and ``mode_events`` (this call's): (time, kind "slip" or "stick", mode before, mode
-    after) each. Where the rule cannot decide a mode, the run crosses a few fixed steps (:func:`_undecided_steps`),
+    step), ``mode_changes`` (how many events changed the mode) and ``mode_events`` (this call's): (time, kind, mode
+    before, mode after) each, the kind naming what ended the mode: "slip" (a slipping wheel's slip reached zero),
+    "stick" (a sticking wheel's force reached its bound) or "support" (a support change changed the mode of a wheel
+    that stays in contact). The run's events are named by the outcome instead: "stick" where wheels caught up,
+    "slip" where they broke away (:func:`_mode_change_events`). Where the rule cannot decide a mode, the run crosses a few fixed steps (:func:`_undecided_steps`),
     counted in ``stats["undecided_steps"]``."""
     law, spec = model.law, model.spec
     mass, inertia = spec.mass, spec.inertia
@@ -751,8 +754,17 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         if ev is not None:
             events.append(ev)
         if new is not piece:
+            held = {} if mode is None else dict(zip(_wheel_keys(model, piece), mode[0].tolist()))
             piece, wheels = new, wheels_of(new)
             mode = decide(wheels, t, z)
+            if mode is not None and held:  # a wheel that stays under the parcel and changes mode here is an event too
+                keys = _wheel_keys(model, piece)
+                after = tuple(mode[0].tolist())
+                before = tuple(a if held.get(key, 2) == 2 or a == 2 else held[key] for key, a in zip(keys, after))
+                # (2: a wheel out of contact; lifting off or touching down is the support event itself)
+                if before != after:
+                    mode_events.append((t, "support", before, after))
+                    events.extend(_mode_change_events(t, z[:6], before, after, keys))
         new_piece = True
         if t >= t1:
             break
@@ -761,7 +773,7 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     stats = {"wheel_work": float(z[6]), "friction_dissipation": float(z[7]), "step_dissipation": 0.0,
              "contact_work": 0.0, "sweeps_max": 0, "unconverged_steps": 0, "kinetic_start": float(kinetic_start),
              "kinetic_end": 0.5 * float(mass * (y[3] ** 2 + y[4] ** 2) + inertia * y[5] ** 2),
-             "mode_changes": len(mode_events), "mode_events": mode_events, "pieces_cached": model.pieces_cached,
+             "mode_changes": sum(after != before for _, _, before, after in mode_events), "mode_events": mode_events, "pieces_cached": model.pieces_cached,
              "solves": model.solves}
     if fallback_steps:
         stats["step_dissipation"] = float(z[8])

@@ -23,7 +23,7 @@ class Event:
     parcel's centre of mass left its supports; the parcel falls off the array and is no longer simulated), or, in
     multi-parcel runs (:mod:`virtual_vehicle.engine.plant`), ``"contact"`` / ``"release"`` (it started / stopped pushing
     against the parcel named ``partner``); a law with modes (stick-slip) adds ``"stick"`` (wheels caught up with the
-    parcel) and ``"slip"`` (wheels broke away), their entries in ``entered`` and named "entry:wheel" in ``message``.
+    parcel) and ``"slip"`` (wheels broke away), the wheels named "entry:wheel" in ``message``.
     Times in s, state as ``[x, y, theta, vx, vy, omega]``.
     """
 

@@ -10,7 +10,7 @@ it holds. Units are SI. The tables and their columns:
     parcel, t (s), kind (support | tip | contact | release | stick | slip), entered, left, lifted, touched (lists of
     cell ids), partner (the other parcel of a contact, or empty), the state at the event (x .. omega as above),
     message. A law with modes (stick-slip) adds its mode changes: ``stick`` where wheels catch up with the parcel,
-    ``slip`` where they break away; ``entered`` lists their cells and ``message`` names them "cell:wheel".
+    ``slip`` where they break away; ``message`` names them "entry:wheel" (an entry is a cell, or one wheel's contact on a layer of separate wheels).
 ``network`` (networked runs; one row per control tick)
     t (s), sent, received (sentences), bytes_sent, bytes_received, lost, corrupted, undetected, dropped,
     unaddressed (sentences), latency_mean, latency_max (s; null when nothing arrived).

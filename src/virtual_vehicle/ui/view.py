@@ -286,7 +286,8 @@ class Viewer:
             try:
                 # on loopback the page's own origins only; exposed, the name others reach it by is not known
                 # here, so any origin (the signed session token still guards every connection)
-                origins = ([f"{host}:{self.port}", f"localhost:{self.port}"] if host in LOOPBACK else ["*"])
+                name = f"[{host}]" if ":" in host else host  # an IPv6 address is bracketed in an origin
+                origins = ([f"{name}:{self.port}", f"localhost:{self.port}"] if host in LOOPBACK else ["*"])
                 self.server = Server({"/": self._page}, io_loop=self.loop, address=host, port=self.port,
                                      allow_websocket_origin=origins,
                                      sign_sessions=True, secret_key=self._key, generate_session_ids=False,
