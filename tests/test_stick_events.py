@@ -238,3 +238,21 @@ def test_mode_changes_are_the_runs_events():
     res = run(load_scenario("stick_slip_pickup")[0].build())
     kinds = tables.events(res).column("kind").to_pylist()
     assert kinds.count("stick") == 1 and kinds.count("slip") == 0
+
+
+def test_the_grip_is_handed_to_the_time_stepper():
+    """After an event-driven run the model (and the model it was copied from, which a plant keeps) holds which
+    wheels grip, so that the fixed-step law taking over (parcels pushing each other are stepped) starts from the
+    exact run's grip, not from an earlier episode's: before the pickup the wheels driving along x slip (those along y,
+    at rest under a parcel at rest in y, stick), after it every one sticks."""
+    setup = load_scenario("stick_slip_pickup")[0].build()
+    spec, y0, cells, V = setup.specs[0], setup.states[0], setup.contact_layer, setup.velocities
+    base = ParcelModel(cells, spec, V, setup.law, setup.scenario.gravity)
+    t_star = 0.3 / (spec.mu * setup.scenario.gravity)
+    y = integrate(base.with_velocities(V), y0, 0, 0.5 * t_star).states[-1]
+    early = dict(base.contact_memory["stuck"])
+    assert early and not any(v for (_, wheel), v in early.items() if wheel == 0)
+    assert all(v for (_, wheel), v in early.items() if wheel == 1)
+    integrate(base.with_velocities(V), y, 0.5 * t_star, 2 * t_star)
+    late = base.contact_memory["stuck"]
+    assert late and all(late.values()) and base.contact_memory["lam"].keys() == late.keys()

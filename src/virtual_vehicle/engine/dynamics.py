@@ -768,6 +768,11 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         new_piece = True
         if t >= t1:
             break
+    if piece is not None and mode is not None:  # the wheels' grip, for the time stepper should one take over next
+        # (parcels pushing each other are stepped): updated in place, so the model this one was copied from has it
+        memory, keys = model.contact_memory, _wheel_keys(model, piece)
+        memory["lam"] = dict.fromkeys(keys, 0.0)  # (no warm start: the stick forces are not the stepper's impulses)
+        memory["stuck"] = dict(zip(keys, (mode[0] == 0).tolist()))
     rec.final(t, z[:6])
     y = z[:6]
     stats = {"wheel_work": float(z[6]), "friction_dissipation": float(z[7]), "step_dissipation": 0.0,
@@ -789,7 +794,9 @@ def _undecided_steps(model, wheels, z, t, t1, dt, rec, events, progress):
     law = model.law
     slips = wheels.slips(t, z[:6])
     speed = max(float(np.abs(wheels.surface(t)).max(initial=0.0)), 1e-3)
-    model.contact_memory = {"lam": {}, "stuck": dict(zip(wheels.keys, (np.abs(slips) <= 1e-9 * speed).tolist()))}
+    memory = model.contact_memory  # in place: shared with the model this one was copied from
+    memory["lam"] = dict.fromkeys(wheels.keys, 0.0)
+    memory["stuck"] = dict(zip(wheels.keys, (np.abs(slips) <= 1e-9 * speed).tolist()))
     t_end = min(t1, t + _CHATTER_STEPS * dt)
     due = rec.pending_until(t_end)
     tr = TIME_STEPPERS[law.time_stepper](model, z[:6].copy(), t, t_end, due, progress, dt=dt)
