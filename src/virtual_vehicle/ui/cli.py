@@ -7,6 +7,7 @@ finished runs kept, run again to resume).
 
 from __future__ import annotations
 
+import signal
 import sys
 import time
 from pathlib import Path
@@ -379,9 +380,22 @@ def view_cmd(
     if host not in LOOPBACK:
         err.print(f"warning: served on {host}, reachable from other machines (with the token)", highlight=False)
     sys.stdout.flush()
+    # Ctrl-C stops the loop between two of its callbacks, never inside a tick (a KeyboardInterrupt raised half-way
+    # through one would leave the run's state half-stepped, and the folder written would not replay exactly)
+    stopped = []
+
+    def on_sigint() -> None:
+        stopped.append(True)
+        viewer.loop.stop()
+
+    viewer.loop.asyncio_loop.add_signal_handler(signal.SIGINT, on_sigint)
     try:
         viewer.loop.start()
     except KeyboardInterrupt:
+        stopped.append(True)
+    finally:
+        viewer.loop.asyncio_loop.remove_signal_handler(signal.SIGINT)
+    if stopped:
         viewer.stop()
         if viewer.result is None:
             err.print(f"stopped at t = {live.t:g} s: finishing the run to write it (Ctrl-C again: nothing written)",
