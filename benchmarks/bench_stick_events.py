@@ -20,6 +20,8 @@ from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
 from virtual_vehicle.physics import laws
 
+from bench_engine import best_of  # (run as a script: its folder is on the path)
+
 CELLS = layout.grid(30, 30, 0.1)
 V = fields.Uniform((0.2, 0.0)).velocities(CELLS)
 Y0 = [0.52, 1.47, 0.0, 0.0, 0.0, 0.0]
@@ -36,15 +38,6 @@ def spec(law: str):
 def run(law: str, mode: str, theta: float = 0.0, dt: float = 1e-3):
     model = ParcelModel(CELLS, spec(law), V, laws.LAWS[law])  # fresh: nothing cached between runs
     return integrate(model, [*Y0[:2], theta, *Y0[3:]], 0.0, T, mode=mode, dt=dt, sample_dt=0.01)
-
-
-def best_of(fn, repeat: int):
-    best, out = np.inf, None
-    for _ in range(repeat):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out
 
 
 CASES = (("(i) stick-slip, fixed step 1 ms", "stick_slip", "fixed", 2),

@@ -499,6 +499,16 @@ class _Recorder:
         return np.append(times, self.last[0]), np.vstack([states, self.last[1]])
 
 
+def _check_outcome(outcome: int, t: float) -> None:
+    """Raise IntegrationError for a compiled piece's or mode's failed outcome at time ``t`` (s)."""
+    if outcome == _kernel.FAILED:
+        raise IntegrationError(f"integrator failed at t={t:.9g} s")
+    if outcome == _kernel.NOT_FINITE:
+        raise IntegrationError(f"an event function is not finite at t={t:.9g} s")
+    if outcome == _kernel.NO_CONVERGENCE:
+        raise IntegrationError(f"locating an event near t={t:.9g} s did not converge")
+
+
 def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol, atol, max_step,
                dt, support=None) -> Trajectory:
     rec = _Recorder(sample_times)
@@ -535,12 +545,7 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             first = 0.0
             if last:
                 h = last
-            if outcome == _kernel.FAILED:
-                raise IntegrationError(f"integrator failed at t={t:.9g} s")
-            if outcome == _kernel.NOT_FINITE:
-                raise IntegrationError(f"an event function is not finite at t={t:.9g} s")
-            if outcome == _kernel.NO_CONVERGENCE:
-                raise IntegrationError(f"locating an event near t={t:.9g} s did not converge")
+            _check_outcome(outcome, t)
             if progress is not None:
                 progress(t)
             if outcome != _kernel.PAUSED:
@@ -710,12 +715,7 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             first = 0.0
             if last:
                 h = last
-            if outcome == _kernel.FAILED:
-                raise IntegrationError(f"integrator failed at t={t:.9g} s")
-            if outcome == _kernel.NOT_FINITE:
-                raise IntegrationError(f"an event function is not finite at t={t:.9g} s")
-            if outcome == _kernel.NO_CONVERGENCE:
-                raise IntegrationError(f"locating an event near t={t:.9g} s did not converge")
+            _check_outcome(outcome, t)
             if progress is not None:
                 progress(t)
             if outcome != _kernel.PAUSED:
