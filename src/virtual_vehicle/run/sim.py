@@ -19,7 +19,8 @@ import shapely
 from virtual_vehicle import __version__
 from virtual_vehicle.cells.hardware import WheelDrives
 from virtual_vehicle.cells.network.messages import Mailbox
-from virtual_vehicle.cells.network.programs import CellInputs, ChangedCells, tree_map
+from virtual_vehicle.cells.network.clocks import CellClocks, Mailboxes
+from virtual_vehicle.cells.network.programs import CellInputs, ChangedCells, step_group, tree_map
 from virtual_vehicle.cells.programs import program_of
 from virtual_vehicle.cells.sorting import encode_goal
 from virtual_vehicle.config.scenario import Setup
@@ -537,7 +538,7 @@ def run_network(setup: Setup, progress: Callable[[float], None] | None = None, *
     With ``checkpoint`` (a file path) and ``checkpoint_every`` (simulated s), the whole run's state is written there
     (atomically) that often; :func:`resume` continues from it to exactly the result an uninterrupted run gives.
     """
-    job = NetworkRun(setup)
+    job = network_job(setup)
     job.scenario_text = scenario_text
     return job.run(progress, checkpoint=checkpoint, checkpoint_every=checkpoint_every)
 
@@ -590,7 +591,7 @@ def _load(data: bytes, setup: Setup | None = None, where: str = "checkpoint") ->
     if version != __version__:
         raise VirtualVehicleError(f"cannot resume {where}: it was written by virtual_vehicle {version}; this is "
                                   f"{__version__} (resume it with {version}, or run the scenario again)")
-    kinds = {"field": FieldRun, "network": NetworkRun}
+    kinds = {"field": FieldRun, "network": NetworkRun, "clocked": ClockedRun}
     kind, every = document.get("kind"), document.get("checkpoint_every")
     if kind not in kinds or type(every) is not float or not 0 < every < math.inf or type(document.get("position")) is not dict:
         raise VirtualVehicleError(f"cannot resume {where}: damaged (its run kind, interval or position)")
@@ -602,7 +603,7 @@ def _load(data: bytes, setup: Setup | None = None, where: str = "checkpoint") ->
         if document.get("setup_digest") != _setup_digest(setup):
             raise VirtualVehicleError(f"cannot resume {where}: its scenario builds another setup than the run had (a "
                                       "setup changed after it was built cannot be resumed)")
-    if (kind == "network") != (setup.control is not None):
+    if kind != (FieldRun if setup.control is None else type(network_job(setup))).KIND:
         raise VirtualVehicleError(f"cannot resume {where}: a {kind} run's checkpoint whose scenario is not one")
     job = kinds[kind](setup)
     text = document.get("scenario_text")
@@ -812,6 +813,10 @@ class TickedRun:
         t0 = self.k * self.period
         return t0, min(self.end, t0 + self.period)
 
+    def hold_time(self) -> float:
+        """s the wheels hold the next tick's commands, as the motors and the plant are told (the period)."""
+        return self.period
+
     def begin(self) -> np.ndarray:
         """The first half of the next tick, up to the decision: the fault events and cell changes due by its start
         take effect, the parcels due come on the array, and the cells read their sensors. Returns the (n, S)
@@ -836,7 +841,7 @@ class TickedRun:
         ``sent`` / ``received`` ((n,) sentences) go into the cell log when it is kept. Returns the (n, 2) wheel
         speeds the tick held, m/s (a motor wheel's mean over it)."""
         setup, cells = self.setup, self.setup.cells
-        period = self.period
+        period = self.hold_time()
         t0, t1 = self.span()
         ys, active = self.ys, self.active
         command = np.where(self.topology.alive[:, None], np.asarray(command, dtype=float), 0.0)  # dead cells: still
@@ -1046,8 +1051,8 @@ class NetworkRun(TickedRun, _Job):
             self._rewire()
         s = self._read_state(state, arrays)
         self.load_ticked_state(s)
-        if self.k > self.ticks:
-            raise ValueError(f"state.k: {self.k} ticks done of the run's {self.ticks}")
+        if self.k > self.most_steps():
+            raise ValueError(f"state.k: {self.k} ticks done of the run's {self.most_steps()}")
         _check_like({k: self.__dict__[k] for k in ("state", "per_tick", "per_cell")}, s)
         n, P = self.topology.n, self.topology.ports
         self.wall = number(s, "wall", "state")
@@ -1062,6 +1067,10 @@ class NetworkRun(TickedRun, _Job):
         if self.stepper is not None:
             self.stepper.load_data(s["stepper"])
         self.latency = LatencyStats.from_data(s["latency"], "state.latency")
+
+    def most_steps(self) -> int:
+        """The most steps (:meth:`tick`) the run takes: its ticks."""
+        return self.ticks
 
     @property
     def done(self) -> bool:
@@ -1136,6 +1145,180 @@ class NetworkRun(TickedRun, _Job):
         return RunResult(setup, results, self.wall, stats,
                          record, CellLog.stack(self.cell_log) if setup.scenario.sensors.record and self.cell_log else None,
                          self.scenario_text)
+
+
+def network_job(setup: Setup) -> "NetworkRun":
+    """The run of a networked scenario: its cells on one shared clock (:class:`NetworkRun`) or each on its own
+    (:class:`ClockedRun`, a scenario with ``[control.clock]`` drift or jitter)."""
+    return NetworkRun(setup) if setup.control.clock is None else ClockedRun(setup)
+
+
+class ClockedRun(NetworkRun):
+    """A networked run whose cells tick on their own clocks (:mod:`virtual_vehicle.cells.network.clocks`).
+
+    A step goes from one instant at which some cells tick to the next: the faults, cell changes and arrivals due
+    take effect and every cell's sensors are read (the plant's state then), the cells that tick read their
+    mailboxes and step their program, their wheel commands take effect and their sentences go out; the other
+    cells' wheels hold what they last asked for. Ideal rounds deliver by time: a sentence is in the receiver's
+    mailbox from the next instant on; the wire model times it. With no drift and no jitter every cell ticks at
+    every k * period and this is the synchronous run (:class:`NetworkRun`, stepping every cell) to the last bit.
+    The network record keeps its traffic per period. The program's ``t`` is the instant on the run's time line (the
+    sorter counts its ticks from it: a cell's tick number is that instant in periods, rounded)."""
+
+    KIND = "clocked"
+    STATE = (*NetworkRun.STATE, "clock", "held", "ticked")
+    """:attr:`NetworkRun.STATE` (its ``inbox`` being the mailboxes, ``k`` the steps taken), the clocks
+    (:meth:`CellClocks.to_data`), the (n, 2) wheel speeds each cell last asked for (m/s) and, when the cell log is
+    kept, which cells ticked when (``ticked``: ``t`` s and ``cell``, one entry a cell's tick; None otherwise)."""
+
+    def __init__(self, setup: Setup):
+        super().__init__(setup)
+        ctl = setup.control
+        n, P = ctl.topology.n, ctl.topology.ports
+        self.stepper = None  # the cells that tick are the ones stepped
+        self.clocks = CellClocks(n, self.period, ctl.clock)
+        self.mail = Mailboxes(self.inbox)
+        self.held = np.zeros((n, 2))
+        self.outbox = Mailbox.empty(ctl.program.schema, n, P)
+        self.after: int | None = None  # the instant after this step's, once its cells have ticked
+        self.ticked: dict | None = {"t": [], "cell": []} if self.record else None
+
+    def most_steps(self) -> int:
+        """Steps are instants at which some cell ticks: at most every grid instant of the run."""
+        return self.ticks * self.clocks.m + 1
+
+    @property
+    def done(self) -> bool:
+        """True once the next instant any cell ticks is at or past the end."""
+        return self.clocks.time_of(int(self.clocks.slot.min())) >= self.end - 1e-9 * self.period
+
+    def span(self) -> tuple[float, float]:
+        """(start, end) of this step, s: the instant the cells tick and the next one any cell ticks."""
+        now = int(self.clocks.slot.min()) if self.after is None else self.now
+        t0 = self.clocks.time_of(now)
+        whole = self.after is None or self.after - now == self.clocks.m  # a period on: as the synchronous run
+        t1 = t0 + self.period if whole else self.clocks.time_of(self.after)
+        return t0, min(self.end, t1)
+
+    def hold_time(self) -> float:
+        """s to the next instant (the period exactly when that is a whole period on)."""
+        if self.after - self.now == self.clocks.m:
+            return self.period
+        t0, t1 = self.span()
+        return t1 - t0
+
+    def step(self, every, progress) -> bool:
+        """One instant's ticks; True when a checkpoint is due (a multiple of ``every`` s was passed)."""
+        t_before = self.span()[0]
+        self.tick()
+        t_after = self.span()[0]
+        if progress is not None:
+            progress(min(1.0, t_after / self.end) if self.end > 0 else 1.0)
+        return every is not None and math.floor(t_after / every + 1e-9) > math.floor(t_before / every + 1e-9)
+
+    def tick(self) -> None:
+        """The cells whose clocks tick at the next instant read and decide; the plant goes on to the instant after."""
+        self.now = int(self.clocks.slot.min())
+        sensors = self.begin()
+        stats = self._decide(sensors)
+        self.finish(self.held, sensors, stats.sent, stats.received)
+        self.after = None
+
+    def _decide(self, sensors: np.ndarray):
+        """The cells that tick now step on their sensors, mailboxes and labels and send; the others hold. Returns
+        the traffic statistics of the step (also added to the network record, in its period)."""
+        setup, ctl = self.setup, self.setup.control
+        clocks, topo = self.clocks, self.topology
+        rows = np.flatnonzero(clocks.slot == self.now)
+        t0, _ = self.span()
+        ys, on = self.ys, self.on
+        labelled = any(self.destinations[i] is not None for i in on)
+        labels = _labels(setup, [ys[i] for i in on], [setup.specs[i] for i in on],
+                         [self.destinations[i] for i in on]) if labelled else None
+        inputs = CellInputs(t0, sensors, self.inbox, topo.connected, ctl.config, labels)
+        n = topo.n
+        if len(rows) == n:  # every cell ticks: one step of all (as the synchronous run)
+            self.state, outbox, wheels = ctl.program.step(self.state, inputs)
+            self.held = np.array(wheels, dtype=float)
+            send = outbox
+        else:
+            self.state = step_group(ctl.program, self.state, inputs, rows, self.outbox, self.held)
+            ticks = np.zeros(n, dtype=bool)
+            ticks[rows] = True
+            send = Mailbox(self.outbox.schema, self.outbox.present & ticks[:, None], self.outbox.values)
+        self.mail.read(rows)
+        if self.ticked is not None:
+            self.ticked["t"].append(np.full(len(rows), t0))
+            self.ticked["cell"].append(rows.copy())
+        clocks.advance(rows)
+        self.after = int(clocks.slot.min())
+        gap = self.after - self.now
+        dt = self.period if gap == clocks.m else clocks.time_of(self.after) - t0
+        arrived, stats = self.delivery.exchange(send, t0, dt)
+        self.mail.put(arrived)
+        b = min(int(math.floor(t0 / self.period + 1e-9)), self.ticks - 1)  # the period this step is in
+        before = int(self.per_tick["received"][b])
+        for key in ("sent", "received", "bytes_sent", "bytes_received"):
+            self.per_tick[key][b] += int(getattr(stats, key).sum())
+            self.per_cell[f"cell_{key}"] += getattr(stats, key)
+        for key in _FAULTS:
+            self.per_tick[key][b] += getattr(stats, key)
+        lat = stats.latencies
+        if len(lat):
+            old_mean = self.per_tick["latency_mean"][b]
+            self.per_tick["latency_mean"][b] = (lat.mean() if np.isnan(old_mean) else
+                                                (old_mean * before + lat.sum()) / (before + len(lat)))
+            self.per_tick["latency_max"][b] = np.fmax(self.per_tick["latency_max"][b], lat.max())
+            self.latency.add(lat)
+        return stats
+
+    def tick_times(self, cell: int) -> np.ndarray:
+        """The instants (s) cell ``cell`` ticked at so far, from the log kept with ``[sensors] record = true``."""
+        if self.ticked is None:
+            raise ValueError("the ticks are logged only when the scenario records ([sensors] record = true)")
+        t = np.concatenate([np.zeros(0), *self.ticked["t"]])
+        c = np.concatenate([np.zeros(0, dtype=np.int64), *self.ticked["cell"]])
+        return t[c == cell]
+
+    def _cells_added(self, added: np.ndarray) -> None:
+        """The cells ``added`` start their program afresh, with empty mailboxes and still wheels."""
+        super()._cells_added(added)
+        rows = np.flatnonzero(added)
+        self.mail.read(rows)
+        self.held[rows] = 0.0
+
+    def _state(self) -> dict:
+        ticked = None
+        if self.ticked is not None:
+            ticked = {"t": np.concatenate([np.zeros(0), *self.ticked["t"]]),
+                      "cell": np.concatenate([np.zeros(0, dtype=np.int64), *self.ticked["cell"]])}
+        return {**super()._state(), "clock": self.clocks.to_data(), "held": self.held.copy(), "ticked": ticked}
+
+    def _restore(self, position: dict, state, arrays: list) -> None:
+        super()._restore(position, state, arrays)
+        s = self._read_state(state, arrays)
+        n = self.topology.n
+        self.clocks.load_data(s["clock"])
+        self.held = array(s, "held", "f", (n, 2), "state").astype(float)
+        self.mail = Mailboxes(self.inbox)
+        self.after = None
+        if (s["ticked"] is None) != (self.ticked is None):
+            raise ValueError("state.ticked: the tick log is kept exactly when the cell log is")
+        if s["ticked"] is not None:
+            d = fields(s["ticked"], ("t", "cell"), "state.ticked")
+            t = array(d, "t", "f", (None,), "state.ticked")
+            self.ticked = {"t": [t], "cell": [array(d, "cell", "i", (len(t),), "state.ticked").astype(np.int64)]}
+
+    def result(self) -> RunResult:
+        """:meth:`NetworkRun.result`, with the clocks in the summary's ``network.clocks``."""
+        res = super().result()
+        c, p = self.clocks, self.setup.control.clock
+        res.stats["network"]["clocks"] = {
+            "drift": p.drift, "jitter_s": p.jitter, "seed": p.seed, "slots_per_period": p.slots,
+            "rate_min": float(c.rate.min()), "rate_max": float(c.rate.max()), "instants": int(self.k),
+            "ticks_min": int(c.count.min()), "ticks_max": int(c.count.max()),
+            "cells_a_instant": float(c.count.sum() / max(self.k, 1))}
+        return res
 
 
 _SUMMED = frozenset(SUMMED_STATS)

@@ -412,6 +412,34 @@ class ChangedCells:
         last["inbox"] = [a.copy() for a in inputs.inbox.arrays] if keep_inbox else None
 
 
+def step_group(program, state, inputs: CellInputs, rows: np.ndarray, outbox: Mailbox, wheels: np.ndarray):
+    """Step only the cells ``rows`` (indices, ascending) of the full ``inputs``: the cells whose own clock ticks now
+    (:mod:`~virtual_vehicle.cells.network.clocks`). Their new state, sentences and wheel speeds are written into
+    ``state``, ``outbox`` and ``wheels`` in place; every other cell keeps its own. Returns the state (the same
+    object, or, for a state with leaves that are not per-cell arrays, a new one that holds the stepped cells'
+    rows). Uses the program's ``step_rows`` where it offers one (see :class:`ChangedCells`); else steps every cell
+    and keeps the rows of ``rows``, which is what they would compute alone (a program's row i depends on row i of
+    its inputs only)."""
+    step_rows = getattr(program, "step_rows", None)
+    if step_rows is not None and step_rows(state, inputs, rows, outbox, wheels) is not None:
+        return state
+    n = len(inputs.sensors)
+    new, out, new_wheels = program.step(state, inputs)
+
+    def keep(old, fresh):
+        if isinstance(old, np.ndarray) and old.ndim >= 1 and old.shape[0] == n and old.flags.writeable:
+            old[rows] = np.take(fresh, rows, axis=0)
+            return old
+        return fresh  # not a per-cell array: the program's own, as it returned it
+
+    state = tree_map(keep, state, new)
+    outbox.present[rows] = out.present[rows]
+    for k, v in outbox.values.items():
+        v[rows] = out.values[k][rows]
+    wheels[rows] = np.asarray(new_wheels, dtype=float)[rows]
+    return state
+
+
 def _same_objects(a: dict, b: dict) -> bool:
     """Whether two configurations hold the same objects (a configuration is set once; arrays are not compared)."""
     return a is b or (a.keys() == b.keys() and all(a[k] is b[k] for k in a))

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 Pos = Annotated[float, Field(gt=0)]
 Coord = Annotated[float, Field(ge=-1e6, le=1e6)]
@@ -49,6 +49,26 @@ class WireSpec(BaseModel):
     loss_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
 
 
+class ClockSpec(BaseModel):
+    """Each cell's controller on its own clock (:mod:`~virtual_vehicle.cells.network.clocks`): ``drift``, the largest
+    relative rate error of a cell's crystal (0..0.1; each cell's drawn once from U(-drift, drift)), ``jitter`` (s,
+    each tick late by U(0, jitter), below half the period), ``seed`` of both, and ``slots``, the instants a period
+    that ticks are placed on (1..1000; cells that fall on one instant step together). The defaults (no drift, no
+    jitter) are one clock shared by every cell: the synchronous run."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+    drift: Annotated[float, Field(ge=0, le=0.1)] = 0.0
+    jitter: Annotated[float, Field(ge=0, le=5)] = 0.0
+    seed: Annotated[int, Field(ge=0)] = 0
+    slots: Annotated[int, Field(ge=1, le=1000)] = 20
+
+    @property
+    def synchronous(self) -> bool:
+        """Whether every cell ticks on one shared clock."""
+        return self.drift == 0 and self.jitter == 0
+
+
 class ProgramOptions(BaseModel):
     """Every program takes these: the cells run it each ``period`` (s); sentences travel by ``delivery``
     (``"ideal"`` rounds, or ``"wire"``: the paper's RS232 hardware, tuned by ``[control.wire]``). ``loss_rate``
@@ -57,7 +77,8 @@ class ProgramOptions(BaseModel):
     0..5, every 60 degrees counter-clockwise from east). ``changed_only`` (default true): on ideal rounds, step a
     stationary program (the sorter) only on the cells whose sensors, sentences or state changed since the last tick
     (the others would repeat themselves); the run is the same to the last bit, false steps every cell every tick
-    (:class:`~virtual_vehicle.cells.network.programs.ChangedCells`)."""
+    (:class:`~virtual_vehicle.cells.network.programs.ChangedCells`). ``[control.clock]``: the cells' own clocks
+    (:class:`ClockSpec`; default: one shared clock)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
@@ -69,6 +90,13 @@ class ProgramOptions(BaseModel):
     dead_links: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=5)]]] = []
     wire: WireSpec = WireSpec()
     changed_only: bool = True
+    clock: ClockSpec = ClockSpec()
+
+    @model_validator(mode="after")
+    def _jitter_within_period(self):
+        if not self.clock.jitter < self.period / 2:
+            raise ValueError(f"clock.jitter: {self.clock.jitter} s is not below half the period ({self.period / 2:g} s)")
+        return self
 
     @property
     def max_age(self) -> int:
@@ -108,13 +136,18 @@ class ControlSetup:
     period: float
     config: dict
     changed_only: bool = True
+    clock: object = None
+    """The cells' own clocks (:class:`~virtual_vehicle.cells.network.clocks.ClockParams`); None: one shared clock."""
 
 
 def setup_for(options: ProgramOptions, ctx: BuildContext, program, config: dict | None = None) -> ControlSetup:
     """The :class:`ControlSetup` of ``program`` under ``options`` on the context's network, with per-cell
     ``config`` (what each cell is told when it is installed)."""
+    from virtual_vehicle.cells.network.clocks import ClockParams
+
+    clock = None if options.clock.synchronous else ClockParams(**options.clock.model_dump())
     return ControlSetup(program, ctx.topology, ctx.make_delivery, options.delivery, options.period,
-                        {} if config is None else config, options.changed_only)
+                        {} if config is None else config, options.changed_only, clock)
 
 
 @dataclass(frozen=True)
