@@ -1,0 +1,62 @@
+"""Unsynchronised cell clocks on the sorter (issue 33 item 3). Prints figures; asserts nothing.
+
+``sorting_junction`` run with every cell on one shared clock and with every cell on its own (``[control.clock]``
+drift +-1 %, jitter 1 ms, several clock seeds): parcels delivered correctly, misrouted and collided, and the ratio
+of the unsynchronised mean to the synchronous count (the issue's target: within 5 %), with the wall time of each
+run (an unsynchronised run steps at every instant some cells tick, up to ``slots`` a period).
+
+Run: ``python benchmarks/bench_clocks.py [--duration 20] [--seeds 5] [--delivery ideal] [--baud 460800]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from virtual_vehicle.config.scenario import load_scenario
+from virtual_vehicle.run.sim import run
+from virtual_vehicle.run.tasks import sorting_report
+
+
+def delivered(sc, clock: dict) -> tuple[dict, float]:
+    """The sorting report of ``sc`` under ``clock`` ([control.clock] fields) and the run's wall time (s)."""
+    control = sc.control.model_copy(update={"clock": type(sc.control.clock)(**clock)})
+    start = time.perf_counter()
+    report = sorting_report(run(sc.model_copy(update={"control": control}).build()))
+    return report, time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenario", default="sorting_junction")
+    parser.add_argument("--duration", type=float, default=20.0)
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--drift", type=float, default=0.01)
+    parser.add_argument("--jitter", type=float, default=0.001)
+    parser.add_argument("--delivery", choices=("ideal", "wire"), default="ideal")
+    parser.add_argument("--baud", type=float, default=460800.0, help="the wire's line rate, bits/s")
+    args = parser.parse_args()
+    sc, _ = load_scenario(args.scenario)
+    control = sc.control.model_copy(update={"delivery": args.delivery,
+                                            "wire": sc.control.wire.model_copy(update={"baud": args.baud})})
+    sc = sc.model_copy(update={"duration": args.duration, "control": control})
+    print(f"{args.scenario}, {args.duration:g} s, {args.delivery} delivery"
+          + (f" at {args.baud:g} baud" if args.delivery == "wire" else ""))
+    print(f"{'clocks':<34} {'correct':>7} {'misrouted':>9} {'collisions':>10} {'wall s':>7}")
+    sync, wall = delivered(sc, {})
+    print(f"{'one shared clock':<34} {sync['correct']:>7} {sync['misrouted']:>9} {sync['collisions']:>10} {wall:>7.1f}")
+    counts = []
+    for seed in range(args.seeds):
+        rep, wall = delivered(sc, {"drift": args.drift, "jitter": args.jitter, "seed": seed})
+        counts.append(rep["correct"])
+        label = f"own clocks +-{args.drift:.0%}, {args.jitter * 1e3:g} ms, seed {seed}"
+        print(f"{label:<34} {rep['correct']:>7} {rep['misrouted']:>9} {rep['collisions']:>10} {wall:>7.1f}", flush=True)
+    mean = float(np.mean(counts))
+    ratio = mean / sync["correct"] if sync["correct"] else float("nan")
+    print(f"mean over {args.seeds} clock seeds: {mean:.2f} delivered, {ratio:.1%} of the synchronous run's")
+
+
+if __name__ == "__main__":
+    main()
