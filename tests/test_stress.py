@@ -1,0 +1,68 @@
+"""The randomized liveness stress test: generated sorting floors are what they claim (holes, one-way aisles, parking,
+1-3 entries and exits, every exit reachable, the same floor from the same seed), and a short run of each is
+counted from the sorting report. ``benchmarks/stress_sorter.py`` runs 200 seeds and prints the table."""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+from virtual_vehicle.analysis.stress import random_floor, stress
+
+_AGAINST = {">": (0, -1), "<": (0, 1), "^": (1, 0), "v": (-1, 0)}
+
+
+def _cells_reach(rows: list[str], start: str, goal: str) -> bool:
+    """Cell by cell (not parcel-sized): whether the cells marked ``goal`` are reached from those marked ``start``
+    over cells, never stepping onto or off a cell against its arrow."""
+    H, W = len(rows), len(rows[0])
+    seen = {(r, c) for r in range(H) for c in range(W) if rows[r][c] == start}
+    queue = deque(seen)
+    while queue:
+        r, c = queue.popleft()
+        if rows[r][c] == goal:
+            return True
+        for move in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+            nr, nc = r + move[0], c + move[1]
+            if (0 <= nr < H and 0 <= nc < W and (nr, nc) not in seen and rows[nr][nc] != "."
+                    and _AGAINST.get(rows[r][c]) != move and _AGAINST.get(rows[nr][nc]) != move):
+                seen.add((nr, nc))
+                queue.append((nr, nc))
+    return False
+
+
+def test_generated_floors_are_varied_reachable_and_the_same_from_the_same_seed():
+    floors = [random_floor(seed) for seed in range(40)]
+    assert random_floor(7).table == floors[7].table and random_floor(8).table != floors[7].table
+    seen = {"hole": 0, "arrow": 0, "parking": 0}
+    counts = set()
+    for f in floors:
+        text = "".join(f.rows)
+        seen["hole"] += "." in text
+        seen["arrow"] += any(a in text for a in "<>^v")
+        seen["parking"] += "P" in text
+        exits = sorted({ch for ch in text if ch.isdigit()})
+        counts.add((f.features["entries"], len(exits)))
+        assert 1 <= f.features["entries"] <= 3 and 1 <= len(exits) <= 3 and "E" in text
+        assert all(_cells_reach(f.rows, "E", k) for k in exits), f.seed
+        assert all(p["destination"] < len(exits) for p in f.table["parcels"])
+        if "P" in text:  # parking bays come with a sequenced stream
+            assert sorted(p["sequence"] for p in f.table["parcels"]) == list(range(len(f.table["parcels"])))
+    assert min(seen.values()) >= 4, seen
+    assert len(counts) >= 5, counts
+    setup = floors[0].scenario().build()
+    config = setup.control.config
+    assert np.asarray(config["entry"]).any() and np.asarray(config["exit"]).max() >= 0
+
+
+def test_a_short_stress_run_counts_what_the_sorting_reports_find():
+    rows = stress([1, 2, 3], parcels=6, duration=10.0)
+    assert [r["seed"] for r in rows] == [1, 2, 3]
+    for r in rows:
+        placed = r["correct"] + r["misrouted"] + r["lost"] + r["on_array"] + r["waiting"]
+        assert placed == 6, r
+        assert r["collisions"] == 0 and r["misrouted"] == 0, r
+        assert len(r["why"]) == r["deadlocks"] + r["waits"]
+        assert all(line.startswith(f"seed {r['seed']}: ") and " near " in line for line in r["why"])
+    assert sum(r["correct"] for r in rows) >= 6
