@@ -119,6 +119,14 @@ def test_clocks_that_do_not_fit_the_period_are_refused_with_their_path(clock, fi
     assert field in str(err.value)
 
 
+def test_a_central_controller_keeps_one_clock():
+    sc, _ = load_scenario("sorting_junction")
+    data = sc.model_dump(mode="json")
+    data["control"].update(central=True, clock={"drift": 0.01})
+    with pytest.raises(ScenarioError, match="control.clock"):
+        parse_scenario(data).build()
+
+
 def test_the_sorter_delivers_on_unsynchronised_clocks_as_on_a_shared_one():
     sync = sorting_report(run(_scenario("sorting_junction", 12.0).build()))
     own = sorting_report(run(_scenario("sorting_junction", 12.0, drift=0.01, jitter=0.001, seed=0, slots=10).build()))

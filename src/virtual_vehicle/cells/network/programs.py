@@ -42,7 +42,8 @@ class CellInputs:
     """What every cell sees at a tick. Arrays have one row per cell.
 
     Attributes:
-        t: time of the tick, s (each cell's own clock; all clocks agree here).
+        t: time of the tick, s: the instant on the run's time line at which these cells tick (one shared clock, or
+            each cell's own, :mod:`~virtual_vehicle.cells.network.clocks`).
         sensors: (n, S) presence readings, 1 where a parcel covers the sensor.
         inbox: sentences that arrived since the last tick, per port.
         connected: (n, P) ports that lead to a neighbour (a cell can tell whether a neighbour is plugged in).

@@ -95,7 +95,8 @@ class ProgramOptions(BaseModel):
     @model_validator(mode="after")
     def _jitter_within_period(self):
         if not self.clock.jitter < self.period / 2:
-            raise ValueError(f"clock.jitter: {self.clock.jitter} s is not below half the period ({self.period / 2:g} s)")
+            raise ValueError(f"clock.jitter: {self.clock.jitter} s is not below half the period "
+                             f"({self.period / 2:g} s)")
         return self
 
     @property
@@ -146,6 +147,9 @@ def setup_for(options: ProgramOptions, ctx: BuildContext, program, config: dict 
     from virtual_vehicle.cells.network.clocks import ClockParams
 
     clock = None if options.clock.synchronous else ClockParams(**options.clock.model_dump())
+    if clock is not None and getattr(options, "central", False):
+        raise FieldError("control.clock", "a central controller runs on one clock: own clocks (drift, jitter) are "
+                                          "for the cells' programs")
     return ControlSetup(program, ctx.topology, ctx.make_delivery, options.delivery, options.period,
                         {} if config is None else config, options.changed_only, clock)
 
