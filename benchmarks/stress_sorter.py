@@ -2,8 +2,8 @@
 
 Every seed draws a small floor (:func:`virtual_vehicle.analysis.stress.random_floor`: holes, one-way aisles, parking
 bays with a sequenced stream, 1-3 entries and exits, every exit reachable) and runs it; the table gives what the
-sorting report finds (delivered, misrouted, lost, collisions, stalls by kind) and, after it, one line on each stall
-(where it stands). Prints figures; asserts nothing.
+sorting report finds (delivered, misrouted, lost, collisions, stalls by kind) and one line on each stall
+(where it stands) under its row. Prints figures; asserts nothing.
 
 Run: ``python benchmarks/stress_sorter.py [--seeds 200] [--first 0] [--duration 16] [--parcels 8]``.
 """
@@ -28,18 +28,17 @@ def main() -> None:
     parser.add_argument("--wait-bound", type=float, default=4.0)
     args = parser.parse_args()
     print(" ".join(f"{c:>9}" for c in COLUMNS), flush=True)
-    rows, why = [], []
+    rows = []
     start = time.perf_counter()
     for seed in range(args.first, args.first + args.seeds):
         row = stress([seed], parcels=args.parcels, duration=args.duration, wait_bound=args.wait_bound)[0]
         rows.append(row)
-        why += row["why"]
         print(" ".join(f"{row[c]!s:>9}" for c in COLUMNS), flush=True)
+        for line in row["why"]:
+            print("   ", line, flush=True)
     total = {k: sum(r[k] for r in rows) for k in ("correct", "misrouted", "lost", "collisions", "deadlocks", "waits")}
     print(f"{len(rows)} seeds in {time.perf_counter() - start:.0f} s: {total}; seeds with a deadlock: "
           f"{sum(r['deadlocks'] > 0 for r in rows)}, with a lone wait: {sum(r['waits'] > 0 for r in rows)}")
-    for line in why:
-        print(line)
 
 
 if __name__ == "__main__":
