@@ -23,7 +23,13 @@ import sys
 import time
 
 
-def scenario(side: int, parcels: int, seconds: float, batch: bool = True, changed_only: bool = True) -> dict:
+# Per law, the parcels' friction: viscous in s/m (the historical table); stick-slip dimensionless, kinetic and static,
+# rubber roller on corrugated cardboard as the bundled transport scenarios have it.
+FRICTION = {"viscous": {"mu": 2.0}, "stick_slip": {"mu": 0.6, "mu_static": 0.8}}
+
+
+def scenario(side: int, parcels: int, seconds: float, batch: bool = True, changed_only: bool = True,
+             law: str = "viscous") -> dict:
     pitch = 0.1
     spacing = 0.55  # m between parcel centres: the sorter keeps two free cells around every parcel
     coords = [0.2 + spacing * k for k in range(int((side * pitch - 0.4) / spacing) + 1)]
@@ -43,20 +49,21 @@ def scenario(side: int, parcels: int, seconds: float, batch: bool = True, change
         "name": f"scale_{side}x{side}_{parcels}", "duration": seconds, "output_dt": 0.05,
         "array": {"kind": "grid", "nx": side, "ny": side, "pitch": pitch},
         "control": control,
-        "friction": {"law": "viscous"},
+        "friction": {"law": law},
         "integrator": {"batch": batch},
-        "parcels": [{"name": f"p{k}", "length": 0.22, "width": 0.22, "mass": 1.5, "mu": 2.0, "x": x, "y": y,
-                     "destination": 0} for k, (x, y) in enumerate(spots[:parcels])],
+        "parcels": [{"name": f"p{k}", "length": 0.22, "width": 0.22, "mass": 1.5, **FRICTION[law], "x": x,
+                     "y": y, "destination": 0} for k, (x, y) in enumerate(spots[:parcels])],
     }
 
 
-def one(side: int, parcels: int, seconds: float, batch: bool = True, changed_only: bool = True) -> dict:
+def one(side: int, parcels: int, seconds: float, batch: bool = True, changed_only: bool = True,
+        law: str = "viscous") -> dict:
     """Run one configuration here; return its figures."""
     from virtual_vehicle.config.scenario import parse_scenario
     from virtual_vehicle.run.sim import NetworkRun
     from virtual_vehicle.run.warm import warm_up
 
-    setup = parse_scenario(scenario(side, parcels, seconds, batch, changed_only)).build()
+    setup = parse_scenario(scenario(side, parcels, seconds, batch, changed_only, law)).build()
     load = warm_up()  # numba's cached code, loaded outside the timed run as the imports are
     job = NetworkRun(setup)
     start = time.perf_counter()
@@ -76,18 +83,22 @@ def main() -> None:
     ap.add_argument("--one", nargs=2, type=int, metavar=("SIDE", "PARCELS"))
     ap.add_argument("--unbatched", action="store_true", help="with --one: integrate every parcel on its own")
     ap.add_argument("--every-cell", action="store_true", help="with --one: step every cell every tick")
+    ap.add_argument("--law", choices=sorted(FRICTION), default="viscous",
+                    help="the parcels' friction law (default viscous, the table's history)")
     args = ap.parse_args()
     if args.one:
-        print(json.dumps(one(*args.one, args.seconds, batch=not args.unbatched, changed_only=not args.every_cell)))
+        print(json.dumps(one(*args.one, args.seconds, batch=not args.unbatched, changed_only=not args.every_cell,
+                             law=args.law)))
         return
-    print(f"# Networked runs, 100 Hz distributed control (sorter), ideal rounds, {args.seconds:g} s simulated")
+    print(f"# Networked runs, 100 Hz distributed control (sorter), ideal rounds, {args.seconds:g} s simulated, "
+          f"{args.law} friction")
     print("# default: quiet ticks of all parcels in one compiled call, the sorter stepped on the cells that changed;")
     print("# alone: each parcel integrated on its own; every cell: the sorter stepped on every cell every tick")
     print(f"{'array':>9}{'parcels':>9}{'moving':>8}{'quiet %':>9}{'cells %':>9}{'wall s':>9}{'x real time':>13}"
           f"{'alone x':>9}{'every cell x':>14}{'peak MiB':>10}{'alone MiB':>11}")
     loads: list[float] = []
     for side, parcels in ((30, 1), (30, 25), (100, 1), (100, 50), (100, 200)):
-        r, alone, every = (_measure(side, parcels, args.seconds, flag)
+        r, alone, every = (_measure(side, parcels, args.seconds, [*flag, "--law", args.law])
                            for flag in ([], ["--unbatched"], ["--every-cell"]))
         quiet = 100 * r["quiet_steps"] / max(1, round(parcels * args.seconds / 0.01))
         print(f"{side}x{side:<6}{parcels:>9}{r['parcels_moving']:>8}{quiet:>9.0f}{r['cells_stepped_%']:>9.1f}"

@@ -327,7 +327,7 @@ def test_the_step_bound_counts_the_programs_speed_and_the_parcels_own():
         parse_scenario(d).build()
 
 
-SORT_COULOMB = """
+SORT = """
 name = "small_sort"
 duration = 0.5
 output_dt = 0.05
@@ -354,11 +354,13 @@ x = 0.05
 y = 0.15
 destination = 1
 """
+SORT_COULOMB = SORT + '[friction]\nlaw = "coulomb"\n'  # named: the default is stick-slip
 
 
 def test_networked_coulomb_runs_check_sliding_and_the_cli_warns(tmp_path):
-    """A sorter left at the default (Coulomb) law: the parcel outruns its 0.3 m/s wheels; networked runs used to
-    skip the check (coulomb_sliding_checked false) and print no warning."""
+    """A sorter on the paper's Coulomb law: the parcel outruns its 0.3 m/s wheels; networked runs used to skip the
+    check (coulomb_sliding_checked false) and print no warning. Under the viscous law and the default stick-slip
+    law there is nothing to check and no warning."""
     path = tmp_path / "small_sort.toml"
     path.write_text(SORT_COULOMB)
     result = runner.invoke(app, ["run", str(path), "--out", str(tmp_path / "o"), "--no-plot"])
@@ -371,10 +373,12 @@ def test_networked_coulomb_runs_check_sliding_and_the_cli_warns(tmp_path):
     assert "warning: the Coulomb law's assumption" in result.stderr and '[friction] law = "viscous"' in result.stderr
     said = result.stdout + result.stderr  # said once, naming the parcel (its own line used to repeat it)
     assert said.count("outran a wheel") == 1 and said.count("viscous") == 1 and "(p from t=0.25 s)" in result.stderr
-    path.write_text(SORT_COULOMB + '[friction]\nlaw = "viscous"\n')
-    viscous = runner.invoke(app, ["run", str(path), "--out", str(tmp_path / "v"), "--no-plot"])
-    assert viscous.exit_code == 0 and "warning" not in viscous.stderr
-    assert not json.loads((tmp_path / "v" / "summary.json").read_text())["coulomb_sliding"]["checked"]
+    for law, text in (("viscous", SORT + '[friction]\nlaw = "viscous"\n'), ("stick_slip", SORT)):
+        path.write_text(text)
+        other = runner.invoke(app, ["run", str(path), "--out", str(tmp_path / law), "--no-plot"])
+        assert other.exit_code == 0 and "warning" not in other.stderr
+        s = json.loads((tmp_path / law / "summary.json").read_text())
+        assert s["friction_law"] == law and not s["coulomb_sliding"]["checked"]
 
 
 def test_a_reused_run_folder_holds_exactly_the_new_runs_files(tmp_path):

@@ -244,8 +244,12 @@ def test_the_sorter_delivers_as_many_through_ten_percent_sentence_loss():
     from virtual_vehicle.run.tasks import sorting_report
 
     sc, _ = load_scenario("sorting_junction")
-    reports = {loss: sorting_report(run(sc.model_copy(update={"duration": 20.0, "control": sc.control.model_copy(
-        update={"loss_rate": loss})}).build())) for loss in (0.0, 0.1)}
+    # The lossy run gets 10 % more time: a lost sentence's repeat comes a tick or two later, so its parcels arrive a
+    # little later (0.2-1.2 s over 20 s here). Under stick-slip they ride at the wheel speed, and the ideal run's
+    # fifth parcel arrives 0.5 s before 20 s, which the lossy one, 0.3 s behind, missed at the same 20 s.
+    reports = {loss: sorting_report(run(sc.model_copy(update={"duration": duration, "control": sc.control.model_copy(
+        update={"loss_rate": loss})}).build())) for loss, duration in ((0.0, 20.0), (0.1, 22.0))}
     ideal, lossy = reports[0.0], reports[0.1]
-    assert ideal["correct"] >= 4 and lossy["correct"] >= ideal["correct"]
+    delivered = {loss: {p["name"] for p in r["parcels"] if p["correct"]} for loss, r in reports.items()}
+    assert ideal["correct"] >= 4 and delivered[0.0] <= delivered[0.1]
     assert lossy["collisions"] == lossy["misrouted"] == lossy["lost"] == 0 and lossy["stalls"] == []

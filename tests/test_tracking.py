@@ -50,7 +50,10 @@ def test_turn_in_place_and_follow_a_path_together_without_collisions():
     assert report["collisions"] == 0 and report["settled"] == 3
     by = {p["name"]: p for p in report["parcels"]}
     assert by["turn"]["final_error_deg"] < 2.0 and by["turn"]["final_error_mm"] < 5.0  # turned 90 deg in place
-    assert by["path"]["max_path_deviation_mm"] < 15.0  # the L-shaped path, not the straight line (71 mm off it)
+    # The L-shaped path, not the straight line (71 mm off it). A parcel that rides its wheels (stick-slip) turns for
+    # the target as soon as it is within pass_radius of the corner, so it cuts the corner by up to pass_radius (20 mm;
+    # under the viscous law it lagged the wheels, kept going east and stayed within 15 mm).
+    assert by["path"]["max_path_deviation_mm"] < sc.control.pass_radius * 1e3
     assert all(p["final_error_mm"] < 5.0 and p["final_error_deg"] < 2.0 for p in report["parcels"])
 
 

@@ -30,8 +30,8 @@ SOURCE = ("J. Luntz, W. Messner, H. Choset, \"Virtual Vehicle: parcel manipulati
 
 SCENES = {"stick_slip_pickup": (0.4, 0.5), "crossing_30x30": (0.2, 0.25)}
 """Bundled scenes (a parcel put down at rest on a uniform field) and the (kinetic, static) Coulomb coefficients used
-there; ``crossing_30x30``'s are its viscous 1 s/m times its wheel speed 0.2 m/s, so its viscous run is the bundled
-one."""
+there; ``crossing_30x30``'s are the viscous 1 s/m it had before it moved to stick-slip times its wheel speed 0.2 m/s
+(kept, so that the figures stay those published; its bundled 0.6 and 0.8 would only pick up sooner)."""
 
 LAWS_SHOWN = ("coulomb", "stick_slip", "viscous")
 DURATION = 1.0
