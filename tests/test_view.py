@@ -290,10 +290,9 @@ def test_in_a_browser_a_run_folder_replays_at_the_time_scrubbed_to(tmp_path):
             page.locator("text=/t = 0.00 s of 2 s/").wait_for(timeout=120_000)
             page.evaluate("() => { Bokeh.documents[0].get_model_by_name('time').value = 1.0 }")  # the scrubber
             page.locator("text=/t = 1.00 s of 2 s/").wait_for(timeout=30_000)
-            want = sorted(Replay(tmp_path / "run").frame(1.0).poses)
-            page.wait_for_function(f"() => JSON.stringify(Bokeh.documents[0].get_model_by_name('parcels').data.label"
-                                   f".map(l => l.split('→')[0]).sort()) === '{json.dumps(want, separators=(',', ':'))}'",
-                                   timeout=30_000)
+            want = json.dumps(sorted(Replay(tmp_path / "run").frame(1.0).poses), separators=(",", ":"))
+            page.wait_for_function("() => JSON.stringify(Bokeh.documents[0].get_model_by_name('parcels').data.label"
+                                   f".map(l => l.split('→')[0]).sort()) === '{want}'", timeout=30_000)
             page.screenshot(path=str(tmp_path / "replay.png"))
             page.get_by_role("button", name="play").click()
             page.locator("text=/t = 2.00 s of 2 s/").wait_for(timeout=60_000)  # played to the end
@@ -302,3 +301,24 @@ def test_in_a_browser_a_run_folder_replays_at_the_time_scrubbed_to(tmp_path):
         proc.send_signal(signal.SIGINT)
         proc.communicate(timeout=60)
     assert proc.returncode == 0
+
+
+def test_the_page_flags_the_stall_the_run_report_finds():
+    """A wall of cells dies across the lane at 2 s: the first parcel stops at it, the next stops behind, and the
+    viewer calls them a deadlock (a queue stalled behind one stuck parcel is one group) as the run's report does."""
+    from virtual_vehicle.config.scenario import FaultEvent
+
+    sc = short_junction(7.0)
+    P = sc.build().cells.positions
+    wall = [int(i) for i in ((P[:, 0] > 1.1) & (P[:, 0] < 1.25)).nonzero()[0]]
+    sc = sc.model_copy(update={"control": sc.control.model_copy(update={"wait_bound": 1.0}),
+                               "faults": sc.faults.model_copy(update={"events": [FaultEvent(t=2.0, dead_cells=wall)]})})
+    live = LiveRun(sc)
+    live.advance(3.0, budget=1e9)
+    assert live.stalls() == []  # moving until the wall
+    while not live.done:
+        live.advance(0.25, budget=1e9)
+        seen = live.stalls()
+    report = live.result().summary()["sorting"]["stalls"]
+    assert [(s["kind"], s["parcels"]) for s in seen] == [(s["kind"], s["parcels"]) for s in report]
+    assert [s["kind"] for s in seen] == ["deadlock"]

@@ -7,6 +7,7 @@ its page, with a time scrubber; :mod:`.draw` what both pages draw.
 """
 
 from virtual_vehicle.ui.view.live import COLOUR_BY, STILL, LiveRun
-from virtual_vehicle.ui.view.server import LOOPBACK, SPEEDS, Viewer
+from virtual_vehicle.ui.view.page import SPEEDS
+from virtual_vehicle.ui.view.server import LOOPBACK, Viewer
 
 __all__ = ["COLOUR_BY", "LOOPBACK", "SPEEDS", "STILL", "LiveRun", "Viewer"]

@@ -57,12 +57,18 @@ class Raster:
         near = np.abs(pts - P[c]).max(axis=1) <= 0.45 * pitch
         self.map = np.where(near, c, -1).reshape(self.h, self.w)
 
-    def image(self, rgb: np.ndarray) -> np.ndarray:
-        """(h, w) uint32 RGBA of the (n, 3) cell colours ``rgb`` (gaps transparent)."""
+    @staticmethod
+    def colours(rgb: np.ndarray) -> np.ndarray:
+        """(n + 1,) uint32 RGBA of the (n, 3) cell colours ``rgb`` and, last, of the gaps (transparent): indexed
+        by :attr:`map`, an image."""
         rgba = np.zeros((len(rgb) + 1, 4), np.uint8)
         rgba[:-1, :3] = np.clip(rgb, 0, 255)
         rgba[:-1, 3] = 255
-        return rgba[self.map].view(np.uint32)[..., 0]
+        return rgba.view(np.uint32)[:, 0]
+
+    def image(self, rgb: np.ndarray) -> np.ndarray:
+        """(h, w) uint32 RGBA of the (n, 3) cell colours ``rgb`` (gaps transparent)."""
+        return self.colours(rgb)[self.map]
 
 
 def _bounds(setup, raster: Raster, lanes) -> tuple[np.ndarray, np.ndarray]:
@@ -179,18 +185,19 @@ class ArrayView:
             return
         if not changed.any():
             return
-        new = raster.image(rgb)
+        rgba = raster.colours(rgb)
         mask = np.append(changed, False)[raster.map]  # the gaps (-1) never change
         side = TILE * raster.ppp
+        H, W = -(-raster.h // side), -(-raster.w // side)
+        padded = np.zeros((H * side, W * side), bool)
+        padded[:raster.h, :raster.w] = mask
         patches = []
-        for r in range(0, raster.h, side):
-            for c in range(0, raster.w, side):
-                block = mask[r:r + side, c:c + side]
-                if not block.any():
-                    continue
-                rows, cols = np.flatnonzero(block.any(axis=1)), np.flatnonzero(block.any(axis=0))
-                rs, cs = slice(r + rows[0], r + rows[-1] + 1), slice(c + cols[0], c + cols[-1] + 1)
-                patches.append(((0, rs, cs), new[rs, cs]))
+        for r, c in zip(*np.nonzero(padded.reshape(H, side, W, side).any(axis=(1, 3)))):
+            block = mask[r * side:(r + 1) * side, c * side:(c + 1) * side]
+            rows, cols = np.flatnonzero(block.any(axis=1)), np.flatnonzero(block.any(axis=0))
+            rs = slice(r * side + rows[0], r * side + rows[-1] + 1)
+            cs = slice(c * side + cols[0], c * side + cols[-1] + 1)
+            patches.append(((0, rs, cs), rgba[raster.map[rs, cs]]))
         self.image.patch({"image": patches})  # Bokeh applies it to the server's copy (self.pixels) too
 
     def _arrow_data(self, wheels: np.ndarray | None) -> dict:

@@ -60,6 +60,7 @@ class LiveRun:
         self.text = text
         self.actions: list[dict] = []
         self.wall = 0.0  # s of real time spent ticking, replays left out
+        self._stands: dict[int, tuple[float, float, float]] = {}  # parcel -> (t, x, y) where its stand began
         self._make(sc, 0)
 
     def _make(self, sc: Scenario, k: int) -> None:
@@ -211,6 +212,48 @@ class LiveRun:
         return name
 
     # what the page draws
+    def stalls(self) -> list[dict]:
+        """The stalls going on now, judged as :func:`~virtual_vehicle.cells.programs.sort.stalls` judges a finished
+        run, at the times this is called (the page's frames): a parcel on the array whose centre has stayed within a
+        quarter pitch of where it stopped for longer than the program's ``wait_bound`` (s) is stalled; stalled
+        parcels within ``gap + 2`` pitches of each other (outline to outline) wait on each other (kind
+        ``"deadlock"``), one alone is kind ``"waiting"``. Each stall: ``kind``, ``parcels`` (names) and ``t_s``,
+        when the last of them stopped. Empty for a program without a ``wait_bound``."""
+        ctl = self.scenario.control
+        bound = getattr(ctl, "wait_bound", None)
+        if bound is None:
+            return []
+        run, pitch = self.run, self.run.setup.cells.pitch
+        stands = {}
+        for i in run.on:
+            x, y = run.ys[i][:2]
+            t0, x0, y0 = self._stands.get(i, (self.t, x, y))
+            if math.hypot(x - x0, y - y0) > 0.25 * pitch:  # moved on: a new stand starts here
+                t0, x0, y0 = self.t, x, y
+            stands[i] = (t0, x0, y0)
+        self._stands = stands
+        still = [i for i, (t0, _, _) in stands.items() if self.t - t0 > bound]
+        polys = [shapely.Polygon(run.setup.specs[i].world_polygon(run.ys[i]).exterior.coords) for i in still]
+        reach = (getattr(ctl, "gap", 2) + 2) * pitch
+        group = list(range(len(still)))
+
+        def root(u: int) -> int:
+            while group[u] != u:
+                u = group[u]
+            return u
+
+        for u in range(len(still)):
+            for v in range(u):
+                if polys[u].distance(polys[v]) <= reach:
+                    group[root(u)] = root(v)
+        out = []
+        for g in sorted({root(u) for u in range(len(still))}):
+            members = [still[u] for u in range(len(still)) if root(u) == g]
+            out.append({"kind": "deadlock" if len(members) > 1 else "waiting",
+                        "parcels": [run.setup.specs[i].name for i in members],
+                        "t_s": max(stands[i][0] for i in members)})
+        return out
+
     def cell_values(self, colour_by: str) -> np.ndarray | None:
         """(n,) float per cell for ``colour_by`` (:data:`COLOUR_BY`), NaN where there is none; None when the
         program keeps no such thing."""

@@ -8,13 +8,31 @@ are on it and wait, against simulated time, with the controls that steer the run
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from virtual_vehicle.ui.view.draw import (ABSENT, DEAD, EMPTY, EXIT_COLOURS, STALL, STATE_COLOURS, ArrayView,
-                                          place_labels, ramp)
+from virtual_vehicle.ui.view.draw import (ABSENT, ARROWS_UP_TO, DEAD, EMPTY, EXIT_COLOURS, STALL, STATE_COLOURS,
+                                          ArrayView, place_labels, ramp)
 from virtual_vehicle.ui.view.live import COLOUR_BY, STILL, LiveRun
-from virtual_vehicle.ui.view.server import SPEEDS, Viewer
+
+if TYPE_CHECKING:
+    from virtual_vehicle.ui.view.server import Viewer
+
+SPEEDS = (0.1, 10.0)
+"""The range of simulated seconds per real second the page's speed slider sets (``math.inf``: as fast as it
+runs)."""
+TRAFFIC_WINDOW = 1.0
+"""s: the cells' traffic is shown as sentences received per s over this much simulated time (a heartbeat's
+worth by default: a shorter window flickers with each cell's heartbeat, and every flicker is a cell to resend)."""
+
+
+def _sticky(memory: dict, key: str, value: float, factor: float = 1.25) -> float:
+    """``value``, or the one kept under ``key`` while ``value`` stays within ``factor`` of it."""
+    kept = memory.get(key)
+    if kept is None or not (kept / factor <= value <= kept * factor) and abs(value - kept) > 1e-9:
+        memory[key] = kept = value
+    return kept
 
 
 def _cell_colours(live: LiveRun, colour_by: str, memory: dict) -> tuple[np.ndarray, str]:
@@ -23,22 +41,26 @@ def _cell_colours(live: LiveRun, colour_by: str, memory: dict) -> tuple[np.ndarr
     v = live.cell_values(colour_by)
     if v is None:
         rgb, note = np.tile(np.asarray(EMPTY, float), (n, 1)), f"{colour_by}: not kept by this program"
-    elif colour_by == "traffic":  # sentences received per simulated second since the last frame
-        before, t_before = memory.get("received", (None, None))
-        memory["received"] = (v, live.t)
-        rate = memory.get("rate", np.zeros(n))
-        if before is not None and len(before) == n and live.t > t_before:
-            rate = (v - before) / (live.t - t_before)
-        elif before is not None and live.t < t_before:
-            rate = np.zeros(n)
+    elif colour_by == "traffic":  # sentences received per simulated second over the last TRAFFIC_WINDOW s
+        history = memory.setdefault("received", [])  # (t, counts) at the frames of the window
+        if history and (len(history[-1][1]) != n or live.t < history[-1][0]):
+            history.clear()  # the run was made afresh: its counts start over
+        history.append((live.t, v))
+        while len(history) > 2 and history[1][0] <= live.t - TRAFFIC_WINDOW:
+            history.pop(0)
+        (t0, v0), span = history[0], live.t - history[0][0]
+        rate = (v - v0) / span if span > 0 else memory.get("rate", np.zeros(n))
         memory["rate"] = rate
         # the ramp starts at the common (heartbeat) level of the working cells, their median, so that only those
-        # busier than most stand out (the silent dead cells and the edges' fewer neighbours would pull it down)
+        # busier than most stand out (the silent dead cells and the edges' fewer neighbours would pull it down);
+        # its ends move only when the levels move by a quarter, so that cells keep their colours from frame to frame
         working = rate[~(live.dead() | live.absent())]
         low, top = np.percentile(working, (50, 99)) if len(working) else (0.0, 0.0)
+        low, top = _sticky(memory, "low", low), _sticky(memory, "top", top)
         if top > low:
             rgb = ramp((rate - low) / (top - low), EMPTY, (230, 120, 20))
-            note = f"traffic: white {low:.3g} (the median) .. orange {top:.3g} sentences received per s per cell"
+            note = (f"traffic over the last {TRAFFIC_WINDOW:g} s: white {low:.3g} (about the median) .. orange "
+                    f"{top:.3g} sentences received per s per cell")
         else:
             rgb = np.tile(np.asarray(EMPTY, float), (n, 1))
             note = f"traffic: no cell above the median, {low:.3g} sentences received per s"
@@ -56,8 +78,9 @@ def _cell_colours(live: LiveRun, colour_by: str, memory: dict) -> tuple[np.ndarr
     return rgb, note + "; dead cells black, cells taken out grey"
 
 
-def _parcel_data(live: LiveRun) -> tuple[dict, dict]:
-    """The parcels on the array and those due but waiting, as columns for the page's sources."""
+def _parcel_data(live: LiveRun, stalled: dict[str, str]) -> tuple[dict, dict]:
+    """The parcels on the array and those due but waiting, as columns for the page's sources; ``stalled`` names
+    the parcels in a stall now and its kind (:meth:`LiveRun.stalls`): outlined thickest in red, the kind named."""
     run, setup = live.run, live.run.setup
     dests = [p.destination for p in live.scenario.parcels]
     waiting = set(live.waiting())
@@ -74,9 +97,11 @@ def _parcel_data(live: LiveRun) -> tuple[dict, dict]:
             places.setdefault(place, []).append((label, ring))
             continue
         still = math.hypot(y[3], y[4]) < STILL and abs(y[5]) * spec.radius < STILL
+        kind = stalled.get(spec.name)
         for key, value in (("xs", ring[:, 0]), ("ys", ring[:, 1]), ("fill", colour),
-                           ("line", STALL if still else colour), ("width", 3.5 if still else 1.5),
-                           ("x", y[0]), ("y", y[1]), ("label", label)):
+                           ("line", STALL if still or kind else colour),
+                           ("width", 4.5 if kind else 2.5 if still else 1.5),
+                           ("x", y[0]), ("y", y[1]), ("label", f"{label} {kind}" if kind else label)):
             on[key].append(value)
     place_labels(wait, places)
     return on, wait
@@ -185,7 +210,8 @@ def build(doc, viewer: Viewer, send_all: bool = False):
         readings = getattr(run, "readings", None)
         lit = run.sensors.points[readings.astype(bool)] if readings is not None and readings.ndim == 2 else \
             np.zeros((0, 2))
-        on, wait = _parcel_data(live)
+        stalls = live.stalls()
+        on, wait = _parcel_data(live, {name: s["kind"] for s in stalls for name in s["parcels"]})
         view.show(rgb, lit, getattr(run, "wheels", None), on, wait)
         rtf = live.t / live.wall if live.wall > 0 else float("nan")
         n_wait = len(wait["x"])
@@ -202,9 +228,15 @@ def build(doc, viewer: Viewer, send_all: bool = False):
         status.text = (f"t = {live.t:.2f} s of {end:g} s &nbsp; real-time factor {rtf:.3g} &nbsp; on the array "
                        f"{len(on['x'])} &nbsp; waiting {n_wait} &nbsp; left {live.delivered()} &nbsp; "
                        f"{'ended' if live.done else 'running' if viewer.playing else 'paused'}"
+                       + "".join(f"<br>{st['kind']} since t = {st['t_s']:.1f} s: {', '.join(st['parcels'])}"
+                                 for st in stalls[:5])
                        + (f"<br>{viewer.message}" if viewer.message else ""))
-        legend.text = (f"{note}. Red dots: sensors lit. Parcels coloured by their exit; red thick outline: standing "
-                       f"still; red dashed: due but waiting for its place.")
+        arrows = ("Blue arrows: each wheel's speed along its drive direction (the fastest yet: 0.45 pitch). "
+                  if view.arrows_on else f"Wheel arrows are drawn on arrays up to {ARROWS_UP_TO} cells. ")
+        legend.text = (f"{note}. {arrows}Red dots: sensors lit. Parcels coloured by their exit; red outline: "
+                       f"standing still, thickest and named: stalled longer than the program's wait bound "
+                       f"(deadlock: near others stalled, waiting on each other; waiting: alone); red dashed: due but "
+                       f"waiting for its place.")
         rows = [f"t={a['t']:g} s: " + (f"{a['kind']} cell {a['cell']}" if a["kind"] != "drop" else
                                        f"drop {a['parcel']} at entry {a['entry']} for exit {a['destination']}")
                 for a in live.actions]

@@ -21,9 +21,8 @@ from virtual_vehicle.ui.view.live import LiveRun
 if TYPE_CHECKING:
     from virtual_vehicle.ui.view.replay import Replay
 
-SPEEDS = (0.1, 10.0)
-"""The range of simulated seconds per real second the page's speed slider sets (``math.inf``: as fast as it
-runs)."""
+DEFLATE = 1
+"""zlib level of the websocket's per-message compression (1: fastest; a frame's patches shrink about tenfold)."""
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 """Addresses that serve the page to this machine alone."""
 
@@ -69,7 +68,10 @@ class Viewer:
                 self.server = Server({"/": self._page}, io_loop=self.loop, address=host, port=self.port,
                                      allow_websocket_origin=origins,
                                      sign_sessions=True, secret_key=self._key, generate_session_ids=False,
-                                     session_token_expiration=24 * 3600)
+                                     session_token_expiration=24 * 3600,
+                                     # frames deflated on the wire (the image patches are runs of equal pixels):
+                                     # the fastest level takes most of it
+                                     websocket_compression_level=DEFLATE, websocket_compression_mem_level=8)
                 break
             except OSError:
                 if port is not None or attempt == 4:
