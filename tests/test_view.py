@@ -322,3 +322,38 @@ def test_the_page_flags_the_stall_the_run_report_finds():
     report = live.result().summary()["sorting"]["stalls"]
     assert [(s["kind"], s["parcels"]) for s in seen] == [(s["kind"], s["parcels"]) for s in report]
     assert [s["kind"] for s in seen] == ["deadlock"]
+
+
+def test_a_parcel_given_a_new_target_on_the_page_goes_there_and_replays_with_run():
+    from bokeh.document import Document
+    from bokeh.events import Tap
+
+    from virtual_vehicle.ui.view import page
+
+    sc, _ = load_scenario("pose_tasks")
+    live = LiveRun(sc.model_copy(update={"duration": 3.0}))
+    viewer = type("V", (), {"live": live, "playing": False, "speed": 1.0, "frame": 0.1, "message": "",
+                            "step_once": lambda self: None})()
+    doc = Document()
+    refresh = page.build(doc, viewer)
+    live.advance(1.0, budget=1e9)
+    doc.get_model_by_name("target parcel").value = "move"
+    doc.get_model_by_name("target heading").value = 0.0
+    doc.get_model_by_name("aim").active = True
+    array = doc.get_model_by_name("array")
+    array._trigger_event(Tap(array, x=0.6, y=0.3))  # a click on the array at (0.6, 0.3) m
+    refresh()
+    assert live.actions == [{"t": pytest.approx(1.0), "kind": "target", "parcel": "move", "target": (0.6, 0.3, 0.0)}]
+    assert "move target" in doc.get_model_by_name("targets").data["label"]
+    live.advance(1.5, budget=1e9)
+    result = live.result()
+    assert result.parcels[0].trajectory.states[-1][:2] == pytest.approx([0.6, 0.3], abs=0.015)
+    written = parse_text(result.scenario_text)
+    (change,) = written.control.retargets
+    assert (change.t, change.parcel, change.target) == (pytest.approx(1.0), "move", (0.6, 0.3, 0.0))
+    assert result.summary()["parcels"][0]["target"] == {"x": 0.6, "y": 0.3, "theta": 0.0}
+    same_tables(result, run(written.build(), scenario_text=result.scenario_text))
+    with pytest.raises(ValueError, match="no parcel named"):
+        LiveRun("pose_tasks").retarget("nobody", (0.5, 0.5, 0.0))
+    with pytest.raises(ValueError, match="no target poses"):
+        LiveRun(short_junction()).retarget("p00", (0.5, 0.5, 0.0))

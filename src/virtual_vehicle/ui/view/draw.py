@@ -21,6 +21,8 @@ TILE = 8
 """Cells along a side of the image's patch tiles: a frame sends the changed part of each tile with a change."""
 STEPS = 16
 """Colour steps of a ramp (traffic, hop distance): values that drift within a step do not repaint the cell."""
+LABEL_PX = 40
+"""Pixels a parcel must span on the page for its name to be written on it (else it is in the hover tooltip)."""
 STALL = "#d62728"
 """Outline of a parcel standing still or stalled (and the dashed outline of one waiting for its place)."""
 
@@ -110,7 +112,7 @@ class ArrayView:
     """
 
     def __init__(self, setup, tree, title: str, width: int = 900, send_all: bool = False):
-        from bokeh.models import Arrow, ColumnDataSource, VeeHead
+        from bokeh.models import Arrow, ColumnDataSource, HoverTool, VeeHead
         from bokeh.plotting import figure
 
         cells = setup.cells
@@ -149,14 +151,19 @@ class ArrayView:
                                          "label": []}, name="parcels")
         p.patches("xs", "ys", source=self.waiting, fill_color=STALL, fill_alpha=0.08, line_color=STALL,
                   line_width=2, line_dash="dashed")
-        p.patches("xs", "ys", source=self.parcels, fill_color="fill", fill_alpha=0.45, line_color="line",
-                  line_width="width")
-        p.scatter("x", "y", source=self.sensors, size=max(3.0, min(7.0, 0.08 * pitch * width / (hi[0] - lo[0]))),
+        shapes = p.patches("xs", "ys", source=self.parcels, fill_color="fill", fill_alpha=0.45, line_color="line",
+                           line_width="width")
+        p.add_tools(HoverTool(renderers=[shapes], tooltips=[("parcel", "@label")]))
+        p.scatter("x", "y", source=self.sensors, size=max(1.5, min(7.0, 0.08 * pitch * width / (hi[0] - lo[0]))),
                   color=STALL)
+        # a label wider than its parcel would hide its neighbours' (a hall): there the names are in the tooltips
+        sizes = [max(s.polygon.bounds[2] - s.polygon.bounds[0], s.polygon.bounds[3] - s.polygon.bounds[1])
+                 for s in setup.specs]
+        self.labels_on = not sizes or float(np.median(sizes)) * width / (hi[0] - lo[0]) >= LABEL_PX
         for src, baseline, colour in ((self.parcels, "middle", "black"), (self.waiting, "top", STALL)):
             p.text("x", "y", text="label", source=src, text_font_size="12px", text_align="center",
                    text_baseline=baseline, text_color=colour, background_fill_color="white",
-                   background_fill_alpha=0.8)
+                   background_fill_alpha=0.8, visible=self.labels_on)
         self.figure = p
 
     def show(self, rgb: np.ndarray, lit: np.ndarray, wheels: np.ndarray | None, on: dict, wait: dict) -> None:
@@ -164,13 +171,14 @@ class ArrayView:
         (n, 2) m/s each wheel's surface speed along its drive direction (None: not known), ``on`` and ``wait`` the
         columns of the parcels on the array and of those waiting for their place."""
         self._show_cells(np.clip(np.rint(rgb), 0, 255).astype(np.uint8))
-        self._set(self.sensors, {"x": lit[:, 0], "y": lit[:, 1]})
+        self.set_source(self.sensors, {"x": lit[:, 0], "y": lit[:, 1]})
         if self.arrows_on:
-            self._set(self.arrows, self._arrow_data(wheels))
-        self._set(self.parcels, on)
-        self._set(self.waiting, wait)
+            self.set_source(self.arrows, self._arrow_data(wheels))
+        self.set_source(self.parcels, on)
+        self.set_source(self.waiting, wait)
 
-    def _set(self, source, data: dict) -> None:
+    def set_source(self, source, data: dict) -> None:
+        """Give ``source`` (one of the page's, drawn on this figure) ``data``, sent only when it differs."""
         if self.send_all or not _same(source.data, data):
             source.data = data
 

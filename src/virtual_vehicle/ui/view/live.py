@@ -211,6 +211,43 @@ class LiveRun:
                      replay=True)
         return name
 
+    def targets(self) -> dict[str, tuple] | None:
+        """Each parcel's target pose now (x, y, theta; m, m, rad) by name, including one set for the next tick; None
+        when the program drives parcels to no target poses."""
+        ctl = self.scenario.control
+        if getattr(ctl, "targets", None) is None:
+            return None
+        from virtual_vehicle.cells.control import targets_at
+        from virtual_vehicle.cells.programs.pose import resolve_retargets
+
+        names = [s.name for s in self.run.setup.specs]
+        now = targets_at(ctl.targets, resolve_retargets(ctl, names), self.t)
+        return {name: tuple(float(v) for v in pose) for name, pose in zip(names, now)}
+
+    def retarget(self, parcel: str, target) -> None:
+        """Drive ``parcel`` (its name) to ``target`` = (x, y, theta) (m, m, rad) from the next tick on: recorded as a
+        ``[[control.retargets]]`` table at that time (the target itself when it is t = 0). Raises ValueError for a
+        program without target poses or a parcel not in the run."""
+        targets = self.targets()
+        if targets is None:
+            raise ValueError(f"program {self.scenario.control.program!r} drives parcels to no target poses")
+        if parcel not in targets:
+            raise ValueError(f"no parcel named {parcel!r}")
+        pose = tuple(float(v) for v in target)
+        if len(pose) != 3 or not all(map(math.isfinite, pose)):
+            raise ValueError(f"a target pose is (x, y, theta), finite, not {target!r}")
+        sc, ctl, t = self.scenario, self.scenario.control, self.t
+        if t == 0:  # before the first tick: the scenario's own target, nothing happens at a time
+            rows = list(ctl.targets)
+            rows[list(targets).index(parcel)] = pose
+            ctl = ctl.model_copy(update={"targets": rows})
+        else:
+            from virtual_vehicle.cells.programs.pose import Retarget
+
+            ctl = ctl.model_copy(update={"retargets": [*ctl.retargets, Retarget(t=t, parcel=parcel, target=pose)]})
+        self._change(sc.model_copy(update={"control": ctl}),
+                     {"t": t, "kind": "target", "parcel": parcel, "target": pose}, replay=False)
+
     # what the page draws
     def stalls(self) -> list[dict]:
         """The stalls going on now, judged as :func:`~virtual_vehicle.cells.programs.sort.stalls` judges a finished

@@ -49,8 +49,8 @@ def _cell_colours(live: LiveRun, colour_by: str, memory: dict) -> tuple[np.ndarr
         while len(history) > 2 and history[1][0] <= live.t - TRAFFIC_WINDOW:
             history.pop(0)
         (t0, v0), span = history[0], live.t - history[0][0]
-        rate = (v - v0) / span if span > 0 else memory.get("rate", np.zeros(n))
-        memory["rate"] = rate
+        # a page opened on a run under way has one frame yet: the mean since the start until it has two
+        rate = (v - v0) / span if span > 0 else v / live.t if live.t > 0 else np.zeros(n)
         # the ramp starts at the common (heartbeat) level of the working cells, their median, so that only those
         # busier than most stand out (the silent dead cells and the edges' fewer neighbours would pull it down);
         # its ends move only when the levels move by a quarter, so that cells keep their colours from frame to frame
@@ -59,7 +59,8 @@ def _cell_colours(live: LiveRun, colour_by: str, memory: dict) -> tuple[np.ndarr
         low, top = _sticky(memory, "low", low), _sticky(memory, "top", top)
         if top > low:
             rgb = ramp((rate - low) / (top - low), EMPTY, (230, 120, 20))
-            note = (f"traffic over the last {TRAFFIC_WINDOW:g} s: white {low:.3g} (about the median) .. orange "
+            over = f"over the last {min(span, TRAFFIC_WINDOW):.2g} s" if span > 0 else "since the start"
+            note = (f"traffic {over}: white {low:.3g} (about the median) .. orange "
                     f"{top:.3g} sentences received per s per cell")
         else:
             rgb = np.tile(np.asarray(EMPTY, float), (n, 1))
@@ -107,13 +108,23 @@ def _parcel_data(live: LiveRun, stalled: dict[str, str]) -> tuple[dict, dict]:
     return on, wait
 
 
+def _said(action: dict) -> str:
+    """One recorded action in the page's log."""
+    if action["kind"] == "drop":
+        return f"drop {action['parcel']} at entry {action['entry']} for exit {action['destination']}"
+    if action["kind"] == "target":
+        x, y, th = action["target"]
+        return f"target {action['parcel']} ({x:.3f} m, {y:.3f} m, {math.degrees(th):.0f} deg)"
+    return f"{action['kind']} cell {action['cell']}"
+
+
 def build(doc, viewer: Viewer, send_all: bool = False):
     """Lay out the page of one browser session on ``doc`` (the array, the charts and the controls) and return its
     refresh: the function that draws a frame (called every ``viewer.frame`` s; ``send_all``: see
     :class:`~virtual_vehicle.ui.view.draw.ArrayView`)."""
     from bokeh.events import Tap
     from bokeh.layouts import column, row
-    from bokeh.models import Button, ColumnDataSource, Div, NumeralTickFormatter, Select, Slider, Toggle
+    from bokeh.models import Button, ColumnDataSource, Div, NumeralTickFormatter, Select, Slider, Spinner, Toggle
     from bokeh.plotting import figure
 
     live = viewer.live
@@ -156,6 +167,19 @@ def build(doc, viewer: Viewer, send_all: bool = False):
     dest = Select(name="destination", title="bound for exit", value=dests[0] if dests else "", options=dests,
                   width=110)
     drop = Button(name="drop", label="drop a parcel", width=110, disabled=not entries)
+    for widget in (entry, dest, drop):
+        widget.visible = bool(entries)  # a program without entries (pose) takes no dropped parcels
+    posed = live.targets() is not None  # a pose program: its parcels' targets can be moved by a click
+    names = [s.name for s in live.run.setup.specs] if posed else []
+    aim = Select(name="target parcel", title="new target for", value=names[0] if names else "", options=names,
+                 width=110, visible=posed)
+    heading = Spinner(name="target heading", title="heading (deg)", value=0.0, step=5.0, width=100, visible=posed)
+    aiming = Toggle(name="aim", label="click sets its target", width=150, visible=posed)
+    targets = ColumnDataSource({"xs": [], "ys": [], "x": [], "y": [], "label": []}, name="targets")
+    if posed:  # dotted outlines where the parcels are driven to, named
+        p.patches("xs", "ys", source=targets, fill_alpha=0, line_color="#555555", line_width=1.5, line_dash="dotted")
+        p.text("x", "y", text="label", source=targets, text_font_size="11px", text_align="center",
+               text_baseline="middle", text_color="#555555", visible=view.labels_on)
 
     def say(text: str) -> None:
         viewer.message = text
@@ -184,6 +208,15 @@ def build(doc, viewer: Viewer, send_all: bool = False):
             say(f"not dropped: {exc}")
 
     def on_tap(event) -> None:
+        if aiming.active:
+            pose = (event.x, event.y, math.radians(heading.value or 0.0))
+            try:
+                live.retarget(aim.value, pose)
+                say(f"parcel {aim.value}: new target ({event.x:.3f} m, {event.y:.3f} m, {heading.value or 0:g} deg) "
+                    f"at t = {live.t:g} s")
+            except ValueError as exc:
+                say(f"target unchanged: {exc}")
+            return
         c = live.cell_at(event.x, event.y)
         if c is None:
             return
@@ -233,18 +266,27 @@ def build(doc, viewer: Viewer, send_all: bool = False):
                        + (f"<br>{viewer.message}" if viewer.message else ""))
         arrows = ("Blue arrows: each wheel's speed along its drive direction (the fastest yet: 0.45 pitch). "
                   if view.arrows_on else f"Wheel arrows are drawn on arrays up to {ARROWS_UP_TO} cells. ")
-        legend.text = (f"{note}. {arrows}Red dots: sensors lit. Parcels coloured by their exit; red outline: "
+        hints = "" if view.labels_on else "Parcels' names and destinations: hover over them. "
+        if posed:
+            hints += ("Grey dotted: where each parcel is driven to (switch on 'click sets its target' and click the "
+                      "array to move the chosen parcel's). ")
+        legend.text = (f"{note}. {arrows}{hints}Red dots: sensors lit. Parcels coloured by their exit; red outline: "
                        f"standing still, thickest and named: stalled longer than the program's wait bound "
                        f"(deadlock: near others stalled, waiting on each other; waiting: alone); red dashed: due but "
                        f"waiting for its place.")
-        rows = [f"t={a['t']:g} s: " + (f"{a['kind']} cell {a['cell']}" if a["kind"] != "drop" else
-                                       f"drop {a['parcel']} at entry {a['entry']} for exit {a['destination']}")
-                for a in live.actions]
+        if posed:
+            specs = {spec.name: spec for spec in live.run.setup.specs}
+            rings = {k: np.asarray(specs[k].world_polygon(pose).exterior.coords) for k, pose in live.targets().items()}
+            view.set_source(targets, {"xs": [r[:, 0] for r in rings.values()], "ys": [r[:, 1] for r in rings.values()],
+                                      "x": [pose[0] for pose in live.targets().values()],
+                                      "y": [pose[1] for pose in live.targets().values()],
+                                      "label": [f"{k} target" for k in rings]})
+        rows = [f"t={a['t']:g} s: " + _said(a) for a in live.actions]
         log.text = "<b>recorded</b>: " + ("<br>".join(rows[-12:]) if rows else "nothing yet")
 
     refresh()
     doc.add_periodic_callback(refresh, int(1000 * viewer.frame))
-    controls = row(play, step, speed, fast, colour, entry, dest, drop)
+    controls = row(play, step, speed, fast, colour, entry, dest, drop, aim, heading, aiming)
     doc.add_root(column(controls, status, row(p, column(*charts, log)), legend))
     doc.title = f"virtual-vehicle view: {live.scenario.name}"
     return refresh

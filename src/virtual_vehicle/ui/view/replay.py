@@ -308,7 +308,8 @@ def build(doc, viewer):
         status.text = (f"t = {replay.t:.2f} s of {replay.duration:g} s &nbsp; on the array {len(frame.poses)} "
                        f"&nbsp; waiting {len(frame.waiting)}" + (f" &nbsp; stalled: {stalls}" if stalls else "")
                        + f" &nbsp; {'playing' if viewer.playing else 'paused'}")
-        legend.text = (f"{note}. Red dots: sensors {'lit as read' if frame.lit_recorded else 'under a parcel'}"
+        names = "" if view.labels_on else "Parcels' names and destinations: hover over them. "
+        legend.text = (f"{note}. {names}Red dots: sensors {'lit as read' if frame.lit_recorded else 'under a parcel'}"
                        f"{'' if frame.wheels is not None else ' (no cell log recorded: no wheel arrows)'}. Parcels "
                        "coloured by their exit; red thick outline: in a stall (deadlock: parcels waiting on each "
                        "other; waiting: alone); red dashed: due but waiting for its place.")
