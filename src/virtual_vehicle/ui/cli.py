@@ -351,10 +351,11 @@ def view_cmd(
     formats: list[str] = typer.Option(["parquet", "csv"], "--format", help="Table formats to write: parquet, csv."),
 ) -> None:
     """Run a scenario live and watch and steer it in a browser: prints the page's address with its access token.
-    Play, pause, one tick, speed; click a cell to kill or revive it, drop a parcel at an entry. Everything done is
-    recorded: the run folder written when the run ends holds the changed scenario, which 'virtual-vehicle run'
-    replays to the same tables. Ctrl-C before the end finishes the run and writes it (Ctrl-C again: nothing
-    written, exit 130). Given a run folder, replays it from its tables with a time slider (nothing is written)."""
+    Play, pause, one tick, speed; click a cell to kill or revive it, drop a parcel at an entry, give a parcel of a
+    pose program a new target. Everything done is recorded: the run folder written when the run ends holds the
+    changed scenario, which 'virtual-vehicle run' replays to the same tables. Ctrl-C before the end finishes the run
+    and writes it (Ctrl-C again: nothing written, exit 130). Given a run folder, replays it from its tables with a
+    time slider (nothing is written)."""
     from virtual_vehicle.ui.view import LOOPBACK, LiveRun, Viewer
 
     if Path(scenario).is_dir():

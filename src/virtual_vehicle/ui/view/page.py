@@ -140,7 +140,7 @@ def build(doc, viewer: Viewer, send_all: bool = False):
                         ("parcels", (("left", "#2ca02c"), ("on", "#1f77b4"), ("waiting", "#d62728")))):
         c = figure(title=title, width=420, height=190 if len(keys) == 1 else 240, x_axis_label="simulated time (s)",
                    tools="")
-        c.yaxis.formatter = NumeralTickFormatter(format="0.[0]a")  # 108k, not 1.08000000001e+5
+        c.yaxis.formatter = NumeralTickFormatter(format="0.[00]a")  # 108k, not 1.08000000001e+5; 0.15, not 0.1 twice
         c.y_range.start = 0
         for key, colour in keys:
             c.line("t", key, source=series, color=colour, line_width=2, **({"legend_label": key} if len(keys) > 1
@@ -178,8 +178,9 @@ def build(doc, viewer: Viewer, send_all: bool = False):
     targets = ColumnDataSource({"xs": [], "ys": [], "x": [], "y": [], "label": []}, name="targets")
     if posed:  # dotted outlines where the parcels are driven to, named
         p.patches("xs", "ys", source=targets, fill_alpha=0, line_color="#555555", line_width=1.5, line_dash="dotted")
+        p.title.text = "click a cell to kill or revive it (or, switched on, to set the chosen parcel's target there)"
         p.text("x", "y", text="label", source=targets, text_font_size="11px", text_align="center",
-               text_baseline="middle", text_color="#555555", visible=view.labels_on)
+               text_baseline="top", text_color="#555555", visible=view.labels_on)
 
     def say(text: str) -> None:
         viewer.message = text
@@ -279,7 +280,7 @@ def build(doc, viewer: Viewer, send_all: bool = False):
             rings = {k: np.asarray(specs[k].world_polygon(pose).exterior.coords) for k, pose in live.targets().items()}
             view.set_source(targets, {"xs": [r[:, 0] for r in rings.values()], "ys": [r[:, 1] for r in rings.values()],
                                       "x": [pose[0] for pose in live.targets().values()],
-                                      "y": [pose[1] for pose in live.targets().values()],
+                                      "y": [r[:, 1].min() for r in rings.values()],  # under it, off the parcel
                                       "label": [f"{k} target" for k in rings]})
         rows = [f"t={a['t']:g} s: " + _said(a) for a in live.actions]
         log.text = "<b>recorded</b>: " + ("<br>".join(rows[-12:]) if rows else "nothing yet")

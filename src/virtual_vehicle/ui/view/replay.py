@@ -263,7 +263,7 @@ def build(doc, viewer):
         net = ColumnDataSource({"t": d["t"], "rate": np.asarray(d["received"], float) / replay.period})
         c = figure(title="sentences received per simulated s", width=420, height=190,
                    x_axis_label="simulated time (s)", tools="")
-        c.yaxis.formatter = NumeralTickFormatter(format="0.[0]a")
+        c.yaxis.formatter = NumeralTickFormatter(format="0.[00]a")
         c.line("t", "rate", source=net, color="#e6781e", line_width=1.5)
         charts.append(c)
     for c in charts:
