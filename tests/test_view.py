@@ -357,3 +357,19 @@ def test_a_parcel_given_a_new_target_on_the_page_goes_there_and_replays_with_run
         LiveRun("pose_tasks").retarget("nobody", (0.5, 0.5, 0.0))
     with pytest.raises(ValueError, match="no target poses"):
         LiveRun(short_junction()).retarget("p00", (0.5, 0.5, 0.0))
+
+
+def test_a_field_run_replays_too(tmp_path):
+    """A run without a network (no arrivals reported: its parcels are on from their first sample) replays its
+    parcels where its trajectories have them, with plain cells."""
+    from virtual_vehicle.run.io import write_results
+    from virtual_vehicle.ui.view.replay import Replay
+
+    result = run(load_scenario("paper_2x2_inward")[0].build())
+    write_results(result, tmp_path, formats=("parquet",))
+    replay = Replay(tmp_path)
+    tr = result.parcels[0].trajectory
+    t = float(tr.times[len(tr.times) // 2])
+    frame = replay.frame(t)
+    assert frame.poses[result.parcels[0].spec.name] == pytest.approx(tuple(tr.states[len(tr.times) // 2, :3]))
+    assert frame.traffic is None and frame.wheels is None and not frame.waiting

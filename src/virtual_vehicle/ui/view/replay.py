@@ -96,6 +96,11 @@ class Replay:
         names = np.asarray(traj["parcel"])[order]
         states = np.column_stack([np.asarray(traj[k], float)[order] for k in ("t", "x", "y", "theta")])
         self.paths = {n: states[names == n] for n in self.names}
+        # when each parcel came on: a networked run reports it (None: never let on); a field run's parcels are on
+        # from their first sample
+        self.entered = [row["entered_at_s"] if "entered_at_s" in row else
+                        float(self.paths[n][0, 0]) if len(self.paths[n]) else None
+                        for n, row in zip(self.names, self.rows)]
         self.stalls = (self.summary.get("sorting") or {}).get("stalls") or []
         self._cells_log(folder)
         self.t = 0.0
@@ -145,8 +150,8 @@ class Replay:
         """What the run showed at ``t`` s (default: the replay's time); see :class:`ReplayFrame`."""
         t = self.t if t is None else float(t)
         poses, waiting = {}, []
-        for name, row in zip(self.names, self.rows):
-            entered, due = row.get("entered_at_s"), row.get("due_s")
+        for name, row, entered in zip(self.names, self.rows, self.entered):
+            due = row.get("due_s")
             path = self.paths[name]
             if entered is not None and entered <= t + 1e-12 and t <= row.get("t_end_s", self.duration) + 1e-12 \
                     and len(path) and path[0, 0] <= t + 1e-12:
@@ -220,8 +225,8 @@ class Replay:
     def counts(self, times: np.ndarray) -> dict[str, np.ndarray]:
         """Parcels on the array, waiting and gone (left the array) at each of ``times`` (s), for the charts."""
         on, waiting, left = (np.zeros(len(times)) for _ in range(3))
-        for row in self.rows:
-            entered, due, end = row.get("entered_at_s"), row.get("due_s"), row.get("t_end_s", self.duration)
+        for row, entered in zip(self.rows, self.entered):
+            due, end = row.get("due_s"), row.get("t_end_s", self.duration)
             if entered is not None:
                 on += (times >= entered) & (times <= end)
                 if row.get("outcome") in ("delivered", "lost"):

@@ -37,7 +37,8 @@ class Viewer:
     """The page's server: a Bokeh server on ``host`` (default 127.0.0.1) at a free port, one signed session id as
     the access token, and the run stepped on the server's own loop (so the page's callbacks and the ticks never
     run at once). ``url`` is the address to open, token included; ``on_done`` is called once with the result when
-    the run reaches its end."""
+    the run reaches its end. ``live``: a :class:`LiveRun` (the live page) or a
+    :class:`~virtual_vehicle.ui.view.replay.Replay` (the replay page, whose time play moves on)."""
 
     def __init__(self, live: LiveRun | Replay, host: str = "127.0.0.1", port: int | None = None, on_done=None,
                  frame: float = 0.1):
