@@ -96,7 +96,8 @@ class PoseControl:
     laws). Within ``tolerance`` (m, rad) of its target a parcel's wheels stop. With ``waypoints`` (per parcel, a list
     of poses) a parcel is transported along a path: it heads for each waypoint in turn and passes it once its
     estimate is within ``pass_radius`` (m) of it. It knows each parcel's outline and where it was placed
-    (``starts``: the poses a loader put them at), nothing of its motion since.
+    (``starts``: the poses a loader put them at), nothing of its motion since. ``retargets``: (t, parcel index,
+    pose) changes of target, each from the first tick at or after t (s) on.
 
     A central controller in the cell-program shape: it sends no sentences and reads every cell's sensors.
     """
@@ -105,7 +106,7 @@ class PoseControl:
 
     def __init__(self, cells, sensor_points, specs, starts, targets, *, gain: float = 2.0, max_speed: float = 0.2,
                  tolerance=(5e-4, np.radians(0.2)), period: float = 0.01, symmetry: list[int] | None = None,
-                 waypoints=None, pass_radius: float = 0.01):
+                 waypoints=None, pass_radius: float = 0.01, retargets=()):
         from virtual_vehicle.cells.estimate import sensor_spacing
 
         self.cells = cells
@@ -125,6 +126,7 @@ class PoseControl:
         if len(self.waypoints) != len(self.specs):
             raise ValueError("one list of waypoints per parcel")
         self.pass_radius = float(pass_radius)
+        self.retargets = sorted(retargets, key=lambda r: r[0])
 
     def init(self, n, ports, config):
         """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each (see
@@ -142,7 +144,8 @@ class PoseControl:
         lit = np.asarray(inputs.sensors, dtype=bool)
         wheels = np.zeros((n, 2))
         estimates, twists, wrong, legs = [], [], [], []
-        for spec, est, tw, target, sym, way, leg in zip(self.specs, state["estimates"], state["twists"], self.targets,
+        targets = list(targets_at(self.targets, self.retargets, inputs.t)) if self.retargets else self.targets
+        for spec, est, tw, target, sym, way, leg in zip(self.specs, state["estimates"], state["twists"], targets,
                                                         self.symmetry, self.waypoints, state["leg"]):
             guess = est + self.period * tw  # prediction from the last command
             pose, bad = estimate_pose(spec, self.points, lit, guess, spacing=self.spacing)
@@ -166,6 +169,16 @@ class PoseControl:
             legs.append(leg)
         return ({"estimates": estimates, "twists": twists, "wrong": wrong, "leg": legs},
                 Mailbox.empty(self.schema, n, P), wheels)
+
+
+def targets_at(targets, retargets, t: float) -> np.ndarray:
+    """(P, 3) the target poses (m, m, rad) in force at time ``t`` (s): ``targets`` as changed by each
+    (t_r, parcel index, pose) of ``retargets`` with t_r <= t, in their order (a tick at t_r sees its change)."""
+    out = np.array(targets, dtype=float).reshape(-1, 3)
+    for t_r, j, pose in retargets:
+        if t_r <= t + 1e-9:  # within rounding of the tick's k * period
+            out[j] = np.asarray(pose, dtype=float)[:3]
+    return out
 
 
 def rotational_symmetry(spec) -> int:

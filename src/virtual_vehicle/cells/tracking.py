@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from virtual_vehicle.cells.control import rotational_symmetry
+from virtual_vehicle.cells.control import rotational_symmetry, targets_at
 from virtual_vehicle.cells.network.messages import Mailbox, Schema
 from virtual_vehicle.cells.network.programs import CellInputs
 from virtual_vehicle.cells.network.sentence import WordType
@@ -63,6 +63,7 @@ class DistributedPose:
         spacing: the sensor spacing, m (sets the estimator's softness).
         step: the estimator's gradient step per tick, in sensor softnesses (a fraction of a quarter of the spacing).
         max_age: ticks a neighbour's record is trusted after it was last heard (0 on ideal rounds).
+        retargets: (t, job, pose) changes of target, each from the first tick at or after t (s) on.
     """
 
     schema = Schema.of(job=(1, WordType.I16), x=(2, WordType.F32), y=(3, WordType.F32), th=(4, WordType.F32),
@@ -70,7 +71,7 @@ class DistributedPose:
 
     def __init__(self, specs, starts, targets, *, spacing: float, gain: float = 2.0, max_speed: float = 0.2,
                  tolerance=(5e-4, np.radians(0.2)), period: float = 0.01, waypoints=None, pass_radius: float = 0.01,
-                 step: float = 0.5, max_age: int = 0):
+                 step: float = 0.5, max_age: int = 0, retargets=()):
         self.specs = list(specs)
         self.starts = np.array([np.asarray(s, dtype=float)[:3] for s in starts]).reshape(-1, 3)
         self.targets = np.array([np.asarray(t, dtype=float)[:3] for t in targets]).reshape(-1, 3)
@@ -93,6 +94,7 @@ class DistributedPose:
         self.max_age = int(max_age)
         self.radius = np.array([max(s.radius, 1e-9) for s in self.specs])
         self.symmetry = np.array([rotational_symmetry(s) for s in self.specs])
+        self.retargets = sorted(retargets, key=lambda r: r[0])
 
     def init(self, n, ports, config):
         """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each (see
@@ -112,6 +114,7 @@ class DistributedPose:
         cfg = inputs.config
         points = np.asarray(cfg["sensor_points"], dtype=float).reshape(n, -1, 2)
         lit = np.asarray(inputs.sensors, dtype=bool).reshape(n, -1)
+        targets = targets_at(self.targets, self.retargets, inputs.t) if self.retargets else self.targets
         heard = {k: np.where(inbox.present, inbox.values[k].astype(float), v) for k, v in state["heard"].items()}
         age = np.where(inbox.present, 0, np.minimum(state["age"] + 1, np.iinfo(np.int32).max))
         trusted = (age <= self.max_age) & inputs.connected
@@ -120,7 +123,8 @@ class DistributedPose:
         npose = np.stack([heard["x"], heard["y"], heard["th"]], axis=-1)  # (n, P, 3) as they were sent
         for j in np.unique(njob[njob >= 0]):  # moved since, by the twist each neighbour drove (from its record)
             at = njob == j
-            npose[at] += ((age[at] + 1) * self.period)[:, None] * self._twist(j, npose[at], nleg[at].copy())
+            npose[at] += ((age[at] + 1) * self.period)[:, None] * self._twist(j, npose[at], nleg[at].copy(),
+                                                                                        targets)
         sees = lit.any(axis=1)
         centroid = np.where(lit[..., None], points, 0.0).sum(axis=1) / np.maximum(lit.sum(axis=1), 1)[:, None]
 
@@ -156,7 +160,7 @@ class DistributedPose:
         for j in np.unique(job[held]):
             rows = np.flatnonzero(job == j)
             lg = leg[rows]
-            twist[rows] = self._twist(j, est[rows], lg)
+            twist[rows] = self._twist(j, est[rows], lg, targets)
             leg[rows] = lg
             r = np.asarray(cfg["position"], dtype=float)[rows] - est[rows, :2]
             v = twist[rows, :2] + twist[rows, 2:3] * np.column_stack([-r[:, 1], r[:, 0]])  # rigid-body velocity here
@@ -166,11 +170,11 @@ class DistributedPose:
                                 leg=np.minimum(leg, 255), sees=sees)
         return ({"job": job, "est": est, "twist": twist, "leg": leg, "heard": heard, "age": age}, out, wheels)
 
-    def _twist(self, j: int, est: np.ndarray, legs: np.ndarray) -> np.ndarray:
-        """(m, 3) the twist (m/s, m/s, rad/s) cells holding job ``j`` with estimates ``est`` ((m, 3)) drive, passing
-        waypoints on the way (``legs`` is advanced in place)."""
+    def _twist(self, j: int, est: np.ndarray, legs: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        """(m, 3) the twist (m/s, m/s, rad/s) cells holding job ``j`` with estimates ``est`` ((m, 3)) drive toward
+        ``targets[j]``, passing waypoints on the way (``legs`` is advanced in place)."""
         while True:  # legs passed by this estimate
-            goal = self._goals(j, legs)
+            goal = self._goals(j, legs, targets)
             passed = (legs < len(self.waypoints[j])) & (np.hypot(*(goal[:, :2] - est[:, :2]).T) < self.pass_radius)
             if not passed.any():
                 break
@@ -182,12 +186,12 @@ class DistributedPose:
         peak = np.hypot(tw[:, 0], tw[:, 1]) + np.abs(tw[:, 2]) * self.radius[j]
         return tw * np.minimum(1.0, self.max_speed / np.maximum(peak, 1e-300))[:, None]
 
-    def _goals(self, j: int, legs: np.ndarray) -> np.ndarray:
+    def _goals(self, j: int, legs: np.ndarray, targets: np.ndarray) -> np.ndarray:
         """(m, 3) where job ``j`` heads for, for cells on waypoint legs ``legs``: the waypoint, or the target."""
         way = self.waypoints[j]
         if not len(way):
-            return np.tile(self.targets[j], (len(legs), 1))
-        return np.where((legs < len(way))[:, None], way[np.minimum(legs, len(way) - 1)], self.targets[j])
+            return np.tile(targets[j], (len(legs), 1))
+        return np.where((legs < len(way))[:, None], way[np.minimum(legs, len(way) - 1)], targets[j])
 
     def _adopt(self, new, job, est, leg, njob, npose, nleg, centroid, fresh: bool) -> None:
         """Records (in place) for the cells ``new`` that hold none: the neighbour's record whose footprint covers

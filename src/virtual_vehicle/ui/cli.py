@@ -339,7 +339,8 @@ def animate_cmd(
 
 @app.command(name="view")
 def view_cmd(
-    scenario: str = typer.Argument(..., help="Scenario TOML file or bundled scenario name (with [control])."),
+    scenario: str = typer.Argument(..., help="Scenario TOML file or bundled scenario name (with [control]), or a "
+                                   "run folder to replay."),
     out_dir: Path = typer.Option(Path("results/view"), "--out", "-o", help="Folder for the run's results, written "
                                  "when it ends."),
     host: str = typer.Option("127.0.0.1", help="Address to serve the page on; another than 127.0.0.1 exposes it "
@@ -350,12 +351,16 @@ def view_cmd(
     formats: list[str] = typer.Option(["parquet", "csv"], "--format", help="Table formats to write: parquet, csv."),
 ) -> None:
     """Run a scenario live and watch and steer it in a browser: prints the page's address with its access token.
-    Play, pause, one tick, speed; click a cell to kill or revive it, drop a parcel at an entry. Everything done is
-    recorded: the run folder written when the run ends holds the changed scenario, which 'virtual-vehicle run'
-    replays to the same tables. Ctrl-C before the end finishes the run and writes it (Ctrl-C again: nothing
-    written, exit 130)."""
+    Play, pause, one tick, speed; click a cell to kill or revive it, drop a parcel at an entry, give a parcel of a
+    pose program a new target. Everything done is recorded: the run folder written when the run ends holds the
+    changed scenario, which 'virtual-vehicle run' replays to the same tables. Ctrl-C before the end finishes the run
+    and writes it (Ctrl-C again: nothing written, exit 130). Given a run folder, replays it from its tables with a
+    time slider (nothing is written)."""
     from virtual_vehicle.ui.view import LOOPBACK, LiveRun, Viewer
 
+    if Path(scenario).is_dir():
+        _replay(scenario, host, port, paused)
+        return
     try:
         formats = _formats(formats)
         _check_out(out_dir)
@@ -405,6 +410,39 @@ def view_cmd(
             except KeyboardInterrupt:
                 err.print("interrupted: nothing written", highlight=False)
                 raise typer.Exit(code=130) from None
+
+
+def _replay(folder: str, host: str, port: int | None, paused: bool) -> None:
+    """Serve the replay of run folder ``folder`` until Ctrl-C."""
+    from virtual_vehicle.ui.view import LOOPBACK, Viewer
+    from virtual_vehicle.ui.view.replay import Replay
+
+    try:
+        with Phase("reading the run folder"):
+            replay = Replay(folder)
+    except VirtualVehicleError as exc:
+        _fail(exc)
+    except ValueError as exc:
+        _fail(VirtualVehicleError(str(exc)))
+    try:
+        viewer = Viewer(replay, host=host, port=port)
+    except OSError as exc:
+        _fail(VirtualVehicleError(f"--host/--port: cannot serve on {host}:{port or 'a free port'}: {exc}"))
+    viewer.playing = not paused
+    viewer.start()
+    out.print(f"[bold]{replay.scenario.name}[/bold] replayed from {folder} at {viewer.url}", highlight=False,
+              soft_wrap=True)
+    if host not in LOOPBACK:
+        err.print(f"warning: served on {host}, reachable from other machines (with the token)", highlight=False)
+    sys.stdout.flush()
+    viewer.loop.asyncio_loop.add_signal_handler(signal.SIGINT, viewer.loop.stop)
+    try:
+        viewer.loop.start()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.loop.asyncio_loop.remove_signal_handler(signal.SIGINT)
+        viewer.stop()
 
 
 @app.command(name="layout")

@@ -7,10 +7,20 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from virtual_vehicle.cells.programs.base import (BuildContext, ControlSetup, FieldError, Markers, Pose,
                                                  ProgramOptions, setup_for)
+
+
+class Retarget(BaseModel):
+    """A new target pose for one parcel from time ``t`` (s) on: ``parcel`` (its name) is driven to ``target`` =
+    [x, y, theta] (m, m, rad) from the first control tick at or after ``t`` (as the live viewer records one)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+    t: Annotated[float, Field(ge=0, le=1e7)]
+    parcel: str
+    target: Pose
 
 
 class PoseOptions(ProgramOptions):
@@ -19,7 +29,9 @@ class PoseOptions(ProgramOptions):
     within ``tolerance`` = [m, rad]; with ``waypoints`` (one list of [x, y, theta] per parcel) it transports each
     along that path, passing a waypoint within ``pass_radius`` (m). The cells under each parcel estimate its pose
     together and drive it (:mod:`~virtual_vehicle.cells.tracking`), or with ``central`` = true one computer reads
-    every sensor and commands every cell (:class:`~virtual_vehicle.cells.control.PoseControl`)."""
+    every sensor and commands every cell (:class:`~virtual_vehicle.cells.control.PoseControl`). ``retargets`` (a
+    ``[[control.retargets]]`` table each: ``t``, ``parcel``, ``target``) change a parcel's target during the run; the
+    report measures each parcel against its last target."""
 
     program: Literal["pose"]
     speed: Annotated[float, Field(gt=0, le=1e3)] = 0.2
@@ -29,6 +41,7 @@ class PoseOptions(ProgramOptions):
     gain: Annotated[float, Field(gt=0, le=1e3)] = 2.0
     tolerance: tuple[Annotated[float, Field(gt=0, le=1)], Annotated[float, Field(gt=0, le=3.2)]] = (5e-4, 0.0035)
     central: bool = False
+    retargets: list[Retarget] = []
 
     @model_validator(mode="after")
     def _one_path_per_target(self):
@@ -53,20 +66,41 @@ def build(options: PoseOptions, ctx: BuildContext) -> ControlSetup:
     c = options
     if len(c.targets) != len(ctx.specs):
         raise FieldError("control.targets", f"needs one target per parcel: {len(ctx.specs)}, got {len(c.targets)}")
+    retargets = resolve_retargets(c, [s.name for s in ctx.specs])
     if c.central:
         program = PoseControl(ctx.cells, ctx.sensors.points, ctx.specs, ctx.states, c.targets, gain=c.gain,
                               max_speed=c.speed, tolerance=c.tolerance, period=c.period, waypoints=c.waypoints,
-                              pass_radius=c.pass_radius)
+                              pass_radius=c.pass_radius, retargets=retargets)
         return setup_for(c, ctx, program)
     from virtual_vehicle.cells.estimate import sensor_spacing
     from virtual_vehicle.cells.tracking import DistributedPose
 
     program = DistributedPose(ctx.specs, ctx.states, c.targets, spacing=sensor_spacing(ctx.sensors.points),
                               gain=c.gain, max_speed=c.speed, tolerance=c.tolerance, period=c.period,
-                              waypoints=c.waypoints, pass_radius=c.pass_radius, max_age=c.max_age)
+                              waypoints=c.waypoints, pass_radius=c.pass_radius, max_age=c.max_age,
+                              retargets=retargets)
     config = {"position": ctx.cells.positions, "directions": ctx.cells.active_directions,
               "sensor_points": ctx.sensors.points}  # what each cell is told when it is installed
     return setup_for(c, ctx, program, config)
+
+
+def resolve_retargets(options: PoseOptions, names: list[str]) -> list[tuple[float, int, tuple]]:
+    """``options.retargets`` as (t s, parcel index, target pose) in time order, the parcels found by ``names``.
+    Raises FieldError for a parcel no parcel is named."""
+    out = []
+    for k, r in enumerate(options.retargets):
+        if r.parcel not in names:
+            raise FieldError(f"control.retargets[{k}].parcel", f"no parcel is named {r.parcel!r}")
+        out.append((r.t, names.index(r.parcel), r.target))
+    return sorted(out, key=lambda r: r[0])
+
+
+def final_targets(options: PoseOptions, names: list[str]) -> list[tuple]:
+    """Each parcel's last target pose (x, y, theta; m, m, rad): its ``targets`` row as changed by ``retargets``."""
+    targets = [tuple(t) for t in options.targets]
+    for _, j, pose in resolve_retargets(options, names):
+        targets[j] = tuple(pose)
+    return targets
 
 
 def report(result) -> dict:
@@ -84,7 +118,8 @@ def report(result) -> dict:
     sc = result.setup.scenario
     ways = sc.control.waypoints or [[] for _ in result.parcels]
     rows = []
-    for pr, target, way in zip(result.parcels, sc.control.targets, ways):
+    targets = final_targets(sc.control, [pr.spec.name for pr in result.parcels])
+    for pr, target, way in zip(result.parcels, targets, ways):
         tr = pr.trajectory
         dist, ang = pose_error(pr.spec, tr.states[-1], target)
         row = {"name": pr.spec.name, "target": dict(zip(("x", "y", "theta"), target)), "final_error_mm": dist * 1e3,
@@ -126,5 +161,5 @@ LABELS = False
 
 
 def markers(setup) -> Markers:
-    """Each parcel's target pose."""
-    return Markers(targets=list(setup.scenario.control.targets))
+    """Each parcel's (last) target pose."""
+    return Markers(targets=final_targets(setup.scenario.control, [s.name for s in setup.specs]))
