@@ -63,6 +63,7 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
     """Each cell is told whether it is an entry, a parking cell, which exit it belongs to and its way out, the port
     a one-way cell forbids, and a unique installation number; the parcels' labels are checked against the exits."""
     from virtual_vehicle.cells.sorting import PARK, Sorter
+    from virtual_vehicle.cells.sorting.rules import tick_of
     from virtual_vehicle.model import layout
 
     c, cells, topo, marks = options, ctx.cells, ctx.topology, ctx.marks
@@ -124,8 +125,10 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
 
         program = CentralSorter(topo, c.speed, c.gap, period=c.period)
     else:
+        # over the wire a sentence takes time in proportion to its bytes: send only the words that changed
         program = Sorter(c.speed, c.gap, c.reach, max_age=c.max_age, period=c.period, pitch=cells.pitch,
-                         heartbeat=c.heartbeat)
+                         heartbeat=c.heartbeat,
+                         partial=c.delivery == "wire" and tick_of(c.heartbeat, c.period) > 1)
     for i, p in enumerate(ctx.parcels):
         if p.destination is not None and p.destination >= n_exits:
             raise FieldError(f"parcels[{i}].destination", f"exit {p.destination} does not exist (the scenario has "
