@@ -89,7 +89,8 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
     exit_port = np.full(cells.n, -1, dtype=np.int64)
     for k in range(n_exits):
         region = np.flatnonzero(exit_id == k)
-        free = (~topo.connected[region]).sum(axis=0)  # sides of the region's cells with no neighbour, by port
+        # sides of the region's cells with no neighbour installed, by port (a dead neighbour is no way out)
+        free = (topo.neighbor[region] < 0).sum(axis=0)
         where = f"control.exits[{k}]" if c.exits else f"array.map (exit {k})"
         if free.max() == 0:
             raise FieldError(where, "an exit must reach the edge of the array (parcels leave "
@@ -119,6 +120,7 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
         forbid[marks.get(arrow, np.zeros(cells.n, bool))] = against
     config = {"exit": exit_id, "exit_port": exit_port, "entry": entry, "park": park, "forbid": forbid,
               "entry_no": np.arange(1, cells.n + 1, dtype=np.int64),  # installation numbers: unique vehicle ids
+              "wired": topo.neighbor >= 0,  # installed neighbours: one that falls silent is a broken link
               "clearance": (c.gap + 1) * cells.pitch}  # the loader waits for this much room around a new parcel
     if c.central:
         from virtual_vehicle.cells.sorting import CentralSorter
