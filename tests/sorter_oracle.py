@@ -15,7 +15,7 @@ from virtual_vehicle.cells.sorting import Sorter, decode_goal
 from virtual_vehicle.cells.sorting.rules import BIG as _BIG
 from virtual_vehicle.cells.sorting.rules import ENTRY as _ENTRY
 from virtual_vehicle.cells.sorting.rules import HUGE as _HUGE
-from virtual_vehicle.cells.sorting.rules import MAX_EXITS, NEAR, PARK, pack
+from virtual_vehicle.cells.sorting.rules import MAX_EXITS, PARK, pack
 from virtual_vehicle.cells.sorting.rules import NONE as _NONE
 
 
@@ -81,15 +81,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # meet the edge only at their exit.
     # In a sequenced run gradient PARK leads to a parking cell that no parcel covers.
     lit = _across(np.logical_or, np.asarray(inputs.sensors, dtype=bool))
-    linked = _across(np.logical_and, inputs.connected)
-    cost = np.where(linked | (exit_id >= 0), 1, 1 + sorter.edge_cost)
-    # a cell within NEAR hops of a broken link (a neighbour installed but silent) costs edge_cost more, unless it
-    # counts as on the edge already: the parcel's body keeps clear of dead cells (field 4 of the blk word)
-    wired = np.asarray(cfg.get("wired", np.zeros((n, P), bool)), dtype=bool)
-    broken = _across(np.logical_or, wired & ~np.asarray(inputs.connected, dtype=bool))
-    near = np.maximum(_across(np.maximum, np.where(trusted, _unpack(heard["blk"], 4, 6), 0)) - 1, 0)
-    near = np.where(broken, NEAR, near)
-    cost = cost + np.where((near > 0) & linked, sorter.edge_cost, 0)
+    cost = np.where(_across(np.logical_and, inputs.connected) | (exit_id >= 0), 1, 1 + sorter.edge_cost)
     source = [exit_id == e for e in range(MAX_EXITS)]
     if park_cell.any():  # free while no parcel covers its centre (a parcel parks once it does)
         source[PARK] = park_cell & ~np.asarray(inputs.sensors, dtype=bool)[:, 0]
@@ -255,7 +247,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
                             hold=np.where(lit & on, vid, new_hold),
                             ack=np.minimum(ack, 255) + ((hport + 1) << 8),
                             ex=np.where(entry, _ENTRY, exit_id),
-                            blk=pack(np.minimum(block, 63), 6) + (near << 24))
+                            blk=pack(np.minimum(block, 63), 6))
     # requests: front cells ask the cell ahead (depth 1); held cells pass it on until gap deep
     ask = front & inputs.connected[rows, dp]
     out.values["req"][rows[ask], dp[ask]] = vid[ask]

@@ -438,7 +438,7 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, part
         inbox.words = rng.integers(0, 1 << 12, (n, P))
     config = {"exit": rng.choice([-1, -1, -1, 0, 1, 2, 3], n), "exit_port": rng.integers(-1, 4, n),
               "entry": rng.random(n) < 0.2, "entry_no": rng.integers(0, 3000, n),
-              "forbid": rng.choice([-1, -1, 0, 1, 2, 3], n), "wired": rng.random((n, P)) < 0.9}
+              "forbid": rng.choice([-1, -1, 0, 1, 2, 3], n)}
     if parking:
         config["park"] = rng.random(n) < 0.2
     labels = rng.integers(-1, 40, n) if labelled else None

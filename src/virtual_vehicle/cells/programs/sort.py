@@ -120,7 +120,6 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
         forbid[marks.get(arrow, np.zeros(cells.n, bool))] = against
     config = {"exit": exit_id, "exit_port": exit_port, "entry": entry, "park": park, "forbid": forbid,
               "entry_no": np.arange(1, cells.n + 1, dtype=np.int64),  # installation numbers: unique vehicle ids
-              "wired": topo.neighbor >= 0,  # installed neighbours: one that falls silent is a broken link
               "clearance": (c.gap + 1) * cells.pitch}  # the loader waits for this much room around a new parcel
     if c.central:
         from virtual_vehicle.cells.sorting import CentralSorter

@@ -17,9 +17,9 @@ import numpy as np
 from numba import njit
 
 from virtual_vehicle.cells.network.programs import UNREACHABLE
-from virtual_vehicle.cells.sorting.rules import (BIG, ENTRY, HUGE, MAX_EXITS, NEAR, NEAR_FIELD, NONE, PARK,
-                                                 direction_key, drive, due, heartbeat_due, hop_cost, near_cost,
-                                                 split_goal, unpack, vehicle_id)
+from virtual_vehicle.cells.sorting.rules import (BIG, ENTRY, HUGE, MAX_EXITS, NONE, PARK, direction_key, drive, due,
+                                                 heartbeat_due,
+                                                 hop_cost, split_goal, unpack, vehicle_id)
 
 Words = namedtuple("Words", "d nxt vid goal key stop req rdep hold ack ex blk")
 """The sorter's sentence words, one (n, P) array each, in the schema's order."""
@@ -32,9 +32,8 @@ tick, not an age, so that a silent neighbour leaves the state as it is), the exi
 gradients' distances (n, MAX_EXITS), the :class:`CellState`, the words it last sent on each port (:class:`Words`,
 int64; it sends again only what changed, and everything at its heartbeat) and how many ticks more it repeats a
 port's new sentence (n, P), so that one lost sentence does not leave a neighbour a heartbeat behind."""
-Config = namedtuple("Config", "exit exit_port entry entry_no park forbid wired labels")
-"""Per-cell configuration (see :class:`~virtual_vehicle.cells.sorting.Sorter`; ``wired`` (n, P): the ports with a
-neighbour installed) and the labels read this tick."""
+Config = namedtuple("Config", "exit exit_port entry entry_no park forbid labels")
+"""Per-cell configuration (see :class:`~virtual_vehicle.cells.sorting.Sorter`) and the labels read this tick."""
 Rules = namedtuple("Rules", "tick max_age edge_cost reach gap back_ticks speed heartbeat trust repeats partial")
 """The tick stepped and the sorter's numbers (hops and ticks; ``speed`` in m/s; ``heartbeat`` the ticks between two
 sentences of a cell with nothing new to say, ``trust`` the ticks a neighbour's last sentence is trusted, ``repeats``
@@ -136,7 +135,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     present, words, sensors, connected, carried = inp  # the records unpacked once, outside the loop over cells: an array
     heard_in, at_in, dist_in, state_in, said_in, again_in = old  # reached through a record inside it costs a reference
     heard_out, at_out, dist_out, state_out, said_out, again_out = new  # count a use
-    exit_id, exit_port, entry, entry_no, park_cell, forbid, wired, labels = cfg
+    exit_id, exit_port, entry, entry_no, park_cell, forbid, labels = cfg
     tick, max_age, edge_cost, reach, gap, back_ticks, speed, heartbeat, trust, repeats, partial = rules
     sent_present, sent, wheels, unsettled, out_changed, sent_words = out
     n_vid, n_goal, n_dir, n_key, n_stop, n_hold, n_hdep, n_hport, n_hage, n_ack, n_nxt, n_park, n_back, n_bdir = \
@@ -191,16 +190,9 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         for s in range(sensors.shape[1]):
             lit = lit or sensors[i, s]
         linked = True
-        broken = False  # a neighbour installed but silent: a dead cell or a cut link
-        near = 0
         for q in range(P):
             linked = linked and connected[i, q]
-            broken = broken or (wired[i, q] and not connected[i, q])
-            if trusted[q]:
-                near = max(near, unpack(hblk[i, q], NEAR_FIELD, 6) - 1)
-        if broken:
-            near = NEAR
-        cost = hop_cost(linked, exit_id[i], edge_cost) + near_cost(linked, near, edge_cost)
+        cost = hop_cost(linked, exit_id[i], edge_cost)
         for e in range(MAX_EXITS):
             source = exit_id[i] == e
             if e == PARK and park_any:
@@ -364,7 +356,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             word += said << (8 * e)
         if word >= 1 << 31:
             word -= 1 << 32
-        blk = near << (6 * NEAR_FIELD)
+        blk = 0
         for q in range(P):
             blk += min(block[q], 63) << (6 * q)
         if blk >= 1 << 31:

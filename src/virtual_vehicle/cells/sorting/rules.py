@@ -68,23 +68,6 @@ def hop_cost(linked, exit_id, edge_cost):
     return 1 + edge_cost * (1 - (linked | (exit_id >= 0)))
 
 
-NEAR = 2
-"""Hops from a broken link (a neighbour installed but silent: a dead cell, a cut link) within which a cell costs more
-in the exit gradients: a parcel whose centre rides within two hops of a dead cell has body cells beside it, and a
-carrying cell beside a dead one closes that side to the whole vehicle (it could not turn there)."""
-NEAR_FIELD = 4
-"""The 6-bit field of the ``blk`` word (above the four sides' fields) that carries how near a broken link a cell is
-(:data:`NEAR` at one, one less a hop further, 0 beyond)."""
-
-
-@register_jitable
-def near_cost(linked, near, edge_cost):
-    """Hops more a step into a cell counts when it lies ``near`` (> 0) a broken link, so that gradients lead
-    parcels along cells their whole body can use: ``edge_cost``, unless the cell already counts as on the edge (not
-    ``linked`` on every side). Scalars or arrays alike."""
-    return edge_cost * ((near > 0) & linked)
-
-
 @register_jitable
 def drive(port):
     """The wheel command that moves a parcel out through ``port`` (0: +x, 1: +y, 2: -x, 3: -y): the drive axis (0:
