@@ -253,3 +253,17 @@ def test_a_fault_draw_that_cuts_an_exit_off_is_told_apart():
     assert not exits_reachable(with_dead(around), "dead_cell_rate", 0.0, 0)
     assert exits_reachable(with_dead([c for c in around if c != 7 * 24 + 15]), "dead_cell_rate", 0.0, 0)
     assert exits_reachable(sc, "stuck_wheel_rate", 0.5, 1)  # held wheels cut no way
+
+
+def test_dead_cells_beside_an_exit_lane_do_not_move_its_way_out():
+    """An exit's way out is the side its cells have no neighbour installed on: dead cells all along the south side
+    of the north exit's lane are no way out, and the lane still leaves north (judged from the live links, the dead
+    south side tied with the north edge and the scenario failed to build)."""
+    sc, _ = load_scenario("sorting_junction")
+    cfg = sc.build().control.config
+    lane = np.flatnonzero(cfg["exit"] == 2)
+    bottom = lane[(lane // 24) == (lane // 24).min()]
+    dead = (bottom - 24).tolist()  # the cells just south of the lane's bottom row
+    setup = sc.model_copy(update={"faults": sc.faults.model_copy(update={"dead_cells": dead})}).build()
+    cfg = setup.control.config
+    assert len(dead) == 4 and set(cfg["exit_port"][cfg["exit"] == 2].tolist()) == {1}  # port 1: +y, north
