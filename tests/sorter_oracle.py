@@ -65,7 +65,14 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     labels = np.full(n, _NONE) if getattr(inputs, "labels", None) is None else np.asarray(inputs.labels)
     rows = np.arange(n)
     # -- what the neighbours said (last heard, trusted while fresh)
-    heard = {k: np.where(inbox.present, inbox.values[k].astype(np.int64), v) for k, v in state["heard"].items()}
+    # a partial sentence (``inbox.words``) carries some words only: the others stay as last heard
+    carried = np.full((n, P), (1 << len(sorter.schema.fields)) - 1) if inbox.words is None else inbox.words
+    # and one that carries ``ex`` says every word: those it leaves out are at rest
+    full = inbox.present & ((carried >> 10) & 1 == 1)
+    rest = {"d": -1, "nxt": 0, "vid": _NONE, "goal": _NONE, "key": _BIG, "stop": 65535, "req": _NONE, "rdep": 0,
+            "hold": _NONE, "ack": 0, "ex": 0, "blk": (1 << 24) - 1}
+    heard = {k: np.where(inbox.present & ((carried >> w) & 1 == 1), inbox.values[k].astype(np.int64),
+                         np.where(full, rest[k], v)) for w, (k, v) in enumerate(state["heard"].items())}
     tick = int(round(inputs.t / sorter.period)) if sorter.period else 0
     heard_at = np.where(inbox.present, tick, state["heard_at"])  # the tick each port last heard a sentence
     trusted = (tick - heard_at <= sorter.trust) & inputs.connected
@@ -250,10 +257,20 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     out.values["rdep"][rows[pass_on], fwd[pass_on]] = hdep[pass_on] + 1
     # say only what changed on a port since it was last sent there, and everything at the heartbeat
     beat = (tick + entry_no) % sorter.heartbeat_ticks == 0  # staggered by installation number
-    differs = np.stack([out.values[k].astype(np.int64) != v for k, v in state["said"].items()]).any(axis=0)
-    # a new sentence goes out again for ``repeats`` ticks, so that one loss does not cost a heartbeat
-    out.present[:] = beat[:, None] | differs | (state["again"] > 0)
-    again = np.where(differs, sorter.repeats, np.maximum(state["again"] - 1, 0))
+    each = np.stack([out.values[k].astype(np.int64) != v for k, v in state["said"].items()])  # (words, n, P)
+    differs = each.any(axis=0)
+    # a new sentence goes out again for ``repeats`` ticks, so that one loss does not cost a heartbeat; partial
+    # sentences carry the words that changed in those ticks (the mask kept above the count in ``again``)
+    left, window = state["again"] & 0xFFFF, state["again"] >> 16
+    window = np.where(left > 0, window, 0)
+    diff = sum(each[w].astype(np.int64) << w for w in range(len(each)))
+    out.present[:] = beat[:, None] | differs | (left > 0)
+    count = np.where(differs, sorter.repeats, np.maximum(left - 1, 0))
+    again = count + (np.where(count > 0, (window | diff) << 16, 0) if sorter.partial else 0)
+    if sorter.partial:  # at the heartbeat all words but those at rest, and ``ex``, which says so
+        busy = sum((out.values[k].astype(np.int64) != rest[k]).astype(np.int64) << w
+                   for w, k in enumerate(state["said"]))
+        out.words = np.where(beat[:, None], busy | (1 << 10), diff | window)
     said = {k: np.where(differs, out.values[k].astype(np.int64), v) for k, v in state["said"].items()}
     new_state = {"dist": dist, "heard": heard, "heard_at": heard_at, "vid": vid, "goal": goal,
                  "dir": np.where(moving | (direction >= 0), direction, _NONE), "key": key, "stop": stop,

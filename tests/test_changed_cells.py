@@ -338,6 +338,9 @@ def _same_step(mine, ref) -> None:
         for a, b in ([(s1[k][w], s2[k][w]) for w in s1[k]] if isinstance(s1[k], dict) else [(s1[k], s2[k])]):
             assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b), k
     assert list(o1.values) == list(o2.values) and o1.present.tolist() == o2.present.tolist()
+    assert (o1.words is None) == (o2.words is None)
+    if o1.words is not None:  # partial sentences: the same words in each
+        assert np.array_equal(o1.words, o2.words)
     for w in o1.values:
         assert o1.values[w].dtype == o2.values[w].dtype and np.array_equal(o1.values[w], o2.values[w]), w
     assert np.asarray(w1).dtype == np.asarray(w2).dtype and np.asarray(w1).tobytes() == np.asarray(w2).tobytes()
@@ -399,14 +402,16 @@ _WORDS = {"d": (-2**31, 2**31 - 1), "nxt": (0, 6), "vid": (-1, 8), "goal": (-1, 
           "ex": (-2, 3), "blk": (-2**31, 2**31 - 1)}
 
 
-def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool):
-    """A sorter, a state and inputs drawn at random (see the test below)."""
+def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, partial: bool = False):
+    """A sorter, a state and inputs drawn at random (see the test below); ``partial``: a sorter that sends only the
+    words that changed, hearing sentences that carry some words only."""
     from virtual_vehicle.cells.network.messages import DTYPE
     from virtual_vehicle.cells.sorting import Sorter
 
     n, P = 40, 4
     program = Sorter(0.3, gap=int(rng.integers(1, 4)), reach=int(rng.integers(2, 9)), max_age=max_age,
-                     heartbeat=float(rng.choice([0.0, 0.03])))  # every tick, or every third: some cells say nothing
+                     heartbeat=0.03 if partial else float(rng.choice([0.0, 0.03])),  # every tick, or every third
+                     partial=partial)
     state = program.init(n, P, {})
     for w, (lo, hi) in _WORDS.items():
         state["heard"][w] = rng.integers(lo, hi + 1, (n, P))
@@ -416,6 +421,8 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool):
     for w, (lo, hi) in _WORDS.items():  # what was last said on each port: some words as they will be, some not
         state["said"][w] = np.where(rng.random((n, P)) < 0.3, -(1 << 40), rng.integers(lo, hi + 1, (n, P)))
     state["again"] = rng.choice([0, 0, 1, 2], (n, P))
+    if partial:  # the words a port repeats, kept above the count
+        state["again"] += np.where(state["again"] > 0, rng.integers(0, 1 << 12, (n, P)) << 16, 0)
     for k, (lo, hi) in {"vid": (-1, 8), "goal": (-1, 40), "dir": (-1, 3), "back": (0, 6), "bdir": (-1, 3),
                         "hold": (-1, 8), "hage": (0, 4), "hport": (-1, 3), "hdep": (0, 4), "nxt": (0, 6)}.items():
         state[k] = rng.integers(lo, hi + 1, n)
@@ -427,6 +434,8 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool):
         inbox.values[f.name][:] = rng.integers(max(lo, info.min), min(hi, info.max) + 1, (n, P))
     for w, v in _said(rng, (n, P)).items():
         inbox.values[w][:] = v
+    if partial:  # each sentence carries some of the words
+        inbox.words = rng.integers(0, 1 << 12, (n, P))
     config = {"exit": rng.choice([-1, -1, -1, 0, 1, 2, 3], n), "exit_port": rng.integers(-1, 4, n),
               "entry": rng.random(n) < 0.2, "entry_no": rng.integers(0, 3000, n),
               "forbid": rng.choice([-1, -1, 0, 1, 2, 3], n)}
@@ -439,12 +448,13 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool):
 
 
 @settings(max_examples=150, deadline=None)
-@given(st.integers(0, 2**32 - 1), st.sampled_from([0, 3]), st.booleans(), st.booleans())
-def test_the_compiled_sorter_steps_as_its_array_statement_on_any_inputs(seed, max_age, parking, labelled):
+@given(st.integers(0, 2**32 - 1), st.sampled_from([0, 3]), st.booleans(), st.booleans(), st.booleans())
+def test_the_compiled_sorter_steps_as_its_array_statement_on_any_inputs(seed, max_age, parking, labelled, partial):
     """The same on random inputs a run may never give: any words heard or arriving (within their types; vehicle
-    ids from a handful, so that neighbours share them), any sensors, links, labels, exits, entries, parking and
-    one-way cells, and any state, stale or fresh."""
-    program, state, inputs = _random_sorter_inputs(np.random.default_rng(seed), max_age, parking, labelled)
+    ids from a handful, so that neighbours share them; with ``partial``, sentences carrying any of the words), any
+    sensors, links, labels, exits, entries, parking and one-way cells, and any state, stale or fresh."""
+    program, state, inputs = _random_sorter_inputs(np.random.default_rng(seed), max_age, parking, labelled,
+                                                   partial)
     _same_step(program.step(state, inputs), step_arrays(program, state, inputs))
 
 

@@ -244,3 +244,39 @@ def test_a_cell_dies_mid_run_over_the_wire_model():
     rate = [net["dropped"][m].sum() / m.sum() for m in (t_net < 1.0 - 1e-9, t_net >= 1.0 - 1e-9)]
     assert rate[1] > rate[0]  # sentences for the dead cell give up
     assert res.summary()["faults_injected"][0]["dead_cells"] == [dead]
+
+
+def test_a_fault_draw_that_cuts_an_exit_off_is_told_apart():
+    """The fault study's draw filter: every exit reachable from an entry over live cells and links, or not. A wall
+    of dead cells across the array between the entry (west) and the exits (east and north) cuts them all off; with
+    a gap in the wall they are reachable again, and a wall around the north exit's lane alone cuts only that one."""
+    from virtual_vehicle.analysis.sweep import exits_reachable
+
+    sc, _ = load_scenario("sorting_junction")  # 24 x 12 cells, cell id = row * 24 + column
+
+    def with_dead(cells):
+        return sc.model_copy(update={"faults": sc.faults.model_copy(update={"dead_cells": cells})})
+
+    wall = [row * 24 + 10 for row in range(12)]
+    assert exits_reachable(sc, "dead_cell_rate", 0.0, 0)
+    assert not exits_reachable(with_dead(wall), "dead_cell_rate", 0.0, 0)
+    assert exits_reachable(with_dead(wall[:-1]), "dead_cell_rate", 0.0, 0)
+    # the north exit's lane is columns 14-17 of rows 8-11: dead cells on its three inner sides
+    around = [row * 24 + col for row in (8, 9, 10, 11) for col in (13, 18)] + [7 * 24 + c for c in range(13, 19)]
+    assert not exits_reachable(with_dead(around), "dead_cell_rate", 0.0, 0)
+    assert exits_reachable(with_dead([c for c in around if c != 7 * 24 + 15]), "dead_cell_rate", 0.0, 0)
+    assert exits_reachable(sc, "stuck_wheel_rate", 0.5, 1)  # held wheels cut no way
+
+
+def test_dead_cells_beside_an_exit_lane_do_not_move_its_way_out():
+    """An exit's way out is the side its cells have no neighbour installed on: dead cells all along the south side
+    of the north exit's lane are no way out, and the lane still leaves north (judged from the live links, the dead
+    south side tied with the north edge and the scenario failed to build)."""
+    sc, _ = load_scenario("sorting_junction")
+    cfg = sc.build().control.config
+    lane = np.flatnonzero(cfg["exit"] == 2)
+    bottom = lane[(lane // 24) == (lane // 24).min()]
+    dead = (bottom - 24).tolist()  # the cells just south of the lane's bottom row
+    setup = sc.model_copy(update={"faults": sc.faults.model_copy(update={"dead_cells": dead})}).build()
+    cfg = setup.control.config
+    assert len(dead) == 4 and set(cfg["exit_port"][cfg["exit"] == 2].tolist()) == {1}  # port 1: +y, north

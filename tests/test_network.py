@@ -6,7 +6,7 @@ import pytest
 
 from virtual_vehicle.cells.network.delivery import IdealRounds
 from virtual_vehicle.cells.network.messages import Mailbox, Schema
-from virtual_vehicle.cells.network.sentence import WordType
+from virtual_vehicle.cells.network.sentence import SentenceError, WordType
 from virtual_vehicle.cells.network.topology import from_layout
 from virtual_vehicle.cells.network.wire import WireLevel, WireParams
 from virtual_vehicle.model import layout
@@ -153,3 +153,43 @@ def test_wire_parameters_are_validated():
         WireParams(baud=0)
     with pytest.raises(ValueError):
         WireParams(bit_error_rate=2.0)
+
+
+def test_a_partial_sentence_carries_only_its_words_and_takes_their_time():
+    """A mailbox with ``words`` sends only the marked words (labels say which): the receiver's inbox says which
+    arrived, and the transfer takes the shorter sentence's bytes."""
+    p = WireParams()
+    w = WireLevel(from_layout(layout.grid(2, 1, 0.1)), p)
+    box = outbox(2, {(0, EAST): 77})
+    box.words = np.zeros((2, 4), dtype=np.int64)
+    box.words[0, EAST] = 0b01  # "value" only
+    inbox, stats = w.exchange(box, 0.0, 0.05)
+    assert inbox.present[1, WEST] and inbox.values["value"][1, WEST] == 77
+    assert inbox.words is not None and inbox.words[1, WEST] == 0b01
+    short = len(SCHEMA.to_bytes({"value": 77, "hops": 1}, 0b01))
+    assert short == SCHEMA.sentence_bytes - 3  # the hops word (label, type, one byte) left out
+    assert stats.bytes_sent.sum() == short
+    assert stats.latencies.tolist() == pytest.approx([2 * p.poll_time + p.select_time + byte_time(p, short)])
+    assert SCHEMA.from_bytes(SCHEMA.to_bytes({"value": 77, "hops": 1}, 0b10), partial=True) == {"hops": 1}
+    with pytest.raises(SentenceError):  # a sentence short of words is an error where all are expected
+        SCHEMA.from_bytes(SCHEMA.to_bytes({"value": 77, "hops": 1}, 0b10))
+
+
+def test_a_superseded_partial_sentence_hands_its_words_to_the_newer_one():
+    """At 1200 baud sentences pile up; a newer partial sentence replacing a waiting one carries the words the
+    waiting one carried and it does not, so no word is lost to the queue (the newer value wins where both have
+    one)."""
+    p = WireParams(baud=1200, cts_timeout=1.0)
+    w = WireLevel(from_layout(layout.grid(2, 1, 0.1)), p)
+    heard = {}
+    for k in range(60):  # 30 ticks of sentences, then 30 of silence to drain the queue
+        box = outbox(2, {(0, EAST): 100 + k} if k < 30 else {})
+        box.values["hops"][0, EAST] = k
+        box.words = np.zeros((2, 4), dtype=np.int64)
+        box.words[0, EAST] = 0b10 if k == 1 else 0b01  # tick 1 alone says hops; the others say value
+        inbox, stats = w.exchange(box, k * 0.01, 0.01)
+        for name, bit in (("value", 0b01), ("hops", 0b10)):
+            if inbox.present[1, WEST] and inbox.words[1, WEST] & bit:
+                heard[name] = int(inbox.values[name][1, WEST])
+    assert heard["hops"] == 1 and heard["value"] == 129  # tick 1's hops went out with a later value, the last
+    assert stats.extra["queued"] == 0

@@ -463,6 +463,34 @@ def write_summary(rows: list[dict], out: Path) -> Path:
 FAULT_KINDS = ("dead_cell_rate", "stuck_wheel_rate", "free_wheel_rate", "dead_link_rate", "stuck_sensor_rate")
 
 
+def exits_reachable(sc, kind: str, rate: float, seed: int) -> bool:
+    """Whether, in the fault draw ``seed`` at ``rate`` of fault ``kind`` (a scenario's faults with those two
+    changed), every exit of the sorting scenario ``sc`` stays reachable: some live cell of each exit lane is joined to
+    a live entry cell by live cells and links (the cells' graph; whether a parcel's body fits the way is the
+    sorter's business). Kinds that cut nothing (wheels, sensors) leave every exit reachable."""
+    setup = sc.model_copy(update={"faults": sc.faults.model_copy(update={kind: rate, "seed": int(seed)})}).build()
+    cfg, topo, faults = setup.control.config, setup.control.topology, setup.faults
+    dead = np.zeros(topo.n, bool) if faults is None else np.asarray(faults.dead_cells, bool)
+    cut = set() if faults is None else {tuple(x) for x in faults.dead_links}
+    live = ~dead
+    seen = np.asarray(cfg["entry"], bool) & live
+    frontier = list(np.flatnonzero(seen))
+    while frontier:
+        nxt = []
+        for i in frontier:
+            for q in range(topo.ports):
+                j = int(topo.neighbor[i, q])
+                if j < 0 or seen[j] or not live[j] or not topo.link_up[i, q]:
+                    continue
+                if (int(i), q) in cut or (j, int(topo.back_port[i, q])) in cut:
+                    continue
+                seen[j] = True
+                nxt.append(j)
+        frontier = nxt
+    exit_id = np.asarray(cfg["exit"])
+    return bool(seen.any()) and all(seen[exit_id == k].any() for k in range(int(exit_id.max()) + 1))
+
+
 def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Path, *, duration: float | None = None,
                 scheduler: str | None = None, workers: int | None = None,
                 progress: Callable[[float], None] | None = None, retry_failed: bool = False) -> list[dict]:
@@ -474,7 +502,11 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
     ``delivery_time_mean_s``, ``collisions``, ``misrouted``, ``lost`` (means), and the parcels due that were
     neither delivered nor lost at the end: ``on_array`` (put on the array and still there), ``waiting`` (never put
     on: their place at the entry never came free) and ``stuck`` (the two together), each a mean over the seeds of the
-    runs that finished; also written to ``study.json``. ``retry_failed``: see :func:`run_sweep`."""
+    runs that finished; also written to ``study.json``. ``retry_failed``: see :func:`run_sweep`.
+
+    The means are over the draws in which every exit stays reachable from an entry over live cells and links
+    (:func:`exits_reachable`; a draw that cuts an exit off measures the draw, not the sorter): ``unreachable`` counts
+    the draws left out, ``delivered_fraction_all`` is the mean over every finished draw."""
     from virtual_vehicle.cells.programs import program_of
     from virtual_vehicle.config.scenario import load_scenario
     from virtual_vehicle.run.files import write_atomic
@@ -510,7 +542,9 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
     rows = []
     for rate in rates:
         sel = [r for r in table if r[f"vary.faults.{kind}"] == rate]
-        ok = [r for r in sel if r["status"] == "ok"]
+        done = [r for r in sel if r["status"] == "ok"]
+        kept = {seed for seed in range(int(samples)) if exits_reachable(sc, kind, rate, seed)}
+        ok = [r for r in done if r["vary.faults.seed"] in kept]
         frac = np.array([r["sorting.correct"] / due for r in ok])
 
         def mean(col):
@@ -520,7 +554,10 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
         for r in ok:  # parcels not due by the end are "waiting" too; count only those due
             r["waiting_due"] = r["sorting.waiting"] - (len(sc.parcels) - due)
             r["stuck"] = r["sorting.on_array"] + r["waiting_due"]
-        rows.append({"rate": rate, "runs": len(sel), "failed": len(sel) - len(ok), "parcels_due": due,
+        every = [r["sorting.correct"] / due for r in done]
+        rows.append({"rate": rate, "runs": len(sel), "failed": len(sel) - len(done), "parcels_due": due,
+                     "unreachable": int(samples) - len(kept),
+                     "delivered_fraction_all": float(np.mean(every)) if every else None,
                      "delivered_fraction": float(frac.mean()) if len(frac) else None,
                      "delivered_fraction_std": float(frac.std()) if len(frac) else None,
                      "delivery_time_mean_s": mean("sorting.delivery_time_mean_s"),

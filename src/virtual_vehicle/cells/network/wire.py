@@ -111,19 +111,26 @@ class WireLevel:
         self.schema = outbox.schema
         self._advance(t)  # finish whatever was due before this tick
         self.inbox = Mailbox.empty(outbox.schema, n, P)
+        partial = outbox.words is not None  # sentences carry only the words the program marked
+        if partial:
+            self.inbox.words = np.zeros((n, P), dtype=np.int64)
         cells, ports = np.nonzero(outbox.present & topo.alive[:, None])
         for i, q in zip(cells.tolist(), ports.tolist()):
             if topo.neighbor[i, q] < 0:
                 self.unaddressed += 1  # nobody there: the cell knows the port is empty
                 continue
-            data = outbox.schema.to_bytes({k: v[i, q] for k, v in outbox.values.items()})
+            values = {k: v[i, q] for k, v in outbox.values.items()}
+            words = int(outbox.words[i, q]) if partial else None
             queue = self.queues[i][q]
             waiting = len(queue) - (1 if (self.mode[i] == XFER and self.target[i] == q) else 0)
             if waiting >= self.p.queue_limit:
                 # replace the oldest waiting sentence (not the one on the wire)
                 idx = 1 if len(queue) > waiting else 0
+                if partial:  # the words it carried and the new one does not still go (the port's latest words)
+                    values, words = self._merged(queue[idx].data, values, words)
                 del queue[idx]
                 self.superseded += 1
+            data = outbox.schema.to_bytes(values, words)
             queue.append(_Sentence(data, t))
             self.sent[i] += 1
             self.bytes_sent[i] += len(data)
@@ -255,6 +262,19 @@ class WireLevel:
             self.schema, self.inbox = inbox.schema, inbox
 
     # ------------------------------------------------------------------ internals
+    def _merged(self, older: bytes, values: dict, words: int) -> tuple[dict, int]:
+        """The words of a waiting partial sentence ``older`` overlaid with the newer ``values`` of the words in the
+        bit mask ``words``: the values and the mask of the sentence that replaces both."""
+        fields = self.schema.fields
+        merged = self.schema.from_bytes(older, partial=True)
+        mask = words
+        for k, f in enumerate(fields):
+            if f.name in merged:
+                mask |= 1 << k
+            if words >> k & 1:
+                merged[f.name] = values[f.name]
+        return {f.name: merged.get(f.name, values[f.name]) for f in fields}, mask
+
     def _reset_tick(self, n, P):
         self.sent = np.zeros(n, dtype=np.int64)
         self.received = np.zeros(n, dtype=np.int64)
@@ -363,8 +383,9 @@ class WireLevel:
         if self.p.loss_rate > 0 and self.rng.random() < self.p.loss_rate:
             self.lost += 1
             return
+        partial = self.inbox.words is not None
         try:
-            values = self.schema.from_bytes(data)
+            values = self.schema.from_bytes(data, partial=partial)
         except SentenceError:
             self.corrupted += 1
             return
@@ -372,6 +393,8 @@ class WireLevel:
             self.undetected += 1
         for k, v in values.items():
             self.inbox.values[k][j, port] = v
+        if partial:  # two sentences may arrive in one tick: the inbox holds the words of both
+            self.inbox.words[j, port] |= sum(1 << k for k, f in enumerate(self.schema.fields) if f.name in values)
         self.inbox.present[j, port] = True
         self.received[j] += 1
         self.bytes_received[j] += len(data)

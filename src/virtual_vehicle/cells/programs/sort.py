@@ -63,6 +63,7 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
     """Each cell is told whether it is an entry, a parking cell, which exit it belongs to and its way out, the port
     a one-way cell forbids, and a unique installation number; the parcels' labels are checked against the exits."""
     from virtual_vehicle.cells.sorting import PARK, Sorter
+    from virtual_vehicle.cells.sorting.rules import tick_of
     from virtual_vehicle.model import layout
 
     c, cells, topo, marks = options, ctx.cells, ctx.topology, ctx.marks
@@ -88,7 +89,8 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
     exit_port = np.full(cells.n, -1, dtype=np.int64)
     for k in range(n_exits):
         region = np.flatnonzero(exit_id == k)
-        free = (~topo.connected[region]).sum(axis=0)  # sides of the region's cells with no neighbour, by port
+        # sides of the region's cells with no neighbour installed, by port (a dead neighbour is no way out)
+        free = (topo.neighbor[region] < 0).sum(axis=0)
         where = f"control.exits[{k}]" if c.exits else f"array.map (exit {k})"
         if free.max() == 0:
             raise FieldError(where, "an exit must reach the edge of the array (parcels leave "
@@ -124,8 +126,10 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
 
         program = CentralSorter(topo, c.speed, c.gap, period=c.period)
     else:
+        # over the wire a sentence takes time in proportion to its bytes: send only the words that changed
         program = Sorter(c.speed, c.gap, c.reach, max_age=c.max_age, period=c.period, pitch=cells.pitch,
-                         heartbeat=c.heartbeat)
+                         heartbeat=c.heartbeat,
+                         partial=c.delivery == "wire" and tick_of(c.heartbeat, c.period) > 1)
     for i, p in enumerate(ctx.parcels):
         if p.destination is not None and p.destination >= n_exits:
             raise FieldError(f"parcels[{i}].destination", f"exit {p.destination} does not exist (the scenario has "

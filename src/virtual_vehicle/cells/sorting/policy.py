@@ -34,15 +34,28 @@ int64; it sends again only what changed, and everything at its heartbeat) and ho
 port's new sentence (n, P), so that one lost sentence does not leave a neighbour a heartbeat behind."""
 Config = namedtuple("Config", "exit exit_port entry entry_no park forbid labels")
 """Per-cell configuration (see :class:`~virtual_vehicle.cells.sorting.Sorter`) and the labels read this tick."""
-Rules = namedtuple("Rules", "tick max_age edge_cost reach gap back_ticks speed heartbeat trust repeats")
+Rules = namedtuple("Rules", "tick max_age edge_cost reach gap back_ticks speed heartbeat trust repeats partial")
 """The tick stepped and the sorter's numbers (hops and ticks; ``speed`` in m/s; ``heartbeat`` the ticks between two
 sentences of a cell with nothing new to say, ``trust`` the ticks a neighbour's last sentence is trusted, ``repeats``
-the ticks a new sentence is sent again after it changed)."""
-Inputs = namedtuple("Inputs", "present arrived sensors connected")
-"""Which words arrived (n, P), the words (:class:`Words`), the sensors (n, S) and the live links (n, P)."""
-Outputs = namedtuple("Outputs", "present sent wheels unsettled out_changed")
-"""Where the sentences go (a presence mask and :class:`Words`), the (n, 2) wheel speeds (m/s), and per row whether
-the state and the sentences changed."""
+the ticks a new sentence is sent again after it changed; ``partial``: a sentence carries only the words that changed,
+and those that changed in the last ``repeats`` ticks, all of them at the heartbeat)."""
+Inputs = namedtuple("Inputs", "present arrived sensors connected words")
+"""Which sentences arrived (n, P), their words (:class:`Words`), the sensors (n, S), the live links (n, P) and the
+bit mask of the words each sentence carries (n, P; bit k: the schema's k-th word)."""
+Outputs = namedtuple("Outputs", "present sent wheels unsettled out_changed words")
+"""Where the sentences go (a presence mask and :class:`Words`), the (n, 2) wheel speeds (m/s), per row whether
+the state and the sentences changed, and the bit mask of the words each sentence carries (n, P)."""
+ALL_WORDS = (1 << len(Words._fields)) - 1
+"""The bit mask of every sentence word."""
+REST = (-1, 0, NONE, NONE, BIG, 255 + (255 << 8), NONE, 0, NONE, 0, 0, 63 * (1 + 64 + 4096 + 262144))
+"""Each word's value on a cell with nothing to say (no vehicle, no hold, no way anywhere: ``d`` all unreachable,
+``stop`` and ``park`` none, every side closed; ``ex`` has none): a full sentence leaves the words at rest out."""
+FULL = 1 << Words._fields.index("ex")
+"""A partial sentence that carries ``ex`` (which never changes: said in the first sentence, then only at the
+heartbeat) says every word: those it leaves out are at rest (:data:`REST`)."""
+AGAIN_BITS = 16
+"""A port's ``again`` memory: the ticks it repeats its sentence (low bits) and, when sentences are partial, the bit
+mask of the words to repeat (above these bits)."""
 
 @njit(cache=True)
 def _first_min(a):
@@ -68,10 +81,11 @@ def _spread(own, stop_word, field, same, on, reach):
 
 
 @njit(cache=True, inline="always")
-def _heard(present, word, heard_in, heard_out, i, q):
-    """Port q of cell i hears ``word`` if it arrived, else what it heard last; whether that changed."""
+def _heard(present, full, rest, word, heard_in, heard_out, i, q):
+    """Port q of cell i hears ``word`` if it arrived (in a sentence that carried it), ``rest`` if a full sentence
+    left it out, else what it heard last; whether that changed."""
     old = heard_in[i, q]
-    heard_out[i, q] = np.int64(word) if present else old
+    heard_out[i, q] = np.int64(word) if present else (np.int64(rest) if full else old)
     return heard_out[i, q] != old
 
 
@@ -95,14 +109,17 @@ def _put1(out, before, i, value):
 def _say(told, now, beat, i, q):
     """Whether cell i sends the words ``now`` on port q: at its heartbeat (``beat``) or when any differs from what it
     last sent there (``told``: the (last sent, new) :class:`Words` records), which then becomes what it sent; and
-    whether it differed."""
+    whether it differed, and the bit mask of the words that differed."""
     said_in, said_out = told
     differs = False
+    mask = 0
     for w in range(len(now)):
-        differs = differs or said_in[w][i, q] != now[w]
+        if said_in[w][i, q] != now[w]:
+            differs = True
+            mask |= 1 << w
     for w in range(len(now)):
         said_out[w][i, q] = now[w] if differs else said_in[w][i, q]
-    return beat or differs, differs
+    return beat or differs, differs, mask
 
 
 @njit(cache=True)
@@ -115,12 +132,12 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     own row, each value read before it is written): then only those rows change. ``out.unsettled[i]`` and
     ``out.out_changed[i]`` say whether row i's state and sentence differ from what they were."""
     P = inp.present.shape[1]
-    present, words, sensors, connected = inp  # the records unpacked once, outside the loop over cells: an array
+    present, words, sensors, connected, carried = inp  # the records unpacked once, outside the loop over cells: an array
     heard_in, at_in, dist_in, state_in, said_in, again_in = old  # reached through a record inside it costs a reference
     heard_out, at_out, dist_out, state_out, said_out, again_out = new  # count a use
     exit_id, exit_port, entry, entry_no, park_cell, forbid, labels = cfg
-    tick, max_age, edge_cost, reach, gap, back_ticks, speed, heartbeat, trust, repeats = rules
-    sent_present, sent, wheels, unsettled, out_changed = out
+    tick, max_age, edge_cost, reach, gap, back_ticks, speed, heartbeat, trust, repeats, partial = rules
+    sent_present, sent, wheels, unsettled, out_changed, sent_words = out
     n_vid, n_goal, n_dir, n_key, n_stop, n_hold, n_hdep, n_hport, n_hage, n_ack, n_nxt, n_park, n_back, n_bdir = \
         state_out
     w_d, w_nxt, w_vid, w_goal, w_key, w_stop, w_req, w_rdep, w_hold, w_ack, w_ex, w_blk = words
@@ -149,18 +166,20 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         changed = False
         for q in range(P):
             p = present[i, q]
-            changed |= _heard(p, w_d[i, q], i_d, hd, i, q)
-            changed |= _heard(p, w_nxt[i, q], i_nxt, hnxt, i, q)
-            changed |= _heard(p, w_vid[i, q], i_vid, hvid, i, q)
-            changed |= _heard(p, w_goal[i, q], i_goal, hgoal, i, q)
-            changed |= _heard(p, w_key[i, q], i_key, hkey, i, q)
-            changed |= _heard(p, w_stop[i, q], i_stop, hstop, i, q)
-            changed |= _heard(p, w_req[i, q], i_req, hreq, i, q)
-            changed |= _heard(p, w_rdep[i, q], i_rdep, hrdep, i, q)
-            changed |= _heard(p, w_hold[i, q], i_hold, hhold, i, q)
-            changed |= _heard(p, w_ack[i, q], i_ack, hack, i, q)
-            changed |= _heard(p, w_ex[i, q], i_ex, hex_, i, q)
-            changed |= _heard(p, w_blk[i, q], i_blk, hblk, i, q)
+            c = carried[i, q] if p else 0  # the words this port's sentence carried (a partial sentence: some)
+            full = c & FULL != 0
+            changed |= _heard(c & 1 != 0, full, REST[0], w_d[i, q], i_d, hd, i, q)
+            changed |= _heard(c >> 1 & 1 != 0, full, REST[1], w_nxt[i, q], i_nxt, hnxt, i, q)
+            changed |= _heard(c >> 2 & 1 != 0, full, REST[2], w_vid[i, q], i_vid, hvid, i, q)
+            changed |= _heard(c >> 3 & 1 != 0, full, REST[3], w_goal[i, q], i_goal, hgoal, i, q)
+            changed |= _heard(c >> 4 & 1 != 0, full, REST[4], w_key[i, q], i_key, hkey, i, q)
+            changed |= _heard(c >> 5 & 1 != 0, full, REST[5], w_stop[i, q], i_stop, hstop, i, q)
+            changed |= _heard(c >> 6 & 1 != 0, full, REST[6], w_req[i, q], i_req, hreq, i, q)
+            changed |= _heard(c >> 7 & 1 != 0, full, REST[7], w_rdep[i, q], i_rdep, hrdep, i, q)
+            changed |= _heard(c >> 8 & 1 != 0, full, REST[8], w_hold[i, q], i_hold, hhold, i, q)
+            changed |= _heard(c >> 9 & 1 != 0, full, REST[9], w_ack[i, q], i_ack, hack, i, q)
+            changed |= _heard(c >> 10 & 1 != 0, full, REST[10], w_ex[i, q], i_ex, hex_, i, q)
+            changed |= _heard(c >> 11 & 1 != 0, full, REST[11], w_blk[i, q], i_blk, hblk, i, q)
             old = at_in[i, q]
             at_out[i, q] = tick if p else old
             changed |= at_out[i, q] != old
@@ -358,13 +377,22 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
                    np.int64(to_req[q]), np.int64(to_rdep[q]), np.int64(vid if (lit and on) else new_hold),
                    np.int64(min(ack, 255) + ((hport + 1) << 8)), np.int64(ENTRY if entry[i] else exit_id[i]),
                    np.int64(blk))
-            send, differs = _say(told, now, beat, i, q)
+            send, differs, diff = _say(told, now, beat, i, q)
             old_again = again_in[i, q]
-            again_out[i, q] = repeats if differs else max(old_again - 1, 0)
-            send = send or old_again > 0
+            left = old_again & ((1 << AGAIN_BITS) - 1)  # ticks still to repeat, and (partial) which words
+            window = old_again >> AGAIN_BITS if left > 0 else 0
+            count = repeats if differs else max(left - 1, 0)
+            again_out[i, q] = count + (((window | diff) << AGAIN_BITS) if (partial and count > 0) else 0)
+            send = send or left > 0
+            carry = ALL_WORDS if not partial else (diff | window)
+            if partial and beat:  # everything, but the words at rest go without saying
+                carry = FULL
+                for w in range(len(now)):
+                    carry |= (1 << w) if now[w] != REST[w] else 0
             changed |= differs or again_out[i, q] != old_again
             sent_new |= sent_present[i, q] != send
             sent_present[i, q] = send
+            sent_new |= _put(sent_words, i, q, carry) and partial  # (a scratch array when not partial)
             sent_new |= _put(o_d, i, q, now[0])
             sent_new |= _put(o_nxt, i, q, now[1])
             sent_new |= _put(o_vid, i, q, now[2])
