@@ -8,7 +8,6 @@ are on it and wait, against simulated time, with the controls that steer the run
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -16,8 +15,6 @@ from virtual_vehicle.ui.view.draw import (ABSENT, ARROWS_UP_TO, DEAD, EMPTY, EXI
                                           ArrayView, place_labels, ramp)
 from virtual_vehicle.ui.view.live import COLOUR_BY, STILL, LiveRun
 
-if TYPE_CHECKING:
-    from virtual_vehicle.ui.view.server import Viewer
 
 SPEEDS = (0.1, 10.0)
 """The range of simulated seconds per real second the page's speed slider sets (``math.inf``: as fast as it
@@ -118,10 +115,11 @@ def _said(action: dict) -> str:
     return f"{action['kind']} cell {action['cell']}"
 
 
-def build(doc, viewer: Viewer, send_all: bool = False):
-    """Lay out the page of one browser session on ``doc`` (the array, the charts and the controls) and return its
-    refresh: the function that draws a frame (called every ``viewer.frame`` s; ``send_all``: see
-    :class:`~virtual_vehicle.ui.view.draw.ArrayView`)."""
+def build(doc, viewer, send_all: bool = False):
+    """Lay out the page of one browser session on ``doc`` (the array, the charts and the controls) for ``viewer``
+    (the :class:`~virtual_vehicle.ui.view.server.Viewer` serving it; not imported here, since the server imports this
+    module) and return its refresh: the function that draws a frame (called every ``viewer.frame`` s; ``send_all``:
+    see :class:`~virtual_vehicle.ui.view.draw.ArrayView`)."""
     from bokeh.events import Tap
     from bokeh.layouts import column, row
     from bokeh.models import Button, ColumnDataSource, Div, NumeralTickFormatter, Select, Slider, Spinner, Toggle
