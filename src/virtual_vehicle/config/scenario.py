@@ -490,7 +490,10 @@ class Scenario(_Strict):
     ``array`` (the cells), either ``field`` (constant wheel velocities) or ``control`` (the cells run a program
     over a network), ``friction``, ``integrator``, ``contacts`` (parcel against parcel), ``sensors``, ``wheels``
     (ideal or motor-driven), ``faults`` (broken hardware), ``reconfiguration`` (cells taken out and put in during
-    a run) and one ``parcels`` entry per parcel.
+    a run) and one ``parcels`` entry per parcel. ``arrivals``: ``"scheduled"`` puts each parcel on at its ``t_start``
+    (once its place is free); ``"saturate"`` (networked runs) feeds every entry as fast as it accepts: every parcel
+    waits at its place from the start, each place (entry) with its own queue in file order, and the next is put on
+    as soon as the one before it has made room (``t_start`` is not read), to measure saturation throughput.
 
     Before a run starts, what it will hold in memory (output samples times parcels, networked runs' per-tick
     records, recorded cells, fixed steps) is estimated; a scenario needing more than half the machine's memory is
@@ -512,6 +515,7 @@ class Scenario(_Strict):
     wheels: WheelSpec = WheelSpec()
     faults: FaultSpec = FaultSpec()
     reconfiguration: ReconfigurationSpec = ReconfigurationSpec()
+    arrivals: Literal["scheduled", "saturate"] = "scheduled"
     parcels: Annotated[list[ParcelEntry], Field(min_length=1)]
 
     @model_validator(mode="after")
@@ -613,11 +617,13 @@ class Scenario(_Strict):
         polys = [s.world_polygon(st) for s, st in zip(specs, states)]
         for i in range(len(polys)):
             for j in range(i + 1, len(polys)):
-                if self.parcels[i].t_start > 0 or self.parcels[j].t_start > 0:
+                if self.parcels[i].t_start > 0 or self.parcels[j].t_start > 0 or self.arrivals == "saturate":
                     continue  # a later arrival waits until its place is free
                 if shapely.intersection(polys[i], polys[j]).area > 1e-12:
                     raise ScenarioError(f"parcels[{j}]", f"parcel {self.parcels[j].name!r} overlaps parcel "
                                         f"{self.parcels[i].name!r} at the start; move one of them")
+        if self.arrivals == "saturate" and self.control is None:
+            raise ScenarioError("arrivals", "saturating the entries needs [control] (a networked run)")
         for i, p in enumerate(self.parcels):
             if p.t_start > 0 and self.control is None:
                 raise ScenarioError(f"parcels[{i}].t_start", "parcels arriving later need [control] (a networked run)")
