@@ -359,8 +359,13 @@ class WheelSpec(_Strict):
     (N m/A, also the back-EMF constant in V s/rad), ``rotor_inertia`` (kg m^2) and ``viscous_damping`` (N m s/rad)
     on the motor side; ``gear_ratio`` (motor turns per wheel turn); ``wheel_radius`` (m) and ``wheel_inertia``
     (kg m^2) on the wheel side; ``encoder_counts`` per motor revolution; ``kp`` (V per m/s) and ``ki`` (V per m) of
-    the PI loop on surface speed."""
+    the PI loop on surface speed.
 
+    ``profile``: a named set of these settings (:data:`~virtual_vehicle.cells.hardware.PROFILES`; ``"industrial"``:
+    wheels to 1.1 m/s, 2.5 m/s^2, about 150 ms response) that implies ``model = "motor"`` and fills every motor
+    parameter the table does not give; ``"custom"`` (default) uses the table as it is."""
+
+    profile: Literal["custom", "industrial"] = "custom"
     model: Literal["ideal", "motor"] = "ideal"
     period: Annotated[float, Field(gt=0, le=10)] = 0.01
     supply_voltage: Pos = 12.0
@@ -375,11 +380,21 @@ class WheelSpec(_Strict):
     kp: Annotated[float, Field(ge=0)] = 20.0
     ki: Annotated[float, Field(ge=0)] = 1500.0
 
+    @model_validator(mode="before")
+    @classmethod
+    def _fill_from_profile(cls, data):
+        """A named profile sets the motor model and every parameter the table leaves out."""
+        from virtual_vehicle.cells.hardware import PROFILES
+
+        if isinstance(data, dict) and data.get("profile") in PROFILES:
+            data = {"model": "motor", **PROFILES[data["profile"]], **data}
+        return data
+
     def motor(self):
         """These settings as :class:`~virtual_vehicle.cells.hardware.MotorParams` (SI units)."""
         from virtual_vehicle.cells.hardware import MotorParams
 
-        return MotorParams(**self.model_dump(exclude={"model", "period"}))
+        return MotorParams(**self.model_dump(exclude={"profile", "model", "period"}))
 
 
 class FaultEvent(_Strict):
