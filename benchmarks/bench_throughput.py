@@ -16,6 +16,8 @@ from __future__ import annotations
 import argparse
 import time
 
+import numpy as np
+
 from virtual_vehicle.cells.programs import PROGRAMS
 from virtual_vehicle.config.scenario import load_scenario
 from virtual_vehicle.run.sim import run
@@ -32,7 +34,12 @@ def saturated(name: str, control: str, duration: float):
         options = sc.control.model_copy(update={"central": True})
     else:
         options = PROGRAMS[control].Options(**(sc.control.model_dump() | {"program": control}))
-    return sc.model_copy(update={"duration": duration, "arrivals": "saturate", "control": options})
+    # enough parcels that no entry runs dry (one a second, above any entry's bound): the scenario's mix repeated
+    per_entry = len(sc.parcels) / len({(p.x, p.y) for p in sc.parcels})
+    rounds = int(np.ceil(duration / per_entry))
+    parcels = [p.model_copy(update={"name": f"{p.name}_{k}"}) for k in range(rounds) for p in sc.parcels]
+    return sc.model_copy(update={"duration": duration, "arrivals": "saturate", "control": options,
+                                 "parcels": parcels})
 
 
 def measure(name: str, duration: float) -> dict:

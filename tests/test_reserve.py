@@ -73,7 +73,7 @@ def hall_crossing():
                         "y": 0.7, "t_start": 3.0 * k, "destination": 1})
         parcels.append({"name": f"west{k}", "length": 0.25, "width": 0.22, "mass": 1.0, "mu": 2.0, "x": 2.2,
                         "y": 0.7, "t_start": 3.0 * k, "destination": 0})
-    return parse_scenario({"name": "hall_crossing", "duration": 20.0, "output_dt": 0.05,
+    return parse_scenario({"name": "hall_crossing", "duration": 26.0, "output_dt": 0.05,
                            "array": {"kind": "map", "pitch": 0.1,
                                      "map": "\n".join("".join(row) for row in reversed(rows))},
                            "control": {"program": "reserve", "speed": 0.3},

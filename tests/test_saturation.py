@@ -69,3 +69,22 @@ def test_saturating_needs_a_networked_run():
             "parcels": [{"name": "box", "length": 0.25, "width": 0.1, "mass": 1.0, "mu": 0.5, "x": 0.25, "y": 0.0}]}
     with pytest.raises(ScenarioError, match="arrivals"):
         parse_scenario(data).build()
+
+
+def test_run_saturate_on_the_command_line(tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from virtual_vehicle.config.scenario import dump_toml
+    from virtual_vehicle.ui.cli import app
+
+    sc, _ = load_scenario("sorting_junction")
+    path = tmp_path / "short.toml"
+    path.write_text(dump_toml(sc.model_copy(update={"duration": 3.0, "parcels": sc.parcels[:4]})))
+    out = CliRunner().invoke(app, ["run", str(path), "--saturate", "--no-plot", "-o", str(tmp_path / "run")])
+    assert out.exit_code == 0, out.output
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    entry = summary["sorting"]["saturation"]["entries"][0]
+    assert entry["fed"] >= 1 and entry["bound_per_hour"] > 0
+    assert 'arrivals = "saturate"' in (tmp_path / "run" / "scenario.toml").read_text()

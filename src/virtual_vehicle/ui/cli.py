@@ -112,6 +112,9 @@ def run(
                                       "option for several): parquet, csv."),
     cell_ids: bool = typer.Option(False, "--cell-ids", help="Write each cell's id beside it in paths.png (at most "
                                   "2000 cells)."),
+    saturate: bool = typer.Option(False, "--saturate", help="Feed every entry as fast as it accepts (arrivals = "
+                                  "\"saturate\"): the sorting summary gives parcels/hour per entry against the "
+                                  "kinematic bound."),
 ) -> None:
     """Run a scenario; write its tables (trajectories, events and, with distributed control, network and
     cell_traffic) as Parquet and CSV, summary.json, scenario.toml, paths.png (traffic.png) and the manifest
@@ -126,6 +129,11 @@ def run(
             _check_file_target(checkpoint, "--checkpoint")
         with Phase("reading the scenario"):
             sc, text = load_scenario(scenario)
+            if saturate:  # the scenario as run, written as such to scenario.toml
+                from virtual_vehicle.config.scenario import dump_toml, parse_text
+
+                text = dump_toml(sc.model_copy(update={"arrivals": "saturate"}))
+                sc = parse_text(text)
         with Phase(f"building {sc.name}"):
             setup = sc.build()
     except VirtualVehicleError as exc:

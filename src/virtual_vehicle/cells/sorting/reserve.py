@@ -8,8 +8,9 @@ covers (sensor 0). Every step the router plans again, parcel by parcel, oldest f
 windowed cooperative A*, Silver 2005): a parcel's plan is a sequence of moves (one pitch through a port, or wait)
 over the next ``window`` steps, found by A* in (row, column, step) against a reservation table that holds, for
 every step, the cells the parcels planned before it sweep in that step. A move or a wait is allowed only if the
-footprint it sweeps, grown by ``gap + 1`` cells on every side (the lit cells reach up to one cell past the covered
-centres), meets none of those cells. The heuristic is the exact distance on the empty map (breadth-first over the
+footprint it sweeps, grown by ``gap`` cells on every side, meets none of those cells (the plan's spacing; the lit
+cells reach up to a cell past the covered centres, so the check at every tick below may hold a parcel a little
+longer than its plan). The heuristic is the exact distance on the empty map (breadth-first over the
 footprint's positions, one-way arrows and the array's holes respected), so a parcel alone rides a shortest path. A
 parcel is at its goal once its front line (its row or column of cells nearest the exit's open side) lies in its
 exit lane; from there it rides straight out. The map is read from the links at every plan: a dead or cut-off cell
@@ -158,7 +159,7 @@ class ReservationRouter:
     def _plan(self, start, h, w, maps, out_port, reserved):
         """Moves (port, or -1 to wait) for ``window`` steps from anchor ``start``: A* in (row, column, step) against
         ``reserved`` (W + 1, R, C). None when no plan keeps clear of the reservations (not even waiting)."""
-        W, gap = self.window, self.gap + 1  # footprints are the covered centres; the lit cells reach one further
+        W, gap = self.window, self.gap
         valid, at_goal, banned, dist = maps
         inf = np.iinfo(np.int64).max
         r0, c0 = start
