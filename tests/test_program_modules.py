@@ -34,6 +34,10 @@ def example(name: str) -> Scenario:
         sc = load_scenario(bundled)[0]
         if sc.control is not None and sc.control.program == name and not getattr(sc.control, "central", False):
             return sc
+    if name == "reserve":  # the junction's stream under the central reservation router
+        sc = load_scenario("sorting_junction")[0]
+        return sc.model_copy(update={"control": PROGRAMS[name].Options(**(sc.control.model_dump()
+                                                                          | {"program": name}))})
     if name == "diffusion":
         return parse_scenario({"duration": 0.2, "array": ROW, "friction": {"law": "viscous"}, "parcels": [BOX],
                                "control": {"program": "diffusion", "sources": [[0, 0.1, 0.0]]}})
@@ -82,8 +86,8 @@ def test_the_pictures_mark_what_the_program_module_says():
 @pytest.mark.parametrize("control, words", [
     ({"program": "conveyor"}, r'control.program: unknown program "conveyor"; the programs are "shuttle", '),
     ({"speed": 0.2}, r'control.program: missing: name the program every cell runs, one of "shuttle"'),
-    ({"program": "shuttle", "gap": 3}, r'control.gap: is a field of program "sort", not of program "shuttle"'),
-    ({"program": "diffusion", "speed": 0.3}, r'control.speed: is a field of program "shuttle", "pose" or "sort", '
+    ({"program": "shuttle", "gap": 3}, r'control.gap: is a field of program "sort" or "reserve", not of program "shuttle"'),
+    ({"program": "diffusion", "speed": 0.3}, r'control.speed: is a field of program "shuttle", "pose", "sort" or "reserve", '
                                              r'not of program "diffusion"'),
     ({"program": "sort", "gapp": 3}, r"control.gapp: unknown field"),
     ({"program": "pose"}, r"control.targets: Field required"),
@@ -107,7 +111,7 @@ def dump_toml_dict(data: dict) -> str:
 
 
 def test_stray_fields_are_told_by_their_owners():
-    assert owners("gap") == ["sort"] and owners("targets") == ["pose"] and owners("period") == list(PROGRAMS)
+    assert owners("gap") == ["sort", "reserve"] and owners("targets") == ["pose"] and owners("period") == list(PROGRAMS)
     assert owners("nonsense") == []
 
 

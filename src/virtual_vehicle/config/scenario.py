@@ -361,8 +361,13 @@ class WheelSpec(_Strict):
     (N m/A, also the back-EMF constant in V s/rad), ``rotor_inertia`` (kg m^2) and ``viscous_damping`` (N m s/rad)
     on the motor side; ``gear_ratio`` (motor turns per wheel turn); ``wheel_radius`` (m) and ``wheel_inertia``
     (kg m^2) on the wheel side; ``encoder_counts`` per motor revolution; ``kp`` (V per m/s) and ``ki`` (V per m) of
-    the PI loop on surface speed."""
+    the PI loop on surface speed.
 
+    ``profile``: a named set of these settings (:data:`~virtual_vehicle.cells.hardware.PROFILES`; ``"industrial"``:
+    wheels to 1.1 m/s, 2.5 m/s^2, about 150 ms response) that implies ``model = "motor"`` and fills every motor
+    parameter the table does not give; ``"custom"`` (default) uses the table as it is."""
+
+    profile: Literal["custom", "industrial"] = "custom"
     model: Literal["ideal", "motor"] = "ideal"
     period: Annotated[float, Field(gt=0, le=10)] = 0.01
     supply_voltage: Pos = 12.0
@@ -377,11 +382,21 @@ class WheelSpec(_Strict):
     kp: Annotated[float, Field(ge=0)] = 20.0
     ki: Annotated[float, Field(ge=0)] = 1500.0
 
+    @model_validator(mode="before")
+    @classmethod
+    def _fill_from_profile(cls, data):
+        """A named profile sets the motor model and every parameter the table leaves out."""
+        from virtual_vehicle.cells.hardware import PROFILES
+
+        if isinstance(data, dict) and data.get("profile") in PROFILES:
+            data = {"model": "motor", **PROFILES[data["profile"]], **data}
+        return data
+
     def motor(self):
         """These settings as :class:`~virtual_vehicle.cells.hardware.MotorParams` (SI units)."""
         from virtual_vehicle.cells.hardware import MotorParams
 
-        return MotorParams(**self.model_dump(exclude={"model", "period"}))
+        return MotorParams(**self.model_dump(exclude={"profile", "model", "period"}))
 
 
 class FaultEvent(_Strict):
@@ -492,7 +507,10 @@ class Scenario(_Strict):
     ``array`` (the cells), either ``field`` (constant wheel velocities) or ``control`` (the cells run a program
     over a network), ``friction``, ``integrator``, ``contacts`` (parcel against parcel), ``sensors``, ``wheels``
     (ideal or motor-driven), ``faults`` (broken hardware), ``reconfiguration`` (cells taken out and put in during
-    a run) and one ``parcels`` entry per parcel.
+    a run) and one ``parcels`` entry per parcel. ``arrivals``: ``"scheduled"`` puts each parcel on at its ``t_start``
+    (once its place is free); ``"saturate"`` (networked runs) feeds every entry as fast as it accepts: every parcel
+    waits at its place from the start, each place (entry) with its own queue in file order, and the next is put on
+    as soon as the one before it has made room (``t_start`` is not read), to measure saturation throughput.
 
     Before a run starts, what it will hold in memory (output samples times parcels, networked runs' per-tick
     records, recorded cells, fixed steps) is estimated; a scenario needing more than half the machine's memory is
@@ -514,6 +532,7 @@ class Scenario(_Strict):
     wheels: WheelSpec = WheelSpec()
     faults: FaultSpec = FaultSpec()
     reconfiguration: ReconfigurationSpec = ReconfigurationSpec()
+    arrivals: Literal["scheduled", "saturate"] = "scheduled"
     parcels: Annotated[list[ParcelEntry], Field(min_length=1)]
 
     @model_validator(mode="after")
@@ -615,11 +634,13 @@ class Scenario(_Strict):
         polys = [s.world_polygon(st) for s, st in zip(specs, states)]
         for i in range(len(polys)):
             for j in range(i + 1, len(polys)):
-                if self.parcels[i].t_start > 0 or self.parcels[j].t_start > 0:
+                if self.parcels[i].t_start > 0 or self.parcels[j].t_start > 0 or self.arrivals == "saturate":
                     continue  # a later arrival waits until its place is free
                 if shapely.intersection(polys[i], polys[j]).area > 1e-12:
                     raise ScenarioError(f"parcels[{j}]", f"parcel {self.parcels[j].name!r} overlaps parcel "
                                         f"{self.parcels[i].name!r} at the start; move one of them")
+        if self.arrivals == "saturate" and self.control is None:
+            raise ScenarioError("arrivals", "saturating the entries needs [control] (a networked run)")
         for i, p in enumerate(self.parcels):
             if p.t_start > 0 and self.control is None:
                 raise ScenarioError(f"parcels[{i}].t_start", "parcels arriving later need [control] (a networked run)")

@@ -711,11 +711,13 @@ class TickedRun:
         self.sensor_rng = np.random.default_rng(setup.sensors.seed) if sensor_rng is None else sensor_rng
         self.drives = WheelDrives(setup.cells.n, sc.wheels.motor()) if sc.wheels.model == "motor" else None
         self.ys = [y.copy() for y in (setup.states if states is None else states)]
-        self.arrive = [p.t_start for p in sc.parcels]
-        self.active = [t == 0 for t in self.arrive]
+        self.saturate = sc.arrivals == "saturate"  # every parcel queued at its place from the start
+        self.arrive = [0.0 if self.saturate else p.t_start for p in sc.parcels]
+        self.active = [t == 0 and not self.saturate for t in self.arrive]
         self.on = [i for i, a in enumerate(self.active) if a]  # the active parcels, in order
-        self.queue = sorted((i for i, t in enumerate(self.arrive) if t > 0), key=lambda i: (self.arrive[i], i))
-        self.entered = [0.0 if t == 0 else None for t in self.arrive]
+        self.queue = sorted((i for i, t in enumerate(self.arrive) if t > 0 or self.saturate),
+                            key=lambda i: (self.arrive[i], i))
+        self.entered = [None if self.saturate else 0.0 if t == 0 else None for t in self.arrive]
         self.plant = setup.plant()
         self.tracks = [ParcelTrack() for _ in self.ys]
         self.cell_log: list = []
@@ -971,6 +973,9 @@ class TickedRun:
         close. The queue waits behind its first parcel."""
         setup = self.setup
         clearance = float(setup.control.config.get("clearance", 0.0)) if setup.control is not None else 0.0
+        if self.saturate:
+            self._admit_each_place(t, clearance)
+            return
         while self.queue and self.arrive[self.queue[0]] <= t + 1e-12:
             i = self.queue[0]
             place = setup.specs[i].world_polygon(self.ys[i])
@@ -981,6 +986,27 @@ class TickedRun:
                 if clearance <= 0 and shapely.intersection(place, other).area > 1e-12:
                     return
             self.queue.pop(0)
+            self.active[i] = True
+            self.entered[i] = t
+            self.on = sorted([*self.on, i])
+
+    def _admit_each_place(self, t: float, clearance: float) -> None:
+        """Saturated arrivals: each place (a parcel's start pose) keeps its own queue in file order, and its first
+        parcel is put on as soon as its place is free (as in :meth:`_admit`), whatever the other places wait for."""
+        setup = self.setup
+        waiting = set()  # places whose first parcel stays queued
+        for i in list(self.queue):
+            key = tuple(np.round(self.ys[i][:3], 9))
+            if key in waiting:
+                continue
+            place = setup.specs[i].world_polygon(self.ys[i])
+            others = [setup.specs[j].world_polygon(self.ys[j]) for j in self.on]
+            waiting.add(key)  # behind this one, or behind the one put on now: one parcel a place a tick
+            if clearance > 0 and any(shapely.distance(place, other) <= clearance for other in others):
+                continue
+            if clearance <= 0 and any(shapely.intersection(place, other).area > 1e-12 for other in others):
+                continue
+            self.queue.remove(i)
             self.active[i] = True
             self.entered[i] = t
             self.on = sorted([*self.on, i])

@@ -112,6 +112,9 @@ def run(
                                       "option for several): parquet, csv."),
     cell_ids: bool = typer.Option(False, "--cell-ids", help="Write each cell's id beside it in paths.png (at most "
                                   "2000 cells)."),
+    saturate: bool = typer.Option(False, "--saturate", help="Feed every entry as fast as it accepts (arrivals = "
+                                  "\"saturate\"): the sorting summary gives parcels/hour per entry against the "
+                                  "kinematic bound."),
 ) -> None:
     """Run a scenario; write its tables (trajectories, events and, with distributed control, network and
     cell_traffic) as Parquet and CSV, summary.json, scenario.toml, paths.png (traffic.png) and the manifest
@@ -126,6 +129,11 @@ def run(
             _check_file_target(checkpoint, "--checkpoint")
         with Phase("reading the scenario"):
             sc, text = load_scenario(scenario)
+            if saturate:  # the scenario as run, written as such to scenario.toml
+                from virtual_vehicle.config.scenario import dump_toml, parse_text
+
+                text = dump_toml(sc.model_copy(update={"arrivals": "saturate"}))
+                sc = parse_text(text)
         with Phase(f"building {sc.name}"):
             setup = sc.build()
     except VirtualVehicleError as exc:
@@ -708,8 +716,9 @@ def compare(
     out_dir: Path = typer.Option(Path("results/compare"), "--out", "-o", help="Folder for compare.json."),
     force: bool = typer.Option(False, "--force", help="Replace an earlier compare.json in the folder."),
 ) -> None:
-    """Run a task scenario with distributed and with central control and print the metrics side by side; an
-    earlier comparison in the folder is kept unless --force is given."""
+    """Run a task scenario with distributed and with central control (a sorting scenario also with the central
+    reservation router) and print the metrics side by side; an earlier comparison in the folder is kept unless
+    --force is given."""
     import json
 
     from rich.table import Table
@@ -730,7 +739,7 @@ def compare(
                                       "name another folder, or give --force to replace it")
     except VirtualVehicleError as exc:
         _fail(exc)
-    bar = LazyProgress(f"simulating {sc.name} twice")
+    bar = LazyProgress(f"simulating {sc.name} under each control")
     try:
         both = compare_modes(sc, progress=bar)
     finally:
@@ -739,11 +748,11 @@ def compare(
     write_atomic(out_dir / "compare.json", json.dumps({"scenario": sc.name, **both}, indent=2).encode())
     table = Table(title=f"{sc.name}: {sc.duration:g} s, {len(sc.parcels)} parcels")
     table.add_column("metric")
-    table.add_column("distributed")
-    table.add_column("central")
+    for mode in both:
+        table.add_column({"reserve": "reservation router"}.get(mode, mode))
     for key, label in program_of(sc.control).COMPARED:
         cells = []
-        for mode in ("distributed", "central"):
+        for mode in both:
             v = both[mode][key]
             cells.append("n/a" if v is None else f"{v:.4g}" if isinstance(v, float) else str(v))
         table.add_row(label, *cells)

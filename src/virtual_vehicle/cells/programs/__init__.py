@@ -24,13 +24,14 @@ from __future__ import annotations
 import sys
 from types import ModuleType
 
-from virtual_vehicle.cells.programs import diffusion, pose, shuttle, sort
+from virtual_vehicle.cells.programs import diffusion, pose, reserve, shuttle, sort
 
 PROGRAMS: dict[str, ModuleType] = {
     "shuttle": shuttle,
     "pose": pose,
     "diffusion": diffusion,
     "sort": sort,
+    "reserve": reserve,
 }
 """The program modules by the name a scenario's ``program`` gives."""
 

@@ -217,7 +217,7 @@ def report(result) -> dict:
     delays = [r["entered_at_s"] - r["due_s"] for r in rows if r["entered_at_s"] is not None]
     correct = sum(r["correct"] for r in rows)
     count = {k: sum(r["outcome"] == k for r in rows) for k in ("delivered", "lost", "on_array", "waiting")}
-    return {
+    out = {
         "parcels": rows,
         **count,
         "correct": correct,
@@ -231,6 +231,55 @@ def report(result) -> dict:
         "sentences_per_s": net["sentences_sent"] / sc.duration if "sentences_sent" in net else None,
         "stalls": stalls(result, rows),
     }
+    if sc.arrivals == "saturate":
+        out["saturation"] = saturation(result, rows)
+    return out
+
+
+def saturation(result, rows: list[dict] | None = None) -> dict:
+    """Saturation throughput of a run whose entries were fed as fast as they accept (``arrivals = "saturate"``),
+    per entry (a place where parcels are put on) against the kinematic bound ``speed / (length + gap pitches)``: one
+    entry cannot pass parcels faster than the wheels carry a parcel's length and the gap kept behind it.
+
+    Rates are steady-state, between the first and the last event counted: ``fed_per_hour`` from the times parcels
+    were put on, ``delivered_per_hour`` from the times the entry's parcels left through their right exit ((count -
+    1) / (last - first), None below two). ``length_m`` is the mean length of the entry's parcels; ``fraction`` is
+    delivered / bound. ``total`` sums the entries. Units: parcels per hour, m, m/s."""
+    setup = result.setup
+    sc = setup.scenario
+    speed, gap = sc.control.top_speed(), sc.control.gap * setup.cells.pitch
+    if rows is None:
+        rows = report(result)["parcels"]
+
+    def rate(times):
+        times = sorted(times)
+        return (len(times) - 1) / (times[-1] - times[0]) * 3600.0 if len(times) > 1 and times[-1] > times[0] else None
+
+    places: dict = {}
+    for k, (p, row) in enumerate(zip(sc.parcels, rows)):
+        places.setdefault((round(p.x, 9), round(p.y, 9)), []).append(k)
+    entries = []
+    for (x, y), members in places.items():
+        fed = [rows[k]["entered_at_s"] for k in members if rows[k]["entered_at_s"] is not None]
+        out = [rows[k]["entered_at_s"] + rows[k]["delivery_time_s"] for k in members if rows[k]["correct"]]
+        length = float(np.mean([_length(result.parcels[k].spec) for k in members]))
+        bound = speed / (length + gap) * 3600.0
+        delivered = rate(out)
+        entries.append({"x": x, "y": y, "fed": len(fed), "delivered": len(out), "fed_per_hour": rate(fed),
+                        "delivered_per_hour": delivered, "length_m": length, "bound_per_hour": bound,
+                        "fraction": None if delivered is None else delivered / bound})
+    measured = [e["delivered_per_hour"] for e in entries]
+    total = {"delivered_per_hour": sum(measured) if None not in measured else None,
+             "bound_per_hour": sum(e["bound_per_hour"] for e in entries)}
+    total["fraction"] = None if total["delivered_per_hour"] is None else \
+        total["delivered_per_hour"] / total["bound_per_hour"]
+    return {"speed_m_s": speed, "gap_m": gap, "entries": entries, "total": total}
+
+
+def _length(spec) -> float:
+    """A parcel's length (m): the longer side of its outline's bounding box in its own frame."""
+    x0, y0, x1, y1 = spec.polygon.bounds
+    return max(x1 - x0, y1 - y0)
 
 
 def stalls(result, rows: list[dict] | None = None) -> list[dict]:
