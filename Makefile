@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 OUT ?= results/default
 
-.PHONY: run test bench fuzz clean
+.PHONY: run test bench stress fuzz clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -33,6 +33,13 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_ceiling.py
 	$(BIN)/python benchmarks/bench_stick_events.py
 	$(BIN)/python benchmarks/bench_pairs.py
+	$(BIN)/python benchmarks/bench_throughput.py
+	$(BIN)/python benchmarks/bench_clocks.py
+	$(BIN)/python benchmarks/bench_view.py
+
+# the sorter's liveness over 200 generated floors (long: about a minute a seed)
+stress: $(STAMP)
+	$(BIN)/python benchmarks/stress_sorter.py
 
 fuzz: $(STAMP)
 	$(BIN)/python benchmarks/fuzz_sentences.py
