@@ -117,6 +117,11 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # ids order vehicles by age (the tick they were made), which is the priority at a merge
     vid[fresh] = tick * 1024 + entry_no[fresh] % 1024
     goal[fresh] = labels[fresh]
+    # a cell that took the id before it heard the goal (a partial sentence carries a word only when it changed)
+    # takes the goal from a neighbour of the same vehicle that says one
+    told = trusted & (heard["vid"] == vid[:, None]) & (heard["goal"] >= 0)
+    ask = lit & (vid >= 0) & (goal < 0) & told.any(axis=1)
+    goal[ask] = heard["goal"][rows, np.argmax(told, axis=1)][ask]
     on = lit & (vid >= 0) & (goal >= 0)
     same_nb = trusted & (heard["vid"] == vid[:, None]) & on[:, None]
     # A sequenced parcel whose number is not yet due heads for a free parking cell instead of its exit.
@@ -226,8 +231,21 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # a cell that only sees the parcel's edge may hang over the array's edge or a dead cell: only cells that
     # carry the parcel, or that have a neighbour ahead to ask, can stop it
     own_stop = np.where(front & ~go_front & (core | inputs.connected[rows, dp]), 0, 255)
-    stop = _spread(sorter, np.where(own_park == 0, 0, own_stop), _unpack(heard["stop"], 0), same_nb, on)
-    moving = on & (direction >= 0) & (stop > sorter.reach)
+    # a stop runs only backward and sideways through the vehicle (from the cell ahead or beside, not from one that
+    # heard it from this cell: the stop byte's high two bits name the port it came through), along no loop, so it
+    # is gone as soon as its cells say go; a parked vehicle's every cell says stop
+    src = np.where((own_park == 0) | parked, 0, own_stop)
+    nb_stop = _unpack(heard["stop"], 0)
+    hops, came = nb_stop & 63, nb_stop >> 6
+    ports = np.arange(P)[None, :]
+    mine = (hops > 0) & (came == (ports + 2) % 4)
+    behind = (direction[:, None] >= 0) & (ports == (direction[:, None] + 2) % 4)
+    nb = np.where(same_nb & (hops < sorter.reach) & ~mine & ~behind, hops + 1, 63)
+    via = np.argmin(nb, axis=1)
+    best = nb[rows, via]
+    stop = np.where(src == 0, 0, np.where(best < 63, best + (via << 6), 255))
+    stop = np.where(on, stop, 255)
+    moving = on & (direction >= 0) & ((stop & 63) > sorter.reach)
     # -- outputs
     wheels = np.zeros((n, 2))
     sign = np.array([1.0, 1.0, -1.0, -1.0])

@@ -390,10 +390,13 @@ def _keys(rng, shape) -> np.ndarray:
 
 
 def _said(rng, shape) -> dict[str, np.ndarray]:
-    """Words as sorters say them where a word packs two fields: a direction key, ``stop`` (hops to a stopping cell,
-    then to a parking cell; 255 for none) and ``ack`` (a run of held cells, then the port asked through plus one)."""
+    """Words as sorters say them where a word packs two fields: a direction key, ``stop`` (hops to a stopping cell
+    and the port it was heard through above six bits, then hops to a parking cell; 255 for none) and ``ack`` (a run
+    of held cells, then the port asked through plus one)."""
     hops = lambda: np.where(rng.random(shape) < 0.4, 255, rng.integers(0, 10, shape))  # noqa: E731
-    return {"key": _keys(rng, shape), "stop": hops() + (hops() << 8),
+    stop = hops()
+    stop = np.where(stop < 255, stop + (rng.integers(0, 4, shape) << 6), stop)
+    return {"key": _keys(rng, shape), "stop": stop + (hops() << 8),
             "ack": rng.integers(0, 5, shape) + (rng.integers(0, 5, shape) << 8)}
 
 

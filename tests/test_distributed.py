@@ -175,6 +175,22 @@ def test_the_sorter_runs_over_the_wire_model_on_a_fast_enough_line(baud):
     assert per_tick["sent"].sum() < 0.1 * every_tick
 
 
+def test_the_sorter_delivers_at_the_papers_9600_baud():
+    """At the paper's 9600 baud (before: no parcel delivered in 40 s) the junction's first parcel reaches its exit,
+    with no collisions: a cell's first partial sentences leave no zero distance behind, a cell that took a vehicle's
+    id before its goal takes the goal too, and a stop leaves the vehicle once its cell says go."""
+    from virtual_vehicle.config.scenario import WireSpec
+    from virtual_vehicle.run.tasks import sorting_report
+
+    sc = sorting(duration=26.0, parcels=1)
+    sc = sc.model_copy(update={"control": sc.control.model_copy(update={"delivery": "wire",
+                                                                         "wire": WireSpec(baud=9600.0)})})
+    report = sorting_report(run(sc.build()))
+    assert report["collisions"] == 0 and report["lost"] == 0 and report["misrouted"] == 0
+    row = report["parcels"][0]
+    assert row["outcome"] == "delivered" and row["correct"], row
+
+
 def test_a_main_line_diverts_each_parcel_to_its_spur_and_lets_the_rest_through():
     from virtual_vehicle.config.scenario import load_scenario
     from virtual_vehicle.run.tasks import sorting_report

@@ -22,8 +22,10 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
   ask, every tick: the older parcel goes first at a merge, and a younger one yields even a cell it held, so two
   vehicles never wait for each other) and passes the request on, ``gap + 1`` cells deep. A held cell reports back
   how many held cells run ahead of it; a vehicle moves when the run ahead of every front cell is at least ``gap``
-  long (or leads off the array at its exit), else all its cells stop. Stopping and going spread through the
-  vehicle like its direction. Parcels therefore keep ``gap`` free cells between them and do not collide. Two
+  long (or leads off the array at its exit), else all its cells stop. A stop spreads through the vehicle from the
+  cell ahead or beside, never from behind nor back to the cell it came from (the stop word names the port), so it
+  runs along no loop and is gone as soon as the cell that said it says go (a parked vehicle's every cell says stop).
+  Parcels therefore keep ``gap`` free cells between them and do not collide. Two
   vehicles that meet head on would each hold what the other needs; a front cell that sees the cell ahead held for
   an older vehicle that asked from the far side (the held cell tells through which port it was asked), or carrying
   an older vehicle coming this way, makes its vehicle back off for as long as ``gap + 1`` cells take. A hold

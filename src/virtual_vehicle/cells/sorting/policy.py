@@ -80,6 +80,31 @@ def _spread(own, stop_word, field, same, on, reach):
     return out if on else 255
 
 
+@njit(cache=True)
+def _spread_stop(own, stop_word, same, on, reach, direction):
+    """The stop byte of a vehicle's cell: hops to the nearest of its cells that said stop (``own`` 0 here; low six
+    bits, 63 none) and the port it was heard through (high two bits); 255 when no stop is within ``reach``. A cell
+    takes a stop from the cell ahead (port ``direction``) or beside it, not from behind, and not from a neighbour
+    that took it from this cell: a stop then runs only backward and sideways through the vehicle, along no loop, so
+    once its cell says go it is gone from the vehicle in as many exchanges as it ran hops, where a count taken from
+    any neighbour would run up to ``reach`` from the cells' old counts first (one exchange a hop on a slow line)."""
+    if not on:
+        return 255
+    if own == 0:
+        return 0
+    best = 63
+    came = 3
+    for q in range(same.shape[0]):
+        v = unpack(stop_word[q], 0, 8)
+        hops = v & 63
+        mine = hops > 0 and (v >> 6) == (q + 2) % 4  # the neighbour heard it from this cell
+        behind = direction >= 0 and q == (direction + 2) % 4
+        if same[q] and hops < reach and not mine and not behind and hops + 1 < best:
+            best = hops + 1
+            came = q
+    return 255 if best == 63 else best + (came << 6)
+
+
 @njit(cache=True, inline="always")
 def _heard(present, full, rest, word, heard_in, heard_out, i, q):
     """Port q of cell i hears ``word`` if it arrived (in a sentence that carried it), ``rest`` if a full sentence
@@ -233,6 +258,13 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         if lit and vid < 0 and entry[i] and labels[i] >= 0:
             vid = vehicle_id(tick, entry_no[i])
             goal = labels[i]
+        # a cell that took the id before it heard the goal (a partial sentence carries a word only when it
+        # changed) takes the goal from a neighbour of the same vehicle that says one
+        if lit and vid >= 0 and goal < 0:
+            for q in range(P):
+                if trusted[q] and hvid[i, q] == vid and hgoal[i, q] >= 0:
+                    goal = hgoal[i, q]
+                    break
         on = lit and vid >= 0 and goal >= 0
         for q in range(P):
             same_nb[q] = trusted[q] and hvid[i, q] == vid and on
@@ -337,8 +369,8 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         ahead_ack = hack[i, dp] & 255
         go_front = off_array or (trusted[dp] and ahead_hold == vid and ahead_ack >= gap)
         own_stop = 0 if (front and not go_front and (core or connected[i, dp])) else 255
-        stop = _spread(0 if own_park == 0 else own_stop, hstop[i], 0, same_nb, on, reach)
-        moving = on and direction >= 0 and stop > reach
+        stop = _spread_stop(0 if (own_park == 0 or parked) else own_stop, hstop[i], same_nb, on, reach, direction)
+        moving = on and direction >= 0 and (stop & 63) > reach
         # -- outputs
         wheels[i, 0] = wheels[i, 1] = 0.0
         if moving:

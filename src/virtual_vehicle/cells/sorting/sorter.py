@@ -101,7 +101,10 @@ class Sorter:
             raise ValueError("the sorter runs on square lattices (four ports a cell)")
         P = ports
         return {"dist": np.full((n, MAX_EXITS), UNREACHABLE, dtype=np.int64),
-                "heard": {f.name: np.zeros((n, P), dtype=np.int64) for f in self.schema.fields},
+                # nothing heard yet: a neighbour with nothing to say, so that a partial sentence that comes first
+                # (the one before it lost) leaves no zero distance to an exit, which would take a count to forget
+                "heard": {f.name: np.full((n, P), rest, dtype=np.int64)
+                          for f, rest in zip(self.schema.fields, policy.REST)},
                 "heard_at": np.full((n, P), _NEVER, dtype=np.int64),
                 "vid": np.full(n, NONE, dtype=np.int64), "goal": np.full(n, NONE, dtype=np.int64),
                 "dir": np.full(n, NONE, dtype=np.int64), "key": np.full(n, BIG, dtype=np.int64),
