@@ -54,7 +54,7 @@ from scipy.integrate import solve_ivp
 
 __all__ = ["Wheels", "Mode", "ModeEvent", "StickSlipRun", "wheels_on", "decide_mode", "mode_rhs", "mode_events",
            "simulate", "stick_facets", "breaking_wheels", "project_twist", "wheel_arrays", "arrays_of", "decide_kernel",
-           "breaking_kernel", "decide_compiled"]
+           "breaking_kernel", "decide_compiled", "zonotope_inradius"]
 
 _SLIP_TOL = 1e-9  # relative to the speed scale: a wheel this close to zero slip is at zero slip
 _ACCEL_TOL = 1e-7  # relative to the acceleration scale: a slip acceleration this small is zero
@@ -913,6 +913,18 @@ def _min_slack_c(G, F, rank, anchor, index):
             support += abs(G[a, 0] * n[0] + G[a, 1] * n[1] + G[a, 2] * n[2])
         least = min(least, support - abs(n[0] * F[0] + n[1] * F[1] + n[2] * F[2]))
     return least
+
+
+@njit(cache=True)
+def zonotope_inradius(G):
+    """The radius of the largest ball about the origin inside the zonotope ``{G^T mu : |mu_j| <= 1}`` of the
+    generators ``G`` (k, 3) (the rows ``mu_s N J`` of sticking wheels: N, N, N m), the least support over its facets
+    (for a centrally symmetric polytope the distance to its nearest facet); 0 below rank 3. A wrench of length at most
+    this lies in the zonotope whatever its direction: the sticking wheels can hold it (the rule above)."""
+    rank, anchor, index = _facets_c(G)
+    if rank < 3:
+        return 0.0
+    return _min_slack_c(G, np.zeros(3), rank, anchor, index)
 
 
 @njit(cache=True)
