@@ -466,8 +466,10 @@ class Plant:
                 tr = integrate_prechecked(models[i], ys[i], t, te, samples, mode=integ.mode, rtol=integ.rtol,
                                           atol=integ.atol, max_step=integ.max_step, dt=integ.dt,
                                           support=known)  # all checked where they come in
-                if self._quiet is not None and (tr.events or tr.status != "completed"):
-                    self._quiet.forget(i)  # its anchor's piece may no longer hold
+                if tr.events or tr.status != "completed":
+                    for stepper in (self._quiet, self._ride):  # its anchor's piece may no longer hold
+                        if stepper is not None:
+                            stepper.forget(i)
                 self._take(i, tr, ys, active, parts)
             for g in groups:
                 for i, tr in self._step_group(g, models, ys, t, te, samples).items():
