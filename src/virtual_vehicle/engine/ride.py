@@ -100,7 +100,10 @@ class RideStepper(QuietStepper):
         self._spread = np.zeros(n)  # N: sum of mu_s N_j (how far the generators move per metre the levers change)
         self._arm = np.zeros(n)  # m: the farthest wheel from the anchor's centre
         self._scale = np.zeros(n)  # m/s: the speed scale of the slip tolerance
-        self._stuck: dict[int, tuple] = {}  # per parcel: its wheels' keys and which are in contact (the memory)
+        self._ride_pose = np.zeros((n, 2))  # m: where the ride data were measured (an anchor's centre)
+        self._ride_slack = np.zeros(n)  # m: that anchor's support slack
+        self._ride_piece: dict[int, tuple] = {}  # per parcel: the support and solved pattern they were measured on
+        self._stuck: dict[int, tuple] = {}  # per parcel: the wheel memory of a ride (no impulses; those in contact)
 
     def _ride_data(self, i: int, model, velocities: np.ndarray) -> None:
         """Whether the wheels under parcel ``i``'s anchor are one rigid twist that fixes the parcel (rank 3), and
@@ -112,10 +115,14 @@ class RideStepper(QuietStepper):
         P, U, w, _, _, FL, FC, origin, mus, _ = self.law.wheel_arrays(self.cells, a.support, a.solution, velocities,
                                                                       spec.mu, spec.mu_static)
         X = a.pose[:2]
+        self._ride_pose[i], self._ride_slack[i] = X, a.slack
+        self._ride_piece[i] = (a.support, a.solution.force_lin)
         N = FL @ (X - origin) + FC  # eq. 19: each wheel's cell's normal force at the anchor (N)
         on = (mus > 0) & (N > 0)
         row, k = np.nonzero(self.cells.wheel_active[a.support])
-        self._stuck[i] = (list(zip(a.support[row].tolist(), k.tolist())), on.tolist())
+        keys = list(zip(a.support[row].tolist(), k.tolist()))
+        # the wheel memory a ride leaves, made once per anchor (the engine replaces these dicts, never changes them)
+        self._stuck[i] = (dict.fromkeys(keys, 0.0), dict(zip(keys, on.tolist())))
         if on.sum() < 3:
             return
         r = P[on] - X
@@ -133,6 +140,18 @@ class RideStepper(QuietStepper):
         self._scale[i] = scale
         self._rides[i] = True
 
+    def measure(self, i, models, y):
+        """:meth:`QuietStepper.measure`, keeping the ride data where the new anchor lies on the same cells and solved
+        pattern as the anchor they were measured at (the same normal-force map: the grip's bound holds from there)."""
+        made = self._made[i]
+        a = super().measure(i, models, y)
+        kept = self._ride_piece.get(i)
+        if (a is not None and kept is not None and kept[1] is a.solution.force_lin
+                and np.array_equal(kept[0], a.support)
+                and np.hypot(*(a.pose[:2] - self._ride_pose[i])) < 0.5 * self._ride_slack[i]):
+            self._made[i] = made  # (measured again once the parcel has used up half the grip's room from there)
+        return a
+
     def forget(self, i: int | None = None) -> None:
         """Drop parcel ``i``'s anchor (all when None), and with it what was found of its wheels."""
         super().forget(i)
@@ -143,8 +162,8 @@ class RideStepper(QuietStepper):
 
     def _off(self, idx: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """How far (m/s) the twists of parcels ``idx`` at states ``Y`` are from their wheels' rigid twist (as their
-        anchors found it), bounding every wheel's slip; and the states with that twist (the field's at the centre)."""
-        P0 = self._pose[idx]
+        ride data found it), bounding every wheel's slip; and the states with that twist (the field's at the centre)."""
+        P0 = self._ride_pose[idx]
         dx, dy = Y[:, 0] - P0[:, 0], Y[:, 1] - P0[:, 1]
         tw = self._twist[idx]
         om = tw[:, 2]
@@ -167,10 +186,14 @@ class RideStepper(QuietStepper):
         d = speed * window  # how far the centre moves (m)
         r = (speed + np.abs(om) * R) * window  # how far any point moves (m)
         D = moved + d
-        slack = self._slack[idx]
-        rides &= slack > D
-        share = D / np.where(slack > 0, slack, np.inf)  # each normal force stays within (1 -+ share) of the anchor's
-        held = (1.0 - share) * self._inradius[idx] - D * (1.0 + share) * self._spread[idx]
+        rides &= self._slack[idx] > D  # no normal force changes sign, no cell lifts off or touches down
+        # the grip, from where the ride data were measured (on the same normal-force map): each normal force stays
+        # within (1 -+ share) of its value there
+        Dr = np.hypot(Y[:, 0] - self._ride_pose[idx, 0], Y[:, 1] - self._ride_pose[idx, 1]) + d
+        slack = self._ride_slack[idx]
+        rides &= slack > Dr
+        share = Dr / np.where(slack > 0, slack, np.inf)
+        held = (1.0 - share) * self._inradius[idx] - Dr * (1.0 + share) * self._spread[idx]
         rides &= self.mass[idx] * np.abs(om) * speed < held
         swept = moved + np.abs(Y[:, 2] - P0[:, 2]) * R
         clear = self._clear[idx] > swept + r
@@ -227,10 +250,10 @@ class RideStepper(QuietStepper):
         for n, k in enumerate(quiet.tolist()):
             i = idx[k]
             model, spec = models[i], self.specs[i]
-            keys, on = self._stuck[i]
+            lam, stuck = self._stuck[i]
             memory = model.contact_memory
-            memory["lam"] = dict.fromkeys(keys, 0.0)
-            memory["stuck"] = dict(zip(keys, on))
+            if memory["stuck"] is not stuck:
+                memory["lam"], memory["stuck"] = lam, stuck
             y0, y1 = ys[i], states[n, -1]
             stats = {"wheel_work": 0.0, "friction_dissipation": 0.0, "step_dissipation": 0.0, "contact_work": 0.0,
                      "sweeps_max": 0, "unconverged_steps": 0,

@@ -918,13 +918,27 @@ def _min_slack_c(G, F, rank, anchor, index):
 @njit(cache=True)
 def zonotope_inradius(G):
     """The radius of the largest ball about the origin inside the zonotope ``{G^T mu : |mu_j| <= 1}`` of the
-    generators ``G`` (k, 3) (the rows ``mu_s N J`` of sticking wheels: N, N, N m), the least support over its facets
-    (for a centrally symmetric polytope the distance to its nearest facet); 0 below rank 3. A wrench of length at most
-    this lies in the zonotope whatever its direction: the sticking wheels can hold it (the rule above)."""
-    rank, anchor, index = _facets_c(G)
-    if rank < 3:
-        return 0.0
-    return _min_slack_c(G, np.zeros(3), rank, anchor, index)
+    generators ``G`` (k, 3) (the rows ``mu_s N J`` of sticking wheels: N, N, N m): the least of its support function
+    ``h(n) = sum_j |G_j . n|`` over unit directions, which a polytope takes at a facet normal; every facet normal is
+    the cross product of two non-parallel generators, and every other direction's ``h`` is no smaller, so the least
+    over those products is exact (O(k^3), no facet bookkeeping). 0 below rank 3 (the products then include the
+    normal of the plane the generators span). A wrench of length at most this lies in the zonotope whatever its
+    direction: the sticking wheels can hold it (the rule above)."""
+    k = G.shape[0]
+    least = np.inf
+    for p in range(k):
+        lp = math.sqrt(G[p, 0] ** 2 + G[p, 1] ** 2 + G[p, 2] ** 2)
+        for q in range(p + 1, k):
+            n = _cross3(G[p], G[q])
+            size = math.sqrt(n[0] ** 2 + n[1] ** 2 + n[2] ** 2)
+            lq = math.sqrt(G[q, 0] ** 2 + G[q, 1] ** 2 + G[q, 2] ** 2)
+            if not size > _PLANE_TOL * lp * lq:
+                continue  # parallel: no facet between them
+            h = 0.0
+            for a in range(k):
+                h += abs(G[a, 0] * n[0] + G[a, 1] * n[1] + G[a, 2] * n[2])
+            least = min(least, h / size)
+    return least if least < np.inf else 0.0
 
 
 @njit(cache=True)
