@@ -12,9 +12,10 @@ mode by DOP853 every control tick; :class:`RideStepper` proves a window has none
 closed form for all such parcels in one vectorised call. Every other window keeps the event-driven path.
 
 The wheels are held constant over a control tick (zero-order hold: a motor wheel is given the plant at its mean
-speed over the tick, :meth:`~virtual_vehicle.run.sim.NetworkedRun.finish`), so the twist the wheels make is constant
-over a window; the check is made again whenever the wheels under the parcel change, and a window whose wheels are
-not one rigid twist (a ramp that is not common to all of them included) is not a ride.
+speed over the tick, :meth:`~virtual_vehicle.run.sim.TickedRun.finish`), so the twist the wheels make is constant
+over a window; a window whose wheels are not one rigid twist (a ramp that is not common to all of them included) is
+not a ride. Each window is proven from the parcel's state at its start alone (the anchor is measured there), so the
+windows a run rides do not depend on its history: a run resumed from a checkpoint rides the same ones.
 
 The proof for a window of ``T`` s, from the parcel's anchor (:mod:`virtual_vehicle.engine.batch`: its clearance
 ``clear``, support ``slack`` and, where needed, the edge-by-edge look), with the parcel's twist that of the field:
@@ -42,9 +43,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from virtual_vehicle.engine import _kernel
 from virtual_vehicle.engine.batch import QuietStepper
 from virtual_vehicle.engine.stepping import Trajectory
-from virtual_vehicle.physics.stick_modes import zonotope_inradius
 
 RIDE_TOL = 1e-10
 """A parcel rides the field when its twist differs from the field's by less than this, relative to the speed scale
@@ -78,8 +79,8 @@ def rigid_motion(Y: np.ndarray, times: np.ndarray, t: float) -> np.ndarray:
 
 
 class RideStepper(QuietStepper):
-    """Steps the windows in which stick-slip parcels ride their wheels rigidly (module docstring), reusing the quiet
-    stepper's anchors (clearance, support slack, edges) and its record of which wheels changed when.
+    """Steps the windows in which stick-slip parcels ride their wheels rigidly (module docstring), with the quiet
+    stepper's anchors (clearance, support slack, edges) measured at each window's start.
 
     Args:
         cells: the contact layer.
@@ -100,70 +101,31 @@ class RideStepper(QuietStepper):
         self._spread = np.zeros(n)  # N: sum of mu_s N_j (how far the generators move per metre the levers change)
         self._arm = np.zeros(n)  # m: the farthest wheel from the anchor's centre
         self._scale = np.zeros(n)  # m/s: the speed scale of the slip tolerance
-        self._ride_pose = np.zeros((n, 2))  # m: where the ride data were measured (an anchor's centre)
-        self._ride_slack = np.zeros(n)  # m: that anchor's support slack
-        self._ride_piece: dict[int, tuple] = {}  # per parcel: the support and solved pattern they were measured on
         self._stuck: dict[int, tuple] = {}  # per parcel: the wheel memory of a ride (no impulses; those in contact)
 
-    def _ride_data(self, i: int, model, velocities: np.ndarray) -> None:
+    def _ride_data(self, i: int, velocities: np.ndarray) -> None:
         """Whether the wheels under parcel ``i``'s anchor are one rigid twist that fixes the parcel (rank 3), and
         if so that twist and the grip's measures at the anchor (module docstring)."""
         a = self.anchors[i]
         spec = self.specs[i]
-        self._made[i] = self._changes
         self._rides[i] = False
         P, U, w, _, _, FL, FC, origin, mus, _ = self.law.wheel_arrays(self.cells, a.support, a.solution, velocities,
                                                                       spec.mu, spec.mu_static)
-        X = a.pose[:2]
-        self._ride_pose[i], self._ride_slack[i] = X, a.slack
-        self._ride_piece[i] = (a.support, a.solution.force_lin)
-        N = FL @ (X - origin) + FC  # eq. 19: each wheel's cell's normal force at the anchor (N)
-        on = (mus > 0) & (N > 0)
-        row, k = np.nonzero(self.cells.wheel_active[a.support])
-        keys = list(zip(a.support[row].tolist(), k.tolist()))
-        # the wheel memory a ride leaves, made once per anchor (the engine replaces these dicts, never changes them)
-        self._stuck[i] = (dict.fromkeys(keys, 0.0), dict(zip(keys, on.tolist())))
-        if on.sum() < 3:
-            return
-        r = P[on] - X
-        u = U[on]
-        J = np.column_stack([u, r[:, 0] * u[:, 1] - r[:, 1] * u[:, 0]])  # the wheels' rows [u, r x u]
-        nu, _, rank, _ = np.linalg.lstsq(J, w[on], rcond=None)
-        scale = max(1e-3, float(np.abs(w).max(initial=0.0)))
-        if rank < 3 or np.abs(J @ nu - w[on]).max() > RIDE_TOL * scale:
-            return  # not one rigid twist, or one that leaves the parcel a free direction
-        G = np.ascontiguousarray((mus[on] * N[on])[:, None] * J)
-        self._twist[i] = nu
-        self._inradius[i] = zonotope_inradius(G) - 1e-9 * np.abs(G).sum()
-        self._spread[i] = float((mus[on] * N[on]).sum())
-        self._arm[i] = float(np.hypot(r[:, 0], r[:, 1]).max())
-        self._scale[i] = scale
-        self._rides[i] = True
-
-    def measure(self, i, models, y):
-        """:meth:`QuietStepper.measure`, keeping the ride data where the new anchor lies on the same cells and solved
-        pattern as the anchor they were measured at (the same normal-force map: the grip's bound holds from there)."""
-        made = self._made[i]
-        a = super().measure(i, models, y)
-        kept = self._ride_piece.get(i)
-        if (a is not None and kept is not None and kept[1] is a.solution.force_lin
-                and np.array_equal(kept[0], a.support)
-                and np.hypot(*(a.pose[:2] - self._ride_pose[i])) < 0.5 * self._ride_slack[i]):
-            self._made[i] = made  # (measured again once the parcel has used up half the grip's room from there)
-        return a
-
-    def forget(self, i: int | None = None) -> None:
-        """Drop parcel ``i``'s anchor (all when None), and with it what was found of its wheels."""
-        super().forget(i)
-        if i is None:
-            self._made[:] = -1
-        else:
-            self._made[i] = -1
+        rides, twist, inradius, spread, arm, scale, on = _kernel.ride_data(P, U, w, FL, FC, origin, mus,
+                                                                           a.pose[:2].copy(), RIDE_TOL)
+        self._rides[i], self._twist[i], self._inradius[i] = rides, twist, inradius
+        self._spread[i], self._arm[i], self._scale[i] = spread, arm, scale
+        key = a.support.tobytes() + on.tobytes()
+        if self._stuck.get(i, (None,))[0] != key:
+            # the wheel memory a ride leaves (no impulses; those in contact stick), made once for these wheels
+            row, k = np.nonzero(self.cells.wheel_active[a.support])
+            keys = list(zip(a.support[row].tolist(), k.tolist()))
+            self._stuck[i] = (key, dict.fromkeys(keys, 0.0), dict(zip(keys, on.tolist())))
 
     def _off(self, idx: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """How far (m/s) the twists of parcels ``idx`` at states ``Y`` are from their wheels' rigid twist (as their
-        ride data found it), bounding every wheel's slip; and the states with that twist (the field's at the centre)."""
-        P0 = self._ride_pose[idx]
+        anchors found it), bounding every wheel's slip; and the states with that twist (the field's at the centre)."""
+        P0 = self._pose[idx]
         dx, dy = Y[:, 0] - P0[:, 0], Y[:, 1] - P0[:, 1]
         tw = self._twist[idx]
         om = tw[:, 2]
@@ -186,14 +148,10 @@ class RideStepper(QuietStepper):
         d = speed * window  # how far the centre moves (m)
         r = (speed + np.abs(om) * R) * window  # how far any point moves (m)
         D = moved + d
-        rides &= self._slack[idx] > D  # no normal force changes sign, no cell lifts off or touches down
-        # the grip, from where the ride data were measured (on the same normal-force map): each normal force stays
-        # within (1 -+ share) of its value there
-        Dr = np.hypot(Y[:, 0] - self._ride_pose[idx, 0], Y[:, 1] - self._ride_pose[idx, 1]) + d
-        slack = self._ride_slack[idx]
-        rides &= slack > Dr
-        share = Dr / np.where(slack > 0, slack, np.inf)
-        held = (1.0 - share) * self._inradius[idx] - Dr * (1.0 + share) * self._spread[idx]
+        slack = self._slack[idx]
+        rides &= slack > D  # no normal force changes sign, no cell lifts off or touches down
+        share = D / np.where(slack > 0, slack, np.inf)  # each normal force stays within (1 -+ share) of the anchor's
+        held = (1.0 - share) * self._inradius[idx] - D * (1.0 + share) * self._spread[idx]
         rides &= self.mass[idx] * np.abs(om) * speed < held
         swept = moved + np.abs(Y[:, 2] - P0[:, 2]) * R
         clear = self._clear[idx] > swept + r
@@ -218,29 +176,19 @@ class RideStepper(QuietStepper):
         times = np.concatenate([[t], samples[(samples > t) & (samples < te)], [te]])
         window = te - t
         Y = np.array([ys[i] for i in idx], dtype=float)
-        self.see(velocities)
-        arr = np.asarray(idx)
+        # measured where each parcel is now, every window: the proof then depends on the state alone, not on where
+        # the parcel was measured before (a run resumed from a checkpoint, whose caches start empty, decides the
+        # same windows as the run that went on, to the last bit)
+        have = np.zeros(len(idx), dtype=bool)
         for k, i in enumerate(idx):
-            if i not in self.anchors:
-                self.measure(i, models, Y[k])
-        ok = self._check(arr, np.arange(len(idx)), Y, models, velocities, window)
-        # measured again where its parcel is, and asked again: an anchor that may have run out for a parcel that
-        # rides its wheels, or one whose cells are no longer surely the parcel's (a parcel that does not ride is
-        # not measured again every window, only as it crosses cells)
-        fk = np.array([k for k in np.flatnonzero(~ok).tolist() if idx[k] in self.anchors], dtype=np.int64)
-        stale = []
-        if len(fk):
-            p = arr[fk]
-            P0 = self._pose[p]
-            swept = np.hypot(Y[fk, 0] - P0[:, 0], Y[fk, 1] - P0[:, 1]) + np.abs(Y[fk, 2] - P0[:, 2]) * self.radius[p]
-            off, _ = self._off(p, Y[fk])
-            again = (self._clear[p] <= swept) | (self._rides[p] & (off <= RIDE_TOL * self._scale[p]))
-            again &= (P0 != Y[fk, :3]).any(axis=1)
-            stale = fk[again].tolist()
-        for k in stale:
-            self.measure(idx[k], models, Y[k])
-        if stale:
-            ok[stale] = self._check(arr, np.array(stale), Y, models, velocities, window)
+            if self.measure(i, models, Y[k]) is not None:
+                self._ride_data(i, velocities)
+                have[k] = True
+        ok = np.zeros(len(idx), dtype=bool)
+        sel = np.flatnonzero(have)
+        if len(sel):
+            ok[sel], Yf = self._riding(np.asarray(idx)[sel], Y[sel], window)
+            Y[sel] = Yf
         quiet = np.flatnonzero(ok)
         rest = [idx[k] for k in np.flatnonzero(~ok)]
         if not len(quiet):
@@ -250,7 +198,7 @@ class RideStepper(QuietStepper):
         for n, k in enumerate(quiet.tolist()):
             i = idx[k]
             model, spec = models[i], self.specs[i]
-            lam, stuck = self._stuck[i]
+            _, lam, stuck = self._stuck[i]
             memory = model.contact_memory
             if memory["stuck"] is not stuck:
                 memory["lam"], memory["stuck"] = lam, stuck
@@ -263,23 +211,6 @@ class RideStepper(QuietStepper):
                      "solves": model.solves}
             done.append((i, Trajectory(times, states[n], [], "completed", float(te), 1, 0, stats)))
         return done, rest
-
-    def _check(self, arr, ks, Y, models, velocities, window) -> np.ndarray:
-        """Which of the parcels ``arr[k]`` for k in ``ks`` are proven to ride (False without an anchor), their ride
-        data brought up to date with ``velocities`` first; ``Y``'s rows of those proven get the field's twist."""
-        ok = np.zeros(len(ks), dtype=bool)
-        have = np.array([int(arr[k]) in self.anchors for k in ks], dtype=bool)
-        if not have.any():
-            return ok
-        sel = ks[have]
-        parcels = arr[sel]
-        changed = self._changed_at[self._support[parcels]].max(axis=1) > self._made[parcels]
-        for i in parcels[changed].tolist():
-            self._ride_data(i, models[i], velocities)
-        rides, Yf = self._riding(parcels, Y[sel], window)
-        ok[have] = rides
-        Y[sel[rides]] = Yf[rides]
-        return ok
 
 
 __all__ = ["RideStepper", "rigid_motion", "RIDE_TOL"]
