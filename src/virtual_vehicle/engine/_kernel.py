@@ -56,6 +56,7 @@ from virtual_vehicle.physics.laws.affine import (
     R_SECOND_LIN_Y,
     R_WEIGHT,
 )
+from virtual_vehicle.physics.stick_modes import zonotope_inradius
 
 RECTANGLE, CONVEX, POLYGON = 0, 1, 2
 """Footprint kinds: margins in closed form, from half-planes, or as a signed distance to a simple polygon."""
@@ -1320,3 +1321,49 @@ def run_mode(md, n_ev, fields, y_base, t, z, t_bound, h_abs, first_step, rtol, a
         mode_values(md, t, z, v_lo)
         h_abs = h_next
     return REACHED, t, z, h_abs, last, nfev, next_sample, t, y_probe, none, False, -1
+
+
+@njit(cache=True)
+def ride_data(P, U, w, FL, FC, origin, mus, X, tol):
+    """What :class:`~virtual_vehicle.engine.ride.RideStepper` needs of the wheels under a parcel whose centre is at
+    ``X`` (m), as :func:`~virtual_vehicle.physics.stick_modes.wheel_arrays` gives them (points, drive directions,
+    surface speeds m/s, the support's normal-force map, static coefficients): whether those in contact (``mu_s > 0``,
+    ``N > 0``, eq. 19) are one rigid twist of rank 3 to ``tol`` of the speed scale, that twist (vx, vy at ``X``,
+    omega), the inradius of their zonotope less rounding (N), ``sum mu_s N`` (N), the farthest wheel (m), the
+    speed scale (m/s) and which wheels are in contact."""
+    m = P.shape[0]
+    N = np.empty(m)
+    on = np.zeros(m, np.bool_)
+    count = 0
+    scale = 1e-3
+    for j in range(m):
+        N[j] = FL[j, 0] * (X[0] - origin[0]) + FL[j, 1] * (X[1] - origin[1]) + FC[j]  # eq. 19
+        on[j] = mus[j] > 0 and N[j] > 0
+        count += on[j]
+        scale = max(scale, abs(w[j]))
+    twist = np.zeros(3)
+    if count < 3:
+        return False, twist, 0.0, 0.0, 0.0, scale, on
+    J, b, G = np.empty((count, 3)), np.empty(count), np.empty((count, 3))
+    spread, arm, k = 0.0, 0.0, 0
+    for j in range(m):
+        if on[j]:
+            rx, ry = P[j, 0] - X[0], P[j, 1] - X[1]
+            J[k, 0], J[k, 1], J[k, 2] = U[j, 0], U[j, 1], rx * U[j, 1] - ry * U[j, 0]  # [u, r x u]
+            b[k] = w[j]
+            bound = mus[j] * N[j]
+            for e in range(3):
+                G[k, e] = bound * J[k, e]
+            spread += bound
+            arm = max(arm, math.sqrt(rx * rx + ry * ry))
+            k += 1
+    nu, _, rank, _ = np.linalg.lstsq(J, b)
+    if rank < 3:
+        return False, twist, 0.0, spread, arm, scale, on
+    for a in range(count):
+        if abs(J[a, 0] * nu[0] + J[a, 1] * nu[1] + J[a, 2] * nu[2] - b[a]) > tol * scale:
+            return False, twist, 0.0, spread, arm, scale, on  # not one rigid twist
+    size = 0.0
+    for a in range(count):
+        size += abs(G[a, 0]) + abs(G[a, 1]) + abs(G[a, 2])
+    return True, nu, zonotope_inradius(G) - 1e-9 * size, spread, arm, scale, on

@@ -28,6 +28,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from virtual_vehicle.engine.batch import QuietStep, QuietStepper
+from virtual_vehicle.engine.ride import RideStepper
 from virtual_vehicle.engine.dynamics import MODES, ParcelModel, integrate_prechecked
 from virtual_vehicle.engine.stepping import Event, Trajectory, diff_event, sample_grid, sampled_at
 from virtual_vehicle.engine.stickslip import account, masses, new_account, remember, wheel_problem
@@ -60,7 +61,9 @@ class Integration:
     """How single parcels are integrated (see :func:`~virtual_vehicle.engine.dynamics.integrate`) and the step ``dt``
     (s) of fixed-step, stick-slip and grouped parcels. ``batch``: in event mode (Coulomb or viscous law, no
     ``max_step``), windows proven quiet are stepped for all parcels at once (:mod:`virtual_vehicle.engine.batch`: the
-    same single DOP853 step the event-driven engine would take, all in one compiled call)."""
+    same single DOP853 step the event-driven engine would take, all in one compiled call); under the stick-slip law,
+    windows in which a parcel is proven to ride its wheels rigidly are stepped for all such parcels at once in closed
+    form (:mod:`virtual_vehicle.engine.ride`)."""
 
     mode: str = "event"
     rtol: float = 1e-10
@@ -81,7 +84,8 @@ class PlantRecord:
     (window ends where two separately integrated parcels overlapped: must stay 0), ``grouped_steps`` (time steps
     taken by groups of parcels in contact range), ``unconverged_contact_steps`` (steps whose contact problem did not
     reach its tolerance within ``max_sweeps``), ``windows``, ``quiet_steps`` (parcel windows proven quiet and
-    stepped together, :mod:`virtual_vehicle.engine.batch`)."""
+    stepped together, :mod:`virtual_vehicle.engine.batch`; stick-slip parcels riding their wheels,
+    :mod:`virtual_vehicle.engine.ride`)."""
 
     parcel_contacts: int = 0
     max_penetration_m: float = 0.0
@@ -145,6 +149,10 @@ class Plant:
                 and law.time_stepper is None):
             self._quiet = QuietStepper(cells, self.specs, law, self._mu_max, gravity, integration.rtol,
                                        integration.atol)
+        self._ride = None  # stick-slip parcels riding their wheels rigidly: stepped together in closed form
+        if (integration.batch and integration.mode == "event" and np.isinf(integration.max_step)
+                and getattr(law, "modes", False)):
+            self._ride = RideStepper(cells, self.specs, law, gravity)
 
     def state(self) -> dict:
         """What a checkpoint keeps of the plant, as data (arrays and plain values): its record
@@ -216,8 +224,9 @@ class Plant:
         mask = None if present is None else np.asarray(present, dtype=bool).copy()
         for model in self.base:
             model.present = mask
-        if self._quiet is not None:
-            self._quiet.forget()
+        for stepper in (self._quiet, self._ride):
+            if stepper is not None:
+                stepper.forget()
         self._velocities = self._models = None  # models made from the old base are made again
 
     @property
@@ -240,8 +249,9 @@ class Plant:
         self.base[i] = fresh
         if self._models is not None:
             self._models.made.pop(i, None)
-        if self._quiet is not None:
-            self._quiet.forget(i)
+        for stepper in (self._quiet, self._ride):
+            if stepper is not None:
+                stepper.forget(i)
 
     # -- planning ----------------------------------------------------------------------------------------------
     @cached_property
@@ -444,13 +454,22 @@ class Plant:
                     for k, i in enumerate(done.idx):  # a quiet step completes: nothing tips
                         parts[i].append(QuietStep(i, done, k))
                         ys[i] = last[k]
+            if self._ride is not None:
+                for i in grouped:
+                    self._ride.forget(i)
+                riding, rest = self._ride.step(models, rest, ys, models.velocities, t, te, samples)
+                self.record.quiet_steps += len(riding)
+                for i, tr in riding:
+                    self._take(i, tr, ys, active, parts)
             for i in rest:
                 known = None if self._quiet is None else self._quiet.hand_over(i, models[i], ys[i])
                 tr = integrate_prechecked(models[i], ys[i], t, te, samples, mode=integ.mode, rtol=integ.rtol,
                                           atol=integ.atol, max_step=integ.max_step, dt=integ.dt,
                                           support=known)  # all checked where they come in
-                if self._quiet is not None and (tr.events or tr.status != "completed"):
-                    self._quiet.forget(i)  # its anchor's piece may no longer hold
+                if tr.events or tr.status != "completed":
+                    for stepper in (self._quiet, self._ride):  # its anchor's piece may no longer hold
+                        if stepper is not None:
+                            stepper.forget(i)
                 self._take(i, tr, ys, active, parts)
             for g in groups:
                 for i, tr in self._step_group(g, models, ys, t, te, samples).items():

@@ -54,7 +54,7 @@ from scipy.integrate import solve_ivp
 
 __all__ = ["Wheels", "Mode", "ModeEvent", "StickSlipRun", "wheels_on", "decide_mode", "mode_rhs", "mode_events",
            "simulate", "stick_facets", "breaking_wheels", "project_twist", "wheel_arrays", "arrays_of", "decide_kernel",
-           "breaking_kernel", "decide_compiled"]
+           "breaking_kernel", "decide_compiled", "zonotope_inradius"]
 
 _SLIP_TOL = 1e-9  # relative to the speed scale: a wheel this close to zero slip is at zero slip
 _ACCEL_TOL = 1e-7  # relative to the acceleration scale: a slip acceleration this small is zero
@@ -913,6 +913,32 @@ def _min_slack_c(G, F, rank, anchor, index):
             support += abs(G[a, 0] * n[0] + G[a, 1] * n[1] + G[a, 2] * n[2])
         least = min(least, support - abs(n[0] * F[0] + n[1] * F[1] + n[2] * F[2]))
     return least
+
+
+@njit(cache=True)
+def zonotope_inradius(G):
+    """The radius of the largest ball about the origin inside the zonotope ``{G^T mu : |mu_j| <= 1}`` of the
+    generators ``G`` (k, 3) (the rows ``mu_s N J`` of sticking wheels: N, N, N m): the least of its support function
+    ``h(n) = sum_j |G_j . n|`` over unit directions, which a polytope takes at a facet normal; every facet normal is
+    the cross product of two non-parallel generators, and every other direction's ``h`` is no smaller, so the least
+    over those products is exact (O(k^3), no facet bookkeeping). 0 below rank 3 (the products then include the
+    normal of the plane the generators span). A wrench of length at most this lies in the zonotope whatever its
+    direction: the sticking wheels can hold it (the rule above)."""
+    k = G.shape[0]
+    least = np.inf
+    for p in range(k):
+        lp = math.sqrt(G[p, 0] ** 2 + G[p, 1] ** 2 + G[p, 2] ** 2)
+        for q in range(p + 1, k):
+            n = _cross3(G[p], G[q])
+            size = math.sqrt(n[0] ** 2 + n[1] ** 2 + n[2] ** 2)
+            lq = math.sqrt(G[q, 0] ** 2 + G[q, 1] ** 2 + G[q, 2] ** 2)
+            if not size > _PLANE_TOL * lp * lq:
+                continue  # parallel: no facet between them
+            h = 0.0
+            for a in range(k):
+                h += abs(G[a, 0] * n[0] + G[a, 1] * n[1] + G[a, 2] * n[2])
+            least = min(least, h / size)
+    return least if least < np.inf else 0.0
 
 
 @njit(cache=True)
