@@ -159,8 +159,9 @@ class _PieceTable:
         law, spec = model.law, model.spec
         self.drive = _kernel.drive_code(law)
         self.damping = law.affine_damping(spec.mu) if self.drive else 0.0
-        self.law_args = (self.drive, model.cells.positions, _PATTERN_RESOLUTION * model.cells.pitch,
-                         model.velocities, np.ascontiguousarray(model.cells.active_directions, dtype=float),
+        self.law_args = (self.drive, _readonly(model.cells.positions), _PATTERN_RESOLUTION * model.cells.pitch,
+                         _readonly(model.velocities),
+                         _readonly(np.ascontiguousarray(model.cells.active_directions, dtype=float)),
                          float(spec.mu), float(self.damping), 1.0 / spec.mass, 1.0 / spec.inertia,
                          np.empty((self.spare, affine._TERMS)))
         self.clear()
@@ -234,16 +235,18 @@ class _PieceTable:
             return found
         skey = piece.key[0]
         ids = np.array(skey, dtype=np.int64)
-        k = _kernel.table_find(self.slots, self.kmeta, self.ipool, ids)
-        if k < 0:
-            self._room(keys=1, ids=len(ids))
-            k = _kernel.table_add_key(self.slots, self.kmeta, self.ipool, self.used, _kernel.U_KEYS, ids)
         for other in model._by_support.get(skey, [piece]):
             if other in self.index:
                 continue
             sol = other.solution
-            p = _kernel.table_add_piece(self.kmeta, self.psol, self.porigin, self.pnext, self.pkey, self.rows,
-                                        self.used, k, self._record(sol), sol.origin, np.array(other.row))
+            j = self._record(sol)
+            used = self.used
+            if (used[_kernel.U_PIECES] >= len(self.psol) or used[_kernel.U_KEYS] >= len(self.kmeta)
+                    or used[_kernel.U_IDS] + len(ids) > len(self.ipool) or 2 * (used[_kernel.U_KEYS] + 1) > len(
+                        self.slots)):
+                self._room(pieces=1, keys=1, ids=len(ids))
+            p = _kernel.table_add_piece_of(self.slots, self.kmeta, self.ipool, self.psol, self.porigin, self.pnext,
+                                           self.pkey, self.rows, self.used, ids, j, sol.origin, np.array(other.row))
             self.index[other] = p
             self.pieces.append(other)
         return self.index[piece]
@@ -338,6 +341,14 @@ class _PieceTable:
                 slots = np.full(size, -1, np.int64)
                 _kernel.table_rehash(slots, meta, self.ipool, n_keys if name == "slots" else n_patterns)
                 setattr(self, name, slots)
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    """A read-only view of ``a`` (no copy): the compiled loop then has one type for it whoever made the array (a
+    writable and a read-only array are two types to numba, and each its own compilation)."""
+    view = a.view()
+    view.flags.writeable = False
+    return view
 
 
 def _grown(a: np.ndarray, need: int) -> np.ndarray:
