@@ -26,6 +26,7 @@ import numpy as np
 from numba import njit
 from scipy.integrate import DOP853
 
+from virtual_vehicle.physics.contact import _MAX_ITER, SOLVED, solve_planar_kernel
 from virtual_vehicle.physics.contact import _holds as _holds_packed
 from virtual_vehicle.physics.laws.affine import _terms_and_row
 from virtual_vehicle.physics.laws.coulomb import CoulombLaw
@@ -1338,8 +1339,9 @@ def run_mode(md, n_ev, fields, y_base, t, z, t_bound, h_abs, first_step, rtol, a
 # - pieces: ``psol`` (P,) a piece's record, ``porigin`` (P, 2) its local origin (m), ``rows`` (P, k) its constants
 #   row, ``pnext`` (P,) the next piece of the same support set (-1: none), ``pkey`` (P,) its support set;
 # - support sets by their cell ids, patterns by their cells' integer offsets (:func:`pattern`): open-addressing hash
-#   ``slots`` / ``gslots`` (a power of two long, -1 empty) into ``kmeta`` / ``gmeta`` (., 4): the ids' offset and
-#   length in ``ipool``, the first and last piece (record) of the chain;
+#   ``slots`` / ``gslots`` (a power of two long, -1 empty) into ``kmeta`` (., 4) / ``gmeta`` (., 5): the ids' offset
+#   and length in ``ipool``, the first and last piece (record) of the chain, and for a pattern 1 if the model holds
+#   solutions of it apart from the shared ones (collinear contact sets: the loop then never solves it);
 # - ``used`` (6,): pieces, support sets, ``fpool``, ``ipool`` entries, records, patterns in use.
 # A record's floats: weight, basis (m, r), plane_lin (r, 2), plane_const (r,), hull_normals (q, 2), hull_offsets
 # (q,), spring_lin (m, 2), spring_gradient (m,), points (m, 2), force_lin (m, 2), force_const (m,), the holding test.
@@ -1571,30 +1573,74 @@ def _gather(a, ids):
 
 
 @njit(cache=True)
+def _solve_into(tab, pts, rel, flat, g, x, y, unit, weight, solve_log, solve_origin):
+    """:func:`table_from_pattern`'s solve of the pattern ``rel`` (key ``flat``; ``g`` its index, -1 if new) of cells at
+    ``pts`` for a centre of mass at (x, y) (m): the new record's index, or -1 (see there)."""
+    slots, kmeta, ipool, psol, porigin, pnext, pkey, rows, srec, fpool, gslots, gmeta, used = tab
+    m, s = pts.shape[0], solve_log[0, 1]
+    if (solve_log[0, 0] != 1 or (g >= 0 and gmeta[g, 4] != 0) or s >= solve_origin.shape[0]
+            or used[U_RECORDS] >= srec.shape[0] or used[U_PATTERNS] >= gmeta.shape[0]
+            or 2 * (used[U_PATTERNS] + 1) > gslots.shape[0] or used[U_IDS] + 3 * m > ipool.shape[0]
+            or used[U_FLOATS] + record_floats(m, 3, m, 3 + 4 * m + 9 + 3 * m) > fpool.shape[0]):
+        return -1
+    local_pts = np.empty((m, 2))  # the pattern's own coordinates, its first cell at the local origin
+    for i in range(m):
+        local_pts[i, 0], local_pts[i, 1] = rel[i, 0] * unit, rel[i, 1] * unit
+    com = np.empty(2)
+    com[0], com[1] = x - pts[0, 0], y - pts[0, 1]
+    (status, origin, points, _, basis, plane_lin, plane_const, hull_normals, hull_offsets, spring_lin,
+     spring_gradient, holding, force_lin, force_const) = solve_planar_kernel(local_pts, com, weight, _MAX_ITER)
+    if status != SOLVED:
+        return -1
+    j = table_add_record(srec, fpool, used, weight, basis, plane_lin, plane_const, hull_normals, hull_offsets,
+                         spring_lin, spring_gradient, points, force_lin, force_const, holding)
+    if g < 0:
+        g = table_add_key(gslots, gmeta, ipool, used, U_PATTERNS, flat)
+    table_chain_record(srec, gmeta, g, j)
+    solve_log[1 + s, 0], solve_log[1 + s, 1] = j, g
+    solve_origin[s, 0], solve_origin[s, 1] = origin[0], origin[1]
+    solve_log[0, 1] = s + 1
+    return j
+
+
+@njit(cache=True)
 def table_from_pattern(tab, ids, x, y, positions, unit, velocities, directions, drive, mu, damping, inv_mass,
-                       inv_inertia, born_terms, born):
+                       inv_inertia, born_terms, born, weight, solve_log, solve_origin):
     """A new piece for the support set ``ids``, which the table (and the model it mirrors) has never met, from a
     solved pattern that holds at centre of mass (x, y) (m), as
     :meth:`~virtual_vehicle.engine.dynamics.ParcelModel.solution_for` finds it in its shared store (a translated
     copy) and the law's :meth:`~virtual_vehicle.physics.laws.base.FrictionLaw.constants_and_row` makes its constants
     (eqs. 23, 29, 33, 38: :func:`~virtual_vehicle.physics.laws.affine._terms_and_row` of the law's compiled drive
     vectors of ``velocities[ids]`` and ``directions[ids]``, ``drive`` its code in :data:`DRIVES`). Its packed terms
-    go to ``born_terms[born]``. -1 where Python must solve: no pattern solution holds, or no room."""
+    go to ``born_terms[born]``.
+
+    Where no solved pattern holds, the pattern is solved here (:func:`~virtual_vehicle.physics.contact.
+    solve_planar_kernel`, the arithmetic of the Python solve, in the pattern's own coordinates as
+    :meth:`~virtual_vehicle.engine.dynamics.ParcelModel.solution_for` solves it, for a parcel of ``weight`` N) when
+    ``solve_log[0, 0]`` is 1 (the table mirrors the model's whole store, so that Python would solve too), the pattern
+    has no solution of its own (``gmeta[g, 4]``: a collinear contact set, which Python keeps apart) and there is room:
+    the record is added and chained to its pattern, and ``solve_log[1 + s]`` (record, pattern) and
+    ``solve_origin[s]`` (its local origin, m) say what was solved, ``s = solve_log[0, 1]`` counting them, for Python
+    to add to the model's store after the call. -1 where Python must act: the solve's outcome is not ``SOLVED``
+    (supports on one line, tipping, a collinear contact set), or no room."""
     slots, kmeta, ipool, psol, porigin, pnext, pkey, rows, srec, fpool, gslots, gmeta, used = tab
     m = ids.shape[0]
     if (m == 0 or born >= born_terms.shape[0] or used[U_PIECES] >= psol.shape[0] or used[U_KEYS] >= kmeta.shape[0]
             or 2 * (used[U_KEYS] + 1) > slots.shape[0] or used[U_IDS] + m > ipool.shape[0]):
         return -1
     pts, origin, rel = pattern(positions, ids, unit)
-    g = table_find(gslots, gmeta, ipool, rel.ravel())
-    if g < 0:
-        return -1
+    flat = rel.ravel()
+    g = table_find(gslots, gmeta, ipool, flat)
     xi0, xi1 = x - origin[0], y - origin[1]
-    j = gmeta[g, 2]
-    while j >= 0 and not _holds_packed(_holding_of(srec, fpool, j), xi0, xi1):
-        j = srec[j, 5]
+    j = -1
+    if g >= 0:
+        j = gmeta[g, 2]
+        while j >= 0 and not _holds_packed(_holding_of(srec, fpool, j), xi0, xi1):
+            j = srec[j, 5]
     if j < 0:
-        return -1
+        j = _solve_into(tab, pts, rel, flat, g, x, y, unit, weight, solve_log, solve_origin)
+        if j < 0:
+            return -1
     weight, _, _, _, _, _, _, _, points, force_lin, force_const, _ = _record_arrays(srec, fpool, j)
     out = _terms_and_row(points, _drive(drive, _gather(velocities, ids), _gather(directions, ids)), force_lin,
                          force_const, mu, damping, weight, origin, inv_mass, inv_inertia)
@@ -1631,7 +1677,8 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
                                                                  fields[4], fields[5], fields[6])
     center, buffer, reach, noise_length, noise_force, ids = (fields[13], fields[14], fields[15], fields[16],
                                                              fields[17], fields[20])
-    (drive, positions, unit, velocities, directions, mu, damping, inv_mass, inv_inertia, born_terms) = law
+    (drive, positions, unit, velocities, directions, mu, damping, inv_mass, inv_inertia, born_terms, weight, solve_log,
+     solve_origin) = law
     psol, porigin, rows, srec, fpool = tab[3], tab[4], tab[7], tab[8], tab[9]
     reuse2 = 0.25 * buffer * buffer * (1.0 - 1e-9)  # clearly within half the buffer (the edge is Python's to decide)
     capacity, ring_size = ev_t.shape[0], ring_t.shape[0]
@@ -1686,7 +1733,8 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
         q = table_lookup(tab, under, y_probe[0], y_probe[1]) if told else -1
         if q == -2 and drive:
             q = table_from_pattern(tab, under, y_probe[0], y_probe[1], positions, unit, velocities, directions,
-                                   drive, mu, damping, inv_mass, inv_inertia, born_terms, born)
+                                   drive, mu, damping, inv_mass, inv_inertia, born_terms, born, weight, solve_log,
+                                   solve_origin)
             if q >= 0:
                 born += 1
         if q < 0:

@@ -163,7 +163,8 @@ class _PieceTable:
                          _readonly(model.velocities),
                          _readonly(np.ascontiguousarray(model.cells.active_directions, dtype=float)),
                          float(spec.mu), float(self.damping), 1.0 / spec.mass, 1.0 / spec.inertia,
-                         np.empty((self.spare, affine._TERMS)))
+                         np.empty((self.spare, affine._TERMS)), float(model.weight),
+                         np.zeros((self.spare + 1, 2), np.int64), np.zeros((self.spare, 2)))
         self.clear()
 
     def clear(self) -> None:
@@ -178,7 +179,7 @@ class _PieceTable:
         self.srec = np.zeros((16, 6), np.int64)
         self.fpool = np.zeros(4096)
         self.gslots = np.full(64, -1, np.int64)
-        self.gmeta = np.zeros((16, 4), np.int64)
+        self.gmeta = np.zeros((16, 5), np.int64)
         self.used = np.zeros(6, np.int64)
         self.index: dict[Piece, int] = {}
         self.pieces: list[Piece] = []
@@ -187,6 +188,7 @@ class _PieceTable:
         self.patterns: dict[bytes, tuple[int, int]] = {}  # key -> (index, solutions chained)
         self.mirrored = 0
         self.solves = -1
+        self.store_solves: int | None = None  # the model's solves when the table last mirrored its whole store
 
     @property
     def arrays(self) -> tuple:
@@ -211,12 +213,71 @@ class _PieceTable:
                 if pieces[-1] not in self.index:
                     self.index_of(model, pieces[-1])
             self.mirrored = len(model._pieces)
-        n_pieces, n_keys, _, n_ids, _, _ = self.used.tolist()
-        spare, ids = self.spare, self.spare * (1 + n_ids // max(1, n_keys)) + 64
+        if self.store_solves != model.solves:
+            self.mirror_store(model)
+        log = self.law_args[-2]
+        log[0, 0], log[0, 1] = (1 if self.drive and self.store_solves == model.solves else 0), 0
+        n_pieces, n_keys, n_floats, n_ids, n_records, n_patterns = self.used.tolist()
+        spare, ids = self.spare, 3 * self.spare * (1 + n_ids // max(1, n_keys)) + 64
+        floats = spare * (n_floats // max(1, n_records) + 256)
         if (n_pieces + spare > len(self.psol) or n_keys + spare > len(self.kmeta) or n_ids + ids > len(self.ipool)
-                or 2 * (n_keys + spare) > len(self.slots)):
-            self._room(pieces=spare, keys=spare, ids=ids)
+                or 2 * (n_keys + spare) > len(self.slots) or n_records + spare > len(self.srec)
+                or n_patterns + spare > len(self.gmeta) or 2 * (n_patterns + spare) > len(self.gslots)
+                or n_floats + floats > len(self.fpool)):
+            self._room(pieces=spare, keys=spare, ids=ids, records=spare, patterns=spare, floats=floats)
         return emptied
+
+    mirror_limit = 32
+    """Patterns in the model's store up to which a table that does not mirror it (new, emptied, or behind a copy of
+    the model that solved elsewhere) learns them all, so that its loop may solve new ones: past it the loop hands
+    every unsolved pattern back to Python (learning hundreds would cost a control tick more than it saves)."""
+
+    def mirror_store(self, model: "ParcelModel") -> None:
+        """Learn every pattern of the model's store (shared solutions, and which patterns have solutions of their
+        own), if it is small (:attr:`mirror_limit`): then a pattern the loop finds unsolved is one Python would
+        solve, and the loop may solve it (the same arithmetic, the same place in the store)."""
+        geometry = model._geometry
+        if not self.drive or len(geometry.shared) + len(geometry.own) > self.mirror_limit:
+            self.store_solves = None
+            return
+        for gkey in (*geometry.shared, *geometry.own):
+            self._learn_key(model, gkey)
+        self.store_solves = model.solves
+
+    def adopt_solved(self, model: "ParcelModel") -> None:
+        """Add what the loop solved (``solve_log``) to the model's shared store as
+        :class:`~virtual_vehicle.physics.contact.SupportSolution` objects, as :meth:`ParcelModel.solution_for` would
+        have (in order, counted in its solves), and to this table's records."""
+        log, origins = self.law_args[-2], self.law_args[-1]
+        n = int(log[0, 1])
+        if not n:
+            return
+        geometry, ipool = model._geometry, self.ipool
+        for (j, g), origin in zip(log[1:1 + n].tolist(), origins[:n].copy()):
+            assert j == len(self.records)  # the loop adds records after the table's
+            weight, *arrays = _kernel._record_arrays(self.srec, self.fpool, j)
+            (basis, plane_lin, plane_const, hull_normals, hull_offsets, spring_lin, spring_gradient, points, force_lin,
+             force_const, holding) = (a.copy() for a in arrays)
+            m, r, q = (int(v) for v in holding[:3])
+            in_contact = holding[3 + m * r + 3 * r:3 + m * r + 3 * r + m] > 0.5
+            for arr in (points, basis, plane_lin, plane_const, force_lin, force_const, hull_normals, hull_offsets,
+                        in_contact, spring_lin, spring_gradient, holding):
+                arr.setflags(write=False)
+            sol = SupportSolution(origin, points, in_contact, basis, plane_lin, plane_const, force_lin, force_const,
+                                  hull_normals, hull_offsets, False, float(weight))
+            sol.__dict__.update(spring_lin=spring_lin, spring_gradient=spring_gradient, _holding=holding,
+                                contact_collinear=False)
+            off, length = self.gmeta[g, :2].tolist()
+            gkey = ipool[off:off + length].tobytes()
+            solved = geometry.shared.setdefault(gkey, [])
+            solved.append(sol)
+            geometry.solves += 1
+            self.records.append(sol)
+            self.record_of[id(holding)] = j
+            self.patterns[gkey] = g, len(solved)
+        log[0, 1] = 0
+        if self.store_solves is not None:
+            self.store_solves += n
 
     def learn(self, model: "ParcelModel", piece: Piece) -> None:
         """After the model found ``piece`` outside the loop (a miss): add it (with its support set's pieces) and its
@@ -224,6 +285,8 @@ class _PieceTable:
         if model.solves != self.solves:  # a pattern solved now (or elsewhere, by a copy of the model)
             self.solves = model.solves
             self.learn_pattern(model, piece.support)
+            if self.store_solves is not None and model.solves != self.store_solves:  # mirrored if this one solve
+                self.store_solves = model.solves if model.solves == self.store_solves + 1 else None
         self.index_of(model, piece)  # after its pattern: a piece of a pattern shares the pattern's record
         if len(model._pieces) - self.mirrored <= 1:  # piece_for adds at most this one: the table matches again
             self.mirrored = len(model._pieces)
@@ -277,17 +340,24 @@ class _PieceTable:
         if not self.drive or len(support) == 0:
             return
         _, _, rel = _kernel.pattern(model.cells.positions, support, _PATTERN_RESOLUTION * model.cells.pitch)
-        gkey = rel.tobytes()
+        self._learn_key(model, rel.tobytes())
+
+    def _learn_key(self, model: "ParcelModel", gkey: bytes) -> None:
+        """:meth:`learn_pattern` of the pattern whose key (its cells' integer offsets, int64 bytes) is ``gkey``: its
+        shared solutions the table lacks, and whether the model holds solutions of it of its own."""
         solved = model._geometry.shared.get(gkey, ())
+        own = gkey in model._geometry.own
         g, chained = self.patterns.get(gkey, (-1, 0))
-        if chained == len(solved):
+        if chained == len(solved) and (not own or (g >= 0 and self.gmeta[g, 4])):
             return
         if g < 0:
-            flat = rel.ravel()
+            flat = np.frombuffer(gkey, np.int64).copy()
             self._room(patterns=1, ids=len(flat))
             g = _kernel.table_add_key(self.gslots, self.gmeta, self.ipool, self.used, _kernel.U_PATTERNS, flat)
         for sol in solved[chained:]:
             _kernel.table_chain_record(self.srec, self.gmeta, g, self._record(sol))
+        if own:
+            self.gmeta[g, 4] = 1
         self.patterns[gkey] = g, len(solved)
 
     def adopt_born(self, model: "ParcelModel", start: int, born: int) -> None:
@@ -816,6 +886,7 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
                                         atol, max_step, max_steps, rec.sample_times, rec.next, rec.samples, segments,
                                         max_segments, ring_t, ring_p, ring, _CHATTER_SPAN, _CHATTER_PIECES, ev_t,
                                         ev_y, ev_p, table.law_args)
+            table.adopt_solved(model)  # before the pieces made from them
             if born:
                 table.adopt_born(model, start, born)
             begun = False
