@@ -551,6 +551,8 @@ def test_the_event_loop_makes_pieces_from_patterns_as_the_model_would(law, speed
     compiled drive): the same run as one whose loop may not (every new support set found by the model in Python),
     bit for bit, events and all, and the model's cache ends the same."""
     made, found = _inward_model(law, speed), _inward_model(law, speed)
+    asked = []  # the support sets the model solved or looked up in Python: the loop solves the rest itself
+    made.solution_and_first = lambda support, com: asked.append(1) or ParcelModel.solution_and_first(made, support, com)
     a = _coulomb_run(made)
     found._table = dynamics._PieceTable(found, len(affine.ROW_FIELDS))
     found._table.law_args = (0, *found._table.law_args[1:])  # drive code 0: no pieces made in the loop
@@ -559,6 +561,17 @@ def test_the_event_loop_makes_pieces_from_patterns_as_the_model_would(law, speed
     assert len(a.events) > 10
     assert [(k, p.row) for k, p in made._pieces.items()] == [(k, p.row) for k, p in found._pieces.items()]
     assert made._table.used[kernel.U_PIECES] == len(made._pieces)
+    # the patterns solved in the loop are in the model's store as Python would have put them: same order, same floats
+    assert made.solves == found.solves and len(asked) < made.solves // 2
+    mine, python = made.shared_solutions, found.shared_solutions
+    assert list(mine) == list(python)
+    for key in python:
+        assert len(mine[key]) == len(python[key])
+        for s, t in zip(mine[key], python[key]):
+            for name in ("origin", "points", "in_contact", "basis", "plane_lin", "plane_const", "force_lin",
+                         "force_const", "hull_normals", "hull_offsets", "spring_lin", "spring_gradient"):
+                assert np.array_equal(getattr(s, name), getattr(t, name)), name
+            assert s.weight == t.weight and s.one_d == t.one_d and s.contact_collinear == t.contact_collinear
 
 
 def test_the_event_loop_runs_the_same_from_its_table_and_after_emptying_it(monkeypatch):
