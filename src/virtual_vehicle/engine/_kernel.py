@@ -26,6 +26,7 @@ import numpy as np
 from numba import njit
 from scipy.integrate import DOP853
 
+from virtual_vehicle.model.parcel import _within
 from virtual_vehicle.physics.contact import _MAX_ITER, SOLVED, solve_planar_kernel
 from virtual_vehicle.physics.contact import _holds as _holds_packed
 from virtual_vehicle.physics.laws.affine import _terms_and_row
@@ -1652,7 +1653,7 @@ def table_from_pattern(tab, ids, x, y, positions, unit, velocities, directions, 
 @njit(cache=True)
 def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_step, rtol, atol, max_step, max_steps,
                sample_times, next_sample, samples, segments, max_segments, ring_t, ring_p, ring, chatter_span,
-               chatter_pieces, ev_t, ev_y, ev_p, law):
+               chatter_pieces, ev_t, ev_y, ev_p, law, grid):
     """One parcel's event loop over the table ``tab``: :func:`run_piece` on piece ``p`` (its segment the candidates,
     centre and scales of ``fields``, a :func:`make_segment` tuple, with the piece's own solution), and at each event the
     next piece from the table, or made from a solved pattern (:func:`table_from_pattern`, ``law`` its arguments after
@@ -1663,15 +1664,19 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
     t)``), ``segments`` the pieces begun so far (at most ``max_segments``), ``ring_t``/``ring_p`` (c,) and ``ring`` (2,)
     the latest events' times and pieces (count, next slot) for the chatter test (``c`` events within ``chatter_span`` s
     times max(1, |t|) among at most ``chatter_pieces`` pieces), ``ev_t`` (E,), ``ev_y`` (E, 6), ``ev_p`` (E, 2) where
-    the support changes are written (time, restart state, piece before and after).
+    the support changes are written (time, restart state, piece before and after), ``grid`` what gathers the
+    candidates again where Python's :class:`~virtual_vehicle.engine.dynamics._Segment` would (a new piece clearly
+    beyond half the buffer from where they were gathered): the cells' ``PointGrid`` arrays (points, order, start, lo
+    x, lo y, bucket size, buckets across, buckets up), the ``present`` mask (empty: all) and the parcel's radius (m).
 
     Returns (outcome, t, y, piece, h, h_abs, evaluations, next_sample, segments, events written, pieces made,
-    probe state, cells under the footprint at the probe, whether those tell). Outcomes: ``REACHED`` (t_bound),
+    probe state, cells under the footprint at the probe, whether those tell, then the candidates' ids, positions
+    and centre as they are now). Outcomes: ``REACHED`` (t_bound),
     ``PAUSED`` (``max_steps`` steps on the current piece: resume it with ``first_step`` 0), a failure,
     ``LOOP_DONE`` (an event at t_bound: the new piece written), ``LOOP_MISS`` (an event whose next support set the
     table cannot give, or the probe does not tell: Python finds it), ``LOOP_CHATTER`` (the chatter test held at
     this event; its ring to be cleared), ``LOOP_SEGMENT`` (a new piece begins whose candidates must be gathered
-    again, or the event columns are full: Python begins the segment), ``LOOP_TOO_MANY`` (more than
+    again within a rounding step of Python's rule, or the event columns are full: Python begins the segment), ``LOOP_TOO_MANY`` (more than
     ``max_segments`` pieces)."""
     kind, convex, half, normals, offsets, vertices, candidates = (fields[0], fields[1], fields[2], fields[3],
                                                                  fields[4], fields[5], fields[6])
@@ -1681,6 +1686,8 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
      solve_origin) = law
     psol, porigin, rows, srec, fpool = tab[3], tab[4], tab[7], tab[8], tab[9]
     reuse2 = 0.25 * buffer * buffer * (1.0 - 1e-9)  # clearly within half the buffer (the edge is Python's to decide)
+    gather2 = 0.25 * buffer * buffer * (1.0 + 1e-9)  # clearly beyond it: gathered again, as _Segment would
+    (g_points, g_order, g_start, g_lo0, g_lo1, g_size, g_nx, g_ny, present, radius) = grid
     capacity, ring_size = ev_t.shape[0], ring_t.shape[0]
     n_ev = born = nfev = 0
     y_probe = y_base
@@ -1688,13 +1695,20 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
     while True:
         if begin:  # a new piece: its candidates kept while clearly within half the buffer of where they were gathered
             dx, dy = y_probe[0] - center[0], y_probe[1] - center[1]
-            if n_ev == capacity or not dx * dx + dy * dy < reuse2:
+            d2 = dx * dx + dy * dy
+            if n_ev == capacity or not (d2 < reuse2 or d2 > gather2):
                 return (LOOP_SEGMENT, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, none,
-                        False)
+                        False, ids, candidates, center)
+            if not d2 < reuse2:  # the cells within the radius plus the buffer of the probe (PointGrid.within)
+                ids = _within(g_points, g_order, g_start, g_lo0, g_lo1, g_size, g_nx, g_ny, present, y_probe[0],
+                              y_probe[1], radius + buffer)
+                candidates = _gather(positions, ids)
+                center = np.empty(2)
+                center[0], center[1] = y_probe[0], y_probe[1]
             segments += 1
             if segments > max_segments:
                 return (LOOP_TOO_MANY, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, none,
-                        False)
+                        False, ids, candidates, center)
             y_base = y_probe
             first_step, h_abs = min(h, t_bound - t), 0.0
         begin = True
@@ -1710,7 +1724,8 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
         if last:
             h = last
         if outcome != EVENT:
-            return outcome, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_base, none, False
+            return (outcome, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_base, none, False, ids,
+                    candidates, center)
         # the chatter test over the latest events (the piece each ended)
         ring_t[ring[1]], ring_p[ring[1]] = t, p
         ring[1] = (ring[1] + 1) % ring_size
@@ -1729,7 +1744,7 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
                         break
             if distinct <= chatter_pieces:
                 return (LOOP_CHATTER, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, under,
-                        told)
+                        told, ids, candidates, center)
         q = table_lookup(tab, under, y_probe[0], y_probe[1]) if told else -1
         if q == -2 and drive:
             q = table_from_pattern(tab, under, y_probe[0], y_probe[1], positions, unit, velocities, directions,
@@ -1738,7 +1753,8 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
             if q >= 0:
                 born += 1
         if q < 0:
-            return LOOP_MISS, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, under, told
+            return (LOOP_MISS, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, under, told, ids,
+                    candidates, center)
         if q != p:
             ev_t[n_ev] = t
             ev_y[n_ev, :] = y
@@ -1746,4 +1762,5 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
             n_ev += 1
         p = q
         if t >= t_bound:
-            return LOOP_DONE, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, none, False
+            return (LOOP_DONE, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, none, False, ids,
+                    candidates, center)

@@ -653,6 +653,21 @@ class _Segment:
             self.xy = (x, y)
             self.ids = model.cells.grid.within(x, y, radius + buffer, model.present)
             self.candidates = model.cells.positions[self.ids]
+        self._finish(model, piece)
+
+    @classmethod
+    def gathered(cls, model: ParcelModel, piece: Piece, ids: np.ndarray, candidates: np.ndarray,
+                 center: np.ndarray) -> "_Segment":
+        """The segment of ``piece`` whose candidates (cell ids and positions, m) a compiled event loop gathered
+        about ``center`` (m), as :meth:`__init__` would have gathered them there."""
+        seg = cls.__new__(cls)
+        seg.buffer = model.segment_scales[1]
+        seg.ids, seg.candidates, seg.center, seg.xy = ids, candidates, center, tuple(center.tolist())
+        seg._finish(model, piece)
+        return seg
+
+    def _finish(self, model: ParcelModel, piece: Piece) -> None:
+        radius, buffer, noise_length, noise_force = model.segment_scales
         sol = piece.solution
         nc, m, q = len(self.ids), len(sol.points), len(sol.hull_offsets)
         self.bounds = (0, nc, nc + m, nc + m + q, nc + m + q + 1)
@@ -698,6 +713,8 @@ _EVENT_COLUMNS = 256
 """Support changes the compiled event loop writes before it hands them to Python (which makes them events)."""
 _PAUSE_STEPS = 64
 """With a progress callback, the compiled engine hands control back after this many steps within one piece."""
+_NO_MASK = np.zeros(0, dtype=bool)
+"""``present`` for the compiled loop's candidate search when every cell is present."""
 _NO_PAUSE = int(np.iinfo(np.int64).max)
 """Steps within one piece without a progress callback: no limit (worked out once: np.iinfo took ~5 us a call)."""
 
@@ -837,6 +854,10 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     begin = True  # a new piece whose candidates Python gathers (or keeps, as _Segment decides)
     begun = False  # a new piece the compiled loop begins (keeping the candidates) or hands back to begin here
     table, outcome = model._table, None
+    cells_grid = model.cells.grid  # what the loop gathers candidates with (PointGrid.within's arguments)
+    grid = (cells_grid.points, cells_grid.order, cells_grid.start, float(cells_grid.lo[0]), float(cells_grid.lo[1]),
+            float(cells_grid.size), int(cells_grid.shape[0]), int(cells_grid.shape[1]),
+            _NO_MASK if model.present is None else model.present, float(model.segment_scales[0]))
     pending = table is None  # the first piece alone (kernel.run_piece), the table made only if an event ends it
     if pending:  # (most of a plant's control ticks have none: making the table took as long as the tick)
         segments += 1
@@ -881,11 +902,11 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             p = table.index_of(model, piece)  # after the sync: both may grow the table's arrays
             start = int(table.used[_kernel.U_PIECES])
             # DOP853 piece by piece (kernel.run_events) until a support set it cannot make, new candidates, a pause
-            (outcome, t, y, p, h, h_abs, evals, rec.next, segments, n_ev, born, y_probe, under,
-             told) = _kernel.run_events(table.arrays, seg.fields, p, begun, base, t, y, t1, h, h_abs, first, rtol,
+            (outcome, t, y, p, h, h_abs, evals, rec.next, segments, n_ev, born, y_probe, under, told, ids,
+             candidates, center) = _kernel.run_events(table.arrays, seg.fields, p, begun, base, t, y, t1, h, h_abs, first, rtol,
                                         atol, max_step, max_steps, rec.sample_times, rec.next, rec.samples, segments,
                                         max_segments, ring_t, ring_p, ring, _CHATTER_SPAN, _CHATTER_PIECES, ev_t,
-                                        ev_y, ev_p, table.law_args)
+                                        ev_y, ev_p, table.law_args, grid)
             table.adopt_solved(model)  # before the pieces made from them
             if born:
                 table.adopt_born(model, start, born)
@@ -895,6 +916,8 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             for tj, yj, (a, b) in zip(ev_t[:n_ev].tolist(), ev_y[:n_ev].tolist(), ev_p[:n_ev].tolist()):
                 events.append(Event.support(tj, tuple(yj), *table.change(pieces[a], pieces[b])))
             piece = pieces[p]
+            if (center[0], center[1]) != seg.xy:  # gathered again in the loop (never where they were)
+                seg = _Segment.gathered(model, piece, ids, candidates, center)
             _check_outcome(outcome, t)
             if progress is not None:
                 progress(t)
