@@ -79,7 +79,8 @@ def test_the_ceiling_benchmark_times_every_piece_and_puts_the_kernels_back():
                 if callable(obj) and hasattr(obj, "__wrapped__") and isinstance(obj.__wrapped__, CPUDispatcher)]
     entry = stats["virtual_vehicle.engine._kernel.run_events"]
     assert 0 < entry.calls < tr.segments and tr.segments > 20 and entry.seconds > 0
-    assert bench_ceiling.arrays_in(entry.result) == 3  # the restart and probe states, the cells under the probe
+    # the restart and probe states, the cells under the probe, the candidates' ids, positions and centre
+    assert bench_ceiling.arrays_in(entry.result) == 6
     assert bench_ceiling.arrays_in((np.zeros(2), (1.0, np.zeros(1)), 3, [np.zeros(1)])) == 2
     assert bench_ceiling.call_price(entry) > 3 * bench_ceiling.array_return_price() > 0
 

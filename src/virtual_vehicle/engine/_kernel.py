@@ -1675,9 +1675,9 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
     ``PAUSED`` (``max_steps`` steps on the current piece: resume it with ``first_step`` 0), a failure,
     ``LOOP_DONE`` (an event at t_bound: the new piece written), ``LOOP_MISS`` (an event whose next support set the
     table cannot give, or the probe does not tell: Python finds it), ``LOOP_CHATTER`` (the chatter test held at
-    this event; its ring to be cleared), ``LOOP_SEGMENT`` (a new piece begins whose candidates must be gathered
-    again within a rounding step of Python's rule, or the event columns are full: Python begins the segment), ``LOOP_TOO_MANY`` (more than
-    ``max_segments`` pieces)."""
+    this event; its ring to be cleared), ``LOOP_SEGMENT`` (a new piece begins within a rounding step of the
+    threshold of gathering its candidates again, or the event columns are full: Python begins the segment),
+    ``LOOP_TOO_MANY`` (more than ``max_segments`` pieces)."""
     kind, convex, half, normals, offsets, vertices, candidates = (fields[0], fields[1], fields[2], fields[3],
                                                                  fields[4], fields[5], fields[6])
     center, buffer, reach, noise_length, noise_force, ids = (fields[13], fields[14], fields[15], fields[16],

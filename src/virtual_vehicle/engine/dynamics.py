@@ -15,9 +15,12 @@ Two integrators share the model:
   root finding on the dense output, restarted with the new constants. One parcel's event loop is compiled
   (:func:`~virtual_vehicle.engine._kernel.run_events`): each piece's steps, event search and location, then the next
   piece from the model's solved supports held as arrays (:class:`_PieceTable`), or made there from a solved pattern
-  with the law's compiled drive. Python takes over only for what the arrays cannot give: a support pattern never
-  solved (the solve, with its arithmetic compiled in :mod:`~virtual_vehicle.physics.contact`), candidate cells to
-  gather again, a chatter, a pause for a progress callback, and the Python objects of the new pieces and events;
+  with the law's compiled drive, or from a pattern solved there (contact's compiled planar solve, the Python solve's
+  arithmetic); candidate cells are gathered again there too. Python takes over only for what the arrays cannot
+  give: supports on one line, a collinear contact set or tipping (the solve in
+  :mod:`~virtual_vehicle.physics.contact`), the cells under the parcel where the probe cannot tell them, a
+  candidate refresh within a rounding step of its threshold, a chatter, a pause for a progress callback; and it
+  makes the Python objects of the new solutions, pieces and events after each call;
 - ``"fixed"``: classical RK4 at a fixed step that looks up the supports at every stage and never locates events,
   for comparison (first-order accurate across support changes).
 """
@@ -142,8 +145,11 @@ class _PieceTable:
       adds what the model met elsewhere), so the loop tries them as ``piece_for`` does;
     - each pattern of the model's shared store is in the table with a prefix of its solutions, in the store's order;
       for a support set the model has never met, the loop takes the first of them that holds (``solution_for``'s
-      first choice, the store searched before the model's own) or hands back to Python when none does. Pieces it
-      makes are made Python objects and added to the model's cache after the call (:meth:`adopt_born`), in order.
+      first choice, the store searched before the model's own); when none does, it solves the pattern itself if
+      the table mirrors the whole store (:meth:`mirror_store`; then Python would solve it too) and the pattern has no
+      solutions of the model's own, else hands back to Python. Solutions and pieces it makes are made Python
+      objects and added to the model's store and cache after the call (:meth:`adopt_solved`, :meth:`adopt_born`),
+      in order.
 
     Arrays grow by doubling. Past ``max_pieces`` pieces the table and the model's piece cache are emptied (the
     solved patterns stay): memory stays bounded over long runs, and a support set met again is made again from its
@@ -255,10 +261,12 @@ class _PieceTable:
         geometry, ipool = model._geometry, self.ipool
         for (j, g), origin in zip(log[1:1 + n].tolist(), origins[:n].copy()):
             assert j == len(self.records)  # the loop adds records after the table's
-            weight, *arrays = _kernel._record_arrays(self.srec, self.fpool, j)
+            off, m, r, q, nh = self.srec[j, :5].tolist()  # the record's floats as _kernel.table_add_record lays them
+            weight, flat = self.fpool[off], self.fpool[off + 1:off + 1 + m * r + 3 * r + 3 * q + 8 * m + nh].copy()
             (basis, plane_lin, plane_const, hull_normals, hull_offsets, spring_lin, spring_gradient, points, force_lin,
-             force_const, holding) = (a.copy() for a in arrays)
-            m, r, q = (int(v) for v in holding[:3])
+             force_const, holding) = (part.reshape(shape) for part, shape in zip(
+                np.split(flat, np.cumsum([m * r, 2 * r, r, 2 * q, q, 2 * m, m, 2 * m, 2 * m, m])),
+                ((m, r), (r, 2), (r,), (q, 2), (q,), (m, 2), (m,), (m, 2), (m, 2), (m,), (nh,))))
             in_contact = holding[3 + m * r + 3 * r:3 + m * r + 3 * r + m] > 0.5
             for arr in (points, basis, plane_lin, plane_const, force_lin, force_const, hull_normals, hull_offsets,
                         in_contact, spring_lin, spring_gradient, holding):
@@ -901,12 +909,12 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
                 ring[:] = 0
             p = table.index_of(model, piece)  # after the sync: both may grow the table's arrays
             start = int(table.used[_kernel.U_PIECES])
-            # DOP853 piece by piece (kernel.run_events) until a support set it cannot make, new candidates, a pause
+            # DOP853 piece by piece (kernel.run_events) until a support set it cannot make or solve, a pause, ...
             (outcome, t, y, p, h, h_abs, evals, rec.next, segments, n_ev, born, y_probe, under, told, ids,
-             candidates, center) = _kernel.run_events(table.arrays, seg.fields, p, begun, base, t, y, t1, h, h_abs, first, rtol,
-                                        atol, max_step, max_steps, rec.sample_times, rec.next, rec.samples, segments,
-                                        max_segments, ring_t, ring_p, ring, _CHATTER_SPAN, _CHATTER_PIECES, ev_t,
-                                        ev_y, ev_p, table.law_args, grid)
+             candidates, center) = _kernel.run_events(
+                table.arrays, seg.fields, p, begun, base, t, y, t1, h, h_abs, first, rtol, atol, max_step, max_steps,
+                rec.sample_times, rec.next, rec.samples, segments, max_segments, ring_t, ring_p, ring, _CHATTER_SPAN,
+                _CHATTER_PIECES, ev_t, ev_y, ev_p, table.law_args, grid)
             table.adopt_solved(model)  # before the pieces made from them
             if born:
                 table.adopt_born(model, start, born)
