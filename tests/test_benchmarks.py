@@ -61,31 +61,33 @@ def test_the_scale_benchmark_reports_the_cells_it_stepped():
 
 def test_the_ceiling_benchmark_times_every_piece_and_puts_the_kernels_back():
     """bench_ceiling: within ``timed_kernels`` every module holding the engine's compiled entry point holds the
-    timing wrapper, which counts one call a piece (a run without a progress callback never pauses); the originals
+    timing wrapper, which counts one call per hand-back to Python (the event loop runs many pieces a call: fewer
+    calls than pieces, a run without a progress callback never pausing); the originals
     are back afterwards, and a run's figures are ordered as they must be (work within the calls within the wall)."""
     import bench_ceiling
     from numba.core.registry import CPUDispatcher
 
     from virtual_vehicle.engine import _kernel
 
-    original = _kernel.run_piece
+    original = _kernel.run_events
     model = ParcelModel(bench_perf.CELLS, bench_perf.SPEC, bench_perf.FIELDS_B["coulomb"], bench_perf.LAWS["coulomb"])
     with bench_ceiling.timed_kernels() as stats:
-        assert _kernel.run_piece is not original and _kernel.run_piece.__wrapped__ is original
+        assert _kernel.run_events is not original and _kernel.run_events.__wrapped__ is original
         tr = integrate(model, bench_perf.Y0_IN, 0.0, 0.5, sample_dt=0.5)
-    assert _kernel.run_piece is original
+    assert _kernel.run_events is original
     assert not [(mod.__name__, name) for mod in bench_ceiling.package_modules() for name, obj in vars(mod).items()
                 if callable(obj) and hasattr(obj, "__wrapped__") and isinstance(obj.__wrapped__, CPUDispatcher)]
-    entry = stats["virtual_vehicle.engine._kernel.run_piece"]
-    assert entry.calls == tr.segments > 20 and entry.seconds > 0
-    assert bench_ceiling.arrays_in(entry.result) == 3  # the restart and probe states, the cells under the probe
+    entry = stats["virtual_vehicle.engine._kernel.run_events"]
+    assert 0 < entry.calls < tr.segments and tr.segments > 20 and entry.seconds > 0
+    # the restart and probe states, the cells under the probe, the candidates' ids, positions and centre
+    assert bench_ceiling.arrays_in(entry.result) == 6
     assert bench_ceiling.arrays_in((np.zeros(2), (1.0, np.zeros(1)), 3, [np.zeros(1)])) == 2
     assert bench_ceiling.call_price(entry) > 3 * bench_ceiling.array_return_price() > 0
 
     r = bench_ceiling.run_case("coulomb1", 0.5)
     assert r["simulated"] == 0.5 and 0 < r["work"] <= r["inside"] < r["wall"]
     assert r["calls"] == sum(k[1] for k in r["kernels"])
-    assert "virtual_vehicle.engine._kernel.run_piece" in {k[0] for k in r["kernels"]}
+    assert "virtual_vehicle.engine._kernel.run_events" in {k[0] for k in r["kernels"]}
     with pytest.raises(ValueError, match="unknown case"):
         bench_ceiling.run_case("coulomb2")
 

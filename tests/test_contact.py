@@ -315,3 +315,75 @@ def test_a_solution_knows_whether_its_contacts_are_collinear(seed, m, lift):
     assert held[0] and 0 < sum(held[301:]) < 300  # where it was solved, and some of the points near it
     row = solve_support([[0.0, 0.0], [0.1, 0.0], [0.2, 0.0]], [0.05, 0.0], W, lateral_support=True)
     assert row.one_d and row.contact_collinear  # the 1-D model
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(0, 10_000), st.floats(0.12, 0.5), st.floats(0.12, 0.5), st.floats(-3.2, 3.2), st.floats(0.0, 1.0),
+       st.floats(0.0, 1.0))
+@example(1, 0.25, 0.15, 0.0, 0.0, 0.0)  # a footprint on whole cells, centred: every cell carries
+@example(7, 0.45, 0.13, 0.3, 0.97, 0.9)  # the centre of mass far towards a corner: cells lift off
+def test_the_compiled_solve_is_the_python_solve(seed, length, width, heading, toward, shift):
+    """The compiled solve an event loop runs (``solve_planar_kernel``) on the cells under a random rectangular
+    footprint at a random pose on a grid (the centre of mass anywhere in it: lift-off near its edges) gives the
+    Python solve's cells in contact and forces (to 1e-12 relative; in fact the same floats, the same arithmetic),
+    or says which case it leaves to the Python solve: supports on one line, tipping, a collinear contact set."""
+    from virtual_vehicle.model import layout, parcel
+    from virtual_vehicle.model.layout import collinear
+    from virtual_vehicle.model.parcel import supporting_cells
+    from virtual_vehicle.physics import contact
+
+    rng = np.random.default_rng(seed)
+    cells = layout.grid(12, 12, 0.1)
+    spec = parcel.rectangle(length, width, 2.0, 1.0)
+    centre = rng.uniform(0.45, 0.75, size=2)
+    pose = np.array([*centre, heading, 0.0, 0.0, 0.0])
+    under = supporting_cells(spec, pose, cells.positions, cells.tree)
+    assume(len(under) > 0)
+    pts = np.ascontiguousarray(cells.positions[under])
+    corner = pts[rng.integers(len(pts))]  # the centre of mass from the footprint's centre towards one of its cells
+    com = centre + toward * (corner - centre) + shift * 1e-3 * rng.standard_normal(2)
+    (status, origin, points, in_contact, basis, plane_lin, plane_const, hull_normals, hull_offsets, spring_lin,
+     spring_gradient, holding, force_lin, force_const) = contact.solve_planar_kernel(pts, com, W, 200)
+    if status == contact.SOLVE_LINE:
+        assert collinear(pts)
+        return
+    try:
+        sol = solve_support(pts, com, W)
+    except TippingError:
+        assert status == contact.SOLVE_TIPS
+        return
+    assert status != contact.SOLVE_TIPS
+    if status == contact.SOLVE_FLAT:
+        assert sol.contact_collinear
+        return
+    assert status == contact.SOLVED and not sol.contact_collinear
+    assert np.array_equal(in_contact, sol.in_contact)
+    forces = force_lin @ (com - origin) + force_const
+    np.testing.assert_allclose(forces, sol.forces(com), rtol=1e-12, atol=1e-12 * W)
+    for mine, python in ((origin, sol.origin), (points, sol.points), (basis, sol.basis), (plane_lin, sol.plane_lin),
+                         (plane_const, sol.plane_const), (hull_normals, sol.hull_normals),
+                         (hull_offsets, sol.hull_offsets), (spring_lin, sol.spring_lin),
+                         (spring_gradient, sol.spring_gradient), (holding, sol._holding), (force_lin, sol.force_lin),
+                         (force_const, sol.force_const)):
+        assert np.array_equal(mine, python)  # bit for bit: what keeps the event engine's results unchanged
+
+
+def test_the_compiled_solve_leaves_tipping_and_collinear_contacts_to_python():
+    """What the compiled solve does not finish, it names, so that the event loop hands it to the Python solve: a
+    centre of mass outside the hull (TippingError there), a load on the line of a collinear contact set (the plate
+    tilted about it there), supports on one line (the 1-D model); and a load near a corner lifts cells off."""
+    from virtual_vehicle.physics import contact
+
+    square = np.array([[0.0, 0.0], [0.1, 0.0], [0.0, 0.1], [0.1, 0.1]])
+    assert contact.solve_planar_kernel(square, np.array([0.2, 0.05]), W, 200)[0] == contact.SOLVE_TIPS
+    with pytest.raises(TippingError):
+        solve_support(square, [0.2, 0.05], W)
+    P = np.array([[-0.05, -0.2 / 3], [0.05, -0.2 / 3], [-0.15, 0.1 / 3], [-0.05, 0.1 / 3], [0.05, 0.1 / 3],
+                  [0.15, 0.1 / 3]])
+    assert contact.solve_planar_kernel(P, np.array([5.8e-13, 0.1 / 3]), W, 200)[0] == contact.SOLVE_FLAT
+    line = np.array([[0.0, 0.0], [0.1, 0.0], [0.2, 0.0]])
+    assert contact.solve_planar_kernel(line, np.array([0.05, 0.0]), W, 200)[0] == contact.SOLVE_LINE
+    grid = np.array([[x, y] for x in (0.0, 0.1, 0.2) for y in (0.0, 0.1, 0.2)])
+    status, *_, in_contact = contact.solve_planar_kernel(grid, np.array([0.19, 0.19]), W, 200)[:4]
+    assert status == contact.SOLVED and not in_contact.all()
+    assert np.array_equal(in_contact, solve_support(grid, [0.19, 0.19], W).in_contact)

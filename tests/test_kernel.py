@@ -303,7 +303,7 @@ def test_warming_up_leaves_the_engine_compiled():
     """warm_up() runs a real integration, after which the engine's entry points hold compiled code (loaded from the
     cache or compiled now), so the next integration does not wait."""
     assert warm_up() > 0
-    assert kernel.run_piece.signatures and kernel.pattern.signatures and kernel.cell_margins.signatures
+    assert kernel.run_events.signatures and kernel.pattern.signatures and kernel.cell_margins.signatures
 
 
 def test_warming_up_compiles_what_networked_runs_call():
@@ -328,7 +328,7 @@ from virtual_vehicle.run.warm import warm_up
 from virtual_vehicle.config.scenario import parse_scenario
 from virtual_vehicle.run.sim import run_network
 warm_up()
-home = {n: _kernel for n in ("run_piece", "pattern", "cell_margins", "support_slack", "edges_clear_many",
+home = {n: _kernel for n in ("run_events", "pattern", "cell_margins", "support_slack", "edges_clear_many",
                                       "quiet_steps")}
 home["_within"] = home["_covered"] = parcel
 home["_terms_and_row"] = affine  # the bench_scale hall is viscous
@@ -528,3 +528,69 @@ def test_the_edges_of_many_parcels_in_one_call_are_each_parcels_own():
     alone = [kernel.edges_clear(points, near[k], *outlines[shape[k]], Y[k], 0.1, r[k], accel[k], R[k], lever[k],
                                  noise[k]) for k in range(len(near))]
     assert together.tolist() == alone and 0.2 < np.mean(alone) < 0.8
+
+
+def _coulomb_run(model, seconds=1.5):
+    y0 = np.array([1.12, 1.47, 0.3, 0.0, 0.0, 0.0])
+    return integrate(model, y0, 0.0, seconds, sample_dt=0.05)
+
+
+def _same_run(a, b):
+    assert np.array_equal(a.times, b.times) and np.array_equal(a.states, b.states)
+    assert a.events == b.events and a.segments == b.segments and a.status == b.status
+
+
+def _inward_model(law="coulomb", speed=3.0):
+    spec = parcel.rectangle(0.4, 0.3, 2.0, 1.0)
+    return ParcelModel(CELLS, spec, fields.Inward((1.5, 1.5), speed).velocities(CELLS), laws.LAWS[law])
+
+
+@pytest.mark.parametrize("law, speed", [("coulomb", 3.0), ("viscous", 0.2)])
+def test_the_event_loop_makes_pieces_from_patterns_as_the_model_would(law, speed):
+    """The compiled event loop makes the pieces of support sets it has never met from solved patterns (the law's
+    compiled drive): the same run as one whose loop may not (every new support set found by the model in Python),
+    bit for bit, events and all, and the model's cache ends the same."""
+    made, found = _inward_model(law, speed), _inward_model(law, speed)
+    asked = []  # the support sets the model solved or looked up in Python: the loop solves the rest itself
+    made.solution_and_first = lambda support, com: asked.append(1) or ParcelModel.solution_and_first(made, support, com)
+    a = _coulomb_run(made)
+    found._table = dynamics._PieceTable(found, len(affine.ROW_FIELDS))
+    found._table.law_args = (0, *found._table.law_args[1:])  # drive code 0: no pieces made in the loop
+    b = _coulomb_run(found)
+    _same_run(a, b)
+    assert len(a.events) > 10
+    assert [(k, p.row) for k, p in made._pieces.items()] == [(k, p.row) for k, p in found._pieces.items()]
+    assert made._table.used[kernel.U_PIECES] == len(made._pieces)
+    # the patterns solved in the loop are in the model's store as Python would have put them: same order, same floats
+    assert made.solves == found.solves and len(asked) < made.solves // 2
+    mine, python = made.shared_solutions, found.shared_solutions
+    assert list(mine) == list(python)
+    for key in python:
+        assert len(mine[key]) == len(python[key])
+        for s, t in zip(mine[key], python[key]):
+            for name in ("origin", "points", "in_contact", "basis", "plane_lin", "plane_const", "force_lin",
+                         "force_const", "hull_normals", "hull_offsets", "spring_lin", "spring_gradient"):
+                assert np.array_equal(getattr(s, name), getattr(t, name)), name
+            assert s.weight == t.weight and s.one_d == t.one_d and s.contact_collinear == t.contact_collinear
+
+
+def test_the_event_loop_runs_the_same_from_its_table_and_after_emptying_it(monkeypatch):
+    """A second run on the same model (every support set found in the loop's table) and runs whose table is
+    emptied every few pieces (bounded memory: the model's piece cache emptied with it) are the first run, bit for
+    bit."""
+    model = _inward_model()
+    first = _coulomb_run(model)
+    _same_run(first, _coulomb_run(model))
+    monkeypatch.setattr(dynamics._PieceTable, "max_pieces", 7)
+    small = _inward_model()
+    _same_run(first, _coulomb_run(small))
+    assert len(small._table.pieces) <= 7 + dynamics._PieceTable.spare and len(small._pieces) < len(model._pieces)
+
+
+def test_the_event_loop_hands_back_for_progress_and_runs_the_same():
+    """With a progress callback the loop pauses every few steps and hands back; the run is the same."""
+    times = []
+    paused = integrate(_inward_model(), np.array([1.12, 1.47, 0.3, 0.0, 0.0, 0.0]), 0.0, 1.5, sample_dt=0.05,
+                       progress=times.append)
+    _same_run(_coulomb_run(_inward_model()), paused)
+    assert len(times) > 10 and times == sorted(times)

@@ -26,6 +26,13 @@ import numpy as np
 from numba import njit
 from scipy.integrate import DOP853
 
+from virtual_vehicle.model.parcel import _within
+from virtual_vehicle.physics.contact import _MAX_ITER, SOLVED, solve_planar_kernel
+from virtual_vehicle.physics.contact import _holds as _holds_packed
+from virtual_vehicle.physics.laws.affine import _terms_and_row
+from virtual_vehicle.physics.laws.coulomb import CoulombLaw
+from virtual_vehicle.physics.laws.viscous import ViscousLaw
+
 from virtual_vehicle.physics.laws.affine import (
     R_A_XX,
     R_A_XY,
@@ -1367,3 +1374,439 @@ def ride_data(P, U, w, FL, FC, origin, mus, X, tol):
     for a in range(count):
         size += abs(G[a, 0]) + abs(G[a, 1]) + abs(G[a, 2])
     return True, nu, zonotope_inradius(G) - 1e-9 * size, spread, arm, scale, on
+
+
+# The support-set cache as arrays, and one parcel's event loop over it (issue 32 item 4).
+#
+# A table (one tuple of arrays, :data:`TABLE_FIELDS`) holds what a parcel's model has solved, as its compiled event
+# loop (:func:`run_events`) reads it:
+# - records: solved supports (:class:`~virtual_vehicle.physics.contact.SupportSolution` arrays, in their own local
+#   coordinates), ``srec`` (R, 6) their offset in ``fpool``, m (cells), r (plane rank), q (hull facets), the length of
+#   the packed holding test, and the next record of the same pattern (-1: none);
+# - pieces: ``psol`` (P,) a piece's record, ``porigin`` (P, 2) its local origin (m), ``rows`` (P, k) its constants
+#   row, ``pnext`` (P,) the next piece of the same support set (-1: none), ``pkey`` (P,) its support set;
+# - support sets by their cell ids, patterns by their cells' integer offsets (:func:`pattern`): open-addressing hash
+#   ``slots`` / ``gslots`` (a power of two long, -1 empty) into ``kmeta`` (., 4) / ``gmeta`` (., 5): the ids' offset
+#   and length in ``ipool``, the first and last piece (record) of the chain, and for a pattern 1 if the model holds
+#   solutions of it apart from the shared ones (collinear contact sets: the loop then never solves it);
+# - ``used`` (6,): pieces, support sets, ``fpool``, ``ipool`` entries, records, patterns in use.
+# A record's floats: weight, basis (m, r), plane_lin (r, 2), plane_const (r,), hull_normals (q, 2), hull_offsets
+# (q,), spring_lin (m, 2), spring_gradient (m,), points (m, 2), force_lin (m, 2), force_const (m,), the holding test.
+TABLE_FIELDS = ("slots", "kmeta", "ipool", "psol", "porigin", "pnext", "pkey", "rows", "srec", "fpool", "gslots",
+                "gmeta", "used")
+
+# Outcomes of run_events besides run_piece's (REACHED, PAUSED, FAILED, NOT_FINITE, NO_CONVERGENCE)
+LOOP_MISS, LOOP_SEGMENT, LOOP_CHATTER, LOOP_DONE, LOOP_TOO_MANY = 10, 11, 12, 13, 14
+U_PIECES, U_KEYS, U_FLOATS, U_IDS, U_RECORDS, U_PATTERNS = 0, 1, 2, 3, 4, 5
+
+
+@njit(cache=True)
+def _ids_hash(ids):
+    """A hash of integers (FNV-1a over them, wrapping in 64 bits)."""
+    h = np.uint64(14695981039346656037)
+    for i in range(ids.shape[0]):
+        h = (h ^ np.uint64(ids[i])) * np.uint64(1099511628211)
+    return h
+
+
+@njit(cache=True)
+def table_find(slots, meta, ipool, ids):
+    """The index of the key ``ids`` ((n,) int64) in hash ``slots`` over ``meta``, or -1."""
+    mask = np.uint64(slots.shape[0] - 1)
+    s = _ids_hash(ids) & mask
+    n = ids.shape[0]
+    while True:
+        k = slots[s]
+        if k < 0:
+            return -1
+        if meta[k, 1] == n:
+            off = meta[k, 0]
+            same = True
+            for i in range(n):
+                if ipool[off + i] != ids[i]:
+                    same = False
+                    break
+            if same:
+                return k
+        s = (s + np.uint64(1)) & mask
+
+
+@njit(cache=True)
+def _free_slot(slots, ids):
+    mask = np.uint64(slots.shape[0] - 1)
+    s = _ids_hash(ids) & mask
+    while slots[s] >= 0:
+        s = (s + np.uint64(1)) & mask
+    return s
+
+
+@njit(cache=True)
+def table_rehash(slots, meta, ipool, keys):
+    """Put the first ``keys`` keys of ``meta`` into the empty ``slots`` (all -1), a larger hash's."""
+    for k in range(keys):
+        off, n = meta[k, 0], meta[k, 1]
+        slots[_free_slot(slots, ipool[off:off + n])] = k
+
+
+@njit(cache=True)
+def table_add_key(slots, meta, ipool, used, which, ids):
+    """Add the key ``ids`` (not there; room for it) to ``slots``/``meta`` (``which`` its count in ``used``) with an
+    empty chain; its index."""
+    k, off = used[which], used[U_IDS]
+    n = ids.shape[0]
+    ipool[off:off + n] = ids
+    meta[k, 0], meta[k, 1], meta[k, 2], meta[k, 3] = off, n, -1, -1
+    slots[_free_slot(slots, ids)] = k
+    used[which] += 1
+    used[U_IDS] += n
+    return k
+
+
+@njit(cache=True)
+def _put_flat(fpool, k, a):
+    for i in range(a.shape[0]):
+        fpool[k + i] = a[i]
+    return k + a.shape[0]
+
+
+@njit(cache=True)
+def record_floats(m, r, q, holding):
+    """Entries of ``fpool`` one record of m cells, plane rank r, q hull facets and a holding test this long takes."""
+    return 1 + m * r + 3 * r + 3 * q + 8 * m + holding
+
+
+@njit(cache=True)
+def table_add_record(srec, fpool, used, weight, basis, plane_lin, plane_const, hull_normals, hull_offsets, spring_lin,
+                     spring_gradient, points, force_lin, force_const, holding):
+    """Append a record of these solution arrays (C-contiguous; room for it), copied value for value; its index."""
+    j, off = used[U_RECORDS], used[U_FLOATS]
+    (m, r), q = basis.shape, hull_offsets.shape[0]
+    fpool[off] = weight
+    end = _put_flat(fpool, off + 1, basis.ravel())
+    end = _put_flat(fpool, end, plane_lin.ravel())
+    end = _put_flat(fpool, end, plane_const)
+    end = _put_flat(fpool, end, hull_normals.ravel())
+    end = _put_flat(fpool, end, hull_offsets)
+    end = _put_flat(fpool, end, spring_lin.ravel())
+    end = _put_flat(fpool, end, spring_gradient)
+    end = _put_flat(fpool, end, points.ravel())
+    end = _put_flat(fpool, end, force_lin.ravel())
+    end = _put_flat(fpool, end, force_const)
+    end = _put_flat(fpool, end, holding)
+    srec[j, 0], srec[j, 1], srec[j, 2], srec[j, 3], srec[j, 4], srec[j, 5] = off, m, r, q, holding.shape[0], -1
+    used[U_RECORDS] += 1
+    used[U_FLOATS] = end
+    return j
+
+
+@njit(cache=True)
+def table_chain_record(srec, gmeta, g, j):
+    """Append record ``j`` to the chain of pattern ``g``."""
+    if gmeta[g, 3] < 0:
+        gmeta[g, 2] = j
+    else:
+        srec[gmeta[g, 3], 5] = j
+    gmeta[g, 3] = j
+
+
+@njit(cache=True)
+def table_add_piece(kmeta, psol, porigin, pnext, pkey, rows, used, k, j, origin, row):
+    """Append a piece of record ``j`` at local origin ``origin`` (m) with constants ``row`` to the chain of support
+    set ``k`` (room for it); its index."""
+    p = used[U_PIECES]
+    psol[p], pkey[p], pnext[p] = j, k, -1
+    porigin[p, 0], porigin[p, 1] = origin[0], origin[1]
+    rows[p, :] = row
+    if kmeta[k, 3] < 0:
+        kmeta[k, 2] = p
+    else:
+        pnext[kmeta[k, 3]] = p
+    kmeta[k, 3] = p
+    used[U_PIECES] += 1
+    return p
+
+
+@njit(cache=True)
+def table_add_piece_of(slots, kmeta, ipool, psol, porigin, pnext, pkey, rows, used, ids, j, origin, row):
+    """:func:`table_add_piece` to the chain of support set ``ids``, added first if it is not there (room for
+    both), in one call (a miss took four); the piece's index."""
+    k = table_find(slots, kmeta, ipool, ids)
+    if k < 0:
+        k = table_add_key(slots, kmeta, ipool, used, U_KEYS, ids)
+    return table_add_piece(kmeta, psol, porigin, pnext, pkey, rows, used, k, j, origin, row)
+
+
+@njit(cache=True)
+def _record_arrays(srec, fpool, j):
+    """Record ``j``'s arrays as views of ``fpool``: weight, basis, plane_lin, plane_const, hull_normals,
+    hull_offsets, spring_lin, spring_gradient, points, force_lin, force_const, holding."""
+    off, m, r, q, nh = srec[j, 0], srec[j, 1], srec[j, 2], srec[j, 3], srec[j, 4]
+    weight = fpool[off]
+    off += 1
+    basis = fpool[off:off + m * r].reshape((m, r))
+    off += m * r
+    plane_lin = fpool[off:off + 2 * r].reshape((r, 2))
+    off += 2 * r
+    plane_const = fpool[off:off + r]
+    off += r
+    hull_normals = fpool[off:off + 2 * q].reshape((q, 2))
+    off += 2 * q
+    hull_offsets = fpool[off:off + q]
+    off += q
+    spring_lin = fpool[off:off + 2 * m].reshape((m, 2))
+    off += 2 * m
+    spring_gradient = fpool[off:off + m]
+    off += m
+    points = fpool[off:off + 2 * m].reshape((m, 2))
+    off += 2 * m
+    force_lin = fpool[off:off + 2 * m].reshape((m, 2))
+    off += 2 * m
+    force_const = fpool[off:off + m]
+    off += m
+    holding = fpool[off:off + nh]
+    return (weight, basis, plane_lin, plane_const, hull_normals, hull_offsets, spring_lin, spring_gradient, points,
+            force_lin, force_const, holding)
+
+
+@njit(cache=True)
+def _holding_of(srec, fpool, j):
+    off = srec[j, 0] + record_floats(srec[j, 1], srec[j, 2], srec[j, 3], 0)
+    return fpool[off:off + srec[j, 4]]
+
+
+@njit(cache=True)
+def table_lookup(tab, ids, x, y):
+    """The first piece of support set ``ids`` whose contact set and hull hold at centre of mass (x, y) (m), as
+    :meth:`~virtual_vehicle.engine.dynamics.ParcelModel.piece_for` tries its cached pieces; -1 for none, -2 for a
+    support set the table does not know."""
+    slots, kmeta, ipool, psol, porigin, pnext, pkey, rows, srec, fpool, gslots, gmeta, used = tab
+    k = table_find(slots, kmeta, ipool, ids)
+    if k < 0:
+        return -2
+    p = kmeta[k, 2]
+    while p >= 0:
+        if _holds_packed(_holding_of(srec, fpool, psol[p]), x - porigin[p, 0], y - porigin[p, 1]):
+            return p
+        p = pnext[p]
+    return -1
+
+
+DRIVES = (None, ViscousLaw.drive_kernel, CoulombLaw.drive_kernel)
+"""The compiled drives (:attr:`~virtual_vehicle.physics.laws.base.FrictionLaw.drive_kernel`) the event loop can
+call, by their code (:func:`drive_code`; 0: none, the loop makes no pieces). A function passed as an argument
+instead cost ~20 us a call to type (numba has no fast path for it)."""
+_viscous_drive, _coulomb_drive = DRIVES[1], DRIVES[2]
+
+
+def drive_code(law) -> int:
+    """The code in :data:`DRIVES` of ``law``'s compiled drive, 0 for none the loop knows."""
+    kernel = getattr(law, "drive_kernel", None)
+    return next((code for code, known in enumerate(DRIVES) if code and known is kernel), 0)
+
+
+@njit(cache=True)
+def _drive(code, V, U):
+    if code == 2:
+        return _coulomb_drive(V, U)
+    return _viscous_drive(V, U)
+
+
+@njit(cache=True)
+def _gather(a, ids):
+    out = np.empty((ids.shape[0],) + a.shape[1:])
+    for i in range(ids.shape[0]):
+        out[i] = a[ids[i]]
+    return out
+
+
+@njit(cache=True)
+def _solve_into(tab, pts, rel, flat, g, x, y, unit, weight, solve_log, solve_origin):
+    """:func:`table_from_pattern`'s solve of the pattern ``rel`` (key ``flat``; ``g`` its index, -1 if new) of cells at
+    ``pts`` for a centre of mass at (x, y) (m): the new record's index, or -1 (see there)."""
+    slots, kmeta, ipool, psol, porigin, pnext, pkey, rows, srec, fpool, gslots, gmeta, used = tab
+    m, s = pts.shape[0], solve_log[0, 1]
+    if (solve_log[0, 0] != 1 or (g >= 0 and gmeta[g, 4] != 0) or s >= solve_origin.shape[0]
+            or used[U_RECORDS] >= srec.shape[0] or used[U_PATTERNS] >= gmeta.shape[0]
+            or 2 * (used[U_PATTERNS] + 1) > gslots.shape[0] or used[U_IDS] + 3 * m > ipool.shape[0]
+            or used[U_FLOATS] + record_floats(m, 3, m, 3 + 4 * m + 9 + 3 * m) > fpool.shape[0]):
+        return -1
+    local_pts = np.empty((m, 2))  # the pattern's own coordinates, its first cell at the local origin
+    for i in range(m):
+        local_pts[i, 0], local_pts[i, 1] = rel[i, 0] * unit, rel[i, 1] * unit
+    com = np.empty(2)
+    com[0], com[1] = x - pts[0, 0], y - pts[0, 1]
+    (status, origin, points, _, basis, plane_lin, plane_const, hull_normals, hull_offsets, spring_lin,
+     spring_gradient, holding, force_lin, force_const) = solve_planar_kernel(local_pts, com, weight, _MAX_ITER)
+    if status != SOLVED:
+        return -1
+    j = table_add_record(srec, fpool, used, weight, basis, plane_lin, plane_const, hull_normals, hull_offsets,
+                         spring_lin, spring_gradient, points, force_lin, force_const, holding)
+    if g < 0:
+        g = table_add_key(gslots, gmeta, ipool, used, U_PATTERNS, flat)
+    table_chain_record(srec, gmeta, g, j)
+    solve_log[1 + s, 0], solve_log[1 + s, 1] = j, g
+    solve_origin[s, 0], solve_origin[s, 1] = origin[0], origin[1]
+    solve_log[0, 1] = s + 1
+    return j
+
+
+@njit(cache=True)
+def table_from_pattern(tab, ids, x, y, positions, unit, velocities, directions, drive, mu, damping, inv_mass,
+                       inv_inertia, born_terms, born, weight, solve_log, solve_origin):
+    """A new piece for the support set ``ids``, which the table (and the model it mirrors) has never met, from a
+    solved pattern that holds at centre of mass (x, y) (m), as
+    :meth:`~virtual_vehicle.engine.dynamics.ParcelModel.solution_for` finds it in its shared store (a translated
+    copy) and the law's :meth:`~virtual_vehicle.physics.laws.base.FrictionLaw.constants_and_row` makes its constants
+    (eqs. 23, 29, 33, 38: :func:`~virtual_vehicle.physics.laws.affine._terms_and_row` of the law's compiled drive
+    vectors of ``velocities[ids]`` and ``directions[ids]``, ``drive`` its code in :data:`DRIVES`). Its packed terms
+    go to ``born_terms[born]``.
+
+    Where no solved pattern holds, the pattern is solved here (:func:`~virtual_vehicle.physics.contact.
+    solve_planar_kernel`, the arithmetic of the Python solve, in the pattern's own coordinates as
+    :meth:`~virtual_vehicle.engine.dynamics.ParcelModel.solution_for` solves it, for a parcel of ``weight`` N) when
+    ``solve_log[0, 0]`` is 1 (the table mirrors the model's whole store, so that Python would solve too), the pattern
+    has no solution of its own (``gmeta[g, 4]``: a collinear contact set, which Python keeps apart) and there is room:
+    the record is added and chained to its pattern, and ``solve_log[1 + s]`` (record, pattern) and
+    ``solve_origin[s]`` (its local origin, m) say what was solved, ``s = solve_log[0, 1]`` counting them, for Python
+    to add to the model's store after the call. -1 where Python must act: the solve's outcome is not ``SOLVED``
+    (supports on one line, tipping, a collinear contact set), or no room."""
+    slots, kmeta, ipool, psol, porigin, pnext, pkey, rows, srec, fpool, gslots, gmeta, used = tab
+    m = ids.shape[0]
+    if (m == 0 or born >= born_terms.shape[0] or used[U_PIECES] >= psol.shape[0] or used[U_KEYS] >= kmeta.shape[0]
+            or 2 * (used[U_KEYS] + 1) > slots.shape[0] or used[U_IDS] + m > ipool.shape[0]):
+        return -1
+    pts, origin, rel = pattern(positions, ids, unit)
+    flat = rel.ravel()
+    g = table_find(gslots, gmeta, ipool, flat)
+    xi0, xi1 = x - origin[0], y - origin[1]
+    j = -1
+    if g >= 0:
+        j = gmeta[g, 2]
+        while j >= 0 and not _holds_packed(_holding_of(srec, fpool, j), xi0, xi1):
+            j = srec[j, 5]
+    if j < 0:
+        j = _solve_into(tab, pts, rel, flat, g, x, y, unit, weight, solve_log, solve_origin)
+        if j < 0:
+            return -1
+    weight, _, _, _, _, _, _, _, points, force_lin, force_const, _ = _record_arrays(srec, fpool, j)
+    out = _terms_and_row(points, _drive(drive, _gather(velocities, ids), _gather(directions, ids)), force_lin,
+                         force_const, mu, damping, weight, origin, inv_mass, inv_inertia)
+    k = table_add_key(slots, kmeta, ipool, used, U_KEYS, ids)
+    born_terms[born, :] = out[:born_terms.shape[1]]
+    return table_add_piece(kmeta, psol, porigin, pnext, pkey, rows, used, k, j, origin, out[born_terms.shape[1]:])
+
+
+@njit(cache=True)
+def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_step, rtol, atol, max_step, max_steps,
+               sample_times, next_sample, samples, segments, max_segments, ring_t, ring_p, ring, chatter_span,
+               chatter_pieces, ev_t, ev_y, ev_p, law, grid):
+    """One parcel's event loop over the table ``tab``: :func:`run_piece` on piece ``p`` (its segment the candidates,
+    centre and scales of ``fields``, a :func:`make_segment` tuple, with the piece's own solution), and at each event the
+    next piece from the table, or made from a solved pattern (:func:`table_from_pattern`, ``law`` its arguments after
+    the centre of mass, the drive's code first; none when that is 0), until Python must act. With ``begin`` the piece
+    begins at probe ``y_base`` (a support change Python found: the candidates kept if they still cover it, else
+    ``LOOP_SEGMENT``); without, it goes on from ``y_base`` with ``first_step`` (a segment Python began, or a pause).
+    Arguments as :func:`run_piece`'s, and: ``h`` the last step taken (s: a new piece's first step is ``min(h, t_bound -
+    t)``), ``segments`` the pieces begun so far (at most ``max_segments``), ``ring_t``/``ring_p`` (c,) and ``ring`` (2,)
+    the latest events' times and pieces (count, next slot) for the chatter test (``c`` events within ``chatter_span`` s
+    times max(1, |t|) among at most ``chatter_pieces`` pieces), ``ev_t`` (E,), ``ev_y`` (E, 6), ``ev_p`` (E, 2) where
+    the support changes are written (time, restart state, piece before and after), ``grid`` what gathers the
+    candidates again where Python's :class:`~virtual_vehicle.engine.dynamics._Segment` would (a new piece clearly
+    beyond half the buffer from where they were gathered): the cells' ``PointGrid`` arrays (points, order, start, lo
+    x, lo y, bucket size, buckets across, buckets up), the ``present`` mask (empty: all) and the parcel's radius (m).
+
+    Returns (outcome, t, y, piece, h, h_abs, evaluations, next_sample, segments, events written, pieces made,
+    probe state, cells under the footprint at the probe, whether those tell, then the candidates' ids, positions
+    and centre as they are now). Outcomes: ``REACHED`` (t_bound),
+    ``PAUSED`` (``max_steps`` steps on the current piece: resume it with ``first_step`` 0), a failure,
+    ``LOOP_DONE`` (an event at t_bound: the new piece written), ``LOOP_MISS`` (an event whose next support set the
+    table cannot give, or the probe does not tell: Python finds it), ``LOOP_CHATTER`` (the chatter test held at
+    this event; its ring to be cleared), ``LOOP_SEGMENT`` (a new piece begins within a rounding step of the
+    threshold of gathering its candidates again, or the event columns are full: Python begins the segment),
+    ``LOOP_TOO_MANY`` (more than ``max_segments`` pieces)."""
+    kind, convex, half, normals, offsets, vertices, candidates = (fields[0], fields[1], fields[2], fields[3],
+                                                                 fields[4], fields[5], fields[6])
+    center, buffer, reach, noise_length, noise_force, ids = (fields[13], fields[14], fields[15], fields[16],
+                                                             fields[17], fields[20])
+    (drive, positions, unit, velocities, directions, mu, damping, inv_mass, inv_inertia, born_terms, weight, solve_log,
+     solve_origin) = law
+    psol, porigin, rows, srec, fpool = tab[3], tab[4], tab[7], tab[8], tab[9]
+    reuse2 = 0.25 * buffer * buffer * (1.0 - 1e-9)  # clearly within half the buffer (the edge is Python's to decide)
+    gather2 = 0.25 * buffer * buffer * (1.0 + 1e-9)  # clearly beyond it: gathered again, as _Segment would
+    (g_points, g_order, g_start, g_lo0, g_lo1, g_size, g_nx, g_ny, present, radius) = grid
+    capacity, ring_size = ev_t.shape[0], ring_t.shape[0]
+    n_ev = born = nfev = 0
+    y_probe = y_base
+    none = np.empty(0, np.int64)
+    while True:
+        if begin:  # a new piece: its candidates kept while clearly within half the buffer of where they were gathered
+            dx, dy = y_probe[0] - center[0], y_probe[1] - center[1]
+            d2 = dx * dx + dy * dy
+            if n_ev == capacity or not (d2 < reuse2 or d2 > gather2):
+                return (LOOP_SEGMENT, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, none,
+                        False, ids, candidates, center)
+            if not d2 < reuse2:  # the cells within the radius plus the buffer of the probe (PointGrid.within)
+                ids = _within(g_points, g_order, g_start, g_lo0, g_lo1, g_size, g_nx, g_ny, present, y_probe[0],
+                              y_probe[1], radius + buffer)
+                candidates = _gather(positions, ids)
+                center = np.empty(2)
+                center[0], center[1] = y_probe[0], y_probe[1]
+            segments += 1
+            if segments > max_segments:
+                return (LOOP_TOO_MANY, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, none,
+                        False, ids, candidates, center)
+            y_base = y_probe
+            first_step, h_abs = min(h, t_bound - t), 0.0
+        begin = True
+        _, basis, plane_lin, plane_const, hull_normals, hull_offsets, spring_lin, spring_gradient, _, _, _, _ = \
+            _record_arrays(srec, fpool, psol[p])
+        seg = (kind, convex, half, normals, offsets, vertices, candidates, porigin[p], basis, plane_lin, plane_const,
+               hull_normals, hull_offsets, center, buffer, reach, noise_length, noise_force, spring_lin,
+               spring_gradient, ids)
+        (outcome, t, y, h_abs, last, evals, next_sample, t_probe, y_probe, under,
+         told) = run_piece(rows[p], seg, y_base, t, y, t_bound, h_abs, first_step, rtol, atol, max_step, max_steps,
+                           sample_times, next_sample, samples)
+        nfev += evals
+        if last:
+            h = last
+        if outcome != EVENT:
+            return (outcome, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_base, none, False, ids,
+                    candidates, center)
+        # the chatter test over the latest events (the piece each ended)
+        ring_t[ring[1]], ring_p[ring[1]] = t, p
+        ring[1] = (ring[1] + 1) % ring_size
+        ring[0] = min(ring[0] + 1, ring_size)
+        if ring[0] == ring_size and t - ring_t[ring[1]] < chatter_span * max(1.0, abs(t)):
+            distinct = 0
+            seen = np.full(chatter_pieces + 1, -1, np.int64)
+            for j in range(ring_size):
+                known = False
+                for i in range(distinct):
+                    known = known or seen[i] == ring_p[j]
+                if not known:
+                    seen[distinct] = ring_p[j]
+                    distinct += 1
+                    if distinct > chatter_pieces:
+                        break
+            if distinct <= chatter_pieces:
+                return (LOOP_CHATTER, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, under,
+                        told, ids, candidates, center)
+        q = table_lookup(tab, under, y_probe[0], y_probe[1]) if told else -1
+        if q == -2 and drive:
+            q = table_from_pattern(tab, under, y_probe[0], y_probe[1], positions, unit, velocities, directions,
+                                   drive, mu, damping, inv_mass, inv_inertia, born_terms, born, weight, solve_log,
+                                   solve_origin)
+            if q >= 0:
+                born += 1
+        if q < 0:
+            return (LOOP_MISS, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, under, told, ids,
+                    candidates, center)
+        if q != p:
+            ev_t[n_ev] = t
+            ev_y[n_ev, :] = y
+            ev_p[n_ev, 0], ev_p[n_ev, 1] = p, q
+            n_ev += 1
+        p = q
+        if t >= t_bound:
+            return (LOOP_DONE, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, none, False, ids,
+                    candidates, center)

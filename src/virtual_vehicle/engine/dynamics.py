@@ -12,10 +12,15 @@ Constants are cached per (support set, contact set), so a configuration seen aga
 
 Two integrators share the model:
 - ``"event"``: adaptive 8th-order Dormand-Prince (scipy's DOP853 scheme) on each smooth piece, events located by
-  root finding on the dense output, restarted with the new constants. The piece's inner loop (steps, event search and
-  location) is compiled (:mod:`virtual_vehicle.engine._kernel`); the support changes between pieces stay in Python (with
-  the support solve's and the friction constants' arithmetic compiled in :mod:`~virtual_vehicle.physics.contact` and
-  :mod:`~virtual_vehicle.physics.laws.affine`);
+  root finding on the dense output, restarted with the new constants. One parcel's event loop is compiled
+  (:func:`~virtual_vehicle.engine._kernel.run_events`): each piece's steps, event search and location, then the next
+  piece from the model's solved supports held as arrays (:class:`_PieceTable`), or made there from a solved pattern
+  with the law's compiled drive, or from a pattern solved there (contact's compiled planar solve, the Python solve's
+  arithmetic); candidate cells are gathered again there too. Python takes over only for what the arrays cannot
+  give: supports on one line, a collinear contact set or tipping (the solve in
+  :mod:`~virtual_vehicle.physics.contact`), the cells under the parcel where the probe cannot tell them, a
+  candidate refresh within a rounding step of its threshold, a chatter, a pause for a progress callback; and it
+  makes the Python objects of the new solutions, pieces and events after each call;
 - ``"fixed"``: classical RK4 at a fixed step that looks up the supports at every stage and never locates events,
   for comparison (first-order accurate across support changes).
 """
@@ -23,7 +28,6 @@ Two integrators share the model:
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass
 from functools import cached_property
 from itertools import compress
@@ -33,7 +37,7 @@ import numpy as np
 
 from virtual_vehicle.engine import _kernel
 from virtual_vehicle.engine._kernel import accelerations
-from virtual_vehicle.engine.stepping import Event, Trajectory, diff_event, fixed_steps, sample_grid
+from virtual_vehicle.engine.stepping import Event, Trajectory, _ordered, diff_event, fixed_steps, sample_grid
 from virtual_vehicle.engine.stickslip import run_stick_slip
 from virtual_vehicle.errors import IntegrationError, TippingError
 from virtual_vehicle.model.layout import CellArray
@@ -132,6 +136,309 @@ def _make_rhs(row: tuple[float, ...]):
     return rhs
 
 
+class _PieceTable:
+    """What a model has solved, as the arrays its compiled event loop (:func:`~virtual_vehicle.engine._kernel.
+    run_events`) reads (layout in :mod:`virtual_vehicle.engine._kernel`: :data:`~virtual_vehicle.engine._kernel.
+    TABLE_FIELDS`), mirroring the model's caches so that the loop finds what :meth:`ParcelModel.piece_for` would:
+
+    - each support set the model has pieces for is in the table with all of them, in the model's order (:meth:`sync`
+      adds what the model met elsewhere), so the loop tries them as ``piece_for`` does;
+    - each pattern of the model's shared store is in the table with a prefix of its solutions, in the store's order;
+      for a support set the model has never met, the loop takes the first of them that holds (``solution_for``'s
+      first choice, the store searched before the model's own); when none does, it solves the pattern itself if
+      the table mirrors the whole store (:meth:`mirror_store`; then Python would solve it too) and the pattern has no
+      solutions of the model's own, else hands back to Python. Solutions and pieces it makes are made Python
+      objects and added to the model's store and cache after the call (:meth:`adopt_solved`, :meth:`adopt_born`),
+      in order.
+
+    Arrays grow by doubling. Past ``max_pieces`` pieces the table and the model's piece cache are emptied (the
+    solved patterns stay): memory stays bounded over long runs, and a support set met again is made again from its
+    pattern, as the model's first meeting it made it."""
+
+    max_pieces = 1 << 15
+    """Pieces held before the table and the model's piece cache are emptied (a piece: ~300 bytes in the table)."""
+    spare = 64
+    """Pieces (and support sets) the loop may add in one call: the arrays have room for them when it starts."""
+
+    def __init__(self, model: "ParcelModel", row_length: int):
+        self.row_length = row_length
+        law, spec = model.law, model.spec
+        self.drive = _kernel.drive_code(law)
+        self.damping = law.affine_damping(spec.mu) if self.drive else 0.0
+        self.law_args = (self.drive, _readonly(model.cells.positions), _PATTERN_RESOLUTION * model.cells.pitch,
+                         _readonly(model.velocities),
+                         _readonly(np.ascontiguousarray(model.cells.active_directions, dtype=float)),
+                         float(spec.mu), float(self.damping), 1.0 / spec.mass, 1.0 / spec.inertia,
+                         np.empty((self.spare, affine._TERMS)), float(model.weight),
+                         np.zeros((self.spare + 1, 2), np.int64), np.zeros((self.spare, 2)))
+        self.clear()
+
+    def clear(self) -> None:
+        self.slots = np.full(64, -1, np.int64)
+        self.kmeta = np.zeros((16, 4), np.int64)
+        self.ipool = np.zeros(256, np.int64)
+        self.psol = np.zeros(16, np.int64)
+        self.porigin = np.zeros((16, 2))
+        self.pnext = np.zeros(16, np.int64)
+        self.pkey = np.zeros(16, np.int64)
+        self.rows = np.zeros((16, self.row_length))
+        self.srec = np.zeros((16, 6), np.int64)
+        self.fpool = np.zeros(4096)
+        self.gslots = np.full(64, -1, np.int64)
+        self.gmeta = np.zeros((16, 5), np.int64)
+        self.used = np.zeros(6, np.int64)
+        self.index: dict[Piece, int] = {}
+        self.pieces: list[Piece] = []
+        self.records: list[SupportSolution] = []
+        self.record_of: dict[int, int] = {}  # id of a record's holding array -> its index
+        self.patterns: dict[bytes, tuple[int, int]] = {}  # key -> (index, solutions chained)
+        self.mirrored = 0
+        self.solves = -1
+        self.store_solves: int | None = None  # the model's solves when the table last mirrored its whole store
+
+    @property
+    def arrays(self) -> tuple:
+        """What :func:`~virtual_vehicle.engine._kernel.run_events` takes as its table."""
+        return (self.slots, self.kmeta, self.ipool, self.psol, self.porigin, self.pnext, self.pkey, self.rows,
+                self.srec, self.fpool, self.gslots, self.gmeta, self.used)
+
+    def sync(self, model: "ParcelModel", piece: Piece) -> bool:
+        """Before a loop on ``piece``: add every support set of the model's cache the table lacks pieces of, if the
+        cache has grown since the table last matched it (the plant and quiet steppers look pieces up outside the
+        loop); past :attr:`max_pieces` empty the table and the model's piece cache (keeping ``piece``); make room
+        for what the loop may add. Returns whether it emptied them."""
+        emptied = len(self.pieces) > self.max_pieces
+        if emptied:
+            self.clear()
+            model._pieces.clear()
+            model._by_support.clear()
+            model._pieces[piece.key] = piece
+            model._by_support[piece.key[0]] = [piece]
+        if len(model._pieces) != self.mirrored:
+            for pieces in list(model._by_support.values()):
+                if pieces[-1] not in self.index:
+                    self.index_of(model, pieces[-1])
+            self.mirrored = len(model._pieces)
+        if self.store_solves != model.solves:
+            self.mirror_store(model)
+        log = self.law_args[-2]
+        log[0, 0], log[0, 1] = (1 if self.drive and self.store_solves == model.solves else 0), 0
+        n_pieces, n_keys, n_floats, n_ids, n_records, n_patterns = self.used.tolist()
+        spare, ids = self.spare, 3 * self.spare * (1 + n_ids // max(1, n_keys)) + 64
+        floats = spare * (n_floats // max(1, n_records) + 256)
+        if (n_pieces + spare > len(self.psol) or n_keys + spare > len(self.kmeta) or n_ids + ids > len(self.ipool)
+                or 2 * (n_keys + spare) > len(self.slots) or n_records + spare > len(self.srec)
+                or n_patterns + spare > len(self.gmeta) or 2 * (n_patterns + spare) > len(self.gslots)
+                or n_floats + floats > len(self.fpool)):
+            self._room(pieces=spare, keys=spare, ids=ids, records=spare, patterns=spare, floats=floats)
+        return emptied
+
+    mirror_limit = 32
+    """Patterns in the model's store up to which a table that does not mirror it (new, emptied, or behind a copy of
+    the model that solved elsewhere) learns them all, so that its loop may solve new ones: past it the loop hands
+    every unsolved pattern back to Python (learning hundreds would cost a control tick more than it saves)."""
+
+    def mirror_store(self, model: "ParcelModel") -> None:
+        """Learn every pattern of the model's store (shared solutions, and which patterns have solutions of their
+        own), if it is small (:attr:`mirror_limit`): then a pattern the loop finds unsolved is one Python would
+        solve, and the loop may solve it (the same arithmetic, the same place in the store)."""
+        geometry = model._geometry
+        if not self.drive or len(geometry.shared) + len(geometry.own) > self.mirror_limit:
+            self.store_solves = None
+            return
+        for gkey in (*geometry.shared, *geometry.own):
+            self._learn_key(model, gkey)
+        self.store_solves = model.solves
+
+    def adopt_solved(self, model: "ParcelModel") -> None:
+        """Add what the loop solved (``solve_log``) to the model's shared store as
+        :class:`~virtual_vehicle.physics.contact.SupportSolution` objects, as :meth:`ParcelModel.solution_for` would
+        have (in order, counted in its solves), and to this table's records."""
+        log, origins = self.law_args[-2], self.law_args[-1]
+        n = int(log[0, 1])
+        if not n:
+            return
+        geometry, ipool = model._geometry, self.ipool
+        for (j, g), origin in zip(log[1:1 + n].tolist(), origins[:n].copy()):
+            assert j == len(self.records)  # the loop adds records after the table's
+            off, m, r, q, nh = self.srec[j, :5].tolist()  # the record's floats as _kernel.table_add_record lays them
+            weight, flat = self.fpool[off], self.fpool[off + 1:off + 1 + m * r + 3 * r + 3 * q + 8 * m + nh].copy()
+            (basis, plane_lin, plane_const, hull_normals, hull_offsets, spring_lin, spring_gradient, points, force_lin,
+             force_const, holding) = (part.reshape(shape) for part, shape in zip(
+                np.split(flat, np.cumsum([m * r, 2 * r, r, 2 * q, q, 2 * m, m, 2 * m, 2 * m, m])),
+                ((m, r), (r, 2), (r,), (q, 2), (q,), (m, 2), (m,), (m, 2), (m, 2), (m,), (nh,))))
+            in_contact = holding[3 + m * r + 3 * r:3 + m * r + 3 * r + m] > 0.5
+            for arr in (points, basis, plane_lin, plane_const, force_lin, force_const, hull_normals, hull_offsets,
+                        in_contact, spring_lin, spring_gradient, holding):
+                arr.setflags(write=False)
+            sol = SupportSolution(origin, points, in_contact, basis, plane_lin, plane_const, force_lin, force_const,
+                                  hull_normals, hull_offsets, False, float(weight))
+            sol.__dict__.update(spring_lin=spring_lin, spring_gradient=spring_gradient, _holding=holding,
+                                contact_collinear=False)
+            off, length = self.gmeta[g, :2].tolist()
+            gkey = ipool[off:off + length].tobytes()
+            solved = geometry.shared.setdefault(gkey, [])
+            solved.append(sol)
+            geometry.solves += 1
+            self.records.append(sol)
+            self.record_of[id(holding)] = j
+            self.patterns[gkey] = g, len(solved)
+        log[0, 1] = 0
+        if self.store_solves is not None:
+            self.store_solves += n
+
+    def learn(self, model: "ParcelModel", piece: Piece) -> None:
+        """After the model found ``piece`` outside the loop (a miss): add it (with its support set's pieces) and its
+        pattern's solutions, so that the loop finds both next time."""
+        if model.solves != self.solves:  # a pattern solved now (or elsewhere, by a copy of the model)
+            self.solves = model.solves
+            self.learn_pattern(model, piece.support)
+            if self.store_solves is not None and model.solves != self.store_solves:  # mirrored if this one solve
+                self.store_solves = model.solves if model.solves == self.store_solves + 1 else None
+        self.index_of(model, piece)  # after its pattern: a piece of a pattern shares the pattern's record
+        if len(model._pieces) - self.mirrored <= 1:  # piece_for adds at most this one: the table matches again
+            self.mirrored = len(model._pieces)
+
+    def index_of(self, model: "ParcelModel", piece: Piece) -> int:
+        """The index of ``piece`` (one of ``model``'s), adding it and the pieces of its support set before it."""
+        found = self.index.get(piece)
+        if found is not None:
+            return found
+        skey = piece.key[0]
+        ids = np.array(skey, dtype=np.int64)
+        for other in model._by_support.get(skey, [piece]):
+            if other in self.index:
+                continue
+            sol = other.solution
+            j = self._record(sol)
+            used = self.used
+            if (used[_kernel.U_PIECES] >= len(self.psol) or used[_kernel.U_KEYS] >= len(self.kmeta)
+                    or used[_kernel.U_IDS] + len(ids) > len(self.ipool) or 2 * (used[_kernel.U_KEYS] + 1) > len(
+                        self.slots)):
+                self._room(pieces=1, keys=1, ids=len(ids))
+            p = _kernel.table_add_piece_of(self.slots, self.kmeta, self.ipool, self.psol, self.porigin, self.pnext,
+                                           self.pkey, self.rows, self.used, ids, j, sol.origin, np.array(other.row))
+            self.index[other] = p
+            self.pieces.append(other)
+        return self.index[piece]
+
+    def _record(self, sol: SupportSolution) -> int:
+        """The record of ``sol``'s arrays (contiguous float64, as physics.contact makes them), added unless a record
+        of the same arrays is there (a translated copy of a pattern's solution shares them: ``SupportSolution.at``);
+        its index."""
+        holding = sol._holding
+        found = self.record_of.get(id(holding))
+        if found is not None:
+            return found
+        m, r = sol.basis.shape
+        floats = _kernel.record_floats(m, r, len(sol.hull_offsets), len(holding))
+        used = self.used
+        if (used[_kernel.U_FLOATS] + floats > len(self.fpool) or used[_kernel.U_RECORDS] >= len(self.srec)
+                or used[_kernel.U_PIECES] >= len(self.psol)):
+            self._room(pieces=1, records=1, floats=floats)
+        j = _kernel.table_add_record(self.srec, self.fpool, self.used, float(sol.weight), sol.basis, sol.plane_lin,
+                                     sol.plane_const, sol.hull_normals, sol.hull_offsets, sol.spring_lin,
+                                     sol.spring_gradient, sol.points, sol.force_lin, sol.force_const, holding)
+        self.records.append(sol)  # (which keeps holding, the key, alive)
+        self.record_of[id(holding)] = j
+        return j
+
+    def learn_pattern(self, model: "ParcelModel", support: np.ndarray) -> None:
+        """Add the solutions of the pattern of cells ``support`` in the model's shared store the table lacks."""
+        if not self.drive or len(support) == 0:
+            return
+        _, _, rel = _kernel.pattern(model.cells.positions, support, _PATTERN_RESOLUTION * model.cells.pitch)
+        self._learn_key(model, rel.tobytes())
+
+    def _learn_key(self, model: "ParcelModel", gkey: bytes) -> None:
+        """:meth:`learn_pattern` of the pattern whose key (its cells' integer offsets, int64 bytes) is ``gkey``: its
+        shared solutions the table lacks, and whether the model holds solutions of it of its own."""
+        solved = model._geometry.shared.get(gkey, ())
+        own = gkey in model._geometry.own
+        g, chained = self.patterns.get(gkey, (-1, 0))
+        if chained == len(solved) and (not own or (g >= 0 and self.gmeta[g, 4])):
+            return
+        if g < 0:
+            flat = np.frombuffer(gkey, np.int64).copy()
+            self._room(patterns=1, ids=len(flat))
+            g = _kernel.table_add_key(self.gslots, self.gmeta, self.ipool, self.used, _kernel.U_PATTERNS, flat)
+        for sol in solved[chained:]:
+            _kernel.table_chain_record(self.srec, self.gmeta, g, self._record(sol))
+        if own:
+            self.gmeta[g, 4] = 1
+        self.patterns[gkey] = g, len(solved)
+
+    def adopt_born(self, model: "ParcelModel", start: int, born: int) -> None:
+        """Make the ``born`` pieces the loop made from patterns (indices from ``start``) Python pieces, and add them to
+        the model's cache as :meth:`ParcelModel.piece_for` would have."""
+        spec, kmeta, ipool = model.spec, self.kmeta, self.ipool
+        terms = self.law_args[-1]
+        for b, p in enumerate(range(start, start + born)):
+            off, n = kmeta[self.pkey[p], :2].tolist()
+            support = ipool[off:off + n].copy()
+            skey = tuple(support.tolist())
+            sol = self.records[self.psol[p]].at(self.porigin[p].copy())
+            k = affine.FrictionConstants(terms[b].copy(), self.damping, sol.weight)
+            piece = Piece.of(support, sol, k, spec.mass, spec.inertia, tuple(self.rows[p].tolist()), skey)
+            model._pieces[piece.key] = piece
+            model._by_support[skey] = [piece]
+            self.index[piece] = p
+            self.pieces.append(piece)
+        self.mirrored += born
+
+    @staticmethod
+    def change(old: Piece, new: Piece) -> tuple:
+        """(entered, left, lifted, touched) between two pieces, as :func:`diff_event` finds them."""
+        (old_s, old_c), (new_s, new_c) = old.sets, new.sets
+        return (_ordered(new_s - old_s), _ordered(old_s - new_s), _ordered((old_c - new_c) & new_s),
+                _ordered((new_c - old_c) & old_s))
+
+    def _room(self, keys: int = 0, ids: int = 0, pieces: int = 0, floats: int = 0, records: int = 0,
+              patterns: int = 0) -> None:
+        """Grow the arrays (doubling) until this much more fits."""
+        n_pieces, n_keys, n_floats, n_ids, n_records, n_patterns = self.used.tolist()
+        if n_pieces + pieces > len(self.psol):
+            self.psol, self.porigin, self.pnext, self.pkey, self.rows = (
+                _grown(a, n_pieces + pieces) for a in (self.psol, self.porigin, self.pnext, self.pkey, self.rows))
+        if n_records + records > len(self.srec):
+            self.srec = _grown(self.srec, n_records + records)
+        if n_floats + floats > len(self.fpool):
+            self.fpool = _grown(self.fpool, n_floats + floats)
+        if n_ids + ids > len(self.ipool):
+            self.ipool = _grown(self.ipool, n_ids + ids)
+        if n_keys + keys > len(self.kmeta):
+            self.kmeta = _grown(self.kmeta, n_keys + keys)
+        if n_patterns + patterns > len(self.gmeta):
+            self.gmeta = _grown(self.gmeta, n_patterns + patterns)
+        for name, meta, n in (("slots", self.kmeta, n_keys + keys), ("gslots", self.gmeta, n_patterns + patterns)):
+            slots = getattr(self, name)
+            if 2 * n > len(slots):  # at most half full, so that probes stay short
+                size = len(slots)
+                while 2 * n > size:
+                    size *= 2
+                slots = np.full(size, -1, np.int64)
+                _kernel.table_rehash(slots, meta, self.ipool, n_keys if name == "slots" else n_patterns)
+                setattr(self, name, slots)
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    """A read-only view of ``a`` (no copy): the compiled loop then has one type for it whoever made the array (a
+    writable and a read-only array are two types to numba, and each its own compilation)."""
+    view = a.view()
+    view.flags.writeable = False
+    return view
+
+
+def _grown(a: np.ndarray, need: int) -> np.ndarray:
+    """``a`` in a copy at least ``need`` rows long (its length doubled until it is)."""
+    size = len(a)
+    while size < need:
+        size *= 2
+    out = np.zeros((size, *a.shape[1:]), a.dtype)
+    out[:len(a)] = a
+    return out
+
+
 class ParcelModel:
     """One parcel on one cell array under constant wheel velocities and a friction law.
 
@@ -161,6 +468,7 @@ class ParcelModel:
         self._pieces: dict[tuple, Piece] = {}
         self._by_support: dict[tuple[int, ...], list[Piece]] = {}
         self._geometry = _GeometryCache(shared_solutions)
+        self._table: _PieceTable | None = None
         self.present: np.ndarray | None = None
         """(n,) False for contacts of cells taken out of the array (reconfiguration): they carry nothing. None: all
         present. Set by the plant between integrate calls."""
@@ -206,6 +514,7 @@ class ParcelModel:
         other.velocities = velocities
         other._pieces = {}
         other._by_support = {}
+        other._table = None
         return other
 
     @cached_property
@@ -352,6 +661,21 @@ class _Segment:
             self.xy = (x, y)
             self.ids = model.cells.grid.within(x, y, radius + buffer, model.present)
             self.candidates = model.cells.positions[self.ids]
+        self._finish(model, piece)
+
+    @classmethod
+    def gathered(cls, model: ParcelModel, piece: Piece, ids: np.ndarray, candidates: np.ndarray,
+                 center: np.ndarray) -> "_Segment":
+        """The segment of ``piece`` whose candidates (cell ids and positions, m) a compiled event loop gathered
+        about ``center`` (m), as :meth:`__init__` would have gathered them there."""
+        seg = cls.__new__(cls)
+        seg.buffer = model.segment_scales[1]
+        seg.ids, seg.candidates, seg.center, seg.xy = ids, candidates, center, tuple(center.tolist())
+        seg._finish(model, piece)
+        return seg
+
+    def _finish(self, model: ParcelModel, piece: Piece) -> None:
+        radius, buffer, noise_length, noise_force = model.segment_scales
         sol = piece.solution
         nc, m, q = len(self.ids), len(sol.points), len(sol.hull_offsets)
         self.bounds = (0, nc, nc + m, nc + m + q, nc + m + q + 1)
@@ -393,8 +717,12 @@ short time, but each to a new piece.)"""
 _CHATTER_PIECES = 4
 _CHATTER_STEPS = 20
 """Fixed steps of ``dt`` taken across a chattering boundary before events are located again."""
+_EVENT_COLUMNS = 256
+"""Support changes the compiled event loop writes before it hands them to Python (which makes them events)."""
 _PAUSE_STEPS = 64
 """With a progress callback, the compiled engine hands control back after this many steps within one piece."""
+_NO_MASK = np.zeros(0, dtype=bool)
+"""``present`` for the compiled loop's candidate search when every cell is present."""
 _NO_PAUSE = int(np.iinfo(np.int64).max)
 """Steps within one piece without a progress callback: no limit (worked out once: np.iinfo took ~5 us a call)."""
 
@@ -515,7 +843,6 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     events: list[Event] = []
     t, y = float(t0), y0.copy()
     segments = nfev = chatter_steps = 0
-    recent: deque[tuple[float, tuple]] = deque(maxlen=_CHATTER_EVENTS)  # the latest support changes: time, piece
     # First step: the whole interval, which the error control shrinks if it must (a few rejected trials for a long
     # run). Within a piece the motion is smooth, so a short interval, as a control tick, is often one step, where
     # the solver's own first-step guess took five.
@@ -530,14 +857,22 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     y_probe = y
     seg = None
     max_steps = _PAUSE_STEPS if progress is not None else _NO_PAUSE
-    while True:
+    ring_t, ring_p, ring = np.zeros(_CHATTER_EVENTS), np.zeros(_CHATTER_EVENTS, np.int64), np.zeros(2, np.int64)
+    ev_t, ev_y, ev_p = np.empty(_EVENT_COLUMNS), np.empty((_EVENT_COLUMNS, 6)), np.empty((_EVENT_COLUMNS, 2), np.int64)
+    begin = True  # a new piece whose candidates Python gathers (or keeps, as _Segment decides)
+    begun = False  # a new piece the compiled loop begins (keeping the candidates) or hands back to begin here
+    table, outcome = model._table, None
+    cells_grid = model.cells.grid  # what the loop gathers candidates with (PointGrid.within's arguments)
+    grid = (cells_grid.points, cells_grid.order, cells_grid.start, float(cells_grid.lo[0]), float(cells_grid.lo[1]),
+            float(cells_grid.size), int(cells_grid.shape[0]), int(cells_grid.shape[1]),
+            _NO_MASK if model.present is None else model.present, float(model.segment_scales[0]))
+    pending = table is None  # the first piece alone (kernel.run_piece), the table made only if an event ends it
+    if pending:  # (most of a plant's control ticks have none: making the table took as long as the tick)
         segments += 1
-        if segments > max_segments:
-            raise IntegrationError(f"more than {max_segments} support changes: events accumulate near t={t:.9g} s")
         seg = _Segment(model, piece, y_probe, seg)
-        base = y_probe  # the event values' signs here are the piece's baseline
+        base = y_probe
         first, h_abs = min(h, t1 - t), 0.0
-        while True:  # DOP853 on this piece until its first event (kernel.run_piece), handing back now and then
+        while True:
             (outcome, t, y, h_abs, last, evals, rec.next, t_probe, y_probe, under,
              told) = _kernel.run_piece(piece.row, seg.fields, base, t, y, t1, h_abs, first, rtol, atol, max_step,
                                         max_steps, rec.sample_times, rec.next, rec.samples)
@@ -550,36 +885,89 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
                 progress(t)
             if outcome != _kernel.PAUSED:
                 break
-        if outcome == _kernel.REACHED:
-            break
-        recent.append((t, piece.key))
-        if (len(recent) == _CHATTER_EVENTS and t - recent[0][0] < _CHATTER_SPAN * max(1.0, abs(t))
-                and len({key for _, key in recent}) <= _CHATTER_PIECES):
-            recent.clear()  # chattering: cross the boundary in fixed steps, then locate events again
-            t_end = min(t1, t + _CHATTER_STEPS * dt)
-            due = rec.pending_until(t_end)
-            times, states, evs, status, t, n = fixed_steps(model, y, t, t_end, dt, due, progress, _rk4(model))
-            kept = int(np.count_nonzero(due <= t))  # all of them unless it tipped
-            rec.add(times[:kept], states[:kept])
-            events.extend(evs)
-            chatter_steps += n
-            y = y_probe = states[-1]
-            if status == "tipped" or t >= t1:
+        if outcome == _kernel.EVENT:  # as the loop would have met it: the chatter test's first event, then a miss
+            table = model._table = _PieceTable(model, len(piece.row))
+            table.sync(model, piece)
+            ring_t[0], ring_p[0], ring[:] = t, table.index_of(model, piece), 1
+            outcome = _kernel.LOOP_MISS
+    while outcome != _kernel.REACHED:
+        if pending:
+            pending = False
+        else:
+            if begin:
+                segments += 1
+                if segments > max_segments:
+                    raise IntegrationError(f"more than {max_segments} support changes: events accumulate near "
+                                           f"t={t:.9g} s")
+                seg = _Segment(model, piece, y_probe, seg)
+                base = y_probe  # the event values' signs here are the piece's baseline
+                first, h_abs = min(h, t1 - t), 0.0
+            elif begun:
+                base = y_probe
+            begin = True
+            if table.sync(model, piece):  # emptied (bounded memory): the chatter test starts again
+                ring[:] = 0
+            p = table.index_of(model, piece)  # after the sync: both may grow the table's arrays
+            start = int(table.used[_kernel.U_PIECES])
+            # DOP853 piece by piece (kernel.run_events) until a support set it cannot make or solve, a pause, ...
+            (outcome, t, y, p, h, h_abs, evals, rec.next, segments, n_ev, born, y_probe, under, told, ids,
+             candidates, center) = _kernel.run_events(
+                table.arrays, seg.fields, p, begun, base, t, y, t1, h, h_abs, first, rtol, atol, max_step, max_steps,
+                rec.sample_times, rec.next, rec.samples, segments, max_segments, ring_t, ring_p, ring, _CHATTER_SPAN,
+                _CHATTER_PIECES, ev_t, ev_y, ev_p, table.law_args, grid)
+            table.adopt_solved(model)  # before the pieces made from them
+            if born:
+                table.adopt_born(model, start, born)
+            begun = False
+            nfev += evals
+            pieces = table.pieces
+            for tj, yj, (a, b) in zip(ev_t[:n_ev].tolist(), ev_y[:n_ev].tolist(), ev_p[:n_ev].tolist()):
+                events.append(Event.support(tj, tuple(yj), *table.change(pieces[a], pieces[b])))
+            piece = pieces[p]
+            if (center[0], center[1]) != seg.xy:  # gathered again in the loop (never where they were)
+                seg = _Segment.gathered(model, piece, ids, candidates, center)
+            _check_outcome(outcome, t)
+            if progress is not None:
+                progress(t)
+            if outcome == _kernel.PAUSED:  # the same piece goes on
+                base, first, begin = y_probe, 0.0, False
+                continue
+            if outcome in (_kernel.REACHED, _kernel.LOOP_DONE):
                 break
-            piece = model.piece_at(y)  # tipping would have ended the fixed steps
-            continue
-        try:  # the cells under it are known from the probe's event values, when those tell (as seg.support)
+            if outcome == _kernel.LOOP_TOO_MANY:
+                raise IntegrationError(f"more than {max_segments} support changes: events accumulate near "
+                                       f"t={t:.9g} s")
+            if outcome == _kernel.LOOP_SEGMENT:
+                continue
+            if outcome == _kernel.LOOP_CHATTER:
+                ring[:] = 0  # chattering: cross the boundary in fixed steps, then locate events again
+                t_end = min(t1, t + _CHATTER_STEPS * dt)
+                due = rec.pending_until(t_end)
+                times, states, evs, status, t, n = fixed_steps(model, y, t, t_end, dt, due, progress,
+                                                               _rk4(model))
+                kept = int(np.count_nonzero(due <= t))  # all of them unless it tipped
+                rec.add(times[:kept], states[:kept])
+                events.extend(evs)
+                chatter_steps += n
+                y = y_probe = states[-1]
+                if status == "tipped" or t >= t1:
+                    break
+                piece = model.piece_at(y)  # tipping would have ended the fixed steps
+                continue
+        try:  # LOOP_MISS: the cells under it are known from the probe's event values, when those tell
             new = model.piece_for(under, y_probe) if told else model.piece_at(y_probe)
         except TippingError as exc:
             events.append(Event(t, "tip", tuple(map(float, y)), message=str(exc)))
             status = "tipped"
             break
+        table.learn(model, new)
         ev = diff_event(t, y, piece, new)
         if ev is not None:
             events.append(ev)
         piece = new
         if t >= t1:  # the event's restart point is the end of the interval
             break
+        begin, begun = False, True
     rec.final(t, y)
     stats = {"pieces_cached": model.pieces_cached, "solves": model.solves}
     if chatter_steps:

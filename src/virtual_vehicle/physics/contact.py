@@ -35,7 +35,7 @@ import numpy as np
 from numba import njit
 
 from virtual_vehicle.errors import IntegrationError, TippingError
-from virtual_vehicle.model.layout import collinear
+from virtual_vehicle.model.layout import COLLINEAR_TOL, _collinear_kernel, collinear
 
 _REL_TOL = 1e-12  # relative tolerance for geometric ties (hull boundary, zero forces)
 _SLAB = 1e-9  # relative half-width of the band in which a load counts as on the line of its contacts
@@ -265,6 +265,40 @@ def _planar(pts, com, weight, max_iter):
     springs = (spring_lin, np.hypot(spring_lin[:, 0], spring_lin[:, 1]),
                _pack_holding(basis, mapped[2], mapped[3], mapped[0], h_normals, h_offsets))
     return outside, tol, origin, local, xi, h_normals, h_offsets, basis, mapped, forces, springs
+
+
+SOLVED, SOLVE_LINE, SOLVE_TIPS, SOLVE_STUCK, SOLVE_FLAT = 0, 1, 2, 3, 4
+"""Outcomes of :func:`solve_planar_kernel`: solved; the supports lie on one line (the 1-D model, Python's); the
+centre of mass is outside their hull (Python raises TippingError); the contact-set iteration did not converge
+(IntegrationError); the contact set lies on one line (its plane is tilted in Python, ``_on_contact_line``)."""
+
+
+@njit(cache=True)
+def solve_planar_kernel(pts, com, weight, max_iter):
+    """:func:`solve_prechecked`'s common case without Python, for a compiled event loop that meets a support set it
+    has never solved: supports at ``pts`` ((m, 2), m), centre of mass ``com`` (m), weight (N). The same compiled
+    arithmetic (:func:`_planar`), so the same floats. Returns (outcome, origin, points, in_contact, basis,
+    plane_lin, plane_const, hull_normals, hull_offsets, spring_lin, spring_gradient, holding, force_lin,
+    force_const): the arrays of :class:`SupportSolution` (the last three of its cached properties), valid only when
+    the outcome is ``SOLVED``; any other outcome (``SOLVE_*``) is left to :func:`solve_prechecked`."""
+    if _collinear_kernel(pts, COLLINEAR_TOL):
+        status = SOLVE_LINE
+        origin, local, xi, _ = _frame(pts, com)
+        empty2, empty1 = np.zeros((0, 2)), np.zeros(0)
+        return (status, origin, local, np.zeros(0, np.bool_), np.zeros((0, 3)), np.zeros((3, 2)), np.zeros(3),
+                empty2, empty1, empty2, empty1, empty1, empty2, empty1)
+    (outside, tol, origin, local, xi, h_normals, h_offsets, basis, mapped, forces,
+     springs) = _planar(pts, com, weight, max_iter)
+    in_contact, converged, plane_lin, plane_const = mapped
+    status = SOLVED
+    if outside > tol:
+        status = SOLVE_TIPS
+    elif not converged:
+        status = SOLVE_STUCK
+    elif not np.all(in_contact) and _collinear_kernel(_rows(local, in_contact), COLLINEAR_TOL):
+        status = SOLVE_FLAT  # as _finish's test, which goes to _on_contact_line
+    return (status, origin, local, in_contact, basis, plane_lin, plane_const, h_normals, h_offsets, springs[0],
+            springs[1], springs[2], forces[0], forces[1])
 
 
 @njit(cache=True)

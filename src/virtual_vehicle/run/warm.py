@@ -35,6 +35,8 @@ def warm_up() -> float:
     spec = rectangle(0.25, 0.22, 1.0, 0.5)
     model = ParcelModel(cells, spec, Uniform((0.1, 0.0)).velocities(cells), LAWS["coulomb"])
     end = integrate(model, np.array([0.15, 0.15, 0.0, 0.0, 0.0, 0.0]), 0.0, 0.01).states[-1]
+    # long enough for support changes: the compiled event loop and its table (a call's first piece runs alone)
+    integrate(model.with_velocities(model.velocities), np.array([0.15, 0.15, 0.0, 0.0, 0.0, 0.0]), 0.0, 0.3)
     piece = model.piece_at(end)  # found again: the cache's test of a solution
     LAWS["viscous"].constants_and_row(piece.solution, model.velocities[piece.support],
                                       cells.active_directions[piece.support], 0.5, spec.mass, spec.inertia)

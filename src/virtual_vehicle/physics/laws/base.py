@@ -95,6 +95,17 @@ class FrictionLaw(ABC):
         """:meth:`constants` and the piece's constants row (:data:`~virtual_vehicle.physics.laws.affine.ROW_FIELDS`)
         for a parcel of ``mass`` (kg) and ``inertia`` (kg m^2)."""
 
+    drive_kernel = None
+    """For a law whose :meth:`constants_and_row` is :func:`~virtual_vehicle.physics.laws.affine._terms_and_row` of
+    drive vectors computed per cell: those drive vectors as a compiled function of the supporting cells' velocities
+    ((m, 2), m/s) and drive directions ((m, k, 2)), with :meth:`affine_damping` as the damping, so that the compiled
+    event loop makes a new support set's constants without Python (and exactly as :meth:`constants_and_row` does).
+    None: every new support set's constants are made in Python."""
+
+    def affine_damping(self, mu: float) -> float:
+        """The damping :meth:`constants_and_row` passes with :attr:`drive_kernel` for friction coefficient ``mu``."""
+        raise NotImplementedError(f"the {self.name} law has no compiled drive")
+
     @abstractmethod
     def reach(self, s0, window, *, rate, wheel_speed: float, lever=None):
         """Upper bounds on how far (m) any point of a parcel can move in ``window`` s driven by the wheels alone,

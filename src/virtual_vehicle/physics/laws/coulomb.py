@@ -111,6 +111,13 @@ class CoulombLaw(FrictionLaw):
         F = self.drive_vectors(velocities, drive_directions)
         return drive_constants(solution.points, F, solution.force_lin, solution.force_const, solution.weight, mu)
 
+    drive_kernel = staticmethod(_coulomb_drive)
+    """See :attr:`FrictionLaw.drive_kernel`: F of eq. 21."""
+
+    def affine_damping(self, mu: float) -> float:
+        """See :meth:`FrictionLaw.affine_damping`: none (the wheels push with mu N whatever the slip)."""
+        return 0.0
+
     def constants_and_row(self, solution, velocities, drive_directions, mu, mass, inertia):
         """See :meth:`FrictionLaw.constants_and_row`; the drive vectors, sums and row in one compiled call."""
         terms = _coulomb_terms_and_row(f64(velocities), f64(drive_directions), solution.points, solution.force_lin,

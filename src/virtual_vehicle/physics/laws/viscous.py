@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.optimize import lsq_linear
 
 from virtual_vehicle.physics.laws import affine
@@ -24,6 +25,12 @@ def viscous_constants(points, velocities, weight: float, mu: float) -> FrictionC
     all cells in contact; ``mu`` in s/m."""
     G, h = affine.all_in_contact_map(points, weight)
     return drive_constants(points, velocities, G, h, weight, mu, damping=mu)
+
+
+@njit(cache=True)
+def _viscous_drive(V, U):
+    """:meth:`ViscousLaw.drive_vectors` of velocities ``V`` (m, 2), compiled: the wheel velocities (eq. 30)."""
+    return V.copy()
 
 
 @dataclass(frozen=True)
@@ -50,6 +57,13 @@ class ViscousLaw(FrictionLaw):
         """Per-support-set constants (eqs. 30-38): the wrench is linear in the parcel's twist."""
         return drive_constants(solution.points, velocities, solution.force_lin, solution.force_const,
                                solution.weight, mu, damping=mu)
+
+    drive_kernel = staticmethod(_viscous_drive)
+    """See :attr:`FrictionLaw.drive_kernel`: the wheel velocities V of eq. 30."""
+
+    def affine_damping(self, mu: float) -> float:
+        """See :meth:`FrictionLaw.affine_damping`: ``mu`` itself (eqs. 33, 38)."""
+        return mu
 
     def constants_and_row(self, solution, velocities, drive_directions, mu, mass, inertia):
         """See :meth:`FrictionLaw.constants_and_row`."""
