@@ -63,7 +63,7 @@ from virtual_vehicle.physics.laws.affine import (
     R_SECOND_LIN_Y,
     R_WEIGHT,
 )
-from virtual_vehicle.physics.stick_modes import zonotope_inradius
+from virtual_vehicle.physics.stick_modes import _wheel_arrays, zonotope_inradius
 
 RECTANGLE, CONVEX, POLYGON = 0, 1, 2
 """Footprint kinds: margins in closed form, from half-planes, or as a signed distance to a simple polygon."""
@@ -1374,6 +1374,89 @@ def ride_data(P, U, w, FL, FC, origin, mus, X, tol):
     for a in range(count):
         size += abs(G[a, 0]) + abs(G[a, 1]) + abs(G[a, 2])
     return True, nu, zonotope_inradius(G) - 1e-9 * size, spread, arm, scale, on
+
+
+@njit(cache=True)
+def ride_measure(points, order, start, lo0, lo1, size, nx, ny, present, positions, wheel_active, directions, V,
+                 idx, Y, reach, buffer, noise, noise_force, mu, mu_s, kind, half, normals, n_edges, offsets,
+                 vertices, n_vertices, known, support, n_support, holding, spring_lin, force_lin, force_const, origin,
+                 on_was, tol, near, n_near, measures, flags, on_now):
+    """The anchors and ride data of many parcels in one call, where each parcel's last anchor still stands: for
+    parcel ``idx[k]`` (plant index, state ``Y[k]``) whose last anchor is ``known`` (its solution the first of its
+    pattern's shared ones), the cells present within ``reach`` (m) of its centre (``_within``, the grid's arrays),
+    their footprint margins (:func:`cell_margins`, the parcel's outline padded: ``kind``, ``half``, ``normals`` /
+    ``offsets`` (``n_edges`` of them), ``vertices`` (``n_vertices``)); when the cells under it are the anchor's
+    (``support``, ``n_support``) and its solution (``holding``: the packed holding test, ``spring_lin``, ``force_lin``,
+    ``force_const``, ``origin``, padded by support row) holds at the centre, it is the anchor the engine's
+    :func:`~virtual_vehicle.engine.batch.anchor` measures there (the same solution, the same arithmetic): writes its
+    near cells (``near``, ``n_near``: the row's width bounds them), ``measures[k]`` = clear, slack (m), the wheels'
+    twist (vx, vy m/s, omega rad/s), inradius (N), ``sum mu_s N`` (N), arm (m), speed scale (m/s) as
+    :func:`ride_data` gives them for its wheels (``V`` the contact layer's velocities, m/s; ``mu`` / ``mu_s`` the
+    parcel's coefficients), and ``flags[k]`` = measured here, rides (rank 3, one rigid twist), wheels in contact as
+    ``on_was`` (the new ones in ``on_now[k]``; its width bounds the wheels too). ``noise`` (m) and ``noise_force`` (N) are the anchor's rounding
+    noise. A parcel not measured here (flag 0 False) goes to the anchor made in Python."""
+    for k in range(idx.shape[0]):
+        i = idx[k]
+        flags[k, 0] = flags[k, 1] = flags[k, 2] = False
+        if not known[i]:
+            continue
+        y = Y[k]
+        ids = _within(points, order, start, lo0, lo1, size, nx, ny, present, y[0], y[1], reach[i])
+        if ids.shape[0] > near.shape[1]:
+            continue  # wider than the columns: the Python anchor widens them
+        margins, nearest = cell_margins(kind[i], half[i], normals[i, :n_edges[i]], offsets[i, :n_edges[i]],
+                                        vertices[i, :n_vertices[i]], positions[ids], y)
+        m = n_support[i]
+        count, same = 0, True
+        for c in range(ids.shape[0]):
+            if margins[c] > 0:
+                if count >= m or ids[c] != support[i, count]:
+                    same = False
+                    break
+                count += 1
+        if not same or count != m:
+            continue  # the cells under it changed: a new anchor
+        xi0, xi1 = y[0] - origin[i, 0], y[1] - origin[i, 1]
+        p = holding[i]
+        if not _holds_packed(p, xi0, xi1):
+            continue
+        mm, r, q = int(p[0]), int(p[1]), int(p[2])
+        at = 3
+        basis = p[at:at + mm * r].copy().reshape((mm, r))
+        at += mm * r
+        plane_lin = p[at:at + 2 * r].copy().reshape((r, 2))
+        at += 2 * r
+        plane_const = p[at:at + r].copy()
+        at += r + mm  # (the contact mask)
+        hull_normals = p[at:at + 2 * q].copy().reshape((q, 2))
+        at += 2 * q
+        hull_offsets = p[at:at + q].copy()
+        slack = support_slack(basis, plane_lin, plane_const, spring_lin[i, :m], hull_normals, hull_offsets, xi0, xi1,
+                              noise_force[i], noise[i])
+        cells = support[i, :m].copy()
+        P, U, w, _, _, FL, FC, o, mus, _ = _wheel_arrays(wheel_active, directions, positions, V, cells,
+                                                          force_lin[i, :m].copy(), force_const[i, :m].copy(),
+                                                          origin[i].copy(), mu[i], mu_s[i])
+        if P.shape[0] > on_now.shape[1]:
+            continue
+        X = np.empty(2)
+        X[0], X[1] = y[0], y[1]
+        rides, twist, inradius, spread, arm, scale, on = ride_data(P, U, w, FL, FC, o, mus, X, tol)
+        for c in range(ids.shape[0]):
+            near[k, c] = ids[c]
+        n_near[k] = ids.shape[0]
+        measures[k, 0] = min(buffer[i], nearest) - noise[i]
+        measures[k, 1] = slack
+        measures[k, 2], measures[k, 3], measures[k, 4] = twist[0], twist[1], twist[2]
+        measures[k, 5], measures[k, 6], measures[k, 7], measures[k, 8] = inradius, spread, arm, scale
+        flags[k, 0], flags[k, 1] = True, rides
+        same_on = on.shape[0] <= on_was.shape[1]
+        for j in range(on.shape[0]):
+            if same_on and on_was[i, j] != on[j]:
+                same_on = False
+            on_now[k, j] = on[j]
+        flags[k, 2] = same_on
+    return 0
 
 
 # The support-set cache as arrays, and one parcel's event loop over it (issue 32 item 4).

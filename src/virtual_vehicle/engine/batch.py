@@ -138,6 +138,9 @@ class QuietSteps:
     """
 
     __slots__ = ("idx", "times", "states", "rows", "evals", "solves")
+    summed = False
+    """Whether its trajectories' stats hold any of the summed stats (:data:`~virtual_vehicle.engine.plant.SUMMED_STATS`):
+    a quiet step's hold the count of solves only."""
 
     def __init__(self, idx: list[int], times: np.ndarray, states: np.ndarray, rows: list[int], evals: int,
                  solves: list[int]):

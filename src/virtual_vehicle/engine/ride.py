@@ -44,8 +44,10 @@ from __future__ import annotations
 import numpy as np
 
 from virtual_vehicle.engine import _kernel
-from virtual_vehicle.engine.batch import QuietStepper
+from virtual_vehicle.engine.batch import QuietStepper, QuietSteps, _padded_row
+from virtual_vehicle.engine.dynamics import ROUNDING_NOISE
 from virtual_vehicle.engine.stepping import Trajectory
+from virtual_vehicle.model.parcel import _ALL
 
 RIDE_TOL = 1e-10
 """A parcel rides the field when its twist differs from the field's by less than this, relative to the speed scale
@@ -78,9 +80,43 @@ def rigid_motion(Y: np.ndarray, times: np.ndarray, t: float) -> np.ndarray:
     return out
 
 
+class RideSteps(QuietSteps):
+    """The windows of parcels that rode their wheels over one window, kept as the one block the closed form wrote
+    (a networked run takes them in as they are; :meth:`trajectory` makes each one's
+    :class:`~virtual_vehicle.engine.dynamics.Trajectory` only when asked). As :class:`QuietSteps`, with each parcel's
+    state before its twist was made the field's (``start``, (q, 6)), mass (kg), inertia (kg m^2) and count of cached
+    pieces when it was stepped, from which its stats are made: zero wheel work and dissipation, its kinetic energy
+    at both ends (J)."""
+
+    __slots__ = ("start", "mass", "inertia", "pieces")
+    summed = True
+
+    def __init__(self, idx: list[int], times: np.ndarray, states: np.ndarray, start: np.ndarray, mass: np.ndarray,
+                 inertia: np.ndarray, pieces: list[int], solves: list[int]):
+        super().__init__(idx, times, states, np.arange(len(idx)), 0, solves)
+        self.start, self.mass, self.inertia, self.pieces = start, mass, inertia, pieces
+
+    def trajectory(self, k: int) -> Trajectory:
+        """Parcel ``idx[k]``'s ride over the window: one closed-form step, no events, completed."""
+        y0, y1 = self.start[k], self.states[k, -1]
+        mass, inertia = self.mass[k], self.inertia[k]
+        stats = {"wheel_work": 0.0, "friction_dissipation": 0.0, "step_dissipation": 0.0, "contact_work": 0.0,
+                 "sweeps_max": 0, "unconverged_steps": 0,
+                 "kinetic_start": 0.5 * float(mass * (y0[3] ** 2 + y0[4] ** 2) + inertia * y0[5] ** 2),
+                 "kinetic_end": 0.5 * float(mass * (y1[3] ** 2 + y1[4] ** 2) + inertia * y1[5] ** 2),
+                 "mode_changes": 0, "mode_events": [], "pieces_cached": self.pieces[k], "solves": self.solves[k]}
+        return Trajectory(self.times, self.states[k], [], "completed", float(self.times[-1]), 1, 0, stats)
+
+
 class RideStepper(QuietStepper):
     """Steps the windows in which stick-slip parcels ride their wheels rigidly (module docstring), with the quiet
     stepper's anchors (clearance, support slack, edges) measured at each window's start.
+
+    A parcel whose last anchor's cells are still under it and whose solution still holds there (most riding
+    windows) is measured again, with its ride data, for all such parcels in one compiled call over per-parcel arrays
+    (:func:`~virtual_vehicle.engine._kernel.ride_measure`): the same anchor :func:`~virtual_vehicle.engine.batch.anchor`
+    makes, to the last bit, kept in the columns only (the anchor object keeps its cells and solution). The others
+    are measured one by one in Python.
 
     Args:
         cells: the contact layer.
@@ -94,6 +130,7 @@ class RideStepper(QuietStepper):
         super().__init__(cells, specs, law, mu_max, gravity, 0.0, 0.0)
         self.specs = list(specs)
         self.mass = np.array([s.mass for s in specs])
+        self.inertia = np.array([s.inertia for s in specs])
         n = len(specs)
         self._twist = np.zeros((n, 3))  # the field's twist (vx, vy at the anchor's centre; omega), m/s, rad/s
         self._rides = np.zeros(n, dtype=bool)  # the wheels under the anchor are one rigid twist of rank 3
@@ -102,10 +139,51 @@ class RideStepper(QuietStepper):
         self._arm = np.zeros(n)  # m: the farthest wheel from the anchor's centre
         self._scale = np.zeros(n)  # m/s: the speed scale of the slip tolerance
         self._stuck: dict[int, tuple] = {}  # per parcel: the wheel memory of a ride (no impulses; those in contact)
+        # what the compiled measure reads of each parcel: its outline, reach and rounding noise (fixed) ...
+        outlines = [_kernel.outline(s) for s in specs]
+        self._kind = np.array([o[0] for o in outlines], dtype=np.int64)
+        self._half = np.array([o[2] for o in outlines]).reshape(n, 2)
+        self._n_edges = np.array([len(o[4]) for o in outlines], dtype=np.int64)
+        self._n_vertices = np.array([len(o[5]) for o in outlines], dtype=np.int64)
+        self._normals, self._offsets = np.zeros((n, self._n_edges.max(initial=0), 2)), np.zeros((n, self._n_edges.max(initial=0)))
+        self._vertices = np.zeros((n, self._n_vertices.max(initial=0), 2))
+        for i, o in enumerate(outlines):
+            self._normals[i, :len(o[4])], self._offsets[i, :len(o[4])], self._vertices[i, :len(o[5])] = o[3], o[4], o[5]
+        self._buffer = np.array([max(cells.pitch, 0.25 * s.radius) for s in specs])
+        self._reach = np.array([s.radius + b for s, b in zip(specs, self._buffer.tolist())])
+        self._noise_len = np.array([ROUNDING_NOISE * max(self.length, s.radius) for s in specs])
+        self._noise_force = np.array([ROUNDING_NOISE * s.weight(gravity) for s in specs])
+        self._mu = np.array([float(s.mu) for s in specs])
+        self._mu_s = np.array([float(s.mu if s.mu_static is None else s.mu_static) for s in specs])
+        # ... and its last anchor's solution, where it is the first of its pattern's (else ``_known`` False)
+        self._known = np.zeros(n, dtype=bool)
+        self._n_support = np.zeros(n, dtype=np.int64)
+        self._holding = np.zeros((n, 0))
+        self._spring_lin, self._force_lin = np.zeros((n, 0, 2)), np.zeros((n, 0, 2))
+        self._force_const, self._origin = np.zeros((n, 0)), np.zeros((n, 2))
+        self._on = np.zeros((n, 0), dtype=bool)  # the wheels in contact its wheel memory was made for
+
+    def forget(self, i: int | None = None) -> None:
+        super().forget(i)
+        if i is None:
+            self._known[:] = False
+        else:
+            self._known[i] = False
+
+    def _remember(self, i: int, support: np.ndarray, on: np.ndarray) -> None:
+        """Make the wheel memory a ride of parcel ``i`` on cells ``support`` leaves (no impulses; the wheels in
+        contact, ``on``, stick), once for these wheels."""
+        key = support.tobytes() + on.tobytes()
+        if self._stuck.get(i, (None,))[0] != key:
+            row, k = np.nonzero(self.cells.wheel_active[support])
+            keys = list(zip(support[row].tolist(), k.tolist()))
+            self._stuck[i] = (key, dict.fromkeys(keys, 0.0), dict(zip(keys, on.tolist())))
+        self._on = _padded_row(self._on, i, on, False)
 
     def _ride_data(self, i: int, velocities: np.ndarray) -> None:
         """Whether the wheels under parcel ``i``'s anchor are one rigid twist that fixes the parcel (rank 3), and
-        if so that twist and the grip's measures at the anchor (module docstring)."""
+        if so that twist and the grip's measures at the anchor (module docstring); and what the compiled measure
+        needs of the anchor's solution to measure the parcel again while it holds."""
         a = self.anchors[i]
         spec = self.specs[i]
         self._rides[i] = False
@@ -115,12 +193,56 @@ class RideStepper(QuietStepper):
                                                                            a.pose[:2].copy(), RIDE_TOL)
         self._rides[i], self._twist[i], self._inradius[i] = rides, twist, inradius
         self._spread[i], self._arm[i], self._scale[i] = spread, arm, scale
-        key = a.support.tobytes() + on.tobytes()
-        if self._stuck.get(i, (None,))[0] != key:
-            # the wheel memory a ride leaves (no impulses; those in contact stick), made once for these wheels
-            row, k = np.nonzero(self.cells.wheel_active[a.support])
-            keys = list(zip(a.support[row].tolist(), k.tolist()))
-            self._stuck[i] = (key, dict.fromkeys(keys, 0.0), dict(zip(keys, on.tolist())))
+        self._remember(i, a.support, on)
+        sol = a.solution
+        self._known[i] = a.first
+        if a.first:
+            self._n_support[i] = len(a.support)
+            self._holding = _padded_row(self._holding, i, sol._holding, 0.0)
+            self._spring_lin = _padded_row(self._spring_lin, i, np.asarray(sol.spring_lin, dtype=float), 0.0)
+            self._force_lin = _padded_row(self._force_lin, i, np.asarray(sol.force_lin, dtype=float), 0.0)
+            self._force_const = _padded_row(self._force_const, i, np.asarray(sol.force_const, dtype=float), 0.0)
+            self._origin[i] = sol.origin
+
+    def _measure_known(self, idx: np.ndarray, Y: np.ndarray, velocities: np.ndarray) -> np.ndarray:
+        """Measure again, in one compiled call, those of parcels ``idx`` (states ``Y``) whose last anchor's cells
+        and solution still stand (class docstring), keeping their anchors' measures and ride data in the columns;
+        which were."""
+        q = len(idx)
+        if not self._known[idx].any():
+            return np.zeros(q, dtype=bool)
+        grid, cells = self.cells.grid, self.cells
+        present = self.anchors[int(idx[np.flatnonzero(self._known[idx])[0]])].model.present
+        near = np.full((q, max(self._near.shape[1], 1)), cells.n, dtype=np.int64)
+        n_near = np.zeros(q, dtype=np.int64)
+        measures = np.zeros((q, 9))
+        flags = np.zeros((q, 3), dtype=bool)
+        on_now = np.zeros((q, max(self._on.shape[1], 1)), dtype=bool)
+        _kernel.ride_measure(grid.points, grid.order, grid.start, grid.lo[0], grid.lo[1], grid.size, grid.shape[0],
+                             grid.shape[1], _ALL if present is None else present, cells.positions,
+                             cells.wheel_active, cells.drive_directions, np.ascontiguousarray(velocities, dtype=float),
+                             idx, Y, self._reach, self._buffer, self._noise_len, self._noise_force, self._mu,
+                             self._mu_s, self._kind, self._half, self._normals, self._n_edges, self._offsets,
+                             self._vertices, self._n_vertices, self._known, self._support, self._n_support,
+                             self._holding, self._spring_lin, self._force_lin, self._force_const, self._origin,
+                             self._on, RIDE_TOL, near, n_near, measures, flags, on_now)
+        done = flags[:, 0]
+        sel = np.flatnonzero(done)
+        i = idx[sel]
+        self._pose[i] = Y[sel, :3]
+        self._clear[i], self._slack[i] = measures[sel, 0], measures[sel, 1]
+        self._made[i], self._drive[i] = -1, 0.0  # as measure() leaves an anchor without constants
+        if len(sel):
+            if near.shape[1] > self._near.shape[1]:
+                self._near = _padded_row(self._near, int(i[0]), near[sel[0]], cells.n)
+            self._near[i] = near[sel, :self._near.shape[1]]
+        self._near_count[i] = n_near[sel]
+        self._rides[i], self._twist[i] = flags[sel, 1], measures[sel, 2:5]
+        self._inradius[i], self._spread[i], self._arm[i], self._scale[i] = measures[sel].T[5:9]
+        for k in sel[~flags[sel, 2]].tolist():  # the wheels in contact changed: their ride's memory is made again
+            p = int(idx[k])
+            self._remember(p, self.anchors[p].support, on_now[k, :len(self._stuck[p][1])].copy())
+        return done
 
     def _off(self, idx: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """How far (m/s) the twists of parcels ``idx`` at states ``Y`` are from their wheels' rigid twist (as their
@@ -165,52 +287,50 @@ class RideStepper(QuietStepper):
         return rides & clear, Yf
 
     def step(self, models, idx: list[int], ys, velocities: np.ndarray, t: float, te: float,
-             samples: np.ndarray) -> tuple[list[tuple[int, Trajectory]], list[int]]:
+             samples: np.ndarray) -> tuple[RideSteps | None, list[int]]:
         """Advance those of the parcels ``idx`` (states ``ys[i]``, no other parcel within reach) that ride their wheels
         from ``t`` to ``te`` (s) under contact-layer ``velocities`` (m/s), sampled at ``samples`` (the window's ends
-        among them): returns (parcel, trajectory) for each stepped here and the parcels left for the event-driven
-        engine. ``models[i]`` is parcel i's model under these velocities; its stick-slip wheel memory is left as the
-        engine leaves it (every wheel in contact sticking, no impulse remembered)."""
+        among them): returns the block of those stepped here (None when none) and the parcels left for the
+        event-driven engine. ``models`` are the plant's models under these velocities (``models[i]`` parcel i's; their
+        ``base`` and the copies ``made`` so far); a riding parcel's stick-slip wheel memory is left as the engine
+        leaves it (every wheel in contact sticking, no impulse remembered)."""
         if not idx:
-            return [], []
+            return None, []
         times = np.concatenate([[t], samples[(samples > t) & (samples < te)], [te]])
         window = te - t
         Y = np.array([ys[i] for i in idx], dtype=float)
+        start = Y.copy()
+        ia = np.asarray(idx, dtype=np.int64)
         # measured where each parcel is now, every window: the proof then depends on the state alone, not on where
         # the parcel was measured before (a run resumed from a checkpoint, whose caches start empty, decides the
         # same windows as the run that went on, to the last bit)
-        have = np.zeros(len(idx), dtype=bool)
-        for k, i in enumerate(idx):
+        have = self._measure_known(ia, Y, velocities)
+        for k in np.flatnonzero(~have).tolist():
+            i = idx[k]
             if self.measure(i, models, Y[k]) is not None:
                 self._ride_data(i, velocities)
                 have[k] = True
         ok = np.zeros(len(idx), dtype=bool)
         sel = np.flatnonzero(have)
         if len(sel):
-            ok[sel], Yf = self._riding(np.asarray(idx)[sel], Y[sel], window)
+            ok[sel], Yf = self._riding(ia[sel], Y[sel], window)
             Y[sel] = Yf
         quiet = np.flatnonzero(ok)
         rest = [idx[k] for k in np.flatnonzero(~ok)]
         if not len(quiet):
-            return [], rest
+            return None, rest
         states = rigid_motion(Y[quiet], times, t)
-        done = []
-        for n, k in enumerate(quiet.tolist()):
-            i = idx[k]
-            model, spec = models[i], self.specs[i]
+        riding = ia[quiet].tolist()
+        base, made = models.base, models.made
+        for i in riding:
             _, lam, stuck = self._stuck[i]
-            memory = model.contact_memory
+            memory = base[i].contact_memory  # (shared with the copies made from it)
             if memory["stuck"] is not stuck:
                 memory["lam"], memory["stuck"] = lam, stuck
-            y0, y1 = ys[i], states[n, -1]
-            stats = {"wheel_work": 0.0, "friction_dissipation": 0.0, "step_dissipation": 0.0, "contact_work": 0.0,
-                     "sweeps_max": 0, "unconverged_steps": 0,
-                     "kinetic_start": 0.5 * float(spec.mass * (y0[3] ** 2 + y0[4] ** 2) + spec.inertia * y0[5] ** 2),
-                     "kinetic_end": 0.5 * float(spec.mass * (y1[3] ** 2 + y1[4] ** 2) + spec.inertia * y1[5] ** 2),
-                     "mode_changes": 0, "mode_events": [], "pieces_cached": model.pieces_cached,
-                     "solves": model.solves}
-            done.append((i, Trajectory(times, states[n], [], "completed", float(te), 1, 0, stats)))
-        return done, rest
+        pieces = [made[i].pieces_cached if i in made else 0 for i in riding]  # a copy made now would hold none
+        solves = [base[i].solves for i in riding]
+        return RideSteps(riding, times, states, start[quiet], self.mass[riding], self.inertia[riding], pieces,
+                         solves), rest
 
 
-__all__ = ["RideStepper", "rigid_motion", "RIDE_TOL"]
+__all__ = ["RideStepper", "RideSteps", "rigid_motion", "RIDE_TOL"]

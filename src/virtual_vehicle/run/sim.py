@@ -11,7 +11,7 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 import shapely
@@ -1420,18 +1420,46 @@ class ParcelTrack:
         self.segments += 1
         self.rhs_evals += steps.evals
         self._quiet = ref = steps, k
+        if steps.summed:
+            self._add_ride_stats(steps, k)
+            return
         head = self.stats_pieces[0] if self.stats_pieces else None
+        if type(head) is _RideJoin:
+            head = self._stats_first()[0]
         if head is not None and type(head) is not tuple and not _SUMMED.isdisjoint(head.stats):
             self.stats_pieces = join_stats([head, self.piece])  # (a quiet step's own stats hold nothing summed)
         else:
             self.stats_pieces = [ref]  # the latest stands, made a Trajectory when it is read
 
+    def _add_ride_stats(self, steps, k: int) -> None:
+        """The stats of a ride (``steps.trajectory(k)``, :class:`~virtual_vehicle.engine.ride.RideSteps`) joined to
+        those so far as :meth:`add` joins them, without making that Trajectory: kept as ``_RideJoin(base, steps, k)``,
+        the join of ``base`` (None: nothing) and the ride. A ride adds nothing to the summed stats and takes its others
+        from the last piece, so after a first piece that holds its kinetic energy at the start, the join of a run of
+        rides is that piece's join with the last of them alone."""
+        head = self.stats_pieces[0] if self.stats_pieces else None
+        if head is None:
+            self.stats_pieces = [_RideJoin(None, steps, k)]
+            return
+        if type(head) is _RideJoin:
+            base = head.steps.trajectory(head.k) if head.base is None else head.base
+        else:
+            base = self._stats_first()[0]
+        if "kinetic_start" in base.stats:
+            self.stats_pieces = [_RideJoin(base, steps, k)]
+        else:  # its kinetic energy at the start would be the first ride's: joined now
+            self.stats_pieces = join_stats([*self._stats_first(), steps.trajectory(k)])
+
     def _stats_first(self) -> list:
-        """``stats_pieces[:1]``, a quiet step there made its Trajectory."""
+        """``stats_pieces[:1]``, a quiet step or a join with a ride there made its Trajectory."""
         first = self.stats_pieces[:1]
         if first and type(first[0]) is tuple:
             steps, k = first[0]
             first = self.stats_pieces = [steps.trajectory(k)]
+        elif first and type(first[0]) is _RideJoin:
+            base, steps, k = first[0]
+            ride = steps.trajectory(k)
+            first = self.stats_pieces = [ride] if base is None else join_stats([base, ride])
         return first
 
     def to_data(self) -> dict:
@@ -1472,6 +1500,15 @@ class ParcelTrack:
         stats = self._stats_first()[0].stats if self.stats_pieces else dict(self.piece.stats)
         return Trajectory(np.array(times), np.array(states).reshape(-1, 6), self.events, self.piece.status,
                           self.piece.t_end, self.segments, self.rhs_evals, stats)
+
+
+class _RideJoin(NamedTuple):
+    """A track's stats so far, kept unmade: the join (:func:`join_stats`) of ``base`` (a Trajectory; None: nothing)
+    and the ride ``steps.trajectory(k)``."""
+
+    base: Trajectory | None
+    steps: object
+    k: int
 
 
 def join_stats(pieces: list[Trajectory]) -> list[Trajectory]:
