@@ -13,6 +13,7 @@ Cases (the figures of ``RESULTS.md``):
 - ``steady200``: the same for 4 s, in which the exit gradient has crossed the hall and all 200 parcels move (the
   first second is mostly routing set-up);
 - ``scale1``: the same hall with one parcel (mostly empty floor);
+- ``hall200stick``: ``scale200`` on the stick-slip law (the default: most windows ride their wheels);
 - ``coulomb1``: one Coulomb parcel oscillating in the inward field for 5 s (``bench_perf.py`` (b)), the fastest of
   five runs in each process;
 - ``pairs200``, ``pairs200coulomb``: 200 parcels on 100 x 100 cells under a constant uniform field for 1 s, viscous
@@ -42,7 +43,7 @@ sys.path.insert(0, {bench!r})
 import bench_scale
 from virtual_vehicle.config.scenario import parse_scenario
 from virtual_vehicle.run.sim import run_network
-setup = parse_scenario(bench_scale.scenario(100, {parcels}, {seconds})).build()
+setup = parse_scenario(bench_scale.scenario(100, {parcels}, {seconds}, law={law!r})).build()
 try:  # load the compiled engine outside the timed run, as the imports are (from 580daa9)
     from virtual_vehicle.run.warm import warm_up
     warm_up()
@@ -70,9 +71,10 @@ print(json.dumps({{{{"wall": wall, "end": res.parcels[-1].trajectory.states[-1].
 """
 
 CASES = {
-    "scale200": _SCALE.format(parcels=200, seconds=1.0, bench="{bench}"),
-    "steady200": _SCALE.format(parcels=200, seconds=4.0, bench="{bench}"),
-    "scale1": _SCALE.format(parcels=1, seconds=1.0, bench="{bench}"),
+    "scale200": _SCALE.format(parcels=200, seconds=1.0, bench="{bench}", law="viscous"),
+    "steady200": _SCALE.format(parcels=200, seconds=4.0, bench="{bench}", law="viscous"),
+    "scale1": _SCALE.format(parcels=1, seconds=1.0, bench="{bench}", law="viscous"),
+    "hall200stick": _SCALE.format(parcels=200, seconds=1.0, bench="{bench}", law="stick_slip"),
     "pairs200": _PAIRS.format(law="viscous", bench="{bench}"),
     "pairs200coulomb": _PAIRS.format(law="coulomb", bench="{bench}"),
     "coulomb1": """
