@@ -205,3 +205,64 @@ def test_a_ride_window_closes_the_energy_account():
         lost += s["friction_dissipation"] + s["step_dissipation"]
     assert rides > 20
     assert work == pytest.approx(gained + lost, rel=1e-6)
+
+
+def test_measured_again_in_one_call_as_anew():
+    """Parcels riding on their last anchor's cells are measured again in one compiled call; the same run with every
+    anchor forgotten at each tick (each measured anew in Python, as a resumed run's are) is the same run to the last
+    bit: the same windows ride, the same states. Across a field change and support changes, three parcels."""
+    fields = lambda k: None if k >= 45 else aisle(0.4, 0.05) if k < 25 else turn(0.3, (1.5, 0.7))  # noqa: E731
+    y0s = [[0.5, 0.4, 0.1, 0.0, 0.0, 0.0], [1.2, 1.0, 0.0, 0.4, 0.05, 0.0], [2.0, 0.6, -0.3, 0.0, 0.0, 0.0]]
+    runs = []
+    for forget in (False, True):
+        plant = Plant(CELLS, [SPEC] * 3, laws.StickSlipLaw())
+        ys, active = [np.array(y, dtype=float) for y in y0s], [True] * 3
+        ticks = []
+        for k in range(45):
+            if forget:
+                plant.set_present(None)  # (the plant's steppers forget their anchors)
+            ticks.append(plant.advance(ys, active, fields(k), k * PERIOD, (k + 1) * PERIOD, PERIOD))
+        runs.append((ticks, plant.record.quiet_steps))
+    (a, rides_a), (b, rides_b) = runs
+    assert rides_a == rides_b > 60
+    for ta, tb in zip(a, b):
+        for ra, rb in zip(ta, tb):
+            assert np.array_equal(ra.times, rb.times) and np.array_equal(ra.states, rb.states)
+            drop = ("pieces_cached",)  # (the forgetting run's models are made again each tick: fewer cached)
+            assert {k: v for k, v in ra.stats.items() if k not in drop} == \
+                {k: v for k, v in rb.stats.items() if k not in drop}
+
+
+def test_a_track_takes_rides_as_their_trajectories():
+    """A networked run's track takes ride windows in from the stepper's block, their stats joined only when read:
+    the same samples, counts and stats (values and types) as a track that takes in each window's trajectory, over
+    rides, exact windows and rides again."""
+    from virtual_vehicle.run.sim import ParcelTrack
+
+    fields = lambda k: aisle(0.4, 0.0) if k < 20 or k >= 24 else aisle(0.1, 0.05)  # noqa: E731
+    plant = Plant(CELLS, [SPEC, SPEC], laws.StickSlipLaw())
+    ys, active = [np.array([0.6, 0.7, 0.2, 0.0, 0.0, 0.0]), np.array([1.5, 0.4, 0.0, 0.4, 0.0, 0.0])], [True, True]
+    blocks, whole = [ParcelTrack(), ParcelTrack()], [ParcelTrack(), ParcelTrack()]
+    rides = 0
+    for k in range(45):
+        grid = np.array([k * PERIOD]) if k % 5 == 0 else np.zeros(0)
+        out, quiet = plant.advance_blocks(ys, active, fields(k), k * PERIOD, (k + 1) * PERIOD, PERIOD,
+                                          sample_times=grid)
+        for i, tr in enumerate(out):
+            if tr is not None:
+                blocks[i].add(tr, grid)
+                whole[i].add(tr, grid)
+        for i, steps, j in quiet:
+            rides += steps.summed
+            blocks[i].add_quiet(steps, j, grid)
+            whole[i].add(steps.trajectory(j), grid)
+        if k in (10, 30):  # read mid-run, as a checkpoint does
+            assert [t.to_data()["stats_pieces"][0]["stats"] for t in blocks] == \
+                [t.to_data()["stats_pieces"][0]["stats"] for t in whole]
+    assert rides > 40
+    for x, y in zip(blocks, whole):
+        tx, ty = x.trajectory(), y.trajectory()
+        assert np.array_equal(tx.times, ty.times) and np.array_equal(tx.states, ty.states)
+        assert (tx.segments, tx.rhs_evals, tx.status, tx.t_end) == (ty.segments, ty.rhs_evals, ty.status, ty.t_end)
+        assert tx.stats == ty.stats
+        assert [type(v) for v in tx.stats.values()] == [type(v) for v in ty.stats.values()]
