@@ -414,11 +414,11 @@ class Plant:
     def advance_blocks(self, ys: list[np.ndarray], active: list[bool], velocities: np.ndarray, t0: float, t1: float,
                        sample_dt: float, progress: Callable[[float], None] | None = None,
                        sample_times: np.ndarray | None = None) -> tuple[list[Trajectory | None], list[QuietStep]]:
-        """:meth:`advance` untrimmed, with the parcels stepped only by the quiet stepper left in the stepper's block:
-        a run that goes one control tick at a time takes them in from there (a Trajectory per parcel and tick cost
-        more than the step). Returns the trajectories, None for those parcels and the inactive ones, and a
-        :class:`QuietStep` for each of those parcels (its window is ``q.trajectory()``). Arguments and errors as
-        :meth:`advance`'s."""
+        """:meth:`advance` untrimmed, with the parcels stepped only by the quiet stepper (or only riding their wheels,
+        :class:`~virtual_vehicle.engine.ride.RideSteps`) left in the stepper's block: a run that goes one control tick
+        at a time takes them in from there (a Trajectory per parcel and tick cost more than the step). Returns the
+        trajectories, None for those parcels and the inactive ones, and a :class:`QuietStep` for each of those
+        parcels (its window is ``q.trajectory()``). Arguments and errors as :meth:`advance`'s."""
         models = self.models(velocities)
         was_active = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
         if was_active:  # checked here once: the engine takes them as they are

@@ -1412,7 +1412,8 @@ class ParcelTrack:
 
     def add_quiet(self, steps, k: int, grid: np.ndarray, on: np.ndarray | None = None) -> None:
         """:meth:`add` for a tick the quiet stepper alone took, as ``steps.trajectory(k)`` (one step, no events, the
-        stats the count of solves only), without making that Trajectory unless it is asked for."""
+        stats the count of solves only; or a ride, ``steps.summed``: its stats joined when read), without making that
+        Trajectory unless it is asked for."""
         if len(grid):
             if on is None:
                 on = on_grid(steps.times, grid)
