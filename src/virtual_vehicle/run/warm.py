@@ -14,6 +14,7 @@ from virtual_vehicle.cells.sorting import Sorter
 from virtual_vehicle.engine import _kernel
 from virtual_vehicle.engine.batch import QuietStepper
 from virtual_vehicle.engine.dynamics import ParcelModel, constants_row, integrate
+from virtual_vehicle.engine.plant import Plant
 from virtual_vehicle.model.fields import Uniform
 from virtual_vehicle.model.layout import grid
 from virtual_vehicle.model.parcel import covered_pairs, rectangle
@@ -23,11 +24,12 @@ from virtual_vehicle.physics.laws import LAWS
 def warm_up() -> float:
     """Compile the event engine's inner loop (:mod:`virtual_vehicle.engine._kernel`), the support solve's compiled parts
     (:mod:`virtual_vehicle.physics.contact`, :mod:`virtual_vehicle.physics.laws`), the quiet step's checks and step
-    (:mod:`virtual_vehicle.engine.batch`) and the sorter's cell program (:mod:`virtual_vehicle.cells.sorting`; about a
-    minute together, the first time on a machine) or load them from numba's cache (a fraction of a second), by
-    integrating one parcel on a 4 x 4 array for 10 ms, looking its last piece up again, making its constants under the
-    viscous law too, checking and stepping it as a quiet step would, gathering the cells under it as sensing does, and
-    stepping the sorter once and carrying its sentences. The first integration of a process does this anyway (but for
+    (:mod:`virtual_vehicle.engine.batch`), the riding parcels' measure (:mod:`virtual_vehicle.engine.ride`) and the
+    sorter's cell program (:mod:`virtual_vehicle.cells.sorting`; about a minute together, the first time on a machine)
+    or load them from numba's cache (a fraction of a second), by integrating one parcel on a 4 x 4 array for 10 ms,
+    looking its last piece up again, making its constants under the viscous law too, checking and stepping it as a
+    quiet step would, letting a stick-slip parcel ride its wheels for three ticks, gathering the cells under it as
+    sensing does, and stepping the sorter once and carrying its sentences. The first integration of a process does this anyway (but for
     the sorter and its sentences); call it to do it at a time of your choosing (the set-up of ``make`` does, so that no
     later run waits). Returns the seconds it took."""
     start = time.perf_counter()
@@ -46,6 +48,11 @@ def warm_up() -> float:
     stepper.compile_checks(model, end)
     _kernel.quiet_steps(np.array([piece.row]), end[None], 0.01, 0.02, 1e-10, 1e-12,
                         np.array([0.01, 0.02]), np.empty((1, 2, 6)))
+    # a stick-slip parcel riding its wheels, measured in Python, then again in the compiled call (engine.ride)
+    riding = Plant(cells, [spec], LAWS["stick_slip"], model.weight / spec.mass)
+    ys, active = [np.array([0.15, 0.15, 0.0, 0.1, 0.0, 0.0])], [True]
+    for k in range(3):
+        riding.advance(ys, active, model.velocities, 0.01 * k, 0.01 * (k + 1), 0.01)
     covered_pairs([spec], [end], cells.grid)  # as sensing and destination labels gather cells
     sorter = Sorter(0.3)  # the sorter's compiled cell program, and its sentences carried, as a networked run goes
     topology = from_layout(cells)
