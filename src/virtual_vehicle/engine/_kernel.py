@@ -1381,20 +1381,21 @@ def ride_measure(points, order, start, lo0, lo1, size, nx, ny, present, position
                  idx, Y, reach, buffer, noise, noise_force, mu, mu_s, kind, half, normals, n_edges, offsets,
                  vertices, n_vertices, known, support, n_support, holding, spring_lin, force_lin, force_const, origin,
                  on_was, tol, near, n_near, measures, flags, on_now):
-    """The anchors and ride data of many parcels in one call, where each parcel's last anchor still stands: for
-    parcel ``idx[k]`` (plant index, state ``Y[k]``) whose last anchor is ``known`` (its solution the first of its
-    pattern's shared ones), the cells present within ``reach`` (m) of its centre (``_within``, the grid's arrays),
-    their footprint margins (:func:`cell_margins`, the parcel's outline padded: ``kind``, ``half``, ``normals`` /
+    """The anchors and ride data of many parcels in one call, where each parcel's last anchor still stands: for parcel
+    ``idx[k]`` (plant index, state ``Y[k]``) whose last anchor is ``known`` (its solution the first of its pattern's
+    shared ones), the cells present within ``reach`` (m) of its centre (``_within``, the grid's arrays), their
+    footprint margins (:func:`cell_margins`, the parcel's outline padded: ``kind``, ``half``, ``normals`` /
     ``offsets`` (``n_edges`` of them), ``vertices`` (``n_vertices``)); when the cells under it are the anchor's
-    (``support``, ``n_support``) and its solution (``holding``: the packed holding test, ``spring_lin``, ``force_lin``,
-    ``force_const``, ``origin``, padded by support row) holds at the centre, it is the anchor the engine's
-    :func:`~virtual_vehicle.engine.batch.anchor` measures there (the same solution, the same arithmetic): writes its
-    near cells (``near``, ``n_near``: the row's width bounds them), ``measures[k]`` = clear, slack (m), the wheels'
-    twist (vx, vy m/s, omega rad/s), inradius (N), ``sum mu_s N`` (N), arm (m), speed scale (m/s) as
+    (``support``, ``n_support``) and its solution (``holding``: the packed holding test, ``spring_lin``,
+    ``force_lin``, ``force_const``, ``origin``, padded by support row) holds at the centre, it is the anchor the
+    engine's :func:`~virtual_vehicle.engine.batch.anchor` measures there (the same solution, the same arithmetic):
+    writes its near cells (``near``, ``n_near``: the row's width bounds them), ``measures[k]`` = clear, slack (m),
+    the wheels' twist (vx, vy m/s, omega rad/s), inradius (N), ``sum mu_s N`` (N), arm (m), speed scale (m/s) as
     :func:`ride_data` gives them for its wheels (``V`` the contact layer's velocities, m/s; ``mu`` / ``mu_s`` the
     parcel's coefficients), and ``flags[k]`` = measured here, rides (rank 3, one rigid twist), wheels in contact as
-    ``on_was`` (the new ones in ``on_now[k]``; its width bounds the wheels too). ``noise`` (m) and ``noise_force`` (N) are the anchor's rounding
-    noise. A parcel not measured here (flag 0 False) goes to the anchor made in Python."""
+    ``on_was`` (the new ones in ``on_now[k]``; its width bounds the wheels too). ``noise`` (m) and ``noise_force``
+    (N) are the anchor's rounding noise. A parcel not measured here (flag 0 False) goes to the anchor made in
+    Python."""
     for k in range(idx.shape[0]):
         i = idx[k]
         flags[k, 0] = flags[k, 1] = flags[k, 2] = False

@@ -145,7 +145,8 @@ class RideStepper(QuietStepper):
         self._half = np.array([o[2] for o in outlines]).reshape(n, 2)
         self._n_edges = np.array([len(o[4]) for o in outlines], dtype=np.int64)
         self._n_vertices = np.array([len(o[5]) for o in outlines], dtype=np.int64)
-        self._normals, self._offsets = np.zeros((n, self._n_edges.max(initial=0), 2)), np.zeros((n, self._n_edges.max(initial=0)))
+        edges = self._n_edges.max(initial=0)
+        self._normals, self._offsets = np.zeros((n, edges, 2)), np.zeros((n, edges))
         self._vertices = np.zeros((n, self._n_vertices.max(initial=0), 2))
         for i, o in enumerate(outlines):
             self._normals[i, :len(o[4])], self._offsets[i, :len(o[4])], self._vertices[i, :len(o[5])] = o[3], o[4], o[5]
@@ -241,7 +242,8 @@ class RideStepper(QuietStepper):
         self._inradius[i], self._spread[i], self._arm[i], self._scale[i] = measures[sel].T[5:9]
         for k in sel[~flags[sel, 2]].tolist():  # the wheels in contact changed: their ride's memory is made again
             p = int(idx[k])
-            self._remember(p, self.anchors[p].support, on_now[k, :len(self._stuck[p][1])].copy())
+            cells = self._support[p, :self._n_support[p]].copy()
+            self._remember(p, cells, on_now[k, :len(self._stuck[p][1])].copy())
         return done
 
     def _off(self, idx: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -310,6 +312,8 @@ class RideStepper(QuietStepper):
             if self.measure(i, models, Y[k]) is not None:
                 self._ride_data(i, velocities)
                 have[k] = True
+            else:  # it tips there: no anchor to measure again
+                self._known[i] = False
         ok = np.zeros(len(idx), dtype=bool)
         sel = np.flatnonzero(have)
         if len(sel):

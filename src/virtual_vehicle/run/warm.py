@@ -22,16 +22,16 @@ from virtual_vehicle.physics.laws import LAWS
 
 
 def warm_up() -> float:
-    """Compile the event engine's inner loop (:mod:`virtual_vehicle.engine._kernel`), the support solve's compiled parts
-    (:mod:`virtual_vehicle.physics.contact`, :mod:`virtual_vehicle.physics.laws`), the quiet step's checks and step
-    (:mod:`virtual_vehicle.engine.batch`), the riding parcels' measure (:mod:`virtual_vehicle.engine.ride`) and the
-    sorter's cell program (:mod:`virtual_vehicle.cells.sorting`; about a minute together, the first time on a machine)
-    or load them from numba's cache (a fraction of a second), by integrating one parcel on a 4 x 4 array for 10 ms,
-    looking its last piece up again, making its constants under the viscous law too, checking and stepping it as a
-    quiet step would, letting a stick-slip parcel ride its wheels for three ticks, gathering the cells under it as
-    sensing does, and stepping the sorter once and carrying its sentences. The first integration of a process does this anyway (but for
-    the sorter and its sentences); call it to do it at a time of your choosing (the set-up of ``make`` does, so that no
-    later run waits). Returns the seconds it took."""
+    """Compile the event engine's inner loop (:mod:`virtual_vehicle.engine._kernel`), the support solve's compiled
+    parts (:mod:`virtual_vehicle.physics.contact`, :mod:`virtual_vehicle.physics.laws`), the quiet step's checks and
+    step (:mod:`virtual_vehicle.engine.batch`), the riding parcels' measure (:mod:`virtual_vehicle.engine.ride`) and
+    the sorter's cell program (:mod:`virtual_vehicle.cells.sorting`; about a minute together, the first time on a
+    machine) or load them from numba's cache (a fraction of a second), by integrating one parcel on a 4 x 4 array
+    for 10 ms, looking its last piece up again, making its constants under the viscous law too, checking and
+    stepping it as a quiet step would, letting a stick-slip parcel ride its wheels for three ticks, gathering the
+    cells under it as sensing does, and stepping the sorter once and carrying its sentences. The first integration
+    of a process does this anyway (but for the sorter and its sentences); call it to do it at a time of your
+    choosing (the set-up of ``make`` does, so that no later run waits). Returns the seconds it took."""
     start = time.perf_counter()
     cells = grid(4, 4, 0.1)
     spec = rectangle(0.25, 0.22, 1.0, 0.5)
