@@ -571,6 +571,7 @@ def test_the_event_loop_makes_pieces_from_patterns_as_the_model_would(law, speed
             for name in ("origin", "points", "in_contact", "basis", "plane_lin", "plane_const", "force_lin",
                          "force_const", "hull_normals", "hull_offsets", "spring_lin", "spring_gradient"):
                 assert np.array_equal(getattr(s, name), getattr(t, name)), name
+                assert name == "origin" or not getattr(s, name).flags.writeable, name  # (unpacked when read)
             assert s.weight == t.weight and s.one_d == t.one_d and s.contact_collinear == t.contact_collinear
 
 
