@@ -20,8 +20,8 @@ Two integrators share the model:
   give: supports on one line, a collinear contact set or tipping (the solve in
   :mod:`~virtual_vehicle.physics.contact`), the cells under the parcel where the probe cannot tell them, a
   candidate refresh within a rounding step of its threshold, a chatter, a pause for a progress callback; and it
-  makes the Python objects of the new pieces and events after each call, and those of the new solutions as shells
-  whose arrays are unpacked from the loop's records only when read;
+  makes the Python objects of the new pieces after each call, and those of the new solutions and events as shells
+  whose arrays (a solution's) and changed cells (an event's) are unpacked from the loop's records only when read;
 - ``"fixed"``: classical RK4 at a fixed step that looks up the supports at every stage and never locates events,
   for comparison (first-order accurate across support changes).
 """
@@ -38,7 +38,7 @@ import numpy as np
 
 from virtual_vehicle.engine import _kernel
 from virtual_vehicle.engine._kernel import accelerations
-from virtual_vehicle.engine.stepping import Event, Trajectory, _ordered, diff_event, fixed_steps, sample_grid
+from virtual_vehicle.engine.stepping import Event, Trajectory, diff_event, fixed_steps, sample_grid
 from virtual_vehicle.engine.stickslip import run_stick_slip
 from virtual_vehicle.errors import IntegrationError, TippingError
 from virtual_vehicle.model.layout import CellArray
@@ -382,13 +382,6 @@ class _PieceTable:
             self.index[piece] = p
             self.pieces.append(piece)
         self.mirrored += born
-
-    @staticmethod
-    def change(old: Piece, new: Piece) -> tuple:
-        """(entered, left, lifted, touched) between two pieces, as :func:`diff_event` finds them."""
-        (old_s, old_c), (new_s, new_c) = old.sets, new.sets
-        return (_ordered(new_s - old_s), _ordered(old_s - new_s), _ordered((old_c - new_c) & new_s),
-                _ordered((new_c - old_c) & old_s))
 
     def _room(self, keys: int = 0, ids: int = 0, pieces: int = 0, floats: int = 0, records: int = 0,
               patterns: int = 0) -> None:
@@ -935,7 +928,7 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             nfev += evals
             pieces = table.pieces
             for tj, yj, (a, b) in zip(ev_t[:n_ev].tolist(), ev_y[:n_ev].tolist(), ev_p[:n_ev].tolist()):
-                events.append(Event.support(tj, tuple(yj), *table.change(pieces[a], pieces[b])))
+                events.append(Event.support_between(tj, tuple(yj), pieces[a].key, pieces[b].key))
             piece = pieces[p]
             if (center[0], center[1]) != seg.xy:  # gathered again in the loop (never where they were)
                 seg = _Segment.gathered(model, piece, ids, candidates, center)
