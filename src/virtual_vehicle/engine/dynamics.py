@@ -368,15 +368,19 @@ class _PieceTable:
     def adopt_born(self, model: "ParcelModel", start: int, born: int) -> None:
         """Make the ``born`` pieces the loop made from patterns (indices from ``start``) Python pieces, and add them to
         the model's cache as :meth:`ParcelModel.piece_for` would have."""
-        spec, kmeta, ipool = model.spec, self.kmeta, self.ipool
-        terms = self.law_args[-1]
-        for b, p in enumerate(range(start, start + born)):
-            off, n = kmeta[self.pkey[p], :2].tolist()
+        mass, inertia, damping = model.spec.mass, model.spec.inertia, self.damping
+        ipool, records = self.ipool, self.records
+        stop = start + born
+        terms = self.law_args[9][:born].copy()  # the packed constants the law's compiled drive made, a row a piece
+        origins = self.porigin[start:stop].copy()
+        spans = self.kmeta[self.pkey[start:stop], :2].tolist()  # (each piece's support set: its ids in ipool)
+        for p, (off, n), j, origin, k_terms, row in zip(range(start, stop), spans, self.psol[start:stop].tolist(),
+                                                        origins, terms, self.rows[start:stop].tolist()):
             support = ipool[off:off + n].copy()
             skey = tuple(support.tolist())
-            sol = self.records[self.psol[p]].at(self.porigin[p].copy())
-            k = affine.FrictionConstants(terms[b].copy(), self.damping, sol.weight)
-            piece = Piece.of(support, sol, k, spec.mass, spec.inertia, tuple(self.rows[p].tolist()), skey)
+            sol = records[j].at(origin)
+            k = affine.FrictionConstants(k_terms, damping, sol.weight)
+            piece = Piece.of(support, sol, k, mass, inertia, tuple(row), skey)
             model._pieces[piece.key] = piece
             model._by_support[skey] = [piece]
             self.index[piece] = p

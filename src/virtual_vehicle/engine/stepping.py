@@ -51,8 +51,8 @@ class Event:
     @classmethod
     def support_between(cls, t: float, state: tuple[float, ...], old: tuple, new: tuple) -> Event:
         """The support event from a piece keyed ``old`` to one keyed ``new`` (each (supporting cell ids, ids of those
-        in contact), as tuples or sets): :meth:`support` of the cells that changed between them, which are worked out only
-        when first read (most of a run's support events are only counted, and a compiled event loop makes
+        in contact), as tuples or sets): :meth:`support` of the cells that changed between them, which are worked
+        out only when first read (most of a run's support events are only counted, and a compiled event loop makes
         hundreds a call). ``t`` a float (s), ``state`` a tuple."""
         ev = object.__new__(cls)
         ev.__dict__.update(t=t, kind="support", state=state, message="", partner="", _keys=(old, new))
