@@ -424,6 +424,34 @@ def test_support_change_records_are_the_dataclass_s_own():
     assert any(e.entered for e in support) and any(not e.lifted for e in support)  # full and empty ones seen
 
 
+def test_support_events_read_late_name_the_cells_that_changed():
+    """The compiled event loop's support events work out their changed cells only when read: read in any order, or
+    first through a pickle, a copy or the columns of a run's state, they chain from the cells under the parcel at the
+    start to those at the end, each entered cell new and each cell left one that was there."""
+    import copy
+    import pickle
+
+    cells = layout.grid(30, 30, 0.1)
+    spec = parcel.rectangle(0.4, 0.3, 2.0, 1.0)
+    m = model(cells, spec, fields.Inward((1.5, 1.5), 3.0), laws.CoulombLaw())
+    y0 = np.array([1.12, 1.47, 0.3, 0.0, 0.0, 0.0])
+    tr = integrate(m, y0, 0.0, 1.5, sample_dt=0.05)
+    events = [e for e in tr.events if e.kind == "support"]
+    assert len(events) > 50
+    k = len(events) // 3
+    read = [pickle.loads(pickle.dumps(e)) for e in events[:k]] + [copy.copy(e) for e in events[k:2 * k]]
+    read += dynamics.Event.from_columns(dynamics.Event.to_columns(events[2 * k:]))
+    for e in reversed(events):  # the originals, read last to first
+        assert e.entered is not None
+    assert read == events
+    under = set(m.support_at(y0).tolist())
+    for e in read:
+        assert not set(e.entered) & under and set(e.left) <= under and not set(e.entered) & set(e.left)
+        under = (under - set(e.left)) | set(e.entered)
+        assert set(e.lifted) | set(e.touched) <= under  # (a cell lifts off or touches down under the parcel)
+    assert under == set(m.support_at(tr.states[-1]).tolist())
+
+
 def test_chattering_supports_are_crossed_in_fixed_steps_and_converge():
     """A parcel at rest with two edges exactly on a row and a column of cell centres, under a field that pushes the
     boundary cells out while they carry and in while they do not: the support set chatters (a sliding mode, events

@@ -20,7 +20,8 @@ Two integrators share the model:
   give: supports on one line, a collinear contact set or tipping (the solve in
   :mod:`~virtual_vehicle.physics.contact`), the cells under the parcel where the probe cannot tell them, a
   candidate refresh within a rounding step of its threshold, a chatter, a pause for a progress callback; and it
-  makes the Python objects of the new solutions, pieces and events after each call;
+  makes the Python objects of the new pieces after each call, and those of the new solutions and events as shells
+  whose arrays (a solution's) and changed cells (an event's) are unpacked from the loop's records only when read;
 - ``"fixed"``: classical RK4 at a fixed step that looks up the supports at every stage and never locates events,
   for comparison (first-order accurate across support changes).
 """
@@ -29,7 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, partial
 from itertools import compress
 from typing import Callable, Literal, get_args
 
@@ -37,7 +38,7 @@ import numpy as np
 
 from virtual_vehicle.engine import _kernel
 from virtual_vehicle.engine._kernel import accelerations
-from virtual_vehicle.engine.stepping import Event, Trajectory, _ordered, diff_event, fixed_steps, sample_grid
+from virtual_vehicle.engine.stepping import Event, Trajectory, diff_event, fixed_steps, sample_grid
 from virtual_vehicle.engine.stickslip import run_stick_slip
 from virtual_vehicle.errors import IntegrationError, TippingError
 from virtual_vehicle.model.layout import CellArray
@@ -262,19 +263,15 @@ class _PieceTable:
         for (j, g), origin in zip(log[1:1 + n].tolist(), origins[:n].copy()):
             assert j == len(self.records)  # the loop adds records after the table's
             off, m, r, q, nh = self.srec[j, :5].tolist()  # the record's floats as _kernel.table_add_record lays them
-            weight, flat = self.fpool[off], self.fpool[off + 1:off + 1 + m * r + 3 * r + 3 * q + 8 * m + nh].copy()
-            (basis, plane_lin, plane_const, hull_normals, hull_offsets, spring_lin, spring_gradient, points, force_lin,
-             force_const, holding) = (part.reshape(shape) for part, shape in zip(
-                np.split(flat, np.cumsum([m * r, 2 * r, r, 2 * q, q, 2 * m, m, 2 * m, 2 * m, m])),
-                ((m, r), (r, 2), (r,), (q, 2), (q,), (m, 2), (m,), (m, 2), (m, 2), (m,), (nh,))))
+            flat = self.fpool[off:off + _kernel.record_floats(m, r, q, nh)].copy()
+            flat.setflags(write=False)  # and so every view of it
+            holding = flat[len(flat) - nh:]
             in_contact = holding[3 + m * r + 3 * r:3 + m * r + 3 * r + m] > 0.5
-            for arr in (points, basis, plane_lin, plane_const, force_lin, force_const, hull_normals, hull_offsets,
-                        in_contact, spring_lin, spring_gradient, holding):
-                arr.setflags(write=False)
-            sol = SupportSolution(origin, points, in_contact, basis, plane_lin, plane_const, force_lin, force_const,
-                                  hull_normals, hull_offsets, False, float(weight))
-            sol.__dict__.update(spring_lin=spring_lin, spring_gradient=spring_gradient, _holding=holding,
-                                contact_collinear=False)
+            in_contact.setflags(write=False)
+            sol = SupportSolution.__new__(SupportSolution)
+            sol.__dict__.update(origin=origin, in_contact=in_contact, one_d=False, weight=float(flat[0]),
+                                _holding=holding, contact_collinear=False,
+                                _unpack=partial(_record_arrays, flat, m, r, q))
             off, length = self.gmeta[g, :2].tolist()
             gkey = ipool[off:off + length].tobytes()
             solved = geometry.shared.setdefault(gkey, [])
@@ -371,27 +368,24 @@ class _PieceTable:
     def adopt_born(self, model: "ParcelModel", start: int, born: int) -> None:
         """Make the ``born`` pieces the loop made from patterns (indices from ``start``) Python pieces, and add them to
         the model's cache as :meth:`ParcelModel.piece_for` would have."""
-        spec, kmeta, ipool = model.spec, self.kmeta, self.ipool
-        terms = self.law_args[-1]
-        for b, p in enumerate(range(start, start + born)):
-            off, n = kmeta[self.pkey[p], :2].tolist()
+        mass, inertia, damping = model.spec.mass, model.spec.inertia, self.damping
+        ipool, records = self.ipool, self.records
+        stop = start + born
+        terms = self.law_args[9][:born].copy()  # the packed constants the law's compiled drive made, a row a piece
+        origins = self.porigin[start:stop].copy()
+        spans = self.kmeta[self.pkey[start:stop], :2].tolist()  # (each piece's support set: its ids in ipool)
+        for p, (off, n), j, origin, k_terms, row in zip(range(start, stop), spans, self.psol[start:stop].tolist(),
+                                                        origins, terms, self.rows[start:stop].tolist()):
             support = ipool[off:off + n].copy()
             skey = tuple(support.tolist())
-            sol = self.records[self.psol[p]].at(self.porigin[p].copy())
-            k = affine.FrictionConstants(terms[b].copy(), self.damping, sol.weight)
-            piece = Piece.of(support, sol, k, spec.mass, spec.inertia, tuple(self.rows[p].tolist()), skey)
+            sol = records[j].at(origin)
+            k = affine.FrictionConstants(k_terms, damping, sol.weight)
+            piece = Piece.of(support, sol, k, mass, inertia, tuple(row), skey)
             model._pieces[piece.key] = piece
             model._by_support[skey] = [piece]
             self.index[piece] = p
             self.pieces.append(piece)
         self.mirrored += born
-
-    @staticmethod
-    def change(old: Piece, new: Piece) -> tuple:
-        """(entered, left, lifted, touched) between two pieces, as :func:`diff_event` finds them."""
-        (old_s, old_c), (new_s, new_c) = old.sets, new.sets
-        return (_ordered(new_s - old_s), _ordered(old_s - new_s), _ordered((old_c - new_c) & new_s),
-                _ordered((new_c - old_c) & old_s))
 
     def _room(self, keys: int = 0, ids: int = 0, pieces: int = 0, floats: int = 0, records: int = 0,
               patterns: int = 0) -> None:
@@ -419,6 +413,22 @@ class _PieceTable:
                 slots = np.full(size, -1, np.int64)
                 _kernel.table_rehash(slots, meta, self.ipool, n_keys if name == "slots" else n_patterns)
                 setattr(self, name, slots)
+
+
+def _record_arrays(flat: np.ndarray, m: int, r: int, q: int) -> dict[str, np.ndarray]:
+    """The arrays of a solution the compiled loop solved, by :class:`~virtual_vehicle.physics.contact.SupportSolution`
+    attribute, as views of ``flat`` (its record's floats as :func:`~virtual_vehicle.engine._kernel.table_add_record`
+    lays them: weight, basis, plane_lin, plane_const, hull_normals, hull_offsets, spring_lin, spring_gradient, points,
+    force_lin, force_const, the holding test); unpacked only when the solution's arrays are read."""
+    names = ("basis", "plane_lin", "plane_const", "hull_normals", "hull_offsets", "spring_lin", "spring_gradient",
+             "points", "force_lin", "force_const")
+    shapes = ((m, r), (r, 2), (r,), (q, 2), (q,), (m, 2), (m,), (m, 2), (m, 2), (m,))
+    out, at = {}, 1
+    for name, shape in zip(names, shapes):
+        size = math.prod(shape)
+        out[name] = flat[at:at + size].reshape(shape)
+        at += size
+    return out
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:
@@ -922,7 +932,7 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             nfev += evals
             pieces = table.pieces
             for tj, yj, (a, b) in zip(ev_t[:n_ev].tolist(), ev_y[:n_ev].tolist(), ev_p[:n_ev].tolist()):
-                events.append(Event.support(tj, tuple(yj), *table.change(pieces[a], pieces[b])))
+                events.append(Event.support_between(tj, tuple(yj), pieces[a].key, pieces[b].key))
             piece = pieces[p]
             if (center[0], center[1]) != seg.xy:  # gathered again in the loop (never where they were)
                 seg = _Segment.gathered(model, piece, ids, candidates, center)

@@ -49,6 +49,36 @@ class Event:
         return ev
 
     @classmethod
+    def support_between(cls, t: float, state: tuple[float, ...], old: tuple, new: tuple) -> Event:
+        """The support event from a piece keyed ``old`` to one keyed ``new`` (each (supporting cell ids, ids of those
+        in contact), as tuples or sets): :meth:`support` of the cells that changed between them, which are worked
+        out only when first read (most of a run's support events are only counted, and a compiled event loop makes
+        hundreds a call). ``t`` a float (s), ``state`` a tuple."""
+        ev = object.__new__(cls)
+        ev.__dict__.update(t=t, kind="support", state=state, message="", partner="", _keys=(old, new))
+        return ev
+
+    def __getattr__(self, name: str):
+        """The changed cells of an event made by :meth:`support_between`, worked out on first read."""
+        keys = self.__dict__.get("_keys")
+        if keys is None or name not in _CHANGED:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        self._settle()
+        return self.__dict__[name]
+
+    def _settle(self) -> None:
+        """Work out the changed cells of an event made by :meth:`support_between` (nothing for any other)."""
+        keys = self.__dict__.pop("_keys", None)
+        if keys is not None:
+            (old_s, old_c), (new_s, new_c) = ((frozenset(s), frozenset(c)) for s, c in keys)
+            self.__dict__.update(entered=_ordered(new_s - old_s), left=_ordered(old_s - new_s),
+                                 lifted=_ordered((old_c - new_c) & new_s), touched=_ordered((new_c - old_c) & old_s))
+
+    def __getstate__(self):
+        self._settle()
+        return self.__dict__
+
+    @classmethod
     def to_columns(cls, events: list[Event]) -> dict:
         """A list of events as data (a run's state is data): ``t`` (k,) s, ``state`` (k, 6), ``entered``, ``left``,
         ``lifted``, ``touched`` as ragged int columns (:func:`~virtual_vehicle.model.state_data.ragged`), and
@@ -70,6 +100,11 @@ class Event:
                    *(from_ragged(d[name], k, f"{where}.{name}") for name in ("entered", "left", "lifted", "touched")),
                    texts(d, "message", k, where), texts(d, "partner", k, where)]
         return [cls(*row) for row in zip(*columns)]
+
+
+_CHANGED = ("entered", "left", "lifted", "touched")
+for _name in _CHANGED:  # no class defaults, so that an event made by Event.support_between asks __getattr__
+    delattr(Event, _name)  # (the dataclass's __init__ keeps its own defaults)
 
 
 @dataclass
@@ -122,13 +157,10 @@ class Trajectory:
 
 def diff_event(t, y, old, new) -> Event | None:
     """The support event between two pieces (each with ``sets``: (support, contact) id sets), or None."""
-    (old_s, old_c), (new_s, new_c) = old.sets, new.sets
-    entered, left = new_s - old_s, old_s - new_s
-    lifted, touched = (old_c - new_c) & new_s, (new_c - old_c) & old_s
-    if not (entered or left or lifted or touched):
+    old_sets, new_sets = old.sets, new.sets
+    if old_sets == new_sets:  # (the cells that changed are worked out when the event is read)
         return None
-    return Event.support(float(t), tuple(np.asarray(y, dtype=float).tolist()), _ordered(entered), _ordered(left),
-                         _ordered(lifted), _ordered(touched))
+    return Event.support_between(float(t), tuple(np.asarray(y, dtype=float).tolist()), old_sets, new_sets)
 
 
 def _ordered(ids: frozenset[int]) -> tuple[int, ...]:

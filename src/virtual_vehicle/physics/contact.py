@@ -86,9 +86,32 @@ class SupportSolution:
         new.__dict__["origin"] = origin
         return new
 
+    def __getattr__(self, name: str):
+        """A solution made from a compiled engine's record holds ``_unpack``, a function returning its arrays by name
+        (views of one read-only copy of the record): they are made only when one is first read, since most such
+        solutions are only ever tested with :meth:`holds` (its ``_holding`` is made at once) and translated."""
+        unpack = self.__dict__.get("_unpack")
+        if unpack is None or name.startswith("__"):
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        return self._unpacked(name)
+
+    def _unpacked(self, name: str):
+        """Attribute ``name`` after unpacking the record (see :meth:`__getattr__`)."""
+        d = self.__dict__
+        unpack = d.pop("_unpack", None)
+        if unpack is not None:
+            for key, value in unpack().items():
+                d.setdefault(key, value)
+        try:
+            return d[name]
+        except KeyError:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}") from None
+
     @cached_property
     def spring_lin(self) -> np.ndarray:
         """(m, 2) gradient of each cell's spring force in the local centre of mass (N/m)."""
+        if "_unpack" in self.__dict__:  # a compiled record's own figures (see __getattr__)
+            return self._unpacked("spring_lin")
         out = self.basis @ self.plane_lin
         out.setflags(write=False)
         return out
@@ -96,6 +119,8 @@ class SupportSolution:
     @cached_property
     def spring_gradient(self) -> np.ndarray:
         """(m,) the norms of :attr:`spring_lin`'s rows (N/m)."""
+        if "_unpack" in self.__dict__:  # a compiled record's own figures (see __getattr__)
+            return self._unpacked("spring_gradient")
         out = np.hypot(self.spring_lin[:, 0], self.spring_lin[:, 1])
         out.setflags(write=False)
         return out
