@@ -49,46 +49,49 @@ def test_the_hexagonal_junction_delivers_every_parcel_to_its_exit():
     assert {r["exit"] for r in so["parcels"]} == {0, 1, 2}
 
 
-def test_a_hexagonal_cell_drives_a_parcel_out_through_each_port_at_the_vehicle_speed():
-    """A cell that carries a vehicle heading out through port q commands the surface velocity at 60 q degrees in its
-    frame at the sorter's speed (the omni wheels make it): here the cell on the west of a row of three with the exit
-    east of it, every cell under the same parcel, moves it east; turned by the map, every port is some cell's way."""
+@pytest.mark.parametrize("q", range(6))
+def test_hexagonal_cells_drive_a_parcel_out_through_each_port_at_the_vehicle_speed(q):
+    """Cells carrying a vehicle heading out through port q command the surface velocity at 60 q degrees in their
+    frame at the sorter's speed (their omni wheels make it), exactly (cos 60 degrees = 0.5): a row of three cells
+    whose wheel 0 is turned -60 q degrees, so that port q of each faces east, a parcel over the two western ones
+    and the eastern one an exit leaving east; the velocity is east in the world."""
     from virtual_vehicle.cells.network.topology import from_layout
     from virtual_vehicle.model import layout
 
-    cells = layout.hexagonal(3, 1, 0.1)
+    angle = -np.pi / 3 * q
+    cells = layout.hexagonal(3, 1, 0.1, drive_angle=angle)
     topo = from_layout(cells)
+    assert topo.neighbor[0, q] == 1 and topo.neighbor[1, q] == 2  # port q faces east
     program = Sorter(0.3, gap=1)
     n, P = cells.n, topo.ports
-    config = {"exit": np.array([-1, -1, 0]), "exit_port": np.array([-1, -1, 0]), "entry": np.array([True, False,
-              False]), "entry_no": np.arange(1, 4)}
+    config = {"exit": np.array([-1, -1, 0]), "exit_port": np.array([-1, -1, q]),
+              "entry": np.array([True, False, False]), "entry_no": np.arange(1, 4)}
     state, inbox = program.init(n, P, config), Mailbox.empty(program.schema, n, P)
     sensors = np.zeros((n, 5), bool)
     sensors[:2] = True  # a parcel over the two western cells
-    wheels = None
     for k in range(12):
         inputs = CellInputs(k * 0.01, sensors, inbox, topo.connected, config, np.array([0, -1, -1]))
         state, sent, wheels = program.step(state, inputs)
         inbox = Mailbox(program.schema, np.zeros((n, P), bool), {w: np.zeros_like(v) for w, v in sent.values.items()})
-        for i in range(n):  # ideal rounds: what cell i said on port q arrives at its neighbour's port back
-            for q in range(P):
-                j, b = topo.neighbor[i, q], topo.back_port[i, q]
-                if j >= 0 and sent.present[i, q]:
+        for i in range(n):  # ideal rounds: what cell i said on a port arrives at its neighbour's port back
+            for p in range(P):
+                j, b = topo.neighbor[i, p], topo.back_port[i, p]
+                if j >= 0 and sent.present[i, p]:
                     inbox.present[j, b] = True
                     for w in sent.values:
-                        inbox.values[w][j, b] = sent.values[w][i, q]
-    np.testing.assert_array_equal(np.asarray(wheels)[:2], [[0.3, 0.0], [0.3, 0.0]])
-    from virtual_vehicle.cells.sorting.rules import heading
-
-    for q in range(6):
-        vx, vy = heading(q, 6)
-        assert np.isclose(vx, np.cos(np.pi / 3 * q), atol=1e-15) and np.isclose(vy, np.sin(np.pi / 3 * q), atol=1e-15)
+                        inbox.values[w][j, b] = sent.values[w][i, p]
+    unit = [(1.0, 0.0), (0.5, np.sqrt(3) / 2), (-0.5, np.sqrt(3) / 2), (-1.0, 0.0), (-0.5, -np.sqrt(3) / 2),
+            (0.5, -np.sqrt(3) / 2)][q]
+    assert np.asarray(wheels)[:2].tolist() == [[0.3 * unit[0], 0.3 * unit[1]]] * 2 and not wheels[2].any()
+    world = wheels[0] @ cells.drive_directions[0]  # the command's axes are the cell frame's
+    np.testing.assert_allclose(world, [0.3, 0.0], atol=1e-12)
 
 
 @pytest.mark.parametrize("control, array, message", [
     ({"central": True}, None, "central sorter runs on square lattices"),
     ({"reach": 31}, None, "at most 30 hops"),
-    (None, {"map": "oo00oooo\noooooooo\noooooooo\nEEoooooo\nEEoooooo"}, "where the rows end"),  # an exit on the zig-zag top edge
+    # an exit on the zig-zag top edge
+    (None, {"map": "oo00oooo\noooooooo\noooooooo\nEEoooooo\nEEoooooo"}, "where the rows end"),
 ])
 def test_what_the_hexagonal_sorter_does_not_do_is_refused_naming_it(control, array, message):
     with pytest.raises(ScenarioError, match=message):

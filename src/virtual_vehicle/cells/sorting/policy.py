@@ -59,6 +59,8 @@ REST_HEX = REST[:11] + ((1 << 30) - 1,)
 def rest_words(P: int) -> tuple:
     """:data:`REST` for cells with ``P`` ports."""
     return REST if P == 4 else REST_HEX
+
+
 FULL = 1 << Words._fields.index("ex")
 """A partial sentence that carries ``ex`` (which never changes: said in the first sentence, then only at the
 heartbeat) says every word: those it leaves out are at rest (:data:`REST`)."""
