@@ -64,13 +64,17 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     allowed = np.arange(P)[None, :] != forbid[:, None]  # one-way cells: not against the arrow
     labels = np.full(n, _NONE) if getattr(inputs, "labels", None) is None else np.asarray(inputs.labels)
     rows = np.arange(n)
+    ports = np.arange(P)[None, :]
+    across = P // 2  # the port straight across is this many ports on
+    H = 6 if P == 4 else 5  # bits of a hop count beside a port (square: 6 + 2, hexagonal: 5 + 3)
+    none = (1 << H) - 1
     # -- what the neighbours said (last heard, trusted while fresh)
     # a partial sentence (``inbox.words``) carries some words only: the others stay as last heard
     carried = np.full((n, P), (1 << len(sorter.schema.fields)) - 1) if inbox.words is None else inbox.words
     # and one that carries ``ex`` says every word: those it leaves out are at rest
     full = inbox.present & ((carried >> 10) & 1 == 1)
     rest = {"d": -1, "nxt": 0, "vid": _NONE, "goal": _NONE, "key": _BIG, "stop": 65535, "req": _NONE, "rdep": 0,
-            "hold": _NONE, "ack": 0, "ex": 0, "blk": (1 << 24) - 1}
+            "hold": _NONE, "ack": 0, "ex": 0, "blk": (1 << (H * P)) - 1}
     heard = {k: np.where(inbox.present & ((carried >> w) & 1 == 1), inbox.values[k].astype(np.int64),
                          np.where(full, rest[k], v)) for w, (k, v) in enumerate(state["heard"].items())}
     tick = int(round(inputs.t / sorter.period)) if sorter.period else 0
@@ -97,7 +101,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # A cell that starts seeing a parcel takes the record of a neighbour whose vehicle is moving into it (else
     # the smallest id around). At the entry one new parcel may get several ids in its first tick: cells next to
     # entry cells settle on the smallest id those hold. Elsewhere a cell never changes vehicle while it sees one.
-    toward = (heard["key"] < _BIG) & ((heard["key"] // 64) % 8 == (np.arange(P)[None, :] + 2) % 4)
+    toward = (heard["key"] < _BIG) & ((heard["key"] // 64) % 8 == (ports + across) % P)
     has = trusted & (heard["vid"] >= 0)
     score = np.where(has, np.where(toward, 0, _HUGE) + heard["vid"], 2 * _HUGE)
     pick = np.argmin(score, axis=1)
@@ -135,13 +139,15 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # cell (across the way out) is under the same vehicle without being part of that exit. Until then the exit
     # cells that see such a neighbour move the vehicle away from it, into the band. These proposals come first
     # (distance 0: into the band; 1: out), then the gradient's (the chosen neighbour's distance + 3).
-    side = np.stack([(exit_port + 1) % 4, (exit_port + 3) % 4], axis=1)
+    # (on a hexagonal cell the sides 60 degrees off the way out; the vehicle moves away from one across the way out,
+    # sideways and on toward the edge)
+    side = np.stack([(exit_port + 1) % P, (exit_port - 1) % P], axis=1)
     mine = on & (exit_id == target) & (exit_port >= 0)
     into_band = np.full(n, _NONE)
     for c in range(2):
         sp = side[:, c]
         beside = mine & same_nb[rows, sp] & (heard["ex"][rows, sp] != target)
-        into_band = np.where(beside & (into_band < 0), (sp + 2) % 4, into_band)
+        into_band = np.where(beside & (into_band < 0), (2 * exit_port - sp) % P, into_band)
     at_exit = mine & (into_band < 0)
     # The vehicle is a body, not a point: a side on which any cell carrying it (centre sensor lit) has no
     # neighbour (the array's edge, a dead cell, a cut link) is closed to the whole vehicle (spread hop-limited,
@@ -153,12 +159,12 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     own_block &= ~(at_exit[:, None] & (np.arange(P)[None, :] == exit_port[:, None]))
     # only cells under a vehicle relay closed sides (the others say 63): computed on those rows alone
     under = np.flatnonzero(on)
-    nb_block = np.stack([_unpack(heard["blk"][under], q, 6) for q in range(P)], axis=-1)  # (from port, side)
-    relayed = np.full((n, P), 63, dtype=np.int64)
+    nb_block = np.stack([_unpack(heard["blk"][under], q, H) for q in range(P)], axis=-1)  # (from port, side)
+    relayed = np.full((n, P), none, dtype=np.int64)
     relayed[under] = _across(np.minimum, np.where(same_nb[under, :, None] & (nb_block < sorter.reach),
-                                                  nb_block + 1, 63))
+                                                  nb_block + 1, none))
     block = np.where(own_block, 0, relayed)
-    block = np.where(on[:, None], block, 63)
+    block = np.where(on[:, None], block, none)
     open_side = trusted & (block > sorter.reach)
     cand = np.where(open_side, nb_d, _BIG)
     port = np.argmin(cand, axis=1)
@@ -171,12 +177,12 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     pd = np.maximum(state["dir"], 0)
     ahead_vid = np.where(trusted[rows, pd], heard["hold"][rows, pd], _NONE)
     ahead_from = (heard["ack"][rows, pd] >> 8) - 1
-    coming = ((heard["key"][rows, pd] < _BIG) & ((heard["key"][rows, pd] // 64) % 8 == (pd + 2) % 4)
+    coming = ((heard["key"][rows, pd] < _BIG) & ((heard["key"][rows, pd] // 64) % 8 == (pd + across) % P)
               & (heard["vid"][rows, pd] == ahead_vid))
     head_on = (on & (state["dir"] >= 0) & (ahead_vid >= 0) & (ahead_vid < vid) & ~same_nb[rows, pd]
                & ((ahead_from == pd) | coming))
     back = np.where(on, np.maximum(state["back"] - 1, 0), 0)
-    bdir = np.where(head_on, (pd + 2) % 4, state["bdir"])
+    bdir = np.where(head_on, (pd + across) % P, state["bdir"])
     back = np.where(head_on, sorter.back_ticks, back)
     backing = (back > 0) & open_side[rows, np.maximum(bdir, 0)] & (bdir >= 0)
     prop_port = np.where(backing, bdir, prop_port)
@@ -218,7 +224,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     hport = np.where(new_hold >= 0, hport, _NONE)
     # acknowledgement: how many held cells run ahead from here (the whole chain when it reaches the edge)
     L = sorter.gap + 1  # one cell of look-ahead beyond the gap keeps a moving vehicle's chain ahead of it
-    fwd = (hport + 2) % 4
+    fwd = (hport + across) % P
     fp = np.maximum(fwd, 0)
     succ = (new_hold >= 0) & trusted[rows, fp] & (heard["hold"][rows, fp] == new_hold)
     edge = (new_hold >= 0) & ~inputs.connected[rows, fp]
@@ -236,21 +242,23 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # is gone as soon as its cells say go; a parked vehicle's every cell says stop
     src = np.where((own_park == 0) | parked, 0, own_stop)
     nb_stop = _unpack(heard["stop"], 0)
-    hops, came = nb_stop & 63, nb_stop >> 6
-    ports = np.arange(P)[None, :]
-    mine = (hops > 0) & (came == (ports + 2) % 4)
-    behind = (direction[:, None] >= 0) & (ports == (direction[:, None] + 2) % 4)
-    nb = np.where(same_nb & (hops < sorter.reach) & ~mine & ~behind, hops + 1, 63)
+    hops, came = nb_stop & none, nb_stop >> H
+    mine = (hops > 0) & (came == (ports + across) % P)
+    behind = (direction[:, None] >= 0) & (ports == (direction[:, None] + across) % P)
+    nb = np.where(same_nb & (hops < sorter.reach) & ~mine & ~behind, hops + 1, none)
     via = np.argmin(nb, axis=1)
     best = nb[rows, via]
-    stop = np.where(src == 0, 0, np.where(best < 63, best + (via << 6), 255))
+    stop = np.where(src == 0, 0, np.where(best < none, best + (via << H), 255))
     stop = np.where(on, stop, 255)
-    moving = on & (direction >= 0) & ((stop & 63) > sorter.reach)
+    moving = on & (direction >= 0) & ((stop & none) > sorter.reach)
     # -- outputs
     wheels = np.zeros((n, 2))
-    sign = np.array([1.0, 1.0, -1.0, -1.0])
-    axis = np.array([0, 1, 0, 1])
-    wheels[rows[moving], axis[dp[moving]]] = sign[dp[moving]] * sorter.speed
+    # the surface velocity out through each port, in the cell frame: square cells drive one wheel; hexagonal ones
+    # any planar velocity, port q at 60 q degrees (cos 60 = 0.5 exactly, sin 60 = sqrt(3) / 2)
+    s = np.sqrt(3.0) / 2
+    unit = (np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]]) if P == 4 else
+            np.array([[1.0, 0.0], [0.5, s], [-0.5, s], [-1.0, 0.0], [-0.5, -s], [0.5, -s]]))
+    wheels[rows[moving]] = unit[dp[moving]] * sorter.speed
     # the exit cell that lets a sequenced parcel out makes the next number due
     leaving = off_array & go_front & (seq >= 0)
     nxt = np.where(leaving, np.maximum(nxt, seq + 1), nxt)
@@ -265,7 +273,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
                             hold=np.where(lit & on, vid, new_hold),
                             ack=np.minimum(ack, 255) + ((hport + 1) << 8),
                             ex=np.where(entry, _ENTRY, exit_id),
-                            blk=pack(np.minimum(block, 63), 6))
+                            blk=pack(np.minimum(block, none), H))
     # requests: front cells ask the cell ahead (depth 1); held cells pass it on until gap deep
     ask = front & inputs.connected[rows, dp]
     out.values["req"][rows[ask], dp[ask]] = vid[ask]

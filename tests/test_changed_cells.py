@@ -41,6 +41,7 @@ CASES = {
     "lossy rounds": lambda: _scenario("sorting_junction", 4.0, control={"loss_rate": 0.002}),
     "very lossy rounds": lambda: _scenario("sorting_junction", 3.0, control={"loss_rate": 0.05, "heartbeat": 0.0}),
     "lossy rounds, heartbeat": lambda: _scenario("sorting_junction", 3.0, control={"loss_rate": 0.05}),
+    "hexagonal cells, lossy rounds": lambda: _scenario("hex_sorting_junction", 3.0, control={"loss_rate": 0.002}),
 }
 
 
@@ -381,23 +382,23 @@ def test_the_compiled_sorter_runs_as_its_array_statement_in_whole_runs(case):
             np.testing.assert_array_equal(a, b, err_msg=name)
 
 
-def _keys(rng, shape) -> np.ndarray:
-    """Direction keys as sorters say them (rules.direction_key: distance, keeping the direction, a port,
+def _keys(rng, shape, P: int = 4) -> np.ndarray:
+    """Direction keys as sorters say them (rules.direction_key: distance, keeping the direction, a port of ``P``,
     hops), or none."""
-    key = ((rng.integers(0, 260, shape) * 2 + rng.integers(0, 2, shape)) * 8 + rng.integers(0, 4, shape)) * 64 \
+    key = ((rng.integers(0, 260, shape) * 2 + rng.integers(0, 2, shape)) * 8 + rng.integers(0, P, shape)) * 64 \
         + rng.integers(0, 64, shape)
     return np.where(rng.random(shape) < 0.3, 1 << 20, key)
 
 
-def _said(rng, shape) -> dict[str, np.ndarray]:
+def _said(rng, shape, P: int = 4) -> dict[str, np.ndarray]:
     """Words as sorters say them where a word packs two fields: a direction key, ``stop`` (hops to a stopping cell
-    and the port it was heard through above six bits, then hops to a parking cell; 255 for none) and ``ack`` (a run
-    of held cells, then the port asked through plus one)."""
+    and the port it was heard through above six bits, five on a hexagonal cell, then hops to a parking cell; 255
+    for none) and ``ack`` (a run of held cells, then the port asked through plus one), on cells of ``P`` ports."""
     hops = lambda: np.where(rng.random(shape) < 0.4, 255, rng.integers(0, 10, shape))  # noqa: E731
     stop = hops()
-    stop = np.where(stop < 255, stop + (rng.integers(0, 4, shape) << 6), stop)
-    return {"key": _keys(rng, shape), "stop": stop + (hops() << 8),
-            "ack": rng.integers(0, 5, shape) + (rng.integers(0, 5, shape) << 8)}
+    stop = np.where(stop < 255, stop + (rng.integers(0, P, shape) << (6 if P == 4 else 5)), stop)
+    return {"key": _keys(rng, shape, P), "stop": stop + (hops() << 8),
+            "ack": rng.integers(0, 5, shape) + (rng.integers(0, P + 1, shape) << 8)}
 
 
 _WORDS = {"d": (-2**31, 2**31 - 1), "nxt": (0, 6), "vid": (-1, 8), "goal": (-1, 40), "key": (0, 1 << 20),
@@ -405,20 +406,20 @@ _WORDS = {"d": (-2**31, 2**31 - 1), "nxt": (0, 6), "vid": (-1, 8), "goal": (-1, 
           "ex": (-2, 3), "blk": (-2**31, 2**31 - 1)}
 
 
-def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, partial: bool = False):
+def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, partial: bool = False, P: int = 4):
     """A sorter, a state and inputs drawn at random (see the test below); ``partial``: a sorter that sends only the
-    words that changed, hearing sentences that carry some words only."""
+    words that changed, hearing sentences that carry some words only; ``P`` ports a cell (6: hexagonal)."""
     from virtual_vehicle.cells.network.messages import DTYPE
     from virtual_vehicle.cells.sorting import Sorter
 
-    n, P = 40, 4
+    n = 40
     program = Sorter(0.3, gap=int(rng.integers(1, 4)), reach=int(rng.integers(2, 9)), max_age=max_age,
                      heartbeat=0.03 if partial else float(rng.choice([0.0, 0.03])),  # every tick, or every third
                      partial=partial)
     state = program.init(n, P, {})
     for w, (lo, hi) in _WORDS.items():
         state["heard"][w] = rng.integers(lo, hi + 1, (n, P))
-    state["heard"].update(_said(rng, (n, P)))
+    state["heard"].update(_said(rng, (n, P), P))
     t = float(rng.integers(0, 10**5)) * 0.01
     state["heard_at"] = round(t / 0.01) - rng.choice([0, 1, 2, 5, 2**40], (n, P))  # the tick each port last heard
     for w, (lo, hi) in _WORDS.items():  # what was last said on each port: some words as they will be, some not
@@ -426,8 +427,9 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, part
     state["again"] = rng.choice([0, 0, 1, 2], (n, P))
     if partial:  # the words a port repeats, kept above the count
         state["again"] += np.where(state["again"] > 0, rng.integers(0, 1 << 12, (n, P)) << 16, 0)
-    for k, (lo, hi) in {"vid": (-1, 8), "goal": (-1, 40), "dir": (-1, 3), "back": (0, 6), "bdir": (-1, 3),
-                        "hold": (-1, 8), "hage": (0, 4), "hport": (-1, 3), "hdep": (0, 4), "nxt": (0, 6)}.items():
+    for k, (lo, hi) in {"vid": (-1, 8), "goal": (-1, 40), "dir": (-1, P - 1), "back": (0, 6), "bdir": (-1, P - 1),
+                        "hold": (-1, 8), "hage": (0, 4), "hport": (-1, P - 1), "hdep": (0, 4),
+                        "nxt": (0, 6)}.items():
         state[k] = rng.integers(lo, hi + 1, n)
     inbox = Mailbox.empty(program.schema, n, P)
     inbox.present[:] = rng.random((n, P)) < 0.7
@@ -435,13 +437,13 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, part
         lo, hi = _WORDS[f.name]
         info = np.iinfo(DTYPE[f.type])
         inbox.values[f.name][:] = rng.integers(max(lo, info.min), min(hi, info.max) + 1, (n, P))
-    for w, v in _said(rng, (n, P)).items():
+    for w, v in _said(rng, (n, P), P).items():
         inbox.values[w][:] = v
     if partial:  # each sentence carries some of the words
         inbox.words = rng.integers(0, 1 << 12, (n, P))
-    config = {"exit": rng.choice([-1, -1, -1, 0, 1, 2, 3], n), "exit_port": rng.integers(-1, 4, n),
+    config = {"exit": rng.choice([-1, -1, -1, 0, 1, 2, 3], n), "exit_port": rng.integers(-1, P, n),
               "entry": rng.random(n) < 0.2, "entry_no": rng.integers(0, 3000, n),
-              "forbid": rng.choice([-1, -1, 0, 1, 2, 3], n)}
+              "forbid": rng.choice([-1, -1, *range(P)], n)}
     if parking:
         config["park"] = rng.random(n) < 0.2
     labels = rng.integers(-1, 40, n) if labelled else None
@@ -458,6 +460,17 @@ def test_the_compiled_sorter_steps_as_its_array_statement_on_any_inputs(seed, ma
     sensors, links, labels, exits, entries, parking and one-way cells, and any state, stale or fresh."""
     program, state, inputs = _random_sorter_inputs(np.random.default_rng(seed), max_age, parking, labelled,
                                                    partial)
+    _same_step(program.step(state, inputs), step_arrays(program, state, inputs))
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([0, 3]), st.booleans(), st.booleans(), st.booleans())
+def test_the_compiled_sorter_steps_as_its_array_statement_on_hexagonal_cells(seed, max_age, parking, labelled,
+                                                                             partial):
+    """The same on cells of six ports (a hexagonal lattice): the port across, the lane's sides, the hop counts
+    packed in five bits beside a port of three, the wheels' velocity at 60-degree steps."""
+    program, state, inputs = _random_sorter_inputs(np.random.default_rng(seed), max_age, parking, labelled,
+                                                   partial, P=6)
     _same_step(program.step(state, inputs), step_arrays(program, state, inputs))
 
 

@@ -272,12 +272,14 @@ def _same(a, b, work=True):
         assert a.network.latency == b.network.latency
 
 
-@pytest.mark.parametrize("case", ["wire", "ideal rounds, motors, recorded", "central sorter"])
+@pytest.mark.parametrize("case", ["wire", "ideal rounds, motors, recorded", "central sorter", "hexagonal sorter"])
 def test_a_networked_run_resumed_half_way_is_the_uninterrupted_run(tmp_path, case):
     from virtual_vehicle.run.sim import NetworkRun, resume, run
 
     if case == "wire":
         sc = _network()
+    elif case.startswith("hexagonal"):  # six ports a cell, omni wheels: a parcel turning out of the entry
+        sc = _network("hex_sorting_junction", 2.5)
     elif case.startswith("central"):
         base = _network("merge_two_streams", 1.5)
         sc = base.model_copy(update={"control": base.control.model_copy(update={"central": True})})

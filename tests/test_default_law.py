@@ -12,7 +12,7 @@ PAPER_EXAMPLES = {"paper_2x2_inward": "coulomb", "row_oscillator": "coulomb", "r
                   "prototype_18": "coulomb", "squeeze_align": "viscous", "pose_control": "viscous"}
 TRANSPORT = ("crossing_30x30", "sorting_junction", "divert_line", "merge_two_streams", "reorder_stream",
              "hybrid_junction", "prototype_18_network", "prototype_18_network_ideal", "pose_tasks",
-             "stick_slip_pickup", "facility_40x40")
+             "stick_slip_pickup", "facility_40x40", "hex_sorting_junction")
 
 
 def test_a_scenario_naming_no_law_rides_at_the_wheel_speed():

@@ -240,7 +240,7 @@ def test_a_map_draws_the_array_and_marks_the_sorters_entries_and_exits():
     ({"kind": "map", "pitch": 0.1, "map": "...\n   "}, None, "the map has no cells"),
     ({"kind": "map", "pitch": 0.1, "map": "Eoo1\nEooo"}, {"program": "sort"}, "mark them 0, 1"),
     ({"kind": "map", "pitch": 0.1, "map": "ooo0\nooo0"}, {"program": "sort"}, "mark entry cells E"),
-    ({"kind": "map", "pitch": 0.1, "lattice": "hex", "map": "Eoo0\nEoo0"}, {"program": "sort"}, "square lattices"),
+    ({"kind": "map", "pitch": 0.1, "lattice": "hex", "map": "Eoo0\nEoo0"}, {"program": "sort"}, "where the rows end"),
     ({"kind": "map", "pitch": 0.1, "lattice": "hex", "wheels": "separate", "map": "oo\noo"}, None, "three omni"),
     ({"kind": "grid", "nx": 4, "ny": 4, "pitch": 0.1}, {"program": "sort"}, "needs exits"),
 ])

@@ -70,8 +70,16 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
     if (not c.exits or not c.entries) and not marks:
         raise FieldError("control", "program 'sort' needs exits = [outline, ...] and entries = [outline, ...] "
                          "(outlines [[x, y], ...] in m), or an [array] map that marks them")
-    if np.any(cells.ports[~cells.belts] != 4):
-        raise FieldError("control.program", "the sorter runs on square lattices (four ports a cell)")
+    kinds = np.unique(cells.ports[~cells.belts])
+    if len(kinds) > 1 or kinds[0] not in (4, 6):
+        raise FieldError("control.program", "the sorter runs on one lattice, square (four ports a cell) or "
+                         "hexagonal (six), not on an array that mixes them")
+    hexagonal = kinds[0] == 6
+    if hexagonal and c.central:
+        raise FieldError("control.central", "the central sorter runs on square lattices (four ports a cell); on a "
+                         "hexagonal lattice run the distributed one (central = false)")
+    if hexagonal and c.reach > 30:
+        raise FieldError("control.reach", f"on a hexagonal lattice reach is at most 30 hops (got {c.reach})")
     exit_id = np.full(cells.n, -1, dtype=np.int64)
     if c.exits:
         for k, outline in enumerate(c.exits):
@@ -97,7 +105,9 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
                              "through a side with no neighbour)")
         if np.sum(free == free.max()) > 1:
             raise FieldError(where, "the way out is ambiguous (the exit touches two edges as much; "
-                             "keep it off the corner)")
+                             "keep it off the corner" + ("; on a hexagonal lattice an exit leaves where the rows "
+                                                         "end, through an edge along wheel 0's axis" if hexagonal
+                                                         else "") + ")")
         exit_port[region] = int(np.argmax(free))  # the way out: the side most of its cells have open
     entry = np.zeros(cells.n, dtype=bool)
     for k, outline in enumerate(c.entries):

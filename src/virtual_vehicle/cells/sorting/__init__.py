@@ -46,6 +46,26 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
   around it). When its number is due it heads for its exit. Parcels therefore leave in sequence, as long as there
   are enough parking cells for those that arrive early.
 
+- *Square and hexagonal lattices*: a cell has P ports, four (east, north, west, south) or six (every 60 degrees
+  counter-clockwise from its wheel-0 drive direction), all cells of the array alike. The rules speak of ports only
+  through a few helpers (:mod:`.rules`): the port *ahead* is the vehicle's direction; *behind* is the port
+  straight across from it (:func:`~.rules.opposite`, P/2 ports on: a stop is not taken from there, a request is
+  passed on straight through it, a vehicle backs off through it); every other port is *beside* (two on a square
+  cell; on a hexagonal one the two 60 degrees off ahead and the two 120 degrees off). A *side* is one port:
+  it is closed to a vehicle when any cell carrying it has no live neighbour there, so a vehicle sidesteps through
+  any open port, six on a hexagonal cell, toward the neighbour nearest its exit. The exit gradients are the same
+  distance vectors over all P neighbours (a hop is one neighbour, a pitch away on either lattice). An exit lane's
+  sides are the ports next to its way out (:func:`~.rules.left_of`, :func:`~.rules.right_of`: 90 degrees off it
+  on a square cell, 60 on a hexagonal one); a lane cell that sees the vehicle beside it outside the lane moves it
+  through that side mirrored across the way out (:func:`~.rules.into_lane`: straight sideways on a square cell;
+  on a hexagonal one sideways and on toward the edge, there being no port straight sideways). The wheels move a
+  parcel out through port q at the vehicle's speed (:func:`~.rules.heading`): a square cell drives one of its
+  two wheels, a hexagonal cell's omni wheels the velocity at ``60 q`` degrees in its frame. Words that pack a hop
+  count with a port or one per port (``stop``, ``blk``) give it six bits on a square cell and five on a
+  hexagonal one (:func:`~.rules.hop_bits`), so ``reach`` is at most 30 there. On a hexagonal lattice an exit lane
+  leaves through an edge where the rows end (the top and bottom edges zig-zag: two ports lead off them as much),
+  one-way cells are not drawn and the central sorter does not run; each is refused, naming it.
+
 The policy is written once, compiled (:mod:`.policy`, one function per phase); :class:`Sorter` runs it.
 :class:`CentralSorter` (:mod:`.central`) is the central counterpart for comparison; what both apply (the goal
 encoding, when a parcel is due, vehicle ids, the gradients' hop cost, the wheel command, the back-off) is in

@@ -42,6 +42,8 @@ class CentralSorter:
     def init(self, n, ports, config):
         """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each (see
         :class:`~virtual_vehicle.cells.network.programs.CellProgram`)."""
+        if ports != 4:
+            raise ValueError("the central sorter runs on square lattices (four ports a cell)")
         exit_id = np.asarray(config["exit"])
         self.forbid = np.asarray(config.get("forbid", np.full(n, NONE)), dtype=np.int64)
         dist = self._distances([exit_id == e for e in range(MAX_EXITS)], exit_id, np.zeros(n, bool))

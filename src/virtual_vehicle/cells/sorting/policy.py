@@ -17,9 +17,10 @@ import numpy as np
 from numba import njit
 
 from virtual_vehicle.cells.network.programs import UNREACHABLE
-from virtual_vehicle.cells.sorting.rules import (BIG, ENTRY, HUGE, MAX_EXITS, NONE, PARK, direction_key, drive, due,
-                                                 heartbeat_due,
-                                                 hop_cost, split_goal, unpack, vehicle_id)
+from virtual_vehicle.cells.sorting.rules import (BIG, ENTRY, HUGE, MAX_EXITS, NONE, PARK, direction_key, due,
+                                                 heading, heartbeat_due, hop_bits,
+                                                 hop_cost, into_lane, left_of, opposite, right_of, split_goal, unpack,
+                                                 vehicle_id)
 
 Words = namedtuple("Words", "d nxt vid goal key stop req rdep hold ack ex blk")
 """The sorter's sentence words, one (n, P) array each, in the schema's order."""
@@ -49,7 +50,17 @@ ALL_WORDS = (1 << len(Words._fields)) - 1
 """The bit mask of every sentence word."""
 REST = (-1, 0, NONE, NONE, BIG, 255 + (255 << 8), NONE, 0, NONE, 0, 0, 63 * (1 + 64 + 4096 + 262144))
 """Each word's value on a cell with nothing to say (no vehicle, no hold, no way anywhere: ``d`` all unreachable,
-``stop`` and ``park`` none, every side closed; ``ex`` has none): a full sentence leaves the words at rest out."""
+``stop`` and ``park`` none, every side closed; ``ex`` has none): a full sentence leaves the words at rest out.
+Square cells; :data:`REST_HEX` on hexagonal ones."""
+REST_HEX = REST[:11] + ((1 << 30) - 1,)
+""":data:`REST` on hexagonal cells: every side closed is six 5-bit fields at 31 (:func:`~.rules.hop_bits`)."""
+
+
+def rest_words(P: int) -> tuple:
+    """:data:`REST` for cells with ``P`` ports."""
+    return REST if P == 4 else REST_HEX
+
+
 FULL = 1 << Words._fields.index("ex")
 """A partial sentence that carries ``ex`` (which never changes: said in the first sentence, then only at the
 heartbeat) says every word: those it leaves out are at rest (:data:`REST`)."""
@@ -83,7 +94,8 @@ def _spread(own, stop_word, field, same, on, reach):
 @njit(cache=True)
 def _spread_stop(own, stop_word, same, on, reach, direction):
     """The stop byte of a vehicle's cell: hops to the nearest of its cells that said stop (``own`` 0 here; low six
-    bits, 63 none) and the port it was heard through (high two bits); 255 when no stop is within ``reach``. A cell
+    bits, 63 none) and the port it was heard through (high two bits; on a hexagonal cell five and three bits,
+    :func:`~.rules.hop_bits`); 255 when no stop is within ``reach``. A cell
     takes a stop from the cell ahead (port ``direction``) or beside it, not from behind, and not from a neighbour
     that took it from this cell: a stop then runs only backward and sideways through the vehicle, along no loop, so
     once its cell says go it is gone from the vehicle in as many exchanges as it ran hops, where a count taken from
@@ -92,17 +104,20 @@ def _spread_stop(own, stop_word, same, on, reach, direction):
         return 255
     if own == 0:
         return 0
-    best = 63
-    came = 3
-    for q in range(same.shape[0]):
+    P = same.shape[0]
+    H = hop_bits(P)  # the hops' bits; the port above them
+    none = (1 << H) - 1
+    best = none
+    came = P - 1
+    for q in range(P):
         v = unpack(stop_word[q], 0, 8)
-        hops = v & 63
-        mine = hops > 0 and (v >> 6) == (q + 2) % 4  # the neighbour heard it from this cell
-        behind = direction >= 0 and q == (direction + 2) % 4
+        hops = v & none
+        mine = hops > 0 and (v >> H) == opposite(q, P)  # the neighbour heard it from this cell
+        behind = direction >= 0 and q == opposite(direction, P)
         if same[q] and hops < reach and not mine and not behind and hops + 1 < best:
             best = hops + 1
             came = q
-    return 255 if best == 63 else best + (came << 6)
+    return 255 if best == none else best + (came << H)
 
 
 @njit(cache=True, inline="always")
@@ -157,6 +172,9 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     own row, each value read before it is written): then only those rows change. ``out.unsettled[i]`` and
     ``out.out_changed[i]`` say whether row i's state and sentence differ from what they were."""
     P = inp.present.shape[1]
+    H = hop_bits(P)  # a side's closing hops in the block word, and the hops in the stop byte
+    none = (1 << H) - 1
+    rest = REST if P == 4 else REST_HEX
     present, words, sensors, connected, carried = inp  # the records unpacked once, outside the loop over cells: an array
     heard_in, at_in, dist_in, state_in, said_in, again_in = old  # reached through a record inside it costs a reference
     heard_out, at_out, dist_out, state_out, said_out, again_out = new  # count a use
@@ -193,18 +211,18 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             p = present[i, q]
             c = carried[i, q] if p else 0  # the words this port's sentence carried (a partial sentence: some)
             full = c & FULL != 0
-            changed |= _heard(c & 1 != 0, full, REST[0], w_d[i, q], i_d, hd, i, q)
-            changed |= _heard(c >> 1 & 1 != 0, full, REST[1], w_nxt[i, q], i_nxt, hnxt, i, q)
-            changed |= _heard(c >> 2 & 1 != 0, full, REST[2], w_vid[i, q], i_vid, hvid, i, q)
-            changed |= _heard(c >> 3 & 1 != 0, full, REST[3], w_goal[i, q], i_goal, hgoal, i, q)
-            changed |= _heard(c >> 4 & 1 != 0, full, REST[4], w_key[i, q], i_key, hkey, i, q)
-            changed |= _heard(c >> 5 & 1 != 0, full, REST[5], w_stop[i, q], i_stop, hstop, i, q)
-            changed |= _heard(c >> 6 & 1 != 0, full, REST[6], w_req[i, q], i_req, hreq, i, q)
-            changed |= _heard(c >> 7 & 1 != 0, full, REST[7], w_rdep[i, q], i_rdep, hrdep, i, q)
-            changed |= _heard(c >> 8 & 1 != 0, full, REST[8], w_hold[i, q], i_hold, hhold, i, q)
-            changed |= _heard(c >> 9 & 1 != 0, full, REST[9], w_ack[i, q], i_ack, hack, i, q)
-            changed |= _heard(c >> 10 & 1 != 0, full, REST[10], w_ex[i, q], i_ex, hex_, i, q)
-            changed |= _heard(c >> 11 & 1 != 0, full, REST[11], w_blk[i, q], i_blk, hblk, i, q)
+            changed |= _heard(c & 1 != 0, full, rest[0], w_d[i, q], i_d, hd, i, q)
+            changed |= _heard(c >> 1 & 1 != 0, full, rest[1], w_nxt[i, q], i_nxt, hnxt, i, q)
+            changed |= _heard(c >> 2 & 1 != 0, full, rest[2], w_vid[i, q], i_vid, hvid, i, q)
+            changed |= _heard(c >> 3 & 1 != 0, full, rest[3], w_goal[i, q], i_goal, hgoal, i, q)
+            changed |= _heard(c >> 4 & 1 != 0, full, rest[4], w_key[i, q], i_key, hkey, i, q)
+            changed |= _heard(c >> 5 & 1 != 0, full, rest[5], w_stop[i, q], i_stop, hstop, i, q)
+            changed |= _heard(c >> 6 & 1 != 0, full, rest[6], w_req[i, q], i_req, hreq, i, q)
+            changed |= _heard(c >> 7 & 1 != 0, full, rest[7], w_rdep[i, q], i_rdep, hrdep, i, q)
+            changed |= _heard(c >> 8 & 1 != 0, full, rest[8], w_hold[i, q], i_hold, hhold, i, q)
+            changed |= _heard(c >> 9 & 1 != 0, full, rest[9], w_ack[i, q], i_ack, hack, i, q)
+            changed |= _heard(c >> 10 & 1 != 0, full, rest[10], w_ex[i, q], i_ex, hex_, i, q)
+            changed |= _heard(c >> 11 & 1 != 0, full, rest[11], w_blk[i, q], i_blk, hblk, i, q)
             old = at_in[i, q]
             at_out[i, q] = tick if p else old
             changed |= at_out[i, q] != old
@@ -238,7 +256,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         if not lit:
             vid, goal = NONE, NONE
         for q in range(P):
-            toward = (hkey[i, q] < BIG) and ((hkey[i, q] // 64) % 8 == (q + 2) % 4)
+            toward = (hkey[i, q] < BIG) and ((hkey[i, q] // 64) % 8 == opposite(q, P))
             has = trusted[q] and hvid[i, q] >= 0
             score[q] = ((0 if toward else HUGE) + hvid[i, q]) if has else 2 * HUGE
             nb_entry[q] = hvid[i, q] if (has and hex_[i, q] == ENTRY) else HUGE
@@ -278,23 +296,23 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         mine = on and exit_id[i] == target and ep >= 0
         into_band = NONE
         for c in range(2):
-            sp = (ep + 1) % 4 if c == 0 else (ep + 3) % 4
+            sp = left_of(ep, P) if c == 0 else right_of(ep, P)
             beside = mine and same_nb[sp] and hex_[i, sp] != target
             if beside and into_band < 0:
-                into_band = (sp + 2) % 4
+                into_band = into_lane(sp, ep, P)
         at_exit = mine and into_band < 0
         core = on and sensors[i, 0]
         for q in range(P):
             own_block = core and (not connected[i, q] or not allowed[q])
             own_block = own_block and not (at_exit and q == ep)
-            relayed = 63
+            relayed = none
             if on:
                 for p in range(P):
-                    b = unpack(hblk[i, p], q, 6)
-                    relayed = min(relayed, b + 1 if (same_nb[p] and b < reach) else 63)
+                    b = unpack(hblk[i, p], q, H)
+                    relayed = min(relayed, b + 1 if (same_nb[p] and b < reach) else none)
             block[q] = 0 if own_block else relayed
             if not on:
-                block[q] = 63
+                block[q] = none
             open_side[q] = trusted[q] and block[q] > reach
             cand[q] = unpack(hd[i, q], g, 8) if open_side[q] else BIG
         port = _first_min(cand)
@@ -310,12 +328,12 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         pd = max(sdir, 0)
         ahead_vid = hhold[i, pd] if trusted[pd] else NONE
         ahead_from = (hack[i, pd] >> 8) - 1
-        coming = ((hkey[i, pd] < BIG) and ((hkey[i, pd] // 64) % 8 == (pd + 2) % 4)
+        coming = ((hkey[i, pd] < BIG) and ((hkey[i, pd] // 64) % 8 == opposite(pd, P))
                   and hvid[i, pd] == ahead_vid)
         head_on = (on and sdir >= 0 and ahead_vid >= 0 and ahead_vid < vid and not same_nb[pd]
                    and (ahead_from == pd or coming))
         back = max(s_back[i] - 1, 0) if on else 0
-        bdir = (pd + 2) % 4 if head_on else s_bdir[i]
+        bdir = opposite(pd, P) if head_on else s_bdir[i]
         if head_on:
             back = back_ticks
         backing = back > 0 and open_side[max(bdir, 0)] and bdir >= 0
@@ -359,7 +377,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         if new_hold < 0:
             hport = NONE
         L = gap + 1
-        fwd = (hport + 2) % 4
+        fwd = opposite(hport, P)
         fp = max(fwd, 0)
         succ = new_hold >= 0 and trusted[fp] and hhold[i, fp] == new_hold
         edge = new_hold >= 0 and not connected[i, fp]
@@ -370,12 +388,12 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         go_front = off_array or (trusted[dp] and ahead_hold == vid and ahead_ack >= gap)
         own_stop = 0 if (front and not go_front and (core or connected[i, dp])) else 255
         stop = _spread_stop(0 if (own_park == 0 or parked) else own_stop, hstop[i], same_nb, on, reach, direction)
-        moving = on and direction >= 0 and (stop & 63) > reach
+        moving = on and direction >= 0 and (stop & none) > reach
         # -- outputs
         wheels[i, 0] = wheels[i, 1] = 0.0
         if moving:
-            axis, sign = drive(dp)
-            wheels[i, axis] = sign * speed
+            vx, vy = heading(dp, P)
+            wheels[i, 0], wheels[i, 1] = vx * speed, vy * speed
         if off_array and go_front and seq >= 0:
             nxt = max(nxt, seq + 1)
         beside_parked = False
@@ -390,7 +408,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             word -= 1 << 32
         blk = 0
         for q in range(P):
-            blk += min(block[q], 63) << (6 * q)
+            blk += min(block[q], none) << (H * q)
         if blk >= 1 << 31:
             blk -= 1 << 32
         for q in range(P):  # requests: front cells ask the cell ahead, held cells pass it on until gap deep
@@ -420,7 +438,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             if partial and beat:  # everything, but the words at rest go without saying
                 carry = FULL
                 for w in range(len(now)):
-                    carry |= (1 << w) if now[w] != REST[w] else 0
+                    carry |= (1 << w) if now[w] != rest[w] else 0
             changed |= differs or again_out[i, q] != old_again
             sent_new |= sent_present[i, q] != send
             sent_present[i, q] = send

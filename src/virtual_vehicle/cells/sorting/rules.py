@@ -69,6 +69,59 @@ def hop_cost(linked, exit_id, edge_cost):
 
 
 @register_jitable
+def opposite(port, P):
+    """The port straight across from ``port`` on a cell with ``P`` ports (4: square, 6: hexagonal): behind a vehicle
+    heading out through ``port``, and the port a neighbour on ``port`` hears this cell through."""
+    return (port + P // 2) % P
+
+
+@register_jitable
+def left_of(port, P):
+    """The next port counter-clockwise from ``port`` (90 degrees on a square cell, 60 on a hexagonal one)."""
+    return (port + 1) % P
+
+
+@register_jitable
+def right_of(port, P):
+    """The next port clockwise from ``port``."""
+    return (port + P - 1) % P
+
+
+@register_jitable
+def into_lane(side, out, P):
+    """The port that moves a vehicle away from ``side`` into an exit lane whose way out is port ``out``: ``side``
+    mirrored across the way out (on a square cell the port across from ``side``, straight sideways; on a hexagonal
+    one, whose sides beside the way out lie 60 degrees off it, the port 60 degrees off it on the other side, so the
+    vehicle moves sideways while it goes on toward the edge)."""
+    return (2 * out + P - side) % P
+
+
+@register_jitable
+def hop_bits(P):
+    """Bits of a hop count in the words that pack one per port (``blk``) or a hop count and a port (``stop``): 6 on
+    a square cell (four 6-bit fields in 24 bits; a port in the stop byte's top two bits), 5 on a hexagonal one
+    (six fields in 30 bits of a 32-bit word; a port in the top three bits), so ``reach`` is at most 30 there.
+    The field's largest value, ``2**bits - 1``, means none."""
+    return 6 if P <= 4 else 5
+
+
+@register_jitable
+def heading(port, P):
+    """The unit velocity (x, y in the cell frame: along wheel 0's drive direction and across it) that moves a
+    parcel out through ``port`` of a cell with ``P`` ports: on a square cell one wheel (:func:`drive`), on a
+    hexagonal one port q at ``60 q`` degrees (its omni wheels make any planar surface velocity)."""
+    if P == 4:
+        axis, sign = drive(port)
+        return (sign, 0.0) if axis == 0 else (0.0, sign)
+    return _HEX_HEADING[port]
+
+
+_HEX_HEADING = ((1.0, 0.0), (0.5, 0.8660254037844386), (-0.5, 0.8660254037844386), (-1.0, 0.0),
+                (-0.5, -0.8660254037844386), (0.5, -0.8660254037844386))
+"""(cos, sin) of 0, 60, ..., 300 degrees: a hexagonal cell's ports (cos 60 degrees exactly 0.5, sin sqrt(3)/2)."""
+
+
+@register_jitable
 def drive(port):
     """The wheel command that moves a parcel out through ``port`` (0: +x, 1: +y, 2: -x, 3: -y): the drive axis (0:
     x, 1: y) and the sign of the wheel surface speed along it."""

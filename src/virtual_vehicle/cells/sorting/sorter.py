@@ -18,7 +18,8 @@ class Sorter:
     Args:
         speed: wheel surface speed of a moving vehicle, m/s.
         gap: free cells a vehicle keeps ahead of it.
-        reach: hops over which a vehicle's cells share direction and stop/go (at least its size in cells).
+        reach: hops over which a vehicle's cells share direction and stop/go (at least its size in cells; 1..62,
+            at most 30 on a hexagonal lattice).
         max_age: ticks a neighbour's words are trusted after it was last heard (0 on ideal rounds).
         edge_cost: extra hops a cell on the edge of the array (not an exit) counts in the gradients.
         period: the control period (s): a vehicle's id is the tick it was made (times 1024, plus its entry cell's
@@ -35,8 +36,9 @@ class Sorter:
             sentence leaves out: on a slow wire a sentence of two changed words takes a fifth of the time of all
             twelve, so what changes reaches the neighbours sooner. Needs a heartbeat (it repairs a lost word).
 
-    Sensor 0 of every cell must be its centre (the default layout): a cell whose centre is covered carries the
-    parcel; the others only see its edge.
+    Cells have four ports (square lattices) or six (hexagonal ones: see :mod:`virtual_vehicle.cells.sorting` for
+    what ahead, beside and behind mean there), all cells alike. Sensor 0 of every cell must be its centre (the
+    default layout): a cell whose centre is covered carries the parcel; the others only see its edge.
 
     Config (per cell): ``exit`` exit id or -1; ``exit_port`` the way out of the array for an exit cell (the
     side through which its exit lane leaves);
@@ -97,14 +99,13 @@ class Sorter:
     def init(self, n, ports, config):
         """Fresh per-cell state arrays for ``n`` cells with ``ports`` links each (see
         :class:`~virtual_vehicle.cells.network.programs.CellProgram`)."""
-        if ports != 4:
-            raise ValueError("the sorter runs on square lattices (four ports a cell)")
+        _check_ports(ports, self.reach)
         P = ports
         return {"dist": np.full((n, MAX_EXITS), UNREACHABLE, dtype=np.int64),
                 # nothing heard yet: a neighbour with nothing to say, so that a partial sentence that comes first
                 # (the one before it lost) leaves no zero distance to an exit, which would take a count to forget
                 "heard": {f.name: np.full((n, P), rest, dtype=np.int64)
-                          for f, rest in zip(self.schema.fields, policy.REST)},
+                          for f, rest in zip(self.schema.fields, policy.rest_words(P))},
                 "heard_at": np.full((n, P), _NEVER, dtype=np.int64),
                 "vid": np.full(n, NONE, dtype=np.int64), "goal": np.full(n, NONE, dtype=np.int64),
                 "dir": np.full(n, NONE, dtype=np.int64), "key": np.full(n, BIG, dtype=np.int64),
@@ -174,8 +175,7 @@ class Sorter:
         out_changed) masks."""
         inbox = inputs.inbox
         n, P = inbox.present.shape
-        if P != 4:
-            raise ValueError("the sorter runs on square lattices (four ports a cell)")
+        _check_ports(P, self.reach)
         cfg = inputs.config
 
         def cells(name, default, dtype):
@@ -208,6 +208,17 @@ class Sorter:
             policy.Outputs(out.present, policy.Words(*(out.values[w] for w in self._words)), wheels, unsettled,
                            out_changed, words_out))
         return unsettled, out_changed
+
+
+def _check_ports(P: int, reach: int) -> None:
+    """Raise ValueError unless the sorter runs on cells with ``P`` ports: four (square lattices) or six (hexagonal
+    ones, where a hop count packs into five bits, so ``reach`` is at most 30 hops)."""
+    if P not in (4, 6):
+        raise ValueError(f"the sorter runs on square (four ports a cell) or hexagonal (six ports) lattices, not on "
+                         f"cells with {P} ports")
+    if P == 6 and reach > 30:
+        raise ValueError(f"on a hexagonal lattice the sorter's reach is at most 30 hops (got {reach}): a hop count "
+                         "packs into five bits beside the six ports")
 
 
 def _arg(a, dtype) -> np.ndarray:
