@@ -50,6 +50,9 @@ class Sorter:
     """
 
     stationary = True
+    clocks = True
+    """:meth:`step_rows` takes the rows whose last step changed only their clocks and whose inputs did not change
+    (``quiet``) and ticks those clocks alone (see :class:`~virtual_vehicle.cells.network.programs.ChangedCells`)."""
 
     schema = Schema.of(d=(1, WordType.I32), nxt=(4, WordType.I16),
                        vid=(5, WordType.I32), goal=(6, WordType.I16), key=(7, WordType.I32),
@@ -149,13 +152,19 @@ class Sorter:
         return {"dist": new["dist"], "heard": {k: new["heard"][k] for k in heard}, "heard_at": new["heard_at"],
                 **{k: new[k] for k in _STATE}, "said": new["said"], "again": new["again"]}, out, wheels
 
-    def step_rows(self, state, inputs: CellInputs, rows: np.ndarray, outbox: Mailbox, wheels: np.ndarray):
+    def step_rows(self, state, inputs: CellInputs, rows: np.ndarray, outbox: Mailbox, wheels: np.ndarray,
+                  quiet: np.ndarray | None = None):
         """Step only the cells ``rows`` (indices into the full inputs), writing their new state, sentences and wheel
         speeds into ``state``, ``outbox`` and ``wheels`` in place (as :class:`~virtual_vehicle.cells.network.programs.
         ChangedCells` keeps them): what :meth:`step` gives those rows when given their rows of everything, with
         no rows gathered nor written back. Returns two (n,) masks, the rows whose state and whose sentences changed
         (False for the others), or None when the arrays are not the sorter's own kinds (int64 state, the schema's
-        word types, C-contiguous, writeable), to step the rows the general way."""
+        word types, C-contiguous, writeable), to step the rows the general way.
+
+        ``quiet`` ((n,) bool): rows among ``rows`` whose last step changed only their clocks (the third mask this
+        returns then) and whose inputs are those of that step, at a tick not :meth:`due` for them: only their clocks
+        tick (:func:`~virtual_vehicle.cells.sorting.policy.tick_cells`, which says why that is their step). With it,
+        three masks are returned: the two above and the rows whose state changed only in its clocks."""
         kept = [state["dist"], *state["heard"].values(), state["heard_at"], *(state[k] for k in _STATE),
                 *state["said"].values(), state["again"]]
         if (tuple(state["heard"]) != self._words or tuple(state["said"]) != self._words
@@ -166,12 +175,33 @@ class Sorter:
                 or (self.partial and outbox.words.dtype != np.int64)
                 or not all(a.flags.c_contiguous and a.flags.writeable for a in (*kept, wheels, *outbox.arrays))):
             return None
-        return self._run(state, inputs, np.asarray(rows, dtype=np.int64), state, outbox, wheels)
+        rows = np.asarray(rows, dtype=np.int64)
+        if quiet is None:
+            return self._run(state, inputs, rows, state, outbox, wheels)[:2]
+        light = quiet[rows]
+        n = len(quiet)
+        tick = tick_of(inputs.t, self.period)
+        number = _arg(inputs.config["entry_no"] if "entry_no" in inputs.config else np.zeros(n), np.int64)
+        if self.partial:  # a heartbeat then says every word: a full step (due() wakes these cells anyway)
+            light &= ~heartbeat_due(tick, number[rows], self.heartbeat_ticks)
+        park = inputs.config.get("park")
+        if park is not None and light.any():  # step_cells looks for parking cells among the rows it steps
+            park = np.broadcast_to(np.asarray(park, dtype=bool), (n,))
+            if park[rows].any() and not park[rows[~light]].any():
+                light[:] = False
+        full, ticked = rows[~light], rows[light]
+        unsettled, out_changed, ticking = self._run(state, inputs, full, state, outbox, wheels)
+        if len(ticked):
+            policy.tick_cells(ticked, _arg(inputs.inbox.present, bool), number, tick, self.heartbeat_ticks,
+                              self.partial, state["heard_at"], state["again"], outbox.present,
+                              np.empty((n, 4), np.int64) if outbox.words is None else outbox.words,
+                              unsettled, out_changed, ticking)
+        return unsettled, out_changed, ticking
 
     def _run(self, state, inputs, rows, new, out, wheels):
         """Step ``rows`` (:func:`~virtual_vehicle.cells.sorting.policy.step_cells`), the new state into ``new`` (a
         state dict), the sentences into ``out`` and the wheel speeds into ``wheels``; returns the (unsettled,
-        out_changed) masks."""
+        out_changed, ticking) masks."""
         inbox = inputs.inbox
         n, P = inbox.present.shape
         if P != 4:
@@ -191,7 +221,7 @@ class Sorter:
         labels = np.full(n, NONE) if getattr(inputs, "labels", None) is None else inputs.labels
         carried = np.full((n, P), policy.ALL_WORDS, np.int64) if inbox.words is None else _arg(inbox.words, np.int64)
         words_out = np.empty((n, P), np.int64) if out.words is None else out.words  # scratch when not partial
-        unsettled, out_changed = np.zeros(n, bool), np.zeros(n, bool)
+        unsettled, out_changed, ticking = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
         policy.step_cells(
             rows,
             policy.Inputs(_arg(inbox.present, bool),
@@ -206,8 +236,8 @@ class Sorter:
                          self.repeats, self.partial),
             memory(state, _arg), memory(new, lambda a, dtype: a),
             policy.Outputs(out.present, policy.Words(*(out.values[w] for w in self._words)), wheels, unsettled,
-                           out_changed, words_out))
-        return unsettled, out_changed
+                           out_changed, words_out, ticking))
+        return unsettled, out_changed, ticking
 
 
 def _arg(a, dtype) -> np.ndarray:
