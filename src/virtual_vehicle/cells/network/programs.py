@@ -275,9 +275,10 @@ class ChangedCells:
 
     A program that declares ``clocks = True`` keeps clocks in its state (a tick last heard, a count of repeats
     left) that change while nothing else does; its ``step_rows`` then takes ``quiet``, the (n,) cells whose last
-    step changed only their clocks (it returned them as a third mask) and whose inputs did not change and which
-    are not due, and may tick only their clocks, which it must prove is their whole step. Such a cell stays
-    stepped every tick while its clocks run, but for a fraction of a step's cost.
+    step changed only their clocks (it returned them as a third mask) and whose sensors and labels did not change
+    and which are not due, and may tick only their clocks where it can prove that is their whole step (their inbox
+    it judges itself); it returns a fourth mask, the cells it did so. Such a cell stays stepped every tick while its
+    clocks run, but for a fraction of a step's cost.
 
     When more than ``full_share`` of the cells would be stepped (a lossy network, a floor in turmoil), gathering them
     costs more than it saves, and so does comparing: every cell is then stepped without comparing anything for
@@ -298,7 +299,7 @@ class ChangedCells:
         self.stepped = 0
         """Ticks run, and cells stepped over all of them (a full step counts every cell)."""
         self.ticked = 0
-        """Cells whose clocks alone ticked (a program with ``clocks``), not among ``stepped``; a count for
+        """Cells whose clocks alone ticked (a program with ``clocks``), not counted in ``stepped``; a count for
         benchmarks, not kept by :meth:`to_data`."""
 
     _COUNTS = ("backoff", "skip", "ticks", "stepped")
@@ -339,14 +340,14 @@ class ChangedCells:
             if last["inbox"] is None:  # the last tick's inbox was not kept: its delivery model told what changed
                 return self._full(state, inputs, sensors, labels, compare)
             inbox_changed = rows_differ(inputs.inbox.arrays, last["inbox"], n)
-        moved = inbox_changed | rows_differ([sensors], [last["sensors"]], n)  # the inputs that changed
+        moved = rows_differ([sensors], [last["sensors"]], n)  # the inputs that changed, but the inbox
         due = getattr(self.program, "due", None)  # cells the time wakes (a heartbeat), whatever changed
         woken = None if due is None else due(inputs.t, state, inputs.config)
         if woken is not None:
             moved |= woken
         if labels is not None:
             moved |= labels != last["labels"]
-        changed = last["unsettled"] | moved
+        changed = last["unsettled"] | moved | inbox_changed
         rows = np.flatnonzero(changed)
         if len(rows) > self.full_share * n:  # most cells changed: step them all, and stop comparing for a while
             self.skip = self.backoff - 1
@@ -372,7 +373,7 @@ class ChangedCells:
             last["unsettled"], out_changed = masks[:2]
             if clocks:
                 last["ticking"] = masks[2]
-                ticked = int(np.count_nonzero(quiet[rows]))  # at most: the program may step some of them fully
+                ticked = int(np.count_nonzero(masks[3]))
                 self.ticked += ticked
                 self.stepped -= ticked
             return state, outbox, wheels, out_changed

@@ -462,24 +462,53 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
 
 
 @njit(cache=True)
-def tick_cells(rows, present, entry_no, tick, heartbeat, partial, heard_at, again, sent_present, sent_words,
-               unsettled, out_changed, ticking):
+def tick_cells(rows, inp, entry_no, tick, heartbeat, trust, partial, old, sent_present, sent_words, unsettled,
+               out_changed, ticking, done):
     """What :func:`step_cells` does to the rows ``rows`` whose last step changed only their clocks (``ticking``)
-    and whose inputs (inbox, sensors, links, labels) are those of that step, at a tick that is not due for them
+    and whose sensors, links and labels are those of that step, at a tick that is not due for them
     (:meth:`~virtual_vehicle.cells.sorting.Sorter.due`: no trusted neighbour turns stale, and with partial
-    sentences no heartbeat): their clocks only, in place. Why nothing else changes: every rule reads the
-    neighbours' words (the same: a port that hears now hears the sentence it heard last tick, one that does not
-    keeps what it kept), whether each is trusted (the same: a port that hears is fresh; a silent one turns stale
-    only at a due tick) and the cell's state words, which its last step left as it found them (``ticking``), so each
-    rule gives what it gave last tick, which is what the state holds; the sentence equals what was said, so it does
-    not differ and the repeats only count down. The tick itself enters only a new vehicle's id, made in a step that
-    changes the vehicle word (then the row is not ``ticking``), and the heartbeat, computed here as there.
-    ``heard_at``, ``again`` (n, P) int64, ``sent_present`` (n, P) bool and ``sent_words`` (n, P) int64 (when
-    ``partial``) are written in place; ``unsettled``, ``out_changed`` and ``ticking`` as :func:`step_cells` writes
-    them."""
+    sentences no heartbeat), when every port that hears now hears what the cell already holds from a neighbour it
+    trusted last tick (a port that falls silent keeps what it heard): their clocks only, in place, and
+    ``done[i]`` set; a row that hears something new is left as it is (``done[i]`` False) to be stepped whole.
+
+    Why nothing else changes: every rule reads the neighbours' words (the same: a port that hears, hears what it
+    held; a silent one keeps it), whether each is trusted (the same: a port that hears was trusted and stays so; a
+    silent one turns stale only at a due tick) and the cell's state words, which its last step left as it found
+    them (``ticking``), so each rule gives what it gave last tick, which is what the state holds; the sentence
+    equals what was said, so it does not differ, and the repeats only count down. The tick itself enters only a
+    new vehicle's id, made in a step that changes the vehicle word (then the row is not ``ticking``), and the
+    heartbeat, computed here as there. ``inp``: the :class:`Inputs` (its sensors and links unused); ``old``: the
+    :class:`Memory` (its ``heard_at`` and ``again`` written in place); ``sent_present`` (n, P) bool and
+    ``sent_words`` (n, P) int64 (when ``partial``) written in place; ``unsettled``, ``out_changed`` and
+    ``ticking`` as :func:`step_cells` writes them."""
+    present, words, sensors, connected, carried = inp  # unpacked once, outside the loop (see step_cells)
+    heard, heard_at, dist, state, said, again = old
+    w_d, w_nxt, w_vid, w_goal, w_key, w_stop, w_req, w_rdep, w_hold, w_ack, w_ex, w_blk = words
+    i_d, i_nxt, i_vid, i_goal, i_key, i_stop, i_req, i_rdep, i_hold, i_ack, i_ex, i_blk = heard
     P = present.shape[1]
     low = (1 << AGAIN_BITS) - 1
     for i in rows:
+        same = True  # what each port that hears now leaves heard as it is, from a neighbour trusted last tick
+        for q in range(P):
+            if present[i, q]:
+                c = carried[i, q]
+                full = c & FULL != 0
+                same = same and tick - 1 - heard_at[i, q] <= trust
+                same = same and _kept(c & 1 != 0, full, REST[0], w_d[i, q], i_d[i, q])
+                same = same and _kept(c >> 1 & 1 != 0, full, REST[1], w_nxt[i, q], i_nxt[i, q])
+                same = same and _kept(c >> 2 & 1 != 0, full, REST[2], w_vid[i, q], i_vid[i, q])
+                same = same and _kept(c >> 3 & 1 != 0, full, REST[3], w_goal[i, q], i_goal[i, q])
+                same = same and _kept(c >> 4 & 1 != 0, full, REST[4], w_key[i, q], i_key[i, q])
+                same = same and _kept(c >> 5 & 1 != 0, full, REST[5], w_stop[i, q], i_stop[i, q])
+                same = same and _kept(c >> 6 & 1 != 0, full, REST[6], w_req[i, q], i_req[i, q])
+                same = same and _kept(c >> 7 & 1 != 0, full, REST[7], w_rdep[i, q], i_rdep[i, q])
+                same = same and _kept(c >> 8 & 1 != 0, full, REST[8], w_hold[i, q], i_hold[i, q])
+                same = same and _kept(c >> 9 & 1 != 0, full, REST[9], w_ack[i, q], i_ack[i, q])
+                same = same and _kept(c >> 10 & 1 != 0, full, REST[10], w_ex[i, q], i_ex[i, q])
+                same = same and _kept(c >> 11 & 1 != 0, full, REST[11], w_blk[i, q], i_blk[i, q])
+        done[i] = same
+        if not same:
+            continue
         beat = heartbeat_due(tick, entry_no[i], heartbeat)
         clocks = False
         sent_new = False
@@ -502,3 +531,10 @@ def tick_cells(rows, present, entry_no, tick, heartbeat, partial, heard_at, agai
         unsettled[i] = clocks
         ticking[i] = clocks
         out_changed[i] = sent_new
+
+
+@njit(cache=True, inline="always")
+def _kept(arrived, full, rest, word, held):
+    """Whether a port hearing ``word`` (if it ``arrived``; ``rest`` if a full sentence left it out) leaves what it
+    ``held`` as it is (:func:`_heard`, compared without writing)."""
+    return (np.int64(word) if arrived else (np.int64(rest) if full else held)) == held
