@@ -542,3 +542,63 @@ def test_a_direction_key_naming_no_port_fails_in_both_sorters():
         inputs = CellInputs(0.0, np.ones((n, 5), bool), inbox, np.ones((n, P), bool), {}, None)
         with pytest.raises(IndexError):
             program.step(state, inputs)
+
+
+def test_a_sorter_cell_whose_clocks_alone_run_ticks_them_as_its_whole_step_would():
+    """Sorter.step_rows with ``quiet`` rows (their last step changed only their clocks, their sensors and labels are
+    the same, the tick is not due for them) ticks only the clocks of those that hear nothing new, and that gives
+    every state word, sentence, wheel speed and mask the whole step gives, on random states and inputs held for two
+    ticks, then at the third (the one compared) some ports falling silent and some hearing a word changed; with and
+    without parking cells, holds kept for a while and partial sentences. Some rows tick their clocks alone in these
+    draws, and some quiet ones are stepped whole, or the comparison would mean nothing."""
+    from virtual_vehicle.cells.network.programs import tree_map
+
+    def _leaves(st):
+        return [a for k in sorted(st) for a in (_leaves(st[k]) if isinstance(st[k], dict) else [st[k]])]
+
+    alone = whole = 0  # quiet rows that ticked their clocks alone, and that heard something new
+    for seed in range(48):
+        rng = np.random.default_rng(seed)
+        max_age, parking, partial = [0, 3][seed % 2], bool(seed // 2 % 2), bool(seed // 4 % 2)
+        program, state, inputs = _random_sorter_inputs(rng, max_age, parking, True, partial)
+        n = len(inputs.sensors)
+
+        def at(k, inbox=inputs.inbox):
+            return CellInputs(inputs.t + k * program.period, inputs.sensors, inbox, inputs.connected,
+                              inputs.config, inputs.labels)
+
+        inbox = Mailbox(inputs.inbox.schema, inputs.inbox.present & (rng.random((n, 4)) < 0.7),
+                        {w: a.copy() for w, a in inputs.inbox.values.items()},
+                        None if inputs.inbox.words is None else inputs.inbox.words.copy())
+        word = inbox.values[str(rng.choice(list(inbox.values)))]
+        word[rng.random((n, 4)) < 0.1] += 1  # a word heard that the cell did not hold (where it arrives)
+
+        state, out, wheels = program.step(state, inputs)
+        out = Mailbox(out.schema, out.present.copy(), {w: a.copy() for w, a in out.values.items()},
+                      None if out.words is None else out.words.copy())
+        wheels = np.array(wheels)
+        ticking = program.step_rows(state, at(1), np.arange(n), out, wheels, np.zeros(n, bool))[2]
+        quiet = ticking & ~program.due(at(2).t, state, inputs.config)
+        runs = []
+        for given_quiet in (None, quiet):
+            mine = tree_map(np.copy, state)
+            box = Mailbox(out.schema, out.present.copy(), {w: a.copy() for w, a in out.values.items()},
+                          None if out.words is None else out.words.copy())
+            w = wheels.copy()
+            masks = program.step_rows(mine, at(2, inbox), np.arange(n), box, w,
+                                      np.zeros(n, bool) if given_quiet is None else given_quiet)
+            runs.append((_leaves(mine), box, w, masks))
+        (ref_leaves, ref_box, ref_wheels, ref_masks), (leaves, box, w, masks) = runs
+        for a, b in zip(leaves, ref_leaves, strict=True):
+            np.testing.assert_array_equal(a, b)
+        for a, b in zip(box.arrays, ref_box.arrays, strict=True):
+            np.testing.assert_array_equal(a, b)
+        if partial:
+            np.testing.assert_array_equal(box.words, ref_box.words)
+        assert w.tobytes() == ref_wheels.tobytes()
+        for a, b in zip(masks[:3], ref_masks[:3], strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert not ref_masks[3].any() and not (masks[3] & ~quiet).any()
+        alone += int(masks[3].sum())
+        whole += int((quiet & ~masks[3]).sum())
+    assert alone > 30 and whole > 30

@@ -273,6 +273,13 @@ class ChangedCells:
     and ``wheels`` in place, and return the (n,) masks of the rows whose state and whose sentences changed (or None
     to be stepped the general way). The compiled sorter does: then no rows are gathered, compared or written back.
 
+    A program that declares ``clocks = True`` keeps clocks in its state (a tick last heard, a count of repeats
+    left) that change while nothing else does; its ``step_rows`` then takes ``quiet``, the (n,) cells whose last
+    step changed only their clocks (it returned them as a third mask) and whose sensors and labels did not change
+    and which are not due, and may tick only their clocks where it can prove that is their whole step (their inbox
+    it judges itself); it returns a fourth mask, the cells it did so. Such a cell stays stepped every tick while its
+    clocks run, but for a fraction of a step's cost.
+
     When more than ``full_share`` of the cells would be stepped (a lossy network, a floor in turmoil), gathering them
     costs more than it saves, and so does comparing: every cell is then stepped without comparing anything for
     1, 2, 4, ... up to ``max_backoff`` ticks in a row (the count doubles each time it happens again, and starts
@@ -291,6 +298,9 @@ class ChangedCells:
         self.ticks = 0
         self.stepped = 0
         """Ticks run, and cells stepped over all of them (a full step counts every cell)."""
+        self.ticked = 0
+        """Cells whose clocks alone ticked (a program with ``clocks``), not counted in ``stepped``; a count for
+        benchmarks, not kept by :meth:`to_data`."""
 
     _COUNTS = ("backoff", "skip", "ticks", "stepped")
 
@@ -330,13 +340,14 @@ class ChangedCells:
             if last["inbox"] is None:  # the last tick's inbox was not kept: its delivery model told what changed
                 return self._full(state, inputs, sensors, labels, compare)
             inbox_changed = rows_differ(inputs.inbox.arrays, last["inbox"], n)
-        changed = last["unsettled"] | inbox_changed | rows_differ([sensors], [last["sensors"]], n)
+        moved = rows_differ([sensors], [last["sensors"]], n)  # the inputs that changed, but the inbox
         due = getattr(self.program, "due", None)  # cells the time wakes (a heartbeat), whatever changed
         woken = None if due is None else due(inputs.t, state, inputs.config)
         if woken is not None:
-            changed |= woken
+            moved |= woken
         if labels is not None:
-            changed |= labels != last["labels"]
+            moved |= labels != last["labels"]
+        changed = last["unsettled"] | moved | inbox_changed
         rows = np.flatnonzero(changed)
         if len(rows) > self.full_share * n:  # most cells changed: step them all, and stop comparing for a while
             self.skip = self.backoff - 1
@@ -351,10 +362,22 @@ class ChangedCells:
             last["unsettled"] = changed
             return state, outbox, wheels, changed
         step_rows = getattr(self.program, "step_rows", None)
-        masks = None if step_rows is None else step_rows(state, inputs, rows, outbox, wheels)
+        clocks = getattr(self.program, "clocks", False) and step_rows is not None
+        if clocks:  # the cells whose clocks alone run: they tick those (see the class notes)
+            quiet = last.get("ticking")
+            quiet = np.zeros(n, bool) if quiet is None else quiet & ~moved
+            masks = step_rows(state, inputs, rows, outbox, wheels, quiet)
+        else:
+            masks = None if step_rows is None else step_rows(state, inputs, rows, outbox, wheels)
         if masks is not None:  # stepped in place: nothing gathered, compared or written back here
-            last["unsettled"], out_changed = masks
+            last["unsettled"], out_changed = masks[:2]
+            if clocks:
+                last["ticking"] = masks[2]
+                ticked = int(np.count_nonzero(masks[3]))
+                self.ticked += ticked
+                self.stepped -= ticked
             return state, outbox, wheels, out_changed
+        last.pop("ticking", None)  # stepped the general way: every cell it steps, stepped whole
         leaves = last["leaves"]  # the state's own arrays, updated in place
         old = [_rows(a, rows) for a in leaves]
         them = iter(old)

@@ -43,9 +43,11 @@ and those that changed in the last ``repeats`` ticks, all of them at the heartbe
 Inputs = namedtuple("Inputs", "present arrived sensors connected words")
 """Which sentences arrived (n, P), their words (:class:`Words`), the sensors (n, S), the live links (n, P) and the
 bit mask of the words each sentence carries (n, P; bit k: the schema's k-th word)."""
-Outputs = namedtuple("Outputs", "present sent wheels unsettled out_changed words")
+Outputs = namedtuple("Outputs", "present sent wheels unsettled out_changed words ticking")
 """Where the sentences go (a presence mask and :class:`Words`), the (n, 2) wheel speeds (m/s), per row whether
-the state and the sentences changed, and the bit mask of the words each sentence carries (n, P)."""
+the state and the sentences changed, the bit mask of the words each sentence carries (n, P), and per row whether
+its state changed only in its clocks (the tick each port last heard, the repeats left): such a row, stepped again
+on the same inputs, changes nothing else (see :func:`tick_cells`)."""
 ALL_WORDS = (1 << len(Words._fields)) - 1
 """The bit mask of every sentence word."""
 REST = (-1, 0, NONE, NONE, BIG, 255 + (255 << 8), NONE, 0, NONE, 0, 0, 63 * (1 + 64 + 4096 + 262144))
@@ -170,7 +172,8 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     acknowledge, stop or go, command the wheels, say. The new :class:`Memory` of each row stepped goes to ``new``,
     its sentence and wheel speeds to ``out``, which may hold the very arrays read (a row reads and writes only its
     own row, each value read before it is written): then only those rows change. ``out.unsettled[i]`` and
-    ``out.out_changed[i]`` say whether row i's state and sentence differ from what they were."""
+    ``out.out_changed[i]`` say whether row i's state and sentence differ from what they were, ``out.ticking[i]``
+    whether its state changed only in its clocks (``heard_at``, ``again``)."""
     P = inp.present.shape[1]
     H = hop_bits(P)  # a side's closing hops in the block word, and the hops in the stop byte
     none = (1 << H) - 1
@@ -180,7 +183,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     heard_out, at_out, dist_out, state_out, said_out, again_out = new  # count a use
     exit_id, exit_port, entry, entry_no, park_cell, forbid, labels = cfg
     tick, max_age, edge_cost, reach, gap, back_ticks, speed, heartbeat, trust, repeats, partial = rules
-    sent_present, sent, wheels, unsettled, out_changed, sent_words = out
+    sent_present, sent, wheels, unsettled, out_changed, sent_words, ticking = out
     n_vid, n_goal, n_dir, n_key, n_stop, n_hold, n_hdep, n_hport, n_hage, n_ack, n_nxt, n_park, n_back, n_bdir = \
         state_out
     w_d, w_nxt, w_vid, w_goal, w_key, w_stop, w_req, w_rdep, w_hold, w_ack, w_ex, w_blk = words
@@ -207,6 +210,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     for i in rows:
         # -- hear: what the neighbours said (last heard, trusted while fresh)
         changed = False
+        clocks = False  # the tick a port last heard and the repeats left changed (see tick_cells)
         for q in range(P):
             p = present[i, q]
             c = carried[i, q] if p else 0  # the words this port's sentence carried (a partial sentence: some)
@@ -225,7 +229,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             changed |= _heard(c >> 11 & 1 != 0, full, rest[11], w_blk[i, q], i_blk, hblk, i, q)
             old = at_in[i, q]
             at_out[i, q] = tick if p else old
-            changed |= at_out[i, q] != old
+            clocks |= at_out[i, q] != old
             trusted[q] = (tick - at_out[i, q] <= trust) and connected[i, q]
             allowed[q] = q != forbid[i]
         # -- routing: one gradient per exit
@@ -439,7 +443,8 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
                 carry = FULL
                 for w in range(len(now)):
                     carry |= (1 << w) if now[w] != rest[w] else 0
-            changed |= differs or again_out[i, q] != old_again
+            changed |= differs
+            clocks |= again_out[i, q] != old_again
             sent_new |= sent_present[i, q] != send
             sent_present[i, q] = send
             sent_new |= _put(sent_words, i, q, carry) and partial  # (a scratch array when not partial)
@@ -470,4 +475,85 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         changed |= _put1(n_park, s_park, i, park)
         changed |= _put1(n_back, s_back, i, back)
         changed |= _put1(n_bdir, s_bdir, i, bdir)
-        unsettled[i] = changed
+        unsettled[i] = changed or clocks
+        ticking[i] = clocks and not changed
+
+
+@njit(cache=True)
+def tick_cells(rows, inp, entry_no, tick, heartbeat, trust, partial, old, sent_present, sent_words, unsettled,
+               out_changed, ticking, done):
+    """What :func:`step_cells` does to the rows ``rows`` whose last step changed only their clocks (``ticking``)
+    and whose sensors, links and labels are those of that step, at a tick that is not due for them
+    (:meth:`~virtual_vehicle.cells.sorting.Sorter.due`: no trusted neighbour turns stale, and with partial
+    sentences no heartbeat), when every port that hears now hears what the cell already holds from a neighbour it
+    trusted last tick (a port that falls silent keeps what it heard): their clocks only, in place, and
+    ``done[i]`` set; a row that hears something new is left as it is (``done[i]`` False) to be stepped whole.
+
+    Why nothing else changes: every rule reads the neighbours' words (the same: a port that hears, hears what it
+    held; a silent one keeps it), whether each is trusted (the same: a port that hears was trusted and stays so; a
+    silent one turns stale only at a due tick) and the cell's state words, which its last step left as it found
+    them (``ticking``), so each rule gives what it gave last tick, which is what the state holds; the sentence
+    equals what was said, so it does not differ, and the repeats only count down. The tick itself enters only a
+    new vehicle's id, made in a step that changes the vehicle word (then the row is not ``ticking``), and the
+    heartbeat, computed here as there. ``inp``: the :class:`Inputs` (its sensors and links unused); ``old``: the
+    :class:`Memory` (its ``heard_at`` and ``again`` written in place); ``sent_present`` (n, P) bool and
+    ``sent_words`` (n, P) int64 (when ``partial``) written in place; ``unsettled``, ``out_changed`` and
+    ``ticking`` as :func:`step_cells` writes them."""
+    present, words, sensors, connected, carried = inp  # unpacked once, outside the loop (see step_cells)
+    heard, heard_at, dist, state, said, again = old
+    w_d, w_nxt, w_vid, w_goal, w_key, w_stop, w_req, w_rdep, w_hold, w_ack, w_ex, w_blk = words
+    i_d, i_nxt, i_vid, i_goal, i_key, i_stop, i_req, i_rdep, i_hold, i_ack, i_ex, i_blk = heard
+    P = present.shape[1]
+    rest = REST if P == 4 else REST_HEX
+    low = (1 << AGAIN_BITS) - 1
+    for i in rows:
+        same = True  # what each port that hears now leaves heard as it is, from a neighbour trusted last tick
+        for q in range(P):
+            if present[i, q]:
+                c = carried[i, q]
+                full = c & FULL != 0
+                same = same and tick - 1 - heard_at[i, q] <= trust
+                same = same and _kept(c & 1 != 0, full, rest[0], w_d[i, q], i_d[i, q])
+                same = same and _kept(c >> 1 & 1 != 0, full, rest[1], w_nxt[i, q], i_nxt[i, q])
+                same = same and _kept(c >> 2 & 1 != 0, full, rest[2], w_vid[i, q], i_vid[i, q])
+                same = same and _kept(c >> 3 & 1 != 0, full, rest[3], w_goal[i, q], i_goal[i, q])
+                same = same and _kept(c >> 4 & 1 != 0, full, rest[4], w_key[i, q], i_key[i, q])
+                same = same and _kept(c >> 5 & 1 != 0, full, rest[5], w_stop[i, q], i_stop[i, q])
+                same = same and _kept(c >> 6 & 1 != 0, full, rest[6], w_req[i, q], i_req[i, q])
+                same = same and _kept(c >> 7 & 1 != 0, full, rest[7], w_rdep[i, q], i_rdep[i, q])
+                same = same and _kept(c >> 8 & 1 != 0, full, rest[8], w_hold[i, q], i_hold[i, q])
+                same = same and _kept(c >> 9 & 1 != 0, full, rest[9], w_ack[i, q], i_ack[i, q])
+                same = same and _kept(c >> 10 & 1 != 0, full, rest[10], w_ex[i, q], i_ex[i, q])
+                same = same and _kept(c >> 11 & 1 != 0, full, rest[11], w_blk[i, q], i_blk[i, q])
+        done[i] = same
+        if not same:
+            continue
+        beat = heartbeat_due(tick, entry_no[i], heartbeat)
+        clocks = False
+        sent_new = False
+        for q in range(P):
+            if present[i, q]:  # as step_cells' hear phase
+                clocks |= heard_at[i, q] != tick
+                heard_at[i, q] = tick
+            old_again = again[i, q]  # as step_cells' say phase, with a sentence that does not differ
+            left = old_again & low
+            window = old_again >> AGAIN_BITS if left > 0 else 0
+            count = max(left - 1, 0)
+            again[i, q] = count + ((window << AGAIN_BITS) if (partial and count > 0) else 0)
+            clocks |= again[i, q] != old_again
+            send = beat or left > 0
+            sent_new |= sent_present[i, q] != send
+            sent_present[i, q] = send
+            if partial:
+                sent_new |= sent_words[i, q] != window
+                sent_words[i, q] = window
+        unsettled[i] = clocks
+        ticking[i] = clocks
+        out_changed[i] = sent_new
+
+
+@njit(cache=True, inline="always")
+def _kept(arrived, full, rest, word, held):
+    """Whether a port hearing ``word`` (if it ``arrived``; ``rest`` if a full sentence left it out) leaves what it
+    ``held`` as it is (:func:`_heard`, compared without writing)."""
+    return (np.int64(word) if arrived else (np.int64(rest) if full else held)) == held

@@ -52,6 +52,9 @@ class Sorter:
     """
 
     stationary = True
+    clocks = True
+    """:meth:`step_rows` takes the rows whose last step changed only their clocks and whose inputs did not change
+    (``quiet``) and ticks those clocks alone (see :class:`~virtual_vehicle.cells.network.programs.ChangedCells`)."""
 
     schema = Schema.of(d=(1, WordType.I32), nxt=(4, WordType.I16),
                        vid=(5, WordType.I32), goal=(6, WordType.I16), key=(7, WordType.I32),
@@ -150,13 +153,21 @@ class Sorter:
         return {"dist": new["dist"], "heard": {k: new["heard"][k] for k in heard}, "heard_at": new["heard_at"],
                 **{k: new[k] for k in _STATE}, "said": new["said"], "again": new["again"]}, out, wheels
 
-    def step_rows(self, state, inputs: CellInputs, rows: np.ndarray, outbox: Mailbox, wheels: np.ndarray):
+    def step_rows(self, state, inputs: CellInputs, rows: np.ndarray, outbox: Mailbox, wheels: np.ndarray,
+                  quiet: np.ndarray | None = None):
         """Step only the cells ``rows`` (indices into the full inputs), writing their new state, sentences and wheel
         speeds into ``state``, ``outbox`` and ``wheels`` in place (as :class:`~virtual_vehicle.cells.network.programs.
         ChangedCells` keeps them): what :meth:`step` gives those rows when given their rows of everything, with
         no rows gathered nor written back. Returns two (n,) masks, the rows whose state and whose sentences changed
         (False for the others), or None when the arrays are not the sorter's own kinds (int64 state, the schema's
-        word types, C-contiguous, writeable), to step the rows the general way."""
+        word types, C-contiguous, writeable), to step the rows the general way.
+
+        ``quiet`` ((n,) bool): rows among ``rows`` whose last step changed only their clocks (the third mask this
+        returns then) and whose sensors, links and labels are those of that step, at a tick not :meth:`due` for
+        them: those that hear nothing new tick only their clocks
+        (:func:`~virtual_vehicle.cells.sorting.policy.tick_cells`, which says why that is their step), the others
+        are stepped whole. With it, four masks are returned: the two above, the rows whose state changed only in
+        its clocks, and the rows that ticked their clocks alone."""
         kept = [state["dist"], *state["heard"].values(), state["heard_at"], *(state[k] for k in _STATE),
                 *state["said"].values(), state["again"]]
         if (tuple(state["heard"]) != self._words or tuple(state["said"]) != self._words
@@ -167,12 +178,53 @@ class Sorter:
                 or (self.partial and outbox.words.dtype != np.int64)
                 or not all(a.flags.c_contiguous and a.flags.writeable for a in (*kept, wheels, *outbox.arrays))):
             return None
-        return self._run(state, inputs, np.asarray(rows, dtype=np.int64), state, outbox, wheels)
+        rows = np.asarray(rows, dtype=np.int64)
+        if quiet is None:
+            return self._run(state, inputs, rows, state, outbox, wheels)[:2]
+        n = len(quiet)
+        light = quiet[rows]
+        park = inputs.config.get("park")  # step_cells looks for parking cells among the rows it steps whole
+        if park is not None and np.broadcast_to(np.asarray(park, dtype=bool), (n,))[rows].any():
+            light[:] = False
+        tick = tick_of(inputs.t, self.period)
+        number = _arg(inputs.config["entry_no"] if "entry_no" in inputs.config else np.zeros(n), np.int64)
+        if self.partial:  # a heartbeat then says every word: a whole step (due() wakes these cells anyway)
+            light &= ~heartbeat_due(tick, number[rows], self.heartbeat_ticks)
+        unsettled, out_changed, ticking = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
+        if light.any():  # first the clocks of the rows that hear nothing new, then the others whole
+            done = np.zeros(n, bool)
+            inbox = inputs.inbox
+            carried = (np.full((n, 4), policy.ALL_WORDS, np.int64) if inbox.words is None
+                       else _arg(inbox.words, np.int64))
+            words = policy.Words(*(_arg(inbox.values[w], t) for w, t in zip(self._words, self._types)))
+            policy.tick_cells(rows[light], policy.Inputs(_arg(inbox.present, bool), words,
+                                                         _arg(inputs.sensors, bool), _arg(inputs.connected, bool),
+                                                         carried),
+                              number, tick, self.heartbeat_ticks, self.trust, self.partial, self._memory(state),
+                              outbox.present, np.empty((n, 4), np.int64) if outbox.words is None else outbox.words,
+                              unsettled, out_changed, ticking, done)
+            rows = rows[~done[rows]]
+        else:
+            done = np.zeros(n, bool)
+        if len(rows):
+            masks = self._run(state, inputs, rows, state, outbox, wheels)
+            for mask, part in zip((unsettled, out_changed, ticking), masks):
+                mask |= part
+        return unsettled, out_changed, ticking, done
+
+    def _memory(self, st, arg=lambda a, dtype: a):
+        """The state dict ``st`` as the compiled step's :class:`~virtual_vehicle.cells.sorting.policy.Memory`, each
+        array through ``arg`` (default: as it is, for a state written in place)."""
+        return policy.Memory(policy.Words(*(arg(st["heard"][w], np.int64) for w in self._words)),
+                             arg(st["heard_at"], np.int64), arg(st["dist"], np.int64),
+                             policy.CellState(*(arg(st[k], np.int64) for k in _STATE)),
+                             policy.Words(*(arg(st["said"][w], np.int64) for w in self._words)),
+                             arg(st["again"], np.int64))
 
     def _run(self, state, inputs, rows, new, out, wheels):
         """Step ``rows`` (:func:`~virtual_vehicle.cells.sorting.policy.step_cells`), the new state into ``new`` (a
         state dict), the sentences into ``out`` and the wheel speeds into ``wheels``; returns the (unsettled,
-        out_changed) masks."""
+        out_changed, ticking) masks."""
         inbox = inputs.inbox
         n, P = inbox.present.shape
         _check_ports(P, self.reach)
@@ -181,17 +233,11 @@ class Sorter:
         def cells(name, default, dtype):
             return _arg(cfg[name] if name in cfg else default, dtype)
 
-        def memory(st, arg):  # the new state is written in place: its arrays are passed as they are
-            return policy.Memory(policy.Words(*(arg(st["heard"][w], np.int64) for w in self._words)),
-                                 arg(st["heard_at"], np.int64), arg(st["dist"], np.int64),
-                                 policy.CellState(*(arg(st[k], np.int64) for k in _STATE)),
-                                 policy.Words(*(arg(st["said"][w], np.int64) for w in self._words)),
-                                 arg(st["again"], np.int64))
 
         labels = np.full(n, NONE) if getattr(inputs, "labels", None) is None else inputs.labels
         carried = np.full((n, P), policy.ALL_WORDS, np.int64) if inbox.words is None else _arg(inbox.words, np.int64)
         words_out = np.empty((n, P), np.int64) if out.words is None else out.words  # scratch when not partial
-        unsettled, out_changed = np.zeros(n, bool), np.zeros(n, bool)
+        unsettled, out_changed, ticking = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
         policy.step_cells(
             rows,
             policy.Inputs(_arg(inbox.present, bool),
@@ -204,10 +250,10 @@ class Sorter:
             policy.Rules(tick_of(inputs.t, self.period), self.max_age, self.edge_cost, self.reach, self.gap,
                          self.back_ticks, self.speed, self.heartbeat_ticks, self.trust,
                          self.repeats, self.partial),
-            memory(state, _arg), memory(new, lambda a, dtype: a),
+            self._memory(state, _arg), self._memory(new),
             policy.Outputs(out.present, policy.Words(*(out.values[w] for w in self._words)), wheels, unsettled,
-                           out_changed, words_out))
-        return unsettled, out_changed
+                           out_changed, words_out, ticking))
+        return unsettled, out_changed, ticking
 
 
 def _check_ports(P: int, reach: int) -> None:
