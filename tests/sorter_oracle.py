@@ -61,6 +61,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     entry_no = np.asarray(cfg.get("entry_no", np.zeros(n)), dtype=np.int64)
     park_cell = np.asarray(cfg.get("park", np.zeros(n, bool)), dtype=bool)
     forbid = np.asarray(cfg.get("forbid", np.full(n, _NONE)), dtype=np.int64)
+    wired = np.asarray(cfg.get("wired", inputs.connected), dtype=bool)
     allowed = np.arange(P)[None, :] != forbid[:, None]  # one-way cells: not against the arrow
     labels = np.full(n, _NONE) if getattr(inputs, "labels", None) is None else np.asarray(inputs.labels)
     rows = np.arange(n)
@@ -113,6 +114,13 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
         k = np.argmin(nb_entry, axis=1)
         vid[merge] = entry_min[merge]
         goal[merge] = heard["goal"][rows, k][merge]
+    # Next to a dead cell (its own or the neighbour's, the ack word's bits 12 up) a cell takes the smallest id of
+    # the neighbours that say its goal: a dead cell can cut one parcel's cells apart into two ids.
+    dead = wired & ~inputs.connected
+    near_dead = dead.any(axis=1)[:, None] | ((heard["ack"] >> 12) != 0)
+    joins = lit[:, None] & (vid[:, None] >= 0) & near_dead & trusted & (heard["vid"] >= 0) \
+        & (heard["goal"] == goal[:, None])
+    vid = np.minimum(vid, _across(np.minimum, np.where(joins, heard["vid"], _HUGE)) if P else vid)
     fresh = lit & (vid < 0) & entry & (labels >= 0)
     # ids order vehicles by age (the tick they were made), which is the priority at a merge
     vid[fresh] = tick * 1024 + entry_no[fresh] % 1024
@@ -149,7 +157,15 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # nearest the goal, ranked by that neighbour's distance: the front's proposals win, and a vehicle that
     # cannot go on sidesteps.
     core = on & np.asarray(inputs.sensors, dtype=bool)[:, 0]  # the cell carries the parcel (centre sensor lit)
-    own_block = core[:, None] & (~inputs.connected | ~allowed)
+    # A dead neighbour (a port wired but silent) closes nothing where a cell of the same vehicle beside this one
+    # (across that side) has a live cell on the side: the vehicle's live cells carry it over the dead one. Each
+    # cell says its dead ports in the ack word's bits 12 up.
+    live_beside = np.zeros((n, P), dtype=bool)
+    for q in range(P):
+        for b in ((q + 1) % 4, (q + 3) % 4):
+            live_beside[:, q] |= same_nb[:, b] & ((heard["ack"][:, b] >> (12 + q)) & 1 == 0)
+    passable = dead & live_beside
+    own_block = core[:, None] & ((~inputs.connected & ~passable) | ~allowed)
     own_block &= ~(at_exit[:, None] & (np.arange(P)[None, :] == exit_port[:, None]))
     # only cells under a vehicle relay closed sides (the others say 63): computed on those rows alone
     under = np.flatnonzero(on)
@@ -170,7 +186,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # younger vehicle backs off, for long enough to clear the other's gap and one more cell.
     pd = np.maximum(state["dir"], 0)
     ahead_vid = np.where(trusted[rows, pd], heard["hold"][rows, pd], _NONE)
-    ahead_from = (heard["ack"][rows, pd] >> 8) - 1
+    ahead_from = ((heard["ack"][rows, pd] >> 8) & 15) - 1
     coming = ((heard["key"][rows, pd] < _BIG) & ((heard["key"][rows, pd] // 64) % 8 == (pd + 2) % 4)
               & (heard["vid"][rows, pd] == ahead_vid))
     head_on = (on & (state["dir"] >= 0) & (ahead_vid >= 0) & (ahead_vid < vid) & ~same_nb[rows, pd]
@@ -230,7 +246,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     go_front = off_array | (trusted[rows, dp] & (ahead_hold == vid) & (ahead_ack >= sorter.gap))
     # a cell that only sees the parcel's edge may hang over the array's edge or a dead cell: only cells that
     # carry the parcel, or that have a neighbour ahead to ask, can stop it
-    own_stop = np.where(front & ~go_front & (core | inputs.connected[rows, dp]), 0, 255)
+    own_stop = np.where(front & ~go_front & (core | inputs.connected[rows, dp]) & ~passable[rows, dp], 0, 255)
     # a stop runs only backward and sideways through the vehicle (from the cell ahead or beside, not from one that
     # heard it from this cell: the stop byte's high two bits name the port it came through), along no loop, so it
     # is gone as soon as its cells say go; a parked vehicle's every cell says stop
@@ -263,7 +279,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
                             stop=np.minimum(stop, 255) + (np.minimum(park, 255) << 8), req=np.full(n, _NONE),
                             rdep=np.zeros(n),
                             hold=np.where(lit & on, vid, new_hold),
-                            ack=np.minimum(ack, 255) + ((hport + 1) << 8),
+                            ack=np.minimum(ack, 255) + ((hport + 1) << 8) + (pack(dead, 1) << 12),
                             ex=np.where(entry, _ENTRY, exit_id),
                             blk=pack(np.minimum(block, 63), 6))
     # requests: front cells ask the cell ahead (depth 1); held cells pass it on until gap deep

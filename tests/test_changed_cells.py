@@ -392,12 +392,13 @@ def _keys(rng, shape) -> np.ndarray:
 def _said(rng, shape) -> dict[str, np.ndarray]:
     """Words as sorters say them where a word packs two fields: a direction key, ``stop`` (hops to a stopping cell
     and the port it was heard through above six bits, then hops to a parking cell; 255 for none) and ``ack`` (a run
-    of held cells, then the port asked through plus one)."""
+    of held cells, then the port asked through plus one, then the ports that lead to a dead neighbour)."""
     hops = lambda: np.where(rng.random(shape) < 0.4, 255, rng.integers(0, 10, shape))  # noqa: E731
     stop = hops()
     stop = np.where(stop < 255, stop + (rng.integers(0, 4, shape) << 6), stop)
     return {"key": _keys(rng, shape), "stop": stop + (hops() << 8),
-            "ack": rng.integers(0, 5, shape) + (rng.integers(0, 5, shape) << 8)}
+            "ack": rng.integers(0, 5, shape) + (rng.integers(0, 5, shape) << 8)
+            + np.where(rng.random(shape) < 0.5, rng.integers(0, 16, shape) << 12, 0)}
 
 
 _WORDS = {"d": (-2**31, 2**31 - 1), "nxt": (0, 6), "vid": (-1, 8), "goal": (-1, 40), "key": (0, 1 << 20),
@@ -445,8 +446,9 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, part
     if parking:
         config["park"] = rng.random(n) < 0.2
     labels = rng.integers(-1, 40, n) if labelled else None
-    inputs = CellInputs(t, rng.random((n, 5)) < 0.4, inbox,
-                        rng.random((n, P)) < 0.85, config, labels)
+    connected = rng.random((n, P)) < 0.85
+    config["wired"] = connected | (rng.random((n, P)) < 0.5)  # some silent ports lead to dead cells
+    inputs = CellInputs(t, rng.random((n, 5)) < 0.4, inbox, connected, config, labels)
     return program, state, inputs
 
 

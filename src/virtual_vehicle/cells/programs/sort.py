@@ -119,6 +119,7 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
     for arrow, against in layout.ONE_WAY.items():
         forbid[marks.get(arrow, np.zeros(cells.n, bool))] = against
     config = {"exit": exit_id, "exit_port": exit_port, "entry": entry, "park": park, "forbid": forbid,
+              "wired": topo.neighbor >= 0,  # where a neighbour is installed: a silent one there is dead, not the edge
               "entry_no": np.arange(1, cells.n + 1, dtype=np.int64),  # installation numbers: unique vehicle ids
               "clearance": (c.gap + 1) * cells.pitch}  # the loader waits for this much room around a new parcel
     if c.central:

@@ -32,8 +32,10 @@ tick, not an age, so that a silent neighbour leaves the state as it is), the exi
 gradients' distances (n, MAX_EXITS), the :class:`CellState`, the words it last sent on each port (:class:`Words`,
 int64; it sends again only what changed, and everything at its heartbeat) and how many ticks more it repeats a
 port's new sentence (n, P), so that one lost sentence does not leave a neighbour a heartbeat behind."""
-Config = namedtuple("Config", "exit exit_port entry entry_no park forbid labels")
-"""Per-cell configuration (see :class:`~virtual_vehicle.cells.sorting.Sorter`) and the labels read this tick."""
+Config = namedtuple("Config", "exit exit_port entry entry_no park forbid labels wired")
+"""Per-cell configuration (see :class:`~virtual_vehicle.cells.sorting.Sorter`), the labels read this tick and the
+(n, P) ports with a neighbour installed (a port wired but not connected leads to a dead cell or link, not off the
+array)."""
 Rules = namedtuple("Rules", "tick max_age edge_cost reach gap back_ticks speed heartbeat trust repeats partial")
 """The tick stepped and the sorter's numbers (hops and ticks; ``speed`` in m/s; ``heartbeat`` the ticks between two
 sentences of a cell with nothing new to say, ``trust`` the ticks a neighbour's last sentence is trusted, ``repeats``
@@ -53,6 +55,10 @@ REST = (-1, 0, NONE, NONE, BIG, 255 + (255 << 8), NONE, 0, NONE, 0, 0, 63 * (1 +
 FULL = 1 << Words._fields.index("ex")
 """A partial sentence that carries ``ex`` (which never changes: said in the first sentence, then only at the
 heartbeat) says every word: those it leaves out are at rest (:data:`REST`)."""
+DEAD_SHIFT = 12
+"""The ``ack`` word's bits from here up: the cell's ports that lead to a dead neighbour (wired, not connected), so
+that a cell beside it knows whether the vehicle has a live cell on that side (none on a sound array: the word is
+then what it always was)."""
 AGAIN_BITS = 16
 """A port's ``again`` memory: the ticks it repeats its sentence (low bits) and, when sentences are partial, the bit
 mask of the words to repeat (above these bits)."""
@@ -160,7 +166,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     present, words, sensors, connected, carried = inp  # the records unpacked once, outside the loop over cells: an array
     heard_in, at_in, dist_in, state_in, said_in, again_in = old  # reached through a record inside it costs a reference
     heard_out, at_out, dist_out, state_out, said_out, again_out = new  # count a use
-    exit_id, exit_port, entry, entry_no, park_cell, forbid, labels = cfg
+    exit_id, exit_port, entry, entry_no, park_cell, forbid, labels, wired = cfg
     tick, max_age, edge_cost, reach, gap, back_ticks, speed, heartbeat, trust, repeats, partial = rules
     sent_present, sent, wheels, unsettled, out_changed, sent_words = out
     n_vid, n_goal, n_dir, n_key, n_stop, n_hold, n_hdep, n_hport, n_hage, n_ack, n_nxt, n_park, n_back, n_bdir = \
@@ -186,6 +192,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     block = np.empty(P, np.int64)
     to_req = np.empty(P, np.int64)
     to_rdep = np.empty(P, np.int64)
+    passable = np.empty(P, np.bool_)
     for i in rows:
         # -- hear: what the neighbours said (last heard, trusted while fresh)
         changed = False
@@ -255,6 +262,16 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             k = _first_min(nb_entry)
             vid = entry_min
             goal = hgoal[i, k]
+        # where a dead cell cut a parcel's cells apart (at the entry, where they settle on one id, or under it) the
+        # parcel can carry two ids, whose cells then pull it two ways: next to a dead cell (this one's or the
+        # neighbour's), a cell takes the smaller id of a neighbour that says the same goal
+        dead_mask = 0
+        for q in range(P):
+            dead_mask |= (1 << q) if (wired[i, q] and not connected[i, q]) else 0
+        for q in range(P):
+            near_dead = dead_mask != 0 or (hack[i, q] >> DEAD_SHIFT) != 0
+            if lit and vid >= 0 and near_dead and trusted[q] and 0 <= hvid[i, q] < vid and hgoal[i, q] == goal:
+                vid = hvid[i, q]
         if lit and vid < 0 and entry[i] and labels[i] >= 0:
             vid = vehicle_id(tick, entry_no[i])
             goal = labels[i]
@@ -285,7 +302,18 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         at_exit = mine and into_band < 0
         core = on and sensors[i, 0]
         for q in range(P):
-            own_block = core and (not connected[i, q] or not allowed[q])
+            # a dead neighbour (wired, silent) does not close a side when a cell of the vehicle beside this one has
+            # a live cell on that side: the live cells under the vehicle carry it over the dead one, whose held
+            # wheels only brake it, where closing the side makes a parcel wider than the gaps between dead cells
+            # shuffle in front of them for ever
+            dead_q = wired[i, q] and not connected[i, q]
+            live_beside = False
+            for side in (1, 3):
+                b = (q + side) % 4
+                live_beside = live_beside or (same_nb[b] and (hack[i, b] >> (DEAD_SHIFT + q)) & 1 == 0)
+            passable[q] = dead_q and live_beside
+        for q in range(P):
+            own_block = core and ((not connected[i, q] and not passable[q]) or not allowed[q])
             own_block = own_block and not (at_exit and q == ep)
             relayed = 63
             if on:
@@ -309,7 +337,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         sdir = s_dir[i]
         pd = max(sdir, 0)
         ahead_vid = hhold[i, pd] if trusted[pd] else NONE
-        ahead_from = (hack[i, pd] >> 8) - 1
+        ahead_from = ((hack[i, pd] >> 8) & ((1 << (DEAD_SHIFT - 8)) - 1)) - 1
         coming = ((hkey[i, pd] < BIG) and ((hkey[i, pd] // 64) % 8 == (pd + 2) % 4)
                   and hvid[i, pd] == ahead_vid)
         head_on = (on and sdir >= 0 and ahead_vid >= 0 and ahead_vid < vid and not same_nb[pd]
@@ -368,7 +396,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         ahead_hold = hhold[i, dp]
         ahead_ack = hack[i, dp] & 255
         go_front = off_array or (trusted[dp] and ahead_hold == vid and ahead_ack >= gap)
-        own_stop = 0 if (front and not go_front and (core or connected[i, dp])) else 255
+        own_stop = 0 if (front and not go_front and (core or connected[i, dp]) and not passable[dp]) else 255
         stop = _spread_stop(0 if (own_park == 0 or parked) else own_stop, hstop[i], same_nb, on, reach, direction)
         moving = on and direction >= 0 and (stop & 63) > reach
         # -- outputs
@@ -407,7 +435,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             now = (np.int64(word), np.int64(nxt), np.int64(vid if on else NONE), np.int64(goal if on else NONE),
                    np.int64(min(key, 2**31 - 1)), np.int64(min(stop, 255) + (min(park, 255) << 8)),
                    np.int64(to_req[q]), np.int64(to_rdep[q]), np.int64(vid if (lit and on) else new_hold),
-                   np.int64(min(ack, 255) + ((hport + 1) << 8)), np.int64(ENTRY if entry[i] else exit_id[i]),
+                   np.int64(min(ack, 255) + ((hport + 1) << 8) + (dead_mask << DEAD_SHIFT)), np.int64(ENTRY if entry[i] else exit_id[i]),
                    np.int64(blk))
             send, differs, diff = _say(told, now, beat, i, q)
             old_again = again_in[i, q]
