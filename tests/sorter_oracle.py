@@ -61,7 +61,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     entry_no = np.asarray(cfg.get("entry_no", np.zeros(n)), dtype=np.int64)
     park_cell = np.asarray(cfg.get("park", np.zeros(n, bool)), dtype=bool)
     forbid = np.asarray(cfg.get("forbid", np.full(n, _NONE)), dtype=np.int64)
-    wired = np.asarray(cfg.get("wired", inputs.connected), dtype=bool)
+    inner = np.asarray(cfg.get("inner", inputs.connected), dtype=bool)
     allowed = np.arange(P)[None, :] != forbid[:, None]  # one-way cells: not against the arrow
     labels = np.full(n, _NONE) if getattr(inputs, "labels", None) is None else np.asarray(inputs.labels)
     rows = np.arange(n)
@@ -116,7 +116,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
         goal[merge] = heard["goal"][rows, k][merge]
     # Next to a dead cell (its own or the neighbour's, the ack word's bits 12 up) a cell takes the smallest id of
     # the neighbours that say its goal: a dead cell can cut one parcel's cells apart into two ids.
-    dead = wired & ~inputs.connected
+    dead = inner & ~inputs.connected
     near_dead = dead.any(axis=1)[:, None] | ((heard["ack"] >> 12) != 0)
     joins = lit[:, None] & (vid[:, None] >= 0) & near_dead & trusted & (heard["vid"] >= 0) \
         & (heard["goal"] == goal[:, None])
@@ -157,7 +157,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # nearest the goal, ranked by that neighbour's distance: the front's proposals win, and a vehicle that
     # cannot go on sidesteps.
     core = on & np.asarray(inputs.sensors, dtype=bool)[:, 0]  # the cell carries the parcel (centre sensor lit)
-    # A dead neighbour (a port wired but silent) closes nothing where a cell of the same vehicle beside this one
+    # A dead neighbour (an inner port, silent) closes nothing where a cell of the same vehicle beside this one
     # (across that side) has a live cell on the side: the vehicle's live cells carry it over the dead one. Each
     # cell says its dead ports in the ack word's bits 12 up.
     live_beside = np.zeros((n, P), dtype=bool)

@@ -447,7 +447,7 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, part
         config["park"] = rng.random(n) < 0.2
     labels = rng.integers(-1, 40, n) if labelled else None
     connected = rng.random((n, P)) < 0.85
-    config["wired"] = connected | (rng.random((n, P)) < 0.5)  # some silent ports lead to dead cells
+    config["inner"] = connected | (rng.random((n, P)) < 0.5)  # some silent ports lead to dead cells
     inputs = CellInputs(t, rng.random((n, 5)) < 0.4, inbox, connected, config, labels)
     return program, state, inputs
 

@@ -35,8 +35,9 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
   within the lane (no cell beside it, across the way out, is under the vehicle without belonging to the lane);
   until then such cells move the vehicle sideways into the lane. Nowhere else may a vehicle move over the edge: a
   front cell with no neighbour ahead stops it.
-- *Dead cells* (a port wired, config ``wired``, but silent): a dead cell carries weight and holds its wheels still,
-  so it brakes a parcel over it while the live cells under the parcel drive it. A side on which a carrying cell has
+- *Dead cells* (silent neighbours on the ports config ``inner`` names: a neighbour installed, not on the edge): a
+  dead cell carries weight and holds its wheels still, so it brakes a parcel over it while the live cells under
+  the parcel drive it. A side on which a carrying cell has
   no neighbour is closed to the whole vehicle (and a front cell facing it stops the vehicle), except where the
   neighbour is dead and a cell of the same vehicle beside this one (across that side) has a live cell there: the
   vehicle then passes over the dead cell, carried by its live cells, where closing the side would leave a parcel

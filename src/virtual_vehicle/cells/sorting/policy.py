@@ -32,10 +32,10 @@ tick, not an age, so that a silent neighbour leaves the state as it is), the exi
 gradients' distances (n, MAX_EXITS), the :class:`CellState`, the words it last sent on each port (:class:`Words`,
 int64; it sends again only what changed, and everything at its heartbeat) and how many ticks more it repeats a
 port's new sentence (n, P), so that one lost sentence does not leave a neighbour a heartbeat behind."""
-Config = namedtuple("Config", "exit exit_port entry entry_no park forbid labels wired")
+Config = namedtuple("Config", "exit exit_port entry entry_no park forbid labels inner")
 """Per-cell configuration (see :class:`~virtual_vehicle.cells.sorting.Sorter`), the labels read this tick and the
-(n, P) ports with a neighbour installed (a port wired but not connected leads to a dead cell or link, not off the
-array)."""
+(n, P) ports with a neighbour installed and another cell beyond it (such a port not connected leads to a dead cell
+or link inside the array, not off it)."""
 Rules = namedtuple("Rules", "tick max_age edge_cost reach gap back_ticks speed heartbeat trust repeats partial")
 """The tick stepped and the sorter's numbers (hops and ticks; ``speed`` in m/s; ``heartbeat`` the ticks between two
 sentences of a cell with nothing new to say, ``trust`` the ticks a neighbour's last sentence is trusted, ``repeats``
@@ -56,7 +56,7 @@ FULL = 1 << Words._fields.index("ex")
 """A partial sentence that carries ``ex`` (which never changes: said in the first sentence, then only at the
 heartbeat) says every word: those it leaves out are at rest (:data:`REST`)."""
 DEAD_SHIFT = 12
-"""The ``ack`` word's bits from here up: the cell's ports that lead to a dead neighbour (wired, not connected), so
+"""The ``ack`` word's bits from here up: the cell's ports that lead to a dead neighbour (inner, not connected), so
 that a cell beside it knows whether the vehicle has a live cell on that side (none on a sound array: the word is
 then what it always was)."""
 AGAIN_BITS = 16
@@ -166,7 +166,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     present, words, sensors, connected, carried = inp  # the records unpacked once, outside the loop over cells: an array
     heard_in, at_in, dist_in, state_in, said_in, again_in = old  # reached through a record inside it costs a reference
     heard_out, at_out, dist_out, state_out, said_out, again_out = new  # count a use
-    exit_id, exit_port, entry, entry_no, park_cell, forbid, labels, wired = cfg
+    exit_id, exit_port, entry, entry_no, park_cell, forbid, labels, inner = cfg
     tick, max_age, edge_cost, reach, gap, back_ticks, speed, heartbeat, trust, repeats, partial = rules
     sent_present, sent, wheels, unsettled, out_changed, sent_words = out
     n_vid, n_goal, n_dir, n_key, n_stop, n_hold, n_hdep, n_hport, n_hage, n_ack, n_nxt, n_park, n_back, n_bdir = \
@@ -267,7 +267,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         # neighbour's), a cell takes the smaller id of a neighbour that says the same goal
         dead_mask = 0
         for q in range(P):
-            dead_mask |= (1 << q) if (wired[i, q] and not connected[i, q]) else 0
+            dead_mask |= (1 << q) if (inner[i, q] and not connected[i, q]) else 0
         for q in range(P):
             near_dead = dead_mask != 0 or (hack[i, q] >> DEAD_SHIFT) != 0
             if lit and vid >= 0 and near_dead and trusted[q] and 0 <= hvid[i, q] < vid and hgoal[i, q] == goal:
@@ -302,11 +302,11 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         at_exit = mine and into_band < 0
         core = on and sensors[i, 0]
         for q in range(P):
-            # a dead neighbour (wired, silent) does not close a side when a cell of the vehicle beside this one has
+            # a dead neighbour (inner, silent) does not close a side when a cell of the vehicle beside this one has
             # a live cell on that side: the live cells under the vehicle carry it over the dead one, whose held
             # wheels only brake it, where closing the side makes a parcel wider than the gaps between dead cells
             # shuffle in front of them for ever
-            dead_q = wired[i, q] and not connected[i, q]
+            dead_q = inner[i, q] and not connected[i, q]
             live_beside = False
             for side in (1, 3):
                 b = (q + side) % 4
@@ -435,8 +435,8 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             now = (np.int64(word), np.int64(nxt), np.int64(vid if on else NONE), np.int64(goal if on else NONE),
                    np.int64(min(key, 2**31 - 1)), np.int64(min(stop, 255) + (min(park, 255) << 8)),
                    np.int64(to_req[q]), np.int64(to_rdep[q]), np.int64(vid if (lit and on) else new_hold),
-                   np.int64(min(ack, 255) + ((hport + 1) << 8) + (dead_mask << DEAD_SHIFT)), np.int64(ENTRY if entry[i] else exit_id[i]),
-                   np.int64(blk))
+                   np.int64(min(ack, 255) + ((hport + 1) << 8) + (dead_mask << DEAD_SHIFT)),
+                   np.int64(ENTRY if entry[i] else exit_id[i]), np.int64(blk))
             send, differs, diff = _say(told, now, beat, i, q)
             old_again = again_in[i, q]
             left = old_again & ((1 << AGAIN_BITS) - 1)  # ticks still to repeat, and (partial) which words
