@@ -61,6 +61,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     entry_no = np.asarray(cfg.get("entry_no", np.zeros(n)), dtype=np.int64)
     park_cell = np.asarray(cfg.get("park", np.zeros(n, bool)), dtype=bool)
     forbid = np.asarray(cfg.get("forbid", np.full(n, _NONE)), dtype=np.int64)
+    inner = np.asarray(cfg.get("inner", inputs.connected), dtype=bool)
     allowed = np.arange(P)[None, :] != forbid[:, None]  # one-way cells: not against the arrow
     labels = np.full(n, _NONE) if getattr(inputs, "labels", None) is None else np.asarray(inputs.labels)
     rows = np.arange(n)
@@ -68,6 +69,8 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     across = P // 2  # the port straight across is this many ports on
     H = 6 if P == 4 else 5  # bits of a hop count beside a port (square: 6 + 2, hexagonal: 5 + 3)
     none = (1 << H) - 1
+    RB, PB = (8, 4) if P == 4 else (7, 3)  # ack: bits of the held run, of the port asked through + 1; dead ports above
+    dead_shift = RB + PB
     # -- what the neighbours said (last heard, trusted while fresh)
     # a partial sentence (``inbox.words``) carries some words only: the others stay as last heard
     carried = np.full((n, P), (1 << len(sorter.schema.fields)) - 1) if inbox.words is None else inbox.words
@@ -117,6 +120,13 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
         k = np.argmin(nb_entry, axis=1)
         vid[merge] = entry_min[merge]
         goal[merge] = heard["goal"][rows, k][merge]
+    # Next to a dead cell (its own or the neighbour's, the ack word's top bits) a cell takes the smallest id of
+    # the neighbours that say its goal: a dead cell can cut one parcel's cells apart into two ids.
+    dead = inner & ~inputs.connected
+    near_dead = dead.any(axis=1)[:, None] | ((heard["ack"] >> dead_shift) != 0)
+    joins = lit[:, None] & (vid[:, None] >= 0) & near_dead & trusted & (heard["vid"] >= 0) \
+        & (heard["goal"] == goal[:, None])
+    vid = np.minimum(vid, _across(np.minimum, np.where(joins, heard["vid"], _HUGE)) if P else vid)
     fresh = lit & (vid < 0) & entry & (labels >= 0)
     # ids order vehicles by age (the tick they were made), which is the priority at a merge
     vid[fresh] = tick * 1024 + entry_no[fresh] % 1024
@@ -155,7 +165,15 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # nearest the goal, ranked by that neighbour's distance: the front's proposals win, and a vehicle that
     # cannot go on sidesteps.
     core = on & np.asarray(inputs.sensors, dtype=bool)[:, 0]  # the cell carries the parcel (centre sensor lit)
-    own_block = core[:, None] & (~inputs.connected | ~allowed)
+    # A dead neighbour (an inner port, silent) closes nothing where a cell of the same vehicle beside this one
+    # (across that side) has a live cell on the side: the vehicle's live cells carry it over the dead one. Each
+    # cell says its dead ports in the ack word's top bits.
+    live_beside = np.zeros((n, P), dtype=bool)
+    for q in range(P):
+        for b in ((q + 1) % P, (q + P - 1) % P):
+            live_beside[:, q] |= same_nb[:, b] & ((heard["ack"][:, b] >> (dead_shift + q)) & 1 == 0)
+    passable = dead & live_beside
+    own_block = core[:, None] & ((~inputs.connected & ~passable) | ~allowed)
     own_block &= ~(at_exit[:, None] & (np.arange(P)[None, :] == exit_port[:, None]))
     # only cells under a vehicle relay closed sides (the others say 63): computed on those rows alone
     under = np.flatnonzero(on)
@@ -176,7 +194,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # younger vehicle backs off, for long enough to clear the other's gap and one more cell.
     pd = np.maximum(state["dir"], 0)
     ahead_vid = np.where(trusted[rows, pd], heard["hold"][rows, pd], _NONE)
-    ahead_from = (heard["ack"][rows, pd] >> 8) - 1
+    ahead_from = ((heard["ack"][rows, pd] >> RB) & ((1 << PB) - 1)) - 1
     coming = ((heard["key"][rows, pd] < _BIG) & ((heard["key"][rows, pd] // 64) % 8 == (pd + across) % P)
               & (heard["vid"][rows, pd] == ahead_vid))
     head_on = (on & (state["dir"] >= 0) & (ahead_vid >= 0) & (ahead_vid < vid) & ~same_nb[rows, pd]
@@ -228,15 +246,15 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     fp = np.maximum(fwd, 0)
     succ = (new_hold >= 0) & trusted[rows, fp] & (heard["hold"][rows, fp] == new_hold)
     edge = (new_hold >= 0) & ~inputs.connected[rows, fp]
-    run_ahead = np.where(succ, heard["ack"][rows, fp] & 255, 0)
+    run_ahead = np.where(succ, heard["ack"][rows, fp] & ((1 << RB) - 1), 0)
     ack = np.where(new_hold >= 0, np.where(edge, L, np.minimum(L, 1 + run_ahead)), 0)
     # a front cell may go when the cell ahead is held for its vehicle with a full free run, or at the exit edge
     ahead_hold = heard["hold"][rows, dp]
-    ahead_ack = heard["ack"][rows, dp] & 255
+    ahead_ack = heard["ack"][rows, dp] & ((1 << RB) - 1)
     go_front = off_array | (trusted[rows, dp] & (ahead_hold == vid) & (ahead_ack >= sorter.gap))
     # a cell that only sees the parcel's edge may hang over the array's edge or a dead cell: only cells that
     # carry the parcel, or that have a neighbour ahead to ask, can stop it
-    own_stop = np.where(front & ~go_front & (core | inputs.connected[rows, dp]), 0, 255)
+    own_stop = np.where(front & ~go_front & (core | inputs.connected[rows, dp]) & ~passable[rows, dp], 0, 255)
     # a stop runs only backward and sideways through the vehicle (from the cell ahead or beside, not from one that
     # heard it from this cell: the stop byte's high two bits name the port it came through), along no loop, so it
     # is gone as soon as its cells say go; a parked vehicle's every cell says stop
@@ -271,7 +289,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
                             stop=np.minimum(stop, 255) + (np.minimum(park, 255) << 8), req=np.full(n, _NONE),
                             rdep=np.zeros(n),
                             hold=np.where(lit & on, vid, new_hold),
-                            ack=np.minimum(ack, 255) + ((hport + 1) << 8),
+                            ack=np.minimum(ack, (1 << RB) - 1) + ((hport + 1) << RB) + (pack(dead, 1) << dead_shift),
                             ex=np.where(entry, _ENTRY, exit_id),
                             blk=pack(np.minimum(block, none), H))
     # requests: front cells ask the cell ahead (depth 1); held cells pass it on until gap deep

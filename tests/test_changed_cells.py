@@ -393,12 +393,15 @@ def _keys(rng, shape, P: int = 4) -> np.ndarray:
 def _said(rng, shape, P: int = 4) -> dict[str, np.ndarray]:
     """Words as sorters say them where a word packs two fields: a direction key, ``stop`` (hops to a stopping cell
     and the port it was heard through above six bits, five on a hexagonal cell, then hops to a parking cell; 255
-    for none) and ``ack`` (a run of held cells, then the port asked through plus one), on cells of ``P`` ports."""
+    for none) and ``ack`` (a run of held cells, then the port asked through plus one, then the ports that lead to a
+    dead neighbour: 8 + 4 + 4 bits, 7 + 3 + 6 on a hexagonal cell), on cells of ``P`` ports."""
     hops = lambda: np.where(rng.random(shape) < 0.4, 255, rng.integers(0, 10, shape))  # noqa: E731
     stop = hops()
     stop = np.where(stop < 255, stop + (rng.integers(0, P, shape) << (6 if P == 4 else 5)), stop)
+    rb, pb = (8, 4) if P == 4 else (7, 3)
     return {"key": _keys(rng, shape, P), "stop": stop + (hops() << 8),
-            "ack": rng.integers(0, 5, shape) + (rng.integers(0, P + 1, shape) << 8)}
+            "ack": rng.integers(0, 5, shape) + (rng.integers(0, P + 1, shape) << rb)
+            + np.where(rng.random(shape) < 0.5, rng.integers(0, 1 << P, shape) << (rb + pb), 0)}
 
 
 _WORDS = {"d": (-2**31, 2**31 - 1), "nxt": (0, 6), "vid": (-1, 8), "goal": (-1, 40), "key": (0, 1 << 20),
@@ -447,8 +450,9 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, part
     if parking:
         config["park"] = rng.random(n) < 0.2
     labels = rng.integers(-1, 40, n) if labelled else None
-    inputs = CellInputs(t, rng.random((n, 5)) < 0.4, inbox,
-                        rng.random((n, P)) < 0.85, config, labels)
+    connected = rng.random((n, P)) < 0.85
+    config["inner"] = connected | (rng.random((n, P)) < 0.5)  # some silent ports lead to dead cells
+    inputs = CellInputs(t, rng.random((n, 5)) < 0.4, inbox, connected, config, labels)
     return program, state, inputs
 
 

@@ -129,6 +129,7 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
     for arrow, against in layout.ONE_WAY.items():
         forbid[marks.get(arrow, np.zeros(cells.n, bool))] = against
     config = {"exit": exit_id, "exit_port": exit_port, "entry": entry, "park": park, "forbid": forbid,
+              "inner": _inner(topo),  # a silent neighbour there is dead, not the edge
               "entry_no": np.arange(1, cells.n + 1, dtype=np.int64),  # installation numbers: unique vehicle ids
               "clearance": (c.gap + 1) * cells.pitch}  # the loader waits for this much room around a new parcel
     if c.central:
@@ -146,6 +147,18 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
                              f"{n_exits} exits, 0..{n_exits - 1})")
     _check_sequence(ctx.parcels, park)
     return setup_for(c, ctx, program, config)
+
+
+def _inner(topo) -> np.ndarray:
+    """(n, P) the ports of each cell that lead to an installed neighbour with another cell installed beyond it the
+    same way (known at installation): a parcel may pass over that neighbour if it is dead (:mod:`~virtual_vehicle.
+    cells.sorting`), where a dead cell on the array's edge would let it drive off the array."""
+    nb = topo.neighbor
+    inner = nb >= 0
+    for q in range(nb.shape[1]):
+        ahead = nb[:, q]
+        inner[:, q] &= (ahead >= 0) & (nb[np.maximum(ahead, 0), q] >= 0)
+    return inner
 
 
 def _check_sequence(parcels, park: np.ndarray) -> None:

@@ -35,6 +35,15 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
   within the lane (no cell beside it, across the way out, is under the vehicle without belonging to the lane);
   until then such cells move the vehicle sideways into the lane. Nowhere else may a vehicle move over the edge: a
   front cell with no neighbour ahead stops it.
+- *Dead cells* (silent neighbours on the ports config ``inner`` names: a neighbour installed, not on the edge): a
+  dead cell carries weight and holds its wheels still, so it brakes a parcel over it while the live cells under
+  the parcel drive it. A side on which a carrying cell has
+  no neighbour is closed to the whole vehicle (and a front cell facing it stops the vehicle), except where the
+  neighbour is dead and a cell of the same vehicle beside this one (across that side) has a live cell there: the
+  vehicle then passes over the dead cell, carried by its live cells, where closing the side would leave a parcel
+  wider than the gaps between dead cells shuffling in front of them. Each cell says its dead ports in its ``ack``
+  word (bits 12 up). Next to a dead cell a cell takes the smaller id of a neighbour that says the same goal, so that
+  a dead cell that cuts a parcel's cells apart does not leave it carrying two ids that pull it two ways.
 - *One-way cells* (config ``forbid``: the port a parcel on the cell may not move toward): gradients are not
   followed against the arrow, and a side against an arrow under any carrying cell is closed to the whole vehicle.
   Aisles drawn one-way cannot have two parcels meet head on (nor can a parcel back off against an arrow).

@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit
 
 from virtual_vehicle.cells.network.programs import UNREACHABLE
-from virtual_vehicle.cells.sorting.rules import (BIG, ENTRY, HUGE, MAX_EXITS, NONE, PARK, direction_key, due,
+from virtual_vehicle.cells.sorting.rules import (BIG, ENTRY, HUGE, MAX_EXITS, NONE, PARK, ack_bits, direction_key, due,
                                                  heading, heartbeat_due, hop_bits,
                                                  hop_cost, into_lane, left_of, opposite, right_of, split_goal, unpack,
                                                  vehicle_id)
@@ -33,8 +33,10 @@ tick, not an age, so that a silent neighbour leaves the state as it is), the exi
 gradients' distances (n, MAX_EXITS), the :class:`CellState`, the words it last sent on each port (:class:`Words`,
 int64; it sends again only what changed, and everything at its heartbeat) and how many ticks more it repeats a
 port's new sentence (n, P), so that one lost sentence does not leave a neighbour a heartbeat behind."""
-Config = namedtuple("Config", "exit exit_port entry entry_no park forbid labels")
-"""Per-cell configuration (see :class:`~virtual_vehicle.cells.sorting.Sorter`) and the labels read this tick."""
+Config = namedtuple("Config", "exit exit_port entry entry_no park forbid labels inner")
+"""Per-cell configuration (see :class:`~virtual_vehicle.cells.sorting.Sorter`), the labels read this tick and the
+(n, P) ports with a neighbour installed and another cell beyond it (such a port not connected leads to a dead cell
+or link inside the array, not off it)."""
 Rules = namedtuple("Rules", "tick max_age edge_cost reach gap back_ticks speed heartbeat trust repeats partial")
 """The tick stepped and the sorter's numbers (hops and ticks; ``speed`` in m/s; ``heartbeat`` the ticks between two
 sentences of a cell with nothing new to say, ``trust`` the ticks a neighbour's last sentence is trusted, ``repeats``
@@ -178,10 +180,13 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     H = hop_bits(P)  # a side's closing hops in the block word, and the hops in the stop byte
     none = (1 << H) - 1
     rest = REST if P == 4 else REST_HEX
+    RB, PB = ack_bits(P)  # the ack word: the run of held cells, the port asked through, the ports to a dead cell
+    run_max = (1 << RB) - 1  # (a cell's dead ports tell a cell beside it whether the vehicle has a live cell on
+    dead_shift = RB + PB  # that side; none on a sound array, where the word is what it always was)
     present, words, sensors, connected, carried = inp  # the records unpacked once, outside the loop over cells: an array
     heard_in, at_in, dist_in, state_in, said_in, again_in = old  # reached through a record inside it costs a reference
     heard_out, at_out, dist_out, state_out, said_out, again_out = new  # count a use
-    exit_id, exit_port, entry, entry_no, park_cell, forbid, labels = cfg
+    exit_id, exit_port, entry, entry_no, park_cell, forbid, labels, inner = cfg
     tick, max_age, edge_cost, reach, gap, back_ticks, speed, heartbeat, trust, repeats, partial = rules
     sent_present, sent, wheels, unsettled, out_changed, sent_words, ticking = out
     n_vid, n_goal, n_dir, n_key, n_stop, n_hold, n_hdep, n_hport, n_hage, n_ack, n_nxt, n_park, n_back, n_bdir = \
@@ -207,6 +212,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     block = np.empty(P, np.int64)
     to_req = np.empty(P, np.int64)
     to_rdep = np.empty(P, np.int64)
+    passable = np.empty(P, np.bool_)
     for i in rows:
         # -- hear: what the neighbours said (last heard, trusted while fresh)
         changed = False
@@ -277,6 +283,16 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             k = _first_min(nb_entry)
             vid = entry_min
             goal = hgoal[i, k]
+        # where a dead cell cut a parcel's cells apart (at the entry, where they settle on one id, or under it) the
+        # parcel can carry two ids, whose cells then pull it two ways: next to a dead cell (this one's or the
+        # neighbour's), a cell takes the smaller id of a neighbour that says the same goal
+        dead_mask = 0
+        for q in range(P):
+            dead_mask |= (1 << q) if (inner[i, q] and not connected[i, q]) else 0
+        for q in range(P):
+            near_dead = dead_mask != 0 or (hack[i, q] >> dead_shift) != 0
+            if lit and vid >= 0 and near_dead and trusted[q] and 0 <= hvid[i, q] < vid and hgoal[i, q] == goal:
+                vid = hvid[i, q]
         if lit and vid < 0 and entry[i] and labels[i] >= 0:
             vid = vehicle_id(tick, entry_no[i])
             goal = labels[i]
@@ -307,7 +323,17 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         at_exit = mine and into_band < 0
         core = on and sensors[i, 0]
         for q in range(P):
-            own_block = core and (not connected[i, q] or not allowed[q])
+            # a dead neighbour (inner, silent) does not close a side when a cell of the vehicle beside this one has
+            # a live cell on that side: the live cells under the vehicle carry it over the dead one, whose held
+            # wheels only brake it, where closing the side makes a parcel wider than the gaps between dead cells
+            # shuffle in front of them for ever
+            dead_q = inner[i, q] and not connected[i, q]
+            live_beside = False
+            for b in (left_of(q, P), right_of(q, P)):
+                live_beside = live_beside or (same_nb[b] and (hack[i, b] >> (dead_shift + q)) & 1 == 0)
+            passable[q] = dead_q and live_beside
+        for q in range(P):
+            own_block = core and ((not connected[i, q] and not passable[q]) or not allowed[q])
             own_block = own_block and not (at_exit and q == ep)
             relayed = none
             if on:
@@ -331,7 +357,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         sdir = s_dir[i]
         pd = max(sdir, 0)
         ahead_vid = hhold[i, pd] if trusted[pd] else NONE
-        ahead_from = (hack[i, pd] >> 8) - 1
+        ahead_from = ((hack[i, pd] >> RB) & ((1 << PB) - 1)) - 1
         coming = ((hkey[i, pd] < BIG) and ((hkey[i, pd] // 64) % 8 == opposite(pd, P))
                   and hvid[i, pd] == ahead_vid)
         head_on = (on and sdir >= 0 and ahead_vid >= 0 and ahead_vid < vid and not same_nb[pd]
@@ -385,12 +411,12 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         fp = max(fwd, 0)
         succ = new_hold >= 0 and trusted[fp] and hhold[i, fp] == new_hold
         edge = new_hold >= 0 and not connected[i, fp]
-        run_ahead = hack[i, fp] & 255 if succ else 0
+        run_ahead = hack[i, fp] & run_max if succ else 0
         ack = (L if edge else min(L, 1 + run_ahead)) if new_hold >= 0 else 0
         ahead_hold = hhold[i, dp]
-        ahead_ack = hack[i, dp] & 255
+        ahead_ack = hack[i, dp] & run_max
         go_front = off_array or (trusted[dp] and ahead_hold == vid and ahead_ack >= gap)
-        own_stop = 0 if (front and not go_front and (core or connected[i, dp])) else 255
+        own_stop = 0 if (front and not go_front and (core or connected[i, dp]) and not passable[dp]) else 255
         stop = _spread_stop(0 if (own_park == 0 or parked) else own_stop, hstop[i], same_nb, on, reach, direction)
         moving = on and direction >= 0 and (stop & none) > reach
         # -- outputs
@@ -429,8 +455,8 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             now = (np.int64(word), np.int64(nxt), np.int64(vid if on else NONE), np.int64(goal if on else NONE),
                    np.int64(min(key, 2**31 - 1)), np.int64(min(stop, 255) + (min(park, 255) << 8)),
                    np.int64(to_req[q]), np.int64(to_rdep[q]), np.int64(vid if (lit and on) else new_hold),
-                   np.int64(min(ack, 255) + ((hport + 1) << 8)), np.int64(ENTRY if entry[i] else exit_id[i]),
-                   np.int64(blk))
+                   np.int64(min(ack, run_max) + ((hport + 1) << RB) + (dead_mask << dead_shift)),
+                   np.int64(ENTRY if entry[i] else exit_id[i]), np.int64(blk))
             send, differs, diff = _say(told, now, beat, i, q)
             old_again = again_in[i, q]
             left = old_again & ((1 << AGAIN_BITS) - 1)  # ticks still to repeat, and (partial) which words

@@ -106,6 +106,15 @@ def hop_bits(P):
 
 
 @register_jitable
+def ack_bits(P):
+    """The ``ack`` word's layout (a 16-bit word) on a cell with ``P`` ports: (bits of the run of held cells ahead,
+    bits of the port the hold was asked through plus one); the bits above them name the cell's ports that lead to a
+    dead neighbour, one a port: 8 + 4 + 4 on a square cell, 7 + 3 + 6 on a hexagonal one (a run is at most
+    ``gap + 1`` cells, so 127 leaves room)."""
+    return (8, 4) if P <= 4 else (7, 3)
+
+
+@register_jitable
 def heading(port, P):
     """The unit velocity (x, y in the cell frame: along wheel 0's drive direction and across it) that moves a
     parcel out through ``port`` of a cell with ``P`` ports: on a square cell one wheel (:func:`drive`), on a

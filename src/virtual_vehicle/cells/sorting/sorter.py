@@ -43,7 +43,10 @@ class Sorter:
     Config (per cell): ``exit`` exit id or -1; ``exit_port`` the way out of the array for an exit cell (the
     side through which its exit lane leaves);
     ``entry`` bool; ``entry_no`` an entry cell's installation number; ``park`` bool, a parking cell (optional);
-    ``forbid`` the port a parcel on a one-way cell may not move toward, -1 for none (optional). Inputs: ``labels``
+    ``forbid`` the port a parcel on a one-way cell may not move toward, -1 for none (optional); ``inner`` (n, P) the
+    ports with a neighbour installed and another cell beyond it (optional; default: those connected, so a dead
+    neighbour looks like the edge).
+    Inputs: ``labels``
     (the label read at entry cells, :func:`~virtual_vehicle.cells.sorting.rules.encode_goal`; -1 for none).
 
     Stationary (see :mod:`virtual_vehicle.cells.network.programs`): the tick's time enters only a new vehicle's id,
@@ -246,7 +249,8 @@ class Sorter:
             policy.Config(cells("exit", np.full(n, NONE), np.int64), cells("exit_port", np.full(n, NONE), np.int64),
                           cells("entry", np.zeros(n, bool), bool), cells("entry_no", np.zeros(n), np.int64),
                           cells("park", np.zeros(n, bool), bool), cells("forbid", np.full(n, NONE), np.int64),
-                          _arg(labels, np.int64)),
+                          _arg(labels, np.int64),
+                          cells("inner", inputs.connected, bool)),
             policy.Rules(tick_of(inputs.t, self.period), self.max_age, self.edge_cost, self.reach, self.gap,
                          self.back_ticks, self.speed, self.heartbeat_ticks, self.trust,
                          self.repeats, self.partial),
