@@ -177,19 +177,21 @@ def test_a_partial_sentence_carries_only_its_words_and_takes_their_time():
 
 def test_a_superseded_partial_sentence_hands_its_words_to_the_newer_one():
     """At 1200 baud sentences pile up; a newer partial sentence replacing a waiting one carries the words the
-    waiting one carried and it does not, so no word is lost to the queue (the newer value wins where both have
-    one)."""
+    waiting one carried and it does not, so no word is lost to the queue, each at the port's value when the newer one
+    was queued: a word that changed since the older one (back to a value a sentence may leave unsaid) must not reach
+    the neighbour as its older value."""
     p = WireParams(baud=1200, cts_timeout=1.0)
     w = WireLevel(from_layout(layout.grid(2, 1, 0.1)), p)
     heard = {}
     for k in range(60):  # 30 ticks of sentences, then 30 of silence to drain the queue
         box = outbox(2, {(0, EAST): 100 + k} if k < 30 else {})
-        box.values["hops"][0, EAST] = k
+        box.values["hops"][0, EAST] = k if k < 3 else 0  # the port's hops word: 1, 2, then back to 0 (unsaid)
         box.words = np.zeros((2, 4), dtype=np.int64)
         box.words[0, EAST] = 0b10 if k == 1 else 0b01  # tick 1 alone says hops; the others say value
         inbox, stats = w.exchange(box, k * 0.01, 0.01)
         for name, bit in (("value", 0b01), ("hops", 0b10)):
             if inbox.present[1, WEST] and inbox.words[1, WEST] & bit:
                 heard[name] = int(inbox.values[name][1, WEST])
-    assert heard["hops"] == 1 and heard["value"] == 129  # tick 1's hops went out with a later value, the last
+    # tick 1's hops went out with a later sentence, at the port's value then (0), and value is the last one
+    assert heard["hops"] == 0 and heard["value"] == 129
     assert stats.extra["queued"] == 0

@@ -263,17 +263,17 @@ class WireLevel:
 
     # ------------------------------------------------------------------ internals
     def _merged(self, older: bytes, values: dict, words: int) -> tuple[dict, int]:
-        """The words of a waiting partial sentence ``older`` overlaid with the newer ``values`` of the words in the
-        bit mask ``words``: the values and the mask of the sentence that replaces both."""
-        fields = self.schema.fields
-        merged = self.schema.from_bytes(older, partial=True)
+        """The sentence that replaces a waiting partial sentence ``older`` and a newer one (``values``, every word of
+        the port now, and the bit mask ``words`` of those it carries): the words of both, each at its value now. A
+        word the older one carried goes at the port's value now, not at the older value: a word that changed back
+        since (a stop gone back to go, a word at its rest value that a sentence may leave unsaid) would otherwise
+        reach the neighbour as the older value and stay there until the word changed again."""
+        said = self.schema.from_bytes(older, partial=True)
         mask = words
-        for k, f in enumerate(fields):
-            if f.name in merged:
+        for k, f in enumerate(self.schema.fields):
+            if f.name in said:
                 mask |= 1 << k
-            if words >> k & 1:
-                merged[f.name] = values[f.name]
-        return {f.name: merged.get(f.name, values[f.name]) for f in fields}, mask
+        return {f.name: values[f.name] for f in self.schema.fields}, mask
 
     def _reset_tick(self, n, P):
         self.sent = np.zeros(n, dtype=np.int64)
