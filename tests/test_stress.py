@@ -8,7 +8,7 @@ from collections import deque
 
 import numpy as np
 
-from virtual_vehicle.analysis.stress import random_floor, stress
+from virtual_vehicle.analysis.stress import bays_needed, random_floor, stress
 
 _AGAINST = {">": (0, -1), "<": (0, 1), "^": (1, 0), "v": (-1, 0)}
 
@@ -47,8 +47,10 @@ def test_generated_floors_are_varied_reachable_and_the_same_from_the_same_seed()
         assert 1 <= f.features["entries"] <= 3 and 1 <= len(exits) <= 3 and "E" in text
         assert all(_cells_reach(f.rows, "E", k) for k in exits), f.seed
         assert all(p["destination"] < len(exits) for p in f.table["parcels"])
-        if "P" in text:  # parking bays come with a sequenced stream
-            assert sorted(p["sequence"] for p in f.table["parcels"]) == list(range(len(f.table["parcels"])))
+        if "P" in text:  # parking bays come with a sequenced stream the bays can hold
+            seq = [p["sequence"] for p in sorted(f.table["parcels"], key=lambda p: p["t_start"])]
+            assert sorted(seq) == list(range(len(seq)))
+            assert bays_needed(seq) <= text.count("P"), (f.seed, seq)
     assert min(seen.values()) >= 4, seen
     assert len(counts) >= 5, counts
     setup = floors[0].scenario().build()
@@ -66,3 +68,10 @@ def test_a_short_stress_run_counts_what_the_sorting_reports_find():
         assert len(r["why"]) == r["deadlocks"] + r["waits"]
         assert all(line.startswith(f"seed {r['seed']}: ") and " near " in line for line in r["why"])
     assert sum(r["correct"] for r in rows) >= 6
+
+
+def test_the_bays_a_sequenced_stream_needs_are_those_waiting_at_once():
+    assert bays_needed([0, 1, 2, 3]) == 0
+    assert bays_needed([3, 2, 1, 0]) == 3  # all but the last wait
+    assert bays_needed([1, 0, 3, 2]) == 1
+    assert bays_needed([2, 3, 0, 1]) == 2
