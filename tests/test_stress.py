@@ -75,3 +75,19 @@ def test_the_bays_a_sequenced_stream_needs_are_those_waiting_at_once():
     assert bays_needed([3, 2, 1, 0]) == 3  # all but the last wait
     assert bays_needed([1, 0, 3, 2]) == 1
     assert bays_needed([2, 3, 0, 1]) == 2
+
+
+def test_a_parcel_does_not_pass_close_beside_a_parked_one():
+    """Seed 132's floor with the sequence the generator once drew (eight parcels, one bay): the first parcel parks,
+    the second heads east one cell row above it; its body reaches past the centres it covers, and it used to brush
+    the parked one at 7.3 s. A held cell beside another vehicle now gives no free run, so it stops short."""
+    from virtual_vehicle.run.sim import run
+    from virtual_vehicle.run.tasks import sorting_report
+
+    floor = random_floor(132)
+    for parcel, number in zip(floor.table["parcels"], [7, 4, 0, 2, 1, 3, 5, 6]):
+        parcel["sequence"] = number
+    floor.table["duration"] = 8.0
+    report = sorting_report(run(floor.scenario().build()))
+    assert report["collisions"] == 0 and report["misrouted"] == 0, report
+    assert report["correct"] >= 1
