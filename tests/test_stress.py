@@ -90,4 +90,4 @@ def test_a_parcel_does_not_pass_close_beside_a_parked_one():
     floor.table["duration"] = 8.0
     report = sorting_report(run(floor.scenario().build()))
     assert report["collisions"] == 0 and report["misrouted"] == 0, report
-    assert report["correct"] >= 1
+    assert report["on_array"] >= 3  # the parked parcel, the one that stopped short and the one due
