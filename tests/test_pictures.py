@@ -35,6 +35,19 @@ def test_the_fault_study_splits_stuck_parcels_when_the_table_has_the_columns():
     np.testing.assert_allclose(sum(out.values()), 20)
 
 
+def test_the_fault_study_picture_shows_deadlocked_parcels_apart_from_those_waiting():
+    rows = [dict(r, on_array=4.0, deadlocked=float(k), waiting=r["parcels_due"] * (1 - r["delivered_fraction"]) - 4.0)
+            for k, r in enumerate(_fault_rows())]
+    out = viz.fault_study_outcomes(rows)
+    np.testing.assert_allclose(out["deadlocked"], [0, 1, 2])
+    np.testing.assert_allclose(out["on_array"], [4, 3, 2])  # the rest of those on the array
+    np.testing.assert_allclose(sum(out.values()), 20)
+    fig = viz.plot_fault_study(rows, "dead_cell_rate", "study")
+    labels = {c.get_label() for ax in fig.axes for c in ax.containers if hasattr(c, "patches")}
+    assert {"deadlocked (a cycle of holds)", "waiting on the array at the end", "never put on (entry blocked)",
+            "delivered to the right exit"} <= labels
+
+
 def _built(name: str, duration: float, **update):
     from virtual_vehicle.config.scenario import load_scenario
 

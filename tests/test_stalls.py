@@ -1,5 +1,6 @@
-"""The sorter's runs name the parcels that stand still past the scenario's bound (``sorting.stalls``): parcels that
-wait on each other as a deadlock, a parcel waiting alone as waiting; a healthy run names none."""
+"""The sorter's runs name their stalls (``sorting.stalls``): parcels whose vehicles wait on each other in a cycle of
+holds as a deadlock (found from the cells' state, whatever the wait bound), parcels standing past the scenario's
+bound otherwise as waiting; a healthy run names none."""
 
 from __future__ import annotations
 
@@ -31,7 +32,15 @@ def test_parcels_meeting_head_on_on_one_way_aisles_are_named_as_a_deadlock():
     assert len(deadlocks) == 1, report["stalls"]
     d = deadlocks[0]
     assert d["parcels"] == ["east", "west"] and d["waited_s"] > 4.0 and 0.0 < d["t_s"] < 10.0
-    assert len(d["cells"]) >= 4  # the cells under both parcels
+    assert len(d["cells"]) >= 4  # the cells both vehicles carry or hold
+
+
+def test_a_cycle_of_holds_is_a_deadlock_before_the_wait_bound():
+    table = one_way_head_on()
+    table["control"]["wait_bound"] = 100.0  # longer than the run: only the cycle of holds can name it
+    report = sorting_report(run(parse_scenario(table).build()))
+    assert [(s["kind"], s["parcels"]) for s in report["stalls"]] == [("deadlock", ["east", "west"])]
+    assert report["stalls"][0]["waited_s"] > 1.0
 
 
 def test_a_healthy_sorting_run_names_no_stalls():

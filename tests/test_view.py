@@ -305,7 +305,8 @@ def test_in_a_browser_a_run_folder_replays_at_the_time_scrubbed_to(tmp_path):
 
 def test_the_page_flags_the_stall_the_run_report_finds():
     """A wall of cells dies across the lane at 2 s: the first parcel stops at it, the next stops behind, and the
-    viewer calls them a deadlock (a queue stalled behind one stuck parcel is one group) as the run's report does."""
+    viewer calls them one waiting group as the run's report does (a queue stalled behind a parcel that waits on dead
+    cells: no cycle of holds, so no deadlock)."""
     from virtual_vehicle.config.scenario import FaultEvent
 
     sc = short_junction(7.0)
@@ -321,7 +322,7 @@ def test_the_page_flags_the_stall_the_run_report_finds():
         seen = live.stalls()
     report = live.result().summary()["sorting"]["stalls"]
     assert [(s["kind"], s["parcels"]) for s in seen] == [(s["kind"], s["parcels"]) for s in report]
-    assert [s["kind"] for s in seen] == ["deadlock"]
+    assert [s["kind"] for s in seen] == ["waiting"] and len(seen[0]["parcels"]) >= 2
 
 
 def test_a_parcel_given_a_new_target_on_the_page_goes_there_and_replays_with_run():

@@ -134,9 +134,39 @@ def _draw(rng: np.random.Generator):
     return grid, features, starts_r, lanes
 
 
+def bays_needed(order) -> int:
+    """The most parcels of a sequenced stream that must park at once, the parcels arriving in the order given
+    (``order[i]``: the sequence number of the i-th to arrive): after each arrival, those whose number is above the
+    one due next (all smaller numbers have arrived, and leave in order as soon as they have)."""
+    arrived, due, most = set(), 0, 0
+    for q in order:
+        arrived.add(q)
+        while due in arrived:
+            due += 1
+        most = max(most, sum(a > due for a in arrived))
+    return most
+
+
+def bay_order(parcels: int, bays: int, rng: np.random.Generator) -> list[int]:
+    """Sequence numbers 0..parcels-1 in a random arrival order that never needs more than ``bays`` parked at once
+    (:func:`bays_needed`): each arrival takes one of the smallest numbers not yet given, as many to choose from as
+    bays are free, plus the number due (which needs no bay). A stream that needs more bays than the floor has cannot
+    be sequenced there, whatever the rules: such floors are not drawn."""
+    left = list(range(parcels))
+    order: list[int] = []
+    for _ in range(parcels):
+        due = left[0]
+        parked = sum(q > due for q in order)
+        pick = left[int(rng.integers(max(1, min(len(left), bays + 1 - parked))))]
+        order.append(pick)
+        left.remove(pick)
+    return order
+
+
 def random_floor(seed: int, *, parcels: int = 8, duration: float = 16.0, wait_bound: float = 4.0) -> Floor:
     """A floor drawn from ``seed`` (see the module notes) with a stream of ``parcels`` parcels (one every 1.5-3 s
-    from random entries to random exits; with parking bays a sequenced stream to exit 0), run for ``duration`` s,
+    from random entries to random exits; with parking bays a sequenced stream to exit 0 whose arrival order never
+    needs more bays than the floor has, :func:`bay_order`), run for ``duration`` s,
     stalls reported after ``wait_bound`` s of standing still. Deterministic in its arguments."""
     rng = np.random.default_rng(seed)
     for _ in range(200):
@@ -155,6 +185,8 @@ def random_floor(seed: int, *, parcels: int = 8, duration: float = 16.0, wait_bo
     sequenced = features["parking"] > 0
     items, t = [], 0.0
     order = rng.permutation(parcels).tolist()
+    if sequenced:  # an order the bays can hold (the draw above is kept, so that the rest of the floor is the same)
+        order = bay_order(parcels, features["parking"], np.random.default_rng([seed, 1]))
     for i in range(parcels):
         length, width = float(rng.choice([0.22, 0.25, 0.3])), float(rng.choice([0.22, 0.25]))
         r = entries[int(rng.integers(len(entries)))]

@@ -255,6 +255,10 @@ def run_variation(base: dict, variation: dict) -> dict:
         row.update(status="ok", error=None, **flatten(summary))
         parcels = summary["parcels"]
         row["parcels.tipped"] = sum(p["tipped_at_s"] is not None for p in parcels)
+        if "sorting" in summary:  # the stalls are a list: their parcels counted by kind
+            for kind in ("deadlock", "waiting"):
+                row[f"sorting.stalled.{kind}"] = sum(len(s["parcels"]) for s in summary["sorting"]["stalls"]
+                                                     if s["kind"] == kind)
         if len(parcels) <= PER_PARCEL_COLUMNS:
             for p in parcels:
                 row.update(flatten(p, f"parcel.{p['name']}."))
@@ -501,8 +505,10 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
     mean and std over the seeds),
     ``delivery_time_mean_s``, ``collisions``, ``misrouted``, ``lost`` (means), and the parcels due that were
     neither delivered nor lost at the end: ``on_array`` (put on the array and still there), ``waiting`` (never put
-    on: their place at the entry never came free) and ``stuck`` (the two together), each a mean over the seeds of the
-    runs that finished; also written to ``study.json``. ``retry_failed``: see :func:`run_sweep`.
+    on: their place at the entry never came free) and ``stuck`` (the two together), and of those on the array the
+    ``deadlocked`` (in a deadlock the run's report names: a cycle of holds, see
+    :func:`~virtual_vehicle.cells.programs.sort.stalls`), each a mean over the seeds of the runs that finished; also
+    written to ``study.json``. ``retry_failed``: see :func:`run_sweep`.
 
     The means are over the draws in which every exit stays reachable from an entry over live cells and links
     (:func:`exits_reachable`; a draw that cuts an exit off measures the draw, not the sorter): ``unreachable`` counts
@@ -554,6 +560,7 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
         for r in ok:  # parcels not due by the end are "waiting" too; count only those due
             r["waiting_due"] = r["sorting.waiting"] - (len(sc.parcels) - due)
             r["stuck"] = r["sorting.on_array"] + r["waiting_due"]
+            r["deadlocked"] = r.get("sorting.stalled.deadlock")
         every = [r["sorting.correct"] / due for r in done]
         rows.append({"rate": rate, "runs": len(sel), "failed": len(sel) - len(done), "parcels_due": due,
                      "unreachable": int(samples) - len(kept),
@@ -563,7 +570,7 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
                      "delivery_time_mean_s": mean("sorting.delivery_time_mean_s"),
                      "collisions": mean("sorting.collisions"), "misrouted": mean("sorting.misrouted"),
                      "lost": mean("sorting.lost"), "on_array": mean("sorting.on_array"),
-                     "waiting": mean("waiting_due"), "stuck": mean("stuck")})
+                     "waiting": mean("waiting_due"), "stuck": mean("stuck"), "deadlocked": mean("deadlocked")})
     write_atomic(Path(out_dir) / "study.json", json.dumps({"scenario": sc.name, "fault": kind, "samples": samples,
                                                            "parcels_due": due, "rows": rows}, indent=2).encode())
     return rows

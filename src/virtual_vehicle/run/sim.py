@@ -21,6 +21,7 @@ from virtual_vehicle.cells.hardware import WheelDrives
 from virtual_vehicle.cells.network.messages import Mailbox
 from virtual_vehicle.cells.network.clocks import CellClocks, Mailboxes
 from virtual_vehicle.cells.network.programs import CellInputs, ChangedCells, step_group, tree_map
+from virtual_vehicle.cells.network.topology import Topology
 from virtual_vehicle.cells.programs import program_of
 from virtual_vehicle.cells.sorting import encode_goal
 from virtual_vehicle.config.scenario import Setup
@@ -86,6 +87,10 @@ class RunResult:
     """Every cell at every control tick, when recording was asked (``[sensors] record = true``, networked runs)."""
     scenario_text: str | None = None
     """The scenario file's text, when the run was started from one (kept through checkpoints)."""
+    program_state: dict | None = None
+    """The cell program's state at the run's end (networked runs), with ``topology`` its links then: what the
+    program's report reads a deadlock from (who waits on whom, :mod:`virtual_vehicle.cells.sorting.holds`)."""
+    topology: Topology | None = None
 
     def summary(self) -> dict:
         """A JSON-ready summary: per-parcel outcome, start/end state, distance, events; run totals."""
@@ -1170,7 +1175,7 @@ class NetworkRun(TickedRun, _Job):
             stats["reconfigured"] = self.reconfigured
         return RunResult(setup, results, self.wall, stats,
                          record, CellLog.stack(self.cell_log) if setup.scenario.sensors.record and self.cell_log else None,
-                         self.scenario_text)
+                         self.scenario_text, self.state, self.topology)
 
 
 def network_job(setup: Setup) -> "NetworkRun":

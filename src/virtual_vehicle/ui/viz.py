@@ -477,7 +477,9 @@ def fault_study_outcomes(rows: list[dict]) -> dict[str, np.ndarray]:
     (:func:`~virtual_vehicle.analysis.sweep.fault_study`): ``delivered`` (to the right exit), ``misrouted``, ``lost``
     and ``not_delivered`` (still on the array or never put on at the end of the run: parcels due minus delivered,
     misrouted and lost), which sum to ``parcels_due``. When the rows carry ``on_array`` and ``waiting`` (mean parcels
-    per run), ``not_delivered`` is split into those two. NaN where a rate has no finished run."""
+    per run), ``not_delivered`` is split into those two, and when they carry ``deadlocked`` too, ``on_array`` into
+    ``deadlocked`` (in a cycle of holds the run's report names) and ``on_array`` (the rest: moving, or waiting on
+    the floor or behind others). NaN where a rate has no finished run."""
     def col(key):
         return np.array([np.nan if r.get(key) is None else r[key] for r in rows], dtype=float)
 
@@ -485,6 +487,10 @@ def fault_study_outcomes(rows: list[dict]) -> dict[str, np.ndarray]:
     out = {"delivered": col("delivered_fraction") * due, "misrouted": col("misrouted"), "lost": col("lost")}
     if all(r.get("on_array") is not None and r.get("waiting") is not None for r in rows):
         out["on_array"], out["waiting"] = col("on_array"), col("waiting")
+        if all(r.get("deadlocked") is not None for r in rows):
+            out["deadlocked"] = col("deadlocked")
+            out["on_array"] = out["on_array"] - out["deadlocked"]
+            out = {k: out[k] for k in ("delivered", "misrouted", "lost", "deadlocked", "on_array", "waiting")}
     else:
         out["not_delivered"] = np.clip(due - out["delivered"] - out["misrouted"] - out["lost"], 0.0, None)
     return out
@@ -493,8 +499,9 @@ def fault_study_outcomes(rows: list[dict]) -> dict[str, np.ndarray]:
 _OUTCOME_STYLE = {"delivered": ("delivered to the right exit", "tab:green"),
                   "misrouted": ("misrouted (wrong exit)", "tab:orange"), "lost": ("lost (left elsewhere)", "tab:red"),
                   "not_delivered": ("stuck: still on the array or never put on", "0.45"),
-                  "on_array": ("stuck on the array at the end", "0.45"), "waiting": ("never put on (entry blocked)",
-                                                                             "0.75")}
+                  "on_array": ("waiting on the array at the end", "0.45"), "waiting": ("never put on (entry blocked)",
+                                                                              "0.75"),
+                  "deadlocked": ("deadlocked (a cycle of holds)", "tab:purple")}
 
 
 def plot_fault_study(rows: list[dict], kind: str, title: str, path: str | Path | None = None):

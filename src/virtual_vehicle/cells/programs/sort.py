@@ -306,15 +306,23 @@ def _length(spec) -> float:
 
 
 def stalls(result, rows: list[dict] | None = None) -> list[dict]:
-    """Parcels that stood still on the array longer than the scenario's ``wait_bound`` (s), grouped: parcels whose
-    stands overlap in time and that lie within ``gap + 2`` pitches of each other (outline to outline) wait on each
-    other, a cycle of holds no one of them can break alone (kind ``"deadlock"``); a parcel that waits alone is kind
-    ``"waiting"`` (a dead end, a missing bay, a route that never opens). Judged from where the parcels stand, not
-    from the cells' holds: a queue stalled behind one stuck parcel is one group with it. Each group names its
-    ``parcels``, the ``cells`` under them (centres covered), ``t_s`` when the last of them stopped and ``waited_s``
-    how long all of them stood still together (until they moved again or the run ended). Judged at the trajectory's
-    samples; standing still: the centre within a quarter pitch of where it stopped. ``rows``: the report's
-    per-parcel rows (computed when not given)."""
+    """The run's deadlocks and the parcels that stood still on the array longer than the scenario's ``wait_bound``
+    (s): a stall is found either way, and named once.
+
+    - ``"deadlock"``: parcels whose vehicles wait on each other in a cycle of holds at the run's end
+      (:mod:`virtual_vehicle.cells.sorting.holds`: each is held up by a cell another carries or holds, or is not due
+      before another), all standing still at the end for longer than a back-off takes (``gap + 1`` pitches at the
+      sorter's speed): no rule of the sorter breaks such a cycle, so it is reported without waiting for the bound.
+      ``cells``: the cells the deadlocked vehicles carry or hold.
+    - ``"waiting"``: parcels not in a deadlock that stood still longer than ``wait_bound``, grouped when their stands
+      overlap in time within ``gap + 2`` pitches of each other (outline to outline): a dead end, a missing bay, a
+      route that never opens, or a queue behind one of those. ``cells``: the cells under them (centres covered).
+
+    Each names its ``parcels``, ``t_s`` when the last of them stopped and ``waited_s`` how long all of them stood
+    still together (until they moved again or the run ended). Judged at the trajectory's samples; standing still:
+    the centre within a quarter pitch of where it stopped. A program whose cells keep no holds the sorter's way (the
+    central sorter, the reservation router) has no hold graph: there the waiting parcels of a group of two or more
+    are called a deadlock, one alone waiting. ``rows``: the report's per-parcel rows (computed when not given)."""
     setup = result.setup
     sc, cells = setup.scenario, setup.cells
     ctl = sc.control
@@ -323,6 +331,7 @@ def stalls(result, rows: list[dict] | None = None) -> list[dict]:
     pitch = cells.pitch
     eps = 0.25 * pitch
     stands = []  # (parcel index, t0, t1, state at t0)
+    last = {}  # parcel index -> (t0, t1) of the stand it ends the run in
     for k, (pr, row) in enumerate(zip(result.parcels, rows)):
         if row["entered_at_s"] is None:
             continue
@@ -335,8 +344,20 @@ def stalls(result, rows: list[dict] | None = None) -> list[dict]:
             if j == len(times) or np.hypot(*(states[j, :2] - states[a, :2])) > eps:
                 if times[j - 1] - times[a] > ctl.wait_bound:
                     stands.append((k, float(times[a]), float(times[j - 1]), states[a]))
+                if j == len(times) and row["outcome"] == "on_array":
+                    last[k] = (float(times[a]), float(times[j - 1]))
                 a = j
-    # parcels standing at the same time near each other wait on each other: connected groups
+    out = []
+    standing = {result.parcels[k].spec.name: (result.parcels[k].spec, result.parcels[k].trajectory.states[-1],
+                                               t0, t1) for k, (t0, t1) in last.items()}
+    found = deadlocks(getattr(result, "program_state", None), getattr(result, "topology", None), ctl, cells,
+                      standing)
+    if found is not None:
+        for names, held, t0, t1 in found:
+            out.append({"kind": "deadlock", "parcels": names, "cells": held, "t_s": t0, "waited_s": t1 - t0})
+        inside = {n for names, *_ in found for n in names}
+        stands = [m for m in stands if result.parcels[m[0]].spec.name not in inside]
+    # parcels standing at the same time near each other wait together: connected groups
     reach = (ctl.gap + 2) * pitch
     polys = [shapely.Polygon(result.parcels[k].spec.world_polygon(st).exterior.coords) for k, _, _, st in stands]
     group = list(range(len(stands)))
@@ -351,7 +372,6 @@ def stalls(result, rows: list[dict] | None = None) -> list[dict]:
             near = polys[u].distance(polys[v]) <= reach
             if ku != kv and near and max(a0, b0) < min(a1, b1):
                 group[root(u)] = root(v)
-    out = []
     for g in sorted({root(u) for u in range(len(stands))}):
         members = [stands[u] for u in range(len(stands)) if root(u) == g]
         names = sorted({result.parcels[k].spec.name for k, *_ in members})
@@ -361,8 +381,41 @@ def stalls(result, rows: list[dict] | None = None) -> list[dict]:
                 under |= set(np.flatnonzero(shapely.covers(polys[u], shapely.points(cells.positions))).tolist())
         t0 = max(m[1] for m in members)
         t1 = min(m[2] for m in members) if len(names) > 1 else members[0][2]
-        out.append({"kind": "deadlock" if len(names) > 1 else "waiting", "parcels": names, "cells": sorted(under),
-                    "t_s": t0, "waited_s": max(t1 - t0, 0.0)})
+        kind = "deadlock" if found is None and len(names) > 1 else "waiting"
+        out.append({"kind": kind, "parcels": names, "cells": sorted(under), "t_s": t0, "waited_s": max(t1 - t0, 0.0)})
+    return out
+
+
+def deadlocks(state, topology, control, cells, standing: dict) -> list[tuple] | None:
+    """(parcel names, cells held, t0, t1) of each cycle of holds in the sorter's cell ``state`` (with its links
+    ``topology``) whose parcels all stand still, for longer than a back-off takes (``gap + 1`` pitches at the
+    ``control``'s speed); ``standing``: parcel name -> (spec, pose, t0, t1) of each parcel on the array standing
+    still from t0 to t1 (s), pose its (x, y, theta). None when ``state`` is not the distributed sorter's (another
+    program keeps no holds)."""
+    from virtual_vehicle.cells.sorting import holds
+
+    if not isinstance(state, dict) or topology is None or not {"vid", "hold", "dir", "stop", "park"} <= set(state):
+        return None
+    edges = holds.waits_for(state, topology.neighbor, topology.alive, control.gap, control.reach)
+    vid = np.asarray(state["vid"])
+    owner = {}  # vehicle id -> the standing parcel whose outline covers most of its cells
+    for name, (spec, pose, _, _) in standing.items():
+        poly = shapely.Polygon(spec.world_polygon(pose).exterior.coords)
+        ids = vid[shapely.covers(poly, shapely.points(cells.positions))]
+        ids = ids[ids >= 0]
+        if len(ids):
+            values, counts = np.unique(ids, return_counts=True)
+            owner.setdefault(int(values[np.argmax(counts)]), name)
+    settle = (control.gap + 1) * cells.pitch / control.top_speed()  # the longest a back-off moves a parcel away
+    out = []
+    for members in holds.cycles(edges):
+        names = [owner.get(v) for v in members]
+        if None in names:  # a member moves (or is not on the array): no standing cycle
+            continue
+        t0 = max(standing[n][2] for n in names)
+        t1 = min(standing[n][3] for n in names)
+        if t1 - t0 > settle:
+            out.append((sorted(names), holds.held_cells(state, members), t0, t1))
     return out
 
 

@@ -413,6 +413,15 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         edge = new_hold >= 0 and not connected[i, fp]
         run_ahead = hack[i, fp] & run_max if succ else 0
         ack = (L if edge else min(L, 1 + run_ahead)) if new_hold >= 0 else 0
+        # a held cell beside an older or a parked vehicle (a side neighbour carries it) gives no free run: a body
+        # reaches past the cell centres it covers, so a parcel passing there could brush the other (a cell row is
+        # no gap); by age, so that two vehicles side by side never both wait for the other to go
+        for c in range(2):
+            sq = (hport + 1) % 4 if c == 0 else (hport + 3) % 4
+            other = hvid[i, sq]
+            if new_hold >= 0 and trusted[sq] and other >= 0 and other != new_hold and (
+                    other < new_hold or unpack(hstop[i, sq], 1, 8) <= reach):
+                ack = 0
         ahead_hold = hhold[i, dp]
         ahead_ack = hack[i, dp] & run_max
         go_front = off_array or (trusted[dp] and ahead_hold == vid and ahead_ack >= gap)

@@ -251,11 +251,13 @@ class LiveRun:
     # what the page draws
     def stalls(self) -> list[dict]:
         """The stalls going on now, judged as :func:`~virtual_vehicle.cells.programs.sort.stalls` judges a finished
-        run, at the times this is called (the page's frames): a parcel on the array whose centre has stayed within a
-        quarter pitch of where it stopped for longer than the program's ``wait_bound`` (s) is stalled; stalled
-        parcels within ``gap + 2`` pitches of each other (outline to outline) wait on each other (kind
-        ``"deadlock"``), one alone is kind ``"waiting"``. Each stall: ``kind``, ``parcels`` (names) and ``t_s``,
-        when the last of them stopped. Empty for a program without a ``wait_bound``."""
+        run, at the times this is called (the page's frames): standing parcels whose vehicles wait on each other in
+        a cycle of holds in the cells' state now (kind ``"deadlock"``,
+        :func:`~virtual_vehicle.cells.programs.sort.deadlocks`), and parcels on the array whose centre has stayed
+        within a quarter pitch of where it stopped for longer than the program's ``wait_bound`` (s), grouped within
+        ``gap + 2`` pitches of each other (outline to outline; kind ``"waiting"``; a program that keeps no holds
+        calls a group of two or more a deadlock). Each stall: ``kind``, ``parcels`` (names) and ``t_s``, when the
+        last of them stopped. Empty for a program without a ``wait_bound``."""
         ctl = self.scenario.control
         bound = getattr(ctl, "wait_bound", None)
         if bound is None:
@@ -269,7 +271,14 @@ class LiveRun:
                 t0, x0, y0 = self.t, x, y
             stands[i] = (t0, x0, y0)
         self._stands = stands
-        still = [i for i, (t0, _, _) in stands.items() if self.t - t0 > bound]
+        from virtual_vehicle.cells.programs.sort import deadlocks
+
+        specs = run.setup.specs
+        found = deadlocks(getattr(run, "state", None), getattr(run, "topology", None), ctl, run.setup.cells,
+                          {specs[i].name: (specs[i], run.ys[i], t0, self.t) for i, (t0, _, _) in stands.items()})
+        out = [{"kind": "deadlock", "parcels": names, "t_s": t0} for names, _, t0, _ in found or []]
+        inside = {n for names, *_ in found or [] for n in names}
+        still = [i for i, (t0, _, _) in stands.items() if self.t - t0 > bound and specs[i].name not in inside]
         polys = [shapely.Polygon(run.setup.specs[i].world_polygon(run.ys[i]).exterior.coords) for i in still]
         reach = (getattr(ctl, "gap", 2) + 2) * pitch
         group = list(range(len(still)))
@@ -283,10 +292,9 @@ class LiveRun:
             for v in range(u):
                 if polys[u].distance(polys[v]) <= reach:
                     group[root(u)] = root(v)
-        out = []
         for g in sorted({root(u) for u in range(len(still))}):
             members = [still[u] for u in range(len(still)) if root(u) == g]
-            out.append({"kind": "deadlock" if len(members) > 1 else "waiting",
+            out.append({"kind": "deadlock" if found is None and len(members) > 1 else "waiting",
                         "parcels": [run.setup.specs[i].name for i in members],
                         "t_s": max(stands[i][0] for i in members)})
         return out

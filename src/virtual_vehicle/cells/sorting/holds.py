@@ -1,0 +1,110 @@
+"""Who waits on whom in the distributed sorter (:class:`~virtual_vehicle.cells.sorting.Sorter`), read from its
+cells' state: the wait-for graph of the vehicles and its cycles, the deadlocks no rule of the sorter breaks.
+
+A vehicle ``V`` waits on a vehicle ``W`` when
+
+- *it is held up by it*: ``V`` stands (a stop is within ``reach`` of its front cell), and of the ``gap + 1`` cells
+  straight ahead of one of its front cells (those whose request goes out) the first that is not ``V``'s carries
+  ``W`` or is held for ``W``; a missing or dead cell there ends the walk (``V`` waits on the floor, not on a
+  vehicle);
+- *it is not due*: its label carries a sequence number above the one due next (``nxt``), and ``W`` carries the due
+  number: ``V`` cannot leave before ``W`` has, whether it parks, looks for a bay or stands.
+
+A cycle of these (a strongly connected set of two or more vehicles) is a deadlock: each member waits, through the
+others, on itself, and none of the sorter's rules moves a member whose every way is held (a back-off happens only
+head on, against an older vehicle, on an open side). The cells are read at one instant; a cycle seen while its
+vehicles stand is kept by the rules, since every member's cells stay held while it stands. Units: cells and hops.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from virtual_vehicle.cells.sorting.rules import NONE, split_goal
+
+
+def waits_for(state: dict, neighbor: np.ndarray, alive: np.ndarray, gap: int, reach: int) -> list[tuple[int, int, int]]:
+    """The wait-for edges ``(V, W, cell)`` of the vehicles (ids) in the sorter's cell ``state`` (the dict of
+    :meth:`~virtual_vehicle.cells.sorting.Sorter.init`): ``V`` waits on ``W`` at ``cell`` (the cell of ``W`` that
+    holds ``V`` up; -1 for a wait on the due sequence number). ``neighbor`` (n, P): the cell on each port, -1 none;
+    ``alive`` (n,) installed and working cells; ``gap`` and ``reach`` the sorter's (see the module notes)."""
+    vid, hold, direction = (np.asarray(state[k]) for k in ("vid", "hold", "dir"))
+    stop, park = np.asarray(state["stop"]), np.asarray(state["park"])
+    edges = set()
+    for i in np.flatnonzero((vid >= 0) & (direction >= 0) & alive):
+        v, d = int(vid[i]), int(direction[i])
+        if (stop[i] & 63) > reach or park[i] <= reach:  # moving, or parked (it waits on the sequence only)
+            continue
+        c = int(neighbor[i, d])
+        if c >= 0 and vid[c] == v:  # not a front cell
+            continue
+        for _ in range(gap + 1):
+            if c < 0 or not alive[c]:
+                break
+            w = int(vid[c]) if vid[c] >= 0 else int(hold[c])
+            if w >= 0 and w != v:
+                edges.add((v, w, c))
+                break
+            c = int(neighbor[c, d])
+    goal = np.asarray(state["goal"])
+    on = (vid >= 0) & (goal >= 0) & alive
+    if on.any():
+        nxt = int(np.asarray(state["nxt"])[alive].max())
+        _, seq = split_goal(goal[on].astype(np.int64))
+        due = {int(v) for v, s in zip(vid[on], seq) if s == nxt}
+        late = {int(v) for v, s in zip(vid[on], seq) if s > nxt}
+        edges |= {(v, w, NONE) for v in late for w in due}
+    return sorted(edges)
+
+
+def cycles(edges) -> list[list[int]]:
+    """The strongly connected sets of two or more vehicles of the wait-for ``edges`` ``(V, W, ...)``, each sorted,
+    in the order of their smallest id (Tarjan's algorithm, iterative)."""
+    graph: dict[int, list[int]] = {}
+    for v, w, *_ in edges:
+        graph.setdefault(v, []).append(w)
+        graph.setdefault(w, [])
+    index: dict[int, int] = {}
+    low: dict[int, int] = {}
+    stack: list[int] = []
+    on_stack: set[int] = set()
+    out = []
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, 0)]
+        while work:
+            v, k = work.pop()
+            if k == 0:
+                index[v] = low[v] = len(index)
+                stack.append(v)
+                on_stack.add(v)
+            if k < len(graph[v]):
+                work.append((v, k + 1))
+                w = graph[v][k]
+                if w not in index:
+                    work.append((w, 0))
+                elif w in on_stack:
+                    low[v] = min(low[v], index[w])
+                continue
+            if low[v] == index[v]:
+                members = []
+                while True:
+                    w = stack.pop()
+                    on_stack.discard(w)
+                    members.append(w)
+                    if w == v:
+                        break
+                if len(members) > 1:
+                    out.append(sorted(members))
+            if work:
+                parent = work[-1][0]
+                low[parent] = min(low[parent], low[v])
+    return sorted(out)
+
+
+def held_cells(state: dict, vehicles) -> list[int]:
+    """The cells that carry one of ``vehicles`` (ids) or are held for one of them."""
+    ids = np.asarray(sorted(vehicles), dtype=np.int64)
+    vid, hold = np.asarray(state["vid"]), np.asarray(state["hold"])
+    return np.flatnonzero(np.isin(vid, ids) | ((vid < 0) & np.isin(hold, ids))).tolist()
