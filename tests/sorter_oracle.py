@@ -248,8 +248,10 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     edge = (new_hold >= 0) & ~inputs.connected[rows, fp]
     run_ahead = np.where(succ, heard["ack"][rows, fp] & ((1 << RB) - 1), 0)
     ack = np.where(new_hold >= 0, np.where(edge, L, np.minimum(L, 1 + run_ahead)), 0)
-    for turn in (1, 3):  # a held cell beside another vehicle gives no free run (a cell row is no gap)
-        sq = (hport + turn) % 4
+    for turn in range(1, P):  # a held cell beside another vehicle gives no free run (a cell row is no gap)
+        if turn == across:
+            continue
+        sq = (hport + turn) % P
         other = heard["vid"][rows, sq]
         parked_there = ((heard["stop"][rows, sq] & 0xFFFFFFFF) >> 8 & 255) <= sorter.reach
         beside = trusted[rows, sq] & (other >= 0) & (other != new_hold) & ((other < new_hold) | parked_there)

@@ -415,11 +415,12 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         ack = (L if edge else min(L, 1 + run_ahead)) if new_hold >= 0 else 0
         # a held cell beside an older or a parked vehicle (a side neighbour carries it) gives no free run: a body
         # reaches past the cell centres it covers, so a parcel passing there could brush the other (a cell row is
-        # no gap); by age, so that two vehicles side by side never both wait for the other to go
-        for c in range(2):
-            sq = (hport + 1) % 4 if c == 0 else (hport + 3) % 4
+        # no gap); by age, so that two vehicles side by side never both wait for the other to go. The sides: every
+        # port but the hold's and the one across it (two on a square cell, four on a hexagonal one)
+        for k in range(1, P):
+            sq = (hport + k) % P
             other = hvid[i, sq]
-            if new_hold >= 0 and trusted[sq] and other >= 0 and other != new_hold and (
+            if k != P // 2 and new_hold >= 0 and trusted[sq] and other >= 0 and other != new_hold and (
                     other < new_hold or unpack(hstop[i, sq], 1, 8) <= reach):
                 ack = 0
         ahead_hold = hhold[i, dp]
