@@ -19,8 +19,10 @@ vehicles stand is kept by the rules, since every member's cells stay held while 
 from __future__ import annotations
 
 import numpy as np
+from scipy.sparse import coo_array
+from scipy.sparse.csgraph import connected_components
 
-from virtual_vehicle.cells.sorting.rules import NONE, split_goal
+from virtual_vehicle.cells.sorting.rules import NONE, hop_bits, split_goal
 
 
 def waits_for(state: dict, neighbor: np.ndarray, alive: np.ndarray, gap: int, reach: int) -> list[tuple[int, int, int]]:
@@ -30,10 +32,11 @@ def waits_for(state: dict, neighbor: np.ndarray, alive: np.ndarray, gap: int, re
     ``alive`` (n,) installed and working cells; ``gap`` and ``reach`` the sorter's (see the module notes)."""
     vid, hold, direction = (np.asarray(state[k]) for k in ("vid", "hold", "dir"))
     stop, park = np.asarray(state["stop"]), np.asarray(state["park"])
+    none = (1 << hop_bits(neighbor.shape[1])) - 1  # the stop word's hop field (square 6 bits, hexagonal 5)
     edges = set()
     for i in np.flatnonzero((vid >= 0) & (direction >= 0) & alive):
         v, d = int(vid[i]), int(direction[i])
-        if (stop[i] & 63) > reach or park[i] <= reach:  # moving, or parked (it waits on the sequence only)
+        if (stop[i] & none) > reach or park[i] <= reach:  # moving, or parked (it waits on the sequence only)
             continue
         c = int(neighbor[i, d])
         if c >= 0 and vid[c] == v:  # not a front cell
@@ -59,48 +62,19 @@ def waits_for(state: dict, neighbor: np.ndarray, alive: np.ndarray, gap: int, re
 
 def cycles(edges) -> list[list[int]]:
     """The strongly connected sets of two or more vehicles of the wait-for ``edges`` ``(V, W, ...)``, each sorted,
-    in the order of their smallest id (Tarjan's algorithm, iterative)."""
-    graph: dict[int, list[int]] = {}
-    for v, w, *_ in edges:
-        graph.setdefault(v, []).append(w)
-        graph.setdefault(w, [])
-    index: dict[int, int] = {}
-    low: dict[int, int] = {}
-    stack: list[int] = []
-    on_stack: set[int] = set()
-    out = []
-    for root in sorted(graph):
-        if root in index:
-            continue
-        work = [(root, 0)]
-        while work:
-            v, k = work.pop()
-            if k == 0:
-                index[v] = low[v] = len(index)
-                stack.append(v)
-                on_stack.add(v)
-            if k < len(graph[v]):
-                work.append((v, k + 1))
-                w = graph[v][k]
-                if w not in index:
-                    work.append((w, 0))
-                elif w in on_stack:
-                    low[v] = min(low[v], index[w])
-                continue
-            if low[v] == index[v]:
-                members = []
-                while True:
-                    w = stack.pop()
-                    on_stack.discard(w)
-                    members.append(w)
-                    if w == v:
-                        break
-                if len(members) > 1:
-                    out.append(sorted(members))
-            if work:
-                parent = work[-1][0]
-                low[parent] = min(low[parent], low[v])
-    return sorted(out)
+    in the order of their smallest id (scipy's strongly connected components)."""
+    ids = sorted({v for v, w, *_ in edges} | {w for v, w, *_ in edges})
+    if not ids:
+        return []
+    at = {v: k for k, v in enumerate(ids)}
+    rows = [at[v] for v, _, *_ in edges]
+    cols = [at[w] for _, w, *_ in edges]
+    graph = coo_array((np.ones(len(rows)), (rows, cols)), shape=(len(ids), len(ids))).tocsr()
+    _, label = connected_components(graph, directed=True, connection="strong")
+    groups: dict[int, list[int]] = {}
+    for v, c in zip(ids, label.tolist()):
+        groups.setdefault(c, []).append(v)
+    return sorted(g for g in groups.values() if len(g) > 1)
 
 
 def held_cells(state: dict, vehicles) -> list[int]:
