@@ -1134,7 +1134,7 @@ class NetworkRun(TickedRun, _Job):
         labelled = any(self.destinations[i] is not None for i in on)
         labels = _labels(setup, [ys[i] for i in on], [setup.specs[i] for i in on],
                          [self.destinations[i] for i in on]) if labelled else None
-        inputs = CellInputs(t0, sensors, self.inbox, topo.connected, ctl.config, labels)
+        inputs = CellInputs(t0, sensors, self.inbox, topo.connected, self._program_config(), labels)
         if self.stepper is None:
             self.state, outbox, wheels = ctl.program.step(self.state, inputs)
             self.inbox, stats = self.delivery.exchange(outbox, t0, period)  # what they sent, delivered
@@ -1162,6 +1162,22 @@ class NetworkRun(TickedRun, _Job):
         """:meth:`TickedRun._rewire`, and the delivery model on the new topology."""
         super()._rewire()
         self.delivery.set_topology(self.topology)
+
+    def _program_config(self) -> dict:
+        """The cells' configuration now: the scenario's, with the sorter's ``inner`` ports (a silent neighbour there
+        is a dead cell that still carries a parcel, :mod:`~virtual_vehicle.cells.sorting`) kept only where that
+        neighbour and the cell beyond it are in place: a cell taken out is a hole, not a dead cell."""
+        config = self.setup.control.config
+        if self.present is None or "inner" not in config:
+            return config
+        made = getattr(self, "_config_now", None)
+        if made is None or made[0] is not self.present:
+            nb = self.topology.neighbor  # every neighbour the layout has, in place or not
+            inner = np.asarray(config["inner"], dtype=bool).copy()
+            beyond = nb[np.maximum(nb, 0), np.arange(nb.shape[1])]  # the cell beyond it the same way
+            inner &= (nb >= 0) & self.present[np.maximum(nb, 0)] & (beyond >= 0) & self.present[np.maximum(beyond, 0)]
+            made = self._config_now = (self.present, {**config, "inner": inner})
+        return made[1]
 
     def result(self) -> RunResult:
         """The run's :class:`RunResult`: trajectories, network record and (when recorded) the cell log."""
@@ -1266,7 +1282,7 @@ class ClockedRun(NetworkRun):
         labelled = any(self.destinations[i] is not None for i in on)
         labels = _labels(setup, [ys[i] for i in on], [setup.specs[i] for i in on],
                          [self.destinations[i] for i in on]) if labelled else None
-        inputs = CellInputs(t0, sensors, self.inbox, topo.connected, ctl.config, labels)
+        inputs = CellInputs(t0, sensors, self.inbox, topo.connected, self._program_config(), labels)
         n = topo.n
         if len(rows) == n:  # every cell ticks: one step of all (as the synchronous run)
             self.state, outbox, wheels = ctl.program.step(self.state, inputs)
