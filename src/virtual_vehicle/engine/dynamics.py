@@ -28,6 +28,7 @@ Two integrators share the model:
 
 from __future__ import annotations
 
+import collections
 import math
 from dataclasses import dataclass
 from functools import cached_property, partial
@@ -1048,7 +1049,8 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     t = float(t0)
     z = np.concatenate([y0, [0.0, 0.0, 0.0]])  # and the energy account: wheel work, friction, fixed steps' loss (J)
     kinetic_start = 0.5 * (mass * (y0[3] ** 2 + y0[4] ** 2) + inertia * y0[5] ** 2)
-    segments = nfev = same_time = fallback_steps = 0
+    segments = nfev = same_time = fallback_steps = chatter_steps = 0
+    ring = collections.deque(maxlen=_CHATTER_EVENTS)  # the last support changes: (time, cells under the parcel)
     h = t1 - t0
     status = "completed"
 
@@ -1151,6 +1153,26 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         ev = diff_event(t, z[:6], piece, new)
         if ev is not None:
             events.append(ev)
+        ring.append((t, new.support.tobytes()))
+        if (len(ring) == _CHATTER_EVENTS and t - ring[0][0] <= _CHATTER_SPAN * max(1.0, abs(t))
+                and len({key for _, key in ring}) <= _CHATTER_PIECES):
+            # support changes chatter (as in :func:`_run_event`: a parcel all but at rest with a footprint edge on a
+            # cell's boundary, each piece's mode driving it back into the other, events a rounding step apart): cross
+            # the boundary in fixed steps of the law's stepper, then locate events again
+            ring.clear()
+            contacts = law.wheel_contacts(model.cells, new.support, new.solution, model.velocities, spec.mu,
+                                          spec.mu_static)
+            t, status, steps = _undecided_steps(model, contacts, z, t, t1, dt, rec, events, progress)
+            chatter_steps += steps
+            if status == "tipped" or t >= t1:
+                mode = None  # (the stepper keeps the wheels' grip itself)
+                break
+            y_probe = z[:6].copy()
+            piece = model.piece_at(y_probe)
+            wheels = wheels_of(piece)
+            mode = decide(wheels, t, z)
+            new_piece = True
+            continue
         if new is not piece:
             held = {} if mode is None else dict(zip(_wheel_keys(model, piece), mode[0].tolist()))
             piece, wheels = new, wheels_of(new)
@@ -1178,10 +1200,13 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
              "kinetic_end": 0.5 * float(mass * (y[3] ** 2 + y[4] ** 2) + inertia * y[5] ** 2),
              "mode_changes": sum(after != before for _, _, before, after in mode_events), "mode_events": mode_events, "pieces_cached": model.pieces_cached,
              "solves": model.solves}
-    if fallback_steps:
+    if fallback_steps or chatter_steps:
         stats["step_dissipation"] = float(z[8])
+    if fallback_steps:
         stats["undecided_steps"] = fallback_steps
-    return Trajectory(*rec.arrays(), events, status, t, segments, nfev + 4 * fallback_steps, stats)
+    if chatter_steps:
+        stats["chatter_steps"] = chatter_steps
+    return Trajectory(*rec.arrays(), events, status, t, segments, nfev + 4 * (fallback_steps + chatter_steps), stats)
 
 
 def _undecided_steps(model, wheels, z, t, t1, dt, rec, events, progress):
