@@ -80,7 +80,8 @@ def test_the_bays_a_sequenced_stream_needs_are_those_waiting_at_once():
 def test_a_parcel_does_not_pass_close_beside_a_parked_one():
     """Seed 132's floor with the sequence the generator once drew (eight parcels, one bay): the first parcel parks,
     the second heads east one cell row above it; its body reaches past the centres it covers, and it used to brush
-    the parked one at 7.3 s. A held cell beside another vehicle now gives no free run, so it stops short."""
+    the parked one at 7.3 s. A held cell beside a parked vehicle now gives no free run, so it
+    stops short."""
     from virtual_vehicle.run.sim import run
     from virtual_vehicle.run.tasks import sorting_report
 
