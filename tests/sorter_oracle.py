@@ -248,13 +248,13 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     edge = (new_hold >= 0) & ~inputs.connected[rows, fp]
     run_ahead = np.where(succ, heard["ack"][rows, fp] & ((1 << RB) - 1), 0)
     ack = np.where(new_hold >= 0, np.where(edge, L, np.minimum(L, 1 + run_ahead)), 0)
-    for turn in range(1, P):  # a held cell beside another vehicle gives no free run (a cell row is no gap)
+    for turn in range(1, P):  # a held cell beside a parked vehicle gives no free run (a cell row is no gap)
         if turn == across:
             continue
         sq = (hport + turn) % P
         other = heard["vid"][rows, sq]
         parked_there = ((heard["stop"][rows, sq] & 0xFFFFFFFF) >> 8 & 255) <= sorter.reach
-        beside = trusted[rows, sq] & (other >= 0) & (other != new_hold) & ((other < new_hold) | parked_there)
+        beside = trusted[rows, sq] & (other >= 0) & (other != new_hold) & parked_there
         ack = np.where((new_hold >= 0) & beside, 0, ack)
     # a front cell may go when the cell ahead is held for its vehicle with a full free run, or at the exit edge
     ahead_hold = heard["hold"][rows, dp]

@@ -80,7 +80,8 @@ def test_the_bays_a_sequenced_stream_needs_are_those_waiting_at_once():
 def test_a_parcel_does_not_pass_close_beside_a_parked_one():
     """Seed 132's floor with the sequence the generator once drew (eight parcels, one bay): the first parcel parks,
     the second heads east one cell row above it; its body reaches past the centres it covers, and it used to brush
-    the parked one at 7.3 s. A held cell beside another vehicle now gives no free run, so it stops short."""
+    the parked one at 7.3 s. A held cell beside a parked vehicle now gives no free run, so it
+    stops short."""
     from virtual_vehicle.run.sim import run
     from virtual_vehicle.run.tasks import sorting_report
 
@@ -91,3 +92,15 @@ def test_a_parcel_does_not_pass_close_beside_a_parked_one():
     report = sorting_report(run(floor.scenario().build()))
     assert report["collisions"] == 0 and report["misrouted"] == 0, report
     assert report["on_array"] >= 3  # the parked parcel, the one that stopped short and the one due
+
+
+def test_the_side_rule_costs_the_junction_no_delivery():
+    """The side rule holds a younger parcel back only beside a parked one: held beside any older vehicle too (the
+    rule's first form), sorting_junction delivered 12 in its bundled 40 s instead of 13."""
+    from virtual_vehicle.config.scenario import load_scenario
+    from virtual_vehicle.run.sim import run
+    from virtual_vehicle.run.tasks import sorting_report
+
+    report = sorting_report(run(load_scenario("sorting_junction")[0].build()))
+    assert report["collisions"] == 0 and report["misrouted"] == 0, report
+    assert report["correct"] >= 13, report

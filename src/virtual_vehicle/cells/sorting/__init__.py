@@ -21,8 +21,8 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
   same vehicle) asks that neighbour; an empty cell grants itself to the asking vehicle (the oldest when several
   ask, every tick: the older parcel goes first at a merge, and a younger one yields even a cell it held, so two
   vehicles never wait for each other) and passes the request on, ``gap + 1`` cells deep. A held cell reports back
-  how many held cells run ahead of it (none from a held cell with another vehicle on a side neighbour: a body
-  reaches past the cell centres it covers, so one cell row beside another parcel is no room to pass); a vehicle
+  how many held cells run ahead of it (none from a held cell with a parked vehicle on a side neighbour: a body
+  reaches past the cell centres it covers, so one cell row beside a parked parcel is no room to pass); a vehicle
   moves when the run ahead of every front cell is at least ``gap`` long (or leads off the array at its exit), else
   all its cells stop. A stop spreads through the vehicle from the
   cell ahead or beside, never from behind nor back to the cell it came from (the stop word names the port), so it

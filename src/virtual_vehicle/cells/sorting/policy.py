@@ -413,15 +413,17 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         edge = new_hold >= 0 and not connected[i, fp]
         run_ahead = hack[i, fp] & run_max if succ else 0
         ack = (L if edge else min(L, 1 + run_ahead)) if new_hold >= 0 else 0
-        # a held cell beside an older or a parked vehicle (a side neighbour carries it) gives no free run: a body
-        # reaches past the cell centres it covers, so a parcel passing there could brush the other (a cell row is
-        # no gap); by age, so that two vehicles side by side never both wait for the other to go. The sides: every
-        # port but the hold's and the one across it (two on a square cell, four on a hexagonal one)
+        # a held cell beside a parked vehicle (a side neighbour carries it) gives no free run: a body reaches past
+        # the cell centres it covers, so a parcel passing there could brush it (a cell row is no gap). Only a parked
+        # one: a vehicle that may still go holds the cells ahead of it (its gap), and a held cell beside an older
+        # vehicle that is merely on its way or waiting cost deliveries and prevented no collision in the bundled
+        # scenarios or on the stress floor where the rule came from (seed 132). The sides: every port but the
+        # hold's and the one across it (two on a square cell, four on a hexagonal one)
         for k in range(1, P):
             sq = (hport + k) % P
             other = hvid[i, sq]
-            if k != P // 2 and new_hold >= 0 and trusted[sq] and other >= 0 and other != new_hold and (
-                    other < new_hold or unpack(hstop[i, sq], 1, 8) <= reach):
+            if k != P // 2 and new_hold >= 0 and trusted[sq] and other >= 0 and other != new_hold and unpack(
+                    hstop[i, sq], 1, 8) <= reach:
                 ack = 0
         ahead_hold = hhold[i, dp]
         ahead_ack = hack[i, dp] & run_max
