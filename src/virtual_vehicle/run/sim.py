@@ -1333,6 +1333,7 @@ class ClockedRun(NetworkRun):
         look ahead taken where it ends there, taken back where it went further)."""
         if t <= self.plant_t:
             return
+        self._look_again()
         ahead, self.ahead = self.ahead, None
         if ahead is not None and ahead.end <= t:
             self.ys, self.active = ahead.ys, ahead.active
@@ -1349,27 +1350,39 @@ class ClockedRun(NetworkRun):
         wheels held, to a period past :attr:`plant_t` or ``t`` if later, made once and kept)."""
         if t <= self.plant_t:
             return self.ys
+        self._look_again()
         if self.ahead is not None and self.ahead.end < t:
             self._plant_to(self.ahead.end)  # no wheel changed to its end: it stands
         if self.ahead is None:
-            t0 = self.plant_t
-            end = max(t, min(t0 + self.period, self.end)) if self.ahead_to is None else self.ahead_to
-            self.ahead_to = None
-            m, c = self.clocks.m, self.clocks
-            first, last = int(math.floor(t0 * m / self.period)), int(math.ceil(end * m / self.period))
-            instants = [c.time_of(s) for s in range(first, last + 1)]
-            window = self.window(t0, end)
-            samples = np.union1d(window, [x for x in instants if t0 < x <= end])
-            state = self.plant.state()
-            ys, active = [y.copy() for y in self.ys], list(self.active)
-            trajectories, quiet = self.plant.advance_blocks(ys, active, self.holding[1], t0, end, end - t0,
-                                                            sample_times=samples)
-            self.ahead = _Ahead(end, ys, active, trajectories, quiet, window, state)
+            self._look_ahead(max(t, min(self.plant_t + self.period, self.end)))
         found = self.ahead.states_at(t, self.on, self.ys)
         if found is None:  # a parcel's piece does not reach t (it tipped): the plant goes there itself
             self._plant_to(t)
             return self.ys
         return found
+
+    def _look_again(self) -> None:
+        """A run resumed from a checkpoint taken during a look ahead (:attr:`ahead_to` known, none made yet) makes
+        that look ahead again, from the same state to the same end, before the plant goes anywhere: the plant's
+        calls then split where the uninterrupted run's did (a call cut elsewhere differs in the last bits)."""
+        if self.ahead is None and self.ahead_to is not None:
+            end, self.ahead_to = self.ahead_to, None
+            self._look_ahead(end)
+
+    def _look_ahead(self, end: float) -> None:
+        """Look ahead from :attr:`plant_t` to ``end`` (s) under the wheels held, sampled at every grid instant on
+        the way and at the output grid; the plant's state before it is kept to go back to."""
+        t0 = self.plant_t
+        m, c = self.clocks.m, self.clocks
+        first, last = int(math.floor(t0 * m / self.period)), int(math.ceil(end * m / self.period))
+        instants = [c.time_of(s) for s in range(first, last + 1)]
+        window = self.window(t0, end)
+        samples = np.union1d(window, [x for x in instants if t0 < x <= end])
+        state = self.plant.state()
+        ys, active = [y.copy() for y in self.ys], list(self.active)
+        trajectories, quiet = self.plant.advance_blocks(ys, active, self.holding[1], t0, end, end - t0,
+                                                        sample_times=samples)
+        self.ahead = _Ahead(end, ys, active, trajectories, quiet, window, state)
 
     def _decide(self, sensors: np.ndarray):
         """The cells that tick now step on their sensors, mailboxes and labels and send; the others hold. Returns
@@ -1440,7 +1453,8 @@ class ClockedRun(NetworkRun):
             ticked = {"t": np.concatenate([np.zeros(0), *self.ticked["t"]]),
                       "cell": np.concatenate([np.zeros(0, dtype=np.int64), *self.ticked["cell"]])}
         d = {**super()._state(), "clock": self.clocks.to_data(), "held": self.held.copy(), "ticked": ticked,
-             "plant_t": float(self.plant_t), "ahead_to": None if self.ahead is None else float(self.ahead.end)}
+             "plant_t": float(self.plant_t),
+             "ahead_to": float(self.ahead.end) if self.ahead is not None else self.ahead_to}  # one not yet made again
         if self.ahead is not None:
             d["plant"] = self.ahead.plant  # the plant's state where it stands, not where it looked ahead to
         return d
