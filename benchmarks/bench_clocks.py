@@ -3,9 +3,11 @@
 ``sorting_junction`` run with every cell on one shared clock and with every cell on its own (``[control.clock]``
 drift +-1 %, jitter 1 ms, several clock seeds): parcels delivered correctly, misrouted and collided, and the ratio
 of the unsynchronised mean to the synchronous count (the issue's target: within 5 %), with the wall time of each
-run (an unsynchronised run steps at every instant some cells tick, up to ``slots`` a period).
+run (an unsynchronised run steps at every instant some cells tick, up to ``slots`` a period). ``--saturate`` feeds
+the entry as fast as it accepts (``arrivals = "saturate"``, the scenario's mix repeated so it never runs dry) and
+compares delivered parcels per hour (steady state) instead.
 
-Run: ``python benchmarks/bench_clocks.py [--duration 20] [--seeds 5] [--delivery ideal] [--baud 460800]``.
+Run: ``python benchmarks/bench_clocks.py [--duration 20] [--seeds 5] [--delivery ideal] [--baud 460800] [--saturate]``.
 """
 
 from __future__ import annotations
@@ -28,6 +30,20 @@ def delivered(sc, clock: dict) -> tuple[dict, float]:
     return report, time.perf_counter() - start
 
 
+def saturated(sc):
+    """``sc`` with its entries fed as fast as they accept, its parcel mix repeated so that none runs dry (one a
+    second an entry, above any entry's bound)."""
+    per_entry = len(sc.parcels) / len({(p.x, p.y) for p in sc.parcels})
+    rounds = int(np.ceil(sc.duration / per_entry))
+    parcels = [p.model_copy(update={"name": f"{p.name}_{k}"}) for k in range(rounds) for p in sc.parcels]
+    return sc.model_copy(update={"arrivals": "saturate", "parcels": parcels})
+
+
+def score(report: dict, saturate: bool) -> float:
+    """What the runs are compared by: parcels delivered correctly, or delivered per hour when saturated."""
+    return report["saturation"]["total"]["delivered_per_hour"] if saturate else report["correct"]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenario", default="sorting_junction")
@@ -37,25 +53,38 @@ def main() -> None:
     parser.add_argument("--jitter", type=float, default=0.001)
     parser.add_argument("--delivery", choices=("ideal", "wire"), default="ideal")
     parser.add_argument("--baud", type=float, default=460800.0, help="the wire's line rate, bits/s")
+    parser.add_argument("--saturate", action="store_true", help="feed the entries as fast as they accept")
     args = parser.parse_args()
     sc, _ = load_scenario(args.scenario)
     control = sc.control.model_copy(update={"delivery": args.delivery,
                                             "wire": sc.control.wire.model_copy(update={"baud": args.baud})})
     sc = sc.model_copy(update={"duration": args.duration, "control": control})
+    if args.saturate:
+        sc = saturated(sc)
     print(f"{args.scenario}, {args.duration:g} s, {args.delivery} delivery"
           + (f" at {args.baud:g} baud" if args.delivery == "wire" else ""))
-    print(f"{'clocks':<34} {'correct':>7} {'misrouted':>9} {'collisions':>10} {'wall s':>7}")
+    print(f"{'clocks':<34} {'correct':>7} {'per hour':>8} {'misrouted':>9} {'collisions':>10} {'wall s':>7}")
+
+    def line(label: str, rep: dict, wall: float) -> None:
+        per_hour = rep["saturation"]["total"]["delivered_per_hour"] if args.saturate else None
+        print(f"{label:<34} {rep['correct']:>7} {'-' if per_hour is None else f'{per_hour:.0f}':>8} "
+              f"{rep['misrouted']:>9} {rep['collisions']:>10} {wall:>7.1f}", flush=True)
+
     sync, wall = delivered(sc, {})
-    print(f"{'one shared clock':<34} {sync['correct']:>7} {sync['misrouted']:>9} {sync['collisions']:>10} {wall:>7.1f}")
+    line("one shared clock", sync, wall)
     counts = []
     for seed in range(args.seeds):
         rep, wall = delivered(sc, {"drift": args.drift, "jitter": args.jitter, "seed": seed})
-        counts.append(rep["correct"])
-        label = f"own clocks +-{args.drift:.0%}, {args.jitter * 1e3:g} ms, seed {seed}"
-        print(f"{label:<34} {rep['correct']:>7} {rep['misrouted']:>9} {rep['collisions']:>10} {wall:>7.1f}", flush=True)
-    mean = float(np.mean(counts))
-    ratio = mean / sync["correct"] if sync["correct"] else float("nan")
-    print(f"mean over {args.seeds} clock seeds: {mean:.2f} delivered, {ratio:.1%} of the synchronous run's")
+        counts.append(score(rep, args.saturate))
+        line(f"own clocks +-{args.drift:.0%}, {args.jitter * 1e3:g} ms, seed {seed}", rep, wall)
+    what = "delivered per hour" if args.saturate else "delivered"
+    if None in counts or score(sync, args.saturate) is None:  # saturated runs too short for two deliveries an entry
+        print(f"no steady-state rate in {args.duration:g} s: run longer")
+        return
+    mean, base = float(np.mean(counts)), score(sync, args.saturate)
+    ratio = mean / base if base else float("nan")
+    print(f"mean over {args.seeds} clock seeds: {mean:.2f} {what} (spread {min(counts):g}..{max(counts):g}), "
+          f"{ratio:.1%} of the synchronous run's")
 
 
 if __name__ == "__main__":

@@ -108,6 +108,40 @@ def test_an_unsynchronised_run_resumed_half_way_is_the_uninterrupted_run(tmp_pat
         assert getattr(plain.cell_log, k).tobytes() == getattr(resumed.cell_log, k).tobytes(), k
 
 
+@pytest.mark.parametrize("stop, past", [(1.5, False), (1.2, True)])
+def test_an_unsynchronised_run_checkpointed_while_it_looks_ahead_is_the_uninterrupted_run(tmp_path, stop, past):
+    sc = _scenario("sorting_junction", 3.0, drift=0.01, jitter=0.001, seed=2)
+    plain = run(sc.build())
+    job = ClockedRun(sc.build())
+    while job.span()[0] < stop or job.ahead is None:  # stop where the plant stands behind the cells, looking ahead
+        job.tick()
+    assert job.plant_t < job.span()[0]
+    # the look ahead reaches past the next instant (the cells read from it) or ends before it (taken in there)
+    assert (job.ahead.end > job.span()[0]) == past
+    job.save(tmp_path / "half.ckpt", 0.3)
+    assert job.ahead is None and job.ahead_to is not None  # what a resumed run starts from: none made yet
+    job.save(tmp_path / "again.ckpt", 0.3)  # saved again before it looks ahead: it still knows how far
+    resumed = resume(tmp_path / "again.ckpt")
+    _same(plain, resumed)
+    _same(plain, job.run())
+
+
+def test_a_drifting_run_moves_the_plant_only_where_the_wheels_held_change():
+    sc = _scenario("sorting_junction", 4.0, drift=0.01, jitter=0.001, seed=1)
+    ahead = run(sc.build())
+    # a cell log keeps a row an instant: that run moves the plant to every instant some cell ticks
+    logged = run(sc.model_copy(update={"sensors": sc.sensors.model_copy(update={"record": True})}).build())
+    a, b = ahead.summary(), logged.summary()
+    assert a["network"]["clocks"] == b["network"]["clocks"]  # the same instants, the same ticks
+    for key in ("sentences_sent", "sentences_received"):
+        assert a["network"][key] == b["network"][key] > 0
+    assert sum(p.entered_at is not None for p in ahead.parcels) >= 2
+    for p, q in zip(ahead.parcels, logged.parcels):  # the parcels move alike: the plant's calls split elsewhere
+        assert p.trajectory.times.tobytes() == q.trajectory.times.tobytes() and p.entered_at == q.entered_at
+        np.testing.assert_allclose(p.trajectory.states, q.trajectory.states, rtol=0, atol=1e-6)
+    assert a["plant"]["windows"] * 4 < b["plant"]["windows"]
+
+
 @pytest.mark.parametrize("clock, field", [({"drift": 0.2}, "control.clock.drift"),
                                           ({"jitter": 0.005}, "control"), ({"slots": 0}, "control.clock.slots")])
 def test_clocks_that_do_not_fit_the_period_are_refused_with_their_path(clock, field):

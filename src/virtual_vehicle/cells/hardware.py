@@ -90,16 +90,25 @@ class Sensors:
         out[point] = True
         return out.reshape(n, S)
 
-    def read(self, specs: list[ParcelSpec], states, rng: np.random.Generator, active=None) -> np.ndarray:
+    def read(self, specs: list[ParcelSpec], states, rng: np.random.Generator, active=None,
+             rows: np.ndarray | None = None) -> np.ndarray:
         """(n, S) readings: the truth, flipped at the false-positive/negative rates (drawn from ``rng``, one number a
-        sensor, only when a rate is not zero), then the stuck faults."""
+        sensor, only when a rate is not zero), then the stuck faults. ``rows``: only these cells read (indices; the
+        others' rows are False and draw no noise), as cells on their own clocks do at their ticks."""
         reading = self.covered(specs, states, active)
+        if rows is not None:
+            rows = np.asarray(rows, dtype=np.int64)
+            full, reading = reading, reading[rows]
         if self.false_positive or self.false_negative:
             r = rng.random(reading.shape)
             reading = np.where(reading, r >= self.false_negative, r < self.false_positive)
         if self._stuck is not None:
             on, off = self._stuck
-            reading = (reading | on) & ~off
+            reading = (reading | on[rows]) & ~off[rows] if rows is not None else (reading | on) & ~off
+        if rows is not None:
+            full[:] = False
+            full[rows] = reading
+            reading = full
         return reading
 
     @cached_property

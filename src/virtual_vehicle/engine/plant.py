@@ -180,7 +180,9 @@ class Plant:
 
     def restore(self, state: dict) -> None:
         """Take up what :meth:`state` returned (of a plant of the same scenario); raises ValueError for data of other
-        keys, dtypes or shapes."""
+        keys, dtypes or shapes. What was made from other states (the models under the wheels of then, which hold the
+        wheel memory replaced here, and the quiet and ride steppers' anchors) is dropped: a plant taken back to an
+        earlier state goes on as one made afresh there does."""
         where = "plant"
         state = fields(state, ("record", "touching", "warm", "memory"), where)
         record = PlantRecord.from_data(state["record"], f"{where}.record")
@@ -202,6 +204,10 @@ class Plant:
             wheels = list(map(tuple, array(m, "keys", "i", (None, 2), at).tolist()))
             model.contact_memory = {"lam": dict(zip(wheels, array(m, "lam", "f", (len(wheels),), at).tolist())),
                                     "stuck": dict(zip(wheels, array(m, "stuck", "b", (len(wheels),), at).tolist()))}
+        self._velocities = self._models = None  # models made before share the wheel memory replaced here
+        for stepper in (self._quiet, self._ride):  # anchors measured at states of another time
+            if stepper is not None:
+                stepper.forget()
 
     def _model(self, spec: ParcelSpec, share: bool = True) -> ParcelModel:
         """A fresh model of parcel ``spec`` at rest wheels, sharing solved supports with parcels of its weight (or

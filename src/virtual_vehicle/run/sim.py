@@ -847,9 +847,22 @@ class TickedRun:
         over the tick under the wheels held (zero-order hold). ``sensors`` (the readings :meth:`begin` returned) and
         ``sent`` / ``received`` ((n,) sentences) go into the cell log when it is kept. Returns the (n, 2) wheel
         speeds the tick held, m/s (a motor wheel's mean over it)."""
-        setup, cells = self.setup, self.setup.cells
         period = self.hold_time()
         t0, t1 = self.span()
+        command, wheels, velocities = self.wheels_held(command, period)
+        if self.record:
+            self.cell_log.append((t0, sensors.astype(bool), np.array(wheels, dtype=float), command.copy(),
+                                  np.array(sent), np.array(received)))
+        if t1 > t0:
+            self.carry(t0, t1, velocities, period)
+        self.k += 1
+        return wheels
+
+    def wheels_held(self, command: np.ndarray, period: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What the cells' ``command`` ((n, 2) m/s) holds for ``period`` s: the commands as the wheels take them
+        (dead cells still, plain belts at their own speed), the wheel speeds (motors followed, stuck wheels still)
+        and the contact-layer velocities the plant is driven by (m/s)."""
+        setup, cells = self.setup, self.setup.cells
         ys, active = self.ys, self.active
         command = np.where(self.topology.alive[:, None], np.asarray(command, dtype=float), 0.0)  # dead cells: still
         command = cells.belt_commands(command)  # plain belts run at their own speed
@@ -863,40 +876,49 @@ class TickedRun:
         velocities = cells.surface_velocities(wheels)
         if setup.contact_layer is not cells:  # separate or omni wheels, belts: each contact's own surface velocity
             velocities = setup.contact_layer.contact_velocities(velocities)
-        if self.record:
-            self.cell_log.append((t0, sensors.astype(bool), np.array(wheels, dtype=float), command.copy(),
-                                  np.array(sent), np.array(received)))
-        if t1 > t0:
-            if self.grid is None:
-                window = np.array([t0, t1])
-            else:
-                eps = 1e-12 * max(1.0, t1)
-                window = self.grid[np.searchsorted(self.grid, t0 - eps, side="left"):
-                                   np.searchsorted(self.grid, t1 + eps, side="right")]  # output samples in this tick
-            trajectories, quiet = self.plant.advance_blocks(ys, active, velocities, t0, t1, period,
-                                                            sample_times=window)  # untrimmed: the tracks keep the grid
-            on: dict[int, np.ndarray] = {}  # by times array: the parcels stepped together share theirs
+        return command, wheels, velocities
 
-            def on_window(times):
-                if len(window) and id(times) not in on:
-                    on[id(times)] = on_grid(times, window)
-                return on.get(id(times))
+    def window(self, t0: float, t1: float) -> np.ndarray:
+        """The output sample times (s) from ``t0`` to ``t1``, both included where they are on the grid."""
+        if self.grid is None:
+            return np.array([t0, t1])
+        eps = 1e-12 * max(1.0, t1)
+        return self.grid[np.searchsorted(self.grid, t0 - eps, side="left"):
+                         np.searchsorted(self.grid, t1 + eps, side="right")]  # output samples in this tick
 
-            kept = [len(track.times) for track in self.tracks] if self.sliding is not None and len(window) else None
-            for i, tr in enumerate(trajectories):
-                if tr is not None:
-                    self.tracks[i].add(tr, window, on_window(tr.times))
-            for i, steps, k in quiet:  # those the quiet stepper alone moved, from its block
-                self.tracks[i].add_quiet(steps, k, window, on_window(steps.times))
-            if kept is not None:
-                self._check_sliding(kept, velocities)
-            gone = [i for i in self.on if not active[i]]
-            for i in gone:  # those that left the array are gone, and so is what was cached for them
-                self.plant.release(i)
-            if gone:
-                self.on = [i for i in self.on if active[i]]
-        self.k += 1
-        return wheels
+    def carry(self, t0: float, t1: float, velocities: np.ndarray, period: float) -> None:
+        """The plant carries every parcel from ``t0`` to ``t1`` (s) under contact ``velocities`` (m/s) held
+        (``period``: s, the plant's sample step where no output grid is given); the tracks take it in."""
+        window = self.window(t0, t1)
+        trajectories, quiet = self.plant.advance_blocks(self.ys, self.active, velocities, t0, t1, period,
+                                                        sample_times=window)  # untrimmed: the tracks keep the grid
+        self.take_in(trajectories, quiet, window, velocities)
+
+    def take_in(self, trajectories: list, quiet: list, window: np.ndarray, velocities: np.ndarray) -> None:
+        """The parcels' tracks take in what the plant returned (:meth:`~virtual_vehicle.engine.plant.Plant.
+        advance_blocks`) over an interval whose output samples are ``window`` (s), the Coulomb check runs on them
+        under contact ``velocities`` (m/s), and the parcels that left the array are forgotten by the plant."""
+        active = self.active
+        on: dict[int, np.ndarray] = {}  # by times array: the parcels stepped together share theirs
+
+        def on_window(times):
+            if len(window) and id(times) not in on:
+                on[id(times)] = on_grid(times, window)
+            return on.get(id(times))
+
+        kept = [len(track.times) for track in self.tracks] if self.sliding is not None and len(window) else None
+        for i, tr in enumerate(trajectories):
+            if tr is not None:
+                self.tracks[i].add(tr, window, on_window(tr.times))
+        for i, steps, k in quiet:  # those the quiet stepper alone moved, from its block
+            self.tracks[i].add_quiet(steps, k, window, on_window(steps.times))
+        if kept is not None:
+            self._check_sliding(kept, velocities)
+        gone = [i for i in self.on if not active[i]]
+        for i in gone:  # those that left the array are gone, and so is what was cached for them
+            self.plant.release(i)
+        if gone:
+            self.on = [i for i in self.on if active[i]]
 
     def parcel_results(self) -> list[ParcelResult]:
         """Every parcel's :class:`ParcelResult` so far: its samples on the grid and its latest state, events, the
@@ -1213,10 +1235,12 @@ class ClockedRun(NetworkRun):
     sorter counts its ticks from it: a cell's tick number is that instant in periods, rounded)."""
 
     KIND = "clocked"
-    STATE = (*NetworkRun.STATE, "clock", "held", "ticked")
+    STATE = (*NetworkRun.STATE, "clock", "held", "ticked", "plant_t", "ahead_to")
     """:attr:`NetworkRun.STATE` (its ``inbox`` being the mailboxes, ``k`` the steps taken), the clocks
     (:meth:`CellClocks.to_data`), the (n, 2) wheel speeds each cell last asked for (m/s) and, when the cell log is
-    kept, which cells ticked when (``ticked``: ``t`` s and ``cell``, one entry a cell's tick; None otherwise)."""
+    kept, which cells ticked when (``ticked``: ``t`` s and ``cell``, one entry a cell's tick; None otherwise) and the
+    time the plant stands at (``plant_t``, s: the parcels' states, tracks and plant state are of then) and how far it
+    looked ahead from there (``ahead_to``, s; None for no look ahead: a resumed run looks as far again)."""
 
     def __init__(self, setup: Setup):
         super().__init__(setup)
@@ -1229,6 +1253,16 @@ class ClockedRun(NetworkRun):
         self.outbox = Mailbox.empty(ctl.program.schema, n, P)
         self.after: int | None = None  # the instant after this step's, once its cells have ticked
         self.ticked: dict | None = {"t": [], "cell": []} if self.record else None
+        # The plant goes on only to instants where the wheels held change (one call between two such instants);
+        # the cells that tick in between read the parcels where a look ahead under the wheels held puts them.
+        # Motor wheels change while their commands hold, and a cell log keeps a row an instant: those go instant by
+        # instant, and so does the synchronous case (one instant a period: the synchronous run to the last bit).
+        self.lazy = self.drives is None and not self.record and not ctl.clock.synchronous
+        self.plant_t = 0.0  # s, where the plant stands (the parcels' ys, tracks and plant state are of then)
+        self.holding: tuple[np.ndarray, np.ndarray] | None = None  # the wheel speeds held since and their velocities
+        self.ahead: _Ahead | None = None  # the look ahead from plant_t, when one was made
+        self.ahead_to: float | None = None  # how far the next look ahead goes, when that is known (a resumed run)
+        self.now_ys: list[np.ndarray] = self.ys  # the parcels' states at this step's instant
 
     def most_steps(self) -> int:
         """Steps are instants at which some cell ticks: at most every grid instant of the run."""
@@ -1264,12 +1298,107 @@ class ClockedRun(NetworkRun):
         return every is not None and math.floor(t_after / every + 1e-9) > math.floor(t_before / every + 1e-9)
 
     def tick(self) -> None:
-        """The cells whose clocks tick at the next instant read and decide; the plant goes on to the instant after."""
+        """The cells whose clocks tick at the next instant read and decide; the plant goes on to the instant after
+        (or, :attr:`lazy`, to where the wheels held next change)."""
         self.now = int(self.clocks.slot.min())
-        sensors = self.begin()
-        stats = self._decide(sensors)
-        self.finish(self.held, sensors, stats.sent, stats.received)
+        if not self.lazy:
+            self.now_ys = self.ys
+            sensors = self.begin()
+            stats = self._decide(sensors)
+            self.finish(self.held, sensors, stats.sent, stats.received)
+            self.after = None
+            return
+        t0 = self.clocks.time_of(self.now)
+        if self._events_due(t0):  # faults, cell changes and arrivals act on the parcels where they are now
+            self._plant_to(t0)
+        self._inject(t0)
+        self._reconfigure(t0)
+        self._admit(t0)
+        self.now_ys = ys = self._states_at(t0)
+        rows = np.flatnonzero(self.clocks.slot == self.now)
+        sensors = self._sense(rows, ys)
+        self._decide(sensors)
+        _, wheels, velocities = self.wheels_held(self.held, self.period)
+        if self.holding is None or not np.array_equal(wheels, self.holding[0]):
+            self._plant_to(t0)  # the wheels held so far hold until now
+            self.holding = (wheels, velocities)
+        self.k += 1
         self.after = None
+        if self.done:
+            self._plant_to(self.end)
+        self.now_ys = self.ys
+
+    def _sense(self, rows: np.ndarray, ys: list[np.ndarray]) -> np.ndarray:
+        """(n, S) readings of the cells ``rows`` with the parcels at states ``ys`` (the others read nothing: they
+        do not tick now)."""
+        setup, on = self.setup, self.on
+        sensors = self.sensors.read([setup.specs[i] for i in on], [ys[i] for i in on], self.sensor_rng, rows=rows)
+        if self.present is not None:
+            sensors[~self.present] = 0  # a cell taken out senses nothing
+        return sensors
+
+    def _events_due(self, t: float) -> bool:
+        """Whether a fault event, a cell change or a parcel's arrival is due by ``t`` (s)."""
+        setup, tol = self.setup, 1e-9 * max(1.0, t)
+        return ((self.next_fault < len(setup.fault_events) and setup.fault_events[self.next_fault][0] <= t + tol)
+                or (self.next_change < len(setup.cell_changes) and setup.cell_changes[self.next_change][0] <= t + tol)
+                or bool(self.queue and self.arrive[self.queue[0]] <= t + 1e-12))
+
+    def _plant_to(self, t: float) -> None:
+        """The plant carries the parcels from :attr:`plant_t` to ``t`` (s) under the wheels held, in one call (the
+        look ahead taken where it ends there, taken back where it went further)."""
+        if t <= self.plant_t:
+            return
+        self._look_again()
+        ahead, self.ahead = self.ahead, None
+        if ahead is not None and ahead.end <= t:
+            self.ys, self.active = ahead.ys, ahead.active
+            self.take_in(ahead.trajectories, ahead.quiet, ahead.window, self.holding[1])
+            self.plant_t = ahead.end
+        elif ahead is not None:
+            self.plant.restore(ahead.plant)  # it went past t: back to plant_t
+        if t > self.plant_t:
+            self.carry(self.plant_t, t, self.holding[1], t - self.plant_t)
+            self.plant_t = t
+
+    def _states_at(self, t: float) -> list[np.ndarray]:
+        """The parcels' states at ``t`` (s; the plant's own where it stands there, else from a look ahead under the
+        wheels held, to a period past :attr:`plant_t` or ``t`` if later, made once and kept)."""
+        if t <= self.plant_t:
+            return self.ys
+        self._look_again()
+        if self.ahead is not None and self.ahead.end < t:
+            self._plant_to(self.ahead.end)  # no wheel changed to its end: it stands
+        if self.ahead is None:
+            self._look_ahead(max(t, min(self.plant_t + self.period, self.end)))
+        found = self.ahead.states_at(t, self.on, self.ys)
+        if found is None:  # a parcel's piece does not reach t (it tipped): the plant goes there itself
+            self._plant_to(t)
+            return self.ys
+        return found
+
+    def _look_again(self) -> None:
+        """A run resumed from a checkpoint taken during a look ahead (:attr:`ahead_to` known, none made yet) makes
+        that look ahead again, from the same state to the same end, before the plant goes anywhere: the plant's
+        calls then split where the uninterrupted run's did (a call cut elsewhere differs in the last bits)."""
+        if self.ahead is None and self.ahead_to is not None:
+            end, self.ahead_to = self.ahead_to, None
+            self._look_ahead(end)
+
+    def _look_ahead(self, end: float) -> None:
+        """Look ahead from :attr:`plant_t` to ``end`` (s) under the wheels held, sampled at every grid instant on
+        the way and at the output grid; the plant's state before it is kept to go back to."""
+        t0 = self.plant_t
+        m, c = self.clocks.m, self.clocks
+        first, last = int(math.floor(t0 * m / self.period)), int(math.ceil(end * m / self.period))
+        instants = [c.time_of(s) for s in range(first, last + 1)]
+        window = self.window(t0, end)
+        samples = np.union1d(window, [x for x in instants if t0 < x <= end])
+        state = self.plant.state()
+        ys, active = [y.copy() for y in self.ys], list(self.active)
+        trajectories, quiet = self.plant.advance_blocks(ys, active, self.holding[1], t0, end, end - t0,
+                                                        sample_times=samples)
+        self.ahead = _Ahead(end, ys, active, trajectories, quiet, window, state)
 
     def _decide(self, sensors: np.ndarray):
         """The cells that tick now step on their sensors, mailboxes and labels and send; the others hold. Returns
@@ -1278,7 +1407,7 @@ class ClockedRun(NetworkRun):
         clocks, topo = self.clocks, self.topology
         rows = np.flatnonzero(clocks.slot == self.now)
         t0, _ = self.span()
-        ys, on = self.ys, self.on
+        ys, on = self.now_ys, self.on
         labelled = any(self.destinations[i] is not None for i in on)
         labels = _labels(setup, [ys[i] for i in on], [setup.specs[i] for i in on],
                          [self.destinations[i] for i in on]) if labelled else None
@@ -1339,7 +1468,12 @@ class ClockedRun(NetworkRun):
         if self.ticked is not None:
             ticked = {"t": np.concatenate([np.zeros(0), *self.ticked["t"]]),
                       "cell": np.concatenate([np.zeros(0, dtype=np.int64), *self.ticked["cell"]])}
-        return {**super()._state(), "clock": self.clocks.to_data(), "held": self.held.copy(), "ticked": ticked}
+        d = {**super()._state(), "clock": self.clocks.to_data(), "held": self.held.copy(), "ticked": ticked,
+             "plant_t": float(self.plant_t),
+             "ahead_to": float(self.ahead.end) if self.ahead is not None else self.ahead_to}  # one not yet made again
+        if self.ahead is not None:
+            d["plant"] = self.ahead.plant  # the plant's state where it stands, not where it looked ahead to
+        return d
 
     def _restore(self, position: dict, state, arrays: list) -> None:
         super()._restore(position, state, arrays)
@@ -1349,6 +1483,16 @@ class ClockedRun(NetworkRun):
         self.held = array(s, "held", "f", (n, 2), "state").astype(float)
         self.mail = Mailboxes(self.inbox)
         self.after = None
+        self.plant_t = number(s, "plant_t", "state")
+        self.ahead = None
+        self.ahead_to = None if s["ahead_to"] is None else number(s, "ahead_to", "state")
+        if self.ahead_to is not None and not self.plant_t < self.ahead_to <= self.end:
+            raise ValueError(f"state.ahead_to: {self.ahead_to} s is not between plant_t and the run's end")
+        self.holding = None
+        if self.k:  # the wheels held since plant_t: what the cells last asked for, as the wheels take it
+            _, wheels, velocities = self.wheels_held(self.held, self.period)
+            self.holding = (wheels, velocities)
+        self.now_ys = self.ys
         if (s["ticked"] is None) != (self.ticked is None):
             raise ValueError("state.ticked: the tick log is kept exactly when the cell log is")
         if s["ticked"] is not None:
@@ -1366,6 +1510,40 @@ class ClockedRun(NetworkRun):
             "ticks_min": int(c.count.min()), "ticks_max": int(c.count.max()),
             "cells_a_instant": float(c.count.sum() / max(self.k, 1))}
         return res
+
+
+@dataclass
+class _Ahead:
+    """A look ahead of the plant from where it stands to ``end`` (s) under the wheels held: the parcels' states and
+    flags there, what the plant returned (sampled at every grid instant on the way), the output ``window`` of it and
+    the plant's ``plant`` state before it (to go back to)."""
+
+    end: float
+    ys: list
+    active: list
+    trajectories: list
+    quiet: list
+    window: np.ndarray
+    plant: dict
+
+    def states_at(self, t: float, on: list[int], ys: list[np.ndarray]) -> list[np.ndarray] | None:
+        """The states at ``t`` (s, a sample of the look ahead) of the parcels ``on`` (``ys`` for the others), or
+        None when one of them has no sample at ``t``."""
+        out = list(ys)
+        by_quiet = {i: (steps, k) for i, steps, k in self.quiet}
+        for i in on:
+            if i in by_quiet:
+                steps, k = by_quiet[i]
+                times, states, row = steps.times, steps.states, steps.rows[k]
+            elif self.trajectories[i] is not None:
+                times, states, row = self.trajectories[i].times, self.trajectories[i].states, None
+            else:
+                return None
+            j = int(np.searchsorted(times, t))
+            if j >= len(times) or times[j] != t:
+                return None
+            out[i] = states[j] if row is None else states[row, j]
+        return out
 
 
 _SUMMED = frozenset(SUMMED_STATS)
