@@ -166,3 +166,29 @@ def test_the_grip_bound_holds_wherever_the_centre_goes(seed, m, share, lever, st
     rho = zonotope_inradius(generators(np.zeros(2), N0))
     bound = (1 - D / slack) * rho - D * (1 + D / slack) * mu_s * N0.sum()
     assert zonotope_inradius(generators(step, N0 + grad @ step)) >= bound - 1e-12 * (1 + rho)
+
+
+@settings(max_examples=8, deadline=None)
+@given(layer=st.sampled_from(["separate", "three"]), kind=st.sampled_from(["aisle", "turn"]),
+       theta=st.floats(-np.pi, np.pi), start=st.sampled_from([0.0, 1.0]))
+def test_rigid_fields_over_one_wheel_contacts(layer, kind, theta, start):
+    """Contact layers of one wheel per contact (a square grid's wheels apart; a hexagonal grid's three-wheel cells,
+    drive directions 120 degrees apart): each contact is one row of the ride's rank test, and a rigid field over
+    them rides as the exact run."""
+    from virtual_vehicle.model import layout
+
+    cells = layout.separate_wheels(layout.grid(30, 14, 0.1)) if layer == "separate" else \
+        layout.three_wheels(layout.hexagonal(30, 14, 0.1))
+    if kind == "aisle":
+        V, v, omega = np.tile([0.25, 0.1], (cells.n, 1)), np.array([0.25, 0.1]), 0.0
+    else:
+        omega, centre = 0.4, np.array([1.5, 0.2])
+        p = cells.positions - centre
+        V = np.column_stack([-omega * p[:, 1], omega * p[:, 0]])
+        v = omega * np.array([centre[1] - 0.7, 1.4 - centre[0]])
+    y0 = [1.4, 0.7, theta, *(start * v), start * omega]
+    fields = lambda k: V if k < 30 else None  # noqa: E731
+    a, rec_a = run_on(cells, fields, [y0], True, [SPEC])
+    b, _ = run_on(cells, fields, [y0], False, [SPEC])
+    assert_same(a, b)
+    assert rec_a.quiet_steps > 0 or kind == "turn"  # (an aisle rides once the parcel is at its speed)
