@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from test_ride import CELLS, PERIOD, SPEC, aisle, assert_same, run, turn
@@ -38,13 +38,16 @@ def held(V: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 
 @settings(max_examples=10, deadline=None)
-@given(mu_s=st.floats(0.005, 0.05), omega=st.floats(0.1, 0.4), radius=st.floats(0.15, 0.5),
+@given(mu_s=st.floats(0.001, 0.05), omega=st.floats(0.1, 0.4), radius=st.floats(0.15, 0.5),
        sign=st.sampled_from([-1, 1]), angle=st.floats(-np.pi, np.pi), theta=st.floats(-np.pi, np.pi))
+@example(mu_s=0.005, omega=0.3, radius=0.5, sign=1, angle=0.0, theta=0.0)  # m omega^2 r 0.068 N, mu_s W 0.074 N
+@example(mu_s=0.001, omega=0.2, radius=0.3, sign=1, angle=0.0, theta=0.0)  # 0.018 N over 0.015 N: it slips
+@example(mu_s=0.02, omega=0.2, radius=0.3, sign=1, angle=1.0, theta=0.0)  # 0.018 N: rides (above 0.01 it does)
 def test_a_turn_near_the_grip_limit(mu_s, omega, radius, sign, angle, theta):
     """A parcel carried at the field's twist by a slow rigid turn (few support changes) with so little static friction
     that its centripetal force m omega^2 r is near what the proof lets its sticking wheels hold (about a tenth of
     ``mu_s`` times its weight on 0.1 m cells: at 0.2 rad/s and 0.3 m it rides from ``mu_s`` 0.02, not at 0.01): the
-    rides the proof takes are the exact run's."""
+    rides the proof takes are the exact run's, and a parcel whose grip fails (at ``mu_s`` 0.001) slips as there."""
     spec = parcel.rectangle(0.33, 0.24, 1.5, mu_s * 0.8, mu_static=mu_s)
     x, y = 1.5, 0.7
     omega *= sign
@@ -192,3 +195,18 @@ def test_rigid_fields_over_one_wheel_contacts(layer, kind, theta, start):
     b, _ = run_on(cells, fields, [y0], False, [SPEC])
     assert_same(a, b)
     assert rec_a.quiet_steps > 0 or kind == "turn"  # (an aisle rides once the parcel is at its speed)
+
+
+@settings(max_examples=6, deadline=None)
+@given(omega=st.floats(-3.0, 3.0), offset=st.floats(0.0, 0.05), theta=st.floats(-np.pi, np.pi))
+def test_spinning_about_a_point_under_the_parcel(omega, offset, theta):
+    """A rigid turn about a point under the parcel (its centre of mass at most 5 cm off it): the centre hardly
+    moves (``|v| T`` near 0) while every corner sweeps ``|omega| R T``, so cells cross the outline in most windows
+    and the clearance must count the turning, not the centre's travel."""
+    centre = np.array([1.5 + offset, 0.75])
+    V = turn(omega, centre)
+    y0 = [1.5, 0.75, theta, *(omega * np.array([centre[1] - 0.75, 1.5 - centre[0]])), omega]
+    fields = lambda k: V if k < 40 else None  # noqa: E731
+    a, _ = run(fields, [y0], True)
+    b, _ = run(fields, [y0], False)
+    assert_same(a, b)
