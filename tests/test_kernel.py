@@ -559,9 +559,17 @@ def test_the_event_loop_makes_pieces_from_patterns_as_the_model_would(law, speed
     b = _coulomb_run(found)
     _same_run(a, b)
     assert len(a.events) > 10
-    assert ([(k, p.row, p.constants.terms.tolist()) for k, p in made._pieces.items()]
-            == [(k, p.row, p.constants.terms.tolist()) for k, p in found._pieces.items()])
-    assert made._table.used[kernel.U_PIECES] == len(made._pieces)
+    # the pieces it made stay table entries until asked for (none was, here), then are the pieces Python made
+    unmade = len(made._unmade)
+    assert unmade > 10 and made.pieces_cached == found.pieces_cached == made._table.used[kernel.U_PIECES]
+    for skey in list(made._unmade):
+        made._table.make(made, skey)
+    assert not made._unmade and len(made._pieces) == made.pieces_cached
+    assert ({k: (p.row, p.constants.terms.tolist()) for k, p in made._pieces.items()}
+            == {k: (p.row, p.constants.terms.tolist()) for k, p in found._pieces.items()})
+    for k, p in made._pieces.items():
+        q = found._pieces[k]
+        assert np.array_equal(p.support, q.support) and np.array_equal(p.solution.origin, q.solution.origin)
     # the patterns solved in the loop are in the model's store as Python would have put them: same order, same floats
     assert made.solves == found.solves and len(asked) < made.solves // 2
     mine, python = made.shared_solutions, found.shared_solutions

@@ -149,9 +149,10 @@ class _PieceTable:
       for a support set the model has never met, the loop takes the first of them that holds (``solution_for``'s
       first choice, the store searched before the model's own); when none does, it solves the pattern itself if
       the table mirrors the whole store (:meth:`mirror_store`; then Python would solve it too) and the pattern has no
-      solutions of the model's own, else hands back to Python. Solutions and pieces it makes are made Python
-      objects and added to the model's store and cache after the call (:meth:`adopt_solved`, :meth:`adopt_born`),
-      in order.
+      solutions of the model's own, else hands back to Python. Solutions it makes are made Python objects and added
+      to the model's store after the call (:meth:`adopt_solved`), in order; pieces it makes join the model's cache
+      as table entries (:meth:`adopt_born`), made :class:`Piece` objects only when Python asks for one
+      (:meth:`piece`: most are only ever named in events, by :meth:`key`).
 
     Arrays grow by doubling. Past ``max_pieces`` pieces the table and the model's piece cache are emptied (the
     solved patterns stay): memory stays bounded over long runs, and a support set met again is made again from its
@@ -190,7 +191,8 @@ class _PieceTable:
         self.gmeta = np.zeros((16, 5), np.int64)
         self.used = np.zeros(6, np.int64)
         self.index: dict[Piece, int] = {}
-        self.pieces: list[Piece] = []
+        self.pieces: list[Piece | None] = []  # None: a piece the loop made, not yet asked for (see piece)
+        self.unmade: dict[int, tuple] = {}  # such a piece's index -> (support key, its packed friction terms)
         self.records: list[SupportSolution] = []
         self.record_of: dict[int, int] = {}  # id of a record's holding array -> its index
         self.patterns: dict[bytes, tuple[int, int]] = {}  # key -> (index, solutions chained)
@@ -214,13 +216,14 @@ class _PieceTable:
             self.clear()
             model._pieces.clear()
             model._by_support.clear()
+            model._unmade.clear()
             model._pieces[piece.key] = piece
             model._by_support[piece.key[0]] = [piece]
-        if len(model._pieces) != self.mirrored:
+        if model.pieces_cached != self.mirrored:
             for pieces in list(model._by_support.values()):
                 if pieces[-1] not in self.index:
                     self.index_of(model, pieces[-1])
-            self.mirrored = len(model._pieces)
+            self.mirrored = model.pieces_cached
         if self.store_solves != model.solves:
             self.mirror_store(model)
         log = self.law_args[-2]
@@ -294,8 +297,8 @@ class _PieceTable:
             if self.store_solves is not None and model.solves != self.store_solves:  # mirrored if this one solve
                 self.store_solves = model.solves if model.solves == self.store_solves + 1 else None
         self.index_of(model, piece)  # after its pattern: a piece of a pattern shares the pattern's record
-        if len(model._pieces) - self.mirrored <= 1:  # piece_for adds at most this one: the table matches again
-            self.mirrored = len(model._pieces)
+        if model.pieces_cached - self.mirrored <= 1:  # piece_for adds at most this one: the table matches again
+            self.mirrored = model.pieces_cached
 
     def index_of(self, model: "ParcelModel", piece: Piece) -> int:
         """The index of ``piece`` (one of ``model``'s), adding it and the pieces of its support set before it."""
@@ -367,26 +370,46 @@ class _PieceTable:
         self.patterns[gkey] = g, len(solved)
 
     def adopt_born(self, model: "ParcelModel", start: int, born: int) -> None:
-        """Make the ``born`` pieces the loop made from patterns (indices from ``start``) Python pieces, and add them to
-        the model's cache as :meth:`ParcelModel.piece_for` would have."""
-        mass, inertia, damping = model.spec.mass, model.spec.inertia, self.damping
-        ipool, records = self.ipool, self.records
-        stop = start + born
+        """Add the ``born`` pieces the loop made from patterns (indices from ``start``) to the model's cache as table
+        entries (``model._unmade``: support key -> index), where :meth:`ParcelModel.piece_for` finds them as it
+        would have found the pieces it made itself. Making each a :class:`Piece` at once was a third of the Python
+        of an oscillating Coulomb parcel (367 pieces in 5 s, most of them never asked for)."""
         terms = self.law_args[9][:born].copy()  # the packed constants the law's compiled drive made, a row a piece
-        origins = self.porigin[start:stop].copy()
-        spans = self.kmeta[self.pkey[start:stop], :2].tolist()  # (each piece's support set: its ids in ipool)
-        for p, (off, n), j, origin, k_terms, row in zip(range(start, stop), spans, self.psol[start:stop].tolist(),
-                                                        origins, terms, self.rows[start:stop].tolist()):
-            support = ipool[off:off + n].copy()
-            skey = tuple(support.tolist())
-            sol = records[j].at(origin)
-            k = affine.FrictionConstants(k_terms, damping, sol.weight)
-            piece = Piece.of(support, sol, k, mass, inertia, tuple(row), skey)
-            model._pieces[piece.key] = piece
-            model._by_support[skey] = [piece]
-            self.index[piece] = p
-            self.pieces.append(piece)
+        ipool = self.ipool
+        for i, (off, n) in enumerate(self.kmeta[self.pkey[start:start + born], :2].tolist()):
+            skey = tuple(ipool[off:off + n].tolist())
+            model._unmade[skey] = start + i
+            self.unmade[start + i] = skey, terms[i]
+            self.pieces.append(None)
         self.mirrored += born
+
+    def key(self, p: int) -> tuple:
+        """The :attr:`Piece.key` of piece ``p``, whether or not it has been made a :class:`Piece`."""
+        piece = self.pieces[p]
+        if piece is not None:
+            return piece.key
+        skey = self.unmade[p][0]
+        return skey, tuple(compress(skey, self.records[self.psol[p]].in_contact.tolist()))
+
+    def piece(self, model: "ParcelModel", p: int) -> Piece:
+        """Piece ``p`` of the table as a :class:`Piece`, made now if the loop made it (see :meth:`adopt_born`)."""
+        piece = self.pieces[p]
+        return piece if piece is not None else self.make(model, self.unmade[p][0])
+
+    def make(self, model: "ParcelModel", skey: tuple) -> Piece:
+        """Make the piece the loop made for the support set ``skey`` a :class:`Piece`, in the model's cache as
+        :meth:`ParcelModel.piece_for` would have put it (its only piece)."""
+        p = model._unmade.pop(skey)
+        _, k_terms = self.unmade.pop(p)
+        sol = self.records[self.psol[p]].at(self.porigin[p].copy())
+        k = affine.FrictionConstants(k_terms, self.damping, sol.weight)
+        piece = Piece.of(np.array(skey, dtype=np.int64), sol, k, model.spec.mass, model.spec.inertia,
+                         tuple(self.rows[p].tolist()), skey)
+        model._pieces[piece.key] = piece
+        model._by_support[skey] = [piece]
+        self.index[piece] = p
+        self.pieces[p] = piece
+        return piece
 
     def _room(self, keys: int = 0, ids: int = 0, pieces: int = 0, floats: int = 0, records: int = 0,
               patterns: int = 0) -> None:
@@ -478,6 +501,9 @@ class ParcelModel:
         self.weight = spec.weight(gravity)
         self._pieces: dict[tuple, Piece] = {}
         self._by_support: dict[tuple[int, ...], list[Piece]] = {}
+        self._unmade: dict[tuple[int, ...], int] = {}
+        """Support sets whose one piece the compiled loop made and no one has asked for yet: the index of that piece in
+        the table (:meth:`_PieceTable.make` makes it a :class:`Piece`, into the two dicts above)."""
         self._geometry = _GeometryCache(shared_solutions)
         self._table: _PieceTable | None = None
         self.present: np.ndarray | None = None
@@ -525,6 +551,7 @@ class ParcelModel:
         other.velocities = velocities
         other._pieces = {}
         other._by_support = {}
+        other._unmade = {}
         other._table = None
         return other
 
@@ -564,6 +591,8 @@ class ParcelModel:
         """
         X = np.asarray(y[:2], dtype=float)
         skey = tuple(support.tolist())
+        if skey in self._unmade:
+            self._table.make(self, skey)
         for piece in self._by_support.get(skey, ()):
             if piece.solution.holds(X - piece.solution.origin):
                 return piece
@@ -582,7 +611,7 @@ class ParcelModel:
         """Cache the piece of the cells ``support`` made elsewhere from ``solution`` and ``constants`` for this
         model's wheels (a quiet stepper's anchor), unless a piece of those cells is cached already."""
         skey = tuple(support.tolist())
-        if skey not in self._by_support:
+        if skey not in self._by_support and skey not in self._unmade:
             piece = Piece.of(support, solution, constants, self.spec.mass, self.spec.inertia, row, skey)
             self._pieces[piece.key] = piece
             self._by_support[skey] = [piece]
@@ -638,7 +667,7 @@ class ParcelModel:
     @property
     def pieces_cached(self) -> int:
         """Number of distinct (support set, contact set) pieces solved so far."""
-        return len(self._pieces)
+        return len(self._pieces) + len(self._unmade)
 
     def rhs(self, t: float, y: np.ndarray) -> np.ndarray:
         """State derivative at ``y`` (looks the piece up; raises TippingError)."""
@@ -931,10 +960,10 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
                 table.adopt_born(model, start, born)
             begun = False
             nfev += evals
-            pieces = table.pieces
+            key = table.key
             for tj, yj, (a, b) in zip(ev_t[:n_ev].tolist(), ev_y[:n_ev].tolist(), ev_p[:n_ev].tolist()):
-                events.append(Event.support_between(tj, tuple(yj), pieces[a].key, pieces[b].key))
-            piece = pieces[p]
+                events.append(Event.support_between(tj, tuple(yj), key(a), key(b)))
+            piece = table.piece(model, p)
             if (center[0], center[1]) != seg.xy:  # gathered again in the loop (never where they were)
                 seg = _Segment.gathered(model, piece, ids, candidates, center)
             _check_outcome(outcome, t)
