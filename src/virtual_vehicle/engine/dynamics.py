@@ -192,7 +192,7 @@ class _PieceTable:
         self.used = np.zeros(6, np.int64)
         self.index: dict[Piece, int] = {}
         self.pieces: list[Piece | None] = []  # None: a piece the loop made, not yet asked for (see piece)
-        self.unmade: dict[int, tuple] = {}  # such a piece's index -> (support key, its packed friction terms)
+        self.unmade: dict[int, tuple] = {}  # such a piece's index -> (its key, its packed friction terms)
         self.records: list[SupportSolution] = []
         self.record_of: dict[int, int] = {}  # id of a record's holding array -> its index
         self.patterns: dict[bytes, tuple[int, int]] = {}  # key -> (index, solutions chained)
@@ -375,37 +375,35 @@ class _PieceTable:
         would have found the pieces it made itself. Making each a :class:`Piece` at once was a third of the Python
         of an oscillating Coulomb parcel (367 pieces in 5 s, most of them never asked for)."""
         terms = self.law_args[9][:born].copy()  # the packed constants the law's compiled drive made, a row a piece
-        ipool = self.ipool
-        for i, (off, n) in enumerate(self.kmeta[self.pkey[start:start + born], :2].tolist()):
+        ipool, records = self.ipool, self.records
+        spans = self.kmeta[self.pkey[start:start + born], :2].tolist()  # (each piece's support set: its ids in ipool)
+        for i, (off, n), j in zip(range(born), spans, self.psol[start:start + born].tolist()):
             skey = tuple(ipool[off:off + n].tolist())
             model._unmade[skey] = start + i
-            self.unmade[start + i] = skey, terms[i]
+            self.unmade[start + i] = (skey, tuple(compress(skey, records[j].in_contact.tolist()))), terms[i]
             self.pieces.append(None)
         self.mirrored += born
 
     def key(self, p: int) -> tuple:
         """The :attr:`Piece.key` of piece ``p``, whether or not it has been made a :class:`Piece`."""
         piece = self.pieces[p]
-        if piece is not None:
-            return piece.key
-        skey = self.unmade[p][0]
-        return skey, tuple(compress(skey, self.records[self.psol[p]].in_contact.tolist()))
+        return piece.key if piece is not None else self.unmade[p][0]
 
     def piece(self, model: "ParcelModel", p: int) -> Piece:
         """Piece ``p`` of the table as a :class:`Piece`, made now if the loop made it (see :meth:`adopt_born`)."""
         piece = self.pieces[p]
-        return piece if piece is not None else self.make(model, self.unmade[p][0])
+        return piece if piece is not None else self.make(model, self.unmade[p][0][0])
 
     def make(self, model: "ParcelModel", skey: tuple) -> Piece:
         """Make the piece the loop made for the support set ``skey`` a :class:`Piece`, in the model's cache as
         :meth:`ParcelModel.piece_for` would have put it (its only piece)."""
         p = model._unmade.pop(skey)
-        _, k_terms = self.unmade.pop(p)
+        key, k_terms = self.unmade.pop(p)
         sol = self.records[self.psol[p]].at(self.porigin[p].copy())
         k = affine.FrictionConstants(k_terms, self.damping, sol.weight)
         piece = Piece.of(np.array(skey, dtype=np.int64), sol, k, model.spec.mass, model.spec.inertia,
                          tuple(self.rows[p].tolist()), skey)
-        model._pieces[piece.key] = piece
+        model._pieces[key] = piece  # (piece.key: the same tuples, made from the same arrays)
         model._by_support[skey] = [piece]
         self.index[piece] = p
         self.pieces[p] = piece
