@@ -24,14 +24,19 @@ The proof for a window of ``T`` s, from the parcel's anchor (:mod:`virtual_vehic
   speed bound ``S0 = |v| + |omega| R`` times ``T`` (``r = S0 T`` exactly: the speeds are constant in a rigid
   motion) and the centre of mass at most ``d = |v| T``;
 - the grip holds: the wrench the sticking wheels must supply is that of the motion's acceleration, zero in
-  translation and the centripetal ``m |omega| |v|`` (constant in size, zero torque) in rotation (eqs. 3-19 give the
-  normal forces, the per-wheel Coulomb bound ``mu_s N`` of eqs. 20-22 the zonotope). It lies in the sticking wheels'
-  zonotope while its length is below the zonotope's inradius ``rho`` (:func:`~virtual_vehicle.physics.stick_modes.
-  zonotope_inradius`), measured at the anchor. With ``D`` the centre's distance from the anchor by the window's end
-  and ``s`` the anchor's slack, every normal force (affine in the centre, eq. 19, and positive for ``s`` more) stays
-  within ``(1 -+ D / s)`` of the anchor's, and a zonotope whose generators are scaled by at least ``c`` holds ``c``
-  times the original; the levers ``r x u`` of the rows move by at most ``D``, which moves each generator by at most
-  ``mu_s N_j D``. So the grip holds while ``m |omega| |v| < (1 - D / s) rho - D (1 + D / s) sum mu_s N_j``.
+  translation and the centripetal force ``F = m omega x v`` (size ``m |omega| |v|``, constant; no torque about the
+  centre) in rotation (eqs. 3-19 give the normal forces, the per-wheel Coulomb bound ``mu_s N`` of eqs. 20-22 the
+  zonotope). It must lie in the sticking wheels' zonotope, tested against the facets measured at the anchor
+  (:func:`~virtual_vehicle.physics.stick_modes.zonotope_grip`: ``g`` along the anchor's force direction ``d0``,
+  ``a`` for other directions, ``b`` for torque). With ``D`` the centre's distance from the anchor by the window's
+  end and ``s`` the anchor's slack, every normal force (affine in the centre, eq. 19, and positive for ``s`` more)
+  stays above ``(1 - D / s)`` times the anchor's, so the zonotope holds ``(1 - D / s)`` times the anchor's; the
+  levers ``r x u`` all move by the same ``-Delta x u`` when the centre moves by ``Delta``, which is the anchor's
+  zonotope with the wrench taken about the anchor's centre instead: ``(F, Delta x F)``, ``|Delta| <= D``. ``F``'s
+  direction ``d`` turns by at most ``|omega| T`` in the window. So the grip holds while
+  ``m |omega| |v| (g + a (|d - d0| + |omega| T) + b D) < 1 - D / s``: exact (the facet test) at the anchor as
+  ``D, T -> 0``. (The zonotope's inradius, used before, is set by its torque facets (N m): about a tenth of
+  ``mu_s`` times the weight on 0.1 m cells, ten times below what a pure force can have.)
 
 The parcel's twist must be the field's (its slip on every wheel below the engine's slip tolerance); the closed form
 then carries the field's twist itself, as the event-driven engine does when it projects the twist onto the sticking
@@ -134,8 +139,8 @@ class RideStepper(QuietStepper):
         n = len(specs)
         self._twist = np.zeros((n, 3))  # the field's twist (vx, vy at the anchor's centre; omega), m/s, rad/s
         self._rides = np.zeros(n, dtype=bool)  # the wheels under the anchor are one rigid twist of rank 3
-        self._inradius = np.zeros(n)  # N: the sticking wheels' zonotope's at the anchor, less rounding
-        self._spread = np.zeros(n)  # N: sum of mu_s N_j (how far the generators move per metre the levers change)
+        self._grip = np.zeros((n, 3))  # the sticking wheels' zonotope's g, a (1/N), b (1/(N m)) at the anchor
+        self._facing = np.zeros((n, 2))  # the unit direction of the anchor's centripetal force (zero without one)
         self._arm = np.zeros(n)  # m: the farthest wheel from the anchor's centre
         self._scale = np.zeros(n)  # m/s: the speed scale of the slip tolerance
         self._stuck: dict[int, tuple] = {}  # per parcel: the wheel memory of a ride (no impulses; those in contact)
@@ -190,10 +195,10 @@ class RideStepper(QuietStepper):
         self._rides[i] = False
         P, U, w, _, _, FL, FC, origin, mus, _ = self.law.wheel_arrays(self.cells, a.support, a.solution, velocities,
                                                                       spec.mu, spec.mu_static)
-        rides, twist, inradius, spread, arm, scale, on = _kernel.ride_data(P, U, w, FL, FC, origin, mus,
-                                                                           a.pose[:2].copy(), RIDE_TOL)
-        self._rides[i], self._twist[i], self._inradius[i] = rides, twist, inradius
-        self._spread[i], self._arm[i], self._scale[i] = spread, arm, scale
+        rides, twist, grip, facing, arm, scale, on = _kernel.ride_data(P, U, w, FL, FC, origin, mus,
+                                                                       a.pose[:2].copy(), RIDE_TOL)
+        self._rides[i], self._twist[i], self._grip[i], self._facing[i] = rides, twist, grip, facing
+        self._arm[i], self._scale[i] = arm, scale
         self._remember(i, a.support, on)
         sol = a.solution
         self._known[i] = a.first
@@ -216,7 +221,7 @@ class RideStepper(QuietStepper):
         present = self.anchors[int(idx[np.flatnonzero(self._known[idx])[0]])].model.present
         near = np.full((q, max(self._near.shape[1], 1)), cells.n, dtype=np.int64)
         n_near = np.zeros(q, dtype=np.int64)
-        measures = np.zeros((q, 9))
+        measures = np.zeros((q, 12))
         flags = np.zeros((q, 3), dtype=bool)
         on_now = np.zeros((q, max(self._on.shape[1], 1)), dtype=bool)
         _kernel.ride_measure(grid.points, grid.order, grid.start, grid.lo[0], grid.lo[1], grid.size, grid.shape[0],
@@ -239,7 +244,8 @@ class RideStepper(QuietStepper):
             self._near[i] = near[sel, :self._near.shape[1]]
         self._near_count[i] = n_near[sel]
         self._rides[i], self._twist[i] = flags[sel, 1], measures[sel, 2:5]
-        self._inradius[i], self._spread[i], self._arm[i], self._scale[i] = measures[sel].T[5:9]
+        self._grip[i], self._facing[i] = measures[sel, 5:8], measures[sel, 8:10]
+        self._arm[i], self._scale[i] = measures[sel, 10], measures[sel, 11]
         for k in sel[~flags[sel, 2]].tolist():  # the wheels in contact changed: their ride's memory is made again
             p = int(idx[k])
             cells = self._support[p, :self._n_support[p]].copy()
@@ -275,8 +281,13 @@ class RideStepper(QuietStepper):
         slack = self._slack[idx]
         rides &= slack > D  # no normal force changes sign, no cell lifts off or touches down
         share = D / np.where(slack > 0, slack, np.inf)  # each normal force stays within (1 -+ share) of the anchor's
-        held = (1.0 - share) * self._inradius[idx] - D * (1.0 + share) * self._spread[idx]
-        rides &= self.mass[idx] * np.abs(om) * speed < held
+        # the grip (module docstring): the centripetal force m omega x v, its direction within ``turned`` of the
+        # anchor's over the window, taken about the anchor's centre, inside (1 - share) times the anchor's zonotope
+        force = self.mass[idx] * np.abs(om) * speed  # N (eq. 3: m a, a = omega x v)
+        facing = np.sign(om)[:, None] * np.column_stack([-vy, vx]) / np.where(speed > 0, speed, 1.0)[:, None]
+        turned = np.hypot(*(facing - self._facing[idx]).T) + np.abs(om) * window
+        g, a, b = self._grip[idx].T
+        rides &= force * (g + a * turned + b * D) < 1.0 - share
         swept = moved + np.abs(Y[:, 2] - P0[:, 2]) * R
         clear = self._clear[idx] > swept + r
         look = np.flatnonzero(rides & ~clear & (D < self._room[idx]) & self._convex[idx])
