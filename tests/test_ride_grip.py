@@ -135,3 +135,43 @@ def test_a_turn_just_outside_a_facet_is_refused_and_slips():
         else:
             assert record.quiet_steps == 0
             assert np.abs(end[3:5] - field).max() > 1e-6
+
+
+def test_a_plant_resumed_mid_ride_rides_the_same_windows():
+    """The riding parcels' proofs are run state: a plant made afresh and given the state of one mid-ride (through
+    the checkpoint's own encoding) goes on as that plant does, to the last bit (the same windows ride, the same
+    states), over a turn, an aisle and a field change; three parcels, resumed at several ticks."""
+    import copy
+
+    from virtual_vehicle.engine.plant import Plant
+    from virtual_vehicle.physics import laws
+    from virtual_vehicle.run import checkpoint
+    from test_ride import PERIOD, SPEC, aisle
+
+    fields = lambda k: aisle(0.4, 0.05) if k < 20 else turn(0.3, (1.5, 0.7))  # noqa: E731
+    y0s = [[0.5, 0.4, 0.1, 0.0, 0.0, 0.0], [1.2, 1.0, 0.0, 0.4, 0.05, 0.0], [2.0, 0.6, -0.3, 0.0, 0.0, 0.0]]
+
+    def going(plant, ys, ticks):
+        out = []
+        for k in ticks:
+            out.append(plant.advance(ys, [True] * 3, fields(k), k * PERIOD, (k + 1) * PERIOD, PERIOD))
+        return out
+
+    plant = Plant(CELLS, [SPEC] * 3, laws.StickSlipLaw())
+    ys = [np.array(y, dtype=float) for y in y0s]
+    states, whole = {}, []
+    for k in range(40):
+        if k in (12, 27):
+            doc, arrays = checkpoint.encode(plant.state())
+            back, arrays = checkpoint.unpack(checkpoint.pack({"format_version": checkpoint.FORMAT_VERSION,
+                                                              "state": doc}, arrays))
+            states[k] = (checkpoint.decode(back["state"], arrays), copy.deepcopy(ys), plant.record.quiet_steps)
+        whole.append(going(plant, ys, [k])[0])
+    for k, (state, ys_k, rides_k) in states.items():
+        fresh = Plant(CELLS, [SPEC] * 3, laws.StickSlipLaw())
+        fresh.restore(state)
+        tail = going(fresh, ys_k, range(k, 40))
+        assert fresh.record.quiet_steps == plant.record.quiet_steps and rides_k < plant.record.quiet_steps
+        for ta, tb in zip(whole[k:], tail):
+            for ra, rb in zip(ta, tb):
+                assert np.array_equal(ra.times, rb.times) and np.array_equal(ra.states, rb.states)

@@ -168,13 +168,70 @@ class RideStepper(QuietStepper):
         self._spring_lin, self._force_lin = np.zeros((n, 0, 2)), np.zeros((n, 0, 2))
         self._force_const, self._origin = np.zeros((n, 0)), np.zeros((n, 2))
         self._on = np.zeros((n, 0), dtype=bool)  # the wheels in contact its wheel memory was made for
+        # the proofs kept (run state, :meth:`proofs`): a parcel whose anchor was measured at state ``_anchor_y``
+        # under the wheel velocities ``_wheels`` (m/s, its anchor's cells', padded) rides on it while those wheels
+        # stand and the proof's margins hold for the motion since; restored proofs are measured again at their
+        # anchors when next looked at (``_pending``: parcel -> (state, wheels))
+        self._kept = np.zeros(n, dtype=bool)
+        self._anchor_y = np.zeros((n, 6))
+        self._wheels = np.zeros((n, 0, 2))
+        self._pending: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def forget(self, i: int | None = None) -> None:
         super().forget(i)
         if i is None:
-            self._known[:] = False
+            self._known[:] = self._kept[:] = False
+            self._pending.clear()
         else:
-            self._known[i] = False
+            self._known[i] = self._kept[i] = False
+            self._pending.pop(i, None)
+
+    def proofs(self) -> dict:
+        """The kept proofs as data (run state): ``anchors`` (n, 6), the state each parcel's anchor was measured at
+        (NaN rows: none kept), and ``wheels`` (n, k, 2) m/s, the wheel velocities under its cells then (NaN-padded
+        to the widest row)."""
+        rows = {i: self._wheels[i, :len(self.anchors[i].support)] for i in np.flatnonzero(self._kept).tolist()}
+        rows.update({i: w for i, (_, w) in self._pending.items()})
+        anchors = np.full((len(self._kept), 6), np.nan)
+        wheels = np.full((len(self._kept), max(map(len, rows.values()), default=0), 2), np.nan)
+        for i, w in rows.items():
+            anchors[i] = self._anchor_y[i] if i not in self._pending else self._pending[i][0]
+            wheels[i, :len(w)] = w
+        return {"anchors": anchors, "wheels": wheels}
+
+    def take_proofs(self, anchors: np.ndarray, wheels: np.ndarray) -> None:
+        """Take up the proofs :meth:`proofs` wrote (after :meth:`forget`): each is measured again at its anchor's
+        state under its wheels when its parcel is next stepped, so the run rides the windows it would have."""
+        for i in np.flatnonzero(~np.isnan(anchors[:, 0])).tolist():
+            w = wheels[i]
+            self._pending[i] = (anchors[i].copy(), w[~np.isnan(w[:, 0])].copy())
+
+    def _resume(self, idx: np.ndarray, models, velocities: np.ndarray) -> None:
+        """Measure again the restored proofs of parcels ``idx`` at their anchors, under the wheels they had."""
+        for i in [i for i in idx.tolist() if i in self._pending]:
+            y, w = self._pending.pop(i)
+            if self.measure(i, models, y) is None:
+                continue
+            support = self.anchors[i].support
+            V = np.array(velocities, dtype=float)
+            V[support] = w[:len(support)]
+            self._ride_data(i, V)
+            self._keep(i, y, V)
+
+    def _keep(self, i: int, y: np.ndarray, velocities: np.ndarray) -> None:
+        """Keep parcel ``i``'s proof, its anchor measured at state ``y`` under ``velocities`` (m/s)."""
+        self._kept[i] = True
+        self._anchor_y[i] = y
+        self._wheels = _padded_row(self._wheels, i, velocities[self.anchors[i].support], 0.0)
+
+    def _wheels_stand(self, idx: np.ndarray, velocities: np.ndarray) -> np.ndarray:
+        """Whether the wheel velocities under the kept anchors of parcels ``idx`` are still those they were
+        measured under (each compared exactly)."""
+        w = self._wheels.shape[1]
+        ids = self._support[idx, :w]
+        now = np.take(velocities, ids, axis=0, mode="clip")
+        same = (now == self._wheels[idx]) | (ids >= self.cells.n)[..., None]
+        return same.all(axis=(1, 2))
 
     def _remember(self, i: int, support: np.ndarray, on: np.ndarray) -> None:
         """Make the wheel memory a ride of parcel ``i`` on cells ``support`` leaves (no impulses; the wheels in
@@ -314,22 +371,35 @@ class RideStepper(QuietStepper):
         Y = np.array([ys[i] for i in idx], dtype=float)
         start = Y.copy()
         ia = np.asarray(idx, dtype=np.int64)
-        # measured where each parcel is now, every window: the proof then depends on the state alone, not on where
-        # the parcel was measured before (a run resumed from a checkpoint, whose caches start empty, decides the
-        # same windows as the run that went on, to the last bit)
-        have = self._measure_known(ia, Y, velocities)
+        # a kept proof first (its wheels as they were, its margins holding for the motion since its anchor); the
+        # others are measured where they are now, and that proof kept. The proofs are run state (:meth:`proofs`), so
+        # a run resumed from a checkpoint decides the same windows as the run that went on, to the last bit
+        self._resume(ia, models, velocities)
+        ok = np.zeros(len(idx), dtype=bool)
+        kept = np.flatnonzero(self._kept[ia])
+        if len(kept):
+            kept = kept[self._wheels_stand(ia[kept], velocities)]
+        if len(kept):
+            rides, Yf = self._riding(ia[kept], Y[kept], window)
+            ok[kept] = rides
+            Y[kept[rides]] = Yf[rides]
+        again = np.flatnonzero(~ok)
+        ja, Ya = ia[again], Y[again]
+        have = self._measure_known(ja, Ya, velocities)
         for k in np.flatnonzero(~have).tolist():
-            i = idx[k]
-            if self.measure(i, models, Y[k]) is not None:
+            i = int(ja[k])
+            if self.measure(i, models, Ya[k]) is not None:
                 self._ride_data(i, velocities)
                 have[k] = True
             else:  # it tips there: no anchor to measure again
-                self._known[i] = False
-        ok = np.zeros(len(idx), dtype=bool)
+                self._known[i] = self._kept[i] = False
+        for k in np.flatnonzero(have).tolist():
+            self._keep(int(ja[k]), Ya[k], velocities)
         sel = np.flatnonzero(have)
         if len(sel):
-            ok[sel], Yf = self._riding(ia[sel], Y[sel], window)
-            Y[sel] = Yf
+            rides, Yf = self._riding(ja[sel], Ya[sel], window)
+            ok[again[sel]] = rides
+            Y[again[sel[rides]]] = Yf[rides]
         quiet = np.flatnonzero(ok)
         rest = [idx[k] for k in np.flatnonzero(~ok)]
         if not len(quiet):
