@@ -14,8 +14,12 @@ closed form for all such parcels in one vectorised call. Every other window keep
 The wheels are held constant over a control tick (zero-order hold: a motor wheel is given the plant at its mean
 speed over the tick, :meth:`~virtual_vehicle.run.sim.TickedRun.finish`), so the twist the wheels make is constant
 over a window; a window whose wheels are not one rigid twist (a ramp that is not common to all of them included) is
-not a ride. Each window is proven from the parcel's state at its start alone (the anchor is measured there), so the
-windows a run rides do not depend on its history: a run resumed from a checkpoint rides the same ones.
+not a ride. A parcel's proof is kept from the anchor it was measured at (its pose and state, twist, cells, grip and
+the wheel velocities under those cells): a window checks only that those wheels are unchanged and that the margins
+below still hold for the motion since the anchor (a few vector operations for all parcels), and measures the proof
+again where the parcel is when they do not. The windows a run rides then depend on its anchors, so the kept proofs
+are run state (:meth:`RideStepper.proofs`, written in a checkpoint): a resumed run measures them again at their
+anchors and rides the same windows, to the last bit.
 
 The proof for a window of ``T`` s, from the parcel's anchor (:mod:`virtual_vehicle.engine.batch`: its clearance
 ``clear``, support ``slack`` and, where needed, the edge-by-edge look), with the parcel's twist that of the field:
@@ -117,8 +121,8 @@ class RideStepper(QuietStepper):
     """Steps the windows in which stick-slip parcels ride their wheels rigidly (module docstring), with the quiet
     stepper's anchors (clearance, support slack, edges) measured at each window's start.
 
-    A parcel whose last anchor's cells are still under it and whose solution still holds there (most riding
-    windows) is measured again, with its ride data, for all such parcels in one compiled call over per-parcel arrays
+    A parcel whose kept proof fails, but whose last anchor's cells are still under it and whose solution still
+    holds there, is measured again, with its ride data, for all such parcels in one compiled call over per-parcel arrays
     (:func:`~virtual_vehicle.engine._kernel.ride_measure`): the same anchor :func:`~virtual_vehicle.engine.batch.anchor`
     makes, to the last bit, kept in the columns only (the anchor object keeps its cells and solution). The others
     are measured one by one in Python.
