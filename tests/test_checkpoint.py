@@ -193,7 +193,7 @@ def _set_state(doc, key, node):
 
 @pytest.mark.parametrize("change, message", [
     (lambda doc: doc.update(package_version="0.0.1"), "written by virtual_vehicle 0.0.1; this is " + __version__),
-    (lambda doc: doc.update(format_version=4), "format 4"),
+    (lambda doc: doc.update(format_version=5), "format 5"),
     (lambda doc: doc.update(kind="movie"), "run kind"),
     (lambda doc: doc.update(kind="field"), "a field run's checkpoint whose scenario is not one"),
     (lambda doc: doc["scenario"].update(duration=-1.0), "its scenario: duration"),
@@ -224,7 +224,7 @@ def test_a_run_whose_setup_was_changed_after_it_was_built_is_not_resumed_from_it
         resume(tmp_path / "c.ckpt")
 
 
-@pytest.mark.parametrize("version, message", [("4", "format '4'; this version reads format 3"),
+@pytest.mark.parametrize("version, message", [("5", "format '5'; this version reads format 4"),
                                               ("2", "format '2'.*not its state as data.*run the scenario again")])
 def test_another_format_version_in_the_header_is_refused(tmp_path, version, message):
     from virtual_vehicle.run.sim import resume

@@ -208,9 +208,10 @@ def test_a_ride_window_closes_the_energy_account():
 
 
 def test_measured_again_in_one_call_as_anew():
-    """Parcels riding on their last anchor's cells are measured again in one compiled call; the same run with every
-    anchor forgotten at each tick (each measured anew in Python, as a resumed run's are) is the same run to the last
-    bit: the same windows ride, the same states. Across a field change and support changes, three parcels."""
+    """Parcels riding on their last anchor's cells are measured again in one compiled call; the same run taken back
+    to its own state at each tick (every anchor forgotten, the kept proofs measured again in Python at their anchors,
+    as a resumed run's are) is the same run to the last bit: the same windows ride, the same states. Across a field
+    change and support changes, three parcels."""
     fields = lambda k: None if k >= 45 else aisle(0.4, 0.05) if k < 25 else turn(0.3, (1.5, 0.7))  # noqa: E731
     y0s = [[0.5, 0.4, 0.1, 0.0, 0.0, 0.0], [1.2, 1.0, 0.0, 0.4, 0.05, 0.0], [2.0, 0.6, -0.3, 0.0, 0.0, 0.0]]
     runs = []
@@ -220,7 +221,7 @@ def test_measured_again_in_one_call_as_anew():
         ticks = []
         for k in range(45):
             if forget:
-                plant.set_present(None)  # (the plant's steppers forget their anchors)
+                plant.restore(plant.state())  # (the plant's steppers forget their anchors, take the proofs up)
             ticks.append(plant.advance(ys, active, fields(k), k * PERIOD, (k + 1) * PERIOD, PERIOD))
         runs.append((ticks, plant.record.quiet_steps))
     (a, rides_a), (b, rides_b) = runs

@@ -55,12 +55,12 @@ def rides_as_exact(fields, y0: list[float], specs=None) -> None:
        sign=st.sampled_from([-1, 1]), angle=st.floats(-np.pi, np.pi), theta=st.floats(-np.pi, np.pi))
 @example(mu_s=0.005, omega=0.3, radius=0.5, sign=1, angle=0.0, theta=0.0)  # m omega^2 r 0.068 N, mu_s W 0.074 N
 @example(mu_s=0.001, omega=0.2, radius=0.3, sign=1, angle=0.0, theta=0.0)  # 0.018 N over 0.015 N: it slips
-@example(mu_s=0.02, omega=0.2, radius=0.3, sign=1, angle=1.0, theta=0.0)  # 0.018 N: rides (above 0.01 it does)
+@example(mu_s=0.02, omega=0.2, radius=0.3, sign=1, angle=1.0, theta=0.0)  # 0.018 N: rides
 def test_a_turn_near_the_grip_limit(mu_s, omega, radius, sign, angle, theta):
     """A parcel carried at the field's twist by a slow rigid turn (few support changes) with so little static friction
-    that its centripetal force m omega^2 r is near what the proof lets its sticking wheels hold (about a tenth of
-    ``mu_s`` times its weight on 0.1 m cells: at 0.2 rad/s and 0.3 m it rides from ``mu_s`` 0.02, not at 0.01): the
-    rides the proof takes are the exact run's, and a parcel whose grip fails (at ``mu_s`` 0.001) slips as there."""
+    that its centripetal force m omega^2 r is near what its sticking wheels hold (tests/test_ride_grip.py: the
+    zonotope's facets, not its inradius): the rides the proof takes are the exact run's, and a parcel whose grip
+    fails (at ``mu_s`` 0.001) slips as there."""
     spec = parcel.rectangle(0.33, 0.24, 1.5, mu_s * 0.8, mu_static=mu_s)
     x, y = 1.5, 0.7
     omega *= sign

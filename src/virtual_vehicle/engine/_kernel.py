@@ -63,7 +63,7 @@ from virtual_vehicle.physics.laws.affine import (
     R_SECOND_LIN_Y,
     R_WEIGHT,
 )
-from virtual_vehicle.physics.stick_modes import _wheel_arrays, zonotope_inradius
+from virtual_vehicle.physics.stick_modes import _wheel_arrays, zonotope_grip
 
 RECTANGLE, CONVEX, POLYGON = 0, 1, 2
 """Footprint kinds: margins in closed form, from half-planes, or as a signed distance to a simple polygon."""
@@ -1346,8 +1346,10 @@ def ride_data(P, U, w, FL, FC, origin, mus, X, tol):
     ``X`` (m), as :func:`~virtual_vehicle.physics.stick_modes.wheel_arrays` gives them (points, drive directions,
     surface speeds m/s, the support's normal-force map, static coefficients): whether those in contact (``mu_s > 0``,
     ``N > 0``, eq. 19) are one rigid twist of rank 3 to ``tol`` of the speed scale, that twist (vx, vy at ``X``,
-    omega), the inradius of their zonotope less rounding (N), ``sum mu_s N`` (N), the farthest wheel (m), the
-    speed scale (m/s) and which wheels are in contact."""
+    omega), the grip of their zonotope for the centripetal force that twist takes (``g``, ``a``, ``b`` of
+    :func:`~virtual_vehicle.physics.stick_modes.zonotope_grip`, each facet's support less rounding) and that force's
+    unit direction (zero when it is zero), the farthest wheel (m), the speed scale (m/s) and which wheels are in
+    contact."""
     m = P.shape[0]
     N = np.empty(m)
     on = np.zeros(m, np.bool_)
@@ -1358,11 +1360,11 @@ def ride_data(P, U, w, FL, FC, origin, mus, X, tol):
         on[j] = mus[j] > 0 and N[j] > 0
         count += on[j]
         scale = max(scale, abs(w[j]))
-    twist = np.zeros(3)
+    twist, grip, facing = np.zeros(3), np.zeros(3), np.zeros(2)
     if count < 3:
-        return False, twist, 0.0, 0.0, 0.0, scale, on
+        return False, twist, grip, facing, 0.0, scale, on
     J, b, G = np.empty((count, 3)), np.empty(count), np.empty((count, 3))
-    spread, arm, k = 0.0, 0.0, 0
+    arm, k = 0.0, 0
     for j in range(m):
         if on[j]:
             rx, ry = P[j, 0] - X[0], P[j, 1] - X[1]
@@ -1371,19 +1373,26 @@ def ride_data(P, U, w, FL, FC, origin, mus, X, tol):
             bound = mus[j] * N[j]
             for e in range(3):
                 G[k, e] = bound * J[k, e]
-            spread += bound
             arm = max(arm, math.sqrt(rx * rx + ry * ry))
             k += 1
     nu, _, rank, _ = np.linalg.lstsq(J, b)
     if rank < 3:
-        return False, twist, 0.0, spread, arm, scale, on
+        return False, twist, grip, facing, arm, scale, on
     for a in range(count):
         if abs(J[a, 0] * nu[0] + J[a, 1] * nu[1] + J[a, 2] * nu[2] - b[a]) > tol * scale:
-            return False, twist, 0.0, spread, arm, scale, on  # not one rigid twist
+            return False, twist, grip, facing, arm, scale, on  # not one rigid twist
     size = 0.0
     for a in range(count):
         size += abs(G[a, 0]) + abs(G[a, 1]) + abs(G[a, 2])
-    return True, nu, zonotope_inradius(G) - 1e-9 * size, spread, arm, scale, on
+    fx, fy = -nu[2] * nu[1], nu[2] * nu[0]  # omega x v: the centripetal force's direction (eq. 3's m a)
+    f = math.sqrt(fx * fx + fy * fy)
+    if f > 0:
+        facing[0], facing[1] = fx / f, fy / f
+    g, ga, gb = zonotope_grip(G, facing, 1e-9 * size)
+    if not g < np.inf:
+        return False, nu, grip, facing, arm, scale, on
+    grip[0], grip[1], grip[2] = g, ga, gb
+    return True, nu, grip, facing, arm, scale, on
 
 
 @njit(cache=True)
@@ -1400,7 +1409,8 @@ def ride_measure(points, order, start, lo0, lo1, size, nx, ny, present, position
     ``force_lin``, ``force_const``, ``origin``, padded by support row) holds at the centre, it is the anchor the
     engine's :func:`~virtual_vehicle.engine.batch.anchor` measures there (the same solution, the same arithmetic):
     writes its near cells (``near``, ``n_near``: the row's width bounds them), ``measures[k]`` = clear, slack (m),
-    the wheels' twist (vx, vy m/s, omega rad/s), inradius (N), ``sum mu_s N`` (N), arm (m), speed scale (m/s) as
+    the wheels' twist (vx, vy m/s, omega rad/s), grip (g, a, b) and the force's direction (2,), arm (m), speed scale
+    (m/s) as
     :func:`ride_data` gives them for its wheels (``V`` the contact layer's velocities, m/s; ``mu`` / ``mu_s`` the
     parcel's coefficients), and ``flags[k]`` = measured here, rides (rank 3, one rigid twist), wheels in contact as
     ``on_was`` (the new ones in ``on_now[k]``; its width bounds the wheels too). ``noise`` (m) and ``noise_force``
@@ -1452,14 +1462,15 @@ def ride_measure(points, order, start, lo0, lo1, size, nx, ny, present, position
             continue
         X = np.empty(2)
         X[0], X[1] = y[0], y[1]
-        rides, twist, inradius, spread, arm, scale, on = ride_data(P, U, w, FL, FC, o, mus, X, tol)
+        rides, twist, grip, facing, arm, scale, on = ride_data(P, U, w, FL, FC, o, mus, X, tol)
         for c in range(ids.shape[0]):
             near[k, c] = ids[c]
         n_near[k] = ids.shape[0]
         measures[k, 0] = min(buffer[i], nearest) - noise[i]
         measures[k, 1] = slack
         measures[k, 2], measures[k, 3], measures[k, 4] = twist[0], twist[1], twist[2]
-        measures[k, 5], measures[k, 6], measures[k, 7], measures[k, 8] = inradius, spread, arm, scale
+        measures[k, 5], measures[k, 6], measures[k, 7] = grip[0], grip[1], grip[2]
+        measures[k, 8], measures[k, 9], measures[k, 10], measures[k, 11] = facing[0], facing[1], arm, scale
         flags[k, 0], flags[k, 1] = True, rides
         same_on = on.shape[0] <= on_was.shape[1]
         for j in range(on.shape[0]):

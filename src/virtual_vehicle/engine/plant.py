@@ -160,8 +160,10 @@ class Plant:
         last impulses (warm starts: ``warm`` by the contacts' ``pairs`` (m, 2) of parcels and ``features`` (m, F)
         (:class:`~virtual_vehicle.physics.collide.Contact`), their ``impulses`` (m, 2) N s, in their order) and each
         parcel's stick-slip wheel memory (``memory``: per parcel the wheels' keys (m, 2) cell, wheel, last impulses
-        (m,) N s and whether each stuck). The rest is either the setup's (cells, parcels, law) or a cache made again
-        as needed (solved supports, pieces, quiet anchors)."""
+        (m,) N s and whether each stuck) and, under the stick-slip law, the riding parcels' kept proofs (``ride``:
+        :meth:`~virtual_vehicle.engine.ride.RideStepper.proofs`; None under other laws): which windows ride depends on
+        them. The rest is either the setup's (cells, parcels, law) or a cache made again as needed (solved supports,
+        pieces, quiet anchors)."""
         memory = []
         for model in self.base:
             lam, stuck = model.contact_memory["lam"], model.contact_memory["stuck"]
@@ -176,15 +178,16 @@ class Plant:
                          "features": np.array([key[2] for key in self._warm], dtype=np.int64).reshape(
                              len(self._warm), -1 if self._warm else 0),
                          "impulses": np.array(list(self._warm.values()), dtype=np.float64).reshape(-1, 2)},
-                "memory": memory}
+                "memory": memory, "ride": None if self._ride is None else self._ride.proofs()}
 
     def restore(self, state: dict) -> None:
         """Take up what :meth:`state` returned (of a plant of the same scenario); raises ValueError for data of other
         keys, dtypes or shapes. What was made from other states (the models under the wheels of then, which hold the
-        wheel memory replaced here, and the quiet and ride steppers' anchors) is dropped: a plant taken back to an
-        earlier state goes on as one made afresh there does."""
+        wheel memory replaced here, and the quiet and ride steppers' anchors) is dropped, the riding parcels' proofs
+        measured again at their anchors: a plant taken back to an earlier state goes on as the plant that was there
+        did."""
         where = "plant"
-        state = fields(state, ("record", "touching", "warm", "memory"), where)
+        state = fields(state, ("record", "touching", "warm", "memory", "ride"), where)
         record = PlantRecord.from_data(state["record"], f"{where}.record")
         warm = fields(state["warm"], ("pairs", "features", "impulses"), f"{where}.warm")
         pairs = array(warm, "pairs", "i", (None, 2), f"{where}.warm")
@@ -208,6 +211,12 @@ class Plant:
         for stepper in (self._quiet, self._ride):  # anchors measured at states of another time
             if stepper is not None:
                 stepper.forget()
+        if self._ride is not None:  # the riding parcels' proofs, measured again at their anchors when next used
+            proofs = fields(state["ride"], ("anchors", "wheels"), f"{where}.ride")
+            anchors = array(proofs, "anchors", "f", (len(self.base), 6), f"{where}.ride")
+            self._ride.take_proofs(anchors, array(proofs, "wheels", "f", (len(self.base), None, 2), f"{where}.ride"))
+        elif state["ride"] is not None:
+            raise ValueError(f"{where}.ride: proofs of riding parcels for a plant whose law has none")
 
     def _model(self, spec: ParcelSpec, share: bool = True) -> ParcelModel:
         """A fresh model of parcel ``spec`` at rest wheels, sharing solved supports with parcels of its weight (or

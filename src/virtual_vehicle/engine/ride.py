@@ -14,8 +14,12 @@ closed form for all such parcels in one vectorised call. Every other window keep
 The wheels are held constant over a control tick (zero-order hold: a motor wheel is given the plant at its mean
 speed over the tick, :meth:`~virtual_vehicle.run.sim.TickedRun.finish`), so the twist the wheels make is constant
 over a window; a window whose wheels are not one rigid twist (a ramp that is not common to all of them included) is
-not a ride. Each window is proven from the parcel's state at its start alone (the anchor is measured there), so the
-windows a run rides do not depend on its history: a run resumed from a checkpoint rides the same ones.
+not a ride. A parcel's proof is kept from the anchor it was measured at (its pose and state, twist, cells, grip and
+the wheel velocities under those cells): a window checks only that those wheels are unchanged and that the margins
+below still hold for the motion since the anchor (a few vector operations for all parcels), and measures the proof
+again where the parcel is when they do not. The windows a run rides then depend on its anchors, so the kept proofs
+are run state (:meth:`RideStepper.proofs`, written in a checkpoint): a resumed run measures them again at their
+anchors and rides the same windows, to the last bit.
 
 The proof for a window of ``T`` s, from the parcel's anchor (:mod:`virtual_vehicle.engine.batch`: its clearance
 ``clear``, support ``slack`` and, where needed, the edge-by-edge look), with the parcel's twist that of the field:
@@ -24,14 +28,19 @@ The proof for a window of ``T`` s, from the parcel's anchor (:mod:`virtual_vehic
   speed bound ``S0 = |v| + |omega| R`` times ``T`` (``r = S0 T`` exactly: the speeds are constant in a rigid
   motion) and the centre of mass at most ``d = |v| T``;
 - the grip holds: the wrench the sticking wheels must supply is that of the motion's acceleration, zero in
-  translation and the centripetal ``m |omega| |v|`` (constant in size, zero torque) in rotation (eqs. 3-19 give the
-  normal forces, the per-wheel Coulomb bound ``mu_s N`` of eqs. 20-22 the zonotope). It lies in the sticking wheels'
-  zonotope while its length is below the zonotope's inradius ``rho`` (:func:`~virtual_vehicle.physics.stick_modes.
-  zonotope_inradius`), measured at the anchor. With ``D`` the centre's distance from the anchor by the window's end
-  and ``s`` the anchor's slack, every normal force (affine in the centre, eq. 19, and positive for ``s`` more) stays
-  within ``(1 -+ D / s)`` of the anchor's, and a zonotope whose generators are scaled by at least ``c`` holds ``c``
-  times the original; the levers ``r x u`` of the rows move by at most ``D``, which moves each generator by at most
-  ``mu_s N_j D``. So the grip holds while ``m |omega| |v| < (1 - D / s) rho - D (1 + D / s) sum mu_s N_j``.
+  translation and the centripetal force ``F = m omega x v`` (size ``m |omega| |v|``, constant; no torque about the
+  centre) in rotation (eqs. 3-19 give the normal forces, the per-wheel Coulomb bound ``mu_s N`` of eqs. 20-22 the
+  zonotope). It must lie in the sticking wheels' zonotope, tested against the facets measured at the anchor
+  (:func:`~virtual_vehicle.physics.stick_modes.zonotope_grip`: ``g`` along the anchor's force direction ``d0``,
+  ``a`` for other directions, ``b`` for torque). With ``D`` the centre's distance from the anchor by the window's
+  end and ``s`` the anchor's slack, every normal force (affine in the centre, eq. 19, and positive for ``s`` more)
+  stays above ``(1 - D / s)`` times the anchor's, so the zonotope holds ``(1 - D / s)`` times the anchor's; the
+  levers ``r x u`` all move by the same ``-Delta x u`` when the centre moves by ``Delta``, which is the anchor's
+  zonotope with the wrench taken about the anchor's centre instead: ``(F, Delta x F)``, ``|Delta| <= D``. ``F``'s
+  direction ``d`` turns by at most ``|omega| T`` in the window. So the grip holds while
+  ``m |omega| |v| (g + a (|d - d0| + |omega| T) + b D) < 1 - D / s``: exact (the facet test) at the anchor as
+  ``D, T -> 0``. (The zonotope's inradius, used before, is set by its torque facets (N m): about a tenth of
+  ``mu_s`` times the weight on 0.1 m cells, ten times below what a pure force can have.)
 
 The parcel's twist must be the field's (its slip on every wheel below the engine's slip tolerance); the closed form
 then carries the field's twist itself, as the event-driven engine does when it projects the twist onto the sticking
@@ -112,8 +121,8 @@ class RideStepper(QuietStepper):
     """Steps the windows in which stick-slip parcels ride their wheels rigidly (module docstring), with the quiet
     stepper's anchors (clearance, support slack, edges) measured at each window's start.
 
-    A parcel whose last anchor's cells are still under it and whose solution still holds there (most riding
-    windows) is measured again, with its ride data, for all such parcels in one compiled call over per-parcel arrays
+    A parcel whose kept proof fails, but whose last anchor's cells are still under it and whose solution still
+    holds there, is measured again, with its ride data, for all such parcels in one compiled call over per-parcel arrays
     (:func:`~virtual_vehicle.engine._kernel.ride_measure`): the same anchor :func:`~virtual_vehicle.engine.batch.anchor`
     makes, to the last bit, kept in the columns only (the anchor object keeps its cells and solution). The others
     are measured one by one in Python.
@@ -134,8 +143,8 @@ class RideStepper(QuietStepper):
         n = len(specs)
         self._twist = np.zeros((n, 3))  # the field's twist (vx, vy at the anchor's centre; omega), m/s, rad/s
         self._rides = np.zeros(n, dtype=bool)  # the wheels under the anchor are one rigid twist of rank 3
-        self._inradius = np.zeros(n)  # N: the sticking wheels' zonotope's at the anchor, less rounding
-        self._spread = np.zeros(n)  # N: sum of mu_s N_j (how far the generators move per metre the levers change)
+        self._grip = np.zeros((n, 3))  # the sticking wheels' zonotope's g, a (1/N), b (1/(N m)) at the anchor
+        self._facing = np.zeros((n, 2))  # the unit direction of the anchor's centripetal force (zero without one)
         self._arm = np.zeros(n)  # m: the farthest wheel from the anchor's centre
         self._scale = np.zeros(n)  # m/s: the speed scale of the slip tolerance
         self._stuck: dict[int, tuple] = {}  # per parcel: the wheel memory of a ride (no impulses; those in contact)
@@ -163,13 +172,70 @@ class RideStepper(QuietStepper):
         self._spring_lin, self._force_lin = np.zeros((n, 0, 2)), np.zeros((n, 0, 2))
         self._force_const, self._origin = np.zeros((n, 0)), np.zeros((n, 2))
         self._on = np.zeros((n, 0), dtype=bool)  # the wheels in contact its wheel memory was made for
+        # the proofs kept (run state, :meth:`proofs`): a parcel whose anchor was measured at state ``_anchor_y``
+        # under the wheel velocities ``_wheels`` (m/s, its anchor's cells', padded) rides on it while those wheels
+        # stand and the proof's margins hold for the motion since; restored proofs are measured again at their
+        # anchors when next looked at (``_pending``: parcel -> (state, wheels))
+        self._kept = np.zeros(n, dtype=bool)
+        self._anchor_y = np.zeros((n, 6))
+        self._wheels = np.zeros((n, 0, 2))
+        self._pending: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def forget(self, i: int | None = None) -> None:
         super().forget(i)
         if i is None:
-            self._known[:] = False
+            self._known[:] = self._kept[:] = False
+            self._pending.clear()
         else:
-            self._known[i] = False
+            self._known[i] = self._kept[i] = False
+            self._pending.pop(i, None)
+
+    def proofs(self) -> dict:
+        """The kept proofs as data (run state): ``anchors`` (n, 6), the state each parcel's anchor was measured at
+        (NaN rows: none kept), and ``wheels`` (n, k, 2) m/s, the wheel velocities under its cells then (NaN-padded
+        to the widest row)."""
+        rows = {i: self._wheels[i, :len(self.anchors[i].support)] for i in np.flatnonzero(self._kept).tolist()}
+        rows.update({i: w for i, (_, w) in self._pending.items()})
+        anchors = np.full((len(self._kept), 6), np.nan)
+        wheels = np.full((len(self._kept), max(map(len, rows.values()), default=0), 2), np.nan)
+        for i, w in rows.items():
+            anchors[i] = self._anchor_y[i] if i not in self._pending else self._pending[i][0]
+            wheels[i, :len(w)] = w
+        return {"anchors": anchors, "wheels": wheels}
+
+    def take_proofs(self, anchors: np.ndarray, wheels: np.ndarray) -> None:
+        """Take up the proofs :meth:`proofs` wrote (after :meth:`forget`): each is measured again at its anchor's
+        state under its wheels when its parcel is next stepped, so the run rides the windows it would have."""
+        for i in np.flatnonzero(~np.isnan(anchors[:, 0])).tolist():
+            w = wheels[i]
+            self._pending[i] = (anchors[i].copy(), w[~np.isnan(w[:, 0])].copy())
+
+    def _resume(self, idx: np.ndarray, models, velocities: np.ndarray) -> None:
+        """Measure again the restored proofs of parcels ``idx`` at their anchors, under the wheels they had."""
+        for i in [i for i in idx.tolist() if i in self._pending]:
+            y, w = self._pending.pop(i)
+            if self.measure(i, models, y) is None:
+                continue
+            support = self.anchors[i].support
+            V = np.array(velocities, dtype=float)
+            V[support] = w[:len(support)]
+            self._ride_data(i, V)
+            self._keep(i, y, V)
+
+    def _keep(self, i: int, y: np.ndarray, velocities: np.ndarray) -> None:
+        """Keep parcel ``i``'s proof, its anchor measured at state ``y`` under ``velocities`` (m/s)."""
+        self._kept[i] = True
+        self._anchor_y[i] = y
+        self._wheels = _padded_row(self._wheels, i, velocities[self.anchors[i].support], 0.0)
+
+    def _wheels_stand(self, idx: np.ndarray, velocities: np.ndarray) -> np.ndarray:
+        """Whether the wheel velocities under the kept anchors of parcels ``idx`` are still those they were
+        measured under (each compared exactly)."""
+        w = self._wheels.shape[1]
+        ids = self._support[idx, :w]
+        now = np.take(velocities, ids, axis=0, mode="clip")
+        same = (now == self._wheels[idx]) | (ids >= self.cells.n)[..., None]
+        return same.all(axis=(1, 2))
 
     def _remember(self, i: int, support: np.ndarray, on: np.ndarray) -> None:
         """Make the wheel memory a ride of parcel ``i`` on cells ``support`` leaves (no impulses; the wheels in
@@ -190,10 +256,10 @@ class RideStepper(QuietStepper):
         self._rides[i] = False
         P, U, w, _, _, FL, FC, origin, mus, _ = self.law.wheel_arrays(self.cells, a.support, a.solution, velocities,
                                                                       spec.mu, spec.mu_static)
-        rides, twist, inradius, spread, arm, scale, on = _kernel.ride_data(P, U, w, FL, FC, origin, mus,
-                                                                           a.pose[:2].copy(), RIDE_TOL)
-        self._rides[i], self._twist[i], self._inradius[i] = rides, twist, inradius
-        self._spread[i], self._arm[i], self._scale[i] = spread, arm, scale
+        rides, twist, grip, facing, arm, scale, on = _kernel.ride_data(P, U, w, FL, FC, origin, mus,
+                                                                       a.pose[:2].copy(), RIDE_TOL)
+        self._rides[i], self._twist[i], self._grip[i], self._facing[i] = rides, twist, grip, facing
+        self._arm[i], self._scale[i] = arm, scale
         self._remember(i, a.support, on)
         sol = a.solution
         self._known[i] = a.first
@@ -216,7 +282,7 @@ class RideStepper(QuietStepper):
         present = self.anchors[int(idx[np.flatnonzero(self._known[idx])[0]])].model.present
         near = np.full((q, max(self._near.shape[1], 1)), cells.n, dtype=np.int64)
         n_near = np.zeros(q, dtype=np.int64)
-        measures = np.zeros((q, 9))
+        measures = np.zeros((q, 12))
         flags = np.zeros((q, 3), dtype=bool)
         on_now = np.zeros((q, max(self._on.shape[1], 1)), dtype=bool)
         _kernel.ride_measure(grid.points, grid.order, grid.start, grid.lo[0], grid.lo[1], grid.size, grid.shape[0],
@@ -239,7 +305,8 @@ class RideStepper(QuietStepper):
             self._near[i] = near[sel, :self._near.shape[1]]
         self._near_count[i] = n_near[sel]
         self._rides[i], self._twist[i] = flags[sel, 1], measures[sel, 2:5]
-        self._inradius[i], self._spread[i], self._arm[i], self._scale[i] = measures[sel].T[5:9]
+        self._grip[i], self._facing[i] = measures[sel, 5:8], measures[sel, 8:10]
+        self._arm[i], self._scale[i] = measures[sel, 10], measures[sel, 11]
         for k in sel[~flags[sel, 2]].tolist():  # the wheels in contact changed: their ride's memory is made again
             p = int(idx[k])
             cells = self._support[p, :self._n_support[p]].copy()
@@ -275,8 +342,13 @@ class RideStepper(QuietStepper):
         slack = self._slack[idx]
         rides &= slack > D  # no normal force changes sign, no cell lifts off or touches down
         share = D / np.where(slack > 0, slack, np.inf)  # each normal force stays within (1 -+ share) of the anchor's
-        held = (1.0 - share) * self._inradius[idx] - D * (1.0 + share) * self._spread[idx]
-        rides &= self.mass[idx] * np.abs(om) * speed < held
+        # the grip (module docstring): the centripetal force m omega x v, its direction within ``turned`` of the
+        # anchor's over the window, taken about the anchor's centre, inside (1 - share) times the anchor's zonotope
+        force = self.mass[idx] * np.abs(om) * speed  # N (eq. 3: m a, a = omega x v)
+        facing = np.sign(om)[:, None] * np.column_stack([-vy, vx]) / np.where(speed > 0, speed, 1.0)[:, None]
+        turned = np.hypot(*(facing - self._facing[idx]).T) + np.abs(om) * window
+        g, a, b = self._grip[idx].T
+        rides &= force * (g + a * turned + b * D) < 1.0 - share
         swept = moved + np.abs(Y[:, 2] - P0[:, 2]) * R
         clear = self._clear[idx] > swept + r
         look = np.flatnonzero(rides & ~clear & (D < self._room[idx]) & self._convex[idx])
@@ -303,22 +375,35 @@ class RideStepper(QuietStepper):
         Y = np.array([ys[i] for i in idx], dtype=float)
         start = Y.copy()
         ia = np.asarray(idx, dtype=np.int64)
-        # measured where each parcel is now, every window: the proof then depends on the state alone, not on where
-        # the parcel was measured before (a run resumed from a checkpoint, whose caches start empty, decides the
-        # same windows as the run that went on, to the last bit)
-        have = self._measure_known(ia, Y, velocities)
+        # a kept proof first (its wheels as they were, its margins holding for the motion since its anchor); the
+        # others are measured where they are now, and that proof kept. The proofs are run state (:meth:`proofs`), so
+        # a run resumed from a checkpoint decides the same windows as the run that went on, to the last bit
+        self._resume(ia, models, velocities)
+        ok = np.zeros(len(idx), dtype=bool)
+        kept = np.flatnonzero(self._kept[ia])
+        if len(kept):
+            kept = kept[self._wheels_stand(ia[kept], velocities)]
+        if len(kept):
+            rides, Yf = self._riding(ia[kept], Y[kept], window)
+            ok[kept] = rides
+            Y[kept[rides]] = Yf[rides]
+        again = np.flatnonzero(~ok)
+        ja, Ya = ia[again], Y[again]
+        have = self._measure_known(ja, Ya, velocities)
         for k in np.flatnonzero(~have).tolist():
-            i = idx[k]
-            if self.measure(i, models, Y[k]) is not None:
+            i = int(ja[k])
+            if self.measure(i, models, Ya[k]) is not None:
                 self._ride_data(i, velocities)
                 have[k] = True
             else:  # it tips there: no anchor to measure again
-                self._known[i] = False
-        ok = np.zeros(len(idx), dtype=bool)
+                self._known[i] = self._kept[i] = False
+        for k in np.flatnonzero(have).tolist():
+            self._keep(int(ja[k]), Ya[k], velocities)
         sel = np.flatnonzero(have)
         if len(sel):
-            ok[sel], Yf = self._riding(ia[sel], Y[sel], window)
-            Y[sel] = Yf
+            rides, Yf = self._riding(ja[sel], Ya[sel], window)
+            ok[again[sel]] = rides
+            Y[again[sel[rides]]] = Yf[rides]
         quiet = np.flatnonzero(ok)
         rest = [idx[k] for k in np.flatnonzero(~ok)]
         if not len(quiet):

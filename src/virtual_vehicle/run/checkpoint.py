@@ -9,7 +9,7 @@ float, str, bytes, lists, tuples, dicts, sets, deques, numpy arrays of numeric, 
 scalars of numeric or boolean dtypes). A node naming anything else is an error; the objects of the run are made by
 the run's own code from that data, which checks it.
 
-File layout (format version :data:`FORMAT_VERSION`): the header line ``virtual_vehicle checkpoint 3`` and then a zip
+File layout (format version :data:`FORMAT_VERSION`): the header line ``virtual_vehicle checkpoint 4`` and then a zip
 archive holding ``checkpoint.json`` (the document: format version, package version, the run's kind, its scenario
 and the encoded run state) and ``arrays/<k>.npy`` for every array the state refers to.
 
@@ -32,12 +32,13 @@ from collections import deque
 
 import numpy as np
 
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 """The checkpoint format this version writes and reads (1 was a pickle, which is not read: it could run code; 2 held
-objects of allowlisted classes by their fields, not the state's data forms)."""
+objects of allowlisted classes by their fields, not the state's data forms; 3 kept no riding parcel's proof)."""
 
 _OLD_FORMATS = {"1": "format 1 was a Python pickle, which is never loaded: it could run code",
-                "2": "format 2 held the run's objects, not its state as data"}
+                "2": "format 2 held the run's objects, not its state as data",
+                "3": "format 3 kept no riding parcel's proof, on which the windows a run rides depend"}
 
 MAGIC = b"virtual_vehicle checkpoint "
 HEADER = MAGIC + str(FORMAT_VERSION).encode() + b"\n"
