@@ -203,14 +203,15 @@ class Sorter:
         if light.any():  # first the clocks of the rows that hear nothing new, then the others whole
             done = np.zeros(n, bool)
             inbox = inputs.inbox
-            carried = (np.full((n, 4), policy.ALL_WORDS, np.int64) if inbox.words is None
+            carried = (np.full(inbox.present.shape, policy.ALL_WORDS, np.int64) if inbox.words is None
                        else _arg(inbox.words, np.int64))
             words = policy.Words(*(_arg(inbox.values[w], t) for w, t in zip(self._words, self._types)))
             policy.tick_cells(rows[light], policy.Inputs(_arg(inbox.present, bool), words,
                                                          _arg(inputs.sensors, bool), _arg(inputs.connected, bool),
                                                          carried),
                               number, tick, self.heartbeat_ticks, self.trust, self.partial, self._memory(state),
-                              outbox.present, np.empty((n, 4), np.int64) if outbox.words is None else outbox.words,
+                              outbox.present,
+                              np.empty(outbox.present.shape, np.int64) if outbox.words is None else outbox.words,
                               unsettled, out_changed, ticking, done)
             rows = rows[~done[rows]]
         else:
