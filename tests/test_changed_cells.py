@@ -613,7 +613,7 @@ def test_a_sorter_cell_that_read_back_nothing_new_ticks_its_clocks_as_its_whole_
     back (what it heard and said, its gradients and other words computed afresh may have changed, or nothing), due
     or not: a row that hears nothing new ticks its clocks alone - also at its heartbeat or the tick after - and that
     gives every state word, sentence, wheel speed and mask the whole step gives, while a row whose trust in a silent
-    neighbour runs out now is stepped whole. Random states; the first tick silent, the second hearing random words
+    neighbour runs out now is stepped whole. Random states, square and hexagonal cells; the first tick silent, the second hearing random words
     on most ports, the third (the one compared) mostly what the ports hold; heartbeats every third tick. Rows that
     ticked alone after hearing new words, rows at a heartbeat and rows whose trust ran out occur in these draws, or
     the comparison would mean nothing."""
@@ -624,15 +624,16 @@ def test_a_sorter_cell_that_read_back_nothing_new_ticks_its_clocks_as_its_whole_
         return [a for k in sorted(st) for a in (_leaves(st[k]) if isinstance(st[k], dict) else [st[k]])]
 
     beats = stale = heard = 0  # rows ticked alone at a heartbeat / after hearing new words; quiet rows gone stale
-    for seed in range(96):
+    for seed in range(144):
         rng = np.random.default_rng(1000 + seed)
         max_age, parking, partial = [0, 3][seed % 2], bool(seed // 2 % 2), bool(seed // 4 % 2)
-        program, state, inputs = _random_sorter_inputs(rng, max_age, parking, True, partial)
+        P = 6 if seed % 3 == 0 else 4  # some hexagonal cells
+        program, state, inputs = _random_sorter_inputs(rng, max_age, parking, True, partial, P)
         program.heartbeat_ticks, program.trust = 3, max_age + 4  # (the draw may say every tick)
         program.repeats = 2
         n = len(inputs.sensors)
         tick = tick_of(inputs.t, program.period)
-        state["heard_at"] = tick - rng.choice([0, 1, 2, 3, 5, 6, 2**40], (n, 4))  # some run out at tick + 2
+        state["heard_at"] = tick - rng.choice([0, 1, 2, 3, 5, 6, 2**40], (n, P))  # some run out at tick + 2
 
         def at(k, inbox=inputs.inbox):
             return CellInputs(inputs.t + k * program.period, inputs.sensors, inbox, inputs.connected,
@@ -650,8 +651,8 @@ def test_a_sorter_cell_that_read_back_nothing_new_ticks_its_clocks_as_its_whole_
         for w, a in before.items():
             new_words |= (a != state["heard"][w]).any(axis=1)
         quiet = ticking | ~unsettled
-        holds = rng.random((n, 4)) < 0.8  # the ports that hear what they hold (if they hear), the others not
-        inbox = Mailbox(inputs.inbox.schema, rng.random((n, 4)) < 0.3,
+        holds = rng.random((n, P)) < 0.8  # the ports that hear what they hold (if they hear), the others not
+        inbox = Mailbox(inputs.inbox.schema, rng.random((n, P)) < 0.3,
                         {w: np.where(holds, state["heard"][w], a).astype(a.dtype)
                          for w, a in inputs.inbox.values.items()},
                         None if inputs.inbox.words is None else inputs.inbox.words.copy())
