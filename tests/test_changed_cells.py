@@ -606,3 +606,81 @@ def test_a_sorter_cell_whose_clocks_alone_run_ticks_them_as_its_whole_step_would
         alone += int(masks[3].sum())
         whole += int((quiet & ~masks[3]).sum())
     assert alone > 30 and whole > 30
+
+
+def test_a_sorter_cell_that_read_back_nothing_new_ticks_its_clocks_as_its_whole_step_would():
+    """Sorter.step_rows given as ``quiet`` every row whose last step changed none of the state words the rules read
+    back (what it heard and said, its gradients and other words computed afresh may have changed, or nothing), due
+    or not: a row that hears nothing new ticks its clocks alone - also at its heartbeat or the tick after - and that
+    gives every state word, sentence, wheel speed and mask the whole step gives, while a row whose trust in a silent
+    neighbour runs out now is stepped whole. Random states, square and hexagonal cells; the first tick silent, the second hearing random words
+    on most ports, the third (the one compared) mostly what the ports hold; heartbeats every third tick. Rows that
+    ticked alone after hearing new words, rows at a heartbeat and rows whose trust ran out occur in these draws, or
+    the comparison would mean nothing."""
+    from virtual_vehicle.cells.network.programs import tree_map
+    from virtual_vehicle.cells.sorting.rules import heartbeat_due, tick_of
+
+    def _leaves(st):
+        return [a for k in sorted(st) for a in (_leaves(st[k]) if isinstance(st[k], dict) else [st[k]])]
+
+    beats = stale = heard = 0  # rows ticked alone at a heartbeat / after hearing new words; quiet rows gone stale
+    for seed in range(144):
+        rng = np.random.default_rng(1000 + seed)
+        max_age, parking, partial = [0, 3][seed % 2], bool(seed // 2 % 2), bool(seed // 4 % 2)
+        P = 6 if seed % 3 == 0 else 4  # some hexagonal cells
+        program, state, inputs = _random_sorter_inputs(rng, max_age, parking, True, partial, P)
+        program.heartbeat_ticks, program.trust = 3, max_age + 4  # (the draw may say every tick)
+        program.repeats = 2
+        n = len(inputs.sensors)
+        tick = tick_of(inputs.t, program.period)
+        state["heard_at"] = tick - rng.choice([0, 1, 2, 3, 5, 6, 2**40], (n, P))  # some run out at tick + 2
+
+        def at(k, inbox=inputs.inbox):
+            return CellInputs(inputs.t + k * program.period, inputs.sensors, inbox, inputs.connected,
+                              inputs.config, inputs.labels)
+
+        silent = Mailbox(inputs.inbox.schema, np.zeros_like(inputs.inbox.present), inputs.inbox.values,
+                         inputs.inbox.words)
+        state, out, wheels = program.step(state, at(0, silent))  # (silent: the trust drawn above runs on)
+        out = Mailbox(out.schema, out.present.copy(), {w: a.copy() for w, a in out.values.items()},
+                      None if out.words is None else out.words.copy())
+        wheels = np.array(wheels)
+        before = {w: a.copy() for w, a in state["heard"].items()}
+        unsettled, _, ticking = program.step_rows(state, at(1), np.arange(n), out, wheels, np.zeros(n, bool))[:3]
+        new_words = np.zeros(n, bool)
+        for w, a in before.items():
+            new_words |= (a != state["heard"][w]).any(axis=1)
+        quiet = ticking | ~unsettled
+        holds = rng.random((n, P)) < 0.8  # the ports that hear what they hold (if they hear), the others not
+        inbox = Mailbox(inputs.inbox.schema, rng.random((n, P)) < 0.3,
+                        {w: np.where(holds, state["heard"][w], a).astype(a.dtype)
+                         for w, a in inputs.inbox.values.items()},
+                        None if inputs.inbox.words is None else inputs.inbox.words.copy())
+        due = program.due(at(2).t, state, inputs.config)
+        runs = []
+        for given_quiet in (None, quiet):
+            mine = tree_map(np.copy, state)
+            box = Mailbox(out.schema, out.present.copy(), {w: a.copy() for w, a in out.values.items()},
+                          None if out.words is None else out.words.copy())
+            w = wheels.copy()
+            masks = program.step_rows(mine, at(2, inbox), np.arange(n), box, w,
+                                      np.zeros(n, bool) if given_quiet is None else given_quiet)
+            runs.append((_leaves(mine), box, w, masks))
+        (ref_leaves, ref_box, ref_wheels, ref_masks), (leaves, box, w, masks) = runs
+        for a, b in zip(leaves, ref_leaves, strict=True):
+            np.testing.assert_array_equal(a, b)
+        for a, b in zip(box.arrays, ref_box.arrays, strict=True):
+            np.testing.assert_array_equal(a, b)
+        if partial:
+            np.testing.assert_array_equal(box.words, ref_box.words)
+        assert w.tobytes() == ref_wheels.tobytes()
+        for a, b in zip(masks[:3], ref_masks[:3], strict=True):
+            np.testing.assert_array_equal(a, b)
+        number = inputs.config["entry_no"]
+        beat = heartbeat_due(tick + 2, number, 3) | heartbeat_due(tick + 1, number, 3)
+        runs_out = np.any(tick + 2 - state["heard_at"] == program.trust + 1, axis=1)
+        assert not (masks[3] & runs_out).any()
+        beats += int((masks[3] & beat & due).sum())
+        stale += int((quiet & runs_out).sum())
+        heard += int((masks[3] & new_words).sum())
+    assert beats > 30 and stale > 30 and heard > 30, (beats, stale, heard)

@@ -275,10 +275,12 @@ class ChangedCells:
 
     A program that declares ``clocks = True`` keeps clocks in its state (a tick last heard, a count of repeats
     left) that change while nothing else does; its ``step_rows`` then takes ``quiet``, the (n,) cells whose last
-    step changed only their clocks (it returned them as a third mask) and whose sensors and labels did not change
-    and which are not due, and may tick only their clocks where it can prove that is their whole step (their inbox
-    it judges itself); it returns a fourth mask, the cells it did so. Such a cell stays stepped every tick while its
-    clocks run, but for a fraction of a step's cost.
+    step changed nothing that a step on the same inputs computes otherwise but their clocks (it returned them as a
+    third mask, or changed nothing at all) and whose sensors and labels did not change, and may tick only their clocks where it can prove that is their whole step
+    (their inbox, and whether the time makes the tick more than that for them - its ``due`` names these cells
+    for other reasons too, such as a heartbeat that only sends - it judges itself); it returns a fourth mask, the
+    cells it did so. Such a cell stays stepped every tick while its clocks run, but for a fraction of a step's
+    cost.
 
     When more than ``full_share`` of the cells would be stepped (a lossy network, a floor in turmoil), gathering them
     costs more than it saves, and so does comparing: every cell is then stepped without comparing anything for
@@ -340,13 +342,12 @@ class ChangedCells:
             if last["inbox"] is None:  # the last tick's inbox was not kept: its delivery model told what changed
                 return self._full(state, inputs, sensors, labels, compare)
             inbox_changed = rows_differ(inputs.inbox.arrays, last["inbox"], n)
-        moved = rows_differ([sensors], [last["sensors"]], n)  # the inputs that changed, but the inbox
+        sensed = rows_differ([sensors], [last["sensors"]], n)  # the inputs that changed, but the inbox
+        if labels is not None:
+            sensed |= labels != last["labels"]
         due = getattr(self.program, "due", None)  # cells the time wakes (a heartbeat), whatever changed
         woken = None if due is None else due(inputs.t, state, inputs.config)
-        if woken is not None:
-            moved |= woken
-        if labels is not None:
-            moved |= labels != last["labels"]
+        moved = sensed if woken is None else sensed | woken
         changed = last["unsettled"] | moved | inbox_changed
         rows = np.flatnonzero(changed)
         if len(rows) > self.full_share * n:  # most cells changed: step them all, and stop comparing for a while
@@ -363,10 +364,10 @@ class ChangedCells:
             return state, outbox, wheels, changed
         step_rows = getattr(self.program, "step_rows", None)
         clocks = getattr(self.program, "clocks", False) and step_rows is not None
-        if clocks:  # the cells whose clocks alone run: they tick those (see the class notes)
-            quiet = last.get("ticking")
-            quiet = np.zeros(n, bool) if quiet is None else quiet & ~moved
-            masks = step_rows(state, inputs, rows, outbox, wheels, quiet)
+        if clocks:  # the cells whose last step changed no state but clocks may tick those alone (class notes)
+            ticking = last.get("ticking")
+            still = ~last["unsettled"] if ticking is None else ticking | ~last["unsettled"]
+            masks = step_rows(state, inputs, rows, outbox, wheels, still & ~sensed)
         else:
             masks = None if step_rows is None else step_rows(state, inputs, rows, outbox, wheels)
         if masks is not None:  # stepped in place: nothing gathered, compared or written back here

@@ -48,8 +48,13 @@ bit mask of the words each sentence carries (n, P; bit k: the schema's k-th word
 Outputs = namedtuple("Outputs", "present sent wheels unsettled out_changed words ticking")
 """Where the sentences go (a presence mask and :class:`Words`), the (n, 2) wheel speeds (m/s), per row whether
 the state and the sentences changed, the bit mask of the words each sentence carries (n, P), and per row whether
-its state changed only in its clocks (the tick each port last heard, the repeats left): such a row, stepped again
-on the same inputs, changes nothing else (see :func:`tick_cells`)."""
+its state changed, but in none of the words the rules read back from the cell's own state (``vid``, ``goal``,
+``dir``, ``nxt``, ``hold``, ``hdep``, ``hport``, ``hage``, ``back``, ``bdir``): only in its clocks (the tick each
+port last heard, the repeats left), the words it heard (heard again, a sentence leaves them as they are), the words it
+last said (said again, they equal them) or the words every step computes afresh from those (the gradients, ``key``,
+``stop``, ``ack``, ``park``). Such a row, stepped again on the same inputs, reads what it read and changes nothing
+but its clocks (see :func:`tick_cells`). A rule that comes to read one of the latter back from the state moves it
+to the former in :func:`step_cells`."""
 ALL_WORDS = (1 << len(Words._fields)) - 1
 """The bit mask of every sentence word."""
 REST = (-1, 0, NONE, NONE, BIG, 255 + (255 << 8), NONE, 0, NONE, 0, 0, 63 * (1 + 64 + 4096 + 262144))
@@ -175,7 +180,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     its sentence and wheel speeds to ``out``, which may hold the very arrays read (a row reads and writes only its
     own row, each value read before it is written): then only those rows change. ``out.unsettled[i]`` and
     ``out.out_changed[i]`` say whether row i's state and sentence differ from what they were, ``out.ticking[i]``
-    whether its state changed only in its clocks (``heard_at``, ``again``)."""
+    whether its state changed, but in none of the words the rules read back (:data:`Outputs`)."""
     P = inp.present.shape[1]
     H = hop_bits(P)  # a side's closing hops in the block word, and the hops in the stop byte
     none = (1 << H) - 1
@@ -499,39 +504,42 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             sent_new |= _put(o_ex, i, q, now[10])
             sent_new |= _put(o_blk, i, q, now[11])
         out_changed[i] = sent_new
-        changed |= _put1(n_vid, s_vid, i, vid)
-        changed |= _put1(n_goal, s_goal, i, goal)
-        changed |= _put1(n_dir, s_dir, i, direction if (moving or direction >= 0) else NONE)
+        # the state words the rules read back (held); the others (key, stop, ack, park, the gradients) and what
+        # the cell heard and said, a step on the same inputs computes again as this one did (see Outputs.ticking)
+        held = _put1(n_vid, s_vid, i, vid)
+        held |= _put1(n_goal, s_goal, i, goal)
+        held |= _put1(n_dir, s_dir, i, direction if (moving or direction >= 0) else NONE)
         changed |= _put1(n_key, s_key, i, key)
         changed |= _put1(n_stop, s_stop, i, stop)
-        changed |= _put1(n_hold, s_hold, i, new_hold)
-        changed |= _put1(n_hdep, s_hdep, i, hdep)
-        changed |= _put1(n_hport, s_hport, i, hport)
-        changed |= _put1(n_hage, s_hage, i, hage)
+        held |= _put1(n_hold, s_hold, i, new_hold)
+        held |= _put1(n_hdep, s_hdep, i, hdep)
+        held |= _put1(n_hport, s_hport, i, hport)
+        held |= _put1(n_hage, s_hage, i, hage)
         changed |= _put1(n_ack, s_ack, i, ack)
-        changed |= _put1(n_nxt, s_nxt, i, nxt)
+        held |= _put1(n_nxt, s_nxt, i, nxt)
         changed |= _put1(n_park, s_park, i, park)
-        changed |= _put1(n_back, s_back, i, back)
-        changed |= _put1(n_bdir, s_bdir, i, bdir)
-        unsettled[i] = changed or clocks
-        ticking[i] = clocks and not changed
+        held |= _put1(n_back, s_back, i, back)
+        held |= _put1(n_bdir, s_bdir, i, bdir)
+        unsettled[i] = changed or held or clocks
+        ticking[i] = (changed or clocks) and not held
 
 
 @njit(cache=True)
 def tick_cells(rows, inp, entry_no, tick, heartbeat, trust, partial, old, sent_present, sent_words, unsettled,
                out_changed, ticking, done):
-    """What :func:`step_cells` does to the rows ``rows`` whose last step changed only their clocks (``ticking``)
-    and whose sensors, links and labels are those of that step, at a tick that is not due for them
-    (:meth:`~virtual_vehicle.cells.sorting.Sorter.due`: no trusted neighbour turns stale, and with partial
-    sentences no heartbeat), when every port that hears now hears what the cell already holds from a neighbour it
-    trusted last tick (a port that falls silent keeps what it heard): their clocks only, in place, and
-    ``done[i]`` set; a row that hears something new is left as it is (``done[i]`` False) to be stepped whole.
+    """What :func:`step_cells` does to the rows ``rows`` whose last step changed none of the state words the rules
+    read back (``ticking``, or nothing at all) and whose sensors, links and labels are those of that step, at a tick
+    at which no neighbour they trust turns stale (and, with partial sentences, not their heartbeat), when every port
+    that hears now hears what the cell already holds from a neighbour it trusted last tick (a port that falls
+    silent keeps what it heard): their clocks only, in place, and ``done[i]`` set; a row that hears something new
+    is left as it is (``done[i]`` False) to be stepped whole. A heartbeat (of whole sentences) only makes the cell
+    send, as computed here.
 
     Why nothing else changes: every rule reads the neighbours' words (the same: a port that hears, hears what it
     held; a silent one keeps it), whether each is trusted (the same: a port that hears was trusted and stays so; a
-    silent one turns stale only at a due tick) and the cell's state words, which its last step left as it found
-    them (``ticking``), so each rule gives what it gave last tick, which is what the state holds; the sentence
-    equals what was said, so it does not differ, and the repeats only count down. The tick itself enters only a
+    silent one turns stale only at a due tick) and the state words it reads back, which its last step left as it
+    found them (``ticking``), so each rule gives what it gave in that step, which is what the state holds; the
+    sentence equals what was said, so it does not differ, and the repeats only count down. The tick itself enters only a
     new vehicle's id, made in a step that changes the vehicle word (then the row is not ``ticking``), and the
     heartbeat, computed here as there. ``inp``: the :class:`Inputs` (its sensors and links unused); ``old``: the
     :class:`Memory` (its ``heard_at`` and ``again`` written in place); ``sent_present`` (n, P) bool and

@@ -56,8 +56,9 @@ class Sorter:
 
     stationary = True
     clocks = True
-    """:meth:`step_rows` takes the rows whose last step changed only their clocks and whose inputs did not change
-    (``quiet``) and ticks those clocks alone (see :class:`~virtual_vehicle.cells.network.programs.ChangedCells`)."""
+    """:meth:`step_rows` takes the rows whose last step changed none of the state words the rules read back and
+    whose sensors and labels did not change (``quiet``) and ticks the clocks alone of those that hear nothing new
+    (see :class:`~virtual_vehicle.cells.network.programs.ChangedCells`)."""
 
     schema = Schema.of(d=(1, WordType.I32), nxt=(4, WordType.I16),
                        vid=(5, WordType.I32), goal=(6, WordType.I16), key=(7, WordType.I32),
@@ -165,12 +166,14 @@ class Sorter:
         (False for the others), or None when the arrays are not the sorter's own kinds (int64 state, the schema's
         word types, C-contiguous, writeable), to step the rows the general way.
 
-        ``quiet`` ((n,) bool): rows among ``rows`` whose last step changed only their clocks (the third mask this
-        returns then) and whose sensors, links and labels are those of that step, at a tick not :meth:`due` for
-        them: those that hear nothing new tick only their clocks
+        ``quiet`` ((n,) bool): rows among ``rows`` whose last step changed none of the state words the rules read
+        back (the third mask this returns then, or nothing at all; :data:`~virtual_vehicle.cells.sorting.policy.
+        Outputs`) and whose sensors, links and labels are those of that step: those
+        that hear nothing new, at a tick at which no neighbour they trust turns stale (and, with partial sentences,
+        not their heartbeat), tick only their clocks
         (:func:`~virtual_vehicle.cells.sorting.policy.tick_cells`, which says why that is their step), the others
-        are stepped whole. With it, four masks are returned: the two above, the rows whose state changed only in
-        its clocks, and the rows that ticked their clocks alone."""
+        are stepped whole. With it, four masks are returned: the two above, the rows whose state changed but in
+        none of the words read back, and the rows that ticked their clocks alone."""
         kept = [state["dist"], *state["heard"].values(), state["heard_at"], *(state[k] for k in _STATE),
                 *state["said"].values(), state["again"]]
         if (tuple(state["heard"]) != self._words or tuple(state["said"]) != self._words
@@ -191,20 +194,24 @@ class Sorter:
             light[:] = False
         tick = tick_of(inputs.t, self.period)
         number = _arg(inputs.config["entry_no"] if "entry_no" in inputs.config else np.zeros(n), np.int64)
-        if self.partial:  # a heartbeat then says every word: a whole step (due() wakes these cells anyway)
+        if self.partial:  # a heartbeat then says every word: a whole step
             light &= ~heartbeat_due(tick, number[rows], self.heartbeat_ticks)
+        # a neighbour's last sentence that stops being trusted now changes what the rules read: a whole step (the
+        # rest of what due() wakes a cell for, a heartbeat that only sends and the tick after it, tick_cells does)
+        light[light] = ~np.any(tick - state["heard_at"][rows[light]] == self.trust + 1, axis=1)
         unsettled, out_changed, ticking = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
         if light.any():  # first the clocks of the rows that hear nothing new, then the others whole
             done = np.zeros(n, bool)
             inbox = inputs.inbox
-            carried = (np.full((n, 4), policy.ALL_WORDS, np.int64) if inbox.words is None
+            carried = (np.full(inbox.present.shape, policy.ALL_WORDS, np.int64) if inbox.words is None
                        else _arg(inbox.words, np.int64))
             words = policy.Words(*(_arg(inbox.values[w], t) for w, t in zip(self._words, self._types)))
             policy.tick_cells(rows[light], policy.Inputs(_arg(inbox.present, bool), words,
                                                          _arg(inputs.sensors, bool), _arg(inputs.connected, bool),
                                                          carried),
                               number, tick, self.heartbeat_ticks, self.trust, self.partial, self._memory(state),
-                              outbox.present, np.empty((n, 4), np.int64) if outbox.words is None else outbox.words,
+                              outbox.present,
+                              np.empty(outbox.present.shape, np.int64) if outbox.words is None else outbox.words,
                               unsettled, out_changed, ticking, done)
             rows = rows[~done[rows]]
         else:
