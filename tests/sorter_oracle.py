@@ -187,6 +187,10 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     cand = np.where(open_side, nb_d, _BIG)
     port = np.argmin(cand, axis=1)
     movable = cand[rows, port] < UNREACHABLE
+    # ... and, next to a dead cell (its own or a trusted neighbour's), into the band only while that side is open
+    # to the whole vehicle (dead cells can close it)
+    near = dead.any(axis=1) | (trusted & ((heard["ack"] >> dead_shift) != 0)).any(axis=1)
+    into_band = np.where((into_band >= 0) & near & ~open_side[rows, np.maximum(into_band, 0)], _NONE, into_band)
     prop_port = np.where(into_band >= 0, into_band, np.where(at_exit, exit_port, np.where(movable, port, _NONE)))
     prop_d = np.where(into_band >= 0, 0, np.where(at_exit, 1, cand[rows, port] + 3))
     # Head on: the cell ahead (in last tick's direction) is held for an older vehicle that asked for it from the

@@ -69,7 +69,8 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
   sides are the ports next to its way out (:func:`~.rules.left_of`, :func:`~.rules.right_of`: 90 degrees off it
   on a square cell, 60 on a hexagonal one); a lane cell that sees the vehicle beside it outside the lane moves it
   through that side mirrored across the way out (:func:`~.rules.into_lane`: straight sideways on a square cell;
-  on a hexagonal one sideways and on toward the edge, there being no port straight sideways). The wheels move a
+  on a hexagonal one sideways and on toward the edge, there being no port straight sideways); next to a dead cell
+  only while that side is open to the vehicle (the gradient moves the vehicle along until it opens). The wheels move a
   parcel out through port q at the vehicle's speed (:func:`~.rules.heading`): a square cell drives one of its
   two wheels, a hexagonal cell's omni wheels the velocity at ``60 q`` degrees in its frame. Words that pack a hop
   count with a port or one per port (``stop``, ``blk``) give it six bits on a square cell and five on a

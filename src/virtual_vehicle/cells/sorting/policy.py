@@ -352,6 +352,16 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             cand[q] = unpack(hd[i, q], g, 8) if open_side[q] else BIG
         port = _first_min(cand)
         movable = cand[port] < UNREACHABLE
+        # next to a dead cell (its own or a neighbour's), a cell at the lane's side pulls the vehicle into the lane
+        # only while that side is open to the whole vehicle: where dead cells close it (a cell of the body faces
+        # one with no live cell beside), the pull and that cell's stop held the vehicle still for ever; the
+        # gradient then moves it along first, until the side opens. Only there, so that a sound array runs as
+        # it always did
+        near_dead = dead_mask != 0
+        for q in range(P):
+            near_dead = near_dead or (trusted[q] and (hack[i, q] >> dead_shift) != 0)
+        if into_band >= 0 and near_dead and not open_side[into_band]:
+            into_band = NONE
         if into_band >= 0:
             prop_port, prop_d = into_band, 0
         elif at_exit:
