@@ -5,6 +5,7 @@ table's drive code (0: the loop makes no pieces itself) and its size bound."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
@@ -85,3 +86,72 @@ def test_a_model_copied_mid_run_goes_on_as_the_original(law):
                      "hull_normals", "hull_offsets", "spring_lin"):
             assert np.array_equal(getattr(mine.solution, name), getattr(theirs.solution, name)), name
         assert np.array_equal(mine.normal_forces(state), theirs.normal_forces(state))
+
+
+def _same_mode_run(a, b):
+    """Two stick-slip runs the same bit for bit: samples, events, pieces, and every stat (energy account, the mode
+    record with each mode before and after, pieces cached, solves)."""
+    _same_run(a, b)
+    assert a.t_end == b.t_end and a.rhs_evals == b.rhs_evals
+    assert a.stats.keys() == b.stats.keys()
+    for key, value in a.stats.items():
+        assert value == b.stats[key], key
+
+
+def _loop_and_python(cells, spec, V, y0, t1, sample_dt=0.05, progress=None):
+    """The run of a fresh model with the compiled stick-slip loop (and the log entries it wrote) and with every event
+    in Python (``dynamics._MODE_LOOP`` off)."""
+    from virtual_vehicle.engine import _modeloop
+
+    logged = []
+    run_modes = _modeloop.run_modes
+
+    def counted(*args):
+        out = run_modes(*args)
+        logged.append(out[9])
+        return out
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(_modeloop, "run_modes", counted)
+        loop = integrate(ParcelModel(cells, spec, V, laws.LAWS["stick_slip"]), y0, 0.0, t1, sample_dt=sample_dt,
+                         progress=progress)
+        patch.setattr(dynamics, "_MODE_LOOP", False)
+        python = integrate(ParcelModel(cells, spec, V, laws.LAWS["stick_slip"]), y0, 0.0, t1, sample_dt=sample_dt,
+                           progress=progress)
+    return loop, python, sum(logged)
+
+
+@pytest.mark.parametrize("theta", [0.0, 0.3])
+def test_the_compiled_stick_slip_loop_is_the_python_loop_across_support_and_mode_events(theta):
+    """A parcel set down at rest on a uniform field catches up with its wheels (mode events), then crosses support
+    sets (new ones, made from solved patterns, and ones met before on other contact sets): the compiled loop takes
+    those events itself (it logs them) and the run is the one of the Python loop, bit for bit; also when it hands
+    back every few steps for progress."""
+    cells = layout.grid(30, 30, 0.1)
+    spec = parcel.rectangle(0.4, 0.3, 2.0, 0.5, mu_static=0.6)
+    V = fields.Uniform((0.2, 0.0)).velocities(cells)
+    y0 = np.array([0.52, 1.47, theta, 0.0, 0.0, 0.0])
+    loop, python, logged = _loop_and_python(cells, spec, V, y0, 2.0)
+    _same_mode_run(loop, python)
+    assert loop.stats["mode_changes"] >= 1 and sum(e.kind == "support" for e in loop.events) >= 10
+    assert logged >= 10  # the compiled loop took events itself
+    seen = []
+    loop, python, _ = _loop_and_python(cells, spec, V, y0, 2.0, progress=seen.append)
+    _same_mode_run(loop, python)
+    assert len(seen) > 10
+
+
+@settings(max_examples=20, deadline=None)
+@given(where=st.sampled_from(sorted(LAYOUTS)), shape=st.sampled_from(sorted(SHAPES)), seed=st.integers(0, 2 ** 16))
+def test_the_compiled_stick_slip_loop_is_the_python_loop_under_random_fields(where, shape, seed):
+    """Random fields on small arrays, a single row and a sparse grid, a static coefficient above the kinetic one:
+    wheels grip and break away, cells lift off and touch down, parcels leave the array and tip; the compiled loop
+    and the Python loop run the same, bit for bit."""
+    cells, spec = LAYOUTS[where], SHAPES[shape]
+    spec = dataclasses.replace(spec, mu_static=1.5 * spec.mu)
+    rng = np.random.default_rng(seed)
+    V = rng.uniform(-0.4, 0.4, (cells.n, 2)) + rng.uniform(-0.5, 0.5, 2)
+    lo, hi = cells.positions.min(axis=0), cells.positions.max(axis=0)
+    y0 = np.array([*rng.uniform(lo, hi), rng.uniform(-3.0, 3.0), 0.0, 0.0, 0.0])
+    loop, python, _ = _loop_and_python(cells, spec, V, y0, 1.0)
+    _same_mode_run(loop, python)

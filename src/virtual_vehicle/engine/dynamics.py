@@ -28,7 +28,6 @@ Two integrators share the model:
 
 from __future__ import annotations
 
-import collections
 import math
 from dataclasses import dataclass
 from functools import cached_property, partial
@@ -37,7 +36,7 @@ from typing import Callable, Literal, get_args
 
 import numpy as np
 
-from virtual_vehicle.engine import _kernel
+from virtual_vehicle.engine import _kernel, _modeloop
 from virtual_vehicle.engine._kernel import accelerations
 from virtual_vehicle.engine.stepping import Event, Trajectory, diff_event, fixed_steps, sample_grid
 from virtual_vehicle.engine.stickslip import run_stick_slip
@@ -371,7 +370,7 @@ class _PieceTable:
 
     def adopt_born(self, model: "ParcelModel", start: int, born: int) -> None:
         """Add the ``born`` pieces the loop made from patterns (indices from ``start``) to the model's cache as table
-        entries (``model._unmade``: support key -> index), where :meth:`ParcelModel.piece_for` finds them as it
+        entries (``model._unmade``: support key -> indices, in the order made), where :meth:`ParcelModel.piece_for` finds them as it
         would have found the pieces it made itself. Making each a :class:`Piece` at once was a third of the Python
         of an oscillating Coulomb parcel (367 pieces in 5 s, most of them never asked for)."""
         terms = self.law_args[9][:born].copy()  # the packed constants the law's compiled drive made, a row a piece
@@ -379,7 +378,7 @@ class _PieceTable:
         spans = self.kmeta[self.pkey[start:start + born], :2].tolist()  # (each piece's support set: its ids in ipool)
         for i, (off, n), j in zip(range(born), spans, self.psol[start:start + born].tolist()):
             skey = tuple(ipool[off:off + n].tolist())
-            model._unmade[skey] = start + i
+            model._unmade.setdefault(skey, []).append(start + i)  # (a set met before on other contacts)
             self.unmade[start + i] = (skey, tuple(compress(skey, records[j].in_contact.tolist()))), terms[i]
             self.pieces.append(None)
         self.mirrored += born
@@ -392,22 +391,25 @@ class _PieceTable:
     def piece(self, model: "ParcelModel", p: int) -> Piece:
         """Piece ``p`` of the table as a :class:`Piece`, made now if the loop made it (see :meth:`adopt_born`)."""
         piece = self.pieces[p]
-        return piece if piece is not None else self.make(model, self.unmade[p][0][0])
-
-    def make(self, model: "ParcelModel", skey: tuple) -> Piece:
-        """Make the piece the loop made for the support set ``skey`` a :class:`Piece`, in the model's cache as
-        :meth:`ParcelModel.piece_for` would have put it (its only piece)."""
-        p = model._unmade.pop(skey)
-        key, k_terms = self.unmade.pop(p)
-        sol = self.records[self.psol[p]].at(self.porigin[p].copy())
-        k = affine.FrictionConstants(k_terms, self.damping, sol.weight)
-        piece = Piece.of(np.array(skey, dtype=np.int64), sol, k, model.spec.mass, model.spec.inertia,
-                         tuple(self.rows[p].tolist()), skey)
-        model._pieces[key] = piece  # (piece.key: the same tuples, made from the same arrays)
-        model._by_support[skey] = [piece]
-        self.index[piece] = p
-        self.pieces[p] = piece
+        if piece is None:
+            self.make(model, self.unmade[p][0][0])
+            piece = self.pieces[p]
         return piece
+
+    def make(self, model: "ParcelModel", skey: tuple) -> None:
+        """Make the pieces the loop made for the support set ``skey`` :class:`Piece` objects, in the model's cache as
+        :meth:`ParcelModel.piece_for` would have put them: after the set's pieces made before, in the order the loop
+        made them (a set met again on other contacts has several; the first that holds is the one found)."""
+        for p in model._unmade.pop(skey):
+            key, k_terms = self.unmade.pop(p)
+            sol = self.records[self.psol[p]].at(self.porigin[p].copy())
+            k = affine.FrictionConstants(k_terms, self.damping, sol.weight)
+            piece = Piece.of(np.array(skey, dtype=np.int64), sol, k, model.spec.mass, model.spec.inertia,
+                             tuple(self.rows[p].tolist()), skey)
+            model._pieces[key] = piece  # (piece.key: the same tuples, made from the same arrays)
+            model._by_support.setdefault(skey, []).append(piece)
+            self.index[piece] = p
+            self.pieces[p] = piece
 
     def _room(self, keys: int = 0, ids: int = 0, pieces: int = 0, floats: int = 0, records: int = 0,
               patterns: int = 0) -> None:
@@ -499,7 +501,7 @@ class ParcelModel:
         self.weight = spec.weight(gravity)
         self._pieces: dict[tuple, Piece] = {}
         self._by_support: dict[tuple[int, ...], list[Piece]] = {}
-        self._unmade: dict[tuple[int, ...], int] = {}
+        self._unmade: dict[tuple[int, ...], list[int]] = {}  # pieces the compiled loop made, not yet asked for
         """Support sets whose one piece the compiled loop made and no one has asked for yet: the index of that piece in
         the table (:meth:`_PieceTable.make` makes it a :class:`Piece`, into the two dicts above)."""
         self._geometry = _GeometryCache(shared_solutions)
@@ -665,7 +667,7 @@ class ParcelModel:
     @property
     def pieces_cached(self) -> int:
         """Number of distinct (support set, contact set) pieces solved so far."""
-        return len(self._pieces) + len(self._unmade)
+        return len(self._pieces) + sum(map(len, self._unmade.values()))
 
     def rhs(self, t: float, y: np.ndarray) -> np.ndarray:
         """State derivative at ``y`` (looks the piece up; raises TippingError)."""
@@ -1017,6 +1019,14 @@ _MODE_CHATTER = 1000
 """Mode events in a row at one time (within 1e-12 s) after which a law with modes is said to chatter (a mode
 decided that its own events end at once): the run stops with an IntegrationError instead of looping."""
 
+_MODE_LOOP = True
+"""Whether :func:`_run_modes` takes its events in one compiled call (:func:`~virtual_vehicle.engine._modeloop.
+run_modes`) until it meets what only Python can do; False: every event in Python. The two runs are the same bit for
+bit (the compiled loop calls the same compiled functions with the same arrays); the tests compare them."""
+
+_LOG_ROWS = 256
+"""Events the compiled mode loop logs in one call before it hands back to Python to read them."""
+
 
 def _mode_tuple(wheels, mode, minv):
     """What the compiled engine takes for ``mode`` (as :func:`~virtual_vehicle.physics.stick_modes.decide_kernel`
@@ -1050,6 +1060,25 @@ def _mode_change_events(t, y, before, after, keys) -> list:
     return out
 
 
+def _replay(model, pieces, log_f, log_i, log_s, n_log, events, mode_events) -> None:
+    """Add the run's events and mode records of the compiled mode loop's log (:mod:`~virtual_vehicle.engine.
+    _modeloop`: ``n_log`` entries over ``pieces``, the table's) as :func:`_run_modes`' Python makes them."""
+    for (t, *y), (kind, a, b, ob, oa, n, flag) in zip(log_f[:n_log].tolist(), log_i[:n_log].tolist()):
+        before = tuple(log_s[ob:ob + n].tolist())
+        after = None if oa < 0 else tuple(log_s[oa:oa + n].tolist())
+        if kind == _modeloop.LOG_SUPPORT:
+            ev = diff_event(t, y[:6], pieces[a], pieces[b])
+            if ev is not None:
+                events.append(ev)
+            if flag:  # a wheel staying under the parcel changed its mode here
+                mode_events.append((t, "support", before, after))
+                events.extend(_mode_change_events(t, y[6:], before, after, _wheel_keys(model, pieces[b])))
+        else:
+            mode_events.append((t, "stick" if kind == _modeloop.LOG_STICK else "slip", before, after))
+            if after is not None:
+                events.extend(_mode_change_events(t, y[6:], before, after, _wheel_keys(model, pieces[a])))
+
+
 def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol, atol, max_step, dt,
                support=None) -> Trajectory:
     """Event mode for a law with modes (stick-slip): on each piece (support set) the law's wheels
@@ -1077,7 +1106,20 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     z = np.concatenate([y0, [0.0, 0.0, 0.0]])  # and the energy account: wheel work, friction, fixed steps' loss (J)
     kinetic_start = 0.5 * (mass * (y0[3] ** 2 + y0[4] ** 2) + inertia * y0[5] ** 2)
     segments = nfev = same_time = fallback_steps = chatter_steps = 0
-    ring = collections.deque(maxlen=_CHATTER_EVENTS)  # the last support changes: (time, cells under the parcel)
+    # the last support changes (time, the hash of the cells under the parcel), shared by the compiled loop
+    ring_t, ring_h, ring = np.zeros(_CHATTER_EVENTS), np.zeros(_CHATTER_EVENTS, np.int64), np.zeros(2, np.int64)
+    table = model._table if _MODE_LOOP else None
+    if _MODE_LOOP:
+        cells_grid, mu_static = model.cells.grid, spec.mu if spec.mu_static is None else spec.mu_static
+        grid = (cells_grid.points, cells_grid.order, cells_grid.start, float(cells_grid.lo[0]),
+                float(cells_grid.lo[1]), float(cells_grid.size), int(cells_grid.shape[0]), int(cells_grid.shape[1]),
+                _NO_MASK if model.present is None else model.present, float(model.segment_scales[0]))
+        radius, buffer, noise_length, noise_force = model.segment_scales
+        scales = (float(buffer), float(radius + 2 * buffer), float(noise_length), float(noise_force))
+        wheel_cells = (model.cells.wheel_active, model.cells.drive_directions, float(spec.mu), float(mu_static))
+        clock, same = np.zeros(1), np.zeros(1, np.int64)
+        log_f, log_i = np.empty((_LOG_ROWS, _modeloop.LOG_FLOATS)), np.empty((_LOG_ROWS, _modeloop.LOG_INTS), np.int64)
+        log_s = np.empty(4096, np.int64)
     h = t1 - t0
     status = "completed"
 
@@ -1131,62 +1173,114 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         if new_piece:
             seg = _Segment(model, piece, y_probe, seg)
             base = np.ascontiguousarray(y_probe, dtype=float)
-        md, n_ev = _mode_tuple(wheels, mode, minv)
-        first, h_abs = min(h, t1 - t), 0.0
-        while True:
-            (outcome, t, z8, h_abs, last, evals, rec.next, t_probe, y_probe, under, told,
-             which) = _kernel.run_mode(md, n_ev, seg.fields, base, t, z[:8], t1, h_abs, first, rtol, atol, max_step,
-                                       max_steps, rec.sample_times, rec.next, rec.samples)
-            z[:8] = z8
-            nfev += evals
-            first = 0.0
-            if last:
-                h = last
-            _check_outcome(outcome, t)
-            if progress is not None:
-                progress(t)
-            if outcome != _kernel.PAUSED:
+        if _MODE_LOOP:  # events in one compiled call until Python must act
+            if table is None:
+                table = model._table = _PieceTable(model, len(piece.row))
+            first, h_abs = min(h, t1 - t), 0.0
+            while True:
+                table.sync(model, piece)
+                p = table.index_of(model, piece)  # after the sync: both may grow the table's arrays
+                start = int(table.used[_kernel.U_PIECES])
+                if len(log_s) < 8 * len(mode[0]) + 256:
+                    log_s = np.empty(2 * (8 * len(mode[0]) + 256), np.int64)
+                clock[0], same[0] = (mode_events[-1][0] if mode_events else np.nan), same_time
+                (outcome, t, z8, p, h, h_abs, evals, rec.next, segments, n_log, _, born, y_probe, under, told, ids,
+                 candidates, center, base, mode, wheels, new_piece) = _modeloop.run_modes(
+                    table.arrays, table.law_args, wheel_cells, model.outline, scales, grid, p, wheels, mode, minv,
+                    seg.candidates, seg.center, seg.ids, base, t, z[:8].copy(), t1, h, h_abs, first, rtol, atol,
+                    max_step, max_steps, rec.sample_times, rec.next, rec.samples, segments, max_segments, ring_t,
+                    ring_h, ring, _CHATTER_SPAN, _CHATTER_PIECES, clock, same, _MODE_CHATTER, log_f, log_i, log_s)
+                z[:8] = z8
+                nfev += evals
+                same_time = int(same[0])
+                table.adopt_solved(model)  # before the pieces made from them
+                if born:
+                    table.adopt_born(model, start, born)
+                pieces = table.pieces
+                _replay(model, pieces, log_f, log_i, log_s, n_log, events, mode_events)
+                new = pieces[p]
+                if new is not piece or (center[0], center[1]) != seg.xy:  # (the loop's segment, as Python's)
+                    seg = _Segment.gathered(model, new, ids, candidates, center)
+                piece = new
+                _check_outcome(outcome, t)
+                if progress is not None:
+                    progress(t)
+                if outcome != _kernel.PAUSED:
+                    break
+                first = 0.0
+            if outcome in (_kernel.REACHED, _kernel.LOOP_DONE):
                 break
-        if outcome == _kernel.REACHED:
-            break
-        if outcome == _kernel.MODE_EVENT:
-            state, _, stick, rank, anchor, index = mode
-            slipping = int(np.count_nonzero(np.abs(state) == 1))
-            kind = "slip"
-            if which >= slipping:
-                kind = "stick"
-                new_mode = decide(wheels, t, z, *breaking_kernel(*wheels, minv, t, z[:6], state, stick, rank, anchor,
-                                                                 index, which - slipping))
-            else:
-                new_mode = decide(wheels, t, z)
-            same_time = same_time + 1 if mode_events and t - mode_events[-1][0] <= 1e-12 * max(1.0, t) else 0
-            if same_time > _MODE_CHATTER:
+            if outcome == _kernel.LOOP_TOO_MANY:
+                raise IntegrationError(f"more than {max_segments} support and mode changes: events accumulate near "
+                                       f"t={t:.9g} s")
+            if outcome == _modeloop.LOOP_MODE_CHATTER:
                 raise IntegrationError(f"stick-slip modes chatter at t={t:.9g} s")
-            before = tuple(state.tolist())
-            after = None if new_mode is None else tuple(new_mode[0].tolist())
-            mode_events.append((t, kind, before, after))
-            if after is not None:
-                events.extend(_mode_change_events(t, z[:6], before, after, _wheel_keys(model, piece)))
-            mode, new_piece = new_mode, False
-            if t >= t1:
+            if outcome == _modeloop.LOOP_UNDECIDED:
+                mode = None
+                if t >= t1:
+                    break
+                continue
+            if outcome == _kernel.LOOP_SEGMENT:
+                continue
+            # LOOP_MISS: a support event Python takes from the probe on
+        else:
+            md, n_ev = _mode_tuple(wheels, mode, minv)
+            first, h_abs = min(h, t1 - t), 0.0
+            while True:
+                (outcome, t, z8, h_abs, last, evals, rec.next, t_probe, y_probe, under, told,
+                 which) = _kernel.run_mode(md, n_ev, seg.fields, base, t, z[:8], t1, h_abs, first, rtol, atol,
+                                           max_step, max_steps, rec.sample_times, rec.next, rec.samples)
+                z[:8] = z8
+                nfev += evals
+                first = 0.0
+                if last:
+                    h = last
+                _check_outcome(outcome, t)
+                if progress is not None:
+                    progress(t)
+                if outcome != _kernel.PAUSED:
+                    break
+            if outcome == _kernel.REACHED:
                 break
-            continue
+            if outcome == _kernel.MODE_EVENT:
+                state, _, stick, rank, anchor, index = mode
+                slipping = int(np.count_nonzero(np.abs(state) == 1))
+                kind = "slip"
+                if which >= slipping:
+                    kind = "stick"
+                    new_mode = decide(wheels, t, z, *breaking_kernel(*wheels, minv, t, z[:6], state, stick, rank,
+                                                                     anchor, index, which - slipping))
+                else:
+                    new_mode = decide(wheels, t, z)
+                same_time = same_time + 1 if mode_events and t - mode_events[-1][0] <= 1e-12 * max(1.0, t) else 0
+                if same_time > _MODE_CHATTER:
+                    raise IntegrationError(f"stick-slip modes chatter at t={t:.9g} s")
+                before = tuple(state.tolist())
+                after = None if new_mode is None else tuple(new_mode[0].tolist())
+                mode_events.append((t, kind, before, after))
+                if after is not None:
+                    events.extend(_mode_change_events(t, z[:6], before, after, _wheel_keys(model, piece)))
+                mode, new_piece = new_mode, False
+                if t >= t1:
+                    break
+                continue
         try:
             new = model.piece_for(under, y_probe) if told else model.piece_at(y_probe)
         except TippingError as exc:
             events.append(Event(t, "tip", tuple(map(float, z[:6])), message=str(exc)))
             status = "tipped"
             break
+        if table is not None:
+            table.learn(model, new)  # so that the compiled loop finds it next time
         ev = diff_event(t, z[:6], piece, new)
         if ev is not None:
             events.append(ev)
-        ring.append((t, new.support.tobytes()))
-        if (len(ring) == _CHATTER_EVENTS and t - ring[0][0] <= _CHATTER_SPAN * max(1.0, abs(t))
-                and len({key for _, key in ring}) <= _CHATTER_PIECES):
+        key = _modeloop.support_hash(np.ascontiguousarray(new.support, dtype=np.int64))
+        if _modeloop.ring_event(ring_t, ring_h, ring, t, key, _CHATTER_SPAN, _CHATTER_PIECES, True):
             # support changes chatter (as in :func:`_run_event`: a parcel all but at rest with a footprint edge on a
             # cell's boundary, each piece's mode driving it back into the other, events a rounding step apart): cross
             # the boundary in fixed steps of the law's stepper, then locate events again
-            ring.clear()
+            ring[:] = 0
             contacts = law.wheel_contacts(model.cells, new.support, new.solution, model.velocities, spec.mu,
                                           spec.mu_static)
             t, status, steps = _undecided_steps(model, contacts, z, t, t1, dt, rec, events, progress)
