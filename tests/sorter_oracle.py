@@ -204,8 +204,17 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     head_on = (on & (state["dir"] >= 0) & (ahead_vid >= 0) & (ahead_vid < vid) & ~same_nb[rows, pd]
                & ((ahead_from == pd) | coming))
     back = np.where(on, np.maximum(state["back"] - 1, 0), 0)
-    bdir = np.where(head_on, (pd + across) % P, state["bdir"])
+    bdir = np.where(head_on, _away(open_side, pd, P), state["bdir"])
     back = np.where(head_on, sorter.back_ticks, back)
+    # Yield: a standing vehicle (not parked) that carries a cell an older vehicle asks for, or any vehicle while
+    # its own number is not due, gives way through the first port (lowest) such an asker is on: away from it, or
+    # aside when that side is closed.
+    standing = on & ((state["stop"] & none) <= sorter.reach) & (state["park"] > sorter.reach)
+    asking = (trusted & ~same_nb & (heard["req"] >= 0) & (heard["req"] != vid[:, None])
+              & ((heard["req"] < vid[:, None]) | ~turn[:, None]) & standing[:, None])
+    asked = asking.any(axis=1)
+    bdir = np.where(asked, _away(open_side, np.argmax(asking, axis=1), P), bdir)
+    back = np.where(asked, sorter.back_ticks, back)
     backing = (back > 0) & open_side[rows, np.maximum(bdir, 0)] & (bdir >= 0)
     prop_port = np.where(backing, bdir, prop_port)
     prop_d = np.where(backing, 0, prop_d)
@@ -333,6 +342,19 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
                  "hold": new_hold, "hdep": hdep, "hport": hport, "hage": hage, "ack": ack, "nxt": nxt,
                  "park": park, "back": back, "bdir": bdir, "said": said, "again": again}
     return new_state, out, wheels
+
+def _away(open_side, q, P):
+    """Per row, the port a vehicle gives way through from one on port ``q``: across from it if open, else the first
+    open one beside, nearest across first; across when none is open."""
+    rows = np.arange(len(q))
+    back = (q + P // 2) % P
+    out, found = back.copy(), np.zeros(len(q), dtype=bool)
+    for k in range(P // 2):
+        for port in ((back + k) % P, (back + P - k) % P):
+            ok = ~found & (port != q) & open_side[rows, port]
+            out, found = np.where(ok, port, out), found | ok
+    return out
+
 
 def _spread(sorter: Sorter, own, heard, same_nb, on):
     """Hops to the nearest cell of the same vehicle that said 0 (``own`` 0 here), forgotten beyond ``reach``."""

@@ -30,9 +30,23 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
   Parcels therefore keep ``gap`` free cells between them and do not collide. Two
   vehicles that meet head on would each hold what the other needs; a front cell that sees the cell ahead held for
   an older vehicle that asked from the far side (the held cell tells through which port it was asked), or carrying
-  an older vehicle coming this way, makes its vehicle back off for as long as ``gap + 1`` cells take. A hold
+  an older vehicle coming this way, makes its vehicle back off for as long as ``gap + 1`` cells take (straight
+  back, or aside when that side is closed). A hold
   lasts ``max_age`` ticks after the last request that renewed it (one tick on ideal rounds), so on a network that
   delivers a sentence only every few ticks the chain of holds ahead of a vehicle does not fall apart between them.
+- *Giving way* (liveness): the order every cell decides locally is the vehicle id, the tick the vehicle was made
+  (smaller is older). A standing vehicle (not parked) one of whose cells hears a request from an older vehicle, or
+  from any vehicle while its own sequence number is not due, gives way for as long as a back-off takes: away from
+  the asker, or through the first open side beside that way when it is closed (a one-way arrow, the edge, a hole).
+  Why no cycle of holds survives it: a vehicle waits on another whose cell, carried or held, is the first not its
+  own within ``gap + 1`` cells ahead of a front cell (:mod:`.holds`). An empty cell is held for the oldest vehicle
+  asking, re-decided every tick, so a wait on a held cell is a wait on an older vehicle; the ids of a cycle cannot
+  all decrease around it, so some member X waits on a younger Y, and then on a cell Y *carries*. X's request reaches
+  that cell (the cells before it are held for X, the oldest asking, and pass the request on ``gap + 1`` deep), so Y
+  hears an older asker and gives way, and X's way clears within ``gap + 1`` cells of Y's move. A cycle stands only
+  while such a Y cannot move at all: every side closed, or its way aside held by still older vehicles, or Y parked
+  (a parked vehicle does not give way: the sequence waits on it), which is what remains (tested on the stress
+  floors whose crossings formed cycles before).
 - *Exits*: a cell of the goal's exit lane drives the vehicle out through the lane's open side once the vehicle lies
   within the lane (no cell beside it, across the way out, is under the vehicle without belonging to the lane);
   until then such cells move the vehicle sideways into the lane. Nowhere else may a vehicle move over the edge: a
@@ -48,7 +62,8 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
   a dead cell that cuts a parcel's cells apart does not leave it carrying two ids that pull it two ways.
 - *One-way cells* (config ``forbid``: the port a parcel on the cell may not move toward): gradients are not
   followed against the arrow, and a side against an arrow under any carrying cell is closed to the whole vehicle.
-  Aisles drawn one-way cannot have two parcels meet head on (nor can a parcel back off against an arrow).
+  Aisles drawn one-way cannot have two parcels meet head on (a parcel does not back off against an arrow: it steps
+  aside, where it can).
 - *Sequencing* (parcels whose label carries a sequence number, :func:`encode_goal`): the number due next spreads
   through the array as the highest heard (word ``nxt``); the exit cell that lets a sequenced parcel out raises it
   to that parcel's number plus one. A parcel whose number is not yet due follows gradient :data:`PARK` to a parking

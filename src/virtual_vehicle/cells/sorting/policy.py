@@ -172,6 +172,20 @@ def _say(told, now, beat, i, q):
 
 
 @njit(cache=True)
+def _away(open_side, q, P):
+    """The port a vehicle gives way through from a vehicle on port ``q``: straight away from it (across from q)
+    if that side is open (``open_side``), else the first open one beside, nearest straight away first (one-way
+    aisles, the edge and parked parcels close the way back: a side step then clears the way); straight away
+    when none is open (the vehicle then cannot give way, and stands)."""
+    back = opposite(q, P)
+    for k in range(P // 2):
+        for port in ((back + k) % P, (back + P - k) % P):
+            if port != q and open_side[port]:
+                return port
+    return back
+
+
+@njit(cache=True)
 def step_cells(rows, inp, cfg, rules, old, new, out):
     """:meth:`~virtual_vehicle.cells.sorting.Sorter.step` for the cells ``rows``, one at a time, in the order of the
     rules (see :mod:`virtual_vehicle.cells.sorting`): hear, route (gradients), sequence, track, propose a direction
@@ -378,8 +392,20 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         head_on = (on and sdir >= 0 and ahead_vid >= 0 and ahead_vid < vid and not same_nb[pd]
                    and (ahead_from == pd or coming))
         back = max(s_back[i] - 1, 0) if on else 0
-        bdir = opposite(pd, P) if head_on else s_bdir[i]
+        bdir = _away(open_side, pd, P) if head_on else s_bdir[i]
         if head_on:
+            back = back_ticks
+        # yield: a standing vehicle that carries a cell an older vehicle asks for (or any vehicle, while its own
+        # number is not due) gives way, away from the asker or aside (the package notes: every cycle of holds has a
+        # member waiting on a cell a younger one carries, and that one gives way)
+        asker = NONE
+        standing = on and (s_stop[i] & none) <= reach and s_park[i] > reach
+        for q in range(P):
+            r = hreq[i, q] if (trusted[q] and not same_nb[q]) else NONE
+            if standing and r >= 0 and r != vid and (r < vid or not turn) and asker < 0:
+                asker = q
+        if asker >= 0:
+            bdir = _away(open_side, asker, P)
             back = back_ticks
         backing = back > 0 and open_side[max(bdir, 0)] and bdir >= 0
         if backing:
