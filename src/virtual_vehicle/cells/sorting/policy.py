@@ -49,11 +49,11 @@ Outputs = namedtuple("Outputs", "present sent wheels unsettled out_changed words
 """Where the sentences go (a presence mask and :class:`Words`), the (n, 2) wheel speeds (m/s), per row whether
 the state and the sentences changed, the bit mask of the words each sentence carries (n, P), and per row whether
 its state changed, but in none of the words the rules read back from the cell's own state (``vid``, ``goal``,
-``dir``, ``nxt``, ``hold``, ``hdep``, ``hport``, ``hage``, ``back``, ``bdir``): only in its clocks (the tick each
-port last heard, the repeats left), the words it heard (heard again, a sentence leaves them as they are), the words it
-last said (said again, they equal them) or the words every step computes afresh from those (the gradients, ``key``,
-``stop``, ``ack``, ``park``). Such a row, stepped again on the same inputs, reads what it read and changes nothing
-but its clocks (see :func:`tick_cells`). A rule that comes to read one of the latter back from the state moves it
+``dir``, ``nxt``, ``hold``, ``hdep``, ``hport``, ``hage``, ``back``, ``bdir``, ``stop``, ``park``): only in its
+clocks (the tick each port last heard, the repeats left), the words it heard (heard again, a sentence leaves them as
+they are), the words it last said (said again, they equal them) or the words every step computes afresh from those
+(the gradients, ``key``, ``ack``). Such a row, stepped again on the same inputs, reads what it read and changes
+nothing but its clocks (see :func:`tick_cells`). A rule that comes to read one of the latter back from the state moves it
 to the former in :func:`step_cells`."""
 ALL_WORDS = (1 << len(Words._fields)) - 1
 """The bit mask of every sentence word."""
@@ -540,20 +540,21 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             sent_new |= _put(o_ex, i, q, now[10])
             sent_new |= _put(o_blk, i, q, now[11])
         out_changed[i] = sent_new
-        # the state words the rules read back (held); the others (key, stop, ack, park, the gradients) and what
-        # the cell heard and said, a step on the same inputs computes again as this one did (see Outputs.ticking)
+        # the state words the rules read back (held; stop and park too: giving way reads whether the vehicle stands);
+        # the others (key, ack, the gradients) and what the cell heard and said, a step on the same inputs computes
+        # again as this one did (see Outputs.ticking)
         held = _put1(n_vid, s_vid, i, vid)
         held |= _put1(n_goal, s_goal, i, goal)
         held |= _put1(n_dir, s_dir, i, direction if (moving or direction >= 0) else NONE)
         changed |= _put1(n_key, s_key, i, key)
-        changed |= _put1(n_stop, s_stop, i, stop)
+        held |= _put1(n_stop, s_stop, i, stop)
         held |= _put1(n_hold, s_hold, i, new_hold)
         held |= _put1(n_hdep, s_hdep, i, hdep)
         held |= _put1(n_hport, s_hport, i, hport)
         held |= _put1(n_hage, s_hage, i, hage)
         changed |= _put1(n_ack, s_ack, i, ack)
         held |= _put1(n_nxt, s_nxt, i, nxt)
-        changed |= _put1(n_park, s_park, i, park)
+        held |= _put1(n_park, s_park, i, park)
         held |= _put1(n_back, s_back, i, back)
         held |= _put1(n_bdir, s_bdir, i, bdir)
         unsettled[i] = changed or held or clocks
