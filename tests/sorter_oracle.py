@@ -112,6 +112,11 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     best_vid = heard["vid"][rows, pick]
     nb_entry = np.where(has & (heard["ex"] == _ENTRY), heard["vid"], _HUGE)
     entry_min = _across(np.minimum, nb_entry) if P else np.full(n, _HUGE)
+    # A cell seeing only an edge of a vehicle no neighbour carries (a stale word gave it) takes its neighbours' one.
+    alone = lit & (vid >= 0) & ~np.asarray(inputs.sensors, dtype=bool)[:, 0] & found \
+        & ~(trusted & (heard["vid"] == vid[:, None])).any(axis=1)
+    vid[alone] = _NONE
+    goal[alone] = _NONE
     adopt = lit & (vid < 0) & found
     vid[adopt] = best_vid[adopt]
     goal[adopt] = heard["goal"][rows, pick][adopt]

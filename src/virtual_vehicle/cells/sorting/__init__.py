@@ -13,7 +13,10 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
   older vehicles) and the goal its label gives (a barcode reader at the entry: ``labels``); the cells of a new
   parcel settle on the smallest of the ids the entry cells made. A cell that starts seeing a parcel adopts the
   record (id, goal) of a neighbour whose vehicle is moving into it (else the smallest id heard); elsewhere a cell
-  never changes vehicle while it sees one. Cells under one vehicle agree on its direction: every cell proposes
+  never changes vehicle while it sees one, but for a cell that sees only an edge (its centre uncovered) of a
+  vehicle no neighbour carries: that parcel has gone (seen under sentence loss at the entry, where the next parcel
+  arrives at once), and the edge is the vehicle's a neighbour carries, which it takes. Cells under one vehicle agree on its
+  direction: every cell proposes
   (its distance to the goal, the port toward its closest neighbour); the smallest proposal (the front cell's)
   spreads through the vehicle within ``reach`` hops (hop-limited, so what a departed cell said is soon forgotten),
   the current direction preferred on a tie so the vehicle does not dither.

@@ -295,6 +295,15 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         entry_min = nb_entry[0]
         for q in range(1, P):
             entry_min = min(entry_min, nb_entry[q])
+        # a cell that sees only an edge (its centre uncovered) of a vehicle no neighbour carries holds a parcel that
+        # has gone (seen under sentence loss at the entry, where the next parcel arrives at once), and the edge is
+        # another's, which a neighbour carries; keeping the gone one's older id stood the new parcel behind it for
+        # ever, since it waits on older vehicles. It takes its neighbours' vehicle as a cell that starts seeing one
+        alone = lit and vid >= 0 and not sensors[i, 0] and found
+        for q in range(P):
+            alone = alone and not (trusted[q] and hvid[i, q] == vid)
+        if alone:
+            vid, goal = NONE, NONE
         if lit and vid < 0 and found:
             vid = best_vid
             goal = hgoal[i, pick]
