@@ -1060,23 +1060,24 @@ def _mode_change_events(t, y, before, after, keys) -> list:
     return out
 
 
-def _replay(model, pieces, log_f, log_i, log_s, n_log, events, mode_events) -> None:
+def _replay(model, piece, log_f, log_i, log_s, n_log, events, mode_events) -> None:
     """Add the run's events and mode records of the compiled mode loop's log (:mod:`~virtual_vehicle.engine.
-    _modeloop`: ``n_log`` entries over ``pieces``, the table's) as :func:`_run_modes`' Python makes them."""
+    _modeloop`: ``n_log`` entries over the table's pieces, ``piece(p)`` the p-th made if it is not yet) as
+    :func:`_run_modes`' Python makes them."""
     for (t, *y), (kind, a, b, ob, oa, n, flag) in zip(log_f[:n_log].tolist(), log_i[:n_log].tolist()):
         before = tuple(log_s[ob:ob + n].tolist())
         after = None if oa < 0 else tuple(log_s[oa:oa + n].tolist())
         if kind == _modeloop.LOG_SUPPORT:
-            ev = diff_event(t, y[:6], pieces[a], pieces[b])
+            ev = diff_event(t, y[:6], piece(a), piece(b))
             if ev is not None:
                 events.append(ev)
             if flag:  # a wheel staying under the parcel changed its mode here
                 mode_events.append((t, "support", before, after))
-                events.extend(_mode_change_events(t, y[6:], before, after, _wheel_keys(model, pieces[b])))
+                events.extend(_mode_change_events(t, y[6:], before, after, _wheel_keys(model, piece(b))))
         else:
             mode_events.append((t, "stick" if kind == _modeloop.LOG_STICK else "slip", before, after))
             if after is not None:
-                events.extend(_mode_change_events(t, y[6:], before, after, _wheel_keys(model, pieces[a])))
+                events.extend(_mode_change_events(t, y[6:], before, after, _wheel_keys(model, piece(a))))
 
 
 def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol, atol, max_step, dt,
@@ -1196,9 +1197,9 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
                 table.adopt_solved(model)  # before the pieces made from them
                 if born:
                     table.adopt_born(model, start, born)
-                pieces = table.pieces
-                _replay(model, pieces, log_f, log_i, log_s, n_log, events, mode_events)
-                new = pieces[p]
+                piece_of = partial(table.piece, model)  # (pieces the loop made are made when read)
+                _replay(model, piece_of, log_f, log_i, log_s, n_log, events, mode_events)
+                new = piece_of(p)
                 if new is not piece or (center[0], center[1]) != seg.xy:  # (the loop's segment, as Python's)
                     seg = _Segment.gathered(model, new, ids, candidates, center)
                 piece = new
