@@ -15,7 +15,7 @@ from virtual_vehicle.cells.network.messages import Mailbox, Schema
 from virtual_vehicle.cells.network.sentence import WordType
 from virtual_vehicle.config.scenario import load_scenario, parse_scenario
 from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.run.sim import ClockedRun, NetworkRun, resume, run
+from virtual_vehicle.run.sim import ClockedRun, FieldRun, NetworkRun, network_job, resume, run, run_kind
 from virtual_vehicle.run.tasks import sorting_report
 
 
@@ -49,6 +49,17 @@ def test_own_clocks_without_drift_or_jitter_are_the_synchronous_run_to_the_last_
     _same(run(setup), clocked)
     assert job.k == job.ticks  # one instant a period: every cell ticks at once
     assert clocked.summary()["network"]["clocks"]["cells_a_instant"] == setup.cells.n
+
+
+def test_the_kind_a_checkpoint_is_checked_against_is_the_kind_of_run_the_scenario_makes():
+    """Reading a checkpoint back refuses one whose scenario makes another kind of run (``run_kind``): that kind is
+    the one ``network_job`` makes, on one shared clock and on the cells' own, and a constant field's."""
+    shared = _scenario("prototype_18_network_ideal", 0.2).build()
+    own = _scenario("prototype_18_network_ideal", 0.2, drift=0.01, jitter=0.001, seed=3).build()
+    for setup, kind in ((shared, NetworkRun), (own, ClockedRun)):
+        assert type(network_job(setup)) is kind and run_kind(setup) == kind.KIND
+    assert run_kind(load_scenario("crossing_30x30")[0].build()) == FieldRun.KIND
+    assert len({NetworkRun.KIND, ClockedRun.KIND, FieldRun.KIND}) == 3
 
 
 @pytest.mark.parametrize("delivery", ["ideal", "wire"])

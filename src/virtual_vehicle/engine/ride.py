@@ -12,7 +12,7 @@ mode by DOP853 every control tick; :class:`RideStepper` proves a window has none
 closed form for all such parcels in one vectorised call. Every other window keeps the event-driven path.
 
 The wheels are held constant over a control tick (zero-order hold: a motor wheel is given the plant at its mean
-speed over the tick, :meth:`~virtual_vehicle.run.sim.TickedRun.finish`), so the twist the wheels make is constant
+speed over the tick, :meth:`~virtual_vehicle.run.network.TickedRun.finish`), so the twist the wheels make is constant
 over a window; a window whose wheels are not one rigid twist (a ramp that is not common to all of them included) is
 not a ride. A parcel's proof is kept from the anchor it was measured at (its pose and state, twist, cells, grip and
 the wheel velocities under those cells): a window checks only that those wheels are unchanged and that the margins

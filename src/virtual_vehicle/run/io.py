@@ -7,9 +7,9 @@ holds an unfinished run.
 
 A run folder holds ``trajectories``, ``events`` and, for networked runs, ``network`` and ``cell_traffic``, and
 ``cells`` when ``[sensors] record = true`` (columns and units: :mod:`virtual_vehicle.run.tables`), each as ``.parquet``
-and/or ``.csv``; ``summary.json`` (:meth:`~virtual_vehicle.run.sim.RunResult.summary`); ``scenario.toml`` (the scenario
-exactly as run, seeds included: ``virtual-vehicle run FOLDER/scenario.toml`` reproduces the run bit for bit on the
-same versions); ``run.json``: the versions of this package, Python, numpy, scipy and shapely, the scenario's name
+and/or ``.csv``; ``summary.json`` (:meth:`~virtual_vehicle.run.results.RunResult.summary`); ``scenario.toml`` (the
+scenario exactly as run, seeds included: ``virtual-vehicle run FOLDER/scenario.toml`` reproduces the run bit for bit on
+the same versions); ``run.json``: the versions of this package, Python, numpy, scipy and shapely, the scenario's name
 and seeds, and every file written with its size and SHA-256.
 """
 
@@ -23,7 +23,7 @@ from pathlib import Path
 from virtual_vehicle.config.scenario import dump_toml
 from virtual_vehicle.run import tables
 from virtual_vehicle.run.files import write_atomic
-from virtual_vehicle.run.sim import RunResult
+from virtual_vehicle.run.results import RunResult
 
 FORMATS = ("parquet", "csv")
 

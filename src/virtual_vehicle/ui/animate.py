@@ -36,7 +36,7 @@ from matplotlib.patches import Polygon as PolygonPatch  # noqa: E402
 from virtual_vehicle.cells.programs import program_of  # noqa: E402
 from virtual_vehicle.model.layout import cell_outlines  # noqa: E402
 from virtual_vehicle.run.interrupt import Interrupts, without_sigint  # noqa: E402
-from virtual_vehicle.run.sim import RunResult  # noqa: E402
+from virtual_vehicle.run.results import RunResult  # noqa: E402
 from virtual_vehicle.ui.viz import absent_cells, dead_cells, sorter_lanes  # noqa: E402
 
 SUFFIXES = (".mp4", ".gif")

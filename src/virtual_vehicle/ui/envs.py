@@ -8,7 +8,7 @@
   message to its neighbours.
 
 The task in both: bring each parcel to its target pose (x, y m, theta rad), by default the targets of a ``pose``
-scenario. Each decision is a control tick of a run (:class:`~virtual_vehicle.run.sim.TickedRun`, the same code a
+scenario. Each decision is a control tick of a run (:class:`~virtual_vehicle.run.network.TickedRun`, the same code a
 networked run ticks with), the agent's action in place of the cell programs and their network: the wheels hold
 their speeds for ``period`` s (zero-order hold; plain belts at their own speed, motor wheels through their
 dynamics, dead cells and stuck wheels still), the scenario's fault events and cell changes happen at their times,
@@ -37,7 +37,8 @@ from pettingzoo import ParallelEnv
 from virtual_vehicle.cells.design import twist_design
 from virtual_vehicle.config.scenario import Scenario, load_scenario
 from virtual_vehicle.errors import ScenarioError
-from virtual_vehicle.run.sim import CellLog, RunResult, TickedRun
+from virtual_vehicle.run.network import TickedRun
+from virtual_vehicle.run.results import CellLog, RunResult
 
 FALL_PENALTY = 10.0
 
@@ -51,7 +52,7 @@ class Episode:
     driven by wheel speeds set from outside every ``period`` s. ``start_noise`` = (m, rad) spreads each reset's
     starting poses uniformly.
 
-    Each decision is one control tick of :class:`~virtual_vehicle.run.sim.TickedRun`, the code a networked run
+    Each decision is one control tick of :class:`~virtual_vehicle.run.network.TickedRun`, the code a networked run
     ticks with, the agent's wheel speeds in place of the cell programs and their network: plain belts run at their
     own speed, motor wheels follow through their dynamics, the scenario's fault events and cell changes happen at
     their times (dead and absent cells do not drive, stuck wheels stay still), and the plant moves the parcels as the
@@ -166,7 +167,7 @@ class Episode:
                 "on_array": np.array(self.active)}
 
     def result(self) -> RunResult:
-        """The episode so far as a :class:`~virtual_vehicle.run.sim.RunResult`, e.g. for
+        """The episode so far as a :class:`~virtual_vehicle.run.results.RunResult`, e.g. for
         :func:`~virtual_vehicle.ui.animate.animate` or :func:`~virtual_vehicle.run.tables.build`: a sample per
         decision (and the Coulomb check there, as a run makes it at its output samples); its cell log has a row per
         decision (readings then, wheel speeds held from then) and a last row for now (wheels as last held)."""

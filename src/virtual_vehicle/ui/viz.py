@@ -18,7 +18,7 @@ from matplotlib.patches import Polygon as PolygonPatch  # noqa: E402
 from virtual_vehicle.cells.programs import program_of  # noqa: E402
 from virtual_vehicle.model.layout import cell_outlines  # noqa: E402
 from virtual_vehicle.run.files import write_atomic  # noqa: E402
-from virtual_vehicle.run.sim import RunResult  # noqa: E402
+from virtual_vehicle.run.results import RunResult  # noqa: E402
 
 
 def plot_paths(result: RunResult, path: str | Path | None = None, title: str | None = None, cell_ids: bool = False):

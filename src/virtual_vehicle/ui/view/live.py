@@ -1,5 +1,5 @@
 """The run under the viewer: :class:`LiveRun`, the same control tick as ``virtual-vehicle run``
-(:class:`~virtual_vehicle.run.sim.NetworkRun`), stepped from outside, and a record of what the viewer did to it.
+(:class:`~virtual_vehicle.run.network.NetworkRun`), stepped from outside, and a record of what the viewer did to it.
 
 A cell killed or revived is a ``[[faults.events]]`` table at the time of the next tick (a cell killed at t = 0 is
 one of ``[faults] dead_cells``); a parcel dropped at an entry is a ``[[parcels]]`` table with ``t_start`` = that time.
@@ -19,7 +19,9 @@ import shapely
 from scipy.spatial import cKDTree
 
 from virtual_vehicle.config.scenario import FaultEvent, ParcelEntry, Scenario, dump_toml, load_scenario, parse_text
-from virtual_vehicle.run.sim import NetworkRun, RunResult, carry_on
+from virtual_vehicle.run.jobs import carry_on
+from virtual_vehicle.run.network import NetworkRun
+from virtual_vehicle.run.results import RunResult
 from virtual_vehicle.ui.viz import absent_cells, dead_cells, sorter_lanes
 
 COLOUR_BY = ("traffic", "program state", "hop distance")

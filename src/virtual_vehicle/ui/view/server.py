@@ -15,7 +15,7 @@ import socket
 import time
 from typing import TYPE_CHECKING
 
-from virtual_vehicle.run.sim import RunResult
+from virtual_vehicle.run.results import RunResult
 from virtual_vehicle.ui.view.live import LiveRun
 
 if TYPE_CHECKING:
