@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from virtual_vehicle.cells.network.delivery import IdealRounds
 from virtual_vehicle.cells.network.messages import Mailbox, Schema
-from virtual_vehicle.cells.network.programs import CellInputs, ChangedCells, check_program
+from virtual_vehicle.cells.network.programs import CellInputs, ChangedCells, check_program, tree_map
 from virtual_vehicle.cells.network.sentence import WordType
 from virtual_vehicle.cells.network.topology import from_layout
 from virtual_vehicle.config.scenario import CellChange, FaultEvent, ReconfigurationSpec, load_scenario
@@ -548,6 +548,38 @@ def test_a_direction_key_naming_no_port_fails_in_both_sorters():
             program.step(state, inputs)
 
 
+def _leaves(st) -> list:
+    """A state's arrays, in the order of its sorted keys (nested dicts flattened)."""
+    return [a for k in sorted(st) for a in (_leaves(st[k]) if isinstance(st[k], dict) else [st[k]])]
+
+
+def _whole_and_quiet(program, state, inputs, out, wheels, quiet, partial):
+    """Step every row of the sorter ``program`` whole, and again (from copies of the same ``state``, sentences ``out``
+    and ``wheels``) offering the rows ``quiet`` to the clocks-only path; assert both give the same state, sentences,
+    wheels and masks. Returns the two runs' masks (whole first)."""
+    n = len(quiet)
+    runs = []
+    for given_quiet in (None, quiet):
+        mine = tree_map(np.copy, state)
+        box = Mailbox(out.schema, out.present.copy(), {w: a.copy() for w, a in out.values.items()},
+                      None if out.words is None else out.words.copy())
+        w = wheels.copy()
+        masks = program.step_rows(mine, inputs, np.arange(n), box, w,
+                                  np.zeros(n, bool) if given_quiet is None else given_quiet)
+        runs.append((_leaves(mine), box, w, masks))
+    (ref_leaves, ref_box, ref_wheels, ref_masks), (leaves, box, w, masks) = runs
+    for a, b in zip(leaves, ref_leaves, strict=True):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(box.arrays, ref_box.arrays, strict=True):
+        np.testing.assert_array_equal(a, b)
+    if partial:
+        np.testing.assert_array_equal(box.words, ref_box.words)
+    assert w.tobytes() == ref_wheels.tobytes()
+    for a, b in zip(masks[:3], ref_masks[:3], strict=True):
+        np.testing.assert_array_equal(a, b)
+    return ref_masks, masks
+
+
 def test_a_sorter_cell_whose_clocks_alone_run_ticks_them_as_its_whole_step_would():
     """Sorter.step_rows with ``quiet`` rows (their last step changed only their clocks, their sensors and labels are
     the same, the tick is not due for them) ticks only the clocks of those that hear nothing new, and that gives
@@ -555,11 +587,6 @@ def test_a_sorter_cell_whose_clocks_alone_run_ticks_them_as_its_whole_step_would
     ticks, then at the third (the one compared) some ports falling silent and some hearing a word changed; with and
     without parking cells, holds kept for a while and partial sentences. Some rows tick their clocks alone in these
     draws, and some quiet ones are stepped whole, or the comparison would mean nothing."""
-    from virtual_vehicle.cells.network.programs import tree_map
-
-    def _leaves(st):
-        return [a for k in sorted(st) for a in (_leaves(st[k]) if isinstance(st[k], dict) else [st[k]])]
-
     alone = whole = 0  # quiet rows that ticked their clocks alone, and that heard something new
     for seed in range(48):
         rng = np.random.default_rng(seed)
@@ -583,25 +610,7 @@ def test_a_sorter_cell_whose_clocks_alone_run_ticks_them_as_its_whole_step_would
         wheels = np.array(wheels)
         ticking = program.step_rows(state, at(1), np.arange(n), out, wheels, np.zeros(n, bool))[2]
         quiet = ticking & ~program.due(at(2).t, state, inputs.config)
-        runs = []
-        for given_quiet in (None, quiet):
-            mine = tree_map(np.copy, state)
-            box = Mailbox(out.schema, out.present.copy(), {w: a.copy() for w, a in out.values.items()},
-                          None if out.words is None else out.words.copy())
-            w = wheels.copy()
-            masks = program.step_rows(mine, at(2, inbox), np.arange(n), box, w,
-                                      np.zeros(n, bool) if given_quiet is None else given_quiet)
-            runs.append((_leaves(mine), box, w, masks))
-        (ref_leaves, ref_box, ref_wheels, ref_masks), (leaves, box, w, masks) = runs
-        for a, b in zip(leaves, ref_leaves, strict=True):
-            np.testing.assert_array_equal(a, b)
-        for a, b in zip(box.arrays, ref_box.arrays, strict=True):
-            np.testing.assert_array_equal(a, b)
-        if partial:
-            np.testing.assert_array_equal(box.words, ref_box.words)
-        assert w.tobytes() == ref_wheels.tobytes()
-        for a, b in zip(masks[:3], ref_masks[:3], strict=True):
-            np.testing.assert_array_equal(a, b)
+        ref_masks, masks = _whole_and_quiet(program, state, at(2, inbox), out, wheels, quiet, partial)
         assert not ref_masks[3].any() and not (masks[3] & ~quiet).any()
         alone += int(masks[3].sum())
         whole += int((quiet & ~masks[3]).sum())
@@ -617,11 +626,7 @@ def test_a_sorter_cell_that_read_back_nothing_new_ticks_its_clocks_as_its_whole_
     on most ports, the third (the one compared) mostly what the ports hold; heartbeats every third tick. Rows that
     ticked alone after hearing new words, rows at a heartbeat and rows whose trust ran out occur in these draws, or
     the comparison would mean nothing."""
-    from virtual_vehicle.cells.network.programs import tree_map
     from virtual_vehicle.cells.sorting.rules import heartbeat_due, tick_of
-
-    def _leaves(st):
-        return [a for k in sorted(st) for a in (_leaves(st[k]) if isinstance(st[k], dict) else [st[k]])]
 
     beats = stale = heard = 0  # rows ticked alone at a heartbeat / after hearing new words; quiet rows gone stale
     for seed in range(144):
@@ -657,25 +662,7 @@ def test_a_sorter_cell_that_read_back_nothing_new_ticks_its_clocks_as_its_whole_
                          for w, a in inputs.inbox.values.items()},
                         None if inputs.inbox.words is None else inputs.inbox.words.copy())
         due = program.due(at(2).t, state, inputs.config)
-        runs = []
-        for given_quiet in (None, quiet):
-            mine = tree_map(np.copy, state)
-            box = Mailbox(out.schema, out.present.copy(), {w: a.copy() for w, a in out.values.items()},
-                          None if out.words is None else out.words.copy())
-            w = wheels.copy()
-            masks = program.step_rows(mine, at(2, inbox), np.arange(n), box, w,
-                                      np.zeros(n, bool) if given_quiet is None else given_quiet)
-            runs.append((_leaves(mine), box, w, masks))
-        (ref_leaves, ref_box, ref_wheels, ref_masks), (leaves, box, w, masks) = runs
-        for a, b in zip(leaves, ref_leaves, strict=True):
-            np.testing.assert_array_equal(a, b)
-        for a, b in zip(box.arrays, ref_box.arrays, strict=True):
-            np.testing.assert_array_equal(a, b)
-        if partial:
-            np.testing.assert_array_equal(box.words, ref_box.words)
-        assert w.tobytes() == ref_wheels.tobytes()
-        for a, b in zip(masks[:3], ref_masks[:3], strict=True):
-            np.testing.assert_array_equal(a, b)
+        ref_masks, masks = _whole_and_quiet(program, state, at(2, inbox), out, wheels, quiet, partial)
         number = inputs.config["entry_no"]
         beat = heartbeat_due(tick + 2, number, 3) | heartbeat_due(tick + 1, number, 3)
         runs_out = np.any(tick + 2 - state["heard_at"] == program.trust + 1, axis=1)
