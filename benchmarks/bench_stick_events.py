@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from virtual_vehicle.engine import _kernel, _modeloop, dynamics
+from virtual_vehicle.engine import _kernel, dynamics
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
 from virtual_vehicle.physics import laws
@@ -68,6 +68,8 @@ def table() -> dict:
 def profile(repeat: int = 5) -> None:
     """Where the event-driven run's time goes: the compiled event loop (one call takes most events) against the
     Python around it (what it hands back: deciding the mode, the wheels of a new support set, the support lookup)."""
+    from virtual_vehicle.engine import _modeloop  # (here: alternate.py runs this file's run() on older packages)
+
     parts = {"compiled event loop (run_modes, all of it)": (_modeloop, "run_modes"),
              "compiled run_mode (integration, events)": (_kernel, "run_mode"),
              "decide_kernel (mode, projection, facets)": (dynamics, "decide_kernel"),
