@@ -1642,6 +1642,19 @@ def table_add_piece_of(slots, kmeta, ipool, psol, porigin, pnext, pkey, rows, us
 
 
 @njit(cache=True)
+def piece_segment(srec, fpool, j, origin, kind, convex, half, normals, offsets, vertices, candidates, center, buffer,
+                  reach, noise_length, noise_force, ids):
+    """The segment fields :func:`run_piece` and the mode loop take for a piece whose solution is the table's record
+    ``j`` (its local origin ``origin``, m): the footprint's and candidates' fields with the record's plane, hull and
+    spring arrays."""
+    _, basis, plane_lin, plane_const, hull_normals, hull_offsets, spring_lin, spring_gradient, _, _, _, _ = \
+        _record_arrays(srec, fpool, j)
+    return (kind, convex, half, normals, offsets, vertices, candidates, origin, basis, plane_lin, plane_const,
+            hull_normals, hull_offsets, center, buffer, reach, noise_length, noise_force, spring_lin, spring_gradient,
+            ids)
+
+
+@njit(cache=True)
 def _record_arrays(srec, fpool, j):
     """Record ``j``'s arrays as views of ``fpool``: weight, basis, plane_lin, plane_const, hull_normals,
     hull_offsets, spring_lin, spring_gradient, points, force_lin, force_const, holding."""
@@ -1863,11 +1876,8 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
             y_base = y_probe
             first_step, h_abs = min(h, t_bound - t), 0.0
         begin = True
-        _, basis, plane_lin, plane_const, hull_normals, hull_offsets, spring_lin, spring_gradient, _, _, _, _ = \
-            _record_arrays(srec, fpool, psol[p])
-        seg = (kind, convex, half, normals, offsets, vertices, candidates, porigin[p], basis, plane_lin, plane_const,
-               hull_normals, hull_offsets, center, buffer, reach, noise_length, noise_force, spring_lin,
-               spring_gradient, ids)
+        seg = piece_segment(srec, fpool, psol[p], porigin[p], kind, convex, half, normals, offsets, vertices,
+                            candidates, center, buffer, reach, noise_length, noise_force, ids)
         (outcome, t, y, h_abs, last, evals, next_sample, t_probe, y_probe, under,
          told) = run_piece(rows[p], seg, y_base, t, y, t_bound, h_abs, first_step, rtol, atol, max_step, max_steps,
                            sample_times, next_sample, samples)

@@ -38,6 +38,7 @@ from virtual_vehicle.engine._kernel import (
     _terms_and_row,
     cell_margins,
     pattern,
+    piece_segment,
     run_mode,
     table_add_piece,
     table_find,
@@ -252,11 +253,8 @@ def run_modes(tab, law, wheel_cells, footprint, scales, grid, p, wheels, mode, m
     while True:  # (the log has room for this mode's event: Python's first iteration starts it empty)
         m = state.shape[0]
         new_piece = False
-        _, basis, plane_lin, plane_const, hull_normals, hull_offsets, spring_lin, spring_gradient, _, _, _, _ = \
-            _record_arrays(srec, fpool, psol[p])
-        seg = (kind, convex, half, normals, offsets, vertices, candidates, porigin[p], basis, plane_lin, plane_const,
-               hull_normals, hull_offsets, center, buffer, reach, noise_length, noise_force, spring_lin,
-               spring_gradient, ids)
+        seg = piece_segment(srec, fpool, psol[p], porigin[p], kind, convex, half, normals, offsets, vertices,
+                            candidates, center, buffer, reach, noise_length, noise_force, ids)
         md = (P, U, w0, wa, t0, FL, FC, origin, mus, muk, state, stick[rows], stick, rank, anchor, index, minv)
         slipping = 0
         for j in range(m):
