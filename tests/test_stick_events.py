@@ -175,6 +175,38 @@ def test_a_run_split_into_ticks_is_the_same_run():
     np.testing.assert_allclose(y, whole.states[-1], atol=1e-9)
 
 
+def test_models_of_new_wheels_each_tick_run_as_fresh_models():
+    """A plant makes its parcels' models again every control tick (other wheel velocities): each copy takes over the
+    compiled loop's table of the copy before it. Tick by tick under a changing field, the copies' runs equal fresh
+    models' (sharing the solved supports as the copies do) bit for bit, and a copy run again after the next one took
+    its table runs as a fresh model does then."""
+    cells = layout.grid(10, 8, 0.1)
+    spec = parcel.rectangle(0.33, 0.27, 1.3, 0.3, mu_static=0.6)
+    field = fields.Inward((0.45, 0.35), 0.2).velocities(cells)
+    base = stick_slip(cells, spec, field)
+    store: dict = {}
+    y_copy = y_fresh = np.array([0.42, 0.33, 0.2, 0.0, 0.0, 0.0])
+    before, crossed = None, 0
+    for k in range(40):
+        V = field * (1.0 + 0.5 * np.sin(0.7 * k))  # the wheels change every tick
+        t0, t1 = k * 0.01, (k + 1) * 0.01
+        copy = base.with_velocities(V)
+        ran = integrate(copy, y_copy, t0, t1, sample_dt=0.005)
+        fresh = integrate(ParcelModel(cells, spec, V, laws.StickSlipLaw(), G, store), y_fresh, t0, t1,
+                          sample_dt=0.005)
+        assert np.array_equal(ran.states, fresh.states) and ran.events == fresh.events
+        if before is not None:  # the copy before, whose table this one took, run again: as a fresh model now
+            model, V_before, y = before
+            again = integrate(model, y, t0 - 0.01, t0, sample_dt=0.005)
+            now = integrate(ParcelModel(cells, spec, V_before, laws.StickSlipLaw(), G, store), y, t0 - 0.01, t0,
+                            sample_dt=0.005)
+            assert np.array_equal(again.states, now.states) and again.events == now.events
+        before = copy, V, y_copy
+        y_copy, y_fresh = ran.states[-1], fresh.states[-1]
+        crossed += len(support_events(ran))
+    assert crossed > 0  # the loop met support changes, where the table matters
+
+
 @pytest.mark.parametrize("mu_static", [0.4, 0.5])
 def test_fixed_step_law_converges_through_stick_breaks_and_a_lift_off(mu_static):
     """A kicked turn: one cell's wheel faster than the rest slips, the seven others ride until the centripetal

@@ -173,6 +173,7 @@ class _PieceTable:
                          float(spec.mu), float(self.damping), 1.0 / spec.mass, 1.0 / spec.inertia,
                          np.empty((self.spare, affine._TERMS)), float(model.weight),
                          np.zeros((self.spare + 1, 2), np.int64), np.zeros((self.spare, 2)))
+        self.owner: ParcelModel | None = None  # the model whose pieces the table holds (see renew)
         self.clear()
 
     def clear(self) -> None:
@@ -236,6 +237,35 @@ class _PieceTable:
                 or n_floats + floats > len(self.fpool)):
             self._room(pieces=spare, keys=spare, ids=ids, records=spare, patterns=spare, floats=floats)
         return emptied
+
+    def renew(self, model: "ParcelModel") -> None:
+        """Take the table over for ``model``, a copy of its owner under other wheel velocities (a plant makes its
+        parcels' models again every control tick): the solved patterns and their records, which depend only on the
+        supports' geometry, stay; the pieces, whose friction constants depend on the wheels, go. A 10 ms window of a
+        catching-up parcel otherwise built a table from nothing (its arrays grown from their first size, the store's
+        patterns copied in again): ~60 % of such a window's Python. The owner's piece cache is emptied with it (as
+        :meth:`sync` empties both), so that, should it run again, it runs as it first did, from nothing cached."""
+        previous = self.owner
+        if previous is not None:  # its piece cache goes with the table, as sync empties both
+            previous._pieces, previous._by_support, previous._unmade = {}, {}, {}
+            previous._table = None
+        used = self.used
+        if used[_kernel.U_RECORDS] > self.max_pieces:  # bounded memory, as sync bounds the pieces
+            self.clear()
+        else:  # the patterns' ids moved to the front of the pool, the support sets' ids dropped
+            n_patterns = int(used[_kernel.U_PATTERNS])
+            spans = self.gmeta[:n_patterns, :2].tolist()
+            kept = [self.ipool[off:off + n] for off, n in spans]
+            ids = np.concatenate(kept) if kept else np.zeros(0, np.int64)
+            self.ipool[:len(ids)] = ids
+            self.gmeta[:n_patterns, 0] = np.cumsum([0] + [n for _, n in spans[:-1]]) if spans else 0
+            used[_kernel.U_IDS] = len(ids)
+            used[_kernel.U_PIECES] = used[_kernel.U_KEYS] = 0
+            self.slots.fill(-1)
+            self.index, self.pieces, self.unmade = {}, [], {}
+            self.mirrored, self.solves = 0, -1
+        self.law_args = (*self.law_args[:3], _readonly(model.velocities), *self.law_args[4:])
+        self.owner = model
 
     mirror_limit = 32
     """Patterns in the model's store up to which a table that does not mirror it (new, emptied, or behind a copy of
@@ -506,6 +536,9 @@ class ParcelModel:
         the table (:meth:`_PieceTable.make` makes it a :class:`Piece`, into the two dicts above)."""
         self._geometry = _GeometryCache(shared_solutions)
         self._table: _PieceTable | None = None
+        self._table_home: list[_PieceTable | None] = [None]
+        """The table this model or one of its :meth:`with_velocities` copies (which share this list) made last:
+        the next of them to need one takes it over (:meth:`_PieceTable.renew`) instead of building one."""
         self.present: np.ndarray | None = None
         """(n,) False for contacts of cells taken out of the array (reconfiguration): they carry nothing. None: all
         present. Set by the plant between integrate calls."""
@@ -663,6 +696,16 @@ class ParcelModel:
         spec = self.spec
         return self.law.constants_and_row(sol, velocities, self.cells.active_directions[support], spec.mu, spec.mass,
                                           spec.inertia)
+
+    def _new_table(self, row_length: int) -> _PieceTable:
+        """The compiled loop's table for this model, which has none: the one its copies made last, renewed for its
+        wheels, or a new one."""
+        table = self._table_home[0]
+        if table is None or table.row_length != row_length:
+            table = _PieceTable(self, row_length)
+        table.renew(self)
+        self._table = self._table_home[0] = table
+        return table
 
     @property
     def pieces_cached(self) -> int:
@@ -926,7 +969,7 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             if outcome != _kernel.PAUSED:
                 break
         if outcome == _kernel.EVENT:  # as the loop would have met it: the chatter test's first event, then a miss
-            table = model._table = _PieceTable(model, len(piece.row))
+            table = model._new_table(len(piece.row))
             table.sync(model, piece)
             ring_t[0], ring_p[0], ring[:] = t, table.index_of(model, piece), 1
             outcome = _kernel.LOOP_MISS
@@ -1176,7 +1219,7 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             base = np.ascontiguousarray(y_probe, dtype=float)
         if _MODE_LOOP:  # events in one compiled call until Python must act
             if table is None:
-                table = model._table = _PieceTable(model, len(piece.row))
+                table = model._new_table(len(piece.row))
             first, h_abs = min(h, t1 - t), 0.0
             while True:
                 table.sync(model, piece)
