@@ -5,7 +5,11 @@ set), the compiled policy on them, and the delivery of what they said. Prints ns
 cells, what a tick costs the hall), ticks per second of the cells' part, and the active fraction (cells stepped
 over cells; and the cells whose clocks alone ticked). Asserts nothing about time. The machine's load moves these figures: take the best of a few runs.
 
-Run: ``python benchmarks/bench_sorter_tick.py [--seconds 1] [--law viscous|stick_slip]``.
+``--settle K`` leaves the first K ticks (start-up: the gradients spread, most cells step) out of the figures;
+``--clock process`` counts the process's CPU time instead of the wall's (steadier on a loaded machine).
+
+Run: ``python benchmarks/bench_sorter_tick.py [--seconds 1] [--law viscous|stick_slip] [--settle 20]
+[--clock wall|process]``.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_scale import scenario  # noqa: E402
 
 
-def measure(side: int, parcels: int, seconds: float, law: str) -> dict:
+def measure(side: int, parcels: int, seconds: float, law: str, settle: int = 0, clock=time.perf_counter) -> dict:
     """Run the hall; the seconds spent in each piece of the cells' part of its ticks, and the cells stepped."""
     import virtual_vehicle.run.network as network
     import virtual_vehicle.run.sim as sim
@@ -36,14 +40,24 @@ def measure(side: int, parcels: int, seconds: float, law: str) -> dict:
 
     def timed(name, f):
         def run(*a, **k):
-            start = time.perf_counter()
+            start = clock()
             try:
                 return f(*a, **k)
             finally:
-                spent[name] += time.perf_counter() - start
+                spent[name] += clock() - start
         return run
 
-    job.begin = timed("sensors", job.begin)  # faults, arrivals and the sensors read
+    begin = timed("sensors", job.begin)
+    counted = {"ticks": 0, "stepped": 0, "ticked": 0}
+
+    def settled(*a, **k):  # the figures from tick ``settle`` on
+        if job.k == settle:
+            spent.clear()
+            if job.stepper is not None:
+                counted.update(ticks=job.stepper.ticks, stepped=job.stepper.stepped, ticked=job.stepper.ticked)
+        return begin(*a, **k)
+
+    job.begin = settled  # faults, arrivals and the sensors read
     labels = network._labels  # where the tick looks it up
     network._labels = timed("labels", labels)
     decide = job._decide
@@ -57,14 +71,17 @@ def measure(side: int, parcels: int, seconds: float, law: str) -> dict:
         job.run(None)
     finally:
         network._labels = labels
-    ticks = job.k
+    ticks = job.k - settle
+    seconds = ticks * setup.control.period
     n = setup.cells.n
-    stepped = job.stepper.stepped / max(1, job.stepper.ticks) if job.stepper is not None else n
+    stepped = ((job.stepper.stepped - counted["stepped"]) / max(1, job.stepper.ticks - counted["ticks"])
+               if job.stepper is not None else n)
     cells_part = spent["decide"] + spent["sensors"]
     parts = {"sensors": spent["sensors"], "labels": spent["labels"], "active set": spent["stepper"] - spent["policy"],
              "policy": spent["policy"], "delivery": spent["delivery"],
              "rest of the decision": spent["decide"] - spent["labels"] - spent["stepper"] - spent["delivery"]}
-    clocks = getattr(job.stepper, "ticked", 0) / max(1, job.stepper.ticks) if job.stepper is not None else 0
+    clocks = ((getattr(job.stepper, "ticked", 0) - counted["ticked"]) / max(1, job.stepper.ticks - counted["ticks"])
+              if job.stepper is not None else 0)
     return {"cells": n, "parcels": parcels, "ticks": ticks, "law": law, "active_fraction": stepped / n,
             "clocks_only_fraction": clocks / n,
             "ns_per_cell_tick": 1e9 * cells_part / (ticks * n),
@@ -78,8 +95,11 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=1.0)
     ap.add_argument("--parcels", type=int, default=200)
     ap.add_argument("--law", choices=("viscous", "stick_slip"), default="viscous")
+    ap.add_argument("--settle", type=int, default=0)
+    ap.add_argument("--clock", choices=("wall", "process"), default="wall")
     args = ap.parse_args()
-    print(json.dumps(measure(100, args.parcels, args.seconds, args.law), indent=1))
+    clock = time.perf_counter if args.clock == "wall" else time.process_time
+    print(json.dumps(measure(100, args.parcels, args.seconds, args.law, args.settle, clock), indent=1))
 
 
 if __name__ == "__main__":

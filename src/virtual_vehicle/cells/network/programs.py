@@ -282,6 +282,11 @@ class ChangedCells:
     cells it did so. Such a cell stays stepped every tick while its clocks run, but for a fraction of a step's
     cost.
 
+    A program whose ``due`` names cells by their clocks may offer ``calendar(n, config)``: an object kept from one
+    tick to the next (made afresh at every tick that steps every cell, ``restart(t, state)``) whose ``due(t, state)``
+    equals the program's ``due`` and which is told the cells stepped (``stepped(t, state, rows)``), so that finding
+    the cells the time wakes costs the cells stepped and due, not the array.
+
     When more than ``full_share`` of the cells would be stepped (a lossy network, a floor in turmoil), gathering them
     costs more than it saves, and so does comparing: every cell is then stepped without comparing anything for
     1, 2, 4, ... up to ``max_backoff`` ticks in a row (the count doubles each time it happens again, and starts
@@ -345,8 +350,12 @@ class ChangedCells:
         sensed = rows_differ([sensors], [last["sensors"]], n)  # the inputs that changed, but the inbox
         if labels is not None:
             sensed |= labels != last["labels"]
-        due = getattr(self.program, "due", None)  # cells the time wakes (a heartbeat), whatever changed
-        woken = None if due is None else due(inputs.t, state, inputs.config)
+        calendar = last.get("calendar")
+        if calendar is not None:  # the cells the time wakes, from those due now (the program's own calendar)
+            woken = calendar.due(inputs.t, state)
+        else:
+            due = getattr(self.program, "due", None)  # cells the time wakes (a heartbeat), whatever changed
+            woken = None if due is None else due(inputs.t, state, inputs.config)
         moved = sensed if woken is None else sensed | woken
         changed = last["unsettled"] | moved | inbox_changed
         rows = np.flatnonzero(changed)
@@ -371,6 +380,8 @@ class ChangedCells:
         else:
             masks = None if step_rows is None else step_rows(state, inputs, rows, outbox, wheels)
         if masks is not None:  # stepped in place: nothing gathered, compared or written back here
+            if calendar is not None:
+                calendar.stepped(inputs.t, state, rows)
             last["unsettled"], out_changed = masks[:2]
             if clocks:
                 last["ticking"] = masks[2]
@@ -397,6 +408,8 @@ class ChangedCells:
         _put_rows([*leaves, *boxes, wheels], [*new_leaves, *new_boxes, np.asarray(sub_wheels, dtype=float)], rows,
                   n)
         last["unsettled"] = unsettled
+        if calendar is not None:
+            calendar.stepped(inputs.t, state, rows)
         return state, outbox, wheels, out_changed
 
     def _plain(self, state, inputs, n: int):
@@ -427,6 +440,10 @@ class ChangedCells:
         self.last = {"state": new, "leaves": fresh, "connected": inputs.connected, "config": inputs.config,
                      "per_cell": per_cell, "unsettled": unsettled, "outbox": outbox,
                      "wheels": np.array(wheels, dtype=float)}
+        calendar = getattr(self.program, "calendar", None)
+        if calendar is not None:  # every cell stepped: every cell filed afresh
+            self.last["calendar"] = calendar(n, inputs.config)
+            self.last["calendar"].restart(inputs.t, new)
         self._remember(inputs, sensors, labels, keep_inbox)
         return new, outbox, self.last["wheels"], out_changed
 

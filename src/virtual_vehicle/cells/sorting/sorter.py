@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from virtual_vehicle.cells.network.messages import DTYPE, Mailbox, Schema
+from virtual_vehicle.cells.network.messages import DTYPE, Mailbox, Schema, rows_any
 from virtual_vehicle.cells.network.programs import UNREACHABLE, CellInputs
 from virtual_vehicle.cells.network.sentence import WordType
 from virtual_vehicle.cells.sorting import policy
+from virtual_vehicle.cells.sorting.calendar import DueCalendar
 from virtual_vehicle.cells.sorting.rules import BIG, MAX_EXITS, NONE, back_off_ticks, heartbeat_due, tick_of
 
 
@@ -139,6 +140,13 @@ class Sorter:
             woken |= heartbeat_due(tick - 1, number, self.heartbeat_ticks)
         return woken
 
+    def calendar(self, n: int, config: dict) -> DueCalendar:
+        """A calendar of the cells :meth:`due` names, kept as the cells are stepped (what
+        :class:`~virtual_vehicle.cells.network.programs.ChangedCells` asks instead of :meth:`due` over every cell
+        every tick; :class:`~virtual_vehicle.cells.sorting.calendar.DueCalendar`), for ``n`` cells configured by
+        ``config``."""
+        return DueCalendar(n, self.period, self.trust, self.heartbeat_ticks, config.get("entry_no", 0))
+
     def step(self, state, inputs: CellInputs):
         """One control tick for every cell at once: new state, the sentences to send, and the (n, 2) wheel speeds (m/s
         along each drive direction); see :class:`~virtual_vehicle.cells.network.programs.CellProgram`. Compiled
@@ -193,17 +201,17 @@ class Sorter:
         if park is not None and np.broadcast_to(np.asarray(park, dtype=bool), (n,))[rows].any():
             light[:] = False
         tick = tick_of(inputs.t, self.period)
-        number = _arg(inputs.config["entry_no"] if "entry_no" in inputs.config else np.zeros(n), np.int64)
+        number = _arg(inputs.config.get("entry_no", _filled((n,), 0, np.int64)), np.int64)
         if self.partial:  # a heartbeat then says every word: a whole step
             light &= ~heartbeat_due(tick, number[rows], self.heartbeat_ticks)
         # a neighbour's last sentence that stops being trusted now changes what the rules read: a whole step (the
         # rest of what due() wakes a cell for, a heartbeat that only sends and the tick after it, tick_cells does)
-        light[light] = ~np.any(tick - state["heard_at"][rows[light]] == self.trust + 1, axis=1)
+        light[light] = ~rows_any(state["heard_at"][rows[light]] == tick - self.trust - 1)  # (numpy's any is slow)
         unsettled, out_changed, ticking = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
         if light.any():  # first the clocks of the rows that hear nothing new, then the others whole
             done = np.zeros(n, bool)
             inbox = inputs.inbox
-            carried = (np.full(inbox.present.shape, policy.ALL_WORDS, np.int64) if inbox.words is None
+            carried = (_filled(inbox.present.shape, policy.ALL_WORDS, np.int64) if inbox.words is None
                        else _arg(inbox.words, np.int64))
             words = policy.Words(*(_arg(inbox.values[w], t) for w, t in zip(self._words, self._types)))
             policy.tick_cells(rows[light], policy.Inputs(_arg(inbox.present, bool), words,
@@ -241,11 +249,10 @@ class Sorter:
         cfg = inputs.config
 
         def cells(name, default, dtype):
-            return _arg(cfg[name] if name in cfg else default, dtype)
+            return _arg(cfg[name] if name in cfg else _filled((n,), default, dtype), dtype)
 
-
-        labels = np.full(n, NONE) if getattr(inputs, "labels", None) is None else inputs.labels
-        carried = np.full((n, P), policy.ALL_WORDS, np.int64) if inbox.words is None else _arg(inbox.words, np.int64)
+        labels = _filled((n,), NONE, np.int64) if getattr(inputs, "labels", None) is None else inputs.labels
+        carried = _filled((n, P), policy.ALL_WORDS, np.int64) if inbox.words is None else _arg(inbox.words, np.int64)
         words_out = np.empty((n, P), np.int64) if out.words is None else out.words  # scratch when not partial
         unsettled, out_changed, ticking = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
         policy.step_cells(
@@ -253,11 +260,11 @@ class Sorter:
             policy.Inputs(_arg(inbox.present, bool),
                           policy.Words(*(_arg(inbox.values[w], t) for w, t in zip(self._words, self._types))),
                           _arg(inputs.sensors, bool), _arg(inputs.connected, bool), carried),
-            policy.Config(cells("exit", np.full(n, NONE), np.int64), cells("exit_port", np.full(n, NONE), np.int64),
-                          cells("entry", np.zeros(n, bool), bool), cells("entry_no", np.zeros(n), np.int64),
-                          cells("park", np.zeros(n, bool), bool), cells("forbid", np.full(n, NONE), np.int64),
+            policy.Config(cells("exit", NONE, np.int64), cells("exit_port", NONE, np.int64),
+                          cells("entry", False, bool), cells("entry_no", 0, np.int64),
+                          cells("park", False, bool), cells("forbid", NONE, np.int64),
                           _arg(labels, np.int64),
-                          cells("inner", inputs.connected, bool)),
+                          _arg(cfg["inner"] if "inner" in cfg else inputs.connected, bool)),
             policy.Rules(tick_of(inputs.t, self.period), self.max_age, self.edge_cost, self.reach, self.gap,
                          self.back_ticks, self.speed, self.heartbeat_ticks, self.trust,
                          self.repeats, self.partial),
@@ -276,6 +283,21 @@ def _check_ports(P: int, reach: int) -> None:
     if P == 6 and reach > 30:
         raise ValueError(f"on a hexagonal lattice the sorter's reach is at most 30 hops (got {reach}): a hop count "
                          "packs into five bits beside the six ports")
+
+
+def _filled(shape: tuple, value, dtype) -> np.ndarray:
+    """An array of ``shape`` filled with ``value`` of ``dtype``, made once and kept (the step only reads these: the
+    words a full sentence carries, a configuration's defaults), instead of anew every tick."""
+    key = (shape, value, np.dtype(dtype))
+    a = _FILLED.get(key)
+    if a is None:
+        if len(_FILLED) > 64:  # (arrays of other sizes: a few runs' worth)
+            _FILLED.clear()
+        a = _FILLED[key] = np.full(shape, value, dtype)
+    return a
+
+
+_FILLED: dict = {}
 
 
 def _arg(a, dtype) -> np.ndarray:
