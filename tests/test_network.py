@@ -195,3 +195,49 @@ def test_a_superseded_partial_sentence_hands_its_words_to_the_newer_one():
     # tick 1's hops went out with a later sentence, at the port's value then (0), and value is the last one
     assert heard["hops"] == 0 and heard["value"] == 129
     assert stats.extra["queued"] == 0
+
+
+def _partial(n, sends, values):
+    """A partial mailbox: sends {(cell, port): word mask}; values {(cell, port): (value, hops)}, every port's words
+    now (sent or not)."""
+    box = Mailbox.empty(SCHEMA, n, 4)
+    box.words = np.zeros((n, 4), dtype=np.int64)
+    for (i, p), (v, h) in values.items():
+        box.values["value"][i, p], box.values["hops"][i, p] = v, h
+    for (i, p), mask in sends.items():
+        box.present[i, p] = True
+        box.words[i, p] = mask
+    return box
+
+
+def test_words_of_a_given_up_partial_sentence_are_said_again_at_their_value_then():
+    """A sender that gives up a partial sentence (its neighbour did not answer) owes that port the words: with the
+    port's next sentence, or alone the next tick, at the port's values then. Otherwise a word said only when it
+    changes stays at its older value at the neighbour until it changes again (a stale "no hold")."""
+    p = WireParams(max_attempts=2)
+    grid = from_layout(layout.grid(2, 1, 0.1))
+    w = WireLevel(grid.with_faults(dead_links=[(0, EAST)]), p)
+    inbox, stats = w.exchange(_partial(2, {(0, EAST): 0b10}, {(0, EAST): (5, 7)}), 0.0, 0.01)
+    assert stats.dropped == 1 and not inbox.present.any()  # given up: the link is down
+    w.set_topology(grid)  # the link is back
+    inbox, stats = w.exchange(_partial(2, {}, {(0, EAST): (6, 9)}), 0.01, 0.01)  # the cell says nothing new
+    assert inbox.present[1, WEST] and inbox.words[1, WEST] == 0b10 and inbox.values["hops"][1, WEST] == 9
+    assert stats.sent[0] == 1
+    # with a sentence of its own the next time, the owed words ride in it
+    w.set_topology(grid.with_faults(dead_links=[(0, EAST)]))
+    w.exchange(_partial(2, {(0, EAST): 0b10}, {(0, EAST): (6, 3)}), 0.02, 0.01)
+    w.set_topology(grid)
+    inbox, _ = w.exchange(_partial(2, {(0, EAST): 0b01}, {(0, EAST): (8, 4)}), 0.03, 0.05)  # (longer than a tick)
+    assert inbox.words[1, WEST] == 0b11 and inbox.values["hops"][1, WEST] == 4 and inbox.values["value"][1, WEST] == 8
+
+
+def test_a_dead_neighbour_is_not_offered_owed_words_every_tick():
+    """Owed words go alone only after the port's first give-up since its last transfer: a neighbour that never
+    answers costs the sender one more try, then only its own sentences (which still carry the owed words)."""
+    p = WireParams(max_attempts=1)
+    w = WireLevel(from_layout(layout.grid(2, 1, 0.1)).with_faults(dead_cells=[1]), p)
+    w.exchange(_partial(2, {(0, EAST): 0b10}, {(0, EAST): (5, 7)}), 0.0, 0.01)
+    sent = [int(w.exchange(_partial(2, {}, {(0, EAST): (5, 7)}), 0.01 * k, 0.01)[1].sent[0]) for k in range(1, 6)]
+    assert sent == [1, 0, 0, 0, 0]
+    data = w.to_data()
+    assert data["owed"][0, EAST] == 0b10 and data["strikes"][0, EAST] == 2
