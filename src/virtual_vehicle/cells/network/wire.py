@@ -16,12 +16,6 @@ Each cell has one serial port (UART) multiplexed between its neighbours, and one
   simply never answers, which the sender finds out by timing out.
 - Per port at most ``queue_limit`` sentences wait; a newer one replaces the oldest waiting one (state-sharing
   programs want the latest value).
-- Partial sentences (a mailbox with ``words``): a sender that gives a sentence up knows which words it did not get
-  across, and owes them to that port: they go with the port's next sentence, at the port's values then; with none
-  the next tick, the sender makes one of those words alone (only after a port's first give-up since its last
-  transfer, so that a dead neighbour does not take the line every tick). A program that says a word only when it
-  changes would otherwise leave the neighbour with the older value until the word changes again or everything is
-  said again (a heartbeat): on a busy line at 9600 baud a stale "no hold" or a lost heartbeat stood vehicles still.
 
 Latency, queueing and lost opportunities therefore emerge from the model. Polling of idle cells is not simulated
 poll by poll: a polling cell's position in its sweep is a function of time, so only interactions cost events.
@@ -99,8 +93,6 @@ class WireLevel:
         self.target = np.full(n, -1, dtype=np.int64)  # port being sent on (WAIT / XFER as sender)
         self.next_port = np.zeros(n, dtype=np.int64)  # round-robin pointer for choosing what to send
         self.queues = [[deque() for _ in range(P)] for _ in range(n)]
-        self.owed = np.zeros((n, P), dtype=np.int64)  # words of given-up partial sentences, to say again
-        self.strikes = np.zeros((n, P), dtype=np.int64)  # sentences given up on each port since its last transfer
         self.events: list = []
         self.seq = 0
         self.now = 0.0
@@ -122,19 +114,13 @@ class WireLevel:
         partial = outbox.words is not None  # sentences carry only the words the program marked
         if partial:
             self.inbox.words = np.zeros((n, P), dtype=np.int64)
-        send = outbox.present & topo.alive[:, None]
-        if partial:  # words owed on a port go with its sentence now, or alone after the port's first give-up
-            send = send | ((self.owed != 0) & (self.strikes <= 1) & topo.alive[:, None])
-        cells, ports = np.nonzero(send)
+        cells, ports = np.nonzero(outbox.present & topo.alive[:, None])
         for i, q in zip(cells.tolist(), ports.tolist()):
             if topo.neighbor[i, q] < 0:
                 self.unaddressed += 1  # nobody there: the cell knows the port is empty
                 continue
             values = {k: v[i, q] for k, v in outbox.values.items()}
-            words = None
-            if partial:
-                words = (int(outbox.words[i, q]) if outbox.present[i, q] else 0) | int(self.owed[i, q])
-                self.owed[i, q] = 0
+            words = int(outbox.words[i, q]) if partial else None
             queue = self.queues[i][q]
             waiting = len(queue) - (1 if (self.mode[i] == XFER and self.target[i] == q) else 0)
             if waiting >= self.p.queue_limit:
@@ -178,8 +164,6 @@ class WireLevel:
             j = old.neighbor[i, q]
             if not (topology.alive[i] and topology.alive[j] and topology.link_up[i, q]):
                 broken.update((int(i), int(j)))
-        self.owed[going] = self.owed[coming] = 0  # a cell that goes forgets what it owed; one that comes owes none
-        self.strikes[going] = self.strikes[coming] = 0
         for i in going:
             self.dropped += sum(len(queue) for queue in self.queues[i])
             self.queues[i] = [deque() for _ in range(P)]
@@ -210,7 +194,7 @@ class WireLevel:
         return {
             "rng": state_data.rng_to_data(self.rng),
             **{k: getattr(self, k).astype(np.float64 if k == "t0" else np.int64) for k in self._PER_CELL},
-            "now": float(self.now), "seq": int(self.seq), "owed": self.owed.copy(), "strikes": self.strikes.copy(),
+            "now": float(self.now), "seq": int(self.seq),
             "events": {"t": np.array([e[0] for e in ev], dtype=np.float64),
                        **{k: np.array([e[c] if c != 2 else kinds[e[2]] for e in ev], dtype=np.int64)
                           for c, k in ((1, "seq"), (2, "kind"), (3, "a"), (4, "b"), (5, "epoch_a"), (6, "epoch_b"))}},
@@ -230,13 +214,9 @@ class WireLevel:
         between one tick's end and the next one's start is received into it, as in the run that wrote the data; its
         schema decodes them). Raises ValueError for data that is not such a wire's."""
         where = "delivery"
-        d = state_data.fields(d, ("rng", *self._PER_CELL, "now", "seq", "owed", "strikes", "events", "sentences"),
-                              where)
+        d = state_data.fields(d, ("rng", *self._PER_CELL, "now", "seq", "events", "sentences"), where)
         n, P = self.topology.n, self.topology.ports
         per_cell = {k: state_data.array(d, k, "f" if k == "t0" else "i", (n,), where) for k in self._PER_CELL}
-        per_port = {k: state_data.array(d, k, "i", (n, P), where) for k in ("owed", "strikes")}
-        if (per_port["owed"] < 0).any() or (per_port["strikes"] < 0).any():
-            raise ValueError(f"{where}: owed words or strikes below 0")
         if not (np.isin(per_cell["mode"], (POLL, WAIT, XFER, DEAD)).all() and (per_cell["target"] >= -1).all()
                 and (per_cell["target"] < P).all() and (per_cell["p0"] >= 0).all() and (per_cell["p0"] < P).all()
                 and (per_cell["next_port"] >= 0).all() and (per_cell["next_port"] < P).all()):
@@ -263,7 +243,7 @@ class WireLevel:
                 and int(length.sum()) == len(data)):
             raise ValueError(f"{at}: a cell or port out of range, or lengths that do not add up to its bytes")
         self.rng = state_data.rng_from_data(d["rng"], f"{where}.rng")
-        for k, a in (*per_cell.items(), *per_port.items()):
+        for k, a in per_cell.items():
             setattr(self, k, a)
         self.now, self.seq = state_data.number(d, "now", where), state_data.integer(d, "seq", where)
         kinds = [self._KINDS[c] for c in cols["kind"].tolist()]
@@ -288,12 +268,12 @@ class WireLevel:
         word the older one carried goes at the port's value now, not at the older value: a word that changed back
         since (a stop gone back to go, a word at its rest value that a sentence may leave unsaid) would otherwise
         reach the neighbour as the older value and stay there until the word changed again."""
-        return {f.name: values[f.name] for f in self.schema.fields}, words | self._mask(older)
-
-    def _mask(self, data: bytes) -> int:
-        """The bit mask of the words the partial sentence ``data`` carries (bit k: the schema's k-th word)."""
-        said = self.schema.from_bytes(data, partial=True)
-        return sum(1 << k for k, f in enumerate(self.schema.fields) if f.name in said)
+        said = self.schema.from_bytes(older, partial=True)
+        mask = words
+        for k, f in enumerate(self.schema.fields):
+            if f.name in said:
+                mask |= 1 << k
+        return {f.name: values[f.name] for f in self.schema.fields}, mask
 
     def _reset_tick(self, n, P):
         self.sent = np.zeros(n, dtype=np.int64)
@@ -384,7 +364,6 @@ class WireLevel:
         topo = self.topology
         q = self.target[i]
         s = self.queues[i][q].popleft()
-        self.strikes[i, q] = 0
         port = topo.back_port[i, q]
         self._receive(j, port, s, t)
         self.target[i] = -1
@@ -431,9 +410,6 @@ class WireLevel:
         if head.attempts >= self.p.max_attempts:
             self.queues[i][q].popleft()
             self.dropped += 1
-            self.strikes[i, q] += 1
-            if self.inbox.words is not None:  # partial: the sender owes that port these words (module notes)
-                self.owed[i, q] |= self._mask(head.data)
         self.target[i] = -1
         # back off: poll for a random while before trying again
         self._start_polling(i, t, self.p0[i], retry_at=t + self.rng.uniform(0.0, self.p.backoff_max))
