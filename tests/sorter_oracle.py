@@ -12,6 +12,7 @@ import numpy as np
 from virtual_vehicle.cells.network.messages import Mailbox
 from virtual_vehicle.cells.network.programs import UNREACHABLE, CellInputs
 from virtual_vehicle.cells.sorting import Sorter, decode_goal
+from virtual_vehicle.cells.sorting.policy import ASK
 from virtual_vehicle.cells.sorting.rules import BIG as _BIG
 from virtual_vehicle.cells.sorting.rules import ENTRY as _ENTRY
 from virtual_vehicle.cells.sorting.rules import HUGE as _HUGE
@@ -80,6 +81,9 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
             "hold": _NONE, "ack": 0, "ex": 0, "blk": (1 << (H * P)) - 1}
     heard = {k: np.where(inbox.present & ((carried >> w) & 1 == 1), inbox.values[k].astype(np.int64),
                          np.where(full, rest[k], v)) for w, (k, v) in enumerate(state["heard"].items())}
+    # an ``ex`` word of at least ASK // 2 asks this cell to say everything again: kept without the ask
+    asked_again = inbox.present & ((carried >> 10) & 1 == 1) & (inbox.values["ex"].astype(np.int64) >= ASK // 2)
+    heard["ex"] = np.where(asked_again, heard["ex"] - ASK, heard["ex"])
     tick = int(round(inputs.t / sorter.period)) if sorter.period else 0
     heard_at = np.where(inbox.present, tick, state["heard_at"])  # the tick each port last heard a sentence
     trusted = (tick - heard_at <= sorter.trust) & inputs.connected
@@ -342,6 +346,12 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
                    for w, k in enumerate(state["said"]))
         out.words = np.where(beat[:, None], busy | (1 << 10), diff | window)
     said = {k: np.where(differs, out.values[k].astype(np.int64), v) for k, v in state["said"].items()}
+    # a missed heartbeat of a neighbour still trusted: ask it again (whole sentences only); an ask heard: answer
+    ago = tick - heard_at
+    asks = inputs.connected & (ago > sorter.heartbeat_ticks + sorter.max_age) & (ago <= sorter.trust) \
+        & (not sorter.partial)
+    out.present |= asks | asked_again
+    out.values["ex"][asks] += ASK
     new_state = {"dist": dist, "heard": heard, "heard_at": heard_at, "vid": vid, "goal": goal,
                  "dir": np.where(moving | (direction >= 0), direction, _NONE), "key": key, "stop": stop,
                  "hold": new_hold, "hdep": hdep, "hport": hport, "hage": hage, "ack": ack, "nxt": nxt,

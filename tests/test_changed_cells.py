@@ -14,6 +14,7 @@ from virtual_vehicle.cells.network.messages import Mailbox, Schema
 from virtual_vehicle.cells.network.programs import CellInputs, ChangedCells, check_program, tree_map
 from virtual_vehicle.cells.network.sentence import WordType
 from virtual_vehicle.cells.network.topology import from_layout
+from virtual_vehicle.cells.sorting.policy import ASK
 from virtual_vehicle.config.scenario import CellChange, FaultEvent, ReconfigurationSpec, load_scenario
 from virtual_vehicle.model import layout
 from virtual_vehicle.run.sim import LatencyStats, NetworkRun
@@ -409,9 +410,11 @@ _WORDS = {"d": (-2**31, 2**31 - 1), "nxt": (0, 6), "vid": (-1, 8), "goal": (-1, 
           "ex": (-2, 3), "blk": (-2**31, 2**31 - 1)}
 
 
-def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, partial: bool = False, P: int = 4):
+def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, partial: bool = False, P: int = 4,
+                          asks: float = 0.2):
     """A sorter, a state and inputs drawn at random (see the test below); ``partial``: a sorter that sends only the
-    words that changed, hearing sentences that carry some words only; ``P`` ports a cell (6: hexagonal)."""
+    words that changed, hearing sentences that carry some words only; ``P`` ports a cell (6: hexagonal); ``asks``:
+    the share of arriving sentences that ask the cell to say everything again."""
     from virtual_vehicle.cells.network.messages import DTYPE
     from virtual_vehicle.cells.sorting import Sorter
 
@@ -424,7 +427,8 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, part
         state["heard"][w] = rng.integers(lo, hi + 1, (n, P))
     state["heard"].update(_said(rng, (n, P), P))
     t = float(rng.integers(0, 10**5)) * 0.01
-    state["heard_at"] = round(t / 0.01) - rng.choice([0, 1, 2, 5, 2**40], (n, P))  # the tick each port last heard
+    # the tick each port last heard (4 and 7 ticks ago: a missed heartbeat, the ask window for max_age 0 and 3)
+    state["heard_at"] = round(t / 0.01) - rng.choice([0, 1, 2, 4, 5, 7, 2**40], (n, P))
     for w, (lo, hi) in _WORDS.items():  # what was last said on each port: some words as they will be, some not
         state["said"][w] = np.where(rng.random((n, P)) < 0.3, -(1 << 40), rng.integers(lo, hi + 1, (n, P)))
     state["again"] = rng.choice([0, 0, 1, 2], (n, P))
@@ -442,6 +446,7 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, part
         inbox.values[f.name][:] = rng.integers(max(lo, info.min), min(hi, info.max) + 1, (n, P))
     for w, v in _said(rng, (n, P), P).items():
         inbox.values[w][:] = v
+    inbox.values["ex"][:] += np.where(rng.random((n, P)) < asks, ASK, 0)  # neighbours asking to hear everything again
     if partial:  # each sentence carries some of the words
         inbox.words = rng.integers(0, 1 << 12, (n, P))
     config = {"exit": rng.choice([-1, -1, -1, 0, 1, 2, 3], n), "exit_port": rng.integers(-1, P, n),
@@ -622,18 +627,20 @@ def test_a_sorter_cell_that_read_back_nothing_new_ticks_its_clocks_as_its_whole_
     back (what it heard and said, its gradients and other words computed afresh may have changed, or nothing), due
     or not: a row that hears nothing new ticks its clocks alone - also at its heartbeat or the tick after - and that
     gives every state word, sentence, wheel speed and mask the whole step gives, while a row whose trust in a silent
-    neighbour runs out now is stepped whole. Random states, square and hexagonal cells; the first tick silent, the second hearing random words
+    neighbour runs out now, or that asks a neighbour to say everything again, is stepped whole. Random states,
+    square and hexagonal cells; the first tick silent, the second hearing random words
     on most ports, the third (the one compared) mostly what the ports hold; heartbeats every third tick. Rows that
     ticked alone after hearing new words, rows at a heartbeat and rows whose trust ran out occur in these draws, or
     the comparison would mean nothing."""
     from virtual_vehicle.cells.sorting.rules import heartbeat_due, tick_of
 
     beats = stale = heard = 0  # rows ticked alone at a heartbeat / after hearing new words; quiet rows gone stale
-    for seed in range(144):
+    for seed in range(192):
         rng = np.random.default_rng(1000 + seed)
         max_age, parking, partial = [0, 3][seed % 2], bool(seed // 2 % 2), bool(seed // 4 % 2)
         P = 6 if seed % 3 == 0 else 4  # some hexagonal cells
-        program, state, inputs = _random_sorter_inputs(rng, max_age, parking, True, partial, P)
+        # (no asks drawn: a row that hears one hears something new, stepped whole, as a row that hears new words)
+        program, state, inputs = _random_sorter_inputs(rng, max_age, parking, True, partial, P, asks=0.0)
         program.heartbeat_ticks, program.trust = 3, max_age + 4  # (the draw may say every tick)
         program.repeats = 2
         n = len(inputs.sensors)
@@ -667,6 +674,9 @@ def test_a_sorter_cell_that_read_back_nothing_new_ticks_its_clocks_as_its_whole_
         beat = heartbeat_due(tick + 2, number, 3) | heartbeat_due(tick + 1, number, 3)
         runs_out = np.any(tick + 2 - state["heard_at"] == program.trust + 1, axis=1)
         assert not (masks[3] & runs_out).any()
+        ago = tick + 2 - state["heard_at"]  # a row that asks a neighbour to say everything again sends: whole
+        asking = np.any((ago > 3 + max_age) & (ago <= program.trust), axis=1) & (not partial)
+        assert not (masks[3] & asking).any()
         beats += int((masks[3] & beat & due).sum())
         stale += int((quiet & runs_out).sum())
         heard += int((masks[3] & new_words).sum())

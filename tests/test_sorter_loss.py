@@ -50,3 +50,49 @@ def test_a_cell_keeps_its_vehicle_while_a_neighbour_carries_it_or_its_centre_is_
     says its vehicle, or whose centre is covered, never changes vehicle while it sees one."""
     assert _step_middle(compiled, centre=False, beside=GONE) == (GONE, 2)
     assert _step_middle(compiled, centre=True, beside=-1) == (GONE, 2)
+
+
+def _lonely_gradient(program, lost_from: int, every: bool = False) -> list[int]:
+    """Two cells side by side, the east one an exit (exit 0): the hops to the exit the west cell says on each tick
+    from ``lost_from`` on, while every sentence the exit cell sends at its heartbeat from tick ``lost_from`` on is
+    lost (its other sentences arrive at the next tick; ``every``: all of them are lost)."""
+    from virtual_vehicle.cells.sorting.rules import heartbeat_due, unpack
+
+    n, P = 2, 4
+    config = {"exit": np.array([-1, 0]), "entry_no": np.array([0, 1])}
+    connected = np.zeros((n, P), bool)
+    connected[0, 0] = connected[1, 2] = True  # west cell's east port, east cell's west port
+    state = program.init(n, P, config)
+    inbox = Mailbox.empty(program.schema, n, P)
+    said = []
+    for tick in range(lost_from + 60):
+        state, out, _ = program.step(state, CellInputs(tick * program.period, np.zeros((n, 5), bool), inbox,
+                                                       connected, config, None))
+        inbox = Mailbox.empty(program.schema, n, P)
+        lost = tick >= lost_from and (every or heartbeat_due(tick, 1, program.heartbeat_ticks))
+        for (i, q), (j, r) in (((0, 0), (1, 2)), ((1, 2), (0, 0))):
+            if out.present[i, q] and not (i == 1 and lost):
+                inbox.present[j, r] = True
+                for w in inbox.values:
+                    inbox.values[w][j, r] = out.values[w][i, q]
+        if tick >= lost_from:
+            said.append(unpack(int(out.values["d"][0, 0]), 0))
+    return said
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_neighbour_whose_heartbeats_are_lost_stays_trusted_while_it_answers(compiled):
+    """At 10 % sentence loss a neighbour's two heartbeats in a row are lost about once a hundred heartbeats; its
+    words then stopped being trusted until the next one arrived (~2,000 such lapses a junction run), and parcels
+    stood. A cell that misses a heartbeat asks its neighbour to say everything again: with every heartbeat of the
+    exit cell lost, the cell beside it keeps its way to the exit (it lost it for a heartbeat in three before)."""
+    program = Sorter(0.3, heartbeat=0.05) if compiled else stepped_by_arrays(Sorter(0.3, heartbeat=0.05))
+    said = _lonely_gradient(program, lost_from=30)
+    assert said[0] < 255 and set(said) == {said[0]}
+
+
+def test_a_neighbour_that_falls_silent_is_still_dropped():
+    """Asking again keeps only a neighbour that answers: one that stops sending altogether (every sentence lost)
+    is untrusted once two heartbeats are missed, as before, and the way through it is forgotten."""
+    said = _lonely_gradient(Sorter(0.3, heartbeat=0.05), lost_from=30, every=True)
+    assert said[0] < 255 and said[-1] == 255

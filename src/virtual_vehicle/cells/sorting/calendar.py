@@ -30,14 +30,22 @@ class DueCalendar:
             ``h + trust + 1``).
         heartbeat: ticks between two heartbeats of a cell (1: none to wake a cell for).
         number: (n,) the cells' installation numbers, which stagger their heartbeats.
+        ask_after: a port last heard more than this many ticks ago and still trusted makes its cell ask (due every
+            tick); None: cells never ask (the wire's partial sentences).
 
     Use (``state``: the sorter's state dict, of which only ``heard_at`` is read): :meth:`restart` from the whole
     state (every cell filed), then each tick :meth:`due` before stepping and :meth:`stepped` with the cells stepped,
     after. A step whose cells were not filed (stepped without telling the calendar) needs a :meth:`restart`.
     """
 
-    def __init__(self, n: int, period: float, trust: int, heartbeat: int, number: np.ndarray):
+    def __init__(self, n: int, period: float, trust: int, heartbeat: int, number: np.ndarray,
+                 ask_after: int | None = None):
         self.n = int(n)
+        self.ask_after = None if ask_after is None or ask_after >= trust else int(ask_after)
+        self._ask_buckets: dict[int, list[np.ndarray]] = {}
+        """Tick -> arrays of cells one of whose ports may enter the asking window then."""
+        self._askers = np.zeros(0, dtype=np.int64)
+        """Cells asking at the last tick checked (or filed to start then)."""
         self.period = float(period)
         self.trust = int(trust)
         self.heartbeat = int(heartbeat)
@@ -55,7 +63,16 @@ class DueCalendar:
         """Forget what was filed and file every cell from its clocks in ``state`` under the ticks after the tick at
         ``t`` (s) at which one of its ports turns stale."""
         self._buckets.clear()
+        self._ask_buckets.clear()
         tick = self.tick = tick_of(t, self.period)
+        if self.ask_after is not None:  # each port filed under the tick its asking window opens (passed: at once)
+            opens = np.maximum(state["heard_at"] + (self.ask_after + 1), tick + 1)
+            trusted = state["heard_at"] + self.trust > tick
+            cells = np.broadcast_to(np.arange(self.n)[:, None], opens.shape)[trusted]
+            opens = opens[trusted]
+            for t_open in np.unique(opens).tolist():
+                self._ask_buckets.setdefault(t_open, []).append(cells[opens == t_open])
+            self._askers = np.zeros(0, dtype=np.int64)
         at = state["heard_at"] + (self.trust + 1)  # (n, P) the tick each port turns stale
         later = at > tick
         cells = np.broadcast_to(np.arange(self.n)[:, None], at.shape)[later]
@@ -72,6 +89,8 @@ class DueCalendar:
             heard = rows[rows_any(state["heard_at"][rows] == tick)]
             if len(heard):
                 self._buckets.setdefault(tick + self.trust + 1, []).append(heard)
+                if self.ask_after is not None:
+                    self._ask_buckets.setdefault(tick + self.ask_after + 1, []).append(heard)
 
     def due(self, t: float, state: dict) -> np.ndarray:
         """(n,) the cells due at the tick at ``t`` (s; the next tick after the last filed): equal to
@@ -85,6 +104,16 @@ class DueCalendar:
         if filed:
             cells = filed[0] if len(filed) == 1 else np.concatenate(filed)
             woken[cells] = rows_any(heard_at[cells] == tick - self.trust - 1)
+        if self.ask_after is not None:  # askers: those of last tick and those whose window opens now (or opened
+            # at a tick passed without a call), each checked against its clocks
+            opened = [self._askers]
+            for t in [t for t in self._ask_buckets if t <= tick]:
+                opened.extend(self._ask_buckets.pop(t))
+            cells = np.unique(np.concatenate(opened)) if len(opened) > 1 else self._askers
+            ago = tick - heard_at[cells]
+            cells = cells[rows_any((ago > self.ask_after) & (ago <= self.trust))]
+            woken[cells] = True
+            self._askers = cells
         if self._phases is not None:
             order, bounds = self._phases
             for g in {(-tick) % self.heartbeat, (1 - tick) % self.heartbeat}:  # its heartbeat now, or last tick

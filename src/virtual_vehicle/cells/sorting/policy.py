@@ -65,6 +65,16 @@ REST_HEX = REST[:11] + ((1 << 30) - 1,)
 """:data:`REST` on hexagonal cells: every side closed is six 5-bit fields at 31 (:func:`~.rules.hop_bits`)."""
 
 
+@njit(cache=True, inline="always")
+def asking(tick, heard_at, heartbeat, max_age, trust, partial):
+    """Whether a cell asks a connected neighbour it last heard at tick ``heard_at`` to say everything again: it
+    missed a heartbeat (a neighbour is heard at least every ``heartbeat`` ticks, plus ``max_age``), and still trusts
+    the neighbour's words. With lossless delivery it never asks; with loss ``p`` a lapse of trust then needs a round
+    trip lost on every tick of a whole heartbeat instead of two heartbeats lost (``p**2``). Whole sentences only
+    (``partial`` sentences are the wire's, whose handshake retries a lost one)."""
+    return not partial and heartbeat + max_age < tick - heard_at <= trust
+
+
 def rest_words(P: int) -> tuple:
     """:data:`REST` for cells with ``P`` ports."""
     return REST if P == 4 else REST_HEX
@@ -73,6 +83,11 @@ def rest_words(P: int) -> tuple:
 FULL = 1 << Words._fields.index("ex")
 """A partial sentence that carries ``ex`` (which never changes: said in the first sentence, then only at the
 heartbeat) says every word: those it leaves out are at rest (:data:`REST`)."""
+ASK = 1 << 14
+"""Added to the ``ex`` word of a sentence that asks the neighbour to say everything again (whole sentences only):
+the cell missed that neighbour's heartbeat. ``ex`` itself is small (an exit id or ENTRY), so a word of at least
+``ASK // 2`` asks; what a cell keeps of ``ex`` is the word without it. The asker sends it every tick until it hears
+the neighbour (or stops trusting it); the neighbour answers each ask that arrives with its whole sentence."""
 AGAIN_BITS = 16
 """A port's ``again`` memory: the ticks it repeats its sentence (low bits) and, when sentences are partial, the bit
 mask of the words to repeat (above these bits)."""
@@ -221,6 +236,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     for i in rows:
         park_any = park_any or park_cell[i]
     trusted = np.empty(P, np.bool_)
+    asked = np.empty(P, np.bool_)  # the neighbour asked this cell to say everything again (see ASK)
     allowed = np.empty(P, np.bool_)
     same_nb = np.empty(P, np.bool_)
     open_side = np.empty(P, np.bool_)
@@ -250,7 +266,9 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             changed |= _heard(c >> 7 & 1 != 0, full, rest[7], w_rdep[i, q], i_rdep, hrdep, i, q)
             changed |= _heard(c >> 8 & 1 != 0, full, rest[8], w_hold[i, q], i_hold, hhold, i, q)
             changed |= _heard(c >> 9 & 1 != 0, full, rest[9], w_ack[i, q], i_ack, hack, i, q)
-            changed |= _heard(c >> 10 & 1 != 0, full, rest[10], w_ex[i, q], i_ex, hex_, i, q)
+            asked[q] = c >> 10 & 1 != 0 and w_ex[i, q] >= ASK // 2
+            changed |= _heard(c >> 10 & 1 != 0, full, rest[10], w_ex[i, q] - ASK if asked[q] else w_ex[i, q], i_ex,
+                              hex_, i, q)
             changed |= _heard(c >> 11 & 1 != 0, full, rest[11], w_blk[i, q], i_blk, hblk, i, q)
             old = at_in[i, q]
             at_out[i, q] = tick if p else old
@@ -520,6 +538,9 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
                    np.int64(min(ack, run_max) + ((hport + 1) << RB) + (dead_mask << dead_shift)),
                    np.int64(ENTRY if entry[i] else exit_id[i]), np.int64(blk))
             send, differs, diff = _say(told, now, beat, i, q)
+            # a missed heartbeat: ask again rather than wait for the next one; an ask heard: answer in whole
+            ask = connected[i, q] and asking(tick, at_out[i, q], heartbeat, max_age, trust, partial)
+            send = send or ask or asked[q]
             old_again = again_in[i, q]
             left = old_again & ((1 << AGAIN_BITS) - 1)  # ticks still to repeat, and (partial) which words
             window = old_again >> AGAIN_BITS if left > 0 else 0
@@ -546,7 +567,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             sent_new |= _put(o_rdep, i, q, now[7])
             sent_new |= _put(o_hold, i, q, now[8])
             sent_new |= _put(o_ack, i, q, now[9])
-            sent_new |= _put(o_ex, i, q, now[10])
+            sent_new |= _put(o_ex, i, q, now[10] + ASK if ask else now[10])
             sent_new |= _put(o_blk, i, q, now[11])
         out_changed[i] = sent_new
         # the state words the rules read back (held; stop and park too: giving way reads whether the vehicle stands);

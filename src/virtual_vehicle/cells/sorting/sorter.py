@@ -29,7 +29,10 @@ class Sorter:
             time it takes to travel ``gap + 1`` pitches.
         heartbeat: the longest a cell stays silent (s): it sends on a port only when its sentence there changed, and
             every sentence at least this often, which repairs a lost one (0: every tick). A neighbour's last
-            sentence is trusted for ``max_age`` ticks plus two heartbeats, so one lost heartbeat does not drop it.
+            sentence is trusted for ``max_age`` ticks plus two heartbeats, so one lost heartbeat does not drop it;
+            with whole sentences a cell that missed a neighbour's heartbeat asks it to say everything again, every
+            tick until it hears it (:data:`~virtual_vehicle.cells.sorting.policy.ASK`), so that lost sentences do not
+            make a connected neighbour untrusted.
         repeats: ticks a cell sends a port's sentence again after it changed (with a heartbeat): a change is lost
             only when all of them are.
         partial: a sentence carries only the words that changed on its port (and those that changed in the last
@@ -132,7 +135,7 @@ class Sorter:
         silent neighbour now, those whose heartbeat is now, and those whose heartbeat was last tick (to fall silent
         again)."""
         tick = tick_of(t, self.period)
-        woken = np.any(tick - state["heard_at"] == self.trust + 1, axis=1)
+        woken = np.any(tick - state["heard_at"] == self.trust + 1, axis=1) | self._asking(tick, state)
         if self.heartbeat_ticks > 1:
             n = len(woken)
             number = np.broadcast_to(np.asarray(config.get("entry_no", 0), dtype=np.int64), (n,))
@@ -145,7 +148,8 @@ class Sorter:
         :class:`~virtual_vehicle.cells.network.programs.ChangedCells` asks instead of :meth:`due` over every cell
         every tick; :class:`~virtual_vehicle.cells.sorting.calendar.DueCalendar`), for ``n`` cells configured by
         ``config``."""
-        return DueCalendar(n, self.period, self.trust, self.heartbeat_ticks, config.get("entry_no", 0))
+        return DueCalendar(n, self.period, self.trust, self.heartbeat_ticks, config.get("entry_no", 0),
+                           None if self.partial else self.heartbeat_ticks + self.max_age)
 
     def step(self, state, inputs: CellInputs):
         """One control tick for every cell at once: new state, the sentences to send, and the (n, 2) wheel speeds (m/s
@@ -207,6 +211,7 @@ class Sorter:
         # a neighbour's last sentence that stops being trusted now changes what the rules read: a whole step (the
         # rest of what due() wakes a cell for, a heartbeat that only sends and the tick after it, tick_cells does)
         light[light] = ~rows_any(state["heard_at"][rows[light]] == tick - self.trust - 1)  # (numpy's any is slow)
+        light[light] = ~self._asking(tick, state, rows[light])  # asking a neighbour again sends: a whole step
         unsettled, out_changed, ticking = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
         if light.any():  # first the clocks of the rows that hear nothing new, then the others whole
             done = np.zeros(n, bool)
@@ -229,6 +234,15 @@ class Sorter:
             for mask, part in zip((unsettled, out_changed, ticking), masks):
                 mask |= part
         return unsettled, out_changed, ticking, done
+
+    def _asking(self, tick: int, state, rows=slice(None)) -> np.ndarray:
+        """Per row of ``rows``, whether the cell may ask a neighbour to say everything again at ``tick``: it missed
+        that neighbour's heartbeat (:func:`~virtual_vehicle.cells.sorting.policy.asking`; whether the link is up the
+        step decides)."""
+        if self.partial:
+            return np.zeros(len(state["heard_at"][rows]), bool)
+        ago = tick - state["heard_at"][rows]
+        return np.any((ago > self.heartbeat_ticks + self.max_age) & (ago <= self.trust), axis=1)
 
     def _memory(self, st, arg=lambda a, dtype: a):
         """The state dict ``st`` as the compiled step's :class:`~virtual_vehicle.cells.sorting.policy.Memory`, each
