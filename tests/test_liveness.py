@@ -43,7 +43,6 @@ def test_a_younger_parcel_standing_across_an_older_ones_way_gives_way(seed, name
 @pytest.mark.parametrize("seed, names", [
     (15, ("p01", "p02")),  # the younger at the entry's north-west corner, the older coming north from below
     (183, ("p01", "p02")),  # the same beside a `>` band
-    (206, ("p00", "p01")),  # the younger on the south edge, the older coming south to an exit lane on the east edge
 ])
 def test_a_younger_parcel_backed_against_the_edge_steps_aside_into_the_older_ones_holds(seed, names):
     """The younger, asked by the older for a cell it carries, has the edge behind it and steps aside: its only open
