@@ -229,7 +229,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     asker = np.argmin(order, axis=1)
     first = order[rows, asker]
     bdir = np.where(asked, _away(open_side, asker, P), bdir)
-    boxed = asked & ~open_side[rows, np.maximum(bdir, 0)]
+    boxed = asked & ~open_side[rows, np.maximum(bdir, 0) % _WEAK]  # (bdir of rows not asked may be WEAK)
     bdir = np.where(asked & (first >= _HUGE) & (heard["req"][rows, asker] > vid), bdir + _WEAK, bdir)
     back = np.where(asked, sorter.back_ticks, back)
     backing = (back > 0) & open_side[rows, np.maximum(bdir, 0) % _WEAK] & (bdir >= 0)
