@@ -15,6 +15,8 @@ from virtual_vehicle.cells.sorting import Sorter, decode_goal
 from virtual_vehicle.cells.sorting.policy import ASK
 from virtual_vehicle.cells.sorting.rules import BIG as _BIG
 from virtual_vehicle.cells.sorting.rules import ENTRY as _ENTRY
+from virtual_vehicle.cells.sorting.policy import WEAK as _WEAK
+from virtual_vehicle.cells.sorting.policy import YIELD as _YIELD
 from virtual_vehicle.cells.sorting.rules import HUGE as _HUGE
 from virtual_vehicle.cells.sorting.rules import MAX_EXITS, PARK, pack
 from virtual_vehicle.cells.sorting.rules import NONE as _NONE
@@ -201,7 +203,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     near = dead.any(axis=1) | (trusted & ((heard["ack"] >> dead_shift) != 0)).any(axis=1)
     into_band = np.where((into_band >= 0) & near & ~open_side[rows, np.maximum(into_band, 0)], _NONE, into_band)
     prop_port = np.where(into_band >= 0, into_band, np.where(at_exit, exit_port, np.where(movable, port, _NONE)))
-    prop_d = np.where(into_band >= 0, 0, np.where(at_exit, 1, cand[rows, port] + 3))
+    prop_d = np.where(into_band >= 0, 2, np.where(at_exit, 3, cand[rows, port] + 4))  # 0, 1: giving way
     # Head on: the cell ahead (in last tick's direction) is held for an older vehicle that asked for it from the
     # far side, or carries an older vehicle heading this way. Hold-based traffic alone would wait forever: the
     # younger vehicle backs off, for long enough to clear the other's gap and one more cell.
@@ -219,14 +221,24 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # its own number is not due, gives way through the first port (lowest) such an asker is on: away from it, or
     # aside when that side is closed.
     standing = on & ((state["stop"] & none) <= sorter.reach) & (state["park"] > sorter.reach)
+    # A vehicle giving way asks marked; one asked that cannot give way (every side but the asker's closed) asks
+    # the asker back, marked, and the asker gives way to it.
+    marked_req = (heard["rdep"].astype(np.int64) & _YIELD) != 0
     asking = (trusted & ~same_nb & (heard["req"] >= 0) & (heard["req"] != vid[:, None])
-              & ((heard["req"] < vid[:, None]) | ~turn[:, None]) & standing[:, None])
+              & ((heard["req"] < vid[:, None]) | ~turn[:, None] | marked_req) & standing[:, None])
+    # the asker is the first in the order holds go by (marked, then oldest); giving way to a younger one
+    # (while not due) is marked WEAK in bdir and proposes distance 1, so that an older asker goes first
+    order = np.where(asking, heard["req"] + np.where(marked_req, 0, _HUGE), 4 * _HUGE)
     asked = asking.any(axis=1)
-    bdir = np.where(asked, _away(open_side, np.argmax(asking, axis=1), P), bdir)
+    asker = np.argmin(order, axis=1)
+    first = order[rows, asker]
+    bdir = np.where(asked, _away(open_side, asker, P), bdir)
+    boxed = asked & ~open_side[rows, np.maximum(bdir, 0) % _WEAK]  # (bdir of rows not asked may be WEAK)
+    bdir = np.where(asked & (first >= _HUGE) & (heard["req"][rows, asker] > vid), bdir + _WEAK, bdir)
     back = np.where(asked, sorter.back_ticks, back)
-    backing = (back > 0) & open_side[rows, np.maximum(bdir, 0)] & (bdir >= 0)
-    prop_port = np.where(backing, bdir, prop_port)
-    prop_d = np.where(backing, 0, prop_d)
+    backing = (back > 0) & open_side[rows, np.maximum(bdir, 0) % _WEAK] & (bdir >= 0)
+    prop_port = np.where(backing, bdir % _WEAK, prop_port)
+    prop_d = np.where(backing, np.where(bdir >= _WEAK, 1, 0), prop_d)
     own_key = np.where(on & (prop_port >= 0), _key(prop_d, prop_port == state["dir"], np.maximum(prop_port, 0), 0),
                        _BIG)
     nb_key = np.where(same_nb, heard["key"], _BIG)
@@ -234,6 +246,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     key = np.minimum(own_key, _across(np.minimum, nb_key)) if P else own_key
     key = np.where(on, key, _BIG)
     direction = np.where(key < _BIG, (key // 64) % 8, _NONE)
+    yielding = on & (key < _key(2, 1, 0, 0))  # a cell within reach gives way (distance 0, the least proposal)
     # -- traffic: requests ahead, holds, acknowledgements
     ahead_ok_port = (direction >= 0)
     dp = np.maximum(direction, 0)
@@ -247,15 +260,21 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # leaving the array: only out of an exit cell of the goal (anywhere else the edge stops the vehicle)
     off_array = front & ~inputs.connected[rows, dp] & (exit_id == target) & (dp == exit_port)
     # requests that arrived: from a neighbour's front cell or a held cell passing it on
-    req = np.where(trusted & (heard["req"] >= 0), heard["req"],
-                   _HUGE)  # a request stands until its sender says otherwise: it sends only what changed
-    choice = np.argmin(req, axis=1)  # the oldest vehicle asking (smallest id) gets the cell, always
-    new_hold = np.where(req[rows, choice] < _HUGE, req[rows, choice], _NONE)
+    # a request stands until its sender says otherwise: it sends only what changed. A vehicle giving way (its
+    # request marked) gets the cell first, else the oldest vehicle asking (smallest id), always
+    marked = (heard["rdep"].astype(np.int64) & _YIELD) != 0
+    req = np.where(trusted & (heard["req"] >= 0), heard["req"] + np.where(marked, 0, _HUGE), 4 * _HUGE)
+    choice = np.argmin(req, axis=1)
+    new_hold = np.where(req[rows, choice] < 4 * _HUGE, req[rows, choice] % _HUGE, _NONE)
     hport = np.where(new_hold >= 0, choice, _NONE)
     hdep = np.where(new_hold >= 0, heard["rdep"][rows, np.maximum(hport, 0)], 0)
     # On a slow network a request does not arrive every tick: a hold lasts max_age ticks after it was last asked
     # for (on ideal rounds, one tick), unless an older vehicle asks meanwhile.
-    keep = (state["hold"] >= 0) & (state["hage"] < sorter.max_age) & ((new_hold < 0) | (state["hold"] < new_hold))
+    def rank(v, dep):
+        return v + np.where(np.asarray(dep).astype(np.int64) & _YIELD, 0, _HUGE)
+
+    keep = (state["hold"] >= 0) & (state["hage"] < sorter.max_age) & (
+        (new_hold < 0) | (rank(state["hold"], state["hdep"]) < rank(new_hold, hdep)))
     new_hold = np.where(keep, state["hold"], new_hold)
     hport = np.where(keep, state["hport"], hport)
     hdep = np.where(keep, state["hdep"], hdep)
@@ -325,10 +344,13 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # requests: front cells ask the cell ahead (depth 1); held cells pass it on until gap deep
     ask = front & inputs.connected[rows, dp]
     out.values["req"][rows[ask], dp[ask]] = vid[ask]
-    out.values["rdep"][rows[ask], dp[ask]] = 1
-    pass_on = (new_hold >= 0) & (hdep < L) & inputs.connected[rows, fp]
+    out.values["rdep"][rows[ask], dp[ask]] = np.where(yielding[ask], 1 + _YIELD, 1)
+    pass_on = (new_hold >= 0) & ((hdep.astype(np.int64) & (_YIELD - 1)) < L) & inputs.connected[rows, fp]
     out.values["req"][rows[pass_on], fwd[pass_on]] = new_hold[pass_on]
     out.values["rdep"][rows[pass_on], fwd[pass_on]] = hdep[pass_on] + 1
+    back_ask = boxed & inputs.connected[rows, asker]
+    out.values["req"][rows[back_ask], asker[back_ask]] = vid[back_ask]
+    out.values["rdep"][rows[back_ask], asker[back_ask]] = 1 + _YIELD
     # say only what changed on a port since it was last sent there, and everything at the heartbeat
     beat = (tick + entry_no) % sorter.heartbeat_ticks == 0  # staggered by installation number
     each = np.stack([out.values[k].astype(np.int64) != v for k, v in state["said"].items()])  # (words, n, P)

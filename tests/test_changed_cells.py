@@ -14,7 +14,7 @@ from virtual_vehicle.cells.network.messages import Mailbox, Schema
 from virtual_vehicle.cells.network.programs import CellInputs, ChangedCells, check_program, tree_map
 from virtual_vehicle.cells.network.sentence import WordType
 from virtual_vehicle.cells.network.topology import from_layout
-from virtual_vehicle.cells.sorting.policy import ASK
+from virtual_vehicle.cells.sorting.policy import ASK, WEAK, YIELD
 from virtual_vehicle.config.scenario import CellChange, FaultEvent, ReconfigurationSpec, load_scenario
 from virtual_vehicle.model import layout
 from virtual_vehicle.run.sim import LatencyStats, NetworkRun
@@ -458,6 +458,12 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, part
     connected = rng.random((n, P)) < 0.85
     config["inner"] = connected | (rng.random((n, P)) < 0.5)  # some silent ports lead to dead cells
     inputs = CellInputs(t, rng.random((n, 5)) < 0.4, inbox, connected, config, labels)
+    # requests marked by a vehicle giving way (rdep's high bit), heard, arriving and held, and back-offs from a
+    # younger asker (bdir marked WEAK), drawn last, so that the draws above are as they were
+    state["heard"]["rdep"] = state["heard"]["rdep"] + np.where(rng.random((n, P)) < 0.3, YIELD, 0)
+    inbox.values["rdep"][:] += np.where(rng.random((n, P)) < 0.3, YIELD, 0).astype(inbox.values["rdep"].dtype)
+    state["hdep"] = state["hdep"] + np.where(rng.random(n) < 0.3, YIELD, 0)
+    state["bdir"] = np.where((state["bdir"] >= 0) & (rng.random(n) < 0.3), state["bdir"] + WEAK, state["bdir"])
     return program, state, inputs
 
 

@@ -40,6 +40,31 @@ def test_a_younger_parcel_standing_across_an_older_ones_way_gives_way(seed, name
     assert report["stalls"] == []
 
 
+@pytest.mark.parametrize("seed, names", [
+    (15, ("p01", "p02")),  # the younger at the entry's north-west corner, the older coming north from below
+    (183, ("p01", "p02")),  # the same beside a `>` band
+])
+def test_a_younger_parcel_backed_against_the_edge_steps_aside_into_the_older_ones_holds(seed, names):
+    """The younger, asked by the older for a cell it carries, has the edge behind it and steps aside: its only open
+    side is where the older's chain of holds runs, and those cells were held for the older (the oldest asking), so
+    it stood, giving way for ever, and the older waited on it. A vehicle giving way now gets a cell before any
+    other: both are delivered, neither waits."""
+    report = sorting_report(run(parse_scenario(pair(seed, names, 10.0)).build()))
+    assert report["correct"] == 2, report
+    assert report["collisions"] == report["misrouted"] == report["lost"] == 0
+    assert report["stalls"] == []
+
+
+def test_a_late_parcel_asked_by_the_due_one_and_a_younger_late_one_gives_way_to_the_due_one():
+    """Stress floors 104 and 106: a late parcel (not due) on its way to the parking bay through the exit lane is
+    asked by the due parcel (older, from the east or south) and by a younger late parcel from the entry (west). Its
+    cells gave way to whichever asked them, the two back-offs pointed opposite ways and the vehicle kept its own
+    direction, into the due one's holds: a cycle of holds from 13 s on. It now gives way to the older asker."""
+    rows = stress([104, 106], duration=16.0)
+    assert [r["deadlocks"] for r in rows] == [0, 0], [r["why"] for r in rows]
+    assert all(r["collisions"] == r["misrouted"] == r["lost"] == 0 for r in rows)
+
+
 def test_the_stress_floors_that_deadlocked_deliver_without_a_deadlock():
     """Seeds 0 and 7 formed a cycle of holds within 8 s (a younger parcel crossing an older one's way, as above);
     a 9 s run of each now forms none."""

@@ -12,10 +12,10 @@ A vehicle ``V`` waits on a vehicle ``W`` when
 
 A cycle of these (a strongly connected set of two or more vehicles) is a deadlock: each member waits, through the
 others, on itself, and none of the sorter's rules moves a member whose every way is held (a vehicle backs off or
-gives way only to an older one, or to any while it is not due, through an open side, and a parked one not at all:
-the package notes argue that a cycle stands only while the member that must give way cannot move). The cells are
-read at one instant; a cycle seen while its vehicles stand is kept by the rules, since every member's cells stay
-held while it stands. Units: cells and hops.
+gives way only to an older one, to any while it is not due, or to one giving way, through an open side, and a
+parked one not at all: the package notes argue which cycles can stand, and where that argument has gaps). The
+cells are read at one instant; a cycle seen while its vehicles stand is kept by the rules, since every member's
+cells stay held while it stands. Units: cells and hops.
 """
 
 from __future__ import annotations

@@ -80,6 +80,13 @@ def rest_words(P: int) -> tuple:
     return REST if P == 4 else REST_HEX
 
 
+WEAK = 8
+"""Added to ``bdir`` (a port) when the vehicle gives way to a younger asker (it is not due): such a back-off
+proposes distance 1, one to an older asker 0, so that where cells of one vehicle are asked by both, it gives way to
+the older."""
+YIELD = 128
+"""The mark on a request (``rdep``'s high bit, above any depth) of a vehicle giving way: a cell is held for such a
+vehicle before any other, so that the cells it gives way into are not held for the older one it makes room for."""
 FULL = 1 << Words._fields.index("ex")
 """A partial sentence that carries ``ex`` (which never changes: said in the first sentence, then only at the
 heartbeat) says every word: those it leaves out are at rest (:data:`REST`)."""
@@ -184,6 +191,13 @@ def _say(told, now, beat, i, q):
     for w in range(len(now)):
         said_out[w][i, q] = now[w] if differs else said_in[w][i, q]
     return beat or differs, differs, mask
+
+
+@njit(cache=True, inline="always")
+def _rank(vid, dep):
+    """The order in which a cell is held for the vehicles asking: those giving way (``dep`` marked
+    :data:`YIELD`) first, then the oldest (the smallest ``vid``)."""
+    return vid + (0 if dep & YIELD else HUGE)
 
 
 @njit(cache=True)
@@ -403,12 +417,12 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             near_dead = near_dead or (trusted[q] and (hack[i, q] >> dead_shift) != 0)
         if into_band >= 0 and near_dead and not open_side[into_band]:
             into_band = NONE
-        if into_band >= 0:
-            prop_port, prop_d = into_band, 0
+        if into_band >= 0:  # distances 2, 3 and up: 0 and 1 are a vehicle giving way's (see ``yielding``)
+            prop_port, prop_d = into_band, 2
         elif at_exit:
-            prop_port, prop_d = ep, 1
+            prop_port, prop_d = ep, 3
         else:
-            prop_port, prop_d = (port if movable else NONE), cand[port] + 3
+            prop_port, prop_d = (port if movable else NONE), cand[port] + 4
         # head on: back off
         sdir = s_dir[i]
         pd = max(sdir, 0)
@@ -423,20 +437,32 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         if head_on:
             back = back_ticks
         # yield: a standing vehicle that carries a cell an older vehicle asks for (or any vehicle, while its own
-        # number is not due) gives way, away from the asker or aside (the package notes: every cycle of holds has a
-        # member waiting on a cell a younger one carries, and that one gives way)
+        # number is not due, or a vehicle giving way: its request marked YIELD) gives way, away from the asker or
+        # aside (the package notes: every cycle of holds has a member waiting on a cell a younger one carries, and
+        # that one gives way). One that cannot (every side but the asker's closed) asks back, marked: the asker
+        # then gives way to it
+        # the asker it gives way to is the first in the order holds go by (one giving way, then the oldest): a
+        # late vehicle asked by the due one and by a younger late one gave way to whichever its cells' proposals
+        # put first, and went into the due one's holds. Giving way to a younger one (while not due) proposes
+        # distance 1 (``bdir`` marked WEAK), so that the vehicle gives way to an older asker first
         asker = NONE
+        first = 4 * HUGE
         standing = on and (s_stop[i] & none) <= reach and s_park[i] > reach
         for q in range(P):
             r = hreq[i, q] if (trusted[q] and not same_nb[q]) else NONE
-            if standing and r >= 0 and r != vid and (r < vid or not turn) and asker < 0:
-                asker = q
+            if standing and r >= 0 and r != vid and (r < vid or not turn or hrdep[i, q] & YIELD) \
+                    and _rank(r, hrdep[i, q]) < first:
+                asker, first = q, _rank(r, hrdep[i, q])
+        boxed = False
         if asker >= 0:
             bdir = _away(open_side, asker, P)
             back = back_ticks
-        backing = back > 0 and open_side[max(bdir, 0)] and bdir >= 0
+            boxed = not open_side[bdir]
+            if first >= HUGE and hreq[i, asker] > vid:
+                bdir += WEAK
+        backing = back > 0 and bdir >= 0 and open_side[bdir % WEAK]
         if backing:
-            prop_port, prop_d = bdir, 0
+            prop_port, prop_d = bdir % WEAK, (1 if bdir >= WEAK else 0)
         own_key = BIG
         if on and prop_port >= 0:
             own_key = direction_key(prop_d, 1 if prop_port == sdir else 0, max(prop_port, 0), 0)
@@ -449,6 +475,8 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         if not on:
             key = BIG
         direction = (key // 64) % 8 if key < BIG else NONE
+        # the vehicle gives way (a cell of it within reach backs off: its proposal, distance 0, is the least)
+        yielding = on and key < direction_key(2, 1, 0, 0)
         if direction >= P:  # a key word from no sorter (the oracle fails here too)
             raise IndexError("a direction key names a port the cell does not have")
         # -- traffic
@@ -460,13 +488,17 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         parked = on and park <= reach
         front = on and ahead_ok_port and not ahead_is_mine and not parked
         off_array = front and not connected[i, dp] and exit_id[i] == target and dp == ep
-        for q in range(P):  # a request stands until its sender says otherwise (it sends only what changed)
-            req[q] = hreq[i, q] if (trusted[q] and hreq[i, q] >= 0) else HUGE
+        # a request stands until its sender says otherwise (it sends only what changed); a vehicle giving way
+        # (its request marked YIELD) gets the cell before any other, else the oldest asking
+        for q in range(P):
+            req[q] = (hreq[i, q] + (0 if hrdep[i, q] & YIELD else HUGE)) if (trusted[q] and hreq[i, q] >= 0) \
+                else 4 * HUGE
         choice = _first_min(req)
-        new_hold = req[choice] if req[choice] < HUGE else NONE
+        new_hold = req[choice] % HUGE if req[choice] < 4 * HUGE else NONE
         hport = choice if new_hold >= 0 else NONE
         hdep = hrdep[i, max(hport, 0)] if new_hold >= 0 else 0
-        keep = s_hold[i] >= 0 and s_hage[i] < max_age and (new_hold < 0 or s_hold[i] < new_hold)
+        keep = s_hold[i] >= 0 and s_hage[i] < max_age and (
+            new_hold < 0 or _rank(s_hold[i], s_hdep[i]) < _rank(new_hold, hdep))
         if keep:
             new_hold, hport, hdep = s_hold[i], s_hport[i], s_hdep[i]
         hage = s_hage[i] + 1 if keep else 0
@@ -524,9 +556,11 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         for q in range(P):  # requests: front cells ask the cell ahead, held cells pass it on until gap deep
             to_req[q], to_rdep[q] = NONE, 0
         if front and connected[i, dp]:
-            to_req[dp], to_rdep[dp] = vid, 1
-        if new_hold >= 0 and hdep < L and connected[i, fp]:
-            to_req[fwd], to_rdep[fwd] = new_hold, hdep + 1
+            to_req[dp], to_rdep[dp] = vid, 1 + (YIELD if yielding else 0)
+        if new_hold >= 0 and (hdep & (YIELD - 1)) < L and connected[i, fp]:
+            to_req[fwd], to_rdep[fwd] = new_hold, hdep + 1  # (the mark passed on with it)
+        if boxed and connected[i, asker]:
+            to_req[asker], to_rdep[asker] = vid, 1 + YIELD
         # say: on a port only what changed since it last sent there (and again for ``repeats`` ticks), and
         # everything at its heartbeat, which repairs a lost sentence; the words are written whether sent or not
         beat = heartbeat_due(tick, entry_no[i], heartbeat)
