@@ -641,7 +641,7 @@ def test_a_sorter_cell_that_read_back_nothing_new_ticks_its_clocks_as_its_whole_
     from virtual_vehicle.cells.sorting.rules import heartbeat_due, tick_of
 
     beats = stale = heard = 0  # rows ticked alone at a heartbeat / after hearing new words; quiet rows gone stale
-    for seed in range(192):
+    for seed in range(256):
         rng = np.random.default_rng(1000 + seed)
         max_age, parking, partial = [0, 3][seed % 2], bool(seed // 2 % 2), bool(seed // 4 % 2)
         P = 6 if seed % 3 == 0 else 4  # some hexagonal cells
