@@ -45,9 +45,10 @@ MODULES = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
 
 
 def layer_of(module: str) -> int:
-    """-1 for the package root and its errors, else the index of the module's layer in :data:`LAYERS`."""
+    """-1 for the package root, its errors and its compiled code's cache folder, else the index of the module's
+    layer in :data:`LAYERS`."""
     parts = module.split(".")
-    if len(parts) == 1 or parts[1] == "errors":
+    if len(parts) == 1 or parts[1] in ("errors", "compiled_cache"):
         return -1
     if parts[1] not in LAYERS:
         raise AssertionError(f"{module} is in no layer: put it in one of {LAYERS}")
