@@ -6,7 +6,9 @@ Model (paper 4.1.2): every support is a spring of the same stiffness and the par
 the normal forces are an affine function of position, ``N_i = c + a x_i + b y_i`` (eq. 7), fixed by vertical and
 moment equilibrium (eqs. 3-5). The paper writes this as an (m+3) x (m+3) system with a mask matrix (eqs. 8-19); here
 the same solution comes from the 3x3 moment system: with ``B_i = [1, x_i, y_i]`` and ``theta = [c, a, b]``,
-equilibrium reads ``(B^T B) theta = W [1, x_c, y_c]``, so no large matrix is ever inverted.
+equilibrium reads ``(B^T B) theta = W [1, x_c, y_c]``, so no large matrix is ever inverted: the 3x3 matrix is made
+from the sums of 1, x, y, x^2, xy and y^2 over the cells in contact and inverted by cofactors (LAPACK only for
+contacts close to one line).
 
 Beyond the paper:
 - Lift-off: springs cannot pull, so a cell whose linear force would be negative leaves contact. The contact set is
@@ -270,7 +272,8 @@ def _planar(pts, com, weight, max_iter):
     it tips, and the map is not solved), the basis rows ``[1, x_i, y_i]``, :func:`_affine_map`'s results,
     :func:`_force_map`'s, and the springs' gradients and their norms (:attr:`SupportSolution.spring_lin`,
     :attr:`SupportSolution.spring_gradient`, the same floats: numba's ``np.dot`` calls the BLAS numpy's ``@`` does)
-    with what its holds test reads (:attr:`SupportSolution._holding`)."""
+    with what its holds test reads (:attr:`SupportSolution._holding`). The moment system is solved in closed form
+    (:func:`_affine_map_planar`)."""
     m = pts.shape[0]
     origin, local, xi, scale = _frame(pts, com)
     tol = _REL_TOL * scale
@@ -284,7 +287,7 @@ def _planar(pts, com, weight, max_iter):
     if outside > tol:
         mapped = (np.zeros(m, np.bool_), True, np.zeros((3, 2)), np.zeros(3))
     else:
-        mapped = _affine_map(basis, _PLANE_LIN, _PLANE_CONST, weight, xi, max_iter)
+        mapped = _affine_map_planar(basis, weight, xi, max_iter)
     forces = _force_map(basis, mapped[0], mapped[2], mapped[3])
     spring_lin = np.dot(basis, mapped[2])
     springs = (spring_lin, np.hypot(spring_lin[:, 0], spring_lin[:, 1]),
@@ -477,6 +480,85 @@ def _affine_map(basis, r_lin, r_const, weight, xi, max_iter):
     plane_lin = weight * minv @ r_lin  # eq. 19: theta = W (M^T A M)^-1 (W_x X_c + W_c), reduced to the moment system
     plane_const = weight * minv @ r_const
     return in_contact, converged, plane_lin, plane_const
+
+
+_CLOSED_SINGULAR = 1e-8
+"""Below this ratio of the moment matrix's determinant to the product of its diagonal (Hadamard's bound, which it
+never exceeds) the contacts are close to one line: the closed-form solve hands over to the LAPACK one."""
+
+
+@njit(cache=True)
+def _moment_inverse(basis, act, out):
+    """The inverse of the moment matrix ``sum_i B_i^T B_i`` over the cells in ``act`` (rows ``B_i = [1, x_i, y_i]``
+    of ``basis``, m), into ``out`` (3, 3), from the sums of 1, x, y, x^2, xy and y^2 by cofactors: the moment
+    system that eqs. 8-19 reduce to, without LAPACK (an SVD took ~10 us a solve). Whether the matrix is far enough
+    from singular (contacts not near one line) for that to be accurate."""
+    s0 = sx = sy = sxx = sxy = syy = 0.0
+    for i in range(basis.shape[0]):
+        if act[i]:
+            x, y = basis[i, 1], basis[i, 2]
+            s0 += 1.0
+            sx += x
+            sy += y
+            sxx += x * x
+            sxy += x * y
+            syy += y * y
+    c00, c11, c22 = sxx * syy - sxy * sxy, s0 * syy - sy * sy, s0 * sxx - sx * sx
+    c01, c02, c12 = sy * sxy - sx * syy, sx * sxy - sy * sxx, sx * sy - s0 * sxy
+    det = s0 * c00 + sx * c01 + sy * c02
+    if not det > _CLOSED_SINGULAR * s0 * sxx * syy:
+        return False
+    out[0, 0], out[1, 1], out[2, 2] = c00 / det, c11 / det, c22 / det
+    out[0, 1] = out[1, 0] = c01 / det
+    out[0, 2] = out[2, 0] = c02 / det
+    out[1, 2] = out[2, 1] = c12 / det
+    return True
+
+
+@njit(cache=True)
+def _affine_map_planar(basis, weight, xi, max_iter):
+    """:func:`_affine_map` of planar supports (rows ``basis`` ``[1, x_i, y_i]``, m) under the load of a parcel of
+    ``weight`` (N) at local centre of mass ``xi`` (m), with the moment system solved in closed form
+    (:func:`_moment_inverse`): the contact-set iteration's full Newton steps, every cell in contact first, so one
+    solve when no force nears zero. Where a contact set is close to one line, or the iteration would repeat a set
+    (its damped steps), the LAPACK solve takes over from the start."""
+    m = basis.shape[0]
+    load = np.empty(3)
+    load[0], load[1], load[2] = weight, weight * xi[0], weight * xi[1]  # W [1, x_c, y_c] (eqs. 3-5)
+    tie = _REL_TOL * max(abs(load[0]), 1e-300)
+    minv = np.empty((3, 3))
+    theta = np.empty(3)
+    act = np.ones(m, np.bool_)
+    seen = np.zeros((max_iter, m), np.bool_)
+    if _moment_inverse(basis, act, minv):  # every cell in contact: the iteration's start, as _contact_set's
+        _times(minv, load, theta)
+        for it in range(max_iter):
+            act = np.empty(m, np.bool_)
+            for i in range(m):
+                act[i] = theta[0] + theta[1] * basis[i, 1] + theta[2] * basis[i, 2] > tie
+            if not act.any() or _contains(seen[:it], act) or not _moment_inverse(basis, act, minv):
+                break
+            _times(minv, load, theta)  # the set's spring plane: theta = M^-1 W [1, x_c, y_c] (eq. 19, reduced)
+            holds = True
+            for i in range(m):
+                p = theta[0] + theta[1] * basis[i, 1] + theta[2] * basis[i, 2]
+                holds = holds and (p > -tie if act[i] else p <= tie)
+            if holds:
+                plane_lin = np.empty((3, 2))
+                plane_const = np.empty(3)
+                for j in range(3):
+                    plane_lin[j, 0], plane_lin[j, 1] = weight * minv[j, 1], weight * minv[j, 2]
+                    plane_const[j] = weight * minv[j, 0]
+                return act, True, plane_lin, plane_const
+            seen[it] = act
+    return _affine_map(basis, _PLANE_LIN, _PLANE_CONST, weight, xi, max_iter)
+
+
+@njit(cache=True, inline="always")
+def _times(a, v, out):
+    """``out = a @ v`` for a (3, 3) matrix and a (3,) vector."""
+    for j in range(3):
+        out[j] = a[j, 0] * v[0] + a[j, 1] * v[1] + a[j, 2] * v[2]
 
 
 @njit(cache=True)
