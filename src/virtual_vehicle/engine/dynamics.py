@@ -174,6 +174,9 @@ class _PieceTable:
                          np.empty((self.spare, affine._TERMS)), float(model.weight),
                          np.zeros((self.spare + 1, 2), np.int64), np.zeros((self.spare, 2)))
         self.owner: ParcelModel | None = None  # the model whose pieces the table holds (see renew)
+        self.loop_args: tuple | None = None
+        """The mode loop's arguments that do not change between calls for the parcel (grid, scales, wheel cells,
+        logs, chatter ring), with the ``present`` mask they were made for: kept by :func:`_run_modes`."""
         self.blank: tuple | None = None
         """A (wheels, mode) pair as the mode loop takes them, passed where it finds the first piece itself (only
         their types count): kept from a run that had them."""
@@ -1159,10 +1162,19 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     z = np.concatenate([y0, [0.0, 0.0, 0.0]])  # and the energy account: wheel work, friction, fixed steps' loss (J)
     kinetic_start = 0.5 * (mass * (y0[3] ** 2 + y0[4] ** 2) + inertia * y0[5] ** 2)
     segments = nfev = same_time = fallback_steps = chatter_steps = 0
-    # the last support changes (time, the hash of the cells under the parcel), shared by the compiled loop
-    ring_t, ring_h, ring = np.zeros(_CHATTER_EVENTS), np.zeros(_CHATTER_EVENTS, np.int64), np.zeros(2, np.int64)
     table = model._table if _MODE_LOOP else None
-    if _MODE_LOOP:
+    if _MODE_LOOP and table is None and model._table_home[0] is not None:
+        table = model._new_table(model._table_home[0].row_length)
+    kept = None if table is None else table.loop_args
+    if kept is not None and kept[0] is not model.present:  # (cells taken out since: gathered again)
+        kept = None
+    if kept is not None:  # the parcel's loop arguments, kept with its table
+        _, grid, scales, wheel_cells, clock, same, log_f, log_i, log_s, ring_t, ring_h, ring = kept
+        ring_t[:], ring_h[:], ring[:] = 0.0, 0, 0
+    else:
+        # the last support changes (time, the hash of the cells under the parcel), shared by the compiled loop
+        ring_t, ring_h, ring = np.zeros(_CHATTER_EVENTS), np.zeros(_CHATTER_EVENTS, np.int64), np.zeros(2, np.int64)
+    if _MODE_LOOP and kept is None:
         cells_grid, mu_static = model.cells.grid, spec.mu if spec.mu_static is None else spec.mu_static
         grid = (cells_grid.points, cells_grid.order, cells_grid.start, float(cells_grid.lo[0]),
                 float(cells_grid.lo[1]), float(cells_grid.size), int(cells_grid.shape[0]), int(cells_grid.shape[1]),
@@ -1207,8 +1219,6 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     seg = None
     y_probe = z[:6].copy()
     base = y_probe
-    if _MODE_LOOP and table is None and model._table_home[0] is not None:
-        table = model._new_table(model._table_home[0].row_length)
     # the compiled loop finds the first piece itself (from the support set, or the cells under the footprint), makes
     # its wheels and decides their mode, where its table can: no Piece, wheel arrays or decision made here for it
     starting = (_MODE_LOOP and table is not None and table.blank is not None
@@ -1394,6 +1404,9 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         new_piece = True
         if t >= t1:
             break
+    if table is not None:
+        table.loop_args = (model.present, grid, scales, wheel_cells, clock, same, log_f, log_i, log_s, ring_t, ring_h,
+                           ring)
     if piece is not None and mode is not None:  # the wheels' grip, for the time stepper should one take over next
         # (parcels pushing each other are stepped): updated in place, so the model this one was copied from has it
         memory, keys = model.contact_memory, _wheel_keys(model, piece)
