@@ -155,3 +155,55 @@ def test_the_compiled_stick_slip_loop_is_the_python_loop_under_random_fields(whe
     y0 = np.array([*rng.uniform(lo, hi), rng.uniform(-3.0, 3.0), 0.0, 0.0, 0.0])
     loop, python, _ = _loop_and_python(cells, spec, V, y0, 1.0)
     _same_mode_run(loop, python)
+
+
+def test_copies_started_from_the_cells_told_or_found_run_as_the_python_loop():
+    """The plant makes a parcel's model again every tick (other wheels) and may tell the cells under it: such a
+    copy's compiled loop finds its first piece itself (from the cells told or those under the footprint), or hands
+    the start back where its table cannot give it (a pattern it never met, a parcel off the array). Tick by tick,
+    with the parcel going on, set down elsewhere, or off the array, the copies' runs are the Python loop's bit for
+    bit, and both ways of starting were taken."""
+    from virtual_vehicle.engine import _modeloop
+
+    cells = layout.grid(12, 10, 0.1)
+    spec = parcel.rectangle(0.33, 0.27, 1.3, 0.3, mu_static=0.6)
+    field = fields.Inward((0.6, 0.5), 0.2).velocities(cells)
+    rng = np.random.default_rng(5)
+    starts = []
+    run_modes = _modeloop.run_modes
+
+    def counted(*args):
+        out = run_modes(*args)
+        if args[6] < 0:
+            starts.append(out[0] == _modeloop.LOOP_START)
+        return out
+
+    bases = [ParcelModel(cells, spec, field, laws.LAWS["stick_slip"]) for _ in range(2)]
+    poses = np.column_stack([rng.uniform(0.3, 0.9, (60, 2)), rng.uniform(-3, 3, 60)])
+    for base in bases:  # a store of more patterns than a table mirrors: a table meets patterns it cannot solve
+        for pose in poses:
+            base.piece_at(pose)
+    y = np.array([0.42, 0.33, 0.2, 0.0, 0.0, 0.0])
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(_modeloop, "run_modes", counted)
+        for k in range(80):
+            V = field * (1.0 + 0.5 * np.sin(0.7 * k))  # the wheels change every tick
+            t0, t1 = k * 0.01, (k + 1) * 0.01
+            if k % 10 == 9:  # off the array: it tips at once
+                y = np.array([3.0, 3.0, 0.0, 0.0, 0.0, 0.0])
+            elif rng.random() < 0.6:  # set down elsewhere, possibly on a pattern the table never met
+                y = np.array([*rng.uniform(0.2, 1.0, 2), rng.uniform(-3, 3), *rng.normal(0, 0.1, 3)])
+            told = rng.random() < 0.5
+            runs = []
+            for base, compiled in zip(bases, (True, False)):
+                patch.setattr(dynamics, "_MODE_LOOP", compiled)
+                model = base.with_velocities(V)
+                support = model.support_at(y) if told else None
+                runs.append(dynamics.integrate_prechecked(model, y, t0, t1, np.array([t0, t1]), mode="event",
+                                                          rtol=1e-10, atol=1e-12, max_step=np.inf, dt=1e-3,
+                                                          support=support))
+            _same_mode_run(*runs)
+            if k % 10 == 9:
+                assert runs[0].status == "tipped"
+            y = runs[0].states[-1] if runs[0].status == "completed" else np.array([0.5, 0.5, 0.0, 0.0, 0.0, 0.0])
+    assert starts.count(False) >= 10 and starts.count(True) >= 1  # found by the loop, and handed back

@@ -48,9 +48,14 @@ from virtual_vehicle.engine._kernel import (
 from virtual_vehicle.model.parcel import _within
 from virtual_vehicle.physics.stick_modes import _wheel_arrays, breaking_kernel, decide_kernel
 
-LOOP_UNDECIDED, LOOP_MODE_CHATTER = 15, 16
+LOOP_UNDECIDED, LOOP_MODE_CHATTER, LOOP_START = 15, 16, 17
 """Outcomes of :func:`run_modes` besides run_events' ones: the mode rule could not decide a mode (the new mode is
-none: Python crosses fixed steps), and mode events chatter (Python raises)."""
+none: Python crosses fixed steps), mode events chatter (Python raises), and the table cannot give the first piece
+of a call started from the support set (Python finds it, as it finds a missed one, and calls again)."""
+
+START_TOLD, START_PROBE = -1, -2
+"""The piece :func:`run_modes` may start from instead of one of the table's: that of the cells ``start`` (told by
+the caller: a quiet stepper's hand-over), or of the cells under the footprint at the probe state."""
 
 LOG_SLIP, LOG_STICK, LOG_SUPPORT = 0, 1, 2
 """Kinds of a log entry: a mode event ended by a slipping wheel reaching zero slip, by the sticking wheels' required
@@ -210,7 +215,7 @@ def _log(log_f, log_i, log_s, n_log, n_s, kind, p, q, t, y_before, y_after, befo
 
 
 @njit(cache=True)
-def run_modes(tab, law, wheel_cells, footprint, scales, grid, p, wheels, mode, minv, candidates, center, ids, y_base,
+def run_modes(tab, law, wheel_cells, footprint, scales, grid, p, start, wheels, mode, minv, candidates, center, ids, y_base,
               t, z, t_bound, h, h_abs, first_step, rtol, atol, max_step, max_steps, sample_times, next_sample, samples,
               segments, max_segments, ring_t, ring_h, ring, chatter_span, chatter_pieces, clock, same, same_limit,
               log_f, log_i, log_s):
@@ -221,6 +226,12 @@ def run_modes(tab, law, wheel_cells, footprint, scales, grid, p, wheels, mode, m
     and friction loss, J) at time ``t``, on the segment of candidates ``candidates``/``ids`` gathered about ``center``
     with probe ``y_base``; the first mode's first step ``first_step`` (0: resume with ``h_abs`` after a pause). Its
     loop as :func:`~virtual_vehicle.engine.dynamics._run_modes`', the iteration Python began counted in ``segments``.
+
+    ``p`` :data:`START_TOLD` or :data:`START_PROBE` starts the call as Python's loop starts instead (its first piece
+    found, its wheels built and their mode decided at ``y_base``, the candidates gathered about it): the piece of
+    the cells ``start`` or of those under the footprint, looked up or made as at a support event; ``wheels``,
+    ``mode``, ``candidates``, ``center`` and ``ids`` then only give their types. Where the table cannot give that
+    piece the call returns :data:`LOOP_START` at once (nothing logged, nothing made).
 
     ``law`` is the table's ``law_args`` (:func:`~virtual_vehicle.engine._kernel.run_events`), ``wheel_cells`` (cells'
     wheel_active, drive directions, mu, mu_static), ``footprint`` the parcel's outline, ``scales`` (buffer, reach,
@@ -250,6 +261,51 @@ def run_modes(tab, law, wheel_cells, footprint, scales, grid, p, wheels, mode, m
     none = np.empty(0, np.int64)
     y_probe = y_base
     new_piece = False
+    if p < 0:  # the first piece, as Python's piece_for (or piece_at) finds it before its loop
+        under = start
+        if p == START_PROBE:  # the cells under the footprint, as ParcelModel.support_at finds them
+            near = _within(g_points, g_order, g_start, g_lo0, g_lo1, g_size, g_nx, g_ny, present, y_base[0],
+                           y_base[1], radius * (1 + 1e-9) + 1e-12)
+            margins, _ = cell_margins(kind, half, normals, offsets, vertices, _gather(positions, near), y_base)
+            under = near[margins > 0]
+        q = -1
+        if under.shape[0]:
+            q = table_lookup(tab, under, y_base[0], y_base[1])
+            if q == -2 and drive:
+                q = table_from_pattern(tab, under, y_base[0], y_base[1], positions, unit, velocities, directions,
+                                       drive, mu, damping, inv_mass, inv_inertia, born_terms, born, weight,
+                                       solve_log, solve_origin)
+                if q >= 0:
+                    born += 1
+            elif q == -1 and drive:
+                q, made = table_piece_again(tab, under, y_base[0], y_base[1], positions, unit, velocities,
+                                            directions, drive, mu, damping, inv_mass, inv_inertia, born_terms, born,
+                                            weight, solve_log, solve_origin)
+                if made:
+                    born += 1
+        if q < 0:
+            return (LOOP_START, t, z, p, h, h_abs, nfev, next_sample, segments, n_log, n_s, born, y_probe, none,
+                    False, ids, candidates, center, y_base, mode, wheels, new_piece)
+        p = q
+        _, _, _, _, _, _, _, _, _, force_lin, force_const, _ = _record_arrays(srec, fpool, psol[p])
+        wheels = _wheel_arrays(active, wheel_dirs, positions, velocities, _support_of(tab, p), force_lin,
+                               force_const, porigin[p], mu_k, mu_s)
+        P, U, w0, wa, t0, FL, FC, origin, mus, muk = wheels
+        if 8 * P.shape[0] + 256 > pool:  # no room for its mode's log: Python makes the pool larger
+            return (LOOP_START, t, z, START_TOLD, h, h_abs, nfev, next_sample, segments, n_log, n_s, born, y_probe,
+                    none, False, ids, candidates, center, y_base, mode, wheels, new_piece)
+        ids = _within(g_points, g_order, g_start, g_lo0, g_lo1, g_size, g_nx, g_ny, present, y_base[0], y_base[1],
+                      radius + buffer)  # the segment's candidates, as _Segment gathers them
+        candidates = _gather(positions, ids)
+        center = np.empty(2)
+        center[0], center[1] = y_base[0], y_base[1]
+        ok, new_state, y_new, new_rows, new_stick, new_rank, new_anchor, new_index = decide_kernel(
+            P, U, w0, wa, t0, FL, FC, origin, mus, muk, minv, t, z[:6], none, none)
+        if not ok:  # Python crosses fixed steps on this piece, in the iteration it began (counted again there)
+            return (LOOP_UNDECIDED, t, z, p, h, h_abs, nfev, next_sample, segments - 1, n_log, n_s, born, y_probe,
+                    none, False, ids, candidates, center, y_base, mode, wheels, True)
+        z[:6] = y_new
+        state, rows, stick, rank, anchor, index = new_state, new_rows, new_stick, new_rank, new_anchor, new_index
     while True:  # (the log has room for this mode's event: Python's first iteration starts it empty)
         m = state.shape[0]
         new_piece = False

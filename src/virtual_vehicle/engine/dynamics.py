@@ -174,6 +174,12 @@ class _PieceTable:
                          np.empty((self.spare, affine._TERMS)), float(model.weight),
                          np.zeros((self.spare + 1, 2), np.int64), np.zeros((self.spare, 2)))
         self.owner: ParcelModel | None = None  # the model whose pieces the table holds (see renew)
+        self.loop_args: tuple | None = None
+        """The mode loop's arguments that do not change between calls for the parcel (grid, scales, wheel cells,
+        logs, chatter ring), with the ``present`` mask they were made for: kept by :func:`_run_modes`."""
+        self.blank: tuple | None = None
+        """A (wheels, mode) pair as the mode loop takes them, passed where it finds the first piece itself (only
+        their types count): kept from a run that had them."""
         self.clear()
 
     def clear(self) -> None:
@@ -206,11 +212,12 @@ class _PieceTable:
         return (self.slots, self.kmeta, self.ipool, self.psol, self.porigin, self.pnext, self.pkey, self.rows,
                 self.srec, self.fpool, self.gslots, self.gmeta, self.used)
 
-    def sync(self, model: "ParcelModel", piece: Piece) -> bool:
+    def sync(self, model: "ParcelModel", piece: Piece | None) -> bool:
         """Before a loop on ``piece``: add every support set of the model's cache the table lacks pieces of, if the
         cache has grown since the table last matched it (the plant and quiet steppers look pieces up outside the
         loop); past :attr:`max_pieces` empty the table and the model's piece cache (keeping ``piece``); make room
-        for what the loop may add. Returns whether it emptied them."""
+        for what the loop may add. Returns whether it emptied them. (``piece`` None: the loop finds its first piece
+        itself; the caller made sure the table need not be emptied.)"""
         emptied = len(self.pieces) > self.max_pieces
         if emptied:
             self.clear()
@@ -1123,6 +1130,11 @@ def _replay(model, piece, log_f, log_i, log_s, n_log, events, mode_events) -> No
                 events.extend(_mode_change_events(t, y[6:], before, after, _wheel_keys(model, piece(a))))
 
 
+_NO_CANDIDATES, _NO_CENTER = np.zeros((0, 2)), np.zeros(2)
+"""What the compiled mode loop is passed for a segment it gathers itself (as it does where it finds its first
+piece)."""
+
+
 def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol, atol, max_step, dt,
                support=None) -> Trajectory:
     """Event mode for a law with modes (stick-slip): on each piece (support set) the law's wheels
@@ -1150,10 +1162,19 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     z = np.concatenate([y0, [0.0, 0.0, 0.0]])  # and the energy account: wheel work, friction, fixed steps' loss (J)
     kinetic_start = 0.5 * (mass * (y0[3] ** 2 + y0[4] ** 2) + inertia * y0[5] ** 2)
     segments = nfev = same_time = fallback_steps = chatter_steps = 0
-    # the last support changes (time, the hash of the cells under the parcel), shared by the compiled loop
-    ring_t, ring_h, ring = np.zeros(_CHATTER_EVENTS), np.zeros(_CHATTER_EVENTS, np.int64), np.zeros(2, np.int64)
     table = model._table if _MODE_LOOP else None
-    if _MODE_LOOP:
+    if _MODE_LOOP and table is None and model._table_home[0] is not None:
+        table = model._new_table(model._table_home[0].row_length)
+    kept = None if table is None else table.loop_args
+    if kept is not None and kept[0] is not model.present:  # (cells taken out since: gathered again)
+        kept = None
+    if kept is not None:  # the parcel's loop arguments, kept with its table
+        _, grid, scales, wheel_cells, clock, same, log_f, log_i, log_s, ring_t, ring_h, ring = kept
+        ring_t[:], ring_h[:], ring[:] = 0.0, 0, 0
+    else:
+        # the last support changes (time, the hash of the cells under the parcel), shared by the compiled loop
+        ring_t, ring_h, ring = np.zeros(_CHATTER_EVENTS), np.zeros(_CHATTER_EVENTS, np.int64), np.zeros(2, np.int64)
+    if _MODE_LOOP and kept is None:
         cells_grid, mu_static = model.cells.grid, spec.mu if spec.mu_static is None else spec.mu_static
         grid = (cells_grid.points, cells_grid.order, cells_grid.start, float(cells_grid.lo[0]),
                 float(cells_grid.lo[1]), float(cells_grid.size), int(cells_grid.shape[0]), int(cells_grid.shape[1]),
@@ -1182,26 +1203,36 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         return law.wheel_arrays(model.cells, piece.support, piece.solution, model.velocities, spec.mu,
                                 spec.mu_static)
 
-    try:
-        piece = model.piece_at(z[:6]) if support is None else model.piece_for(support, z[:6])
-    except TippingError as exc:
-        events.append(Event(t, "tip", tuple(map(float, y0)), message=str(exc)))
-        piece = None
-        status = "tipped"
+    def begin():
+        """The first piece, its wheels and their mode (three None where the parcel tips)."""
+        nonlocal status
+        try:
+            piece = model.piece_at(z[:6]) if support is None else model.piece_for(support, z[:6])
+        except TippingError as exc:
+            events.append(Event(t, "tip", tuple(map(float, y0)), message=str(exc)))
+            status = "tipped"
+            return None, None, None
+        wheels = wheels_of(piece)
+        return piece, wheels, decide(wheels, t, z)
+
     max_steps = _PAUSE_STEPS if progress is not None else _NO_PAUSE
     seg = None
     y_probe = z[:6].copy()
     base = y_probe
-    if piece is not None:
-        wheels = wheels_of(piece)
-        mode = decide(wheels, t, z)
-        new_piece = True
-    while piece is not None:
+    # the compiled loop finds the first piece itself (from the support set, or the cells under the footprint), makes
+    # its wheels and decides their mode, where its table can: no Piece, wheel arrays or decision made here for it
+    starting = (_MODE_LOOP and table is not None and table.blank is not None
+                and len(table.pieces) <= table.max_pieces)
+    piece = wheels = mode = None
+    if not starting:
+        piece, wheels, mode = begin()
+    new_piece = True
+    while piece is not None or starting:
         segments += 1
         if segments > max_segments:
             raise IntegrationError(f"more than {max_segments} support and mode changes: events accumulate near "
                                    f"t={t:.9g} s")
-        if mode is None:  # undecided: cross a few fixed steps of the law's stepper, then decide again
+        if mode is None and not starting:  # undecided: cross a few fixed steps of the law's stepper, then decide
             contacts = law.wheel_contacts(model.cells, piece.support, piece.solution, model.velocities, spec.mu,
                                           spec.mu_static)
             t, status, steps = _undecided_steps(model, contacts, z, t, t1, dt, rec, events, progress)
@@ -1214,24 +1245,32 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
             mode = decide(wheels, t, z)
             new_piece = True
             continue
-        if new_piece:
+        if new_piece and not starting:
             seg = _Segment(model, piece, y_probe, seg)
             base = np.ascontiguousarray(y_probe, dtype=float)
         if _MODE_LOOP:  # events in one compiled call until Python must act
-            if table is None:
+            if table is None or (not starting and table.row_length != len(piece.row)):
                 table = model._new_table(len(piece.row))
             first, h_abs = min(h, t1 - t), 0.0
             while True:
-                table.sync(model, piece)
-                p = table.index_of(model, piece)  # after the sync: both may grow the table's arrays
+                if starting:  # the loop's first piece, from the cells told or under the footprint
+                    table.sync(model, None)
+                    p = _modeloop.START_PROBE if support is None else _modeloop.START_TOLD
+                    cells = nobody if support is None else np.ascontiguousarray(support, dtype=np.int64)
+                    wheels, mode = table.blank
+                    candidates, center, ids = _NO_CANDIDATES, _NO_CENTER, nobody
+                else:
+                    table.sync(model, piece)
+                    p = table.index_of(model, piece)  # after the sync: both may grow the table's arrays
+                    cells, candidates, center, ids = nobody, seg.candidates, seg.center, seg.ids
                 start = int(table.used[_kernel.U_PIECES])
                 if len(log_s) < 8 * len(mode[0]) + 256:
                     log_s = np.empty(2 * (8 * len(mode[0]) + 256), np.int64)
                 clock[0], same[0] = (mode_events[-1][0] if mode_events else np.nan), same_time
                 (outcome, t, z8, p, h, h_abs, evals, rec.next, segments, n_log, _, born, y_probe, under, told, ids,
                  candidates, center, base, mode, wheels, new_piece) = _modeloop.run_modes(
-                    table.arrays, table.law_args, wheel_cells, model.outline, scales, grid, p, wheels, mode, minv,
-                    seg.candidates, seg.center, seg.ids, base, t, z[:8].copy(), t1, h, h_abs, first, rtol, atol,
+                    table.arrays, table.law_args, wheel_cells, model.outline, scales, grid, p, cells, wheels, mode,
+                    minv, candidates, center, ids, base, t, z[:8].copy(), t1, h, h_abs, first, rtol, atol,
                     max_step, max_steps, rec.sample_times, rec.next, rec.samples, segments, max_segments, ring_t,
                     ring_h, ring, _CHATTER_SPAN, _CHATTER_PIECES, clock, same, _MODE_CHATTER, log_f, log_i, log_s)
                 z[:8] = z8
@@ -1240,6 +1279,12 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
                 table.adopt_solved(model)  # before the pieces made from them
                 if born:
                     table.adopt_born(model, start, born)
+                if starting:
+                    starting = False
+                    if outcome == _modeloop.LOOP_START:  # the table cannot give it: found here, as before
+                        break
+                elif table.blank is None:
+                    table.blank = wheels, mode
                 piece_of = partial(table.piece, model)  # (pieces the loop made are made when read)
                 _replay(model, piece_of, log_f, log_i, log_s, n_log, events, mode_events)
                 new = piece_of(p)
@@ -1252,6 +1297,12 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
                 if outcome != _kernel.PAUSED:
                     break
                 first = 0.0
+            if outcome == _modeloop.LOOP_START:
+                piece, wheels, mode = begin()
+                new_piece, segments = True, segments - 1  # (the loop's first iteration begins again)
+                if piece is not None:  # its pattern's solutions, so that the next copy's loop finds it from them
+                    table.learn_pattern(model, piece.support)
+                continue
             if outcome in (_kernel.REACHED, _kernel.LOOP_DONE):
                 break
             if outcome == _kernel.LOOP_TOO_MANY:
@@ -1353,6 +1404,9 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         new_piece = True
         if t >= t1:
             break
+    if table is not None:
+        table.loop_args = (model.present, grid, scales, wheel_cells, clock, same, log_f, log_i, log_s, ring_t, ring_h,
+                           ring)
     if piece is not None and mode is not None:  # the wheels' grip, for the time stepper should one take over next
         # (parcels pushing each other are stepped): updated in place, so the model this one was copied from has it
         memory, keys = model.contact_memory, _wheel_keys(model, piece)
