@@ -3,6 +3,7 @@
 import atexit
 import os
 import shutil
+import signal
 import tempfile
 
 import numpy as np
@@ -25,6 +26,11 @@ settings.load_profile("ci")
 if "HYPOTHESIS_STORAGE_DIRECTORY" not in os.environ:
     os.environ["HYPOTHESIS_STORAGE_DIRECTORY"] = _storage = tempfile.mkdtemp(prefix="hypothesis-")
     atexit.register(shutil.rmtree, _storage, ignore_errors=True)
+# A run started as a background job of a non-interactive shell (`make test &`, nohup) inherits SIGINT ignored, and so
+# would every child it starts: the tests of what Ctrl-C does to the commands then see nothing. A terminal's run has
+# Python's handler; give every run that, so that its children start with SIGINT at its default, as under a terminal.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session")  # session scope: hypothesis tests may use it
