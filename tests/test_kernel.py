@@ -597,10 +597,66 @@ def test_the_event_loop_runs_the_same_from_its_table_and_after_emptying_it(monke
     assert len(small._table.pieces) <= 7 + dynamics._PieceTable.spare and len(small._pieces) < len(model._pieces)
 
 
-def test_the_event_loop_hands_back_for_progress_and_runs_the_same():
-    """With a progress callback the loop pauses every few steps and hands back; the run is the same."""
+@pytest.mark.parametrize("pause", [4, 64])
+def test_the_event_loop_hands_back_for_progress_and_runs_the_same(monkeypatch, pause):
+    """With a progress callback the loop hands back every few steps within a piece and every few pieces it begins
+    (``_PAUSE_STEPS``; a piece is often one step, and the loop needs Python for little else), so progress is heard
+    of at least that often; the run is the same."""
+    monkeypatch.setattr(dynamics, "_PAUSE_STEPS", pause)
     times = []
     paused = integrate(_inward_model(), np.array([1.12, 1.47, 0.3, 0.0, 0.0, 0.0]), 0.0, 1.5, sample_dt=0.05,
                        progress=times.append)
     _same_run(_coulomb_run(_inward_model()), paused)
-    assert len(times) > 10 and times == sorted(times)
+    # each call begins at most `pause` pieces, and Python at most one before it
+    assert len(times) >= (paused.segments - 1) / (pause + 1) and times == sorted(times) and times[-1] == 1.5
+    assert paused.segments > 100 and len(times) > (10 if pause == 4 else 1)
+
+
+def test_the_event_loop_hands_back_only_when_its_table_is_full(monkeypatch):
+    """The oscillating Coulomb parcel (5 s, ~500 support events, ~370 pieces, ~170 patterns solved) needs Python
+    only where the compiled loop has no room for another piece (``_PieceTable.spare`` a call): not for the cells
+    under the parcel where the probe's values cannot tell them (it finds them as ``support_at`` does), not for a
+    support set met before on other contact sets, not for a solve. Every hand-back is counted (each call's
+    outcome), and the run is the one a run whose loop hands back at every piece makes."""
+    calls = []
+    original = kernel.run_events
+
+    def counted(*args):
+        out = original(*args)
+        calls.append((out[0], out[10], out[11].copy(), out[12].copy(), out[13]))
+        return out
+
+    model = _inward_model()
+    monkeypatch.setattr(kernel, "run_events", counted)
+    tr = _coulomb_run(model, 5.0)
+    misses = [c for c in calls if c[0] == kernel.LOOP_MISS]
+    assert len(tr.events) > 400 and model.pieces_cached > 300 and [c[0] for c in calls[-1:]] == [kernel.REACHED]
+    assert {c[0] for c in calls} == {kernel.LOOP_MISS, kernel.REACHED}
+    for _, born, probe, under, told in misses:  # full, with the cells under the probe told as the model finds them
+        assert born == model._table.spare and told and under.tolist() == model.support_at(probe).tolist()
+    assert len(misses) <= model.pieces_cached // model._table.spare
+    monkeypatch.setattr(dynamics, "_PAUSE_STEPS", 1)  # a hand-back at every piece the loop would begin
+    _same_run(tr, integrate(_inward_model(), np.array([1.12, 1.47, 0.3, 0.0, 0.0, 0.0]), 0.0, 5.0, sample_dt=0.05,
+                            progress=lambda t: None))
+    assert len(calls) > tr.segments // 2
+
+
+_HOLES = np.random.default_rng(3).random(CELLS.n) > 0.2
+
+
+@pytest.mark.parametrize("name", SHAPES)
+@settings(max_examples=40, deadline=None)
+@given(st.floats(-0.3, 3.3), st.floats(-0.3, 3.3), st.floats(-3.2, 3.2), st.booleans())
+@example(x=1.0, y=1.05, th=0.0, holes=False)  # (the rectangle's edges on rows of cell centres: margins zero)
+def test_the_event_loop_finds_the_cells_under_the_parcel_as_the_model_does(name, x, y, th, holes):
+    """Where the probe's event values cannot tell the cells under the parcel (a value within rounding noise of zero,
+    or the parcel beyond its candidates' reach), the compiled loop finds them itself (``kernel.cells_under``): the
+    very cells ``ParcelModel.support_at`` finds, present ones only, off the array's edge too."""
+    model = ParcelModel(CELLS, SHAPES[name], np.zeros((CELLS.n, 2)), laws.CoulombLaw())
+    if holes:
+        model.present = _HOLES
+    state = np.array([x, y, th, 0.0, 0.0, 0.0])
+    kind, _, half, normals, offsets, vertices = model.outline
+    found = kernel.cells_under(dynamics._grid_args(model), model.cells.positions, kind, half, normals, offsets,
+                               vertices, state)
+    assert found.dtype == np.int64 and found.tolist() == model.support_at(state).tolist()

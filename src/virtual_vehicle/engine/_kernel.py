@@ -1815,6 +1815,71 @@ def table_from_pattern(tab, ids, x, y, positions, unit, velocities, directions, 
 
 
 @njit(cache=True)
+def _in_contact(srec, fpool, j):
+    """Record ``j``'s contact mask (1.0 in contact), as its holding test packs it."""
+    holding = _holding_of(srec, fpool, j)
+    m, r = int(holding[0]), int(holding[1])
+    return holding[3 + m * r + 3 * r:3 + m * r + 3 * r + m]
+
+
+@njit(cache=True)
+def table_piece_again(tab, ids, x, y, positions, unit, velocities, directions, drive, mu, damping, inv_mass,
+                      inv_inertia, born_terms, born, weight, solve_log, solve_origin):
+    """The piece of the support set ``ids``, which the table knows but none of whose pieces holds at centre of mass
+    (x, y) (m), as :meth:`~virtual_vehicle.engine.dynamics.ParcelModel.piece_for` finds it then: the first solution
+    of its pattern that holds (or solved here), as :func:`~virtual_vehicle.engine._kernel.table_from_pattern` finds
+    it; a piece of the set with the same contact set if there is one (Python's cache keeps that one), else a new
+    piece at the end of the set's chain (its packed terms to ``born_terms[born]``). Returns (piece, whether it is
+    new); -1 where Python must act (as table_from_pattern)."""
+    slots, kmeta, ipool, psol, porigin, pnext, pkey, rows, srec, fpool, gslots, gmeta, used = tab
+    m = ids.shape[0]
+    k = table_find(slots, kmeta, ipool, ids)
+    if m == 0 or k < 0 or born >= born_terms.shape[0] or used[U_PIECES] >= psol.shape[0]:
+        return -1, False
+    pts, origin, rel = pattern(positions, ids, unit)
+    flat = rel.ravel()
+    g = table_find(gslots, gmeta, ipool, flat)
+    j = -1
+    if g >= 0:
+        j = gmeta[g, 2]
+        while j >= 0 and not _holds_packed(_holding_of(srec, fpool, j), x - origin[0], y - origin[1]):
+            j = srec[j, 5]
+    if j < 0:
+        j = _solve_into(tab, pts, rel, flat, g, x, y, unit, weight, solve_log, solve_origin)
+        if j < 0:
+            return -1, False
+    mine = _in_contact(srec, fpool, j)
+    p = kmeta[k, 2]
+    while p >= 0:
+        theirs = _in_contact(srec, fpool, psol[p])
+        same = theirs.shape[0] == m
+        for i in range(m):
+            same = same and (theirs[i] > 0.5) == (mine[i] > 0.5)
+        if same:
+            return p, False
+        p = pnext[p]
+    weight, _, _, _, _, _, _, _, points, force_lin, force_const, _ = _record_arrays(srec, fpool, j)
+    out = _terms_and_row(points, _drive(drive, _gather(velocities, ids), _gather(directions, ids)), force_lin,
+                         force_const, mu, damping, weight, origin, inv_mass, inv_inertia)
+    born_terms[born, :] = out[:born_terms.shape[1]]
+    return table_add_piece(kmeta, psol, porigin, pnext, pkey, rows, used, k, j, origin,
+                           out[born_terms.shape[1]:]), True
+
+
+@njit(cache=True)
+def cells_under(grid, positions, kind, half, normals, offsets, vertices, y):
+    """Ids of the cells under the footprint (``kind`` ... ``vertices``: an :func:`outline`'s entries less ``convex``)
+    at state ``y``, as :meth:`~virtual_vehicle.engine.dynamics.ParcelModel.support_at` finds them: the cells present
+    within the radius (to rounding) of the centre (``grid`` as :func:`run_events` takes it, ``positions`` the cells'),
+    those of positive margin (:func:`cell_margins`)."""
+    (g_points, g_order, g_start, g_lo0, g_lo1, g_size, g_nx, g_ny, present, radius) = grid
+    near = _within(g_points, g_order, g_start, g_lo0, g_lo1, g_size, g_nx, g_ny, present, y[0], y[1],
+                   radius * (1 + 1e-9) + 1e-12)
+    margins, _ = cell_margins(kind, half, normals, offsets, vertices, _gather(positions, near), y)
+    return near[margins > 0]
+
+
+@njit(cache=True)
 def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_step, rtol, atol, max_step, max_steps,
                sample_times, next_sample, samples, segments, max_segments, ring_t, ring_p, ring, chatter_span,
                chatter_pieces, ev_t, ev_y, ev_p, law, grid):
@@ -1827,7 +1892,9 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
     Arguments as :func:`run_piece`'s, and: ``h`` the last step taken (s: a new piece's first step is ``min(h, t_bound -
     t)``), ``segments`` the pieces begun so far (at most ``max_segments``), ``ring_t``/``ring_p`` (c,) and ``ring`` (2,)
     the latest events' times and pieces (count, next slot) for the chatter test (``c`` events within ``chatter_span`` s
-    times max(1, |t|) among at most ``chatter_pieces`` pieces), ``ev_t`` (E,), ``ev_y`` (E, 6), ``ev_p`` (E, 2) where
+    times max(1, |t|) among at most ``chatter_pieces`` pieces), ``max_steps`` also the pieces it begins in one call
+    (the next is Python's to begin: a progress callback hears of the run at least that often), ``ev_t`` (E,), ``ev_y``
+    (E, 6), ``ev_p`` (E, 2) where
     the support changes are written (time, restart state, piece before and after), ``grid`` what gathers the
     candidates again where Python's :class:`~virtual_vehicle.engine.dynamics._Segment` would (a new piece clearly
     beyond half the buffer from where they were gathered): the cells' ``PointGrid`` arrays (points, order, start, lo
@@ -1837,11 +1904,19 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
     probe state, cells under the footprint at the probe, whether those tell, then the candidates' ids, positions
     and centre as they are now). Outcomes: ``REACHED`` (t_bound),
     ``PAUSED`` (``max_steps`` steps on the current piece: resume it with ``first_step`` 0), a failure,
-    ``LOOP_DONE`` (an event at t_bound: the new piece written), ``LOOP_MISS`` (an event whose next support set the
-    table cannot give, or the probe does not tell: Python finds it), ``LOOP_CHATTER`` (the chatter test held at
+    ``LOOP_DONE`` (an event at t_bound: the new piece written), ``LOOP_MISS`` (an event whose next piece the table
+    cannot give nor make: a solve it cannot make (supports on one line, a collinear contact set, tipping, a pattern
+    with solutions of the model's own, a store it does not mirror) or no room; the cells under the footprint at the
+    probe come with it, found as :meth:`~virtual_vehicle.engine.dynamics.ParcelModel.support_at` finds them
+    (:func:`cells_under`) where the probe's values do not tell them), ``LOOP_CHATTER`` (the chatter test held at
     this event; its ring to be cleared), ``LOOP_SEGMENT`` (a new piece begins within a rounding step of the
-    threshold of gathering its candidates again, or the event columns are full: Python begins the segment),
-    ``LOOP_TOO_MANY`` (more than ``max_segments`` pieces)."""
+    threshold of gathering its candidates again, the event columns are full or ``max_steps`` pieces were begun:
+    Python begins the segment), ``LOOP_TOO_MANY`` (more than ``max_segments`` pieces).
+
+    At a support event the next piece is the table's (:func:`table_lookup`), or made from a solved pattern for a
+    support set the table has never met (:func:`table_from_pattern`) or for one it met on other contact sets
+    (:func:`table_piece_again`), as :meth:`~virtual_vehicle.engine.dynamics.ParcelModel.piece_for` would find or
+    make it."""
     kind, convex, half, normals, offsets, vertices, candidates = (fields[0], fields[1], fields[2], fields[3],
                                                                  fields[4], fields[5], fields[6])
     center, buffer, reach, noise_length, noise_force, ids = (fields[13], fields[14], fields[15], fields[16],
@@ -1853,14 +1928,14 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
     gather2 = 0.25 * buffer * buffer * (1.0 + 1e-9)  # clearly beyond it: gathered again, as _Segment would
     (g_points, g_order, g_start, g_lo0, g_lo1, g_size, g_nx, g_ny, present, radius) = grid
     capacity, ring_size = ev_t.shape[0], ring_t.shape[0]
-    n_ev = born = nfev = 0
+    n_ev = born = nfev = begun = 0
     y_probe = y_base
     none = np.empty(0, np.int64)
     while True:
         if begin:  # a new piece: its candidates kept while clearly within half the buffer of where they were gathered
             dx, dy = y_probe[0] - center[0], y_probe[1] - center[1]
             d2 = dx * dx + dy * dy
-            if n_ev == capacity or not (d2 < reuse2 or d2 > gather2):
+            if n_ev == capacity or begun == max_steps or not (d2 < reuse2 or d2 > gather2):
                 return (LOOP_SEGMENT, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, none,
                         False, ids, candidates, center)
             if not d2 < reuse2:  # the cells within the radius plus the buffer of the probe (PointGrid.within)
@@ -1870,6 +1945,7 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
                 center = np.empty(2)
                 center[0], center[1] = y_probe[0], y_probe[1]
             segments += 1
+            begun += 1
             if segments > max_segments:
                 return (LOOP_TOO_MANY, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, none,
                         False, ids, candidates, center)
@@ -1906,12 +1982,20 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
             if distinct <= chatter_pieces:
                 return (LOOP_CHATTER, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, under,
                         told, ids, candidates, center)
-        q = table_lookup(tab, under, y_probe[0], y_probe[1]) if told else -1
+        if not told:  # the probe's values do not tell: the cells under the footprint found as support_at finds them
+            under, told = cells_under(grid, positions, kind, half, normals, offsets, vertices, y_probe), True
+        q = table_lookup(tab, under, y_probe[0], y_probe[1])
         if q == -2 and drive:
             q = table_from_pattern(tab, under, y_probe[0], y_probe[1], positions, unit, velocities, directions,
                                    drive, mu, damping, inv_mass, inv_inertia, born_terms, born, weight, solve_log,
                                    solve_origin)
             if q >= 0:
+                born += 1
+        elif q == -1 and drive:  # a support set met before on other contact sets
+            q, made = table_piece_again(tab, under, y_probe[0], y_probe[1], positions, unit, velocities, directions,
+                                        drive, mu, damping, inv_mass, inv_inertia, born_terms, born, weight,
+                                        solve_log, solve_origin)
+            if made:
                 born += 1
         if q < 0:
             return (LOOP_MISS, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, under, told, ids,

@@ -27,23 +27,15 @@ from virtual_vehicle.engine._kernel import (
     LOOP_SEGMENT,
     LOOP_TOO_MANY,
     MODE_EVENT,
-    U_PIECES,
-    _drive,
     _gather,
-    _holding_of,
-    _holds_packed,
     _ids_hash,
     _record_arrays,
-    _solve_into,
-    _terms_and_row,
     cell_margins,
-    pattern,
     piece_segment,
     run_mode,
-    table_add_piece,
-    table_find,
     table_from_pattern,
     table_lookup,
+    table_piece_again,
 )
 from virtual_vehicle.model.parcel import _within
 from virtual_vehicle.physics.stick_modes import _wheel_arrays, breaking_kernel, decide_kernel
@@ -103,58 +95,6 @@ def ring_event(ring_t, ring_h, ring, t, key, span, pieces, push):
         ring[1] = (nxt + 1) % size
         ring[0] = min(count + 1, size)
     return chatter
-
-
-@njit(cache=True)
-def _in_contact(srec, fpool, j):
-    """Record ``j``'s contact mask (1.0 in contact), as its holding test packs it."""
-    holding = _holding_of(srec, fpool, j)
-    m, r = int(holding[0]), int(holding[1])
-    return holding[3 + m * r + 3 * r:3 + m * r + 3 * r + m]
-
-
-@njit(cache=True)
-def table_piece_again(tab, ids, x, y, positions, unit, velocities, directions, drive, mu, damping, inv_mass,
-                      inv_inertia, born_terms, born, weight, solve_log, solve_origin):
-    """The piece of the support set ``ids``, which the table knows but none of whose pieces holds at centre of mass
-    (x, y) (m), as :meth:`~virtual_vehicle.engine.dynamics.ParcelModel.piece_for` finds it then: the first solution
-    of its pattern that holds (or solved here), as :func:`~virtual_vehicle.engine._kernel.table_from_pattern` finds
-    it; a piece of the set with the same contact set if there is one (Python's cache keeps that one), else a new
-    piece at the end of the set's chain (its packed terms to ``born_terms[born]``). Returns (piece, whether it is
-    new); -1 where Python must act (as table_from_pattern)."""
-    slots, kmeta, ipool, psol, porigin, pnext, pkey, rows, srec, fpool, gslots, gmeta, used = tab
-    m = ids.shape[0]
-    k = table_find(slots, kmeta, ipool, ids)
-    if m == 0 or k < 0 or born >= born_terms.shape[0] or used[U_PIECES] >= psol.shape[0]:
-        return -1, False
-    pts, origin, rel = pattern(positions, ids, unit)
-    flat = rel.ravel()
-    g = table_find(gslots, gmeta, ipool, flat)
-    j = -1
-    if g >= 0:
-        j = gmeta[g, 2]
-        while j >= 0 and not _holds_packed(_holding_of(srec, fpool, j), x - origin[0], y - origin[1]):
-            j = srec[j, 5]
-    if j < 0:
-        j = _solve_into(tab, pts, rel, flat, g, x, y, unit, weight, solve_log, solve_origin)
-        if j < 0:
-            return -1, False
-    mine = _in_contact(srec, fpool, j)
-    p = kmeta[k, 2]
-    while p >= 0:
-        theirs = _in_contact(srec, fpool, psol[p])
-        same = theirs.shape[0] == m
-        for i in range(m):
-            same = same and (theirs[i] > 0.5) == (mine[i] > 0.5)
-        if same:
-            return p, False
-        p = pnext[p]
-    weight, _, _, _, _, _, _, _, points, force_lin, force_const, _ = _record_arrays(srec, fpool, j)
-    out = _terms_and_row(points, _drive(drive, _gather(velocities, ids), _gather(directions, ids)), force_lin,
-                         force_const, mu, damping, weight, origin, inv_mass, inv_inertia)
-    born_terms[born, :] = out[:born_terms.shape[1]]
-    return table_add_piece(kmeta, psol, porigin, pnext, pkey, rows, used, k, j, origin,
-                           out[born_terms.shape[1]:]), True
 
 
 @njit(cache=True)

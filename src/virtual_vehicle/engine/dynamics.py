@@ -16,9 +16,9 @@ Two integrators share the model:
   (:func:`~virtual_vehicle.engine._kernel.run_events`): each piece's steps, event search and location, then the next
   piece from the model's solved supports held as arrays (:class:`_PieceTable`), or made there from a solved pattern
   with the law's compiled drive, or from a pattern solved there (contact's compiled planar solve, the Python solve's
-  arithmetic); candidate cells are gathered again there too. Python takes over only for what the arrays cannot
-  give: supports on one line, a collinear contact set or tipping (the solve in
-  :mod:`~virtual_vehicle.physics.contact`), the cells under the parcel where the probe cannot tell them, a
+  arithmetic); candidate cells are gathered again there too, and the cells under the parcel found there where the
+  probe's event values cannot tell them. Python takes over only for what the arrays cannot give: supports on one
+  line, a collinear contact set or tipping (the solve in :mod:`~virtual_vehicle.physics.contact`), a full table, a
   candidate refresh within a rounding step of its threshold, a chatter, a pause for a progress callback; and it
   makes the Python objects of the new pieces after each call, and those of the new solutions and events as shells
   whose arrays (a solution's) and changed cells (an event's) are unpacked from the loop's records only when read;
@@ -810,7 +810,9 @@ _CHATTER_STEPS = 20
 _EVENT_COLUMNS = 256
 """Support changes the compiled event loop writes before it hands them to Python (which makes them events)."""
 _PAUSE_STEPS = 64
-"""With a progress callback, the compiled engine hands control back after this many steps within one piece."""
+"""With a progress callback, the compiled engine hands control back after this many steps within one piece, and the
+event loop of a law without modes (``_kernel.run_events``) also after beginning this many pieces in one call (a
+piece is often one step, and the loop hands back for little else: progress would be heard of a few times a run)."""
 _NO_MASK = np.zeros(0, dtype=bool)
 """``present`` for the compiled loop's candidate search when every cell is present."""
 _NO_PAUSE = int(np.iinfo(np.int64).max)
@@ -839,7 +841,8 @@ def integrate(model: ParcelModel, y0, t0: float, t1: float, *, mode: Mode = "eve
         sample_dt: spacing of the output samples, s (default: 100 samples over the run). Event mode samples the
             integrator's dense output; fixed mode interpolates linearly between its steps.
         sample_times: explicit increasing output times (s) within [t0, t1] instead of ``sample_dt``.
-        progress: called with the simulated time now and then.
+        progress: called with the simulated time now and then: where the compiled engine hands control back to
+            Python, and at least every ``_PAUSE_STEPS`` steps or pieces (which makes it hand back that often).
 
     Returns:
         The :class:`Trajectory`. A parcel that tips ends with status ``"tipped"`` and a ``"tip"`` event.
@@ -927,6 +930,15 @@ def _check_outcome(outcome: int, t: float) -> None:
         raise IntegrationError(f"locating an event near t={t:.9g} s did not converge")
 
 
+def _grid_args(model: ParcelModel) -> tuple:
+    """What the compiled event loop gathers candidates and finds the cells under the parcel with: the cells'
+    ``PointGrid.within`` arguments, the ``present`` mask (empty: all) and the parcel's radius (m)."""
+    cells_grid = model.cells.grid
+    return (cells_grid.points, cells_grid.order, cells_grid.start, float(cells_grid.lo[0]), float(cells_grid.lo[1]),
+            float(cells_grid.size), int(cells_grid.shape[0]), int(cells_grid.shape[1]),
+            _NO_MASK if model.present is None else model.present, float(model.segment_scales[0]))
+
+
 def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol, atol, max_step,
                dt, support=None) -> Trajectory:
     rec = _Recorder(sample_times)
@@ -952,10 +964,7 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     begin = True  # a new piece whose candidates Python gathers (or keeps, as _Segment decides)
     begun = False  # a new piece the compiled loop begins (keeping the candidates) or hands back to begin here
     table, outcome = model._table, None
-    cells_grid = model.cells.grid  # what the loop gathers candidates with (PointGrid.within's arguments)
-    grid = (cells_grid.points, cells_grid.order, cells_grid.start, float(cells_grid.lo[0]), float(cells_grid.lo[1]),
-            float(cells_grid.size), int(cells_grid.shape[0]), int(cells_grid.shape[1]),
-            _NO_MASK if model.present is None else model.present, float(model.segment_scales[0]))
+    grid = _grid_args(model)
     pending = table is None  # the first piece alone (kernel.run_piece), the table made only if an event ends it
     if pending:  # (most of a plant's control ticks have none: making the table took as long as the tick)
         segments += 1
