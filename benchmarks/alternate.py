@@ -15,7 +15,7 @@ Cases (the figures of ``RESULTS.md``):
 - ``scale1``: the same hall with one parcel (mostly empty floor);
 - ``hall200stick``: ``scale200`` on the stick-slip law (the default: most windows ride their wheels);
 - ``coulomb1``: one Coulomb parcel oscillating in the inward field for 5 s (``bench_perf.py`` (b)), the fastest of
-  five runs in each process;
+  five runs in each process (wall and process time: the latter also printed, being less swayed by other jobs);
 - ``pairs200``, ``pairs200coulomb``: 200 parcels on 100 x 100 cells under a constant uniform field for 1 s, viscous
   and Coulomb law (``bench_pairs.py``'s largest: the plant's planner over many parcels);
 - ``stick1``: one stick-slip parcel crossing 30 x 30 for 5 s event-driven (``bench_stick_events.py`` (ii)), the
@@ -82,13 +82,14 @@ import json, sys, time
 sys.path.insert(0, {bench!r})
 import bench_perf as b
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
-walls = []
+walls, cpus = [], []
 for _ in range(5):
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     tr = integrate(ParcelModel(b.CELLS, b.SPEC, b.FIELDS_B["coulomb"], b.LAWS["coulomb"]), b.Y0_IN, 0.0, 5.0,
                    sample_dt=5.0)
     walls.append(time.perf_counter() - start)
-print(json.dumps({{"wall": min(walls), "end": tr.states[-1].tolist()}}))
+    cpus.append(time.process_time() - cpu)
+print(json.dumps({{"wall": min(walls), "cpu": min(cpus), "end": tr.states[-1].tolist()}}))
 """,
     "stick1": """
 import json, sys, time
@@ -132,6 +133,7 @@ def main() -> None:
                                check=True)
                 trees[rev] = path
             walls: dict[str, list[float]] = {rev: [] for rev in trees}
+            cpus: dict[str, list[float]] = {rev: [] for rev in trees}  # process time, where the case gives it
             ends: dict[str, list] = {}
             for path in trees.values():  # unmeasured: compiles and caches what numba compiles (from f2d8583)
                 _run(path / "src", args.case)
@@ -144,6 +146,8 @@ def main() -> None:
                 for rev, path in list(trees.items())[::1 if k % 2 == 0 else -1]:
                     r = _run(path / "src", args.case)
                     walls[rev].append(r["wall"])
+                    if "cpu" in r:
+                        cpus[rev].append(r["cpu"])
                     ends[rev] = r["end"]
                     row[rev] = r["wall"]
                 print(f"{k + 1:>5}{row[args.a]:>14.3f}{row[args.b]:>14.3f}")
@@ -154,6 +158,11 @@ def main() -> None:
             # how many rounds agree with the medians: on this VM a few per cent between medians can be its phases
             wins = sum(b < a for a, b in zip(walls[args.a], walls[args.b]))
             print(f"{args.b} faster in {wins} of {args.rounds} rounds")
+            if all(len(c) == args.rounds for c in cpus.values()):  # process time: less swayed by other jobs
+                cpu = [statistics.median(cpus[rev]) for rev in trees]
+                cpu_wins = sum(b < a for a, b in zip(cpus[args.a], cpus[args.b]))
+                print(f"process time, median: {cpu[0]:.4f} vs {cpu[1]:.4f} s ({args.b} faster in {cpu_wins} of "
+                      f"{args.rounds} rounds); load average at the end {os.getloadavg()[0]:.1f}")
             same = ends[args.a] == ends[args.b]
             print("final states " + ("identical" if same else "differ: " + json.dumps(ends)))
         finally:
