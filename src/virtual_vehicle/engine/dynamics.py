@@ -196,6 +196,7 @@ class _PieceTable:
         self.gslots = np.full(64, -1, np.int64)
         self.gmeta = np.zeros((16, 5), np.int64)
         self.used = np.zeros(6, np.int64)
+        self.front = 0, 0  # (patterns, ids) whose ids lead the pool in the patterns' order (see renew)
         self.index: dict[Piece, int] = {}
         self.pieces: list[Piece | None] = []  # None: a piece the loop made, not yet asked for (see piece)
         self.unmade: dict[int, tuple] = {}  # such a piece's index -> (its key, its packed friction terms)
@@ -261,12 +262,14 @@ class _PieceTable:
             self.clear()
         else:  # the patterns' ids moved to the front of the pool, the support sets' ids dropped
             n_patterns = int(used[_kernel.U_PATTERNS])
-            spans = self.gmeta[:n_patterns, :2].tolist()
-            kept = [self.ipool[off:off + n] for off, n in spans]
-            ids = np.concatenate(kept) if kept else np.zeros(0, np.int64)
-            self.ipool[:len(ids)] = ids
-            self.gmeta[:n_patterns, 0] = np.cumsum([0] + [n for _, n in spans[:-1]]) if spans else 0
-            used[_kernel.U_IDS] = len(ids)
+            if n_patterns != self.front[0]:  # (else they are there from the last take-over: most ticks learn none)
+                spans = self.gmeta[:n_patterns, :2].tolist()
+                kept = [self.ipool[off:off + n] for off, n in spans]
+                ids = np.concatenate(kept) if kept else np.zeros(0, np.int64)
+                self.ipool[:len(ids)] = ids
+                self.gmeta[:n_patterns, 0] = np.cumsum([0] + [n for _, n in spans[:-1]]) if spans else 0
+                self.front = n_patterns, len(ids)
+            used[_kernel.U_IDS] = self.front[1]
             used[_kernel.U_PIECES] = used[_kernel.U_KEYS] = 0
             self.slots.fill(-1)
             self.index, self.pieces, self.unmade = {}, [], {}
@@ -1100,8 +1103,14 @@ def _mode_tuple(wheels, mode, minv):
 
 def _wheel_keys(model, piece) -> list:
     """(entry, wheel index) of each wheel of ``piece`` in the order of the law's wheel arrays."""
-    row, k = np.nonzero(model.cells.wheel_active[piece.support])
-    return list(zip(piece.support[row].tolist(), k.tolist()))
+    return _support_wheel_keys(model, piece.key[0])
+
+
+def _support_wheel_keys(model, support: tuple[int, ...]) -> list:
+    """(entry, wheel index) of each wheel of the cells ``support`` (a piece's support key) in the order of the law's
+    wheel arrays."""
+    row, k = np.nonzero(model.cells.wheel_active[list(support)])
+    return [(support[r], w) for r, w in zip(row.tolist(), k.tolist())]
 
 
 def _mode_change_events(t, y, before, after, keys) -> list:
@@ -1119,24 +1128,24 @@ def _mode_change_events(t, y, before, after, keys) -> list:
     return out
 
 
-def _replay(model, piece, log_f, log_i, log_s, n_log, events, mode_events) -> None:
+def _replay(model, key, log_f, log_i, log_s, n_log, events, mode_events) -> None:
     """Add the run's events and mode records of the compiled mode loop's log (:mod:`~virtual_vehicle.engine.
-    _modeloop`: ``n_log`` entries over the table's pieces, ``piece(p)`` the p-th made if it is not yet) as
-    :func:`_run_modes`' Python makes them."""
+    _modeloop`: ``n_log`` entries over the table's pieces, ``key(p)`` the p-th piece's :attr:`Piece.key`) as
+    :func:`_run_modes`' Python makes them, from the pieces' keys alone: no :class:`Piece` is made for them."""
     for (t, *y), (kind, a, b, ob, oa, n, flag) in zip(log_f[:n_log].tolist(), log_i[:n_log].tolist()):
         before = tuple(log_s[ob:ob + n].tolist())
         after = None if oa < 0 else tuple(log_s[oa:oa + n].tolist())
         if kind == _modeloop.LOG_SUPPORT:
-            ev = diff_event(t, y[:6], piece(a), piece(b))
-            if ev is not None:
-                events.append(ev)
+            old, new = key(a), key(b)
+            if old != new and (frozenset(old[0]), frozenset(old[1])) != (frozenset(new[0]), frozenset(new[1])):
+                events.append(Event.support_between(t, tuple(y[:6]), old, new))  # (as diff_event)
             if flag:  # a wheel staying under the parcel changed its mode here
                 mode_events.append((t, "support", before, after))
-                events.extend(_mode_change_events(t, y[6:], before, after, _wheel_keys(model, piece(b))))
+                events.extend(_mode_change_events(t, y[6:], before, after, _support_wheel_keys(model, new[0])))
         else:
             mode_events.append((t, "stick" if kind == _modeloop.LOG_STICK else "slip", before, after))
             if after is not None:
-                events.extend(_mode_change_events(t, y[6:], before, after, _wheel_keys(model, piece(a))))
+                events.extend(_mode_change_events(t, y[6:], before, after, _support_wheel_keys(model, key(a)[0])))
 
 
 _NO_CANDIDATES, _NO_CENTER = np.zeros((0, 2)), np.zeros(2)
@@ -1232,7 +1241,7 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     # its wheels and decides their mode, where its table can: no Piece, wheel arrays or decision made here for it
     starting = (_MODE_LOOP and table is not None and table.blank is not None
                 and len(table.pieces) <= table.max_pieces)
-    piece = wheels = mode = None
+    piece = wheels = mode = ended = None  # ended: the last piece's support key where the compiled loop ends the run
     if not starting:
         piece, wheels, mode = begin()
     new_piece = True
@@ -1294,12 +1303,14 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
                         break
                 elif table.blank is None:
                     table.blank = wheels, mode
-                piece_of = partial(table.piece, model)  # (pieces the loop made are made when read)
-                _replay(model, piece_of, log_f, log_i, log_s, n_log, events, mode_events)
-                new = piece_of(p)
-                if new is not piece or (center[0], center[1]) != seg.xy:  # (the loop's segment, as Python's)
-                    seg = _Segment.gathered(model, new, ids, candidates, center)
-                piece = new
+                _replay(model, table.key, log_f, log_i, log_s, n_log, events, mode_events)
+                if outcome in (_kernel.REACHED, _kernel.LOOP_DONE):  # the window is done: its last piece is not
+                    ended = table.key(p)[0]  # made a Piece (most windows of a plant's tick end on their first)
+                else:
+                    new = table.piece(model, p)  # (pieces the loop made are made when Python needs them)
+                    if new is not piece or (center[0], center[1]) != seg.xy:  # (the loop's segment, as Python's)
+                        seg = _Segment.gathered(model, new, ids, candidates, center)
+                    piece = new
                 _check_outcome(outcome, t)
                 if progress is not None:
                     progress(t)
@@ -1416,9 +1427,11 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
     if table is not None:
         table.loop_args = (model.present, grid, scales, wheel_cells, clock, same, log_f, log_i, log_s, ring_t, ring_h,
                            ring)
-    if piece is not None and mode is not None:  # the wheels' grip, for the time stepper should one take over next
+    if ended is None and piece is not None:
+        ended = piece.key[0]
+    if ended is not None and mode is not None:  # the wheels' grip, for the time stepper should one take over next
         # (parcels pushing each other are stepped): updated in place, so the model this one was copied from has it
-        memory, keys = model.contact_memory, _wheel_keys(model, piece)
+        memory, keys = model.contact_memory, _support_wheel_keys(model, ended)
         memory["lam"] = dict.fromkeys(keys, 0.0)  # (no warm start: the stick forces are not the stepper's impulses)
         memory["stuck"] = dict(zip(keys, (mode[0] == 0).tolist()))
     rec.final(t, z[:6])
