@@ -15,6 +15,7 @@ from virtual_vehicle.cells.sorting import Sorter, decode_goal
 from virtual_vehicle.cells.sorting.policy import ASK
 from virtual_vehicle.cells.sorting.rules import BIG as _BIG
 from virtual_vehicle.cells.sorting.rules import ENTRY as _ENTRY
+from virtual_vehicle.cells.sorting.policy import LATE as _LATE
 from virtual_vehicle.cells.sorting.policy import WEAK as _WEAK
 from virtual_vehicle.cells.sorting.policy import YIELD as _YIELD
 from virtual_vehicle.cells.sorting.rules import HUGE as _HUGE
@@ -220,15 +221,20 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # Yield: a standing vehicle (not parked) that carries a cell an older vehicle asks for, or any vehicle while
     # its own number is not due, gives way through the first port (lowest) such an asker is on: away from it, or
     # aside when that side is closed.
-    standing = on & ((state["stop"] & none) <= sorter.reach) & (state["park"] > sorter.reach)
+    # A parked vehicle is late: it gives way too. One due (or carrying no number) gives way only to an asker
+    # before it in the order holds go by (below): marked, or not late and older.
+    standing = on & ((state["stop"] & none) <= sorter.reach)
     # A vehicle giving way asks marked; one asked that cannot give way (every side but the asker's closed) asks
     # the asker back, marked, and the asker gives way to it.
     marked_req = (heard["rdep"].astype(np.int64) & _YIELD) != 0
+    late_req = (heard["rdep"].astype(np.int64) & _LATE) != 0
+    req_rank = heard["req"] + np.where(marked_req, 0, np.where(late_req, 2 * _HUGE, _HUGE))
     asking = (trusted & ~same_nb & (heard["req"] >= 0) & (heard["req"] != vid[:, None])
-              & ((heard["req"] < vid[:, None]) | ~turn[:, None] | marked_req) & standing[:, None])
-    # the asker is the first in the order holds go by (marked, then oldest); giving way to a younger one
-    # (while not due) is marked WEAK in bdir and proposes distance 1, so that an older asker goes first
-    order = np.where(asking, heard["req"] + np.where(marked_req, 0, _HUGE), 4 * _HUGE)
+              & ((req_rank < vid[:, None] + _HUGE) | ~turn[:, None]) & standing[:, None])
+    # the asker is the first in the order holds go by (marked, then due, then late, oldest first in each);
+    # giving way to a younger one (while not due) is marked WEAK in bdir and proposes distance 1, so that an
+    # older asker goes first
+    order = np.where(asking, req_rank, 4 * _HUGE)
     asked = asking.any(axis=1)
     asker = np.argmin(order, axis=1)
     first = order[rows, asker]
@@ -253,17 +259,18 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     ahead_is_mine = same_nb[rows, dp] & ahead_ok_port
     # a waiting parcel parks where a cell that carries it is a parking cell; parked, it asks for nothing and is
     # an obstacle to the others
-    own_park = np.where(on & ~turn & core & park_cell, 0, 255)
-    park = _spread(sorter, own_park, _unpack(heard["stop"], 1), same_nb, on)
+    # (a vehicle giving way is not parked: it leaves the bay for its back-off)
+    own_park = np.where(on & ~turn & core & park_cell & ~yielding, 0, 255)
+    park = np.where(yielding, 255, _spread(sorter, own_park, _unpack(heard["stop"], 1), same_nb, on))
     parked = on & (park <= sorter.reach)
     front = on & ahead_ok_port & ~ahead_is_mine & ~parked
     # leaving the array: only out of an exit cell of the goal (anywhere else the edge stops the vehicle)
     off_array = front & ~inputs.connected[rows, dp] & (exit_id == target) & (dp == exit_port)
     # requests that arrived: from a neighbour's front cell or a held cell passing it on
     # a request stands until its sender says otherwise: it sends only what changed. A vehicle giving way (its
-    # request marked) gets the cell first, else the oldest vehicle asking (smallest id), always
-    marked = (heard["rdep"].astype(np.int64) & _YIELD) != 0
-    req = np.where(trusted & (heard["req"] >= 0), heard["req"] + np.where(marked, 0, _HUGE), 4 * _HUGE)
+    # request marked) gets the cell first, then one due or carrying no number, then a late one (marked LATE), the
+    # oldest vehicle asking (smallest id) first within each, always
+    req = np.where(trusted & (heard["req"] >= 0), req_rank, 4 * _HUGE)
     choice = np.argmin(req, axis=1)
     new_hold = np.where(req[rows, choice] < 4 * _HUGE, req[rows, choice] % _HUGE, _NONE)
     hport = np.where(new_hold >= 0, choice, _NONE)
@@ -271,7 +278,8 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # On a slow network a request does not arrive every tick: a hold lasts max_age ticks after it was last asked
     # for (on ideal rounds, one tick), unless an older vehicle asks meanwhile.
     def rank(v, dep):
-        return v + np.where(np.asarray(dep).astype(np.int64) & _YIELD, 0, _HUGE)
+        dep = np.asarray(dep).astype(np.int64)
+        return v + np.where(dep & _YIELD, 0, np.where(dep & _LATE, 2 * _HUGE, _HUGE))
 
     keep = (state["hold"] >= 0) & (state["hage"] < sorter.max_age) & (
         (new_hold < 0) | (rank(state["hold"], state["hdep"]) < rank(new_hold, hdep)))
@@ -289,10 +297,10 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     edge = (new_hold >= 0) & ~inputs.connected[rows, fp]
     run_ahead = np.where(succ, heard["ack"][rows, fp] & ((1 << RB) - 1), 0)
     ack = np.where(new_hold >= 0, np.where(edge, L, np.minimum(L, 1 + run_ahead)), 0)
-    for turn in range(1, P):  # a held cell beside a parked vehicle gives no free run (a cell row is no gap)
-        if turn == across:
+    for k in range(1, P):  # a held cell beside a parked vehicle gives no free run (a cell row is no gap)
+        if k == across:
             continue
-        sq = (hport + turn) % P
+        sq = (hport + k) % P
         other = heard["vid"][rows, sq]
         parked_there = ((heard["stop"][rows, sq] & 0xFFFFFFFF) >> 8 & 255) <= sorter.reach
         beside = trusted[rows, sq] & (other >= 0) & (other != new_hold) & parked_there
@@ -344,13 +352,15 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # requests: front cells ask the cell ahead (depth 1); held cells pass it on until gap deep
     ask = front & inputs.connected[rows, dp]
     out.values["req"][rows[ask], dp[ask]] = vid[ask]
-    out.values["rdep"][rows[ask], dp[ask]] = np.where(yielding[ask], 1 + _YIELD, 1)
-    pass_on = (new_hold >= 0) & ((hdep.astype(np.int64) & (_YIELD - 1)) < L) & inputs.connected[rows, fp]
+    # marked YIELD while giving way, LATE while its number is not due
+    late = np.where(turn, 0, _LATE)
+    out.values["rdep"][rows[ask], dp[ask]] = np.where(yielding[ask], 1 + _YIELD, 1) + late[ask]
+    pass_on = (new_hold >= 0) & ((hdep.astype(np.int64) & (_LATE - 1)) < L) & inputs.connected[rows, fp]
     out.values["req"][rows[pass_on], fwd[pass_on]] = new_hold[pass_on]
     out.values["rdep"][rows[pass_on], fwd[pass_on]] = hdep[pass_on] + 1
     back_ask = boxed & inputs.connected[rows, asker]
     out.values["req"][rows[back_ask], asker[back_ask]] = vid[back_ask]
-    out.values["rdep"][rows[back_ask], asker[back_ask]] = 1 + _YIELD
+    out.values["rdep"][rows[back_ask], asker[back_ask]] = 1 + _YIELD + late[back_ask]
     # say only what changed on a port since it was last sent there, and everything at the heartbeat
     beat = (tick + entry_no) % sorter.heartbeat_ticks == 0  # staggered by installation number
     each = np.stack([out.values[k].astype(np.int64) != v for k, v in state["said"].items()])  # (words, n, P)

@@ -71,3 +71,13 @@ def test_the_stress_floors_that_deadlocked_deliver_without_a_deadlock():
     rows = stress([0, 7], duration=9.0)
     assert [r["deadlocks"] for r in rows] == [0, 0], [r["why"] for r in rows]
     assert all(r["collisions"] == r["misrouted"] == r["lost"] == 0 for r in rows)
+
+
+def test_a_parked_parcel_on_the_due_ones_way_gives_way():
+    """Stress floors 59 and 96: a late parcel parked in a bay whose body covers the only way the due parcel has
+    (59: south round holes and the edge; 96: east along a `v` band it may not leave northward). The due one waited
+    on the parked one's cells, the parked one on the due number: a cycle of holds from 4.9 s (59) and 7.1 s (96),
+    0 delivered. A parked vehicle now gives way, as the late one it is, and comes back to a bay after."""
+    rows = stress([59, 96], duration=12.0)
+    assert [r["deadlocks"] for r in rows] == [0, 0], [r["why"] for r in rows]
+    assert all(r["collisions"] == r["misrouted"] == r["lost"] == 0 for r in rows)

@@ -38,28 +38,35 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
   lasts ``max_age`` ticks after the last request that renewed it (one tick on ideal rounds), so on a network that
   delivers a sentence only every few ticks the chain of holds ahead of a vehicle does not fall apart between them.
 - *Giving way* (liveness): the order every cell decides locally is the vehicle id, the tick the vehicle was made
-  (smaller is older). A standing vehicle (not parked) one of whose cells hears a request from an older vehicle, from
-  any vehicle while its own sequence number is not due, or from a vehicle that is itself giving way, gives way for
+  (smaller is older), within three classes: a vehicle giving way, then one due or carrying no sequence number, then
+  a late one (its number not yet due; its requests are marked ``LATE`` in ``rdep``). A standing vehicle, parked or
+  not, one of whose cells hears a request from a vehicle before it in that order (one giving way, or an older one
+  that is not late), or from any vehicle while its own sequence number is not due, gives way for
   as long as a back-off takes: away from the asker, or through the first open side beside that way when it is closed
-  (a one-way arrow, the edge, a hole). A cell asked by several gives way to the first in the order holds go by
+  (a one-way arrow, the edge, a hole). A parked vehicle giving way is not parked for that time: it leaves the bay,
+  and then heads for a free one again (stress floors 59 and 96: parked on the due one's only way, it and the due
+  one waited on each other for ever). A cell asked by several gives way to the first in the order holds go by
   (below), and a back-off from a younger asker proposes a larger distance than one from an older asker, so that a
   late vehicle squeezed between the due one and a younger late one moves out of the due one's way, not into its
   holds (stress floors 104 and 106 stood so for ever). A vehicle giving way (a cell of it within ``reach`` backs
   off: its proposal has distance 0, 1 from a younger asker, below every other) marks its requests (``rdep``'s high
-  bit), and a cell is held for a marked asker before any other (then the oldest): the cells it gives way into are
-  not kept from it by the holds of the older vehicle it makes room for. A vehicle asked that cannot give way (every
-  side but the asker's closed) asks the asker back, marked, and the asker gives way to it.
+  bit), and a cell is held for a marked asker before any other (then one due or carrying no number, then a late
+  one, the oldest first in each): the cells it gives way into are not kept from it by the holds of the older
+  vehicle it makes room for, nor are the due one's by the holds of a late one, whose number waits on it. A
+  vehicle asked that cannot give way (every side but the asker's closed) asks the asker back, marked, and the
+  asker gives way to it.
   Why no cycle of holds survives: a vehicle waits on another whose cell, carried or held, is the first not its own
-  within ``gap + 1`` cells ahead of a front cell (:mod:`.holds`). Take a cycle none of whose members gives way. An
-  empty cell is held for the first asker in the order above, re-decided every tick, so a wait on a held cell is a
-  wait on an older vehicle; the ids of a cycle cannot all decrease around it, so some member X waits on a younger Y,
-  and then on a cell Y *carries*. X's request reaches that cell (the cells before it are held for X and pass the
-  request on ``gap + 1`` deep), so Y hears an older asker and gives way: a cycle without a member giving way does
-  not last a tick. A member giving way moves unless the way it gives way into is carried: by a standing vehicle,
-  which its marked request asks and which gives way in turn, or by a moving one, which leaves it; or it is boxed in,
-  and then X gives way to it. Where the argument has gaps (what the stress test measures): a parked vehicle does not
-  give way (the sequence waits on it), nor is it asked back; a chain of vehicles giving way can end at two that are
-  each boxed in but for the other (each asks the other back: both stand); a back-off lasts ``gap + 1`` cells, and
+  within ``gap + 1`` cells ahead of a front cell, and a late vehicle waits on the due one (:mod:`.holds`). Take a
+  cycle none of whose members gives way. An empty cell is held for the first asker in the order above, re-decided
+  every tick, so a wait on a held cell is a wait on a vehicle before the waiting one in that order, and so is a
+  late one's wait on the due one; the order cannot fall all the way around a cycle, so some member X waits on a
+  Y after it, and then on a cell Y *carries*. X's request reaches that cell (the cells before it are held for X
+  and pass the request on ``gap + 1`` deep), so Y hears an asker before it (or Y is late, parked or not, and gives
+  way to any asker) and gives way: a cycle without a member giving way does not last a tick. A member giving way
+  moves unless the way it gives way into is carried: by a standing vehicle, which its marked request asks and
+  which gives way in turn, or by a moving one, which leaves it; or it is boxed in, and then X gives way to it.
+  Where the argument has gaps (what the stress test measures): a chain of vehicles giving way can end at two that
+  are each boxed in but for the other (each asks the other back: both stand); a back-off lasts ``gap + 1`` cells, and
   nothing here proves that two vehicles do not meet again the same way after it (a livelock, not a cycle of holds);
   and the cells' words travel a hop a tick, so a cycle can stand for the ticks its requests take to arrive.
 - *Exits*: a cell of the goal's exit lane drives the vehicle out through the lane's open side once the vehicle lies

@@ -12,8 +12,8 @@ A vehicle ``V`` waits on a vehicle ``W`` when
 
 A cycle of these (a strongly connected set of two or more vehicles) is a deadlock: each member waits, through the
 others, on itself, and none of the sorter's rules moves a member whose every way is held (a vehicle backs off or
-gives way only to an older one, to any while it is not due, or to one giving way, through an open side, and a
-parked one not at all: the package notes argue which cycles can stand, and where that argument has gaps). The
+gives way only to one before it in the order holds go by, to any while it is not due, parked or not, through an
+open side: the package notes argue which cycles can stand, and where that argument has gaps). The
 cells are read at one instant; a cycle seen while its vehicles stand is kept by the rules, since every member's
 cells stay held while it stands. Units: cells and hops.
 """

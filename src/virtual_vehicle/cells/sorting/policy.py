@@ -87,6 +87,10 @@ the older."""
 YIELD = 128
 """The mark on a request (``rdep``'s high bit, above any depth) of a vehicle giving way: a cell is held for such a
 vehicle before any other, so that the cells it gives way into are not held for the older one it makes room for."""
+LATE = 64
+"""The mark on a request (``rdep``'s bit below :data:`YIELD`, above any depth) of a vehicle that is late (its sequence
+number not yet due): a cell is held for such a vehicle after every vehicle that is due or carries no number, so that
+the cells on the due one's way are its before any late one's, whose number waits on it."""
 FULL = 1 << Words._fields.index("ex")
 """A partial sentence that carries ``ex`` (which never changes: said in the first sentence, then only at the
 heartbeat) says every word: those it leaves out are at rest (:data:`REST`)."""
@@ -196,8 +200,9 @@ def _say(told, now, beat, i, q):
 @njit(cache=True, inline="always")
 def _rank(vid, dep):
     """The order in which a cell is held for the vehicles asking: those giving way (``dep`` marked
-    :data:`YIELD`) first, then the oldest (the smallest ``vid``)."""
-    return vid + (0 if dep & YIELD else HUGE)
+    :data:`YIELD`) first, then those due or carrying no sequence number, then the late ones (``dep`` marked
+    :data:`LATE`), the oldest (the smallest ``vid``) first within each."""
+    return vid + (0 if dep & YIELD else (2 * HUGE if dep & LATE else HUGE))
 
 
 @njit(cache=True)
@@ -447,10 +452,13 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         # distance 1 (``bdir`` marked WEAK), so that the vehicle gives way to an older asker first
         asker = NONE
         first = 4 * HUGE
-        standing = on and (s_stop[i] & none) <= reach and s_park[i] > reach
+        # a parked vehicle gives way too, as the late one it is (floors 59 and 96: parked in a bay on the due one's
+        # only way, it and the due one waited on each other for ever). A vehicle due (or carrying no number) gives
+        # way to an asker that comes before it in the order holds go by (see _rank), so not to a late one
+        standing = on and (s_stop[i] & none) <= reach
         for q in range(P):
             r = hreq[i, q] if (trusted[q] and not same_nb[q]) else NONE
-            if standing and r >= 0 and r != vid and (r < vid or not turn or hrdep[i, q] & YIELD) \
+            if standing and r >= 0 and r != vid and (not turn or _rank(r, hrdep[i, q]) < vid + HUGE) \
                     and _rank(r, hrdep[i, q]) < first:
                 asker, first = q, _rank(r, hrdep[i, q])
         boxed = False
@@ -483,16 +491,16 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         ahead_ok_port = direction >= 0
         dp = max(direction, 0)
         ahead_is_mine = same_nb[dp] and ahead_ok_port
-        own_park = 0 if (on and not turn and core and park_cell[i]) else 255
-        park = _spread(own_park, hstop[i], 1, same_nb, on, reach)
+        # a vehicle giving way is not parked (it leaves the bay for the back-off, and comes back to a free one)
+        own_park = 0 if (on and not turn and core and park_cell[i] and not yielding) else 255
+        park = 255 if yielding else _spread(own_park, hstop[i], 1, same_nb, on, reach)
         parked = on and park <= reach
         front = on and ahead_ok_port and not ahead_is_mine and not parked
         off_array = front and not connected[i, dp] and exit_id[i] == target and dp == ep
         # a request stands until its sender says otherwise (it sends only what changed); a vehicle giving way
         # (its request marked YIELD) gets the cell before any other, else the oldest asking
         for q in range(P):
-            req[q] = (hreq[i, q] + (0 if hrdep[i, q] & YIELD else HUGE)) if (trusted[q] and hreq[i, q] >= 0) \
-                else 4 * HUGE
+            req[q] = _rank(hreq[i, q], hrdep[i, q]) if (trusted[q] and hreq[i, q] >= 0) else 4 * HUGE
         choice = _first_min(req)
         new_hold = req[choice] % HUGE if req[choice] < 4 * HUGE else NONE
         hport = choice if new_hold >= 0 else NONE
@@ -555,12 +563,13 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             blk -= 1 << 32
         for q in range(P):  # requests: front cells ask the cell ahead, held cells pass it on until gap deep
             to_req[q], to_rdep[q] = NONE, 0
+        late = 0 if turn else LATE  # a late vehicle's requests go after the due ones' (see _rank)
         if front and connected[i, dp]:
-            to_req[dp], to_rdep[dp] = vid, 1 + (YIELD if yielding else 0)
-        if new_hold >= 0 and (hdep & (YIELD - 1)) < L and connected[i, fp]:
-            to_req[fwd], to_rdep[fwd] = new_hold, hdep + 1  # (the mark passed on with it)
+            to_req[dp], to_rdep[dp] = vid, 1 + (YIELD if yielding else 0) + late
+        if new_hold >= 0 and (hdep & (LATE - 1)) < L and connected[i, fp]:
+            to_req[fwd], to_rdep[fwd] = new_hold, hdep + 1  # (the marks passed on with it)
         if boxed and connected[i, asker]:
-            to_req[asker], to_rdep[asker] = vid, 1 + YIELD
+            to_req[asker], to_rdep[asker] = vid, 1 + YIELD + late
         # say: on a port only what changed since it last sent there (and again for ``repeats`` ticks), and
         # everything at its heartbeat, which repairs a lost sentence; the words are written whether sent or not
         beat = heartbeat_due(tick, entry_no[i], heartbeat)
