@@ -12,7 +12,7 @@ import numpy as np
 from virtual_vehicle.cells.network.messages import Mailbox
 from virtual_vehicle.cells.network.programs import UNREACHABLE, CellInputs
 from virtual_vehicle.cells.sorting import Sorter, decode_goal
-from virtual_vehicle.cells.sorting.policy import ASK
+from virtual_vehicle.cells.sorting.policy import ASK, LOSSY
 from virtual_vehicle.cells.sorting.rules import BIG as _BIG
 from virtual_vehicle.cells.sorting.rules import ENTRY as _ENTRY
 from virtual_vehicle.cells.sorting.policy import LATE as _LATE
@@ -367,21 +367,23 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     differs = each.any(axis=0)
     # a new sentence goes out again for ``repeats`` ticks, so that one loss does not cost a heartbeat; partial
     # sentences carry the words that changed in those ticks (the mask kept above the count in ``again``)
-    left, window = state["again"] & 0xFFFF, state["again"] >> 16
+    left, window = state["again"] & (LOSSY - 1), state["again"] >> 16
     window = np.where(left > 0, window, 0)
     diff = sum(each[w].astype(np.int64) << w for w in range(len(each)))
     out.present[:] = beat[:, None] | differs | (left > 0)
-    count = np.where(differs, sorter.repeats, np.maximum(left - 1, 0))
-    again = count + (np.where(count > 0, (window | diff) << 16, 0) if sorter.partial else 0)
+    # a missed heartbeat of a neighbour still trusted: ask it again (whole sentences only); an ask heard: answer
+    ago = tick - heard_at
+    asks = inputs.connected & (ago > sorter.heartbeat_ticks + sorter.max_age) & (ago <= sorter.trust) \
+        & (not sorter.partial)
+    # a port that asked or was asked lost a sentence: marked LOSSY for good, its changes repeated twice as long
+    lossy = ((state["again"] & LOSSY) != 0) | asks | asked_again
+    count = np.where(differs, np.where(lossy, 2 * sorter.repeats, sorter.repeats), np.maximum(left - 1, 0))
+    again = count + (np.where(count > 0, (window | diff) << 16, 0) if sorter.partial else 0) + np.where(lossy, LOSSY, 0)
     if sorter.partial:  # at the heartbeat all words but those at rest, and ``ex``, which says so
         busy = sum((out.values[k].astype(np.int64) != rest[k]).astype(np.int64) << w
                    for w, k in enumerate(state["said"]))
         out.words = np.where(beat[:, None], busy | (1 << 10), diff | window)
     said = {k: np.where(differs, out.values[k].astype(np.int64), v) for k, v in state["said"].items()}
-    # a missed heartbeat of a neighbour still trusted: ask it again (whole sentences only); an ask heard: answer
-    ago = tick - heard_at
-    asks = inputs.connected & (ago > sorter.heartbeat_ticks + sorter.max_age) & (ago <= sorter.trust) \
-        & (not sorter.partial)
     out.present |= asks | asked_again
     out.values["ex"][asks] += ASK
     new_state = {"dist": dist, "heard": heard, "heard_at": heard_at, "vid": vid, "goal": goal,

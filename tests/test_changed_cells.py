@@ -14,7 +14,7 @@ from virtual_vehicle.cells.network.messages import Mailbox, Schema
 from virtual_vehicle.cells.network.programs import CellInputs, ChangedCells, check_program, tree_map
 from virtual_vehicle.cells.network.sentence import WordType
 from virtual_vehicle.cells.network.topology import from_layout
-from virtual_vehicle.cells.sorting.policy import ASK, LATE, WEAK, YIELD
+from virtual_vehicle.cells.sorting.policy import ASK, LATE, LOSSY, WEAK, YIELD
 from virtual_vehicle.config.scenario import CellChange, FaultEvent, ReconfigurationSpec, load_scenario
 from virtual_vehicle.model import layout
 from virtual_vehicle.run.sim import LatencyStats, NetworkRun
@@ -435,6 +435,7 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, part
     state["again"] = rng.choice([0, 0, 1, 2], (n, P))
     if partial:  # the words a port repeats, kept above the count
         state["again"] += np.where(state["again"] > 0, rng.integers(0, 1 << 12, (n, P)) << 16, 0)
+    state["again"] += np.where(rng.random((n, P)) < 0.3, LOSSY, 0)  # links marked lossy (an ask sent or heard)
     for k, (lo, hi) in {"vid": (-1, 8), "goal": (-1, 40), "dir": (-1, P - 1), "back": (0, 6), "bdir": (-1, P - 1),
                         "hold": (-1, 8), "hage": (0, 4), "hport": (-1, P - 1), "hdep": (0, 4),
                         "nxt": (0, 6)}.items():

@@ -96,3 +96,55 @@ def test_a_neighbour_that_falls_silent_is_still_dropped():
     is untrusted once two heartbeats are missed, as before, and the way through it is forgotten."""
     said = _lonely_gradient(Sorter(0.3, heartbeat=0.05), lost_from=30, every=True)
     assert said[0] < 255 and said[-1] == 255
+
+
+def _sending_ticks(program, marked: tuple[int, int] | None, asked: tuple[int, int] | None = None):
+    """Two cells, every port connected, nothing heard yet; ``marked`` (cell, port) starts with the link marked
+    :data:`~virtual_vehicle.cells.sorting.policy.LOSSY`, and on ``asked`` (cell, port) the first tick's inbox asks
+    the cell to say everything again. From tick 1 on nothing arrives and nothing changes: per (cell, port), the ticks
+    of the first ten on which it sent, and the ports marked at the end."""
+    from virtual_vehicle.cells.sorting.policy import ASK, LOSSY, rest_words
+
+    n, P = 2, 4
+    config = {"entry_no": np.array([50, 51])}  # heartbeats at ticks 50 and 49 of each 100: not in the first ten
+    connected = np.ones((n, P), bool)
+    state = program.init(n, P, config)
+    if marked:
+        state["again"][marked] = LOSSY
+    sent = {}
+    for tick in range(10):
+        inbox = Mailbox.empty(program.schema, n, P)
+        if tick == 0 and asked:
+            inbox.present[asked] = True  # a neighbour with nothing to say, asking
+            for w, rest in zip(inbox.values, rest_words(P)):
+                inbox.values[w][asked] = rest
+            inbox.values["ex"][asked] += ASK
+        state, out, _ = program.step(state, CellInputs(tick * program.period, np.zeros((n, 5), bool), inbox,
+                                                       connected, config, None))
+        for i, q in zip(*np.nonzero(out.present)):
+            sent.setdefault((int(i), int(q)), []).append(tick)
+    return sent, {(int(i), int(q)) for i, q in zip(*np.nonzero(state["again"] & LOSSY))}
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_link_that_lost_a_sentence_repeats_its_changes_twice_as_long(compiled):
+    """At 10 % loss a change said three times (the change and two repeats) is lost once in a thousand, and then
+    waits for the sender's heartbeat (a second) while a parcel stands. A port whose link showed a loss (an ask sent
+    or heard on it) repeats its changes for twice ``repeats`` ticks (lost once in 100,000); the other ports, and a
+    loss-free run (which never asks), as before."""
+    program = Sorter(0.3, heartbeat=1.0) if compiled else stepped_by_arrays(Sorter(0.3, heartbeat=1.0))
+    assert program.repeats == 2
+    sent, lossy = _sending_ticks(program, marked=(0, 1))
+    assert sent[(0, 1)] == [0, 1, 2, 3, 4]  # the first sentence is a change: said, then repeated four times
+    assert sent[(0, 0)] == sent[(1, 1)] == [0, 1, 2]  # unmarked: repeated twice
+    assert lossy == {(0, 1)}  # the mark stays
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_an_ask_heard_marks_the_link_lossy(compiled):
+    """A cell asked to say everything again marks that port (its neighbour missed a heartbeat: the link loses
+    sentences) and repeats its next changes there twice as long; its other ports keep their repeats."""
+    program = Sorter(0.3, heartbeat=1.0) if compiled else stepped_by_arrays(Sorter(0.3, heartbeat=1.0))
+    sent, lossy = _sending_ticks(program, marked=None, asked=(1, 2))
+    assert lossy == {(1, 2)}
+    assert sent[(1, 2)] == [0, 1, 2, 3, 4] and sent[(1, 0)] == [0, 1, 2]

@@ -32,7 +32,8 @@ Memory = namedtuple("Memory", "heard heard_at dist cell said again")
 tick, not an age, so that a silent neighbour leaves the state as it is), the exit
 gradients' distances (n, MAX_EXITS), the :class:`CellState`, the words it last sent on each port (:class:`Words`,
 int64; it sends again only what changed, and everything at its heartbeat) and how many ticks more it repeats a
-port's new sentence (n, P), so that one lost sentence does not leave a neighbour a heartbeat behind."""
+port's new sentence (n, P), so that one lost sentence does not leave a neighbour a heartbeat behind (with the
+:data:`LOSSY` mark of a link that lost one, :data:`AGAIN_BITS`)."""
 Config = namedtuple("Config", "exit exit_port entry entry_no park forbid labels inner")
 """Per-cell configuration (see :class:`~virtual_vehicle.cells.sorting.Sorter`), the labels read this tick and the
 (n, P) ports with a neighbour installed and another cell beyond it (such a port not connected leads to a dead cell
@@ -100,8 +101,13 @@ the cell missed that neighbour's heartbeat. ``ex`` itself is small (an exit id o
 ``ASK // 2`` asks; what a cell keeps of ``ex`` is the word without it. The asker sends it every tick until it hears
 the neighbour (or stops trusting it); the neighbour answers each ask that arrives with its whole sentence."""
 AGAIN_BITS = 16
-"""A port's ``again`` memory: the ticks it repeats its sentence (low bits) and, when sentences are partial, the bit
-mask of the words to repeat (above these bits)."""
+"""A port's ``again`` memory: the ticks it repeats its sentence (low bits, below :data:`LOSSY`) and, when sentences
+are partial, the bit mask of the words to repeat (above these bits)."""
+LOSSY = 1 << (AGAIN_BITS - 1)
+"""The mark in a port's ``again`` memory (the top bit of its count, above any ``2 * repeats``) of a link that lost a
+sentence: the cell asked that neighbour to say everything again, or was asked (:data:`ASK`; whole sentences only, so
+never on loss-free rounds). Kept for good; a change on a marked port is repeated for twice ``repeats`` ticks, so that
+it is lost only when all of those are, as rarely as on a link that loses half as much."""
 
 @njit(cache=True)
 def _first_min(a):
@@ -585,10 +591,13 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             ask = connected[i, q] and asking(tick, at_out[i, q], heartbeat, max_age, trust, partial)
             send = send or ask or asked[q]
             old_again = again_in[i, q]
-            left = old_again & ((1 << AGAIN_BITS) - 1)  # ticks still to repeat, and (partial) which words
+            left = old_again & (LOSSY - 1)  # ticks still to repeat, and (partial) which words
             window = old_again >> AGAIN_BITS if left > 0 else 0
-            count = repeats if differs else max(left - 1, 0)
-            again_out[i, q] = count + (((window | diff) << AGAIN_BITS) if (partial and count > 0) else 0)
+            # a link that lost a sentence (an ask sent or heard on it): its changes repeated twice as long
+            lossy = (old_again & LOSSY) != 0 or ask or asked[q]
+            count = (2 * repeats if lossy else repeats) if differs else max(left - 1, 0)
+            again_out[i, q] = count + (((window | diff) << AGAIN_BITS) if (partial and count > 0) else 0) + (
+                LOSSY if lossy else 0)
             send = send or left > 0
             carry = ALL_WORDS if not partial else (diff | window)
             if partial and beat:  # everything, but the words at rest go without saying
@@ -661,7 +670,7 @@ def tick_cells(rows, inp, entry_no, tick, heartbeat, trust, partial, old, sent_p
     i_d, i_nxt, i_vid, i_goal, i_key, i_stop, i_req, i_rdep, i_hold, i_ack, i_ex, i_blk = heard
     P = present.shape[1]
     rest = REST if P == 4 else REST_HEX
-    low = (1 << AGAIN_BITS) - 1
+    low = LOSSY - 1
     for i in rows:
         same = True  # what each port that hears now leaves heard as it is, from a neighbour trusted last tick
         for q in range(P):
@@ -695,7 +704,7 @@ def tick_cells(rows, inp, entry_no, tick, heartbeat, trust, partial, old, sent_p
             left = old_again & low
             window = old_again >> AGAIN_BITS if left > 0 else 0
             count = max(left - 1, 0)
-            again[i, q] = count + ((window << AGAIN_BITS) if (partial and count > 0) else 0)
+            again[i, q] = count + ((window << AGAIN_BITS) if (partial and count > 0) else 0) + (old_again & LOSSY)
             clocks |= again[i, q] != old_again
             send = beat or left > 0
             sent_new |= sent_present[i, q] != send

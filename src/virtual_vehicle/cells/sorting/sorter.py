@@ -34,7 +34,9 @@ class Sorter:
             tick until it hears it (:data:`~virtual_vehicle.cells.sorting.policy.ASK`), so that lost sentences do not
             make a connected neighbour untrusted.
         repeats: ticks a cell sends a port's sentence again after it changed (with a heartbeat): a change is lost
-            only when all of them are.
+            only when all of them are. Twice as many on a port whose link lost a sentence (the cell asked that
+            neighbour to say everything again, or was asked: :data:`~virtual_vehicle.cells.sorting.policy.LOSSY`,
+            kept for good; never on loss-free rounds).
         partial: a sentence carries only the words that changed on its port (and those that changed in the last
             ``repeats`` ticks; every word at the heartbeat), and a cell keeps what it last heard of the words a
             sentence leaves out: on a slow wire a sentence of two changed words takes a fifth of the time of all
