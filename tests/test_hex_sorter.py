@@ -119,3 +119,11 @@ def test_the_sorter_refuses_cells_of_other_port_counts_and_a_reach_six_ports_can
         Sorter(0.3, reach=40).init(3, 6, {})
     Sorter(0.3, reach=30).init(3, 6, {})  # the most that packs
     Sorter(0.3, reach=40).init(3, 4, {})  # square cells keep six bits
+
+
+def test_the_sorter_refuses_a_gap_its_request_word_cannot_carry():
+    # a request's depth (up to gap + 1 hops) lies below the LATE (64) and YIELD (128) marks of the same word
+    for gap in (0, 63, 100):
+        with pytest.raises(ValueError, match="gap must be 1..62"):
+            Sorter(0.3, gap=gap)
+    Sorter(0.3, gap=62).init(3, 4, {})  # the most that fits below the marks

@@ -504,7 +504,8 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         front = on and ahead_ok_port and not ahead_is_mine and not parked
         off_array = front and not connected[i, dp] and exit_id[i] == target and dp == ep
         # a request stands until its sender says otherwise (it sends only what changed); a vehicle giving way
-        # (its request marked YIELD) gets the cell before any other, else the oldest asking
+        # (its request marked YIELD) gets the cell before any other, then the due and unsequenced, then the late
+        # (marked LATE), the oldest asking first within each (see _rank)
         for q in range(P):
             req[q] = _rank(hreq[i, q], hrdep[i, q]) if (trusted[q] and hreq[i, q] >= 0) else 4 * HUGE
         choice = _first_min(req)

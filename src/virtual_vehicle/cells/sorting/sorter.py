@@ -86,6 +86,8 @@ class Sorter:
             raise ValueError("speed must be positive (m/s)")
         if not 1 <= reach <= 62:
             raise ValueError("reach must be 1..62 hops")
+        if not 1 <= gap <= 62:  # a request's depth (up to gap + 1) lies below its LATE and YIELD marks
+            raise ValueError("gap must be 1..62 cells")
         self.speed = float(speed)
         self.gap = int(gap)
         self.reach = int(reach)
