@@ -30,7 +30,7 @@ from virtual_vehicle.engine._kernel import (
     _gather,
     _ids_hash,
     _record_arrays,
-    cell_margins,
+    cells_under,
     piece_segment,
     run_mode,
     table_from_pattern,
@@ -204,10 +204,7 @@ def run_modes(tab, law, wheel_cells, footprint, scales, grid, p, start, wheels, 
     if p < 0:  # the first piece, as Python's piece_for (or piece_at) finds it before its loop
         under = start
         if p == START_PROBE:  # the cells under the footprint, as ParcelModel.support_at finds them
-            near = _within(g_points, g_order, g_start, g_lo0, g_lo1, g_size, g_nx, g_ny, present, y_base[0],
-                           y_base[1], radius * (1 + 1e-9) + 1e-12)
-            margins, _ = cell_margins(kind, half, normals, offsets, vertices, _gather(positions, near), y_base)
-            under = near[margins > 0]
+            under = cells_under(grid, positions, kind, half, normals, offsets, vertices, y_base)
         q = -1
         if under.shape[0]:
             q = table_lookup(tab, under, y_base[0], y_base[1])
@@ -309,10 +306,7 @@ def run_modes(tab, law, wheel_cells, footprint, scales, grid, p, start, wheels, 
             continue
         # a support event: the next piece from the table (or made from a solved pattern), else Python's
         if not told:  # the cells under the footprint at the probe, as ParcelModel.support_at finds them
-            near = _within(g_points, g_order, g_start, g_lo0, g_lo1, g_size, g_nx, g_ny, present, y_probe[0],
-                           y_probe[1], radius * (1 + 1e-9) + 1e-12)
-            margins, _ = cell_margins(kind, half, normals, offsets, vertices, _gather(positions, near), y_probe)
-            under = near[margins > 0]
+            under = cells_under(grid, positions, kind, half, normals, offsets, vertices, y_probe)
         q = table_lookup(tab, under, y_probe[0], y_probe[1])
         if q == -2 and drive:
             q = table_from_pattern(tab, under, y_probe[0], y_probe[1], positions, unit, velocities, directions,
