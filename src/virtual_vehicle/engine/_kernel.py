@@ -1867,6 +1867,28 @@ def table_piece_again(tab, ids, x, y, positions, unit, velocities, directions, d
 
 
 @njit(cache=True)
+def table_next_piece(tab, ids, x, y, positions, unit, velocities, directions, drive, mu, damping, inv_mass,
+                     inv_inertia, born_terms, born, weight, solve_log, solve_origin):
+    """The piece of support set ``ids`` at centre of mass (x, y) (m), as
+    :meth:`~virtual_vehicle.engine.dynamics.ParcelModel.piece_for` finds it: the table's (:func:`table_lookup`), else
+    made from a solved pattern for a set it has never met (:func:`table_from_pattern`) or for one it met on other
+    contact sets (:func:`table_piece_again`), with a drive only. Returns (piece or < 0 where Python must act, pieces
+    born so far: ``born`` plus one for a piece made here)."""
+    q = table_lookup(tab, ids, x, y)
+    if q == -2 and drive:
+        q = table_from_pattern(tab, ids, x, y, positions, unit, velocities, directions, drive, mu, damping, inv_mass,
+                               inv_inertia, born_terms, born, weight, solve_log, solve_origin)
+        if q >= 0:
+            born += 1
+    elif q == -1 and drive:
+        q, made = table_piece_again(tab, ids, x, y, positions, unit, velocities, directions, drive, mu, damping,
+                                    inv_mass, inv_inertia, born_terms, born, weight, solve_log, solve_origin)
+        if made:
+            born += 1
+    return q, born
+
+
+@njit(cache=True)
 def cells_under(grid, positions, kind, half, normals, offsets, vertices, y):
     """Ids of the cells under the footprint (``kind`` ... ``vertices``: an :func:`outline`'s entries less ``convex``)
     at state ``y``, as :meth:`~virtual_vehicle.engine.dynamics.ParcelModel.support_at` finds them: the cells present
@@ -1984,19 +2006,9 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
                         told, ids, candidates, center)
         if not told:  # the probe's values do not tell: the cells under the footprint found as support_at finds them
             under, told = cells_under(grid, positions, kind, half, normals, offsets, vertices, y_probe), True
-        q = table_lookup(tab, under, y_probe[0], y_probe[1])
-        if q == -2 and drive:
-            q = table_from_pattern(tab, under, y_probe[0], y_probe[1], positions, unit, velocities, directions,
-                                   drive, mu, damping, inv_mass, inv_inertia, born_terms, born, weight, solve_log,
+        q, born = table_next_piece(tab, under, y_probe[0], y_probe[1], positions, unit, velocities, directions, drive,
+                                   mu, damping, inv_mass, inv_inertia, born_terms, born, weight, solve_log,
                                    solve_origin)
-            if q >= 0:
-                born += 1
-        elif q == -1 and drive:  # a support set met before on other contact sets
-            q, made = table_piece_again(tab, under, y_probe[0], y_probe[1], positions, unit, velocities, directions,
-                                        drive, mu, damping, inv_mass, inv_inertia, born_terms, born, weight,
-                                        solve_log, solve_origin)
-            if made:
-                born += 1
         if q < 0:
             return (LOOP_MISS, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, under, told, ids,
                     candidates, center)

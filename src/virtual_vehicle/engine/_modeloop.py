@@ -33,9 +33,7 @@ from virtual_vehicle.engine._kernel import (
     cells_under,
     piece_segment,
     run_mode,
-    table_from_pattern,
-    table_lookup,
-    table_piece_again,
+    table_next_piece,
 )
 from virtual_vehicle.model.parcel import _within
 from virtual_vehicle.physics.stick_modes import _wheel_arrays, breaking_kernel, decide_kernel
@@ -207,19 +205,9 @@ def run_modes(tab, law, wheel_cells, footprint, scales, grid, p, start, wheels, 
             under = cells_under(grid, positions, kind, half, normals, offsets, vertices, y_base)
         q = -1
         if under.shape[0]:
-            q = table_lookup(tab, under, y_base[0], y_base[1])
-            if q == -2 and drive:
-                q = table_from_pattern(tab, under, y_base[0], y_base[1], positions, unit, velocities, directions,
+            q, born = table_next_piece(tab, under, y_base[0], y_base[1], positions, unit, velocities, directions,
                                        drive, mu, damping, inv_mass, inv_inertia, born_terms, born, weight,
                                        solve_log, solve_origin)
-                if q >= 0:
-                    born += 1
-            elif q == -1 and drive:
-                q, made = table_piece_again(tab, under, y_base[0], y_base[1], positions, unit, velocities,
-                                            directions, drive, mu, damping, inv_mass, inv_inertia, born_terms, born,
-                                            weight, solve_log, solve_origin)
-                if made:
-                    born += 1
         if q < 0:
             return (LOOP_START, t, z, p, h, h_abs, nfev, next_sample, segments, n_log, n_s, born, y_probe, none,
                     False, ids, candidates, center, y_base, mode, wheels, new_piece)
@@ -307,19 +295,9 @@ def run_modes(tab, law, wheel_cells, footprint, scales, grid, p, start, wheels, 
         # a support event: the next piece from the table (or made from a solved pattern), else Python's
         if not told:  # the cells under the footprint at the probe, as ParcelModel.support_at finds them
             under = cells_under(grid, positions, kind, half, normals, offsets, vertices, y_probe)
-        q = table_lookup(tab, under, y_probe[0], y_probe[1])
-        if q == -2 and drive:
-            q = table_from_pattern(tab, under, y_probe[0], y_probe[1], positions, unit, velocities, directions,
-                                   drive, mu, damping, inv_mass, inv_inertia, born_terms, born, weight, solve_log,
+        q, born = table_next_piece(tab, under, y_probe[0], y_probe[1], positions, unit, velocities, directions, drive,
+                                   mu, damping, inv_mass, inv_inertia, born_terms, born, weight, solve_log,
                                    solve_origin)
-            if q >= 0:
-                born += 1
-        elif q == -1 and drive:  # a support set met before on another contact set
-            q, made = table_piece_again(tab, under, y_probe[0], y_probe[1], positions, unit, velocities, directions,
-                                        drive, mu, damping, inv_mass, inv_inertia, born_terms, born, weight,
-                                        solve_log, solve_origin)
-            if made:
-                born += 1
         miss = q < 0
         if not miss:
             new_ids = _support_of(tab, q)
