@@ -306,11 +306,10 @@ def test_warming_up_leaves_the_engine_compiled():
     assert kernel.run_events.signatures and kernel.pattern.signatures and kernel.cell_margins.signatures
 
 
-def test_warming_up_compiles_what_networked_runs_call():
-    """In a fresh process, warm_up() leaves the engine's compiled entry points, the quiet step's checks and step and
-    the cell query among them, with the very signatures a networked run (25 parcels on 30 x 30, batched quiet
-    ticks) then calls them with, so a user's first networked run does not stop to compile: each is called, and none
-    gains a signature."""
+def _kernels_across_a_fresh_run(imports: str, home: str, run: str) -> tuple[dict, dict, dict]:
+    """In a fresh process: warm_up(), then the statement ``run`` with the compiled kernels named by ``home`` (a
+    statement filling the dict ``home``: kernel name -> module, after ``imports``) counted. Returns each kernel's
+    number of signatures before and after the run, and its calls."""
     import subprocess
     import sys
     from pathlib import Path
@@ -318,22 +317,11 @@ def test_warming_up_compiles_what_networked_runs_call():
     code = """
 import collections, json, sys
 sys.path.insert(0, %r)
-import bench_scale
-from virtual_vehicle.engine import _kernel
-from virtual_vehicle.physics.laws import affine
-from virtual_vehicle.model import parcel
-from virtual_vehicle.cells.sorting import policy
-from virtual_vehicle.cells.network import delivery
+%s
 from virtual_vehicle.run.warm import warm_up
-from virtual_vehicle.config.scenario import parse_scenario
-from virtual_vehicle.run.sim import run_network
 warm_up()
-home = {n: _kernel for n in ("run_events", "pattern", "cell_margins", "support_slack", "edges_clear_many",
-                                      "quiet_steps")}
-home["_within"] = home["_covered"] = parcel
-home["_terms_and_row"] = affine  # the bench_scale hall is viscous
-home["step_cells"] = policy
-home["_carry"] = delivery
+home = {}
+%s
 names = tuple(home)
 before = {n: len(getattr(home[n], n).signatures) for n in names}
 calls = collections.Counter()
@@ -345,11 +333,51 @@ def counted(n, f):
 kernels = {n: getattr(home[n], n) for n in names}
 for n in names:
     setattr(home[n], n, counted(n, kernels[n]))
-run_network(parse_scenario(bench_scale.scenario(30, 25, 0.5)).build())
+%s
 print(json.dumps([before, {n: len(kernels[n].signatures) for n in names}, calls]))
-""" % str(Path(__file__).resolve().parents[1] / "benchmarks")
+""" % (str(Path(__file__).resolve().parents[1] / "benchmarks"), imports, home, run)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    before, after, calls = json.loads(out.stdout.strip().splitlines()[-1])
+    return tuple(json.loads(out.stdout.strip().splitlines()[-1]))
+
+
+def test_warming_up_compiles_what_networked_runs_call():
+    """In a fresh process, warm_up() leaves the engine's compiled entry points, the quiet step's checks and step and
+    the cell query among them, with the very signatures a networked run (25 parcels on 30 x 30, batched quiet
+    ticks) then calls them with, so a user's first networked run does not stop to compile: each is called, and none
+    gains a signature."""
+    before, after, calls = _kernels_across_a_fresh_run(
+        """import bench_scale
+from virtual_vehicle.engine import _kernel
+from virtual_vehicle.physics.laws import affine
+from virtual_vehicle.model import parcel
+from virtual_vehicle.cells.sorting import policy
+from virtual_vehicle.cells.network import delivery
+from virtual_vehicle.config.scenario import parse_scenario
+from virtual_vehicle.run.sim import run_network""",
+        """home.update({n: _kernel for n in ("run_events", "pattern", "cell_margins", "support_slack", "edges_clear_many",
+                                 "quiet_steps")})
+home["_within"] = home["_covered"] = parcel
+home["_terms_and_row"] = affine  # the bench_scale hall is viscous
+home["step_cells"] = policy
+home["_carry"] = delivery""",
+        "run_network(parse_scenario(bench_scale.scenario(30, 25, 0.5)).build())")
+    assert before == after and min(before.values()) > 0, (before, after)
+    assert set(calls) == set(before) and min(calls.values()) > 0, calls
+
+
+def test_warming_up_compiles_what_stick_slip_runs_call():
+    """The same for the default law: after warm_up(), 25 stick-slip parcels catching up with a uniform field's wheels
+    from rest and then riding them across support changes (the pairs benchmark's scene) call the exact mode loop and
+    the riding parcels' compiled measure with signatures warm_up() left (the measure was never reached by it before:
+    its riding parcel kept its proof every tick, and the first run loaded it inside its timing)."""
+    before, after, calls = _kernels_across_a_fresh_run(
+        """import bench_pairs
+from virtual_vehicle.engine import _kernel, _modeloop
+from virtual_vehicle.config.scenario import parse_scenario
+from virtual_vehicle.run.sim import run""",
+        """home["ride_measure"] = _kernel
+home["run_modes"] = _modeloop""",
+        "run(parse_scenario(bench_pairs.scenario(25, 'stick_slip', 1.0)).build())")
     assert before == after and min(before.values()) > 0, (before, after)
     assert set(calls) == set(before) and min(calls.values()) > 0, calls
 
