@@ -1,17 +1,18 @@
 """Pairs benchmark (issue: the engine rebuilt, item 5, linear in parcels): wall time per simulated second of N
 parcels on a 100 x 100 array (pitch 0.1 m) under a constant uniform field, for N = 25, 50, 100, 200, under the
-viscous and the Coulomb law, and the exponent of wall time against N fitted over those runs. Prints a table;
-asserts nothing about time.
+viscous, the Coulomb and the stick-slip law (the default), and the exponent of wall time against N fitted over those
+runs. Prints a table; asserts nothing about time.
 
 Parcels of 0.22 x 0.22 m sit on a 0.5 m lattice (rows of 12 from the south-west corner, 0.28 m apart), so the
 parcels that could meet are each one's lattice neighbours: a planner linear in parcels does work linear in N.
 The parcels start at rest. The field drives every wheel along x: at 0.2 m/s under the viscous law (the parcels
 relax to riding it); at 3 m/s under the Coulomb law, whose parcels accelerate at mu g = 1.96 m/s^2 whatever their
 speed, so that they stay slower than their wheels (the paper's sliding assumption, checked) for 1.5 s: use
-``--seconds`` up to that. Each configuration runs in its own process after numba's compiled code is loaded
+``--seconds`` up to that; at 0.5 m/s under the stick-slip law (mu 0.5), whose parcels catch up with their wheels
+after 0.1 s and then ride them. Each configuration runs in its own process after numba's compiled code is loaded
 (:func:`~virtual_vehicle.run.warm.warm_up`), outside the timed run.
 
-Run: ``python benchmarks/bench_pairs.py`` (``--seconds``, ``--counts 25 50``, ``--laws viscous``).
+Run: ``python benchmarks/bench_pairs.py`` (``--seconds``, ``--counts 25 50``, ``--laws viscous stick_slip``).
 """
 
 from __future__ import annotations
@@ -24,9 +25,10 @@ import time
 
 import numpy as np
 
-MU = {"viscous": 2.0, "coulomb": 0.2}
-"""Each law's friction coefficient (viscous in s/m, Coulomb dimensionless)."""
-FIELD = {"viscous": [0.2, 0.0], "coulomb": [3.0, 0.0]}
+MU = {"viscous": 2.0, "coulomb": 0.2, "stick_slip": 0.5}
+"""Each law's friction coefficient (viscous in s/m, Coulomb and stick-slip kinetic dimensionless; stick-slip's static
+one the parcel's default, equal to it)."""
+FIELD = {"viscous": [0.2, 0.0], "coulomb": [3.0, 0.0], "stick_slip": [0.5, 0.0]}
 """Each law's wheel velocity (m/s)."""
 
 
@@ -80,9 +82,9 @@ def main() -> None:
     if args.one:
         print(json.dumps(one(int(args.one[0]), args.one[1], args.seconds)))
         return
-    print(f"# {args.seconds:g} s simulated on 100 x 100 cells, uniform field (viscous 0.2 m/s, Coulomb 3 m/s), parcels "
-          "at rest on a 0.5 m lattice")
-    print(f"{'law':>8}{'parcels':>9}{'wall s':>10}{'wall/sim s':>12}{'x real':>9}{'windows':>9}{'grouped':>9}"
+    print(f"# {args.seconds:g} s simulated on 100 x 100 cells, uniform field (viscous 0.2 m/s, Coulomb 3 m/s, "
+          "stick-slip 0.5 m/s), parcels at rest on a 0.5 m lattice")
+    print(f"{'law':>11}{'parcels':>9}{'wall s':>10}{'wall/sim s':>12}{'x real':>9}{'windows':>9}{'grouped':>9}"
           f"{'contacts':>10}{'overlaps':>10}")
     for law in args.laws:
         rows = []
@@ -91,11 +93,11 @@ def main() -> None:
                                  capture_output=True, text=True, check=True)
             r = json.loads(out.stdout.strip().splitlines()[-1])
             rows.append(r)
-            print(f"{law:>8}{n:>9}{r['wall_s']:>10.3f}{r['wall_per_sim_s']:>12.3f}{r['real_time_factor']:>9.2f}"
+            print(f"{law:>11}{n:>9}{r['wall_s']:>10.3f}{r['wall_per_sim_s']:>12.3f}{r['real_time_factor']:>9.2f}"
                   f"{r['windows']:>9}{r['grouped_steps']:>9}{r['contacts']:>10}{r['undetected_overlaps']:>10}",
                   flush=True)
         if len(rows) > 1:
-            print(f"{law:>8}  wall ~ N^{exponent([r['parcels'] for r in rows], [r['wall_s'] for r in rows]):.2f}")
+            print(f"{law:>11}  wall ~ N^{exponent([r['parcels'] for r in rows], [r['wall_s'] for r in rows]):.2f}")
 
 
 if __name__ == "__main__":
