@@ -6,6 +6,7 @@ against Qhull. Being the kernels' own unit tests, these may name private functio
 public names."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -622,7 +623,7 @@ def test_the_event_loop_runs_the_same_from_its_table_and_after_emptying_it(monke
     monkeypatch.setattr(dynamics._PieceTable, "max_pieces", 7)
     small = _inward_model()
     _same_run(first, _coulomb_run(small))
-    assert len(small._table.pieces) <= 7 + dynamics._PieceTable.spare and len(small._pieces) < len(model._pieces)
+    assert len(small._table.pieces) <= 7 + small._table.spare and len(small._pieces) < len(model._pieces)
 
 
 @pytest.mark.parametrize("pause", [4, 64])
@@ -642,7 +643,8 @@ def test_the_event_loop_hands_back_for_progress_and_runs_the_same(monkeypatch, p
 
 def test_the_event_loop_hands_back_only_when_its_table_is_full(monkeypatch):
     """The oscillating Coulomb parcel (5 s, ~500 support events, ~370 pieces, ~170 patterns solved) needs Python
-    only where the compiled loop has no room for another piece (``_PieceTable.spare`` a call): not for the cells
+    only where the compiled loop has no room for another piece (``_PieceTable.spare`` a call, doubled after a call
+    that fills it, so a logarithmic number of times): not for the cells
     under the parcel where the probe's values cannot tell them (it finds them as ``support_at`` does), not for a
     support set met before on other contact sets, not for a solve. Every hand-back is counted (each call's
     outcome), and the run is the one a run whose loop hands back at every piece makes."""
@@ -650,8 +652,9 @@ def test_the_event_loop_hands_back_only_when_its_table_is_full(monkeypatch):
     original = kernel.run_events
 
     def counted(*args):
+        room = args[-2][9].shape[0]  # the pieces this call may make (the law's arguments' born terms)
         out = original(*args)
-        calls.append((out[0], out[10], out[11].copy(), out[12].copy(), out[13]))
+        calls.append((out[0], out[10], out[11].copy(), out[12].copy(), out[13], room))
         return out
 
     model = _inward_model()
@@ -660,9 +663,11 @@ def test_the_event_loop_hands_back_only_when_its_table_is_full(monkeypatch):
     misses = [c for c in calls if c[0] == kernel.LOOP_MISS]
     assert len(tr.events) > 400 and model.pieces_cached > 300 and [c[0] for c in calls[-1:]] == [kernel.REACHED]
     assert {c[0] for c in calls} == {kernel.LOOP_MISS, kernel.REACHED}
-    for _, born, probe, under, told in misses:  # full, with the cells under the probe told as the model finds them
-        assert born == model._table.spare and told and under.tolist() == model.support_at(probe).tolist()
-    assert len(misses) <= model.pieces_cached // model._table.spare
+    for _, born, probe, under, told, room in misses:  # full, with the cells under the probe told as the model finds
+        assert born == room and told and under.tolist() == model.support_at(probe).tolist()
+    assert [c[5] for c in calls] == sorted(c[5] for c in calls) and calls[-1][5] > calls[0][5]  # it grew
+    spare = dynamics._PieceTable.spare  # calls that fill 64, 128, 256, ... pieces: k of them made 64 (2^k - 1)
+    assert 1 <= len(misses) <= math.log2(model.pieces_cached / spare + 1)
     monkeypatch.setattr(dynamics, "_PAUSE_STEPS", 1)  # a hand-back at every piece the loop would begin
     _same_run(tr, integrate(_inward_model(), np.array([1.12, 1.47, 0.3, 0.0, 0.0, 0.0]), 0.0, 5.0, sample_dt=0.05,
                             progress=lambda t: None))

@@ -160,7 +160,10 @@ class _PieceTable:
     max_pieces = 1 << 15
     """Pieces held before the table and the model's piece cache are emptied (a piece: ~300 bytes in the table)."""
     spare = 64
-    """Pieces (and support sets) the loop may add in one call: the arrays have room for them when it starts."""
+    """Pieces (and support sets, and solves) the loop may add in one call: the arrays have room for them when it
+    starts. A call that fills it doubles it for the next (up to :attr:`max_spare`), so a parcel that makes many
+    pieces hands back to Python a number of times logarithmic in them, not linear."""
+    max_spare = 4096
 
     def __init__(self, model: "ParcelModel", row_length: int):
         self.row_length = row_length
@@ -173,6 +176,7 @@ class _PieceTable:
                          float(spec.mu), float(self.damping), 1.0 / spec.mass, 1.0 / spec.inertia,
                          np.empty((self.spare, affine._TERMS)), float(model.weight),
                          np.zeros((self.spare + 1, 2), np.int64), np.zeros((self.spare, 2)))
+        self.full = False  # the last call filled its room (see spare)
         self.owner: ParcelModel | None = None  # the model whose pieces the table holds (see renew)
         self.loop_args: tuple | None = None
         """The mode loop's arguments that do not change between calls for the parcel (grid, scales, wheel cells,
@@ -219,6 +223,12 @@ class _PieceTable:
         loop); past :attr:`max_pieces` empty the table and the model's piece cache (keeping ``piece``); make room
         for what the loop may add. Returns whether it emptied them. (``piece`` None: the loop finds its first piece
         itself; the caller made sure the table need not be emptied.)"""
+        if self.full:  # the last call filled its room: twice as much for this one
+            self.full = False
+            self.spare = min(2 * self.spare, self.max_spare)
+            a = self.law_args
+            self.law_args = (*a[:9], np.empty((self.spare, affine._TERMS)), a[10],
+                             np.zeros((self.spare + 1, 2), np.int64), np.zeros((self.spare, 2)))
         emptied = len(self.pieces) > self.max_pieces
         if emptied:
             self.clear()
@@ -300,6 +310,7 @@ class _PieceTable:
         have (in order, counted in its solves), and to this table's records."""
         log, origins = self.law_args[-2], self.law_args[-1]
         n = int(log[0, 1])
+        self.full |= n >= len(origins)
         if not n:
             return
         geometry, ipool = model._geometry, self.ipool
@@ -413,6 +424,7 @@ class _PieceTable:
         entries (``model._unmade``: support key -> indices, in the order made), where :meth:`ParcelModel.piece_for` finds them as it
         would have found the pieces it made itself. Making each a :class:`Piece` at once was a third of the Python
         of an oscillating Coulomb parcel (367 pieces in 5 s, most of them never asked for)."""
+        self.full |= born >= len(self.law_args[9])
         terms = self.law_args[9][:born].copy()  # the packed constants the law's compiled drive made, a row a piece
         ipool, records = self.ipool, self.records
         spans = self.kmeta[self.pkey[start:start + born], :2].tolist()  # (each piece's support set: its ids in ipool)
