@@ -51,7 +51,9 @@ class Sorter:
     ``entry`` bool; ``entry_no`` an entry cell's installation number; ``park`` bool, a parking cell (optional);
     ``forbid`` the port a parcel on a one-way cell may not move toward, -1 for none (optional); ``inner`` (n, P) the
     ports with a neighbour installed and another cell beyond it (optional; default: those connected, so a dead
-    neighbour looks like the edge).
+    neighbour looks like the edge); ``sides`` (n, P) the cell's sensor at the point it shares with the neighbour on
+    each port (the midpoint of their centres), -1 none (optional; default none: a cell that sees only an edge then
+    keeps its vehicle as before).
     Inputs: ``labels``
     (the label read at entry cells, :func:`~virtual_vehicle.cells.sorting.rules.encode_goal`; -1 for none).
 
