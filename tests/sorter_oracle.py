@@ -119,6 +119,20 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     best_vid = heard["vid"][rows, pick]
     nb_entry = np.where(has & (heard["ex"] == _ENTRY), heard["vid"], _HUGE)
     entry_min = _across(np.minimum, nb_entry) if P else np.full(n, _HUGE)
+    # A cell seeing only an edge of a vehicle keeps it while a neighbour across a lit shared point (config
+    # ``sides``: that neighbour sees the same body) carries it; if such neighbours carry only others, it takes the
+    # first one's (in port order).
+    sensed = np.asarray(inputs.sensors, dtype=bool)
+    sides = np.asarray(cfg.get("sides", np.full((n, P), _NONE)), dtype=np.int64)
+    on_side = (sides >= 0) & (sides < sensed.shape[1]) \
+        & sensed[rows[:, None], np.clip(sides, 0, sensed.shape[1] - 1)] & trusted & (heard["vid"] >= 0)
+    others = on_side & (heard["vid"] != vid[:, None])
+    switch = lit & (vid >= 0) & ~sensed[:, 0] & ~(on_side & (heard["vid"] == vid[:, None])).any(axis=1) \
+        & others.any(axis=1)
+    if switch.any():
+        first_other = np.argmax(others, axis=1)
+        vid = np.where(switch, heard["vid"][rows, first_other], vid)
+        goal = np.where(switch, heard["goal"][rows, first_other], goal)
     # A cell seeing only an edge of a vehicle no neighbour carries (a stale word gave it) takes its neighbours' one.
     alone = lit & (vid >= 0) & ~np.asarray(inputs.sensors, dtype=bool)[:, 0] & found \
         & ~(trusted & (heard["vid"] == vid[:, None])).any(axis=1)

@@ -472,6 +472,9 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, part
     state["heard"]["rdep"] = state["heard"]["rdep"] + np.where(marks.random((n, P)) < late, LATE, 0)
     inbox.values["rdep"][:] += np.where(marks.random((n, P)) < late, LATE, 0).astype(inbox.values["rdep"].dtype)
     state["hdep"] = state["hdep"] + np.where(marks.random(n) < late, LATE, 0)
+    # the sensor each cell shares with the neighbour on a port (-1 none, some beyond the cell's five), from a
+    # generator of its own again, so that every draw above is as it was
+    config["sides"] = rng.spawn(1)[0].integers(-1, 7, (n, P))
     return program, state, inputs
 
 

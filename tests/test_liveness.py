@@ -81,3 +81,14 @@ def test_a_parked_parcel_on_the_due_ones_way_gives_way():
     rows = stress([59, 96], duration=12.0)
     assert [r["deadlocks"] for r in rows] == [0, 0], [r["why"] for r in rows]
     assert all(r["collisions"] == r["misrouted"] == r["lost"] == 0 for r in rows)
+
+
+def test_cells_seeing_only_an_edge_do_not_keep_a_gone_vehicle_between_them():
+    """Stress floor 140: the late p00 gave way north past two cells that went on seeing an edge of the due p01
+    behind it; each heard the other say p00's id, so the rule that clears a lone cell holding a gone vehicle never
+    fired, p01 waited on them and p00 on the due number: a cycle of holds from 13.7 s, 0 delivered in 16 s. A cell
+    that sees only an edge now keeps its vehicle only while a neighbour across a lit shared point carries it, and
+    takes that neighbour's otherwise: the floor delivers, without a deadlock."""
+    rows = stress([140], duration=16.0)
+    assert rows[0]["deadlocks"] == 0 and rows[0]["correct"] >= 1, rows[0]["why"]
+    assert rows[0]["collisions"] == rows[0]["misrouted"] == rows[0]["lost"] == 0

@@ -130,6 +130,7 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
         forbid[marks.get(arrow, np.zeros(cells.n, bool))] = against
     config = {"exit": exit_id, "exit_port": exit_port, "entry": entry, "park": park, "forbid": forbid,
               "inner": _inner(topo),  # a silent neighbour there is dead, not the edge
+              "sides": _sides(topo, cells, ctx.sensors),  # the sensor each cell shares a point with a neighbour at
               "entry_no": np.arange(1, cells.n + 1, dtype=np.int64),  # installation numbers: unique vehicle ids
               "clearance": (c.gap + 1) * cells.pitch}  # the loader waits for this much room around a new parcel
     if c.central:
@@ -159,6 +160,25 @@ def _inner(topo) -> np.ndarray:
         ahead = nb[:, q]
         inner[:, q] &= (ahead >= 0) & (nb[np.maximum(ahead, 0), q] >= 0)
     return inner
+
+
+def _sides(topo, cells, sensors) -> np.ndarray:
+    """(n, P) the sensor of each cell at the point it shares with the neighbour on each port (the midpoint of their
+    centres: with the default sensors, the edge midpoint on that side), -1 where it has none there or no neighbour
+    (known at installation): lit, the body over it covers the neighbour too (:mod:`~virtual_vehicle.cells.sorting`,
+    vehicle tracking)."""
+    nb = topo.neighbor
+    n, P = nb.shape
+    pos = cells.positions
+    points = sensors.points  # (n, S, 2) m
+    sides = np.full((n, P), -1, dtype=np.int64)
+    for q in range(P):
+        mid = (pos + pos[np.maximum(nb[:, q], 0)]) / 2
+        off = np.linalg.norm(points - mid[:, None, :], axis=2)  # (n, S)
+        s = np.argmin(off, axis=1)
+        at = (nb[:, q] >= 0) & (off[np.arange(n), s] < 1e-3 * cells.pitch)
+        sides[at, q] = s[at]
+    return sides
 
 
 def _check_sequence(parcels, park: np.ndarray) -> None:

@@ -15,7 +15,11 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
   record (id, goal) of a neighbour whose vehicle is moving into it (else the smallest id heard); elsewhere a cell
   never changes vehicle while it sees one, but for a cell that sees only an edge (its centre uncovered) of a
   vehicle no neighbour carries: that parcel has gone (seen under sentence loss at the entry, where the next parcel
-  arrives at once), and the edge is the vehicle's a neighbour carries, which it takes. Cells under one vehicle agree on its
+  arrives at once), and the edge is the vehicle's a neighbour carries, which it takes. Nor does a cell that sees
+  only an edge keep a vehicle that no neighbour across a side it sees covered carries (config ``sides``: the sensor
+  at the point it shares with that neighbour, lit, so the body covers the neighbour too) while such a neighbour
+  carries another: it takes that one's (stress floor 140: two edge cells, each hearing the other, kept a gone
+  vehicle's id under the due parcel that waited on them). Cells under one vehicle agree on its
   direction: every cell proposes
   (its distance to the goal, the port toward its closest neighbour); the smallest proposal (the front cell's)
   spreads through the vehicle within ``reach`` hops (hop-limited, so what a departed cell said is soon forgotten),

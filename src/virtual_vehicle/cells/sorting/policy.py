@@ -34,10 +34,11 @@ gradients' distances (n, MAX_EXITS), the :class:`CellState`, the words it last s
 int64; it sends again only what changed, and everything at its heartbeat) and how many ticks more it repeats a
 port's new sentence (n, P), so that one lost sentence does not leave a neighbour a heartbeat behind (with the
 :data:`LOSSY` mark of a link that lost one, :data:`AGAIN_BITS`)."""
-Config = namedtuple("Config", "exit exit_port entry entry_no park forbid labels inner")
-"""Per-cell configuration (see :class:`~virtual_vehicle.cells.sorting.Sorter`), the labels read this tick and the
+Config = namedtuple("Config", "exit exit_port entry entry_no park forbid labels inner sides")
+"""Per-cell configuration (see :class:`~virtual_vehicle.cells.sorting.Sorter`), the labels read this tick, the
 (n, P) ports with a neighbour installed and another cell beyond it (such a port not connected leads to a dead cell
-or link inside the array, not off it)."""
+or link inside the array, not off it) and, (n, P), the cell's sensor at the point it shares with the neighbour on
+each port (the midpoint of their centres; -1 none): lit, the body over it covers that neighbour too."""
 Rules = namedtuple("Rules", "tick max_age edge_cost reach gap back_ticks speed heartbeat trust repeats partial")
 """The tick stepped and the sorter's numbers (hops and ticks; ``speed`` in m/s; ``heartbeat`` the ticks between two
 sentences of a cell with nothing new to say, ``trust`` the ticks a neighbour's last sentence is trusted, ``repeats``
@@ -245,7 +246,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     present, words, sensors, connected, carried = inp  # the records unpacked once, outside the loop over cells: an array
     heard_in, at_in, dist_in, state_in, said_in, again_in = old  # reached through a record inside it costs a reference
     heard_out, at_out, dist_out, state_out, said_out, again_out = new  # count a use
-    exit_id, exit_port, entry, entry_no, park_cell, forbid, labels, inner = cfg
+    exit_id, exit_port, entry, entry_no, park_cell, forbid, labels, inner, sides = cfg
     tick, max_age, edge_cost, reach, gap, back_ticks, speed, heartbeat, trust, repeats, partial = rules
     sent_present, sent, wheels, unsettled, out_changed, sent_words, ticking = out
     n_vid, n_goal, n_dir, n_key, n_stop, n_hold, n_hdep, n_hport, n_hage, n_ack, n_nxt, n_park, n_back, n_bdir = \
@@ -338,6 +339,22 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         entry_min = nb_entry[0]
         for q in range(1, P):
             entry_min = min(entry_min, nb_entry[q])
+        # a cell that sees only an edge of a vehicle (its centre uncovered) keeps it while a neighbour on a side it sees
+        # covered (``sides``: the point the two share lies under the body, so that neighbour sees the same body)
+        # carries it; where such neighbours carry only other vehicles it takes the first one's. Two such cells that
+        # kept a gone vehicle's id said it to each other, which the rule below never clears (stress floor 140: under
+        # the due parcel's edge, the parcel waiting on them and the gone one, late, waiting on the due number)
+        if lit and vid >= 0 and not sensors[i, 0]:
+            kept = False
+            other = NONE
+            for q in range(P):
+                sn = sides[i, q]
+                if 0 <= sn < sensors.shape[1] and sensors[i, sn] and trusted[q] and hvid[i, q] >= 0:
+                    kept = kept or hvid[i, q] == vid
+                    if hvid[i, q] != vid and other < 0:
+                        other = q
+            if not kept and other >= 0:
+                vid, goal = hvid[i, other], hgoal[i, other]
         # a cell that sees only an edge (its centre uncovered) of a vehicle no neighbour carries holds a parcel that
         # has gone (seen under sentence loss at the entry, where the next parcel arrives at once), and the edge is
         # another's, which a neighbour carries; keeping the gone one's older id stood the new parcel behind it for

@@ -51,7 +51,9 @@ class Sorter:
     ``entry`` bool; ``entry_no`` an entry cell's installation number; ``park`` bool, a parking cell (optional);
     ``forbid`` the port a parcel on a one-way cell may not move toward, -1 for none (optional); ``inner`` (n, P) the
     ports with a neighbour installed and another cell beyond it (optional; default: those connected, so a dead
-    neighbour looks like the edge).
+    neighbour looks like the edge); ``sides`` (n, P) the cell's sensor at the point it shares with the neighbour on
+    each port (the midpoint of their centres), -1 none (optional; default none: a cell that sees only an edge then
+    keeps its vehicle as before).
     Inputs: ``labels``
     (the label read at entry cells, :func:`~virtual_vehicle.cells.sorting.rules.encode_goal`; -1 for none).
 
@@ -282,7 +284,8 @@ class Sorter:
                           cells("entry", False, bool), cells("entry_no", 0, np.int64),
                           cells("park", False, bool), cells("forbid", NONE, np.int64),
                           _arg(labels, np.int64),
-                          _arg(cfg["inner"] if "inner" in cfg else inputs.connected, bool)),
+                          _arg(cfg["inner"] if "inner" in cfg else inputs.connected, bool),
+                          _arg(cfg["sides"] if "sides" in cfg else _filled((n, P), NONE, np.int64), np.int64)),
             policy.Rules(tick_of(inputs.t, self.period), self.max_age, self.edge_cost, self.reach, self.gap,
                          self.back_ticks, self.speed, self.heartbeat_ticks, self.trust,
                          self.repeats, self.partial),
