@@ -19,7 +19,7 @@ from virtual_vehicle.cells.sorting.policy import LATE as _LATE
 from virtual_vehicle.cells.sorting.policy import WEAK as _WEAK
 from virtual_vehicle.cells.sorting.policy import YIELD as _YIELD
 from virtual_vehicle.cells.sorting.rules import HUGE as _HUGE
-from virtual_vehicle.cells.sorting.rules import MAX_EXITS, NEAR_DEAD_CAP, PARK, pack
+from virtual_vehicle.cells.sorting.rules import MAX_EXITS, PARK, pack
 from virtual_vehicle.cells.sorting.rules import NONE as _NONE
 
 
@@ -96,9 +96,9 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # In a sequenced run gradient PARK leads to a parking cell that no parcel covers.
     lit = _across(np.logical_or, np.asarray(inputs.sensors, dtype=bool))
     cost = np.where(_across(np.logical_and, inputs.connected) | (exit_id >= 0), 1, 1 + sorter.edge_cost)
-    # and more two hops from a dead cell: the dead ports (ack's high bits) of the live neighbours, up to a cap
-    near = sum(np.where(inputs.connected, (heard["ack"] >> (dead_shift + b)) & 1, 0) for b in range(P)).sum(axis=1)
-    cost = cost + np.where(exit_id >= 0, 0, np.minimum(near, NEAR_DEAD_CAP))
+    # and as much more two hops from a dead cell: a live neighbour says a dead port (ack's high bits)
+    near = np.where(inputs.connected, heard["ack"] >> dead_shift, 0).any(axis=1)
+    cost = cost + np.where(near & (exit_id < 0), sorter.edge_cost, 0)
     source = [exit_id == e for e in range(MAX_EXITS)]
     if park_cell.any():  # free while no parcel covers its centre (a parcel parks once it does)
         source[PARK] = park_cell & ~np.asarray(inputs.sensors, dtype=bool)[:, 0]

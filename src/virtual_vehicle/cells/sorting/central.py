@@ -17,10 +17,11 @@ class CentralSorter:
 
     It finds parcels as connected groups of lit cells, keeps their records (id = arrival tick, goal = the label
     read at an entry), routes each by shortest-path distances to its exit (Dijkstra on the cell graph, edge cells
-    costing ``1 + edge_cost`` and cells two hops from a dead cell more, as in the cells' gradients; a parcel goes
+    costing ``1 + edge_cost``, as do cells two hops from a dead cell, as in the cells' gradients; a parcel goes
     the way that brings the cells carrying it closest to the exit on average), never moves a parcel over the edge
-    or a dead cell except out of its exit lane, moves it sideways into the lane at its exit, and grants cells ahead to the oldest parcel
-    first, ``gap + 1`` deep (a parcel moves when ``gap`` are free ahead of every front cell).
+    or a dead cell except out of its exit lane, moves it sideways into the lane at its exit, and grants cells
+    ahead to the oldest parcel first, ``gap + 1`` deep (a parcel moves when ``gap`` are free ahead of every front
+    cell).
 
     Sequencing and one-way cells as the cells do: the number due next rises when a sequenced parcel leaves through
     its exit; a parcel not yet due heads (shortest path) for a parking cell whose centre is free and parks on it;
@@ -52,18 +53,19 @@ class CentralSorter:
 
     def _distances(self, sources, exit_id, blocked) -> np.ndarray:
         """(len(sources), n) weighted hop distances to each mask of source cells (edge cells cost ``1 +
-        edge_cost``, cells two hops from a dead one :func:`~.rules.near_dead_cost` more, as in the cells'
-        gradients), never through a ``blocked`` cell (a parked parcel's) nor against a one-way cell's arrow."""
+        edge_cost``, cells two hops from a dead one ``edge_cost`` more, :func:`~.rules.near_dead_cost`, as in the
+        cells' gradients), never through a ``blocked`` cell (a parked parcel's) nor against a one-way cell's arrow."""
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import dijkstra
 
         topo = self.topo
         n = len(exit_id)
         conn = topo.connected
-        # and dead cells two hops off, as the cells count them: the dead ports of the live neighbours
-        dead = (self.inner & ~conn).sum(axis=1)
-        near = np.where(conn, dead[np.maximum(topo.neighbor, 0)], 0).sum(axis=1)
-        cost = (hop_cost(conn.all(axis=1), exit_id, self.edge_cost) + near_dead_cost(near, exit_id)).astype(float)
+        # and a dead cell two hops off, as the cells tell it: a live neighbour with a dead port
+        dead = (self.inner & ~conn).any(axis=1)
+        near = (conn & dead[np.maximum(topo.neighbor, 0)]).any(axis=1)
+        cost = hop_cost(conn.all(axis=1), exit_id, self.edge_cost) + near_dead_cost(near, exit_id, self.edge_cost)
+        cost = cost.astype(float)
         a, p = np.nonzero(conn & ~blocked[:, None] & (np.arange(conn.shape[1])[None, :] != self.forbid[:, None]))
         b = topo.neighbor[a, p]
         keep = ~blocked[b]

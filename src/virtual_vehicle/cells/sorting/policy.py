@@ -305,12 +305,11 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         for s in range(sensors.shape[1]):
             lit = lit or sensors[i, s]
         linked = True
-        near = 0  # dead cells two hops off: the dead ports the live neighbours say (a link's state, not trust, so
-        for q in range(P):  # that a lost sentence does not move the gradients; none on a sound array)
+        near = False  # a dead cell two hops off: a live neighbour says a dead port (read on a live link, not on
+        for q in range(P):  # trust, so that a lost sentence does not move the gradients; never on a sound array)
             linked = linked and connected[i, q]
-            for b in range(P):
-                near += (hack[i, q] >> (dead_shift + b)) & 1 if connected[i, q] else 0
-        cost = hop_cost(linked, exit_id[i], edge_cost) + near_dead_cost(near, exit_id[i])
+            near = near or (connected[i, q] and (hack[i, q] >> dead_shift) != 0)
+        cost = hop_cost(linked, exit_id[i], edge_cost) + near_dead_cost(near, exit_id[i], edge_cost)
         for e in range(MAX_EXITS):
             source = exit_id[i] == e
             if e == PARK and park_any:

@@ -68,19 +68,15 @@ def hop_cost(linked, exit_id, edge_cost):
     return 1 + edge_cost * (1 - (linked | (exit_id >= 0)))
 
 
-NEAR_DEAD_CAP = 2
-"""The most hops :func:`near_dead_cost` adds."""
-
-
 @register_jitable
-def near_dead_cost(near, exit_id):
-    """Hops a step into a cell counts more for dead cells two hops from it, on top of :func:`hop_cost` (which
-    counts a dead neighbour as the edge): ``near`` the dead ports its live neighbours say (``ack``'s high bits), so a
-    dead cell diagonally next to it counts twice (two neighbours say it) and one two cells straight off once, up to
-    :data:`NEAR_DEAD_CAP`; none on an exit cell. A parcel is about three cells wide: the cells that lead it down the
-    gradient then keep its body off dead cells where the floor leaves room (a dead cell's wheels hold still under
-    it). Finite, so every exit stays reachable; 0 on a sound array. Scalars or arrays alike."""
-    return np.minimum(near, NEAR_DEAD_CAP) * (exit_id < 0)
+def near_dead_cost(near, exit_id, edge_cost):
+    """Hops a step into a cell counts more, on top of :func:`hop_cost` (which counts a dead neighbour as the edge),
+    when a dead cell lies two hops from it: ``near`` the dead ports its live neighbours say (``ack``'s high bits),
+    ``edge_cost`` more when there is any, none on an exit cell. A parcel is about three cells wide and the cell of it
+    nearest the exit leads it down the gradient, so its body reaches two cells to one side of that cell: a route
+    two cells from a dead cell still runs the body over it, one three cells off does not. Finite, so every exit
+    stays reachable; 0 on a sound array. Scalars or arrays alike."""
+    return edge_cost * (near > 0) * (exit_id < 0)
 
 
 @register_jitable
