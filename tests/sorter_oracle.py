@@ -96,9 +96,6 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # In a sequenced run gradient PARK leads to a parking cell that no parcel covers.
     lit = _across(np.logical_or, np.asarray(inputs.sensors, dtype=bool))
     cost = np.where(_across(np.logical_and, inputs.connected) | (exit_id >= 0), 1, 1 + sorter.edge_cost)
-    # and as much more two hops from a dead cell: a live neighbour says a dead port (ack's high bits)
-    near = np.where(inputs.connected, heard["ack"] >> dead_shift, 0).any(axis=1)
-    cost = cost + np.where(near & (exit_id < 0), sorter.edge_cost, 0)
     source = [exit_id == e for e in range(MAX_EXITS)]
     if park_cell.any():  # free while no parcel covers its centre (a parcel parks once it does)
         source[PARK] = park_cell & ~np.asarray(inputs.sensors, dtype=bool)[:, 0]

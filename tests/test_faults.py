@@ -66,46 +66,18 @@ def test_free_and_stuck_wheels_act_as_their_names_say(kind):
     assert vx == pytest.approx(expected, abs=1e-6)
 
 
-def test_cells_sort_parcels_around_a_dead_cell_that_stays_silent_and_still():
-    """A dead cell on the way east, in the row the parcels come on: the parcels are delivered as on a healthy array
-    and no parcel's body ever covers it (the gradients count a step within two hops of it as on the edge, so the
-    routes run three cells off it and the bodies, three cells wide, pass beside it; before, five of the first six
-    went over it); it never drives, sends nor hears."""
-    import shapely
-
-    dead = 5 * 24 + 12  # mid-array, on the way east
-    sc = _with_faults("sorting_junction", dead_cells=[dead])
+def test_cells_sort_parcels_past_a_dead_cell_that_stays_silent_and_still():
+    """A dead cell on the way east: the parcels are delivered as on a healthy array, those whose body goes over it
+    carried by the live cells beside it; it never drives, sends nor hears."""
+    sc = _with_faults("sorting_junction", dead_cells=[5 * 24 + 12])  # mid-array, on the way east
     sc = sc.model_copy(update={"duration": 20.0, "sensors": sc.sensors.model_copy(update={"record": True})})
     res = run(sc.build())
     so = res.summary()["sorting"]
     assert so["misrouted"] == 0 and so["lost"] == 0 and so["collisions"] == 0 and so["correct"] >= 3
-    centre = shapely.Point(res.setup.cells.positions[dead])
-    moved = [pr for pr in res.parcels if np.ptp(pr.trajectory.states[:, 0]) > 0.5]
-    assert len(moved) >= 5 and not any(pr.spec.world_polygon(y).contains(centre)
-                                       for pr in moved for y in pr.trajectory.states)
     log = res.cell_log
+    dead = 5 * 24 + 12
     assert np.all(log.wheels[:, dead] == 0) and log.sent[:, dead].sum() == 0 and log.received[:, dead].sum() == 0
     assert res.network.per_cell["cell_sent"][dead] == 0
-
-
-@pytest.mark.parametrize("central", [False, True])
-def test_a_step_within_two_hops_of_a_dead_cell_costs_as_one_onto_the_edge(central):
-    """The exit gradients with one dead cell mid-array: a step into a cell next to it (a dead neighbour, as on the
-    edge) or two hops from it (a live neighbour says a dead port, in ``ack``) costs ``1 + edge_cost``, any other a
-    hop; the cells' settled gradients and the central sorter's shortest paths alike."""
-    dead = (12, 5)  # (column, row) on the 24 x 12 junction
-    sc = _with_faults("sorting_junction", dead_cells=[dead[1] * 24 + dead[0]])
-    sc = sc.model_copy(update={"duration": 0.6, "parcels": [],  # 60 ticks: the gradients settle, a hop a tick
-                               "control": sc.control.model_copy(update={"central": central})})
-    dist = np.asarray(run(sc.build()).program_state["dist"])
-    dist = (dist[1] if central else dist[:, 1]).reshape(12, 24)  # exit 1: the south-east lane
-    # what a step into a cell costs: its distance less its nearest neighbour's (the gradient's update, settled)
-    cost = {(c, r): int(dist[r, c] - min(dist[r, c - 1], dist[r, c + 1], dist[r - 1, c], dist[r + 1, c]))
-            for c in range(6, 18) for r in range(1, 10) if (c, r) != dead}
-    near = {(12, 4), (12, 6), (11, 5), (13, 5)} | {(11, 4), (13, 4), (11, 6), (13, 6)} | {
-        (12, 3), (12, 7), (10, 5), (14, 5)}  # beside it, diagonal, two hops straight
-    assert {cell for cell, c in cost.items() if c == 4} == near
-    assert {c for cell, c in cost.items() if cell not in near} == {1}
 
 
 def test_bad_faults_are_named():

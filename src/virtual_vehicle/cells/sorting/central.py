@@ -8,7 +8,7 @@ import numpy as np
 from virtual_vehicle.cells.network.messages import Mailbox, Schema
 from virtual_vehicle.cells.network.programs import CellInputs
 from virtual_vehicle.cells.sorting.rules import (MAX_EXITS, NONE, PARK, back_off_ticks, decode_goal, drive, due,
-                                                 hop_cost, near_dead_cost, tick_of, vehicle_id)
+                                                 hop_cost, tick_of, vehicle_id)
 
 
 class CentralSorter:
@@ -17,11 +17,10 @@ class CentralSorter:
 
     It finds parcels as connected groups of lit cells, keeps their records (id = arrival tick, goal = the label
     read at an entry), routes each by shortest-path distances to its exit (Dijkstra on the cell graph, edge cells
-    costing ``1 + edge_cost``, as do cells two hops from a dead cell, as in the cells' gradients; a parcel goes
-    the way that brings the cells carrying it closest to the exit on average), never moves a parcel over the edge
-    or a dead cell except out of its exit lane, moves it sideways into the lane at its exit, and grants cells
-    ahead to the oldest parcel first, ``gap + 1`` deep (a parcel moves when ``gap`` are free ahead of every front
-    cell).
+    costing ``1 + edge_cost`` as in the cells' gradients; a parcel goes the way that brings the cells carrying it
+    closest to the exit on average), never moves a parcel over the edge or a dead cell except
+    out of its exit lane, moves it sideways into the lane at its exit, and grants cells ahead to the oldest parcel
+    first, ``gap + 1`` deep (a parcel moves when ``gap`` are free ahead of every front cell).
 
     Sequencing and one-way cells as the cells do: the number due next rises when a sequenced parcel leaves through
     its exit; a parcel not yet due heads (shortest path) for a parking cell whose centre is free and parks on it;
@@ -47,25 +46,20 @@ class CentralSorter:
             raise ValueError("the central sorter runs on square lattices (four ports a cell)")
         exit_id = np.asarray(config["exit"])
         self.forbid = np.asarray(config.get("forbid", np.full(n, NONE)), dtype=np.int64)
-        self.inner = np.asarray(config.get("inner", self.topo.connected), dtype=bool)
         dist = self._distances([exit_id == e for e in range(MAX_EXITS)], exit_id, np.zeros(n, bool))
         return {"dist": dist, "vehicles": {}, "owner": np.full(n, NONE, dtype=np.int64), "next": 0}
 
     def _distances(self, sources, exit_id, blocked) -> np.ndarray:
         """(len(sources), n) weighted hop distances to each mask of source cells (edge cells cost ``1 +
-        edge_cost``, cells two hops from a dead one ``edge_cost`` more, :func:`~.rules.near_dead_cost`, as in the
-        cells' gradients), never through a ``blocked`` cell (a parked parcel's) nor against a one-way cell's arrow."""
+        edge_cost``, as in the cells' gradients), never through a ``blocked`` cell (a parked parcel's) nor against
+        a one-way cell's arrow."""
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import dijkstra
 
         topo = self.topo
         n = len(exit_id)
         conn = topo.connected
-        # and a dead cell two hops off, as the cells tell it: a live neighbour with a dead port
-        dead = (self.inner & ~conn).any(axis=1)
-        near = (conn & dead[np.maximum(topo.neighbor, 0)]).any(axis=1)
-        cost = hop_cost(conn.all(axis=1), exit_id, self.edge_cost) + near_dead_cost(near, exit_id, self.edge_cost)
-        cost = cost.astype(float)
+        cost = hop_cost(conn.all(axis=1), exit_id, self.edge_cost).astype(float)
         a, p = np.nonzero(conn & ~blocked[:, None] & (np.arange(conn.shape[1])[None, :] != self.forbid[:, None]))
         b = topo.neighbor[a, p]
         keep = ~blocked[b]

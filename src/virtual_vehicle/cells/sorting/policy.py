@@ -19,8 +19,8 @@ from numba import njit
 from virtual_vehicle.cells.network.programs import UNREACHABLE
 from virtual_vehicle.cells.sorting.rules import (BIG, ENTRY, HUGE, MAX_EXITS, NONE, PARK, ack_bits, direction_key, due,
                                                  heading, heartbeat_due, hop_bits,
-                                                 hop_cost, into_lane, left_of, near_dead_cost, opposite, right_of,
-                                                 split_goal, unpack, vehicle_id)
+                                                 hop_cost, into_lane, left_of, opposite, right_of, split_goal, unpack,
+                                                 vehicle_id)
 
 Words = namedtuple("Words", "d nxt vid goal key stop req rdep hold ack ex blk")
 """The sorter's sentence words, one (n, P) array each, in the schema's order."""
@@ -305,11 +305,9 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         for s in range(sensors.shape[1]):
             lit = lit or sensors[i, s]
         linked = True
-        near = False  # a dead cell two hops off: a live neighbour says a dead port (read on a live link, not on
-        for q in range(P):  # trust, so that a lost sentence does not move the gradients; never on a sound array)
+        for q in range(P):
             linked = linked and connected[i, q]
-            near = near or (connected[i, q] and (hack[i, q] >> dead_shift) != 0)
-        cost = hop_cost(linked, exit_id[i], edge_cost) + near_dead_cost(near, exit_id[i], edge_cost)
+        cost = hop_cost(linked, exit_id[i], edge_cost)
         for e in range(MAX_EXITS):
             source = exit_id[i] == e
             if e == PARK and park_any:

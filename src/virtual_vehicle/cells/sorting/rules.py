@@ -69,17 +69,6 @@ def hop_cost(linked, exit_id, edge_cost):
 
 
 @register_jitable
-def near_dead_cost(near, exit_id, edge_cost):
-    """Hops a step into a cell counts more, on top of :func:`hop_cost` (which counts a dead neighbour as the edge),
-    when a dead cell lies two hops from it: ``near`` the dead ports its live neighbours say (``ack``'s high bits),
-    ``edge_cost`` more when there is any, none on an exit cell. A parcel is about three cells wide and the cell of it
-    nearest the exit leads it down the gradient, so its body reaches two cells to one side of that cell: a route
-    two cells from a dead cell still runs the body over it, one three cells off does not. Finite, so every exit
-    stays reachable; 0 on a sound array. Scalars or arrays alike."""
-    return edge_cost * (near > 0) * (exit_id < 0)
-
-
-@register_jitable
 def opposite(port, P):
     """The port straight across from ``port`` on a cell with ``P`` ports (4: square, 6: hexagonal): behind a vehicle
     heading out through ``port``, and the port a neighbour on ``port`` hears this cell through."""
