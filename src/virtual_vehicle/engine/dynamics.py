@@ -163,7 +163,9 @@ class _PieceTable:
     """Pieces (and support sets, and solves) the loop may add in one call: the arrays have room for them when it
     starts. A call that fills it doubles it for the next (up to :attr:`max_spare`), so a parcel that makes many
     pieces hands back to Python a number of times logarithmic in them, not linear."""
-    max_spare = 4096
+    max_spare = 512
+    """The most :attr:`spare` grows to: the arrays' room follows it (the float pool a few KiB a piece of room), and
+    a table is kept per parcel, so this bounds what the growth can add to ~2 MiB a parcel."""
 
     def __init__(self, model: "ParcelModel", row_length: int):
         self.row_length = row_length
