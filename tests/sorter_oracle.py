@@ -134,7 +134,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
         vid = np.where(switch, heard["vid"][rows, first_other], vid)
         goal = np.where(switch, heard["goal"][rows, first_other], goal)
     # A cell seeing only an edge of a vehicle no neighbour carries (a stale word gave it) takes its neighbours' one.
-    alone = lit & (vid >= 0) & ~np.asarray(inputs.sensors, dtype=bool)[:, 0] & found \
+    alone = lit & (vid >= 0) & ~sensed[:, 0] & found \
         & ~(trusted & (heard["vid"] == vid[:, None])).any(axis=1)
     vid[alone] = _NONE
     goal[alone] = _NONE
