@@ -16,8 +16,9 @@ Cases (the figures of ``RESULTS.md``):
 - ``hall200stick``: ``scale200`` on the stick-slip law (the default: most windows ride their wheels);
 - ``coulomb1``: one Coulomb parcel oscillating in the inward field for 5 s (``bench_perf.py`` (b)), the fastest of
   five runs in each process (wall and process time: the latter also printed, being less swayed by other jobs);
-- ``pairs200``, ``pairs200coulomb``: 200 parcels on 100 x 100 cells under a constant uniform field for 1 s, viscous
-  and Coulomb law (``bench_pairs.py``'s largest: the plant's planner over many parcels);
+- ``pairs200``, ``pairs200coulomb``, ``pairs200stick``: 200 parcels on 100 x 100 cells under a constant uniform
+  field for 1 s, viscous, Coulomb and stick-slip law (``bench_pairs.py``'s largest: the plant's planner over many
+  parcels);
 - ``stick1``: one stick-slip parcel crossing 30 x 30 for 5 s event-driven (``bench_stick_events.py`` (ii)), the
   fastest of five runs in each process.
 
@@ -77,6 +78,7 @@ CASES = {
     "hall200stick": _SCALE.format(parcels=200, seconds=1.0, bench="{bench}", law="stick_slip"),
     "pairs200": _PAIRS.format(law="viscous", bench="{bench}"),
     "pairs200coulomb": _PAIRS.format(law="coulomb", bench="{bench}"),
+    "pairs200stick": _PAIRS.format(law="stick_slip", bench="{bench}"),
     "coulomb1": """
 import json, sys, time
 sys.path.insert(0, {bench!r})

@@ -203,10 +203,23 @@ class SteadyReachLaw(ViscousLaw):
         return np.minimum(dist, steady * window), np.minimum(speed, steady)
 
 
+@dataclass(frozen=True)
+class SteadyStickSlipLaw(StickSlipLaw):
+    """Broken: stick-slip claiming a parcel never gets faster than its start allows (its energy bound without what
+    the wheels put in where they differ from their common velocity), which holds on a uniform field only; caught by
+    stepping its wheels (a law with modes), not by its Coulomb cell forces."""
+
+    name: str = "steady_stick_slip"
+
+    def reach(self, s0, window, *, rate, wheel_speed, lever=None):
+        return super().reach(s0, window, rate=rate, wheel_speed=0.0, lever=lever)
+
+
 @pytest.mark.parametrize("law, what", [(BackwardsLaw(), "give"), (ShortReachLaw(), "reach bound"),
                                        (LopsidedLaw(), "moved rigidly"), (CreepLaw(), "at rest"),
                                        (UndampedRowLaw(), "row"), (OptionlessLaw(), "stepper"),
-                                       (SteadyReachLaw(), "reach bound"), (CoulombLaw(), None)])
+                                       (SteadyReachLaw(), "reach bound"), (SteadyStickSlipLaw(), "reach bound"),
+                                       (CoulombLaw(), None), (StickSlipLaw(), None)])
 def test_check_law_fails_a_broken_law(law, what):
     if what is None:  # the law each broken one is made from passes
         check_law(law, trials=10)

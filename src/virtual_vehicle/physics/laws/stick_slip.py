@@ -33,6 +33,31 @@ class StickSlipLaw(CoulombLaw):
     time_stepper = "stick_slip"
     modes = True
     assumes_sliding = False  # the stepper decides which wheels slide
+    galilean = True  # each wheel's force is its slip's (sign, or stuck where the slip is zero), eq. 21 per wheel
+
+    def reach(self, s0, window, *, rate, wheel_speed, lever=None):
+        """The smaller of two bounds, both true whatever the supports and the modes (each wheel's force at most
+        ``mu_s N`` along its drive direction, two wheels a cell, normal forces summing to W, eqs. 3-5):
+
+        - force: the Coulomb law's ``S0 T + rate T^2`` (net force at most ``2 mu W``, torque ``2 mu W R``);
+        - energy (with ``lever`` = ``1 + m R^2 / I``): a wheel takes energy out of the parcel where it slips and
+          none where it sticks, so the power of wheel j on the parcel is at most ``|f_j| |w_j|``, its force times
+          its surface speed ``w_j`` (a sticking wheel moves the parcel at ``w_j``; a slipping one pushes toward
+          ``w_j``): at most ``2 mu W w`` in all. So ``E <= m S0^2 / 2 + 2 mu W w t`` (``I <= m R^2``) and, as
+          ``S^2 <= (lever / m) 2 E``, ``S(t)^2 <= lever S0^2 + 4 rate w t``; the reach is its integral
+          ``(2 T / 3) (x + sqrt(x y) + y) / (sqrt(x) + sqrt(y))`` with ``y = lever S0^2``, ``x = y + 4 rate w T``.
+          The law is :attr:`galilean`: seen from a frame moving with the wheels' common velocity ``w`` is their
+          speed relative to it, 0 on a uniform field, where a parcel riding its wheels (``S0`` = 0) never leaves
+          them: the planner's windows then last as long as it allows (``[contacts] window``)."""
+        dist, speed = super().reach(s0, window, rate=rate, wheel_speed=wheel_speed, lever=lever)
+        if lever is None:  # the parcel's inertia unknown: the force bound alone
+            return dist, speed
+        y = lever * np.square(s0)
+        x = y + 4.0 * rate * wheel_speed * window  # S^2 <= lever S0^2 + 4 rate w t (eq. 21 per wheel)
+        rx, ry = np.sqrt(x), np.sqrt(y)
+        both = rx + ry
+        energy = np.where(both > 0, (2.0 / 3.0) * window * (x + rx * ry + y) / np.where(both > 0, both, 1.0), 0.0)
+        return np.minimum(dist, energy), np.minimum(speed, rx)
 
     def stepper_options(self) -> StepperOptions:
         """The solver's limits, ``max_sweeps`` and ``tolerance``."""
