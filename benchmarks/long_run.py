@@ -5,6 +5,11 @@ Invariants: no collisions, no overlap between separately integrated parcels, no 
 state finite, deliveries keep pace with arrivals (at most 5% still waiting at the entry at the end), and the same
 seed gives the same result (the first 60 s are run twice and compared bit for bit).
 
+Memory (issue 32: flat over a one-hour run): the process's resident set (MiB, ``/proc/self/statm``; where that
+file is missing, the peak from ``resource``) at every tenth of the run, and its growth per simulated hour over the
+last nine tenths (the first tenth loads the compiled code and fills the array). The run's own results (each parcel's
+trajectory, kept for the report) grow with the parcels run; the printed figure is everything together.
+
 Run: ``python benchmarks/long_run.py [--minutes 60] [--checkpoint FILE [--resume]]`` (about 15 min of wall time
 for an hour: 10 minutes took 146 s at the sixth session's ffa58fa and 182 s at fd5a7d3, both with the test suite
 running beside it; 35 min an hour before the sorter was stepped only on the cells that changed); ``--resume``
@@ -14,6 +19,8 @@ continues an interrupted run from its checkpoint (the wall time printed is then 
 from __future__ import annotations
 
 import argparse
+import os
+import resource
 import sys
 import time
 
@@ -34,6 +41,34 @@ def hour_scenario(minutes: float, interval: float = 3.0):
                                  "parcels": parcels})
 
 
+def resident_mib() -> float:
+    """The process's resident set now (MiB), or its peak where the system does not tell the current one."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
+
+
+class MemoryLog:
+    """The resident set (MiB) at every tenth of a run, as its progress callback (fraction done, 0..1)."""
+
+    def __init__(self) -> None:
+        self.rows: list[tuple[float, float]] = []
+
+    def __call__(self, fraction: float) -> None:
+        if fraction >= 0.1 * len(self.rows):
+            self.rows.append((fraction, resident_mib()))
+
+    def growth_per_hour(self, duration: float) -> float:
+        """MiB per simulated hour over the rows after the first tenth (least squares); nan with fewer than two."""
+        rows = [(f, m) for f, m in self.rows if f >= 0.1]
+        if len(rows) < 2:
+            return float("nan")
+        f, m = np.array(rows).T
+        return float(np.polyfit(f * duration / 3600.0, m, 1)[0])
+
+
 def main() -> None:
     from virtual_vehicle.run.sim import resume, run, run_network
 
@@ -47,13 +82,14 @@ def main() -> None:
     if args.resume and not args.checkpoint:
         ap.error("--resume needs --checkpoint")
     sc = hour_scenario(args.minutes, args.interval)
+    memory = MemoryLog()
     start = time.perf_counter()
     if args.resume:
-        res = resume(args.checkpoint)
+        res = resume(args.checkpoint, memory)
     elif args.checkpoint:
-        res = run_network(sc.build(), checkpoint=args.checkpoint, checkpoint_every=300.0)
+        res = run_network(sc.build(), memory, checkpoint=args.checkpoint, checkpoint_every=300.0)
     else:
-        res = run(sc.build())
+        res = run(sc.build(), memory)
     wall = time.perf_counter() - start
     s = res.summary()
     so, plant = s["sorting"], s["plant"]
@@ -63,6 +99,8 @@ def main() -> None:
                 "delivery_time_mean_s", "delivery_time_max_s", "entry_delay_mean_s"):
         print(f"{key:>24}: {so[key]}")
     print(f"{'undetected_overlaps':>24}: {plant['undetected_overlaps']}")
+    print("resident MiB at each tenth: " + ", ".join(f"{m:.0f}" for _, m in memory.rows)
+          + f"; growth after the first tenth {memory.growth_per_hour(sc.duration):.1f} MiB per simulated hour")
     broken = []
     if so["collisions"] or plant["undetected_overlaps"]:
         broken.append("parcels touched")
