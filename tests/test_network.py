@@ -38,6 +38,57 @@ def test_topology_of_a_grid_is_mutual_and_silent_at_edges():
     assert rotated.neighbor[0, EAST] == 4  # "east" of the cell is +y in the world
 
 
+def lattice_links(cells, ports: int) -> np.ndarray:
+    """(n, ports) the cell one pitch away straight out of each port (ports every 360/ports degrees from +x, wheel 0
+    along +x), -1 where there is none: the links a lattice means."""
+    angles = 2 * np.pi * np.arange(ports) / ports
+    want = cells.positions[:, None, :] + cells.pitch * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    gap = np.linalg.norm(want[:, :, None, :] - cells.positions[None, None, :, :], axis=3)  # (n, ports, n)
+    return np.where(gap.min(axis=2) < 1e-6, gap.argmin(axis=2), -1)
+
+
+def far_links(t, cells) -> int:
+    """Links (each counted once) between cells more than 1.01 pitch apart: not lattice neighbours."""
+    i, p = np.nonzero(t.neighbor >= 0)
+    j = t.neighbor[i, p]
+    return int(((np.hypot(*(cells.positions[j] - cells.positions[i]).T) > 1.01 * cells.pitch) & (i < j)).sum())
+
+
+def test_a_hole_in_a_square_grid_leaves_no_link_across_its_corner():
+    """A diagonal cell lies on the boundary of two ports' sectors (45 degrees): it belongs to neither, whatever the
+    rounding of the 0.1 m positions, so where the straight neighbour is missing the port is silent. Removed one at a
+    time, several of these holes used to leave a link diagonally across a corner (e.g. row 3, column 3)."""
+    for r in range(6):
+        for c in range(8):
+            rows = [["o"] * 8 for _ in range(6)]
+            rows[r][c] = "."
+            cells, _ = layout.from_map("\n".join("".join(row) for row in rows), 0.1)
+            t = from_layout(cells)
+            assert far_links(t, cells) == 0, (r, c)
+            np.testing.assert_array_equal(t.neighbor, lattice_links(cells, 4), err_msg=f"hole at {(r, c)}")
+
+
+def test_stress_floor_86_links_only_lattice_neighbours():
+    """Seed 86's floor (holes, 0.1 m pitch) had two links across a hole's corner; every port now has the cell
+    straight out of it or none."""
+    from virtual_vehicle.analysis.stress import random_floor
+
+    a = random_floor(86).table["array"]
+    cells, _ = layout.from_map(a["map"], a["pitch"])
+    t = from_layout(cells)
+    assert far_links(t, cells) == 0
+    np.testing.assert_array_equal(t.neighbor, lattice_links(cells, 4))
+
+
+def test_a_hexagonal_lattice_with_holes_links_its_six_neighbours_and_nothing_else():
+    """Its sector boundaries (30 degrees off each port) hold no cell within reach: holes change nothing but the
+    missing links."""
+    cells, _ = layout.from_map("oooooo\noo.ooo\nooo.oo\no.oooo\noooooo", 0.1, lattice="hex")
+    t = from_layout(cells)
+    assert far_links(t, cells) == 0
+    np.testing.assert_array_equal(t.neighbor, lattice_links(cells, 6))
+
+
 def test_topology_faults_cut_both_directions():
     t = from_layout(layout.grid(3, 3, 0.1)).with_faults(dead_cells=[4], dead_links=[(0, EAST)])
     assert not t.alive[4] and not t.connected[4].any()

@@ -37,8 +37,9 @@ def boxed_head_on() -> dict:
     other, each bound for the exit beyond the other; behind each the corridor goes on one cell row wide, so that the
     gradients lead through but a parcel cannot back into it. Neither can pass the other, and neither can give way:
     each is boxed in on every side but the other's, asks the other back, and both stand (the gap the sorting
-    package's notes name). Pitch 0.125 m (exact in binary): at 0.1 m a cell beside the narrow row can link
-    diagonally to it, by the rounding of its bearing, and the parcel backs into it."""
+    package's notes name). Pitch 0.125 m (exact in binary): at 0.1 m a cell beside the narrow row could link
+    diagonally to it, by the rounding of its bearing, and the parcel backed into it (before a cell on the boundary
+    of two ports' sectors belonged to neither)."""
     wall = "00" + "..." + "EEE" + "oo" + "EEE" + "..." + "11"
     mid = "00" + "ooo" + "EEE" + "oo" + "EEE" + "ooo" + "11"
     parcels = [{"name": name, "length": 0.3, "width": 0.3, "mass": 1.0, "mu": 2.0, "x": x, "y": 0.125,

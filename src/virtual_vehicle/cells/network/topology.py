@@ -18,6 +18,9 @@ from virtual_vehicle.model.layout import CellArray
 from virtual_vehicle.model.state_data import array, fields
 
 GRID_PORTS = ("east", "north", "west", "south")
+SECTOR_MARGIN = 1e-6
+"""rad by which a neighbour's bearing must lie inside half a port's sector (:func:`from_layout`): far above the
+rounding of positions, far below any bearing a layout means."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,7 +94,12 @@ def _cut(up: np.ndarray, topo: Topology, cell: int, port: int) -> None:
 def from_layout(cells: CellArray, ports: int | None = None, reach: float = 1.5) -> Topology:
     """Neighbour links of ``cells``: on each of a cell's ports (``cells.ports``, or ``ports`` for every cell;
     evenly spaced, starting at the drive direction of wheel 0), the nearest cell within ``reach`` pitches whose
-    bearing is within half a sector of it; a link exists only where the two cells choose each other.
+    bearing is within half a sector of it by more than :data:`SECTOR_MARGIN` (rad); a link exists only where the two
+    cells choose each other. A cell on the boundary of two sectors belongs to neither: on a square lattice the
+    diagonal cell (at 45 degrees) would otherwise fall to one port or the other by the rounding of the positions, and
+    where the straight neighbour on that port is missing (a hole) the two cells would link across the hole's corner.
+    So a square lattice needs its cells' wheel 0 along a lattice axis: turned 45 degrees, every straight neighbour
+    lies on a boundary and each port finds the diagonal cell in front of it.
 
     >>> from virtual_vehicle.model.layout import grid
     >>> t = from_layout(grid(3, 2, 0.1))
@@ -111,7 +119,11 @@ def from_layout(cells: CellArray, ports: int | None = None, reach: float = 1.5) 
         d = cells.positions[j] - cells.positions[i]
         u = cells.drive_directions[i, 0]
         bearing = np.arctan2(u[:, 0] * d[:, 1] - u[:, 1] * d[:, 0], u[:, 0] * d[:, 0] + u[:, 1] * d[:, 1])
-        port = np.round(bearing / (2 * np.pi / own[i])).astype(np.int64) % own[i]
+        sector = 2 * np.pi / own[i]
+        k = np.round(bearing / sector)
+        inside = np.abs(bearing - k * sector) < sector / 2 - SECTOR_MARGIN  # clear of the boundary to the next port
+        i, j, d = i[inside], j[inside], d[inside]
+        port = k[inside].astype(np.int64) % own[i]
         dist = np.hypot(d[:, 0], d[:, 1])
         order = np.lexsort((j, dist))  # nearest first; ties by id for determinism
         slot, first = np.unique((i * P + port)[order], return_index=True)  # each port takes its nearest candidate
