@@ -10,7 +10,8 @@ to exit: a finer measure than a count of some dozen parcels, one of which is som
 ``--saturate`` feeds the entry as fast as it accepts (``arrivals = "saturate"``, the scenario's mix repeated so it
 never runs dry) and compares delivered parcels per hour (steady state) instead.
 
-Run: ``python benchmarks/bench_clocks.py [--duration 20] [--seeds 5] [--delivery ideal] [--baud 460800] [--saturate]``.
+Run: ``python benchmarks/bench_clocks.py [--duration 20] [--seeds 5] [--first-seed 0] [--delivery ideal]
+[--baud 460800] [--saturate]``.
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ def main() -> None:
     parser.add_argument("--scenario", default="sorting_junction")
     parser.add_argument("--duration", type=float, default=20.0)
     parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--first-seed", type=int, default=0, help="clock seeds first-seed .. first-seed + seeds - 1")
     parser.add_argument("--drift", type=float, default=0.01)
     parser.add_argument("--jitter", type=float, default=0.001)
     parser.add_argument("--delivery", choices=("ideal", "wire"), default="ideal")
@@ -79,7 +81,7 @@ def main() -> None:
     sync, wall, cpu = delivered(sc, {})
     line("one shared clock", sync, wall, cpu)
     counts, transits = [], []
-    for seed in range(args.seeds):
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
         rep, wall, cpu = delivered(sc, {"drift": args.drift, "jitter": args.jitter, "seed": seed})
         counts.append(score(rep, args.saturate))
         transits.append(rep["delivery_time_mean_s"])
