@@ -154,9 +154,10 @@ def check_law(law: FrictionLaw, trials: int = 20, seed: int = 0, mu: float = 0.5
     - dissipation: while the parcel is slower than its wheels (the paper's conveying regime) the contacts take
       energy out (slip power >= 0) and, from rest, never more than the wheels put in;
     - the reach bound (:meth:`FrictionLaw.reach`, given the parcel's lever) holds against the motion integrated
-      (RK4 on the cell forces, ``steps`` a window; a law with modes: its wheels stepped) from random twists, over short windows and long ones (1-3 s, from faster twists),
-      and for a law that says it is relative to its wheels (:attr:`FrictionLaw.galilean`) also on wheels all
-      carried at a random common velocity, measured in the frame moving with them;
+      (RK4 on the cell forces, ``steps`` a window; a law with modes: its wheels stepped) from random twists, over
+      short windows and long ones (1-3 s, from faster twists), and for a law that says it is relative to its wheels
+      (:attr:`FrictionLaw.galilean`) also on wheels all carried at a random common velocity, measured in the frame
+      moving with them;
     - an event-driven law's constants give its wrench, and its row is those constants' (:data:`affine.ROW_FIELDS`);
     - a time-stepped law hands its stepper its options (:meth:`FrictionLaw.stepper_options`), an event-driven one
       none.

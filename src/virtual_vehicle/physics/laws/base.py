@@ -27,6 +27,18 @@ from virtual_vehicle.physics.contact import SupportSolution
 from virtual_vehicle.physics.laws.affine import FrictionConstants, cell_wrench
 
 
+def energy_reach(start, grown, window):
+    """How far (m) and how fast (m/s) a point can go in ``window`` s when its speed squared grows at most linearly,
+    from ``start`` to ``grown`` (m^2/s^2, arrays or floats), as the energy bounds of the laws that dissipate give it:
+    the speed bound ``sqrt(grown)`` and its integral ``(2 T / 3) (x + sqrt(x y) + y) / (sqrt(x) + sqrt(y))`` with
+    ``y`` = ``start``, ``x`` = ``grown`` (written without the difference of two powers, which loses digits where
+    the speed hardly grows), 0 where both are 0."""
+    rx, ry = np.sqrt(grown), np.sqrt(start)
+    both = rx + ry
+    dist = np.where(both > 0, (2.0 / 3.0) * window * (grown + rx * ry + start) / np.where(both > 0, both, 1.0), 0.0)
+    return dist, rx
+
+
 class StepperOptions(NamedTuple):
     """What a time-stepped law hands the engine's stepper for the contact problem it solves every step (the wheels'
     own, and a group's when parcels push each other): the projected Gauss-Seidel solver's limits."""

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from virtual_vehicle.physics.laws.base import StepperOptions
+from virtual_vehicle.physics.laws.base import StepperOptions, energy_reach
 from virtual_vehicle.physics.laws.coulomb import CoulombLaw
 from virtual_vehicle.physics.stick_modes import Wheels, wheel_arrays, wheels_on
 
@@ -54,10 +54,8 @@ class StickSlipLaw(CoulombLaw):
             return dist, speed
         y = lever * np.square(s0)
         x = y + 4.0 * rate * wheel_speed * window  # S^2 <= lever S0^2 + 4 rate w t (eq. 21 per wheel)
-        rx, ry = np.sqrt(x), np.sqrt(y)
-        both = rx + ry
-        energy = np.where(both > 0, (2.0 / 3.0) * window * (x + rx * ry + y) / np.where(both > 0, both, 1.0), 0.0)
-        return np.minimum(dist, energy), np.minimum(speed, rx)
+        energy, fastest = energy_reach(y, x, window)
+        return np.minimum(dist, energy), np.minimum(speed, fastest)
 
     def stepper_options(self) -> StepperOptions:
         """The solver's limits, ``max_sweeps`` and ``tolerance``."""

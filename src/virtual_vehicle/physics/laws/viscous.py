@@ -17,7 +17,7 @@ from scipy.optimize import lsq_linear
 
 from virtual_vehicle.physics.laws import affine
 from virtual_vehicle.physics.laws.affine import J, FrictionConstants, drive_constants, f64
-from virtual_vehicle.physics.laws.base import FrictionLaw
+from virtual_vehicle.physics.laws.base import FrictionLaw, energy_reach
 
 
 def viscous_constants(points, velocities, weight: float, mu: float) -> FrictionConstants:
@@ -96,10 +96,8 @@ class ViscousLaw(FrictionLaw):
             return dist, speed
         y = lever * np.square(s0)
         x = y + 0.5 * rate * wheel_speed * wheel_speed * window  # eq. 30: S^2 <= lever S0^2 + rate w^2 t / 2
-        rx, ry = np.sqrt(x), np.sqrt(y)
-        both = rx + ry
-        energy = np.where(both > 0, (2.0 / 3.0) * window * (x + rx * ry + y) / np.where(both > 0, both, 1.0), 0.0)
-        return np.minimum(dist, energy), np.minimum(speed, rx)
+        energy, fastest = energy_reach(y, x, window)
+        return np.minimum(dist, energy), np.minimum(speed, fastest)
 
     def drive_bound(self, velocities, drive_directions) -> float:
         """Not needed: :meth:`piece_reach` reads the slips."""
