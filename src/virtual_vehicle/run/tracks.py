@@ -1,20 +1,23 @@
 """A parcel's track as a ticked run goes (:class:`ParcelTrack`): only the samples on the output grid and the latest
-state are kept, with the events and the energy and solver counts added up tick by tick, so that a long run does not
-hold a piece of trajectory a tick.
+state are kept, with the events (as columns, :class:`EventLog`) and the energy and solver counts added up tick by
+tick, so that a long run does not hold a piece of trajectory a tick.
 
 Units: SI (s, m, rad).
 """
 
 from __future__ import annotations
 
+from array import array as _array
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
 
 from virtual_vehicle.engine.dynamics import Trajectory
 from virtual_vehicle.engine.plant import SUMMED_STATS, joined_stats, on_grid
-from virtual_vehicle.engine.stepping import Event
+from virtual_vehicle.engine.stepping import _CHANGED, Event
 from virtual_vehicle.model.state_data import array, fields, integer
+
 
 def _stack(states: list[np.ndarray]) -> np.ndarray:
     """Parcels' states (each (6,)) as one (N, 6) float array."""
@@ -22,6 +25,107 @@ def _stack(states: list[np.ndarray]) -> np.ndarray:
 
 
 _SUMMED = frozenset(SUMMED_STATS)
+
+
+class EventLog(Sequence):
+    """A long run's events of one parcel kept as columns, not objects: a support event takes about 670 bytes as an
+    object (its dict, state tuple and cell tuples), about 100 here (its time, kind, six state numbers and changed
+    cells in growing typed arrays, text only where there is any), so that a run of an hour holds its events in a
+    sixth of the memory. A sequence of events: reading one (by index, slice or iteration) makes it an :class:`Event`
+    again, equal to the one taken in; :meth:`append` and :meth:`extend` take events in (one made by
+    :meth:`Event.support_between` has its changed cells worked out then). Compares equal to any sequence of the same
+    events. Times in s, states ``[x, y, theta, vx, vy, omega]``."""
+
+    __slots__ = ("_t", "_kind", "_state", "_cells", "_text")
+    _KINDS: list[str] = []  # the kinds seen, shared by every log (a kind is kept as its index here)
+    _CODES: dict[str, int] = {}
+
+    def __init__(self, events=()):
+        self._t, self._kind, self._state = _array("d"), _array("H"), _array("d")
+        self._cells = tuple((_array("q"), _array("q", [0])) for _ in _CHANGED)  # (values, ends) per changed set
+        self._text: dict[int, tuple[str, str]] = {}  # event index -> (message, partner), where either is not ""
+        self.extend(events)
+
+    @classmethod
+    def _code(cls, kind: str) -> int:
+        code = cls._CODES.get(kind)
+        if code is None:
+            if type(kind) is not str:
+                raise TypeError(f"an event's kind is a str, not {type(kind).__name__}")
+            code = cls._CODES[kind] = len(cls._KINDS)
+            cls._KINDS.append(kind)
+        return code
+
+    def append(self, event: Event) -> None:
+        """Take one event in."""
+        d = event.__dict__
+        if "_keys" in d:
+            event._settle()
+        state = d["state"]
+        if len(state) != 6:
+            raise ValueError(f"an event's state has 6 numbers, not {len(state)}")
+        self._kind.append(self._code(d["kind"]))
+        self._t.append(d["t"])
+        self._state.extend(state)
+        for (values, ends), name in zip(self._cells, _CHANGED):
+            ids = d[name]
+            if ids:
+                values.extend(ids)
+            ends.append(len(values))
+        if d["message"] or d["partner"]:
+            self._text[len(self._t) - 1] = (d["message"], d["partner"])
+
+    def extend(self, events) -> None:
+        """Take events in, in order."""
+        for e in events:
+            self.append(e)
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def _event(self, k: int) -> Event:
+        message, partner = self._text.get(k, ("", ""))
+        changed = [tuple(values[ends[k]:ends[k + 1]]) for values, ends in self._cells]
+        return Event(self._t[k], self._KINDS[self._kind[k]], tuple(self._state[6 * k:6 * k + 6]), *changed,
+                     message=message, partner=partner)
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self._event(j) for j in range(*k.indices(len(self)))]
+        n = len(self)
+        if not -n <= k < n:
+            raise IndexError("event index out of range")
+        return self._event(k % n)
+
+    def __iter__(self):
+        return (self._event(k) for k in range(len(self)))
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, Sequence) or isinstance(other, str):
+            return NotImplemented
+        return len(self) == len(other) and all(a == b for a, b in zip(self, other))
+
+    __hash__ = None
+
+    def __repr__(self) -> str:
+        return f"EventLog({len(self)} events)"
+
+    def to_columns(self) -> dict:
+        """The events as :meth:`Event.to_columns` writes them, from the columns (no event is made)."""
+        k = len(self)
+        text = [self._text.get(j, ("", "")) for j in range(k)]
+        out = {"t": np.array(self._t, dtype=np.float64), "kind": [self._KINDS[c] for c in self._kind],
+               "state": np.array(self._state, dtype=np.float64).reshape(k, 6)}
+        for name, (values, ends) in zip(_CHANGED, self._cells):
+            out[name] = {"counts": np.diff(np.array(ends, dtype=np.int64)), "flat": np.array(values, dtype=np.int64)}
+        out["message"], out["partner"] = [m for m, _ in text], [p for _, p in text]
+        return out
+
+    @classmethod
+    def from_columns(cls, d, where: str = "events") -> EventLog:
+        """The log of the events :meth:`Event.to_columns` (or :meth:`to_columns`) wrote; ValueError as
+        :meth:`Event.from_columns`."""
+        return cls(Event.from_columns(d, where))
 
 
 class ParcelTrack:
@@ -32,7 +136,7 @@ class ParcelTrack:
     def __init__(self):
         self.times: list[float] = []
         self.states: list[np.ndarray] = []
-        self.events: list = []
+        self.events = EventLog()  # as columns: a long run keeps every parcel's events
         self._piece = None  # the latest piece, whose last state, status, end and stats carry on
         self._quiet = None  # or (steps, k): the latest piece was a quiet step, not yet made a Trajectory
         self.segments = 0
@@ -143,7 +247,7 @@ class ParcelTrack:
         a quiet step made its Trajectory first) and the counts."""
         self.settle()
         return {"times": np.array(self.times, dtype=np.float64), "states": _stack(self.states),
-                "events": Event.to_columns(self.events),
+                "events": self.events.to_columns(),
                 "piece": None if self._piece is None else self._piece.to_data(),
                 "segments": int(self.segments), "rhs_evals": int(self.rhs_evals),
                 "stats_pieces": [tr.to_data() for tr in self.stats_pieces]}
@@ -155,7 +259,7 @@ class ParcelTrack:
         track = cls()
         times = array(d, "times", "f", (None,), where)
         track.times, track.states = times.tolist(), list(array(d, "states", "f", (len(times), 6), where))
-        track.events = Event.from_columns(d["events"], f"{where}.events")
+        track.events = EventLog.from_columns(d["events"], f"{where}.events")
         track._piece = None if d["piece"] is None else Trajectory.from_data(d["piece"], f"{where}.piece")
         track.segments, track.rhs_evals = integer(d, "segments", where), integer(d, "rhs_evals", where)
         pieces = d["stats_pieces"]
