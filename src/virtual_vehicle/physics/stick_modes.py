@@ -57,6 +57,8 @@ __all__ = ["Wheels", "Mode", "ModeEvent", "StickSlipRun", "wheels_on", "decide_m
            "breaking_kernel", "decide_compiled", "zonotope_inradius", "zonotope_grip"]
 
 _SLIP_TOL = 1e-9  # relative to the speed scale: a wheel this close to zero slip is at zero slip
+_EPS = float(np.finfo(np.float64).eps)
+_TIME_ULPS, _TIME_FLOOR = 16.0, 2e-13  # an event's time is known to 16 eps |t| + 2e-13 s (:func:`_slip_tol`)
 _ACCEL_TOL = 1e-7  # relative to the acceleration scale: a slip acceleration this small is zero
 _PLANE_TOL = 1e-9  # relative: a generator this close to a facet's plane lies in it
 
@@ -505,6 +507,17 @@ class ModeEvent:
     after: Mode
 
 
+@njit(cache=True)
+def _slip_tol(speed: float, accel: float, t: float) -> float:
+    """The slip (m/s) below which a wheel is at zero slip at time ``t`` (s): ``_SLIP_TOL`` of the speed scale
+    ``speed`` (m/s), and what the slip can change (``accel`` bounds its rate, m/s^2) within the uncertainty of an
+    event's time. The engine's event search (``engine._kernel``) places an event within ``max(4 eps |t|, 1e-13 s)``
+    plus ``4 eps |t|`` of its root and steps past it by as much again, so the time is known to ``16 eps |t| + 2e-13``
+    s, which grows with the time itself (0.24 ps at 677 s). Without this term a parcel decelerating onto still wheels
+    late in a long run found its slip 2e-12 m/s past zero at the event, slipped back the other way, and chattered."""
+    return _SLIP_TOL * speed + accel * (_TIME_ULPS * _EPS * abs(t) + _TIME_FLOOR)
+
+
 def decide_mode(wheels: Wheels, t: float, y, mass: float, inertia: float, *, breaking: dict | None = None) -> Mode:
     """The exact mode at time ``t`` (s) and state ``y`` = (x, y, theta, vx, vy, omega) of a parcel of ``mass`` (kg)
     and ``inertia`` (kg m^2): wheels with non-zero slip keep its sign; wheels at zero slip stick if their static
@@ -521,14 +534,14 @@ def decide_mode(wheels: Wheels, t: float, y, mass: float, inertia: float, *, bre
     rhs = wdot - c
     speed = max(float(np.abs(wheels.surface(t)).max(initial=0.0)), float(np.abs(J @ y[3:]).max(initial=0.0)), 1e-3)
     free = wheels.free | (N <= 0)
+    bounds = wheels.mu_static * np.maximum(N, 0.0)
+    accel = float(np.abs(rhs).max(initial=0.0) + (np.linalg.norm(J, axis=1) * bounds).sum() * minv.max()) + 1e-300
     state = np.where(free, 2, np.sign(s).astype(int))
-    zero = (np.abs(s) <= _SLIP_TOL * speed) & ~free
+    zero = (np.abs(s) <= _slip_tol(speed, accel, t)) & ~free
     state[zero] = 0
     for j, sign in (breaking or {}).items():
         state[j], zero[j] = sign, False
     Z = np.flatnonzero(zero)
-    bounds = wheels.mu_static * np.maximum(N, 0.0)
-    accel = float(np.abs(rhs).max(initial=0.0) + (np.linalg.norm(J, axis=1) * bounds).sum() * minv.max()) + 1e-300
     broke = []
     while len(Z):
         L = np.flatnonzero((state == 1) | (state == -1))
@@ -1045,17 +1058,6 @@ def decide_kernel(P, U, w0, wa, t0, FL, FC, origin, mus, muk, minv, t, y, breaki
     speed = 1e-3
     for j in range(m):
         speed = max(speed, abs(w[j]), abs(J[j, 0] * y[3] + J[j, 1] * y[4] + J[j, 2] * y[5]))
-    state = np.empty(m, np.int64)
-    zero = np.zeros(m, np.bool_)
-    for j in range(m):
-        if mus[j] == 0 or N[j] <= 0:
-            state[j] = 2
-        elif abs(s[j]) <= _SLIP_TOL * speed:
-            state[j], zero[j] = 0, True
-        else:
-            state[j] = 1 if s[j] > 0 else -1
-    for b in range(breaking.shape[0]):
-        state[breaking[b]], zero[breaking[b]] = signs[b], False
     bounds = np.empty(m)
     reach = 0.0
     top = 0.0
@@ -1064,6 +1066,18 @@ def decide_kernel(P, U, w0, wa, t0, FL, FC, origin, mus, muk, minv, t, y, breaki
         reach += math.sqrt(J[j, 0] ** 2 + J[j, 1] ** 2 + J[j, 2] ** 2) * bounds[j]
         top = max(top, abs(rhs[j]))
     accel = top + reach * minv.max() + 1e-300
+    tol = _slip_tol(speed, accel, t)
+    state = np.empty(m, np.int64)
+    zero = np.zeros(m, np.bool_)
+    for j in range(m):
+        if mus[j] == 0 or N[j] <= 0:
+            state[j] = 2
+        elif abs(s[j]) <= tol:
+            state[j], zero[j] = 0, True
+        else:
+            state[j] = 1 if s[j] > 0 else -1
+    for b in range(breaking.shape[0]):
+        state[breaking[b]], zero[breaking[b]] = signs[b], False
     broke = np.zeros(m, np.bool_)
     Z = np.flatnonzero(zero)
     fast = False
