@@ -199,7 +199,21 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
         for b in ((q + 1) % P, (q + P - 1) % P):
             live_beside[:, q] |= same_nb[:, b] & ((heard["ack"][:, b] >> (dead_shift + q)) & 1 == 0)
     passable = dead & live_beside
-    own_block = core[:, None] & ((~inputs.connected & ~passable) | ~allowed)
+    # Nor a step that brings a second dead cell under the body in line with one it covers: a carrying cell's side
+    # q closes where the live cell ahead on q says a dead neighbour on a side b beside q on which this cell's own
+    # dead neighbour lies under the body (its sensor toward it lit).
+    side_lit = (sides >= 0) & (sides < sensed.shape[1]) & sensed[rows[:, None], np.clip(sides, 0, sensed.shape[1] - 1)]
+    # The dead cell counts as under the body unless the neighbour across from it says (blk's bit 30, sent next to
+    # a dead cell) that the body covers its centre.
+    core_says = same_nb & ((heard["blk"] >> 30) & 1 != 0)
+    in_line = np.zeros((n, P), dtype=bool)
+    for q in range(P):
+        for b in ((q + 1) % P, (q + P - 1) % P):
+            in_line[:, q] |= (inputs.connected[:, q] & trusted[:, q] & side_lit[:, b] & dead[:, b]
+                              & ~core_says[:, (b + across) % P]
+                              & ((heard["ack"][:, q] >> (dead_shift + b)) & 1 != 0))
+    own_block = core[:, None] & ((~inputs.connected & ~passable) | ~allowed | in_line)
+    near_blk = dead.any(axis=1) | (trusted & ((heard["ack"] >> dead_shift) != 0)).any(axis=1)
     own_block &= ~(at_exit[:, None] & (np.arange(P)[None, :] == exit_port[:, None]))
     # only cells under a vehicle relay closed sides (the others say 63): computed on those rows alone
     under = np.flatnonzero(on)
@@ -362,7 +376,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
                             hold=np.where(lit & on, vid, new_hold),
                             ack=np.minimum(ack, (1 << RB) - 1) + ((hport + 1) << RB) + (pack(dead, 1) << dead_shift),
                             ex=np.where(entry, _ENTRY, exit_id),
-                            blk=pack(np.minimum(block, none), H))
+                            blk=pack(np.minimum(block, none), H) + np.where(core & near_blk, 1 << 30, 0))
     # requests: front cells ask the cell ahead (depth 1); held cells pass it on until gap deep
     ask = front & inputs.connected[rows, dp]
     out.values["req"][rows[ask], dp[ask]] = vid[ask]

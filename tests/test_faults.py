@@ -316,3 +316,20 @@ def test_a_vehicle_beside_its_lane_with_dead_cells_on_that_side_moves_along_befo
     first = res.summary()["parcels"][0]
     assert first["name"] == "p00" and first["outcome"] == "delivered" and first["exit"] == 0
     assert so["collisions"] == 0 and so["misrouted"] == 0 and so["lost"] == 0
+
+
+
+def test_a_parcel_does_not_drive_a_second_dead_cell_under_it_in_line_with_the_first():
+    """The first parcel covers four cells at the entry, one of them dead ((2, 6)), and (3, 6) east of it is dead
+    too (the 10 % fault draw seed 19 there): driving east put both under it, half its weight on held wheels, which
+    hold with up to mu_static N while the live ones slide with mu N, and it stood from 0.75 s for the rest of the
+    run. The cell beside the dead one under the body hears the live cell ahead say a dead neighbour on the same
+    side, the way east closes to the vehicle and the gradient leads it round."""
+    dead = [6 * 24 + 2, 6 * 24 + 3]  # row * 24 + column
+    sc = _with_faults("sorting_junction", dead_cells=dead)
+    sc = sc.model_copy(update={"duration": 12.0})
+    res = run(sc.build())
+    so = res.summary()["sorting"]
+    first = res.summary()["parcels"][0]
+    assert first["name"] == "p00" and first["outcome"] == "delivered" and first["exit"] == 0
+    assert so["collisions"] == 0 and so["misrouted"] == 0 and so["lost"] == 0

@@ -83,9 +83,15 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
   no neighbour is closed to the whole vehicle (and a front cell facing it stops the vehicle), except where the
   neighbour is dead and a cell of the same vehicle beside this one (across that side) has a live cell there: the
   vehicle then passes over the dead cell, carried by its live cells, where closing the side would leave a parcel
-  wider than the gaps between dead cells shuffling in front of them. Each cell says its dead ports in its ``ack``
-  word (bits 12 up). Next to a dead cell a cell takes the smaller id of a neighbour that says the same goal, so that
-  a dead cell that cuts a parcel's cells apart does not leave it carrying two ids that pull it two ways.
+  wider than the gaps between dead cells shuffling in front of them. Nor does a vehicle step where that brings a
+  second dead cell under it in line with one it covers: a carrying cell whose dead neighbour on a side lies under
+  the body (its sensor toward it lit, and the neighbour across from it not saying the body covers its centre)
+  closes the way ahead when the live cell there says a dead neighbour on the same side (a parcel of four cells,
+  two dead, stands for good: held wheels brake with up to mu_static N at rest). Each cell says its dead ports in
+  its ``ack`` word (bits 12 up) and, next to a dead cell, whether the body covers its centre (``blk``'s bit 30,
+  above the side fields). Next to a dead cell a cell takes the smaller id
+  of a neighbour that says the same goal, so that a dead cell that cuts a parcel's cells apart does not leave it
+  carrying two ids that pull it two ways.
 - *One-way cells* (config ``forbid``: the port a parcel on the cell may not move toward): gradients are not
   followed against the arrow, and a side against an arrow under any carrying cell is closed to the whole vehicle.
   Aisles drawn one-way cannot have two parcels meet head on (a parcel does not back off against an arrow: it steps

@@ -93,6 +93,10 @@ LATE = 64
 """The mark on a request (``rdep``'s bit below :data:`YIELD`, above any depth) of a vehicle that is late (its sequence
 number not yet due): a cell is held for such a vehicle after every vehicle that is due or carries no number, so that
 the cells on the due one's way are its before any late one's, whose number waits on it."""
+CORE_BIT = 30
+"""The bit of the ``blk`` word (above the side fields: bits 0-23 on a square cell, 0-29 on a hexagonal one) in which
+a cell next to a dead cell (its own or a neighbour's) says that the body it carries covers its centre; never set on
+a sound array, whose words stay as they were."""
 FULL = 1 << Words._fields.index("ex")
 """A partial sentence that carries ``ex`` (which never changes: said in the first sentence, then only at the
 heartbeat) says every word: those it leaves out are at rest (:data:`REST`)."""
@@ -421,7 +425,25 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
                 live_beside = live_beside or (same_nb[b] and (hack[i, b] >> (dead_shift + q)) & 1 == 0)
             passable[q] = dead_q and live_beside
         for q in range(P):
-            own_block = core and ((not connected[i, q] and not passable[q]) or not allowed[q])
+            # nor a step through q that brings a second dead cell under the body in line with one it covers: the
+            # cell ahead on q, live, says a dead neighbour on a side b beside q where this cell's own dead neighbour
+            # lies under the body (its sensor toward it lit). A dead cell's held wheels brake with up to mu_static N
+            # at rest and mu N sliding while the live ones drive with mu N or hold with up to mu_static N, so a
+            # parcel on four cells two of which are dead stands for good. Never on a sound array (no dead cell)
+            # The sensor toward the dead cell is lit once the body passes the point midway to it, short of its
+            # centre; the body surely covers that centre when the neighbour across from it carries no part of the
+            # body at its own centre (it says so, next to a dead cell, in ``blk``'s bit CORE_BIT): a parcel is at
+            # least two pitches wide, and it does not reach past this cell's far side by half a pitch
+            in_line = False
+            if core and connected[i, q] and trusted[q]:
+                for b in (left_of(q, P), right_of(q, P)):
+                    sn = sides[i, b]
+                    under = 0 <= sn < sensors.shape[1] and sensors[i, sn]
+                    far = opposite(b, P)
+                    under = under and not (same_nb[far] and (hblk[i, far] >> CORE_BIT) & 1 != 0)
+                    in_line = in_line or (under and (dead_mask >> b) & 1 != 0
+                                          and (hack[i, q] >> (dead_shift + b)) & 1 != 0)
+            own_block = core and ((not connected[i, q] and not passable[q]) or not allowed[q] or in_line)
             own_block = own_block and not (at_exit and q == ep)
             relayed = none
             if on:
@@ -583,6 +605,11 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         blk = 0
         for q in range(P):
             blk += min(block[q], none) << (H * q)
+        near_any = dead_mask != 0  # next to a dead cell (its own or a neighbour's): say whether the body is over
+        for q in range(P):  # this cell's centre (above the side fields; never on a sound array)
+            near_any = near_any or (trusted[q] and (hack[i, q] >> dead_shift) != 0)
+        if core and near_any:
+            blk += 1 << CORE_BIT
         if blk >= 1 << 31:
             blk -= 1 << 32
         for q in range(P):  # requests: front cells ask the cell ahead, held cells pass it on until gap deep
