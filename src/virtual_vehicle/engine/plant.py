@@ -259,11 +259,15 @@ class Plant:
         fresh = self._model(self.specs[i], share=False)
         if store is not None and not any(m.shared_solutions is store for k, m in enumerate(self.base) if k != i):
             del self._solutions[weight]
-        fresh.contact_memory = self.base[i].contact_memory
-        fresh.present = self.base[i].present
+        old = self.base[i]
+        fresh.contact_memory = old.contact_memory
+        fresh.present = old.present
         self.base[i] = fresh
+        old.drop_table()  # (its copies share the table: freed with them now, not at a full collection)
         if self._models is not None:
-            self._models.made.pop(i, None)
+            made = self._models.made.pop(i, None)
+            if made is not None:
+                made.drop_table()
         for stepper in (self._quiet, self._ride):
             if stepper is not None:
                 stepper.forget(i)
