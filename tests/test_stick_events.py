@@ -295,7 +295,7 @@ LATE = parcel.rectangle(0.25, 0.22, 2.0, 0.6, mu_static=0.8)  # the parcel that 
 
 @pytest.mark.parametrize("decide", ["reference", "compiled"])
 def test_a_wheel_whose_slip_reached_zero_late_in_a_run_sticks(decide):
-    """Late in a long run an event's time is known only to ~16 eps |t| (0.24 ps at 677 s), so a slip that reached
+    """Late in a long run an event's time is known only to ~16 eps |t| (2.6 ps at 677 s), so a slip that reached
     zero there reads 1e-12 m/s or so either side of it: the wheel is at zero slip and sticks (still wheels, nothing
     else pushing). An hour's junction run chattered here (the x wheels slipping back and forth, a thousand mode
     events in a femtosecond) with a tolerance that did not grow with the time."""

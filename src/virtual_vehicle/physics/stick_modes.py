@@ -513,7 +513,7 @@ def _slip_tol(speed: float, accel: float, t: float) -> float:
     ``speed`` (m/s), and what the slip can change (``accel`` bounds its rate, m/s^2) within the uncertainty of an
     event's time. The engine's event search (``engine._kernel``) places an event within ``max(4 eps |t|, 1e-13 s)``
     plus ``4 eps |t|`` of its root and steps past it by as much again, so the time is known to ``16 eps |t| + 2e-13``
-    s, which grows with the time itself (0.24 ps at 677 s). Without this term a parcel decelerating onto still wheels
+    s, which grows with the time itself (2.6 ps at 677 s). Without this term a parcel decelerating onto still wheels
     late in a long run found its slip 2e-12 m/s past zero at the event, slipped back the other way, and chattered."""
     return _SLIP_TOL * speed + accel * (_TIME_ULPS * _EPS * abs(t) + _TIME_FLOOR)
 
