@@ -301,6 +301,17 @@ def test_parcels_pass_a_fence_of_dead_cells_whose_gaps_are_narrower_than_they_ar
     assert np.all(res.cell_log.wheels[:, fence] == 0) and res.cell_log.sent[:, fence].sum() == 0
 
 
+def _first_parcel_delivered_past(dead: list[int]) -> None:
+    """The junction with cells ``dead`` (row * 24 + column) for 12 s: its first parcel is delivered at its exit, with
+    no collision, misroute or loss."""
+    sc = _with_faults("sorting_junction", dead_cells=dead)
+    res = run(sc.model_copy(update={"duration": 12.0}).build())
+    so = res.summary()["sorting"]
+    first = res.summary()["parcels"][0]
+    assert first["name"] == "p00" and first["outcome"] == "delivered" and first["exit"] == 0
+    assert so["collisions"] == 0 and so["misrouted"] == 0 and so["lost"] == 0
+
+
 def test_a_vehicle_beside_its_lane_with_dead_cells_on_that_side_moves_along_before_it_turns_in():
     """The north-east exit's lane (columns 20-23 of rows 7-10, leaving east) with dead cells just west of its
     first row (columns 17-19 of row 7) and two more south of the way there (the 5 % fault draw seed 7 there): the
@@ -309,14 +320,7 @@ def test_a_vehicle_beside_its_lane_with_dead_cells_on_that_side_moves_along_befo
     the lane only once that side is open to the whole vehicle: it used to pull at once, the body's cell facing the
     dead wall said stop, and the parcel stood still there for the rest of the run (0 delivered in 20 s)."""
     dead = [3 * 24 + 18, 4 * 24 + 18, 7 * 24 + 17, 7 * 24 + 18, 7 * 24 + 19, 9 * 24 + 19]  # row * 24 + column
-    sc = _with_faults("sorting_junction", dead_cells=dead)
-    sc = sc.model_copy(update={"duration": 12.0})
-    res = run(sc.build())
-    so = res.summary()["sorting"]
-    first = res.summary()["parcels"][0]
-    assert first["name"] == "p00" and first["outcome"] == "delivered" and first["exit"] == 0
-    assert so["collisions"] == 0 and so["misrouted"] == 0 and so["lost"] == 0
-
+    _first_parcel_delivered_past(dead)
 
 
 def test_a_parcel_does_not_drive_a_second_dead_cell_under_it_in_line_with_the_first():
@@ -326,10 +330,4 @@ def test_a_parcel_does_not_drive_a_second_dead_cell_under_it_in_line_with_the_fi
     run. The cell beside the dead one under the body hears the live cell ahead say a dead neighbour on the same
     side, the way east closes to the vehicle and the gradient leads it round."""
     dead = [6 * 24 + 2, 6 * 24 + 3]  # row * 24 + column
-    sc = _with_faults("sorting_junction", dead_cells=dead)
-    sc = sc.model_copy(update={"duration": 12.0})
-    res = run(sc.build())
-    so = res.summary()["sorting"]
-    first = res.summary()["parcels"][0]
-    assert first["name"] == "p00" and first["outcome"] == "delivered" and first["exit"] == 0
-    assert so["collisions"] == 0 and so["misrouted"] == 0 and so["lost"] == 0
+    _first_parcel_delivered_past(dead)
