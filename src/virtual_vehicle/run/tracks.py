@@ -58,22 +58,19 @@ class EventLog(Sequence):
 
     def append(self, event: Event) -> None:
         """Take one event in."""
-        d = event.__dict__
-        if "_keys" in d:
-            event._settle()
-        state = d["state"]
+        state = event.state
         if len(state) != 6:
             raise ValueError(f"an event's state has 6 numbers, not {len(state)}")
-        self._kind.append(self._code(d["kind"]))
-        self._t.append(d["t"])
+        self._kind.append(self._code(event.kind))
+        self._t.append(event.t)
         self._state.extend(state)
         for (values, ends), name in zip(self._cells, _CHANGED):
-            ids = d[name]
+            ids = getattr(event, name)  # (a lazily made event works its changed cells out here)
             if ids:
                 values.extend(ids)
             ends.append(len(values))
-        if d["message"] or d["partner"]:
-            self._text[len(self._t) - 1] = (d["message"], d["partner"])
+        if event.message or event.partner:
+            self._text[len(self._t) - 1] = (event.message, event.partner)
 
     def extend(self, events) -> None:
         """Take events in, in order."""
