@@ -186,9 +186,11 @@ class RideStepper(QuietStepper):
         if i is None:
             self._known[:] = self._kept[:] = False
             self._pending.clear()
+            self._stuck.clear()
         else:
             self._known[i] = self._kept[i] = False
             self._pending.pop(i, None)
+            self._stuck.pop(i, None)
 
     def proofs(self) -> dict:
         """The kept proofs as data (run state): ``anchors`` (n, 6), the state each parcel's anchor was measured at

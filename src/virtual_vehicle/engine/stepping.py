@@ -61,7 +61,7 @@ class Event:
     def __getattr__(self, name: str):
         """The changed cells of an event made by :meth:`support_between`, worked out on first read."""
         keys = self.__dict__.get("_keys")
-        if keys is None or name not in _CHANGED:
+        if keys is None or name not in CHANGED_SETS:
             raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
         self._settle()
         return self.__dict__[name]
@@ -97,13 +97,14 @@ class Event:
         k = len(t)
         columns = [t.tolist(), texts(d, "kind", k, where),
                    [tuple(row) for row in array(d, "state", "f", (k, 6), where).tolist()],
-                   *(from_ragged(d[name], k, f"{where}.{name}") for name in ("entered", "left", "lifted", "touched")),
+                   *(from_ragged(d[name], k, f"{where}.{name}") for name in CHANGED_SETS),
                    texts(d, "message", k, where), texts(d, "partner", k, where)]
         return [cls(*row) for row in zip(*columns)]
 
 
-_CHANGED = ("entered", "left", "lifted", "touched")
-for _name in _CHANGED:  # no class defaults, so that an event made by Event.support_between asks __getattr__
+CHANGED_SETS = ("entered", "left", "lifted", "touched")
+"""The names of an :class:`Event`'s changed cell sets (cell ids), in the order its columns are written."""
+for _name in CHANGED_SETS:  # no class defaults, so that an event made by Event.support_between asks __getattr__
     delattr(Event, _name)  # (the dataclass's __init__ keeps its own defaults)
 
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from virtual_vehicle.engine.dynamics import Trajectory
 from virtual_vehicle.engine.plant import SUMMED_STATS, joined_stats, on_grid
-from virtual_vehicle.engine.stepping import _CHANGED, Event
+from virtual_vehicle.engine.stepping import CHANGED_SETS, Event
 from virtual_vehicle.model.state_data import array, fields, integer
 
 
@@ -42,7 +42,7 @@ class EventLog(Sequence):
 
     def __init__(self, events=()):
         self._t, self._kind, self._state = _array("d"), _array("H"), _array("d")
-        self._cells = tuple((_array("q"), _array("q", [0])) for _ in _CHANGED)  # (values, ends) per changed set
+        self._cells = tuple((_array("q"), _array("q", [0])) for _ in CHANGED_SETS)  # (values, ends) per changed set
         self._text: dict[int, tuple[str, str]] = {}  # event index -> (message, partner), where either is not ""
         self.extend(events)
 
@@ -64,7 +64,7 @@ class EventLog(Sequence):
         self._kind.append(self._code(event.kind))
         self._t.append(event.t)
         self._state.extend(state)
-        for (values, ends), name in zip(self._cells, _CHANGED):
+        for (values, ends), name in zip(self._cells, CHANGED_SETS):
             ids = getattr(event, name)  # (a lazily made event works its changed cells out here)
             if ids:
                 values.extend(ids)
@@ -113,7 +113,7 @@ class EventLog(Sequence):
         text = [self._text.get(j, ("", "")) for j in range(k)]
         out = {"t": np.array(self._t, dtype=np.float64), "kind": [self._KINDS[c] for c in self._kind],
                "state": np.array(self._state, dtype=np.float64).reshape(k, 6)}
-        for name, (values, ends) in zip(_CHANGED, self._cells):
+        for name, (values, ends) in zip(CHANGED_SETS, self._cells):
             out[name] = {"counts": np.diff(np.array(ends, dtype=np.int64)), "flat": np.array(values, dtype=np.int64)}
         out["message"], out["partner"] = [m for m, _ in text], [p for _, p in text]
         return out
