@@ -54,7 +54,7 @@ from scipy.integrate import solve_ivp
 
 __all__ = ["Wheels", "Mode", "ModeEvent", "StickSlipRun", "wheels_on", "decide_mode", "mode_rhs", "mode_events",
            "simulate", "stick_facets", "breaking_wheels", "project_twist", "wheel_arrays", "arrays_of", "decide_kernel",
-           "breaking_kernel", "decide_compiled", "zonotope_inradius", "zonotope_grip"]
+           "breaking_kernel", "decide_compiled", "zonotope_inradius", "zonotope_grip", "box_sweeps"]
 
 _SLIP_TOL = 1e-9  # relative to the speed scale: a wheel this close to zero slip is at zero slip
 _EPS = float(np.finfo(np.float64).eps)
@@ -455,19 +455,23 @@ def _box_accelerations(JZ, minv, known, rhs, bounds, max_sweeps=200000, tol=1e-1
     """Projected Gauss-Seidel on the acceleration-level box problem of the zero-slip wheels: forces ``lam`` within
     ``|lam| <= bounds`` with the slip accelerations ``a = J_Z nu_dot - rhs`` complementary to them. Returns ``a``
     (unique, as ``nu_dot`` is); used to identify the mode, which is then solved and checked exactly. Compiled
-    (:func:`_sweeps`): many redundant wheels (hexagonal omni cells) take thousands of sweeps."""
+    (:func:`box_sweeps`): many redundant wheels (hexagonal omni cells) take thousands of sweeps."""
     JZ = np.ascontiguousarray(JZ, dtype=float)
     diag = ((JZ ** 2) * minv).sum(axis=1)
-    z = _sweeps(JZ, np.ascontiguousarray(minv, dtype=float), np.ascontiguousarray(minv * known, dtype=float),
-                np.ascontiguousarray(rhs, dtype=float), np.ascontiguousarray(bounds, dtype=float), diag,
-                int(max_sweeps), float(tol))
+    z = box_sweeps(JZ, np.ascontiguousarray(minv, dtype=float), np.ascontiguousarray(minv * known, dtype=float),
+                   np.ascontiguousarray(rhs, dtype=float), np.ascontiguousarray(bounds, dtype=float), diag,
+                   int(max_sweeps), float(tol))
     return JZ @ z - rhs
 
 
 @njit(cache=True)
-def _sweeps(rows, minv, z0, r, b, diag, max_sweeps, tol):
-    """The sweeps of :func:`_box_accelerations` from acceleration ``z0`` (3,) with every force at 0: returns the
-    acceleration (3,) they converge to (a sweep's largest force change at most ``tol`` times the largest bound)."""
+def box_sweeps(rows, minv, z0, r, b, diag, max_sweeps, tol):
+    """Projected Gauss-Seidel over a box problem: wheel rows ``rows`` (m, 3) ``[u, r x u]``, inverse masses ``minv``
+    (3,), targets ``r`` (m,) for ``rows @ z``, bounds ``b`` (m,) on each wheel's |force| (or impulse), ``diag`` (m,)
+    the rows' ``J M^-1 J^T`` diagonal; from ``z0`` (3,) with every force at 0, returns the ``z`` (3,) the sweeps
+    converge to (a sweep's largest force change at most ``tol`` times the largest bound, or ``max_sweeps``). The mode
+    rule's accelerations (:func:`_box_accelerations`, ``z`` in m/s^2) and the law checker's stepped wheels (``z`` the
+    twist after a step, m/s, rad/s) both solve with it."""
     z = z0.copy()
     lam = np.zeros(rows.shape[0])
     m0, m1, m2 = minv[0], minv[1], minv[2]
@@ -1090,7 +1094,7 @@ def decide_kernel(P, U, w0, wa, t0, FL, FC, origin, mus, muk, minv, t, y, breaki
         diag = np.empty(Z.shape[0])
         for a in range(Z.shape[0]):
             diag[a] = JZ[a, 0] ** 2 * minv[0] + JZ[a, 1] ** 2 * minv[1] + JZ[a, 2] ** 2 * minv[2]
-        z = _sweeps(JZ, minv, minv * known, rhs[Z], bounds[Z], diag, 200000, 1e-15)
+        z = box_sweeps(JZ, minv, minv * known, rhs[Z], bounds[Z], diag, 200000, 1e-15)
         keep = np.ones(Z.shape[0], np.bool_)
         for a in range(Z.shape[0]):
             acc = JZ[a, 0] * z[0] + JZ[a, 1] * z[1] + JZ[a, 2] * z[2] - rhs[Z[a]]

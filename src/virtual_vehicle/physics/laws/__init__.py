@@ -19,7 +19,7 @@ from virtual_vehicle.physics.laws.base import FrictionLaw, StepperOptions
 from virtual_vehicle.physics.laws.coulomb import CoulombLaw, coulomb_constants
 from virtual_vehicle.physics.laws.stick_slip import StickSlipLaw
 from virtual_vehicle.physics.laws.viscous import ViscousLaw, viscous_constants
-from virtual_vehicle.physics.stick_modes import _sweeps
+from virtual_vehicle.physics.stick_modes import box_sweeps
 
 LAWS: dict[str, FrictionLaw] = {
     "coulomb": CoulombLaw(),
@@ -111,7 +111,7 @@ def _stepped(trial: _Trial, y0, window: float, steps: int):
         y = ys[-1]
         r = np.repeat(trial.points(y) - y[:2], 2, axis=0)
         J = np.column_stack([U, r[:, 0] * U[:, 1] - r[:, 1] * U[:, 0]])  # [u, r x u]
-        nu = _sweeps(J, minv, y[3:6].copy(), target, bounds, (J * J) @ minv, 1000, 1e-12)
+        nu = box_sweeps(J, minv, y[3:6].copy(), target, bounds, (J * J) @ minv, 1000, 1e-12)
         ys.append(np.array([*(y[:3] + h * nu), *nu]))
     return np.array(ys)
 
