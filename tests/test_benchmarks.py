@@ -115,3 +115,33 @@ def test_the_pairs_benchmark_runs_its_whole_time_within_the_laws_assumptions(law
     r = bench_pairs.one(25, law, 1.5)
     assert r["whole_time"] == 25 and r["undetected_overlaps"] == 0
     assert r["sliding_kept"] == 25
+
+
+def test_the_dead_cell_stream_study_counts_what_a_plain_run_of_its_stream_delivers(tmp_path, capsys):
+    """fault_stream: the stream it writes feeds the junction a parcel every 3 s and loads as a scenario; its
+    fault-free figure is what a plain run of that file delivers, and each rate's row names its draws' deliveries."""
+    import fault_stream
+
+    from virtual_vehicle.config.scenario import load_scenario
+    from virtual_vehicle.run.sim import run
+    from virtual_vehicle.run.tasks import sorting_report
+
+    path = fault_stream.stream_file(0.25, tmp_path)
+    sc, _ = load_scenario(path)
+    assert sc.duration == 15.0 and [p.t_start for p in sc.parcels] == [3.0 * k for k in range(5)]
+    plain = sum(r["outcome"] == "delivered" and r["correct"] for r in sorting_report(run(sc.build()))["parcels"])
+    assert plain >= 1  # (the first parcel leaves the junction at ~8.6 s)
+    sys_argv = sys.argv
+    sys.argv = ["fault_stream", "--minutes", "0.25", "--rates", "0.1", "--samples", "2", "--workers", "1",
+                "--out", str(tmp_path)]
+    try:
+        fault_stream.main()
+    finally:
+        sys.argv = sys_argv
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split("fault-free ")[1].startswith(f"{plain} delivered")
+    row = lines[-1].split()  # rate, draws, cut off, share of the fault-free, 3 means, each seed's deliveries
+    assert row[:3] == ["0.10", "2", "0"] and len(row) == 9
+    seeds = [int(k) for k in row[-2:]]
+    assert all(0 <= k <= len(sc.parcels) for k in seeds)
+    assert abs(float(row[3].rstrip("%")) - 100 * sum(seeds) / 2 / plain) < 0.06
