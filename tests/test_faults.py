@@ -120,6 +120,27 @@ def test_the_fault_study_measures_delivery_against_failure_rate(tmp_path):
     assert (out / "study.png").stat().st_size > 10_000 and (out / "summary.parquet").is_file()
 
 
+def test_a_fault_study_of_a_scenario_file_is_titled_by_the_scenario_s_name(tmp_path):
+    """A study of a scenario file names the scenario (its ``name``), not the file's path, in its table and picture."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from virtual_vehicle.config.scenario import dump_toml
+    from virtual_vehicle.ui.cli import app
+
+    sc, _ = load_scenario("sorting_junction")
+    path = tmp_path / "somewhere" / "my.toml"
+    path.parent.mkdir()
+    path.write_text(dump_toml(sc.model_copy(update={"name": "hall_b_west"})), encoding="utf-8")
+    out = tmp_path / "study"
+    res = CliRunner().invoke(app, ["fault-study", str(path), "--rates", "0", "--samples", "1", "--duration", "1",
+                                   "--out", str(out), "--workers", "1"], terminal_width=200)
+    assert res.exit_code == 0, res.output
+    assert "hall_b_west: dead_cell_rate" in res.output and "somewhere" not in res.output
+    assert json.loads((out / "study.json").read_text())["scenario"] == "hall_b_west"
+
+
 @pytest.mark.parametrize("args, message", [
     (["sorting_junction", "--kind", "bad_rate"], "not a fault rate"),
     (["prototype_18"], "sorting scenario"),

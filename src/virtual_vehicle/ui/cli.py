@@ -567,6 +567,8 @@ def fault_study_cmd(
     """Monte-Carlo redundancy study: delivered fraction, delay and collisions against a failure rate, over random
     fault draws; writes study.json, study.png and the sweep's summary.parquet. Exit code 1 when any run failed (the
     study is still written, from the runs that finished), 130 after Ctrl-C (rerun to resume)."""
+    import json
+
     from rich.table import Table
 
     from virtual_vehicle.analysis.sweep import fault_study
@@ -584,8 +586,9 @@ def fault_study_cmd(
                   lambda bar: fault_study(scenario, kind, values, samples, out_dir, duration=duration,
                                           scheduler=scheduler, workers=workers, progress=bar,
                                           retry_failed=retry_failed))
-    plot_fault_study(rows, kind, f"{scenario}: {samples} fault draws per rate", out_dir / "study.png")
-    table = Table(title=f"{scenario}: {kind}")
+    name = json.loads((out_dir / "study.json").read_text(encoding="utf-8"))["scenario"]  # (a file's: not its path)
+    plot_fault_study(rows, kind, f"{name}: {samples} fault draws per rate", out_dir / "study.png")
+    table = Table(title=f"{name}: {kind}")
     for head in ("rate", "delivered (mean ± std)", "delivery time (s)", "collisions", "misrouted", "lost", "failed"):
         table.add_column(head)
 
