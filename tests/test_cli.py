@@ -91,6 +91,26 @@ def test_default_run_names_its_folder(tmp_path):
     assert "results written to" in result.output and (tmp_path / "d" / "paths.png").exists()
 
 
+def test_a_run_compiles_first_and_says_so_where_these_sources_have_no_compiled_code(tmp_path, monkeypatch):
+    """Where the cache folder for this checkout's sources holds no compiled code (the first run after they changed),
+    `run` compiles the engine before it builds and times the run, saying so; where it holds some, it does not."""
+    import virtual_vehicle.run.warm as warm
+
+    calls = []
+    monkeypatch.setattr(warm, "warm_up", lambda: calls.append(1) or 0.0)
+    empty = tmp_path / "numba-new"
+    empty.mkdir()
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(empty))
+    result = runner.invoke(app, ["run", "--out", str(tmp_path / "a"), "--no-plot"])
+    assert result.exit_code == 0, result.output
+    assert calls == [1] and "compiling the event engine" in result.output
+    (empty / "engine_x").mkdir()
+    (empty / "engine_x" / "_kernel.f-1.py311.nbi").write_bytes(b"")
+    result = runner.invoke(app, ["run", "--out", str(tmp_path / "b"), "--no-plot"])
+    assert result.exit_code == 0, result.output
+    assert calls == [1] and "compiling" not in result.output
+
+
 def test_scenarios_and_check_commands():
     r = runner.invoke(app, ["scenarios"])
     assert r.exit_code == 0 and "prototype_18 (default)" in r.output
