@@ -117,7 +117,7 @@ def test_the_pairs_benchmark_runs_its_whole_time_within_the_laws_assumptions(law
     assert r["sliding_kept"] == 25
 
 
-def test_the_dead_cell_stream_study_counts_what_a_plain_run_of_its_stream_delivers(tmp_path, capsys):
+def test_the_dead_cell_stream_study_counts_what_a_plain_run_of_its_stream_delivers(tmp_path, capsys, monkeypatch):
     """fault_stream: the stream it writes feeds the junction a parcel every 3 s and loads as a scenario; its
     fault-free figure is what a plain run of that file delivers, and each rate's row names its draws' deliveries."""
     import fault_stream
@@ -131,13 +131,9 @@ def test_the_dead_cell_stream_study_counts_what_a_plain_run_of_its_stream_delive
     assert sc.duration == 15.0 and [p.t_start for p in sc.parcels] == [3.0 * k for k in range(5)]
     plain = sum(r["outcome"] == "delivered" and r["correct"] for r in sorting_report(run(sc.build()))["parcels"])
     assert plain >= 1  # (the first parcel leaves the junction at ~8.6 s)
-    sys_argv = sys.argv
-    sys.argv = ["fault_stream", "--minutes", "0.25", "--rates", "0.1", "--samples", "2", "--workers", "1",
-                "--out", str(tmp_path)]
-    try:
-        fault_stream.main()
-    finally:
-        sys.argv = sys_argv
+    monkeypatch.setattr(sys, "argv", ["fault_stream", "--minutes", "0.25", "--rates", "0.1", "--samples", "2",
+                                      "--workers", "1", "--out", str(tmp_path)])
+    fault_stream.main()
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].split("fault-free ")[1].startswith(f"{plain} delivered")
     row = lines[-1].split()  # rate, draws, cut off, share of the fault-free, 3 means, each seed's deliveries
