@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 
 from virtual_vehicle.config.scenario import load_scenario
+from virtual_vehicle.engine import _kernel
 from virtual_vehicle.engine.dynamics import ParcelModel, integrate
 from virtual_vehicle.model import fields, layout, parcel
 from virtual_vehicle.physics import contact, laws
-from virtual_vehicle.physics.stick_modes import simulate, wheels_on
+from virtual_vehicle.physics.stick_modes import decide_kernel, simulate, wheel_arrays, wheels_on
 
 G = 9.81
 D = 0.1
@@ -335,3 +336,67 @@ def test_a_parcel_stopping_on_still_wheels_stops_the_same_at_any_time(t0):
     assert np.abs(tr.states[-1, 3:]).max() <= 1e-20  # at rest: the twist projected onto the sticking wheels
     assert abs(tr.states[-1, 0] - (y0[0] + y0[3] ** 2 / (2 * a))) <= 1e-9
     assert np.abs(tr.states[-1, 1:3] - y0[1:3]).max() <= 1e-12
+
+
+def _one_by_one(md, F, z_old, t_old, h, t_lo, t_hi, v_lo, n_ev):
+    """The mode event search as it was before one bisection served all values: each value falling in the first
+    sample interval that has any bisected on its own to rounding, the earliest root taken (the first value of
+    those that tie): (found, time, value)."""
+    y, v, prev, t_a, eps = np.empty(8), np.empty(n_ev), v_lo.copy(), t_lo, np.finfo(float).eps
+    for s in range(1, _kernel.SUBSAMPLES + 1):
+        t_b = t_lo + (t_hi - t_lo) * s / _kernel.SUBSAMPLES if s < _kernel.SUBSAMPLES else t_hi
+        _kernel._dense_all(F, z_old, t_old, h, t_b, y)
+        _kernel.mode_values(md, t_b, y, v)
+        best, which, at_b = np.inf, -1, v.copy()
+        for k in np.flatnonzero((prev > 0) & ~(at_b > 0)):
+            lo, hi = t_a, t_b
+            while hi - lo > max(4 * eps * abs(hi), 1e-15):
+                mid = 0.5 * (lo + hi)
+                if mid <= lo or mid >= hi:
+                    break
+                _kernel._dense_all(F, z_old, t_old, h, mid, y)
+                _kernel.mode_values(md, mid, y, v)
+                lo, hi = (mid, hi) if v[k] > 0 else (lo, mid)
+            if hi < best:
+                best, which = hi, int(k)
+        if which >= 0:
+            return True, best, which, int(((prev > 0) & ~(at_b > 0)).sum())
+        prev, t_a = at_b, t_b
+    return False, t_hi, -1, 0
+
+
+@pytest.mark.parametrize("speed, heading", [(0.5, 0.0), (0.37, 0.3), (0.2, 1.1)])
+def test_wheels_catching_up_together_meet_at_one_bisected_root(speed, heading):
+    """A carton at rest on 36 cells of a uniform field: every wheel driving along the field catches up with it at
+    the same instant (t* = v / (mu g) for a field along x). The mode event search bisects the earliest root of all
+    the values falling together once, on their minimum; it finds the time (to the bit) and the value that bisecting
+    each value alone finds."""
+    cells = layout.grid(6, 6, 0.1, origin=(-0.25, -0.25))
+    spec = parcel.rectangle(0.55, 0.55, 2.0, 0.5)
+    V = np.tile([speed * np.cos(heading), speed * np.sin(heading)], (cells.n, 1))
+    y0 = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    support = np.arange(cells.n)
+    sol = contact.solve_support(cells.positions, y0[:2], spec.weight(G))
+    wheels = wheel_arrays(cells, support, sol, V, spec.mu, spec.mu_static)
+    minv = np.array([1 / spec.mass, 1 / spec.mass, 1 / spec.inertia])
+    none = np.zeros(0, np.int64)
+    ok, state, y, rows, stick, rank, anchor, index = decide_kernel(*wheels, minv, 0.0, y0, none, none)
+    assert ok and (np.abs(state) == 1).sum() >= 12  # the wheels along the field slip
+    md = (*wheels, state, stick[rows], stick, rank, anchor, index, minv)
+    n_ev = int((np.abs(state) == 1).sum()) + (len(index) if len(stick) else 0)
+    z = np.concatenate([y, [0.0, 0.0]])
+    f, z_new, f_new, work = np.empty(8), np.empty(8), np.empty(8), np.empty(8)
+    _kernel._mode_rhs(md, 0.0, z, f)
+    K = np.empty((_kernel._N_EXTENDED, 8))
+    F = np.empty((_kernel._D.shape[0] + 3, 8))
+    step_ok, t_new, _, _ = _kernel._mode_step(md, 0.0, z, f, 1.0, 0.4, 1e-10, 1e-12, np.inf, K, z_new, f_new, work)
+    assert step_ok
+    _kernel._mode_dense(md, 0.0, z, f, z_new, f_new, t_new, K, F, work)
+    v_lo = np.empty(n_ev)
+    _kernel.mode_values(md, 0.0, z, v_lo)
+    found, t_event, which = _kernel._mode_crossing(md, F, z, 0.0, t_new, 0.0, t_new, v_lo, n_ev)
+    ref_found, ref_t, ref_which, together = _one_by_one(md, F, z, 0.0, t_new, 0.0, t_new, v_lo, n_ev)
+    assert found and ref_found and together >= 6  # (several values fall in one sample interval)
+    assert t_event == ref_t and which == ref_which
+    if heading == 0.0:
+        assert abs(t_event - speed / (spec.mu * G)) <= 1e-12
