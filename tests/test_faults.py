@@ -113,6 +113,12 @@ def test_the_fault_study_measures_delivery_against_failure_rate(tmp_path):
     assert clean["delivered_fraction"] == pytest.approx(direct["correct"] / due)
     assert clean["delivered_fraction_std"] == 0.0 and clean["delivered_fraction"] > 0
     assert broken["delivered_fraction"] < clean["delivered_fraction"]  # 30% of the cells dead
+    for row in (clean, broken):  # each kept draw's own figure, whose mean the row gives
+        draws = row["draws"]
+        assert draws["seed"] == sorted(draws["seed"]) and set(draws["seed"]) <= {0, 1}
+        assert len(draws["delivered_fraction"]) == row["runs"] - row["failed"] - row["unreachable"]
+        assert np.mean(draws["delivered_fraction"]) == pytest.approx(row["delivered_fraction"])
+    assert clean["draws"]["delivered_fraction"] == [pytest.approx(direct["correct"] / due)] * 2
     # the parcels due but neither delivered nor lost: still on the array, or never put on
     assert clean["stuck"] == clean["on_array"] + clean["waiting"] == direct["on_array"] + direct["waiting"] - (
         len(sc.parcels) - due)

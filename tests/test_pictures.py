@@ -48,6 +48,46 @@ def test_the_fault_study_picture_shows_deadlocked_parcels_apart_from_those_waiti
             "delivered to the right exit"} <= labels
 
 
+def _delivered_axis(fig):
+    return next(ax for ax in fig.axes if ax.get_ylabel() == "fraction delivered to the right exit")
+
+
+def test_the_fault_study_picture_shows_each_draw_where_the_draws_split():
+    """At 10 % dead cells some draws deliver nearly all and others nothing: each draw is a dot, the mean a line;
+    the mean +- one standard deviation (0.45 +- 0.5 here) would reach below nothing and above everything."""
+    rows = [dict(r, draws={"seed": [0, 1, 2, 3], "delivered_fraction": f}, delivered_fraction=float(np.mean(f)),
+                 delivered_fraction_std=float(np.std(f)))
+            for r, f in zip(_fault_rows(), [[1.0, 1.0, 1.0, 0.95], [1.0, 0.9, 0.1, 0.95], [0.0, 0.9, 0.0, 0.9]])]
+    ax = _delivered_axis(viz.plot_fault_study(rows, "dead_cell_rate", "study"))
+    dots = next(line for line in ax.lines if line.get_label() == "one fault draw")
+    assert len(dots.get_ydata()) == 4 and sorted(dots.get_ydata()) == [0.95, 1.0, 1.0, 1.0]  # the first rate's
+    seen = sorted(y for line in ax.lines if line.get_marker() == "o" for y in line.get_ydata())
+    assert seen == sorted(y for r in rows for y in r["draws"]["delivered_fraction"])
+    mean = next(line for line in ax.lines if line.get_label() == "mean over the draws")
+    np.testing.assert_allclose(mean.get_ydata(), [r["delivered_fraction"] for r in rows])
+    assert not ax.containers  # no error bars
+
+
+def test_the_fault_study_picture_cuts_a_deviation_at_what_a_fraction_can_be():
+    """Rows without their draws (a study.json from before they were kept): one standard deviation, within [0, 1]."""
+    rows = [dict(r, delivered_fraction=f, delivered_fraction_std=0.5) for r, f in zip(_fault_rows(), [1.0, 0.45, 0.1])]
+    ax = _delivered_axis(viz.plot_fault_study(rows, "dead_cell_rate", "study"))
+    (_, caps, (segments,)), = [c for c in ax.containers]
+    ends = np.concatenate([seg[:, 1] for seg in segments.get_segments()])
+    assert ends.min() == 0.0 and ends.max() == 1.0
+
+
+def test_a_one_rate_fault_study_has_an_axis_about_its_rate():
+    rows = [dict(_fault_rows()[1], draws={"seed": [0, 1], "delivered_fraction": [0.5, 0.3]})]
+    fig = viz.plot_fault_study(rows, "dead_cell_rate", "study")
+    ax = _delivered_axis(fig)
+    assert ax.get_xlim() == (0.01, 0.03)
+    time_ax = next(a for a in fig.axes if a.get_ylabel() == "delivery time (s)")
+    assert time_ax.get_xlim() == (0.01, 0.03)
+    dots = next(line for line in ax.lines if line.get_label() == "one fault draw")
+    assert 0.019 < min(dots.get_xdata()) < max(dots.get_xdata()) < 0.021  # the draws side by side at the rate
+
+
 def _built(name: str, duration: float, **update):
     from virtual_vehicle.config.scenario import load_scenario
 

@@ -507,8 +507,9 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
     neither delivered nor lost at the end: ``on_array`` (put on the array and still there), ``waiting`` (never put
     on: their place at the entry never came free) and ``stuck`` (the two together), and of those on the array the
     ``deadlocked`` (in a deadlock the run's report names: a cycle of holds, see
-    :func:`~virtual_vehicle.cells.programs.sort.stalls`), each a mean over the seeds of the runs that finished; also
-    written to ``study.json``. ``retry_failed``: see :func:`run_sweep`.
+    :func:`~virtual_vehicle.cells.programs.sort.stalls`), each a mean over the seeds of the runs that finished; and
+    ``draws``: each kept draw's ``seed`` and ``delivered_fraction`` (lists, by seed: a mean and a standard deviation
+    hide that at a high rate some draws deliver nearly all and others nothing); also written to ``study.json``. ``retry_failed``: see :func:`run_sweep`.
 
     The means are over the draws in which every exit stays reachable from an entry over live cells and links
     (:func:`exits_reachable`; a draw that cuts an exit off measures the draw, not the sorter): ``unreachable`` counts
@@ -562,11 +563,13 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
             r["stuck"] = r["sorting.on_array"] + r["waiting_due"]
             r["deadlocked"] = r.get("sorting.stalled.deadlock")
         every = [r["sorting.correct"] / due for r in done]
+        by_seed = sorted((r["vary.faults.seed"], r["sorting.correct"] / due) for r in ok)
         rows.append({"rate": rate, "runs": len(sel), "failed": len(sel) - len(done), "parcels_due": due,
                      "unreachable": int(samples) - len(kept),
                      "delivered_fraction_all": float(np.mean(every)) if every else None,
                      "delivered_fraction": float(frac.mean()) if len(frac) else None,
                      "delivered_fraction_std": float(frac.std()) if len(frac) else None,
+                     "draws": {"seed": [s for s, _ in by_seed], "delivered_fraction": [f for _, f in by_seed]},
                      "delivery_time_mean_s": mean("sorting.delivery_time_mean_s"),
                      "collisions": mean("sorting.collisions"), "misrouted": mean("sorting.misrouted"),
                      "lost": mean("sorting.lost"), "on_array": mean("sorting.on_array"),

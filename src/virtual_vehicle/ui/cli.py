@@ -606,15 +606,17 @@ def fault_study_cmd(
     name = json.loads((out_dir / "study.json").read_text(encoding="utf-8"))["scenario"]  # (a file's: not its path)
     plot_fault_study(rows, kind, f"{name}: {samples} fault draws per rate", out_dir / "study.png")
     table = Table(title=f"{name}: {kind}")
-    for head in ("rate", "delivered (mean ± std)", "delivery time (s)", "collisions", "misrouted", "lost", "failed"):
+    for head in ("rate", "delivered (mean ± std)", "draws (least .. most)", "delivery time (s)", "collisions",
+                 "misrouted", "lost", "failed"):
         table.add_column(head)
 
     def fmt(v, spec=".3g"):
         return "n/a" if v is None else format(v, spec)
 
     for r in rows:
+        draws = r["draws"]["delivered_fraction"]
         table.add_row(fmt(r["rate"]), f"{fmt(r['delivered_fraction'])} ± {fmt(r['delivered_fraction_std'])}",
-                      fmt(r["delivery_time_mean_s"]), fmt(r["collisions"]), fmt(r["misrouted"]), fmt(r["lost"]),
+                      f"{fmt(min(draws))} .. {fmt(max(draws))}" if draws else "n/a", fmt(r["delivery_time_mean_s"]), fmt(r["collisions"]), fmt(r["misrouted"]), fmt(r["lost"]),
                       str(r["failed"]))
     out.print(table)
     out.print(f"written to {out_dir}/study.json, study.png and summary.parquet")

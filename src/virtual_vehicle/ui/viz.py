@@ -506,7 +506,8 @@ _OUTCOME_STYLE = {"delivered": ("delivered to the right exit", "tab:green"),
 
 def plot_fault_study(rows: list[dict], kind: str, title: str, path: str | Path | None = None):
     """A fault study (:func:`~virtual_vehicle.analysis.sweep.fault_study`): left, the fraction of parcels delivered to
-    the right exit (mean and one standard deviation over the fault seeds) against the failure rate; middle, what became
+    the right exit against the failure rate, each fault draw a dot (rows with ``draws``; else one standard deviation
+    about the mean, cut at 0 and 1) and the mean over the draws joined by a line; middle, what became
     of the parcels due (mean per run, stacked: delivered, misrouted, lost, and those stuck on the array or never put on,
     :func:`fault_study_outcomes`) with the collisions per run; right, the mean delivery time (s) on an axis from 0, its
     spread over the rates written out. Saves a PNG to ``path`` if given."""
@@ -518,8 +519,25 @@ def plot_fault_study(rows: list[dict], kind: str, title: str, path: str | Path |
     fig, (ax, axo, axt) = plt.subplots(1, 3, figsize=(15.5, 4.6), dpi=110, gridspec_kw={"width_ratios": [1, 1.2, 1]})
     xlabel = f"{kind.replace('_', ' ')} (probability per item)"
     frac, std = col("delivered_fraction"), col("delivered_fraction_std")
-    ax.errorbar(rate, frac, yerr=std, marker="o", capsize=4, color="tab:blue")
+    span = float(np.ptp(rate)) if len(rate) > 1 else 0.0
+    # one rate: an axis about it (matplotlib's default is +-0.05 around a point, or +-0.4 % of it)
+    one = None if span > 0 else (float(rate[0]) - 0.5 * max(abs(float(rate[0])), 0.01),
+                                 float(rate[0]) + 0.5 * max(abs(float(rate[0])), 0.01))
+    if all(r.get("draws") for r in rows):  # each draw: where a rate's draws split, the mean is no draw's figure
+        jitter = 0.012 * (span if one is None else one[1] - one[0])
+        for x, r in zip(rate, rows):
+            fr = np.asarray(r["draws"]["delivered_fraction"], dtype=float)
+            offsets = np.linspace(-jitter, jitter, len(fr)) if len(fr) > 1 else np.zeros(len(fr))
+            ax.plot(x + offsets, fr, "o", ms=3.5, color="tab:blue", alpha=0.45, mec="none",
+                    label="one fault draw" if x == rate[0] else None)
+        ax.plot(rate, frac, "D-", ms=6, color="navy", label="mean over the draws")
+        ax.legend(fontsize=8, loc="best", frameon=False)
+    else:  # (rows from before the draws were kept) one standard deviation, within what a fraction can be
+        ax.errorbar(rate, frac, yerr=[np.minimum(std, frac), np.minimum(std, 1.0 - frac)], marker="o", capsize=4,
+                    color="tab:blue")
     ax.set_ylim(-0.02, 1.02)
+    if one is not None:
+        ax.set_xlim(*one)
     ax.set_xlabel(xlabel)
     ax.set_ylabel("fraction delivered to the right exit")
     ax.set_title(title)
@@ -558,6 +576,8 @@ def plot_fault_study(rows: list[dict], kind: str, title: str, path: str | Path |
     if np.any(np.isfinite(times)):
         lo, hi = float(np.nanmin(times)), float(np.nanmax(times))
         axt.text(0.03, 0.04, f"spread over the rates: {lo:.4g} .. {hi:.4g} s", transform=axt.transAxes, fontsize=8)
+    if one is not None:
+        axt.set_xlim(*one)
     axt.set_xlabel(xlabel)
     axt.set_ylabel("delivery time (s)")
     axt.grid(alpha=0.3)
