@@ -400,3 +400,34 @@ def test_wheels_catching_up_together_meet_at_one_bisected_root(speed, heading):
     assert t_event == ref_t and which == ref_which
     if heading == 0.0:
         assert abs(t_event - speed / (spec.mu * G)) <= 1e-12
+
+
+@pytest.mark.parametrize("vx, vy", [(0.3, 0.0), (0.21, -0.13)])
+def test_a_parcel_riding_a_uniform_field_moves_in_closed_form(vx, vy):
+    """A carton already at the wheels' speed rides them: no DOP853 step is taken (the mode's motion is the twist's
+    straight line) and every support event falls where a cell's centre crosses one of its edges, x_c = x0 +- L/2 +
+    v t (and the same in y), to 1e-12 s; it ends where the line does, at the wheels' speed to the bit."""
+    cells = layout.grid(30, 30, 0.1)
+    spec = parcel.rectangle(0.34, 0.26, 1.5, 0.5)
+    V = fields.Uniform((vx, vy)).velocities(cells)
+    y0 = np.array([0.731, 1.212, 0.0, vx, vy, 0.0])
+    T = 1.5
+    tr = integrate(stick_slip(cells, spec, V), y0, 0, T)
+    assert tr.status == "completed" and tr.stats["mode_changes"] == 0
+    assert tr.rhs_evals <= 2 * tr.segments  # one evaluation a mode to find it rides (DOP853: 16 a step)
+    expected = set()
+    for c, (x0, v, half) in enumerate([(y0[0], vx, 0.17), (y0[1], vy, 0.13)]):
+        lines = cells.positions[:, c]
+        for edge in (x0 - half, x0 + half):
+            for xc in np.unique(lines):
+                t = (xc - edge) / v if v else -1.0
+                if 0 < t < T:
+                    expected.add(round(t, 9))
+    got = [e.t for e in support_events(tr)]
+    assert len(got) == len(expected) >= 9
+    np.testing.assert_allclose(sorted(got), sorted(expected), atol=1e-9)
+    for e in support_events(tr):  # the state at each event on the straight line, to rounding
+        xc = [(e.state[0] - y0[0] - vx * e.t), (e.state[1] - y0[1] - vy * e.t)]
+        assert max(map(abs, xc)) <= 1e-12
+    np.testing.assert_allclose(tr.states[-1], [y0[0] + vx * T, y0[1] + vy * T, 0, vx, vy, 0], atol=1e-12)
+    assert (tr.states[-1][3], tr.states[-1][4]) == (vx, vy)

@@ -1282,13 +1282,52 @@ def _mode_crossing(md, F, z_old, t_old, h, t_lo, t_hi, v_lo, n_ev):
     return False, t_hi, -1
 
 
+RIDE_DRIFT = 1e-3
+"""A mode is a riding translation (:func:`_rides_translation`) while the acceleration it neglects moves the parcel's
+points by less than this fraction of the rounding noise in lengths over the rest of the call."""
+
+
+@njit(cache=True)
+def _rides_translation(md, f, seg, span):
+    """Whether mode ``md`` (rates ``f`` at its start) is a parcel riding its wheels in translation, or turning about
+    its centre, for the next ``span`` s: no wheel slips, no sticking wheel accelerates, and the accelerations the
+    mode gives (``f[3:6]``: those of rounding alone in such a mode) would move no point of the parcel by
+    :data:`RIDE_DRIFT` of the rounding noise over ``span``. Then the sticking wheels must supply no wrench (eqs.
+    3-5 with no acceleration; ``m omega x v`` is zero or rounding), which lies inside their zonotope whatever the
+    normal forces, so only a support event can end the mode, and the motion is the twist's, constant: the centre
+    moves at ``v``, the heading at ``omega``."""
+    state, wa = md[10], md[3]
+    for j in range(state.shape[0]):
+        if state[j] == 1 or state[j] == -1 or (state[j] == 0 and wa[j] != 0.0):
+            return False
+    drift = 0.5 * span * span * (math.hypot(f[3], f[4]) + abs(f[5]) * seg.reach)
+    return drift <= RIDE_DRIFT * seg.noise_length
+
+
+@njit(cache=True)
+def _linear_motion(z, f, h, z_new, F):
+    """A riding translation's step of ``h`` s from ``z`` (rates ``f``): the pose moves with the constant twist, the
+    velocities stay, the energy account moves at its rates (zero but for rounding); ``F`` the dense output that
+    :func:`dense_at` reads as that straight line (its highest-order row the change, the others zero)."""
+    for j in range(_MODE_STATE):
+        z_new[j] = z[j] + (h * z[3 + j] if j < 3 else (h * f[j] if j >= 6 else 0.0))
+    for r in range(F.shape[0]):
+        for j in range(_MODE_STATE):
+            F[r, j] = 0.0
+    for j in range(_MODE_STATE):
+        F[0, j] = z_new[j] - z[j]  # dense_at's Horner form multiplies row 0 by x last (an odd number of rows)
+
+
 @njit(cache=True)
 def run_mode(md, n_ev, fields, y_base, t, z, t_bound, h_abs, first_step, rtol, atol, max_step, max_steps,
              sample_times, next_sample, samples):
     """:func:`run_piece` for one mode ``md`` (:func:`mode_fields`, with ``n_ev`` mode event values) of a law with
     modes on one piece (segment ``fields``): DOP853 on the 8-long state ``z`` (the parcel's six, the wheels' work
     and the friction dissipation, J) until its first support event (as :func:`run_piece` finds and locates them),
-    its first mode event (:func:`_mode_crossing`), ``max_steps`` steps or ``t_bound``.
+    its first mode event (:func:`_mode_crossing`), ``max_steps`` steps or ``t_bound``. A riding translation
+    (:func:`_rides_translation`: the parcel carried by its sticking wheels without acceleration) takes no DOP853
+    step: its motion is the straight line of its twist (:func:`_linear_motion`), searched for support events as a
+    step is, with no mode event to look for.
 
     Returns (outcome, t, z, h_abs, last step, evaluations, next_sample, probe time, probe state, the cells under
     the footprint at the probe, whether those tell, the mode event's value index). On ``EVENT`` and ``MODE_EVENT``
@@ -1303,8 +1342,10 @@ def run_mode(md, n_ev, fields, y_base, t, z, t_bound, h_abs, first_step, rtol, a
     f, z_new, f_new, work = np.empty(8), np.empty(8), np.empty(8), np.empty(8)
     z = z.copy()
     _mode_rhs(md, t, z, f)
+    riding = _rides_translation(md, f, seg, t_bound - t)
     v_lo = np.empty(n_ev)
-    mode_values(md, t, z, v_lo)
+    if not riding:
+        mode_values(md, t, z, v_lo)
     nfev = 1
     if first_step > 0:
         h_abs = first_step
@@ -1315,16 +1356,25 @@ def run_mode(md, n_ev, fields, y_base, t, z, t_bound, h_abs, first_step, rtol, a
     while t < t_bound:
         if steps == max_steps:
             return PAUSED, t, z, h_abs, last, nfev, next_sample, t, y_probe, none, False, -1
-        ok, t_new, h_next, evals = _mode_step(md, t, z, f, t_bound, h_abs, rtol, atol, max_step, K, z_new, f_new,
-                                              work)
-        nfev += evals
-        if not ok:
-            return FAILED, t, z, h_abs, last, nfev, next_sample, t, y_probe, none, False, -1
-        steps += 1
-        h = t_new - t
-        last = h
-        nfev += _mode_dense(md, t, z, f, z_new, f_new, h, K, F, work)
-        moded, t_mode, which = _mode_crossing(md, F, z, t, h, t, t_new, v_lo, n_ev) if n_ev else (False, t_new, -1)
+        if riding:  # the motion in closed form: no step to take, no mode event to meet (the step size kept)
+            t_new = min(t_bound, t + max_step)
+            h, h_next = t_new - t, h_abs
+            _linear_motion(z, f, h, z_new, F)
+            f_new[:] = f
+            steps += 1
+            moded, t_mode, which = False, t_new, -1
+        else:
+            ok, t_new, h_next, evals = _mode_step(md, t, z, f, t_bound, h_abs, rtol, atol, max_step, K, z_new,
+                                                  f_new, work)
+            nfev += evals
+            if not ok:
+                return FAILED, t, z, h_abs, last, nfev, next_sample, t, y_probe, none, False, -1
+            steps += 1
+            h = t_new - t
+            last = h
+            nfev += _mode_dense(md, t, z, f, z_new, f_new, h, K, F, work)
+            moded, t_mode, which = (_mode_crossing(md, F, z, t, h, t, t_new, v_lo, n_ev) if n_ev
+                                    else (False, t_new, -1))
         t_end = t_mode if moded else t_new
         found, t_a, t_b, changed, g_a, g_b = _first_change(seg, F, z, t, h, g0, t, t_end, f, f_new)
         t_reach = t_end
@@ -1348,7 +1398,8 @@ def run_mode(md, n_ev, fields, y_base, t, z, t_bound, h_abs, first_step, rtol, a
         t = t_new
         z[:] = z_new
         f[:] = f_new
-        mode_values(md, t, z, v_lo)
+        if not riding:
+            mode_values(md, t, z, v_lo)
         h_abs = h_next
     return REACHED, t, z, h_abs, last, nfev, next_sample, t, y_probe, none, False, -1
 
