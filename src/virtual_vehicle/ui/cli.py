@@ -187,6 +187,7 @@ def resume_cmd(
     try:
         formats = _formats(formats)
         _check_out(out_dir, keep=(checkpoint,))
+        _load_engine()
         result = resume(checkpoint, progress=bar)
     except VirtualVehicleError as exc:
         bar.close()
