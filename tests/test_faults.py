@@ -106,6 +106,9 @@ def test_the_fault_study_measures_delivery_against_failure_rate(tmp_path):
     study = json.loads((out / "study.json").read_text())
     clean, broken = study["rows"]
     assert (clean["rate"], broken["rate"]) == (0.0, 0.3) and clean["runs"] == broken["runs"] == 2
+    # at rate 0 both seeds draw no fault: one run, counted for each; at 30 % two draws, two runs
+    assert (clean["distinct_runs"], broken["distinct_runs"]) == (1, 2)
+    assert len(list((out / "runs").glob("*.json"))) == 3
     sc, _ = load_scenario("sorting_junction")
     direct = run(sc.model_copy(update={"duration": 14.0}).build()).summary()["sorting"]
     due = sum(p.t_start <= 14.0 for p in sc.parcels)

@@ -125,6 +125,17 @@ class SweepSpec(BaseModel):
         return out
 
 
+class _Points(SweepSpec):
+    """A grid sweep of the given ``points`` only (each a variation of the grid ``vary`` spans), as the fault study
+    runs one draw of several seeds that draw the same faults. Each point's run id is its grid id, so a study folder
+    made before keeps its runs."""
+
+    points: list[dict[str, Scalar]]
+
+    def variations(self) -> list[dict[str, Scalar]]:
+        return [dict(p) for p in self.points]
+
+
 def load_sweep(path: str | Path) -> tuple[SweepSpec, dict]:
     """Read and validate a sweep file; returns the spec and the base scenario's raw tables. Raises ScenarioError."""
     from virtual_vehicle.config.scenario import load_scenario
@@ -467,12 +478,32 @@ def write_summary(rows: list[dict], out: Path) -> Path:
 FAULT_KINDS = ("dead_cell_rate", "stuck_wheel_rate", "free_wheel_rate", "dead_link_rate", "stuck_sensor_rate")
 
 
+def _drawn(sc, kind: str, rate: float, seed: int):
+    """The built scenario ``sc`` with its faults' ``kind`` rate and seed set to ``rate`` and ``seed``."""
+    return sc.model_copy(update={"faults": sc.faults.model_copy(update={kind: rate, "seed": int(seed)})}).build()
+
+
+def _draw_key(setup) -> bytes:
+    """What a built scenario's fault draw is, as bytes: two draws with the same key make the same run (the fault
+    seed draws nothing else)."""
+    f = setup.faults
+    if f is None:
+        return b"none"
+    return b"|".join([np.ascontiguousarray(a).tobytes() for a in (f.dead_cells, f.stuck_wheels, f.free_wheels,
+                                                                     f.stuck_on, f.stuck_off)]
+                     + [repr(f.dead_links).encode()])
+
+
 def exits_reachable(sc, kind: str, rate: float, seed: int) -> bool:
     """Whether, in the fault draw ``seed`` at ``rate`` of fault ``kind`` (a scenario's faults with those two
     changed), every exit of the sorting scenario ``sc`` stays reachable: some live cell of each exit lane is joined to
     a live entry cell by live cells and links (the cells' graph; whether a parcel's body fits the way is the
     sorter's business). Kinds that cut nothing (wheels, sensors) leave every exit reachable."""
-    setup = sc.model_copy(update={"faults": sc.faults.model_copy(update={kind: rate, "seed": int(seed)})}).build()
+    return _reachable(_drawn(sc, kind, rate, seed))
+
+
+def _reachable(setup) -> bool:
+    """:func:`exits_reachable` of a built scenario."""
     cfg, topo, faults = setup.control.config, setup.control.topology, setup.faults
     dead = np.zeros(topo.n, bool) if faults is None else np.asarray(faults.dead_cells, bool)
     cut = set() if faults is None else {tuple(x) for x in faults.dead_links}
@@ -500,7 +531,9 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
                 progress: Callable[[float], None] | None = None, retry_failed: bool = False) -> list[dict]:
     """Monte-Carlo study of a sorting scenario against a failure rate: for each rate in ``rates`` (probability per
     item of fault ``kind``, one of :data:`FAULT_KINDS`), ``samples`` runs with fault seeds 0..samples-1, as a sweep
-    in ``out_dir`` (resumable; see :func:`run_sweep`). Returns one row per rate: ``rate``, ``runs``, ``failed``,
+    in ``out_dir`` (resumable; see :func:`run_sweep`); seeds that draw the same faults (every seed at rate 0, where
+    the scenario has no other fault rate) make the same run, which is run once and counted for each of them. Returns
+    one row per rate: ``rate``, ``runs`` (the draws, ``samples``), ``distinct_runs`` (those run), ``failed``,
     ``delivered_fraction`` (parcels at their right exit / parcels due by the end of the run, ``t_start`` <= duration;
     mean and std over the seeds),
     ``delivery_time_mean_s``, ``collisions``, ``misrouted``, ``lost`` (means), and the parcels due that were
@@ -509,7 +542,8 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
     ``deadlocked`` (in a deadlock the run's report names: a cycle of holds, see
     :func:`~virtual_vehicle.cells.programs.sort.stalls`), each a mean over the seeds of the runs that finished; and
     ``draws``: each kept draw's ``seed`` and ``delivered_fraction`` (lists, by seed: a mean and a standard deviation
-    hide that at a high rate some draws deliver nearly all and others nothing); also written to ``study.json``. ``retry_failed``: see :func:`run_sweep`.
+    hide that at a high rate some draws deliver nearly all and others nothing); also written to ``study.json``.
+    ``retry_failed``: see :func:`run_sweep`.
 
     The means are over the draws in which every exit stays reachable from an entry over live cells and links
     (:func:`exits_reachable`; a draw that cuts an exit off measures the draw, not the sorter): ``unreachable`` counts
@@ -540,17 +574,30 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
     due = sum(p.t_start <= end for p in sc.parcels)  # parcels put on by the end; later ones cannot count
     if due == 0:
         raise ScenarioError("duration", f"no parcel is put on the array within {end:g} s: nothing to deliver")
-    spec = SweepSpec(base=scenario, vary={f"faults.{kind}": rates, "faults.seed": list(range(int(samples)))})
+    # the draws first: seeds that draw the same faults make the same run (at rate 0 with no other fault rate in the
+    # scenario, every seed), which runs once and counts for each of them
+    same, kept_of = {}, {}
+    for rate in rates:
+        first: dict[bytes, int] = {}
+        for seed in range(int(samples)):
+            setup = _drawn(sc, kind, rate, seed)
+            same[rate, seed] = first.setdefault(_draw_key(setup), seed)
+            if same[rate, seed] == seed:
+                kept_of[rate, seed] = _reachable(setup)
+    points = [{f"faults.{kind}": rate, "faults.seed": seed} for rate in rates for seed in range(int(samples))
+              if same[rate, seed] == seed]
+    spec = _Points(base=scenario, vary={f"faults.{kind}": rates, "faults.seed": list(range(int(samples)))},
+                   points=points)
     res = run_sweep(spec, base, out_dir, scheduler=scheduler, workers=workers, progress=progress,
                     retry_failed=retry_failed)
     import pyarrow.parquet as pq
 
-    table = pq.read_table(res["summary"]).to_pylist()
+    ran = {(r[f"vary.faults.{kind}"], r["vary.faults.seed"]): r for r in pq.read_table(res["summary"]).to_pylist()}
     rows = []
-    for rate in rates:
-        sel = [r for r in table if r[f"vary.faults.{kind}"] == rate]
+    for rate in rates:  # each seed's row: its own run's, or that of the first seed that drew the same faults
+        sel = [dict(ran[rate, same[rate, seed]], **{"vary.faults.seed": seed}) for seed in range(int(samples))]
         done = [r for r in sel if r["status"] == "ok"]
-        kept = {seed for seed in range(int(samples)) if exits_reachable(sc, kind, rate, seed)}
+        kept = {seed for seed in range(int(samples)) if kept_of[rate, same[rate, seed]]}
         ok = [r for r in done if r["vary.faults.seed"] in kept]
         frac = np.array([r["sorting.correct"] / due for r in ok])
 
@@ -564,7 +611,9 @@ def fault_study(scenario: str, kind: str, rates, samples: int, out_dir: str | Pa
             r["deadlocked"] = r.get("sorting.stalled.deadlock")
         every = [r["sorting.correct"] / due for r in done]
         by_seed = sorted((r["vary.faults.seed"], r["sorting.correct"] / due) for r in ok)
-        rows.append({"rate": rate, "runs": len(sel), "failed": len(sel) - len(done), "parcels_due": due,
+        distinct = len({same[rate, seed] for seed in range(int(samples))})
+        rows.append({"rate": rate, "runs": len(sel), "distinct_runs": distinct, "failed": len(sel) - len(done),
+                     "parcels_due": due,
                      "unreachable": int(samples) - len(kept),
                      "delivered_fraction_all": float(np.mean(every)) if every else None,
                      "delivered_fraction": float(frac.mean()) if len(frac) else None,
