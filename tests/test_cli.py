@@ -94,7 +94,7 @@ def test_default_run_names_its_folder(tmp_path):
 def test_a_run_compiles_first_and_says_so_where_these_sources_have_no_compiled_code(tmp_path, monkeypatch):
     """Where the cache folder for this checkout's sources holds no compiled code (the first run after they changed),
     `run` compiles the engine before it builds and times the run, saying so; where it holds some, it loads it
-    before the run just as well (its wall time is the simulation's), without saying it compiles."""
+    (silently) before the run just as well, so that the run's wall time is the simulation's."""
     import virtual_vehicle.run.warm as warm
 
     calls = []
@@ -104,12 +104,28 @@ def test_a_run_compiles_first_and_says_so_where_these_sources_have_no_compiled_c
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(empty))
     result = runner.invoke(app, ["run", "--out", str(tmp_path / "a"), "--no-plot"])
     assert result.exit_code == 0, result.output
-    assert calls == [1] and "compiling the event engine" in result.output
+    assert calls == [1, 1] and "compiling the event engine" in result.output  # compiled, then loaded (at once)
     (empty / "engine_x").mkdir()
     (empty / "engine_x" / "_kernel.f-1.py311.nbi").write_bytes(b"")
     result = runner.invoke(app, ["run", "--out", str(tmp_path / "b"), "--no-plot"])
     assert result.exit_code == 0, result.output
-    assert calls == [1, 1] and "compiling" not in result.output
+    assert calls == [1, 1, 1] and "compiling" not in result.output and "loading" not in result.output
+
+
+def test_a_bad_scenario_fails_before_the_engine_is_loaded(tmp_path, monkeypatch):
+    """An invalid scenario is refused as it is built, before a second is spent loading the compiled engine, and
+    the error is the one line on stderr."""
+    import virtual_vehicle.run.warm as warm
+
+    calls = []
+    monkeypatch.setattr(warm, "warm_up", lambda: calls.append(1) or 0.0)
+    from virtual_vehicle.config.scenario import load_scenario
+
+    path = tmp_path / "coarse.toml"
+    path.write_text(load_scenario("prototype_18")[1] + '\n[integrator]\nmode = "fixed"\ndt = 0.5\n')
+    result = runner.invoke(app, ["run", str(path), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 2 and "integrator.dt" in result.output, result.output
+    assert calls == []
 
 
 def test_scenarios_and_check_commands():
