@@ -629,8 +629,8 @@ def fault_study_cmd(
     for r in rows:
         draws = r["draws"]["delivered_fraction"]
         table.add_row(fmt(r["rate"]), f"{fmt(r['delivered_fraction'])} ± {fmt(r['delivered_fraction_std'])}",
-                      f"{fmt(min(draws))} .. {fmt(max(draws))}" if draws else "n/a", fmt(r["delivery_time_mean_s"]), fmt(r["collisions"]), fmt(r["misrouted"]), fmt(r["lost"]),
-                      str(r["failed"]))
+                      f"{fmt(min(draws))} .. {fmt(max(draws))}" if draws else "n/a", fmt(r["delivery_time_mean_s"]),
+                      fmt(r["collisions"]), fmt(r["misrouted"]), fmt(r["lost"]), str(r["failed"]))
     out.print(table)
     out.print(f"written to {out_dir}/study.json, study.png and summary.parquet")
     _runs_failed({"failed": sum(r["failed"] for r in rows), "lost": 0, "runs": sum(r["runs"] for r in rows),
