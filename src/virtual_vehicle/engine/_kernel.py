@@ -1249,11 +1249,10 @@ def _mode_crossing(md, F, z_old, t_old, h, t_lo, t_hi, v_lo, n_ev):
         t_b = t_lo + (t_hi - t_lo) * s / SUBSAMPLES if s < SUBSAMPLES else t_hi
         _dense_all(F, z_old, t_old, h, t_b, y)
         mode_values(md, t_b, y, v)
-        any_falling = False
         for k in range(n_ev):
             falling[k] = prev[k] > 0 and not v[k] > 0
-            any_falling = any_falling or falling[k]
-        if any_falling:
+        which = _first_down(falling, v)
+        if which >= 0:
             lo, hi = t_a, t_b
             while hi - lo > max(4 * eps * abs(hi), 1e-15):
                 mid = 0.5 * (lo + hi)
@@ -1261,25 +1260,24 @@ def _mode_crossing(md, F, z_old, t_old, h, t_lo, t_hi, v_lo, n_ev):
                     break
                 _dense_all(F, z_old, t_old, h, mid, y)
                 mode_values(md, mid, y, v)
-                down = False
-                for k in range(n_ev):
-                    down = down or (falling[k] and not v[k] > 0)
-                if down:
-                    hi = mid
+                k = _first_down(falling, v)
+                if k >= 0:
+                    hi, which = mid, k
                 else:
                     lo = mid
-            _dense_all(F, z_old, t_old, h, hi, y)
-            mode_values(md, hi, y, v)
-            which, least = -1, np.inf
-            for k in range(n_ev):
-                if falling[k] and not v[k] > 0:
-                    return True, hi, k
-                if falling[k] and v[k] < least:  # (unreachable: the values at hi are those that moved it there)
-                    which, least = k, v[k]
             return True, hi, which
         prev[:] = v
         t_a = t_b
     return False, t_hi, -1
+
+
+@njit(cache=True)
+def _first_down(falling, v):
+    """The first of the values marked ``falling`` that is at or below zero in ``v``; -1 for none."""
+    for k in range(v.shape[0]):
+        if falling[k] and not v[k] > 0:
+            return k
+    return -1
 
 
 RIDE_DRIFT = 1e-3

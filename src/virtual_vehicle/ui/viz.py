@@ -521,15 +521,14 @@ def plot_fault_study(rows: list[dict], kind: str, title: str, path: str | Path |
     frac, std = col("delivered_fraction"), col("delivered_fraction_std")
     span = float(np.ptp(rate)) if len(rate) > 1 else 0.0
     # one rate: an axis about it (matplotlib's default is +-0.05 around a point, or +-0.4 % of it)
-    one = None if span > 0 else (float(rate[0]) - 0.5 * max(abs(float(rate[0])), 0.01),
-                                 float(rate[0]) + 0.5 * max(abs(float(rate[0])), 0.01))
+    half = 0.5 * max(abs(float(rate[0])), 0.01)
+    one = None if span > 0 else (float(rate[0]) - half, float(rate[0]) + half)
     if all(r.get("draws") for r in rows):  # each draw: where a rate's draws split, the mean is no draw's figure
         jitter = 0.012 * (span if one is None else one[1] - one[0])
-        for x, r in zip(rate, rows):
+        for j, (x, r) in enumerate(zip(rate, rows)):
             fr = np.asarray(r["draws"]["delivered_fraction"], dtype=float)
-            offsets = np.linspace(-jitter, jitter, len(fr)) if len(fr) > 1 else np.zeros(len(fr))
-            ax.plot(x + offsets, fr, "o", ms=3.5, color="tab:blue", alpha=0.45, mec="none",
-                    label="one fault draw" if x == rate[0] else None)
+            ax.plot(x + np.linspace(-jitter, jitter, len(fr)) * (len(fr) > 1), fr, "o", ms=3.5, color="tab:blue",
+                    alpha=0.45, mec="none", label="one fault draw" if j == 0 else None)
         ax.plot(rate, frac, "D-", ms=6, color="navy", label="mean over the draws")
         ax.legend(fontsize=8, loc="best", frameon=False)
     else:  # (rows from before the draws were kept) one standard deviation, within what a fraction can be
