@@ -28,6 +28,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from virtual_vehicle.engine.batch import QuietStep, QuietStepper
+from virtual_vehicle.engine.glide import GlideStepper
 from virtual_vehicle.engine.ride import RideStepper
 from virtual_vehicle.engine.dynamics import MODES, ParcelModel, integrate_prechecked
 from virtual_vehicle.engine.stepping import Event, Trajectory, diff_event, sample_grid, sampled_at
@@ -63,7 +64,8 @@ class Integration:
     ``max_step``), windows proven quiet are stepped for all parcels at once (:mod:`virtual_vehicle.engine.batch`: the
     same single DOP853 step the event-driven engine would take, all in one compiled call); under the stick-slip law,
     windows in which a parcel is proven to ride its wheels rigidly are stepped for all such parcels at once in closed
-    form (:mod:`virtual_vehicle.engine.ride`)."""
+    form (:mod:`virtual_vehicle.engine.ride`), and a parcel translating over one uniform field takes its window,
+    catch-ups and support events included, in closed form (:mod:`virtual_vehicle.engine.glide`)."""
 
     mode: str = "event"
     rtol: float = 1e-10
@@ -153,6 +155,9 @@ class Plant:
         if (integration.batch and integration.mode == "event" and np.isinf(integration.max_step)
                 and getattr(law, "modes", False)):
             self._ride = RideStepper(cells, self.specs, law, gravity)
+        self._glide = None  # stick-slip parcels translating over one uniform field: their windows in closed form
+        if self._ride is not None and GlideStepper.serves(cells):
+            self._glide = GlideStepper(cells, self.specs, gravity)
 
     def state(self) -> dict:
         """What a checkpoint keeps of the plant, as data (arrays and plain values): its record
@@ -483,6 +488,14 @@ class Plant:
                     for k, i in enumerate(riding.idx):
                         parts[i].append(QuietStep(i, riding, k))
                         ys[i] = last[k]
+            if self._glide is not None:
+                glided, rest = self._glide.step(models, rest, ys, t, te, samples)
+                for i, tr in glided.items():
+                    if tr.events:
+                        for stepper in (self._quiet, self._ride):  # its anchor's piece may no longer hold
+                            if stepper is not None:
+                                stepper.forget(i)
+                    self._take(i, tr, ys, active, parts)
             for i in rest:
                 known = None if self._quiet is None else self._quiet.hand_over(i, models[i], ys[i])
                 tr = integrate_prechecked(models[i], ys[i], t, te, samples, mode=integ.mode, rtol=integ.rtol,
