@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_scale  # noqa: E402
 
 from virtual_vehicle.config.scenario import parse_scenario  # noqa: E402
-from virtual_vehicle.engine import plant, ride  # noqa: E402
+from virtual_vehicle.engine import glide, plant, ride  # noqa: E402
 from virtual_vehicle.run import sim  # noqa: E402
 from virtual_vehicle.run.warm import warm_up  # noqa: E402
 
@@ -51,6 +51,7 @@ PHASES = [(sim.NetworkRun, "tick", "tick"),
           (ride.RideStepper, "_ride_data", "      ride data in Python"),
           (ride.RideStepper, "_riding", "      proof"),
           (ride, "rigid_motion", "      closed form"),
+          (glide.GlideStepper, "step", "    glide step (translating over a uniform field)"),
           (plant, "integrate_prechecked", "    exact path (windows not riding)"),
           (sim.ParcelTrack, "add_quiet", "    tracks: blocks"),
           (sim.ParcelTrack, "add", "    tracks: trajectories")]
@@ -74,13 +75,16 @@ def main() -> None:
         res = job.run(None)
         wall = time.perf_counter() - start
         if best is None or wall < best[0]:
-            best = wall, dict(TOTAL), dict(CALLS), res.stats["plant"]["quiet_steps"]
-    wall, total, calls, rides = best
+            g = job.plant._glide
+            reasons = {} if g is None else {r: int(c) for r, c in zip(glide.REASONS, g.reasons) if c}
+            best = wall, dict(TOTAL), dict(CALLS), res.stats["plant"]["quiet_steps"], reasons
+    wall, total, calls, rides, reasons = best
     print(f"# {wall:.3f} s wall for {args.seconds} s simulated; {rides} parcel windows rode")
     for _, _, label in PHASES:
         if calls.get(label):
             each = 1e6 * total[label] / calls[label]
             print(f"{label:36s} {total[label]:8.3f} s {calls[label]:8d} calls {each:10.1f} us a call")
+    print("# glide: parcel windows written in closed form, and why the others went on to the exact path:", reasons)
 
 
 if __name__ == "__main__":

@@ -4,7 +4,8 @@ Units: SI (m, s, kg, N, J, rad).
 
 Under the stick-slip law (:mod:`virtual_vehicle.physics.stick_modes`) take a square lattice whose every cell has its
 two wheels, along the same two orthogonal directions ``e1`` and ``e2`` in every cell, and a parcel that does not
-turn, over cells that all move at one surface velocity ``u``. Each wheel carries its cell's whole normal force
+turn, whose cells under it all move at one surface velocity ``u`` over the window (those around it may do anything:
+they push nothing). Each wheel carries its cell's whole normal force
 (eq. 21) and the normal forces balance the weight and its moments about the centre of mass (eqs. 3-5, 19), so
 ``sum N_i = W`` and ``sum N_i r_i = 0``. With ``s_k = (v - u) . e_k`` the slip along axis ``k``:
 
@@ -49,7 +50,7 @@ LIFT = 1e-9
 pull, is the engine's to find)."""
 
 _OK, _TURNS, _UNSURE_SLIP, _NOT_UNIFORM, _NO_GRIP, _NO_SUPPORT, _CLOSE, _LINE, _LIFTS, _WIDE = range(10)
-REASONS = ("glides", "turns", "a slip too close to zero to call", "wheels not one uniform field", "no friction",
+REASONS = ("glides", "turns", "a slip too close to zero to call", "cells under it moving otherwise", "no friction",
            "no cell under it", "events too close together", "support on one line", "a cell lifting off",
            "more events than the arrays hold")
 """Why :func:`glide_window` hands a window back, by its code."""
@@ -125,7 +126,27 @@ def glide_window(points, order, start, lo0, lo1, size, nx, ny, present, position
     ids = _within(points, order, start, lo0, lo1, size, nx, ny, present, y[0], y[1], radius)
     if ids.shape[0] == 0:
         return _NO_SUPPORT, none6, noneE, none6, nonei, nonei, mode, 0.0, 0.0
-    u = V[ids[0]]
+    # the wheels' velocity: a cell under the footprint now's (every cell under it in the window must have it)
+    c_, s_ = math.cos(y[2]), math.sin(y[2])
+    K = normals.shape[0]
+    wn = np.empty((K, 2))
+    for q in range(K):
+        wn[q, 0] = c_ * normals[q, 0] - s_ * normals[q, 1]
+        wn[q, 1] = s_ * normals[q, 0] + c_ * normals[q, 1]
+    under = -1
+    for c in range(ids.shape[0]):
+        px, py = positions[ids[c], 0] - y[0], positions[ids[c], 1] - y[1]
+        inside = True
+        for q in range(K):
+            if offsets[q] - (wn[q, 0] * px + wn[q, 1] * py) <= 0.0:
+                inside = False
+                break
+        if inside:
+            under = ids[c]
+            break
+    if under < 0:
+        return _NO_SUPPORT, none6, noneE, none6, nonei, nonei, mode, 0.0, 0.0
+    u = V[under]
     # the axes: slip, mode, catch-up time
     g = mu * gravity
     W = mass * gravity
@@ -165,9 +186,6 @@ def glide_window(points, order, start, lo0, lo1, size, nx, ny, present, position
             far = max(far, abs(x))
         reach += far
     ids = _within(points, order, start, lo0, lo1, size, nx, ny, present, y[0], y[1], radius + reach + 1e-9)
-    for c in range(ids.shape[0]):
-        if V[ids[c], 0] != u[0] or V[ids[c], 1] != u[1]:
-            return _NOT_UNIFORM, none6, noneE, none6, nonei, nonei, mode, 0.0, 0.0
     # the phases: the window cut at each axis' catch-up
     cuts = np.empty(4)
     cuts[0], nc = 0.0, 1
@@ -179,12 +197,6 @@ def glide_window(points, order, start, lo0, lo1, size, nx, ny, present, position
     nc += 1
     cuts = np.sort(cuts[:nc])
     # each edge margin of each cell: o - n.(p - X) with n the edge's world normal, a quadratic in tau by phase
-    c_, s_ = math.cos(y[2]), math.sin(y[2])
-    K = normals.shape[0]
-    wn = np.empty((K, 2))
-    for q in range(K):
-        wn[q, 0] = c_ * normals[q, 0] - s_ * normals[q, 1]
-        wn[q, 1] = s_ * normals[q, 0] + c_ * normals[q, 1]
     m = ids.shape[0]
     roots = np.empty(m * K * 2 * (nc - 1) + 2)
     nr = 0
@@ -263,6 +275,10 @@ def glide_window(points, order, start, lo0, lo1, size, nx, ny, present, position
                 ne += 1
             npieces += 1
         lo = hi
+    # every cell that comes under the footprint moves at the wheels' velocity (the others push nothing)
+    for r in range(offs[npieces]):
+        if V[pool[r], 0] != u[0] or V[pool[r], 1] != u[1]:
+            return _NOT_UNIFORM, none6, noneE, none6, nonei, nonei, mode, 0.0, 0.0
     # each piece's normal forces (eq. 7 by the 3 x 3 moment system, every cell in contact), over its span
     for p in range(npieces):
         a, b = offs[p], offs[p + 1]
