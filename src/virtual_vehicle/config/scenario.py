@@ -286,7 +286,9 @@ class IntegratorSpec(_Strict):
     event mode without ``max_step``, control ticks proven free of support changes are stepped for all parcels at once
     (the event engine's own single DOP853 step, in one compiled call; see :mod:`virtual_vehicle.engine.batch`), and
     under the stick-slip law those in which a parcel rides its wheels rigidly take the rigid motion in closed form
-    (:mod:`virtual_vehicle.engine.ride`); false integrates every parcel on its own. Where support changes chatter (a sliding mode: a parcel held on a boundary
+    (:mod:`virtual_vehicle.engine.ride`), and those translating over one uniform field take their catch-ups and
+    support events in closed form (:mod:`virtual_vehicle.engine.glide`); false integrates every parcel on its own.
+    Where support changes chatter (a sliding mode: a parcel held on a boundary
     between support sets whose pieces each push it into the other), event mode crosses that boundary in fixed RK4 steps
     of ``dt`` and counts them as the parcel's ``chatter_steps``.
 
