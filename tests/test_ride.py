@@ -270,3 +270,14 @@ def test_a_track_takes_rides_as_their_trajectories():
         assert (tx.segments, tx.rhs_evals, tx.status, tx.t_end) == (ty.segments, ty.rhs_evals, ty.status, ty.t_end)
         assert tx.stats == ty.stats
         assert [type(v) for v in tx.stats.values()] == [type(v) for v in ty.stats.values()]
+
+
+def test_a_parcel_slipping_on_a_wheel_under_it_is_not_measured():
+    """A parcel at rest on moving wheels slips on the cell under its centre: it cannot ride, so the ride stepper
+    makes it no anchor (its window goes to the exact path); a parcel at its wheels' speed is measured and rides."""
+    V = aisle(0.3, 0.0)
+    plant = Plant(CELLS, [SPEC, SPEC], laws.StickSlipLaw())
+    ys = [np.array([0.6, 0.7, 0.0, 0.0, 0.0, 0.0]), np.array([2.0, 0.7, 0.0, 0.3, 0.0, 0.0])]
+    (slipping, riding), quiet = plant.advance_blocks(ys, [True, True], V, 0.0, PERIOD, PERIOD)
+    assert 0 not in plant._ride.anchors and 1 in plant._ride.anchors
+    assert slipping is not None and riding is None and [q.parcel for q in quiet] == [1]

@@ -51,12 +51,13 @@ power is the wrench times the twist, ``m (omega x v) . v = 0``.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from virtual_vehicle.engine import _kernel
 from virtual_vehicle.engine.batch import QuietStepper, QuietSteps, _padded_row
 from virtual_vehicle.engine.dynamics import ROUNDING_NOISE
 from virtual_vehicle.engine.stepping import Trajectory
-from virtual_vehicle.model.parcel import _ALL
+from virtual_vehicle.model.parcel import _ALL, _within
 
 RIDE_TOL = 1e-10
 """A parcel rides the field when its twist differs from the field's by less than this, relative to the speed scale
@@ -86,6 +87,33 @@ def rigid_motion(Y: np.ndarray, times: np.ndarray, t: float) -> np.ndarray:
     out[..., 4] = sin_a * vx + cos_a * vy
     out[..., 5] = w
     out[:, 0] = Y  # the window's start exactly
+    return out
+
+
+@njit(cache=True)
+def slipping_under(points, order, start, lo0, lo1, size, nx, ny, present, active, directions, V, Y, inner, out):
+    """Whether each parcel at state ``Y[k]`` (x, y, theta m m rad, vx, vy m/s, omega rad/s) slips on a wheel of a
+    cell certainly under it (its centre within ``inner[k]`` m of the parcel's centre: the footprint's inradius,
+    0 for none) by more than a millionth of the speed scale, into ``out``: such a parcel does not ride its wheels
+    (every wheel in contact must stick, to 1e-10 of the speed scale), so measuring its proof would be wasted. The
+    grid's arrays as :func:`~virtual_vehicle.model.parcel._within` takes them; ``active`` (n, 2), ``directions``
+    (n, 2, 2) and ``V`` (n, 2) m/s the contact layer's wheels and velocities."""
+    for k in range(Y.shape[0]):
+        out[k] = False
+        if not inner[k] > 0.0:
+            continue
+        x, y, vx, vy, om = Y[k, 0], Y[k, 1], Y[k, 3], Y[k, 4], Y[k, 5]
+        ids = _within(points, order, start, lo0, lo1, size, nx, ny, present, x, y, inner[k])
+        for c in range(ids.shape[0]):
+            i = ids[c]
+            px, py = vx - om * (points[i, 1] - y), vy + om * (points[i, 0] - x)  # the parcel's velocity there
+            dx, dy = px - V[i, 0], py - V[i, 1]
+            scale = 1e-6 * max(1e-3, abs(px) + abs(py), abs(V[i, 0]) + abs(V[i, 1]))
+            for w in range(2):
+                if active[i, w] and abs(dx * directions[i, w, 0] + dy * directions[i, w, 1]) > scale:
+                    out[k] = True
+            if out[k]:
+                break
     return out
 
 
@@ -163,6 +191,13 @@ class RideStepper(QuietStepper):
         self._reach = np.array([s.radius + b for s, b in zip(specs, self._buffer.tolist())])
         self._noise_len = np.array([ROUNDING_NOISE * max(self.length, s.radius) for s in specs])
         self._noise_force = np.array([ROUNDING_NOISE * s.weight(gravity) for s in specs])
+        # the footprint's inradius about its centre (m; 0: a polygon, not looked at): cells within it are under it
+        self._inner = np.zeros(n)
+        for i, o in enumerate(outlines):
+            if o[0] == _kernel.RECTANGLE:
+                self._inner[i] = min(o[2])
+            elif o[0] == _kernel.CONVEX and len(o[4]):
+                self._inner[i] = max(0.0, min(o[4]))
         self._mu = np.array([float(s.mu) for s in specs])
         self._mu_s = np.array([float(s.mu if s.mu_static is None else s.mu_static) for s in specs])
         # ... and its last anchor's solution, where it is the first of its pattern's (else ``_known`` False)
@@ -223,6 +258,16 @@ class RideStepper(QuietStepper):
             V[support] = w[:len(support)]
             self._ride_data(i, V)
             self._keep(i, y, V)
+
+    def _slipping(self, idx: np.ndarray, Y: np.ndarray, velocities: np.ndarray, present) -> np.ndarray:
+        """Which parcels ``idx`` at states ``Y`` slip on a wheel certainly under them (:func:`slipping_under`), of the
+        cells ``present`` (None: all)."""
+        grid, cells = self.cells.grid, self.cells
+        present = _ALL if present is None else present
+        return slipping_under(grid.points, grid.order, grid.start, float(grid.lo[0]), float(grid.lo[1]),
+                              float(grid.size), int(grid.shape[0]), int(grid.shape[1]), present, cells.wheel_active,
+                              cells.drive_directions, np.ascontiguousarray(velocities, dtype=float), Y,
+                              self._inner[idx], np.empty(len(idx), dtype=np.bool_))
 
     def _keep(self, i: int, y: np.ndarray, velocities: np.ndarray) -> None:
         """Keep parcel ``i``'s proof, its anchor measured at state ``y`` under ``velocities`` (m/s)."""
@@ -390,6 +435,8 @@ class RideStepper(QuietStepper):
             ok[kept] = rides
             Y[kept[rides]] = Yf[rides]
         again = np.flatnonzero(~ok)
+        if len(again):  # a parcel slipping on a wheel under it cannot ride: not measured
+            again = again[~self._slipping(ia[again], Y[again], velocities, models.base[idx[0]].present)]
         ja, Ya = ia[again], Y[again]
         have = self._measure_known(ja, Ya, velocities)
         for k in np.flatnonzero(~have).tolist():
