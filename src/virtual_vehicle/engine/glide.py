@@ -74,6 +74,16 @@ def _phase(v0, a, tk, u, tau):
 
 
 @njit(cache=True)
+def _inside(px, py, wn, offsets):
+    """Whether the point (px, py) (m, from the footprint's centre) lies strictly inside its half-planes (world
+    normals ``wn``, ``offsets`` m): every edge margin positive, as the engine counts a cell under a parcel."""
+    for q in range(offsets.shape[0]):
+        if offsets[q] - (wn[q, 0] * px + wn[q, 1] * py) <= 0.0:
+            return False
+    return True
+
+
+@njit(cache=True)
 def _roots(A, B, C, lo, hi, out, n):
     """Append to ``out`` (from ``n``) the roots of ``A + B tau + C tau^2`` in ``(lo, hi]``; returns the new count."""
     scale = abs(A) + abs(B) * hi + abs(C) * hi * hi + 1e-300
@@ -135,13 +145,7 @@ def glide_window(points, order, start, lo0, lo1, size, nx, ny, present, position
         wn[q, 1] = s_ * normals[q, 0] + c_ * normals[q, 1]
     under = -1
     for c in range(ids.shape[0]):
-        px, py = positions[ids[c], 0] - y[0], positions[ids[c], 1] - y[1]
-        inside = True
-        for q in range(K):
-            if offsets[q] - (wn[q, 0] * px + wn[q, 1] * py) <= 0.0:
-                inside = False
-                break
-        if inside:
+        if _inside(positions[ids[c], 0] - y[0], positions[ids[c], 1] - y[1], wn, offsets):
             under = ids[c]
             break
     if under < 0:
@@ -250,13 +254,7 @@ def glide_window(points, order, start, lo0, lo1, size, nx, ny, present, position
         at = offs[npieces]
         n = 0
         for c in range(m):
-            px, py = positions[ids[c], 0] - y[0] - Xx, positions[ids[c], 1] - y[1] - Xy
-            inside = True
-            for q in range(K):
-                if offsets[q] - (wn[q, 0] * px + wn[q, 1] * py) <= 0.0:
-                    inside = False
-                    break
-            if inside:
+            if _inside(positions[ids[c], 0] - y[0] - Xx, positions[ids[c], 1] - y[1] - Xy, wn, offsets):
                 pool[at + n] = ids[c]
                 n += 1
         same = npieces > 0 and n == offs[npieces] - offs[npieces - 1]
