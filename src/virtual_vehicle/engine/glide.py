@@ -401,7 +401,8 @@ class GlideStepper:
         if not (dirs == dirs[0]).all():
             return False
         e1, e2 = dirs[0]
-        return abs(float(e1 @ e2)) <= 1e-12 and abs(float(e1 @ e1) - 1.0) <= 1e-12 and abs(float(e2 @ e2) - 1.0) <= 1e-12
+        unit = abs(float(e1 @ e1) - 1.0) <= 1e-12 and abs(float(e2 @ e2) - 1.0) <= 1e-12
+        return unit and abs(float(e1 @ e2)) <= 1e-12
 
     def _footprint(self, i: int):
         """Parcel ``i``'s body-frame half-planes (normals, offsets), or None for a footprint that is not convex."""

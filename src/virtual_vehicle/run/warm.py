@@ -29,10 +29,10 @@ def warm_up() -> float:
     machine) or load them from numba's cache (a fraction of a second), by integrating one parcel on a 4 x 4 array
     for 10 ms, looking its last piece up again, making its constants under the viscous law too, checking and
     stepping it as a quiet step would, letting a stick-slip parcel ride its wheels for six ticks and another catch
-    up with them from rest (in closed form and by the exact mode loop), gathering the cells under it as sensing does, and stepping the sorter once and carrying
-    its sentences. The first integration of a process does this anyway (but for the sorter and its sentences); call
-    it to do it at a time of your choosing (the set-up of ``make`` does, so that no later run waits). Returns the
-    seconds it took."""
+    up with them from rest (in closed form and by the exact mode loop), gathering the cells under it as sensing
+    does, and stepping the sorter once and carrying its sentences. The first integration of a process does this
+    anyway (but for the sorter and its sentences); call it to do it at a time of your choosing (the set-up of
+    ``make`` does, so that no later run waits). Returns the seconds it took."""
     start = time.perf_counter()
     cells = grid(4, 4, 0.1)
     spec = rectangle(0.25, 0.22, 1.0, 0.5)
