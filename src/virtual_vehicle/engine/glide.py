@@ -422,7 +422,7 @@ class GlideStepper:
         Returns {parcel: Trajectory} of those and the parcels left for the event-driven engine. ``models`` are the
         plant's models under the window's wheel velocities; each written parcel's wheel memory is left as the engine
         leaves it (its last support's wheels, no impulse, sticking where its mode sticks)."""
-        if not idx or not self.serves(self.cells):
+        if not idx:  # (the plant makes a stepper only for a contact layer it serves: the layer does not change)
             return {}, list(idx)
         grid = self.cells.grid
         base, made = models.base, models.made
