@@ -227,7 +227,14 @@ class Plant:
         """A fresh model of parcel ``spec`` at rest wheels, sharing solved supports with parcels of its weight (or
         keeping its own, ``share=False``)."""
         store = self._solutions.setdefault(spec.weight(self.gravity), {}) if share else None
-        return ParcelModel(self.cells, spec, np.zeros((self.cells.n, 2)), self.law, self.gravity, store)
+        return ParcelModel(self.cells, spec, self._at_rest, self.law, self.gravity, store)
+
+    @cached_property
+    def _at_rest(self) -> np.ndarray:
+        """The contact layer's velocities at rest (n, 2), m/s, read-only: one array for every model made at rest."""
+        rest = np.zeros((self.cells.n, 2))
+        rest.setflags(write=False)
+        return rest
 
     def models(self, velocities: np.ndarray) -> "_Models":
         """The parcels' models under contact-layer velocities ``velocities`` (m/s), sharing solved geometry; each is

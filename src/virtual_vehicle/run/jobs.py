@@ -18,7 +18,7 @@ import numpy as np
 from virtual_vehicle import __version__
 from virtual_vehicle.config.scenario import Setup
 from virtual_vehicle.engine.dynamics import Trajectory, sample_grid
-from virtual_vehicle.engine.plant import join
+from virtual_vehicle.engine.plant import join, on_grid
 from virtual_vehicle.errors import VirtualVehicleError
 from virtual_vehicle.model.state_data import array, number
 from virtual_vehicle.run.results import ParcelResult, RunResult, coulomb_sliding_check, plant_totals
@@ -187,7 +187,7 @@ class FieldRun(_Job):
         results = []
         for spec, part in zip(setup.specs, self.parts):
             traj = join(part)
-            keep = np.isin(traj.times, self.grid)  # the output samples, wherever the checkpoints cut
+            keep = on_grid(traj.times, self.grid)  # the output samples, wherever the checkpoints cut
             keep[-1] = True
             traj = replace(traj, times=traj.times[keep], states=traj.states[keep])
             check = coulomb_sliding_check(setup, spec, traj) if setup.law.assumes_sliding else None
