@@ -281,3 +281,21 @@ def test_a_parcel_slipping_on_a_wheel_under_it_is_not_measured():
     (slipping, riding), quiet = plant.advance_blocks(ys, [True, True], V, 0.0, PERIOD, PERIOD)
     assert 0 not in plant._ride.anchors and 1 in plant._ride.anchors
     assert slipping is not None and riding is None and [q.parcel for q in quiet] == [1]
+
+
+def test_a_parcel_moving_onto_other_cells_is_not_measured():
+    """A parcel at its wheels' speed whose front edge reaches a cell within the window has a support event on the
+    way: it cannot ride, so the ride stepper makes it no anchor (the closed form writes its window, the event in
+    it); a parcel whose cells stay under it is measured and rides."""
+    V = aisle(0.3, 0.0)
+    plant = Plant(CELLS, [SPEC, SPEC], laws.StickSlipLaw())
+    front = 1.1 - 0.001 - SPEC.half_extents[0]  # its front edge 1 mm short of the cells at x = 1.1 m (3 mm a tick)
+    ys = [np.array([front, 0.7, 0.0, 0.3, 0.0, 0.0]), np.array([2.0, 0.7, 0.0, 0.3, 0.0, 0.0])]
+    measured, measure = [], plant._ride.measure
+    plant._ride.measure = lambda i, *args: measured.append(i) or measure(i, *args)
+    (crossing, riding), quiet = plant.advance_blocks(ys, [True, True], V, 0.0, PERIOD, PERIOD)
+    assert measured == [1] and 1 in plant._ride.anchors
+    assert riding is None and [q.parcel for q in quiet] == [1]
+    assert [e.kind for e in crossing.events] == ["support"]
+    assert crossing.events[0].entered == (6 * 30 + 11, 7 * 30 + 11, 8 * 30 + 11)  # x = 1.1, y = 0.6-0.8 m
+    np.testing.assert_allclose(crossing.events[0].t, 0.001 / 0.3, rtol=0, atol=1e-12)

@@ -117,6 +117,35 @@ def slipping_under(points, order, start, lo0, lo1, size, nx, ny, present, active
     return out
 
 
+@njit(cache=True)
+def cells_change(points, order, start, lo0, lo1, size, nx, ny, present, kind, half, normals, offsets, n_edges,
+                 vertices, n_vertices, radius, Y, Y_end, out):
+    """Whether the cells under each parcel (footprint margin > 0, of the cells ``present``) at state ``Y[k]`` differ
+    from those under it at ``Y_end[k]``, into ``out``: a parcel moving from one to the other has a support event
+    on the way, so it does not ride the window and measuring its proof would be wasted (a proof that holds keeps
+    every cell off the footprint's edges all the way). The grid's arrays as
+    :func:`~virtual_vehicle.model.parcel._within` takes them; each parcel's outline as the stepper's columns hold
+    it (:func:`~virtual_vehicle.engine._kernel.outline`) and its ``radius`` (m): a cell under it at either state lies
+    within that of its centre there."""
+    for k in range(Y.shape[0]):
+        out[k] = False
+        ne, nv = n_edges[k], n_vertices[k]
+        for y in (Y[k], Y_end[k]):
+            ids = _within(points, order, start, lo0, lo1, size, nx, ny, present, y[0], y[1], radius[k])
+            at = points[ids]
+            a = _kernel.cell_margins(kind[k], half[k], normals[k, :ne], offsets[k, :ne], vertices[k, :nv], at,
+                                     Y[k])[0]
+            b = _kernel.cell_margins(kind[k], half[k], normals[k, :ne], offsets[k, :ne], vertices[k, :nv], at,
+                                     Y_end[k])[0]
+            for c in range(ids.shape[0]):
+                if (a[c] > 0.0) != (b[c] > 0.0):
+                    out[k] = True
+                    break
+            if out[k]:
+                break
+    return out
+
+
 class RideSteps(QuietSteps):
     """The windows of parcels that rode their wheels over one window, kept as the one block the closed form wrote
     (a networked run takes them in as they are; :meth:`trajectory` makes each one's
@@ -268,6 +297,18 @@ class RideStepper(QuietStepper):
                               float(grid.size), int(grid.shape[0]), int(grid.shape[1]), present, cells.wheel_active,
                               cells.drive_directions, np.ascontiguousarray(velocities, dtype=float), Y,
                               self._inner[idx], np.empty(len(idx), dtype=np.bool_))
+
+    def _crossing(self, idx: np.ndarray, Y: np.ndarray, times: np.ndarray, t: float, present) -> np.ndarray:
+        """Which parcels ``idx`` at states ``Y`` (at ``t``, s) moving with their twists have other cells under them at
+        the window's end ``times[-1]`` (:func:`cells_change`), of the cells ``present`` (None: all)."""
+        grid = self.cells.grid
+        present = _ALL if present is None else present
+        Y, Y_end = np.ascontiguousarray(Y), np.ascontiguousarray(rigid_motion(Y, np.array([t, times[-1]]), t)[:, 1])
+        return cells_change(grid.points, grid.order, grid.start, float(grid.lo[0]), float(grid.lo[1]),
+                            float(grid.size), int(grid.shape[0]), int(grid.shape[1]), present, self._kind[idx],
+                            self._half[idx], self._normals[idx], self._offsets[idx], self._n_edges[idx],
+                            self._vertices[idx], self._n_vertices[idx], self.radius[idx], Y, Y_end,
+                            np.empty(len(idx), dtype=np.bool_))
 
     def _keep(self, i: int, y: np.ndarray, velocities: np.ndarray) -> None:
         """Keep parcel ``i``'s proof, its anchor measured at state ``y`` under ``velocities`` (m/s)."""
@@ -435,8 +476,10 @@ class RideStepper(QuietStepper):
             ok[kept] = rides
             Y[kept[rides]] = Yf[rides]
         again = np.flatnonzero(~ok)
-        if len(again):  # a parcel slipping on a wheel under it cannot ride: not measured
-            again = again[~self._slipping(ia[again], Y[again], velocities, models.base[idx[0]].present)]
+        if len(again):  # a parcel slipping on a wheel under it, or moving onto other cells, cannot ride: not measured
+            present = models.base[idx[0]].present
+            again = again[~self._slipping(ia[again], Y[again], velocities, present)]
+            again = again[~self._crossing(ia[again], Y[again], times, t, present)]
         ja, Ya = ia[again], Y[again]
         have = self._measure_known(ja, Ya, velocities)
         for k in np.flatnonzero(~have).tolist():
