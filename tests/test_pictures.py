@@ -209,3 +209,35 @@ def test_the_layout_command_draws_the_ids_and_refuses_what_it_cannot_draw(tmp_pa
         res = CliRunner().invoke(app, args)
         assert res.exit_code == 2 and "--cell-ids" in res.output and len(res.output.strip().splitlines()) == 1
     assert not (tmp_path / "run").exists()
+
+
+def test_a_legend_under_a_short_plot_keeps_clear_of_its_axis_label():
+    """A row of cells drawn to scale makes a short plot; the legend under it sits below the x label (it used to be
+    placed a fraction of the axes' height down, which on such a plot put it over the label)."""
+    from virtual_vehicle.run.sim import run
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    fig = viz.plot_paths(run(_built("stick_slip_pickup", 0.05)))
+    canvas = FigureCanvasAgg(fig)  # the figure was closed once drawn: a canvas to lay it out and measure it on again
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    for ax in fig.axes[:2]:
+        label = ax.xaxis.label.get_window_extent(renderer)
+        ticks = ax.xaxis.get_tightbbox(renderer)
+        legend = ax.get_legend().get_window_extent(renderer)
+        assert legend.y1 < min(label.y0, ticks.y0) + 1e-9  # display coordinates: y grows upward
+        assert all(t.get_window_extent(renderer).y0 > 0 for t in ax.get_legend().get_texts())  # within the picture
+
+
+def test_the_torque_colours_do_not_magnify_rounding():
+    """Under the paper's inward field a square parcel feels no torque anywhere (~1e-17 N m of rounding): the colour
+    scale spans at least a thousandth of the largest force at the parcel's reach, so the map shows none."""
+    from virtual_vehicle.config.scenario import load_scenario
+
+    setup = load_scenario("paper_2x2_inward")[0].build()
+    spec = setup.specs[0]
+    fig = viz.plot_force_field(setup.cells, spec, setup.contact_velocities, setup.law, 0.0)
+    mesh = fig.axes[0].collections[0]
+    torques = np.abs(mesh.get_array()).max()
+    assert torques < 1e-12 and mesh.norm.vmax >= 1e-3 * 0.1  # the force ~6.9 N, the reach ~0.2 m

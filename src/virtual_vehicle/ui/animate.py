@@ -37,7 +37,7 @@ from virtual_vehicle.cells.programs import program_of  # noqa: E402
 from virtual_vehicle.model.layout import cell_outlines  # noqa: E402
 from virtual_vehicle.run.interrupt import Interrupts, without_sigint  # noqa: E402
 from virtual_vehicle.run.results import RunResult  # noqa: E402
-from virtual_vehicle.ui.viz import absent_cells, dead_cells, sorter_lanes  # noqa: E402
+from virtual_vehicle.ui.viz import absent_cells, dead_cells, legend_below, sorter_lanes  # noqa: E402
 
 SUFFIXES = (".mp4", ".gif")
 FPS_RANGE = (0.1, 120.0)
@@ -385,8 +385,7 @@ def scene(result: RunResult, data: FrameData, targets=None):
                           label=f"parcel→exit {d}") for d in sorted({d for d in dests if d is not None})]
     if targets is not None:
         legend.append(Line2D([], [], ls=":", color="0.2", label="target pose"))
-    ax.legend(handles=legend, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=min(3, len(legend)), fontsize=8,
-              frameon=False)
+    legend_below(ax, legend, [h.get_label() for h in legend], ncol=min(3, len(legend)))
     if top_speed > 0:
         ax.quiverkey(quiver, 0.9, 1.02, top_speed * scale, f"{top_speed:.3g} m/s", labelpos="W", coordinates="axes",
                      fontproperties={"size": 8})

@@ -86,7 +86,7 @@ def plot_paths(result: RunResult, path: str | Path | None = None, title: str | N
     ax.set_title(title or f"{sc.name}: {sc.friction.law} friction, {sc.duration:g} s")
     ax.autoscale_view()
     ax.margins(0.08)
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, fontsize=8, frameon=False)
+    legend_below(ax, ncol=3)
     axt.set_xlabel("t (s)")
     axt.set_ylabel("position (m)")
     axh.set_ylabel("heading (rad)")
@@ -97,8 +97,7 @@ def plot_paths(result: RunResult, path: str | Path | None = None, title: str | N
     axt.set_title("centre of mass and heading")
     lines = axt.get_legend_handles_labels()
     lines2 = axh.get_legend_handles_labels()
-    axt.legend(lines[0] + lines2[0], lines[1] + lines2[1], loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3,
-               fontsize=8, frameon=False)
+    legend_below(axt, lines[0] + lines2[0], lines[1] + lines2[1], ncol=3)
     axt.grid(alpha=0.3)
     return _finish(fig, path)
 
@@ -271,7 +270,7 @@ def plot_sorting(result: RunResult, path: str | Path | None = None, cell_ids: bo
     ax.set_ylabel("y (m)")
     sc = setup.scenario
     ax.set_title(f"{sc.name}: paths coloured by destination")
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=5, fontsize=8, frameon=False)
+    legend_below(ax, ncol=5)
     t = np.linspace(0.0, sc.duration, 400)
     done = [r["entered_at_s"] + r["delivery_time_s"] for r in report["parcels"] if r["correct"]]
     entered = [r["entered_at_s"] for r in report["parcels"] if r["entered_at_s"] is not None]
@@ -317,7 +316,7 @@ def plot_layout(setup, path: str | Path | None = None, cell_ids: bool = True, ti
     sc = setup.scenario
     ax.set_title(title or f"{sc.name}: {cells.n} cells" + (", numbered row by row from the bottom" if cell_ids
                                                            else ""))
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=4, fontsize=8, frameon=False)
+    legend_below(ax, ncol=4)
     return _finish(fig, path)
 
 
@@ -352,7 +351,7 @@ def plot_traffic(result: RunResult, path: str | Path | None = None):
         ax.scatter(P[dead, 0], P[dead, 1], s=90, marker="x", color="white", linewidths=2.5, zorder=3)
         ax.scatter(P[dead, 0], P[dead, 1], s=60, marker="x", color="crimson", linewidths=1.5, zorder=4,
                    label="dead cell")
-        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), fontsize=8, frameon=False)
+        legend_below(ax)
     ax.set_aspect("equal")
     ax.margins(0.15)
     ax.set_xlabel("x (m)")
@@ -411,13 +410,15 @@ def plot_force_field(cells, spec, velocities, law, heading: float, eqs=(), path:
             F[b, a] = d[3:5] * spec.mass
             T[b, a] = d[5] * spec.inertia
     fig, ax = plt.subplots(figsize=(7.2, 6.0), dpi=110)
-    lim = float(np.nanmax(np.abs(T))) if np.any(np.isfinite(T)) else 1.0
-    lim = lim if lim > 0 else 1.0
+    mag = np.hypot(F[..., 0], F[..., 1])
+    top = float(np.nanmax(mag)) if np.any(np.isfinite(mag)) else 0.0
+    lim = float(np.nanmax(np.abs(T))) if np.any(np.isfinite(T)) else 0.0
+    # a torque under a thousandth of the largest force at the footprint's reach is drawn as none: rounding (~1e-17 N m
+    # where the field is symmetric) would otherwise fill the whole colour scale
+    lim = max(lim, 1e-3 * top * float(np.max(np.hypot(*spec.footprint.T)))) or 1.0
     mesh = ax.pcolormesh(xs, ys, T, cmap="coolwarm", vmin=-lim, vmax=lim, shading="nearest", alpha=0.85)
     fig.colorbar(mesh, ax=ax, shrink=0.8, label="torque (N m, counter-clockwise +)")
     X, Y = np.meshgrid(xs, ys)
-    mag = np.hypot(F[..., 0], F[..., 1])
-    top = float(np.nanmax(mag)) if np.any(np.isfinite(mag)) else 0.0
     if top > 0:  # at most ~24 arrows a side, so they stay readable
         every = max(1, int(np.ceil(max(len(xs), len(ys)) / 24)))
         k = 0.85 * every * step / top
@@ -447,7 +448,7 @@ def plot_force_field(cells, spec, velocities, law, heading: float, eqs=(), path:
     ax.set_xlabel("centre of mass x (m)")
     ax.set_ylabel("centre of mass y (m)")
     ax.set_title(title or f"force and torque on {spec.name} at heading {np.degrees(heading):.1f}°")
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=3, fontsize=8, frameon=False)
+    legend_below(ax, ncol=3)
     return _finish(fig, path)
 
 
@@ -582,6 +583,15 @@ def plot_fault_study(rows: list[dict], kind: str, title: str, path: str | Path |
     axt.grid(alpha=0.3)
     axt.set_title("mean delivery time of the delivered")
     return _finish(fig, path)
+
+
+def legend_below(ax, handles=None, labels=None, ncol: int = 1, fontsize: float = 8):
+    """A legend centred under ``ax``, below its tick labels and x label at any height of the axes: its gap is set in
+    points (``borderaxespad`` counts font sizes), not as a fraction of the axes, which on a short axes (a row of
+    cells drawn to scale) put it over the x label."""
+    extra = () if handles is None else (handles, labels)
+    return ax.legend(*extra, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=ncol, fontsize=fontsize,
+                     frameon=False, borderaxespad=34.0 / fontsize)
 
 
 def _finish(fig, path):
