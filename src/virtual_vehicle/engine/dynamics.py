@@ -42,7 +42,7 @@ from virtual_vehicle.engine.stepping import Event, Trajectory, diff_event, fixed
 from virtual_vehicle.engine.stickslip import run_stick_slip
 from virtual_vehicle.errors import IntegrationError, TippingError
 from virtual_vehicle.model.layout import CellArray
-from virtual_vehicle.model.parcel import ParcelSpec
+from virtual_vehicle.model.parcel import ALL_PRESENT, ParcelSpec
 from virtual_vehicle.physics.contact import SupportSolution, solve_prechecked
 from virtual_vehicle.physics.laws import FrictionConstants, FrictionLaw, affine
 from virtual_vehicle.physics.stick_modes import breaking_kernel, decide_kernel
@@ -842,8 +842,6 @@ _PAUSE_STEPS = 64
 """With a progress callback, the compiled engine hands control back after this many steps within one piece, and the
 event loop of a law without modes (``_kernel.run_events``) also after beginning this many pieces in one call (a
 piece is often one step, and the loop hands back for little else: progress would be heard of a few times a run)."""
-_NO_MASK = np.zeros(0, dtype=bool)
-"""``present`` for the compiled loop's candidate search when every cell is present."""
 _NO_PAUSE = int(np.iinfo(np.int64).max)
 """Steps within one piece without a progress callback: no limit (worked out once: np.iinfo took ~5 us a call)."""
 
@@ -965,7 +963,7 @@ def _grid_args(model: ParcelModel) -> tuple:
     cells_grid = model.cells.grid
     return (cells_grid.points, cells_grid.order, cells_grid.start, float(cells_grid.lo[0]), float(cells_grid.lo[1]),
             float(cells_grid.size), int(cells_grid.shape[0]), int(cells_grid.shape[1]),
-            _NO_MASK if model.present is None else model.present, float(model.segment_scales[0]))
+            ALL_PRESENT if model.present is None else model.present, float(model.segment_scales[0]))
 
 
 def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol, atol, max_step,
@@ -1222,7 +1220,7 @@ def _run_modes(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         cells_grid, mu_static = model.cells.grid, spec.mu if spec.mu_static is None else spec.mu_static
         grid = (cells_grid.points, cells_grid.order, cells_grid.start, float(cells_grid.lo[0]),
                 float(cells_grid.lo[1]), float(cells_grid.size), int(cells_grid.shape[0]), int(cells_grid.shape[1]),
-                _NO_MASK if model.present is None else model.present, float(model.segment_scales[0]))
+                ALL_PRESENT if model.present is None else model.present, float(model.segment_scales[0]))
         radius, buffer, noise_length, noise_force = model.segment_scales
         scales = (float(buffer), float(radius + 2 * buffer), float(noise_length), float(noise_force))
         wheel_cells = (model.cells.wheel_active, model.cells.drive_directions, float(spec.mu), float(mu_static))

@@ -37,9 +37,8 @@ import math
 import numpy as np
 from numba import njit
 
-from virtual_vehicle.engine.dynamics import _NO_MASK
 from virtual_vehicle.engine.stepping import Event, Trajectory
-from virtual_vehicle.model.parcel import _within
+from virtual_vehicle.model.parcel import ALL_PRESENT, _within
 
 MERGE = 1e-12
 """Event times (s, relative to ``max(1, t)``) this close are one event: the same crossing computed twice."""
@@ -437,7 +436,7 @@ class GlideStepper:
                 rest.append(i)
                 continue
             spec = self.specs[i]
-            present = model.present if model.present is not None else _NO_MASK
+            present = model.present if model.present is not None else ALL_PRESENT
             code, out, ev, states, offs, pool, mode, work, loss = glide_window(
                 grid.points, grid.order, grid.start, float(grid.lo[0]), float(grid.lo[1]), float(grid.size),
                 int(grid.shape[0]), int(grid.shape[1]), present, self.cells.positions, V, self.e1, self.e2,

@@ -57,7 +57,7 @@ from virtual_vehicle.engine import _kernel
 from virtual_vehicle.engine.batch import QuietStepper, QuietSteps, _padded_row
 from virtual_vehicle.engine.dynamics import ROUNDING_NOISE
 from virtual_vehicle.engine.stepping import Trajectory
-from virtual_vehicle.model.parcel import _ALL, _within
+from virtual_vehicle.model.parcel import ALL_PRESENT, _within
 
 RIDE_TOL = 1e-10
 """A parcel rides the field when its twist differs from the field's by less than this, relative to the speed scale
@@ -292,7 +292,7 @@ class RideStepper(QuietStepper):
         """Which parcels ``idx`` at states ``Y`` slip on a wheel certainly under them (:func:`slipping_under`), of the
         cells ``present`` (None: all)."""
         grid, cells = self.cells.grid, self.cells
-        present = _ALL if present is None else present
+        present = ALL_PRESENT if present is None else present
         return slipping_under(grid.points, grid.order, grid.start, float(grid.lo[0]), float(grid.lo[1]),
                               float(grid.size), int(grid.shape[0]), int(grid.shape[1]), present, cells.wheel_active,
                               cells.drive_directions, np.ascontiguousarray(velocities, dtype=float), Y,
@@ -302,7 +302,7 @@ class RideStepper(QuietStepper):
         """Which parcels ``idx`` at states ``Y`` (at ``t``, s) moving with their twists have other cells under them at
         the window's end ``times[-1]`` (:func:`cells_change`), of the cells ``present`` (None: all)."""
         grid = self.cells.grid
-        present = _ALL if present is None else present
+        present = ALL_PRESENT if present is None else present
         Y, Y_end = np.ascontiguousarray(Y), np.ascontiguousarray(rigid_motion(Y, np.array([t, times[-1]]), t)[:, 1])
         return cells_change(grid.points, grid.order, grid.start, float(grid.lo[0]), float(grid.lo[1]),
                             float(grid.size), int(grid.shape[0]), int(grid.shape[1]), present, self._kind[idx],
@@ -374,7 +374,7 @@ class RideStepper(QuietStepper):
         flags = np.zeros((q, 3), dtype=bool)
         on_now = np.zeros((q, max(self._on.shape[1], 1)), dtype=bool)
         _kernel.ride_measure(grid.points, grid.order, grid.start, grid.lo[0], grid.lo[1], grid.size, grid.shape[0],
-                             grid.shape[1], _ALL if present is None else present, cells.positions,
+                             grid.shape[1], ALL_PRESENT if present is None else present, cells.positions,
                              cells.wheel_active, cells.drive_directions, np.ascontiguousarray(velocities, dtype=float),
                              idx, Y, self._reach, self._buffer, self._noise_len, self._noise_force, self._mu,
                              self._mu_s, self._kind, self._half, self._normals, self._n_edges, self._offsets,

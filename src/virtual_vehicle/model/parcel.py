@@ -315,13 +315,14 @@ class PointGrid:
         x, y, reach = float(x), float(y), float(reach)
         if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(reach) and reach >= 0):
             raise ValueError(f"the centre must be finite and the reach finite and >= 0, got ({x}, {y}), {reach}")
-        keep = _ALL if present is None else present
+        keep = ALL_PRESENT if present is None else present
         return _within(self.points, self.order, self.start, self.lo[0], self.lo[1], self.size, self.shape[0],
                        self.shape[1], keep, x, y, reach)
 
 
-_ALL = np.zeros(0, dtype=bool)
-"""An empty ``present`` mask for :func:`_within`: every point."""
+ALL_PRESENT = np.zeros(0, dtype=bool)
+"""An empty ``present`` mask, as the compiled searches take it (:func:`_within` and the engine's loops): every cell
+present."""
 
 
 @njit(cache=True)
