@@ -412,6 +412,55 @@ home["run_modes"] = _modeloop""",
     assert set(calls) == set(before) and min(calls.values()) > 0, calls
 
 
+_TURNTABLE = """name = "turntable"
+duration = 1.0
+[array]
+kind = "grid"
+nx = 20
+ny = 20
+pitch = 0.1
+[field]
+kind = "rotation"
+omega = 0.5
+center = [1.0, 1.0]
+[friction]
+law = "stick_slip"
+[[parcels]]
+name = "tote"
+vertices = [[0, 0], [0.3, 0], [0.3, 0.15], [0.15, 0.15], [0.15, 0.3], [0, 0.3]]
+mass = 1.5
+mu = 0.6
+mu_static = 0.8
+x = 1.4
+y = 1.0
+[[parcels]]
+name = "carton"
+length = 0.3
+width = 0.2
+mass = 2.0
+mu = 0.6
+mu_static = 0.8
+x = 0.6
+y = 1.0
+"""
+
+
+def test_warming_up_compiles_what_a_non_convex_parcel_calls():
+    """The same for an L-shaped tote beside a rectangular carton on a turntable: warm_up() knows only a rectangle,
+    whose outline arrays a non-convex parcel's must match in type (writeable), or its first run compiles (or loads)
+    the margins and the mode loop again (25 s on a fresh machine, 0.5 s from the cache, when the shared convex
+    outlines were read-only)."""
+    before, after, calls = _kernels_across_a_fresh_run(
+        """from virtual_vehicle.engine import _kernel, _modeloop
+from virtual_vehicle.config.scenario import parse_text
+from virtual_vehicle.run.sim import run""",
+        """home["cell_margins"] = _kernel
+home["run_modes"] = _modeloop""",
+        "run(parse_text(%r).build())" % _TURNTABLE)
+    assert before == after and min(before.values()) > 0, (before, after)
+    assert set(calls) == set(before) and min(calls.values()) > 0, calls
+
+
 def test_max_step_bounds_every_compiled_step():
     """``max_step`` caps the compiled integrator's steps (scipy's rule): a viscous piece that one long step would
     cross takes at least one step per ``max_step``, and ends where the uncapped run ends (to the tolerance)."""

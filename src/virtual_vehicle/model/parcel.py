@@ -88,9 +88,12 @@ class ParcelSpec:
 
     @cached_property
     def halfplanes(self) -> tuple[np.ndarray, np.ndarray]:
-        """Outward unit normals (k, 2) and offsets (k,) of the footprint edges: inside iff normals @ p < offsets
-        (read-only: parcels of one outline share them)."""
-        return _outline_facts(self.outline_key)[1]
+        """Outward unit normals (k, 2) and offsets (k,) of the footprint edges: inside iff normals @ p < offsets.
+        Worked out once per outline; each parcel keeps its own (writeable) copy, as the compiled engine has always
+        been given them (a read-only array is another compiled signature, which a parcel of another kind then
+        loads or compiles on its first use)."""
+        normals, offsets = _outline_facts(self.outline_key)[1]
+        return normals.copy(), offsets.copy()
 
     @cached_property
     def half_extents(self) -> tuple[float, float] | None:
