@@ -20,7 +20,8 @@ Cases (the figures of ``RESULTS.md``):
   field for 1 s, viscous, Coulomb and stick-slip law (``bench_pairs.py``'s largest: the plant's planner over many
   parcels);
 - ``stick1``: one stick-slip parcel crossing 30 x 30 for 5 s event-driven (``bench_stick_events.py`` (ii)), the
-  fastest of five runs in each process.
+  fastest of five runs in each process;
+- ``turntable8``: eight stick-slip parcels riding a 30 x 30 turntable for 5 s (``bench_turntable.py``'s larger).
 
 Run: ``python benchmarks/alternate.py a16f5ef HEAD --case scale200 --rounds 6``.
 """
@@ -79,6 +80,20 @@ CASES = {
     "pairs200": _PAIRS.format(law="viscous", bench="{bench}"),
     "pairs200coulomb": _PAIRS.format(law="coulomb", bench="{bench}"),
     "pairs200stick": _PAIRS.format(law="stick_slip", bench="{bench}"),
+    "turntable8": """
+import json, sys, time
+sys.path.insert(0, {bench!r})
+import bench_turntable
+from virtual_vehicle.config.scenario import parse_scenario
+from virtual_vehicle.run.sim import run
+from virtual_vehicle.run.warm import warm_up
+setup = parse_scenario(bench_turntable.scenario(8, 5.0)).build()
+warm_up()
+start = time.perf_counter()
+res = run(setup)
+wall = time.perf_counter() - start
+print(json.dumps({{"wall": wall, "end": res.parcels[-1].trajectory.states[-1].tolist()}}))
+""",
     "coulomb1": """
 import json, sys, time
 sys.path.insert(0, {bench!r})

@@ -45,11 +45,12 @@ from virtual_vehicle.physics.collide import (
     pair_contacts,
     point_reaches,
     push_gain,
+    rigid_rotation,
     solve_rows,
     wheel_frame,
     wheel_speed_of,
 )
-from virtual_vehicle.physics.laws import FrictionLaw
+from virtual_vehicle.physics.laws import FrictionLaw, rotating_reach
 
 _ADDITIVE = ("wheel_work", "friction_dissipation", "step_dissipation", "contact_work", "unconverged_steps",
              "chatter_steps", "mode_changes", "undecided_steps")
@@ -314,10 +315,12 @@ class Plant:
         xy = np.column_stack([Y[rows, 0] + c * v[:, 0] - s * v[:, 1], Y[rows, 1] + s * v[:, 0] + c * v[:, 1]])
         return shapely.polygons(shapely.linearrings(xy, indices=rows))
 
-    def plan(self, ys, active, velocities, t: float, t1: float,
-             wheel_speed: float | None = None) -> tuple[float, list[list[int]]]:
+    def plan(self, ys, active, velocities, t: float, t1: float, wheel_speed: float | None = None,
+             rotation: tuple[np.ndarray, float, float] | None | bool = False) -> tuple[float, list[list[int]]]:
         """The next window's length (s) and the groups of parcels to step together in it (``wheel_speed``: the
-        fastest of ``velocities``, m/s, when the caller knows it).
+        fastest of ``velocities``, m/s, when the caller knows it; ``rotation``: their
+        :func:`~virtual_vehicle.physics.collide.rigid_rotation` when the caller knows it, False to have it found
+        here).
 
         No parcel can come within ``margin`` of a parcel outside its group before the window ends (bounds of
         :func:`~virtual_vehicle.physics.collide.point_reach`). Pairs that could meet within ``min_window`` are
@@ -329,7 +332,13 @@ class Plant:
         and their meet times from one bisection over all of them at once (:func:`meet_times`), never a root
         finder called pair by pair. Under a law relative to its wheels (``galilean``) speeds are measured against
         the wheels' common velocity (:func:`~virtual_vehicle.physics.collide.wheel_frame`), which carries every
-        parcel alike and so closes no gap: parcels riding a uniform field get whole windows.
+        parcel alike and so closes no gap: parcels riding a uniform field get whole windows. Where the wheels
+        turn rigidly instead (a rotation field) and the law bounds its wheels' power in a turning frame
+        (:meth:`~virtual_vehicle.physics.laws.base.FrictionLaw.frame_power`), distances are measured in the
+        field's rotating frame (:func:`~virtual_vehicle.physics.laws.rotating_reach`), which also moves every
+        parcel alike: parcels riding it stay put there but for the centrifugal drift a failing grip would allow.
+        That frame serves a window in which no two parcels come close (no group, no push); otherwise the
+        translating one is used.
         """
         live = np.flatnonzero(np.asarray(active, dtype=bool)).tolist()
         horizon = t1 - t
@@ -338,17 +347,80 @@ class Plant:
         cp = self.contact
         Y = np.array([ys[i] for i in live], dtype=float)
         tree = cKDTree(Y[:, :2])
-        if self.law.galilean:  # bound motion relative to the wheels' common velocity: it moves all parcels alike
-            frame, wmax = wheel_frame(np.asarray(velocities, dtype=float))
-            Y[:, 3:5] -= frame
-        else:
-            wmax = wheel_speed_of(velocities) if wheel_speed is None else wheel_speed
         radius = self._radius[live]
         lever, mu_max = self._lever[live], self._mu_max_arr[live]
+        shapes = []
 
-        def reaches(T, floor):  # point_reach of every live parcel
-            return point_reaches(radius, lever, Y, T, law=self.law, mu_max=mu_max, gravity=self.gravity,
-                                 wheel_speed=wmax, speed_floor=floor[live])
+        def outlines():  # the footprints where they are, made once per plan (all at once) and only when needed
+            if not shapes:
+                shapes.append(self._outlines(live, Y))
+            return shapes[0]
+
+        H = min(horizon, cp.window)
+        soon = min(cp.min_window, H)
+        bounds = self._bounds(Y, live, velocities, wheel_speed, rotation)
+        for k, bound in enumerate(bounds):
+            plan = self._plan_with(bound, live, Y, tree, radius, outlines, H, soon, horizon, k == len(bounds) - 1)
+            if plan is not None:
+                return plan
+        raise AssertionError("the last frame always plans")  # pragma: no cover
+
+    def _bounds(self, Y: np.ndarray, live: list[int], velocities, wheel_speed, rotation) -> list[Callable]:
+        """The reach bounds :meth:`plan` tries in turn, each ``bound(idx, T, floor) -> (dist, speed)`` (m, m/s)
+        over the live parcels ``idx`` (positions in ``live``), windows ``T`` (s) and push floors (m/s): the field's
+        rotating frame where it serves (floors must be 0 there), then the translating frame."""
+        radius, lever, mu_max = self._radius[live], self._lever[live], self._mu_max_arr[live]
+        V = np.asarray(velocities, dtype=float)
+        bounds = []
+        if self.law.galilean:  # bound motion relative to the wheels' common velocity: it moves all parcels alike
+            frame, wmax = wheel_frame(V)
+            if rotation is False:
+                rotation = rigid_rotation(self.cells.positions, V, self.cells.active_directions) if wmax > 0 else None
+            power = None if rotation is None else self.law.frame_power(
+                mu_max * self._masses[live] * self.gravity, rotation[2])
+            if power is not None and rotation[2] < 0.5 * wmax:  # the turning frame is the nearer one
+                centre, omega, _ = rotation
+                r = Y[:, :2] - centre
+                rel = Y[:, 3:5] - omega * np.column_stack([-r[:, 1], r[:, 0]])
+                inv_m = 1.0 / self._masses[live]
+                energy = np.sum(rel * rel, axis=1) + self._inertias[live] * inv_m * (Y[:, 5] - omega) ** 2
+                rho = np.hypot(r[:, 0], r[:, 1])
+
+                def turning(idx, T, floor):
+                    if np.any(floor):
+                        raise AssertionError("a push's floor has no bound in the turning frame")
+                    return rotating_reach(rho[idx], energy[idx] + 2.0 * power[idx] * inv_m[idx] * T, omega,
+                                          lever[idx], T)
+
+                bounds.append(turning)
+            Yr = Y.copy()
+            Yr[:, 3:5] -= frame
+        else:
+            Yr, wmax = Y, wheel_speed_of(V) if wheel_speed is None else wheel_speed
+
+        def translating(idx, T, floor):
+            return point_reaches(radius[idx], lever[idx], Yr[idx], T, law=self.law, mu_max=mu_max[idx],
+                                 gravity=self.gravity, wheel_speed=wmax, speed_floor=floor)
+
+        return [*bounds, translating]
+
+    @cached_property
+    def _masses(self) -> np.ndarray:
+        return np.array([s.mass for s in self.specs])
+
+    @cached_property
+    def _inertias(self) -> np.ndarray:
+        return np.array([s.inertia for s in self.specs])
+
+    def _plan_with(self, bound, live, Y, tree, radius, outlines, H, soon, horizon,
+                   last: bool) -> tuple[float, list[list[int]]] | None:
+        """:meth:`plan` under reach bound ``bound`` (one of :meth:`_bounds`); None when it is not the ``last`` and
+        some pair could meet within ``soon`` (a group, whose pushes only the last bounds)."""
+        cp = self.contact
+        everyone = np.arange(len(live))
+
+        def reaches(T, floor):  # the reach of every live parcel
+            return bound(everyone, T, floor[live])
 
         def candidates(T, floor):
             reach = reaches(T, floor)[0]
@@ -364,28 +436,20 @@ class Plant:
             keep = gaps < reach[pairs[:, 0]] + reach[pairs[:, 1]]
             return pairs[keep], gaps[keep]
 
-        shapes = []
-
-        def outlines():  # the footprints where they are, made once per plan (all at once) and only when needed
-            if not shapes:
-                shapes.append(self._outlines(live, Y))
-            return shapes[0]
-
         def closing(pairs, gaps, T, floor):  # how far each pair's reaches overshoot its gap in T s (m, T per pair)
             both = np.concatenate([pairs[:, 0], pairs[:, 1]])
-            f = floor[live][both]
-            r = point_reaches(radius[both], lever[both], Y[both], np.concatenate([T, T]), law=self.law,
-                              mu_max=mu_max[both], gravity=self.gravity, wheel_speed=wmax, speed_floor=f)[0]
+            r = bound(both, np.concatenate([T, T]), floor[live][both])[0]
             return r[:len(pairs)] + r[len(pairs):] - gaps
 
         floor = np.zeros(len(self.specs))
-        H = min(horizon, cp.window)
-        soon = min(cp.min_window, H)
         own = np.zeros(len(self.specs))  # fastest point speed each parcel's wheels alone can give it within H
-        own[live] = reaches(H, np.zeros(len(self.specs)))[1]
         labels = np.arange(len(live))
-        for _ in range(len(live)):  # components only grow, so this ends
+        for k in range(len(live)):  # components only grow, so this ends
             close, _ = candidates(soon, floor)  # the pairs whose reaches overshoot their gap by ``soon``
+            if len(close) and not last:
+                return None
+            if k == 0:
+                own[live] = reaches(H, floor)[1]
             graph = coo_matrix((np.ones(len(close)), (close[:, 0], close[:, 1])) if len(close) else ([], ([], [])),
                                shape=(len(live), len(live)))
             new = connected_components(graph, directed=False)[1]
@@ -397,8 +461,8 @@ class Plant:
             fastest = np.zeros(new.max() + 1)
             np.maximum.at(fastest, new, own[live])
             sizes = np.bincount(new)
-            for k, i in enumerate(live):
-                floor[i] = self._gain[i] * fastest[new[k]] if sizes[new[k]] > 1 else 0.0
+            for j, i in enumerate(live):
+                floor[i] = self._gain[i] * fastest[new[j]] if sizes[new[j]] > 1 else 0.0
         # The first moment two parcels of different groups could meet: look over doubling horizons, so that only
         # the pairs that could meet within twice that moment are ever examined (over the whole window, every pair
         # of a fast-moving crowd would be).
@@ -416,8 +480,8 @@ class Plant:
                 break
             h = min(2.0 * h, limit)
         out: dict[int, list[int]] = {}
-        for k, i in enumerate(live):
-            out.setdefault(int(labels[k]), []).append(i)
+        for j, i in enumerate(live):
+            out.setdefault(int(labels[j]), []).append(i)
         return W, sorted((g for g in out.values() if len(g) > 1), key=lambda g: g[0])
 
     # -- advancing ---------------------------------------------------------------------------------------------
@@ -464,7 +528,8 @@ class Plant:
         t = float(t0)
         end = t1 - 1e-12 * max(1.0, abs(t1))
         while t < end:
-            W, groups = self.plan(ys, active, velocities, t, t1, models.wheel_speed)
+            W, groups = self.plan(ys, active, velocities, t, t1, models.wheel_speed,
+                                  models.rotation if self.law.galilean else None)
             if t + W < end and t1 - (t + W) < 1e-6 * (t1 - t):
                 W = 0.5 * (t1 - t)  # never leave a sliver of an interval for the next window
             te = t1 if t + W >= end else t + W
@@ -739,6 +804,16 @@ class _Models:
         """The fastest contact surface speed of these velocities (m/s), found once for the planner and the quiet
         stepper (each took ~30 us over 10^4 cells a tick)."""
         return wheel_speed_of(self.velocities)
+
+    @cached_property
+    def rotation(self) -> tuple[np.ndarray, float, float] | None:
+        """The rigid rotation nearest these velocities and the wheels' slack from it
+        (:func:`~virtual_vehicle.physics.collide.rigid_rotation`), found once for the planner; None without
+        parcels or where the wheels do not turn (a uniform field)."""
+        if not self.base or self.wheel_speed == 0.0:
+            return None
+        cells = self.base[0].cells
+        return rigid_rotation(cells.positions, self.velocities, cells.active_directions)
 
 
 def _output_grid(t0: float, t1: float, sample_dt: float, sample_times: np.ndarray | None) -> np.ndarray:

@@ -304,6 +304,35 @@ def wheel_frame(velocities: np.ndarray) -> tuple[np.ndarray, float]:
     return (centre, spread) if spread < fastest else (np.zeros(2), fastest)
 
 
+def rigid_rotation(positions: np.ndarray, velocities: np.ndarray,
+                   directions: np.ndarray) -> tuple[np.ndarray, float, float] | None:
+    """The rigid rotation of the plane nearest (least squares) the surface ``velocities`` ((n, 2), m/s) of entries
+    at ``positions`` ((n, 2), m): its centre (m, (2,)) and angular speed (rad/s, counter-clockwise), with how far
+    the wheels are from it: the largest sum over one entry's wheels (``directions`` (n, k, 2) their unit drive
+    directions, zero rows for absent wheels) of ``|d . (v - omega x (X - centre))|`` (m/s), 0 to rounding on a
+    rotation field (:class:`~virtual_vehicle.model.fields.Rotation`, or a :class:`~virtual_vehicle.model.fields.Twist`
+    that turns). None where there is no rotation (fewer than two entries, or omega 0 to rounding: a translation,
+    which :func:`wheel_frame` takes)."""
+    P = np.asarray(positions, dtype=float)
+    V = np.asarray(velocities, dtype=float)
+    if len(P) < 2:
+        return None
+    p_mean, v_mean = P.mean(axis=0), V.mean(axis=0)
+    dp, dv = P - p_mean, V - v_mean
+    spread = float(np.sum(dp * dp))
+    fastest = float(np.max(np.abs(V)))
+    if spread == 0.0 or fastest == 0.0:
+        return None
+    omega = float(np.sum(dp[:, 0] * dv[:, 1] - dp[:, 1] * dv[:, 0])) / spread
+    if abs(omega) * np.sqrt(spread / len(P)) <= 1e-12 * fastest:
+        return None
+    centre = p_mean + np.array([-v_mean[1], v_mean[0]]) / omega  # where v_mean + omega x (X - p_mean) is 0
+    r = P - centre
+    rel = V - omega * np.column_stack([-r[:, 1], r[:, 0]])
+    slack = float(np.max(np.sum(np.abs(np.einsum("ikj,ij->ik", np.asarray(directions, dtype=float), rel)), axis=1)))
+    return centre, omega, slack
+
+
 def reach_bounds(s0: np.ndarray, lever_mu: np.ndarray, window: float, *, law: FrictionLaw | str, gravity: float,
                  wheel_speed: float, lever=None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`point_reach` for many parcels at once: ``s0`` (m/s) their fastest point speeds now, ``lever_mu``
@@ -364,7 +393,8 @@ class Rows:
         return len(self.a) - 1
 
     def box(self, body: int, J, target: float, bound: float, warm: float = 0.0) -> int:
-        """Axis-aligned bounding box of the rows' outlines, (xmin, ymin, xmax, ymax) in m."""
+        """A box row on body ``body`` (a wheel): Jacobian ``J`` (3,), driving its velocity toward ``target`` (m/s)
+        with an impulse within +-``bound`` (N s), warm-started at ``warm``; returns its index."""
         return self._add(body, J, -1, None, target, -bound, bound, -1, 0.0, warm)
 
     def contact(self, ia: int, ib: int, c: Contact, ca, cb, h: float, params: ContactParams,

@@ -15,7 +15,7 @@ import numpy as np
 from virtual_vehicle.physics.contact import solve_support
 from virtual_vehicle.physics.laws import affine
 from virtual_vehicle.physics.laws.affine import J, FrictionConstants, drive_constants
-from virtual_vehicle.physics.laws.base import FrictionLaw, StepperOptions
+from virtual_vehicle.physics.laws.base import FrictionLaw, StepperOptions, rotating_reach
 from virtual_vehicle.physics.laws.coulomb import CoulombLaw, coulomb_constants
 from virtual_vehicle.physics.laws.stick_slip import StickSlipLaw
 from virtual_vehicle.physics.laws.viscous import ViscousLaw, viscous_constants
@@ -95,12 +95,13 @@ def _run(trial: _Trial, law: FrictionLaw, y0, window: float, steps: int):
     return np.array(ys)
 
 
-def _stepped(trial: _Trial, y0, window: float, steps: int):
+def _stepped(trial: _Trial, y0, window: float, steps: int, wheels=None):
     """States (steps + 1, 6) of the trial's parcel from ``y0`` over ``window`` s under a law with modes: each wheel a
     1-D friction contact along its drive direction, its impulse in a step of length h within ``mu N h`` (eq. 21 per
     wheel), their impulses the box problem's (projected Gauss-Seidel from zero, which never lets the kinetic energy
     gain more than the wheels' work), then semi-implicit Euler: the law's own exact dynamics to first order, with
-    sticking and slipping decided every step."""
+    sticking and slipping decided every step. ``wheels(points)`` (m -> (m, 2) m/s): the wheels' velocities under
+    the contact points where they are (default: the trial's, fixed)."""
     h = window / steps
     minv = np.array([1.0 / trial.mass, 1.0 / trial.mass, 1.0 / trial.inertia])
     U = trial.U.reshape(-1, 2)  # (2m, 2): each contact's two wheels
@@ -109,6 +110,8 @@ def _stepped(trial: _Trial, y0, window: float, steps: int):
     ys = [np.asarray(y0, dtype=float)]
     for _ in range(steps):
         y = ys[-1]
+        if wheels is not None:
+            target = np.einsum("ij,ij->i", np.repeat(wheels(trial.points(y)), 2, axis=0), U)
         r = np.repeat(trial.points(y) - y[:2], 2, axis=0)
         J = np.column_stack([U, r[:, 0] * U[:, 1] - r[:, 1] * U[:, 0]])  # [u, r x u]
         nu = box_sweeps(J, minv, y[3:6].copy(), target, bounds, (J * J) @ minv, 1000, 1e-12)
@@ -143,6 +146,47 @@ def _reach_holds(law: FrictionLaw, t: _Trial, y0, window: float, steps: int, fra
             f"reach bound ({dist[j]} m, {speed[j]} m/s)"
 
 
+def _turning_reach_holds(law: FrictionLaw, t: _Trial, rng: np.random.Generator, steps: int, what: str) -> None:
+    """Assert that :func:`rotating_reach` with the law's
+    :meth:`FrictionLaw.frame_power` bounds how far the trial's points move, and how fast, relative to a frame
+    rotating at a random rate about a random centre, on wheels that turn with it (each at the frame's velocity
+    under its contact point, plus a random slack of up to 5 cm/s), from a random twist relative to it: the wheels
+    stepped as :func:`_stepped` does (a law with modes; others are not bounded this way yet)."""
+    omega = rng.uniform(0.3, 2.0) * rng.choice([-1.0, 1.0])
+    centre = rng.uniform(-2.0, 2.0, 2)
+    slack = rng.uniform(0.0, 0.05, (len(t.levers), 2)) * rng.choice([-1.0, 1.0], (len(t.levers), 2))
+    off = np.einsum("ik,ikj->ij", slack, t.U)  # each wheel's own speed off the frame's, along its direction
+
+    def carried(P):  # the frame's velocity at points P, plus each wheel's slack
+        r = P - centre
+        return omega * np.column_stack([-r[:, 1], r[:, 0]]) + off
+
+    r0 = t.state[:2] - centre
+    y0 = np.array([*t.state[:3], *(omega * np.array([-r0[1], r0[0]]) + rng.normal(0.0, 0.3, 2)),
+                   omega + rng.normal(0.0, 0.5)])
+    window = rng.uniform(0.2, 2.0)
+    ys, lag = _stepped(t, y0, window, 2 * steps, carried), window / (2 * steps)
+    times = np.linspace(0.0, window, 2 * steps + 1)
+    lever = 1.0 + t.mass * t.R * t.R / t.inertia
+    power = law.frame_power(t.mu * t.weight, float(np.max(np.sum(np.abs(slack), axis=1))))
+    rel = y0[3:5] - omega * np.array([-r0[1], r0[0]])
+    energy = rel @ rel + t.inertia / t.mass * (y0[5] - omega) ** 2
+    T = times + lag
+    dist, speed = rotating_reach(np.hypot(*r0), energy + 2.0 * power * T / t.mass, omega, lever, T)
+    rim = t.R * np.column_stack([np.cos(np.linspace(0, 2 * np.pi, 16, endpoint=False)),
+                                 np.sin(np.linspace(0, 2 * np.pi, 16, endpoint=False))])
+    body = np.vstack([rim, t.levers])
+    start = y0[:2] + body @ _rotation(y0[2]).T
+    for j, yj in enumerate(ys):
+        back = _rotation(-omega * times[j])  # world -> the frame, which started aligned with it
+        moved_by = np.max(np.hypot(*((yj[:2] + body @ _rotation(yj[2]).T - centre) @ back.T + centre - start).T))
+        r = yj[:2] - centre
+        fastest = np.hypot(*(yj[3:5] - omega * np.array([-r[1], r[0]]))) + abs(yj[5] - omega) * t.R
+        assert moved_by <= dist[j] * (1 + 1e-9) + 1e-12 and fastest <= speed[j] * (1 + 1e-9) + 1e-12, \
+            f"{what}: after {times[j]:g} s a point moved {moved_by} m at up to {fastest} m/s relative to the " \
+            f"turning frame, beyond the bound ({dist[j]} m, {speed[j]} m/s)"
+
+
 def check_law(law: FrictionLaw, trials: int = 20, seed: int = 0, mu: float = 0.5, gravity: float = 9.81,
               steps: int = 200) -> None:
     """Check ``law`` against the friction-law contract on ``trials`` random parcels (``mu`` in the law's units,
@@ -158,6 +202,9 @@ def check_law(law: FrictionLaw, trials: int = 20, seed: int = 0, mu: float = 0.5
       short windows and long ones (1-3 s, from faster twists), and for a law that says it is relative to its wheels
       (:attr:`FrictionLaw.galilean`) also on wheels all carried at a random common velocity, measured in the frame
       moving with them;
+    - a law that bounds its wheels' power in a turning frame (:meth:`FrictionLaw.frame_power`): that bound, through
+      :func:`rotating_reach`, holds against its wheels stepped under a parcel
+      on wheels that turn rigidly (and a little off it), measured in the frame turning with them;
     - an event-driven law's constants give its wrench, and its row is those constants' (:data:`affine.ROW_FIELDS`);
     - a time-stepped law hands its stepper its options (:meth:`FrictionLaw.stepper_options`), an event-driven one
       none.
@@ -229,6 +276,9 @@ def check_law(law: FrictionLaw, trials: int = 20, seed: int = 0, mu: float = 0.5
             y0 = np.array([*t.state[:3], *(frame + more.normal(0.0, 0.3, 2)), more.normal(0.0, 0.3)])
             _reach_holds(law, carried, y0, more.uniform(0.2, 2.0), 2 * steps, frame,
                          f"trial {k}, in a frame moving at {frame} m/s")
+        if law.frame_power(1.0, 1.0) is not None:
+            assert law.modes, "a turning frame's bound is checked on a law with modes only"
+            _turning_reach_holds(law, t, np.random.default_rng([seed, k, 1]), steps, f"trial {k}, turning")
 
         # an event-driven law's constants and row
         if law.time_stepper is None:
@@ -260,4 +310,5 @@ def check_law(law: FrictionLaw, trials: int = 20, seed: int = 0, mu: float = 0.5
 
 
 __all__ = ["FrictionLaw", "StepperOptions", "FrictionConstants", "CoulombLaw", "ViscousLaw", "StickSlipLaw", "LAWS",
-           "law_named", "check_law", "coulomb_constants", "viscous_constants", "drive_constants", "J"]
+           "law_named", "check_law", "rotating_reach", "coulomb_constants", "viscous_constants", "drive_constants",
+           "J"]

@@ -39,6 +39,32 @@ def energy_reach(start, grown, window):
     return dist, rx
 
 
+def rotating_reach(rho0, u0_sq, omega: float, lever, window):
+    """Upper bounds on how far (m) any point of a parcel can move in ``window`` s relative to a frame rotating at
+    ``omega`` (rad/s, not 0) about a centre, and on the speed (m/s) any point can reach relative to it, elementwise
+    over arrays: ``rho0`` the centre of mass's distance from the centre (m), ``u0_sq`` (m^2/s^2) twice its kinetic
+    energy relative to the frame over its mass, ``|v - omega x r|^2 + (I / m) (Omega - omega)^2``, plus twice the
+    work the wheels can do in the window over the mass (``2 P T / m``, ``P`` the law's
+    :meth:`FrictionLaw.frame_power`), and ``lever`` ``1 + m R^2 / I``.
+
+    In the rotating frame the wheels' work is at most ``P T``, the Coriolis force does none and the centrifugal
+    force's is ``m omega^2 (rho^2 - rho0^2) / 2`` (a rigid body's ``sum m_i |r_i|^2`` is ``m rho^2 + I``), so the
+    relative kinetic energy E has ``2 E / m <= u0_sq + omega^2 (rho^2 - rho0^2)``. The centre of mass's distance then
+    grows no faster than the largest solution of ``rho' = sqrt(u0_sq + omega^2 (rho^2 - rho0^2))``,
+    ``rho_B = rho0 cosh(|omega| t) + sqrt(u0_sq) sinh(|omega| t) / |omega|``, and its relative speed is at most
+    ``rho_B'``; a point's is at most ``sqrt(lever)`` times that (``|v| + R |Omega| <= sqrt(lever 2 E / m)``), so
+    it moves at most ``sqrt(lever) (rho_B - rho0)``. A parcel riding the field (``u0_sq`` 0) drifts at most
+    ``rho0 (cosh(omega T) - 1)``, second order in T, where a translating frame's bound grows with the spread of the
+    wheel speeds over the whole array."""
+    a = abs(float(omega))
+    T = np.asarray(window, dtype=float)
+    u0 = np.sqrt(u0_sq)
+    grown = rho0 * 2.0 * np.sinh(0.5 * a * T) ** 2 + u0 * np.sinh(a * T) / a  # rho_B - rho0 (cosh - 1 = 2 sinh^2)
+    rate = np.sqrt(u0_sq + a * a * grown * (grown + 2.0 * rho0))  # rho_B' (rho_B^2 - rho0^2 = g (g + 2 rho0))
+    root = np.sqrt(lever)
+    return root * grown, root * rate
+
+
 class StepperOptions(NamedTuple):
     """What a time-stepped law hands the engine's stepper for the contact problem it solves every step (the wheels'
     own, and a group's when parcels push each other): the projected Gauss-Seidel solver's limits."""
@@ -129,6 +155,17 @@ class FrictionLaw(ABC):
         that lever ``1 + m R^2 / I`` (dimensionless) when the caller knows it (None: a bound without it). The
         normal forces under a parcel sum to its weight (paper eqs. 3-5) and every cell lies within R of its centre
         of mass. The planner's safety proof rests on this being a true bound."""
+
+    def frame_power(self, mu_weight, wheel_slack):
+        """An upper bound on the power (W) the wheels can put into a parcel seen from a frame that may rotate, on
+        floats or arrays (elementwise), or None when the law gives none. ``mu_weight``: the parcel's largest
+        friction coefficient times its weight (N); ``wheel_slack``: the largest sum, over one entry's wheels, of
+        their surface speeds along their drive directions relative to the frame at the entry (m/s). A law whose
+        wheels only take energy out of a parcel that moves relative to them (friction dissipates in the frame in
+        which the wheels stand still) bounds it; the planner then measures how far parcels stray from a rigidly
+        rotating field in the field's own frame (:func:`rotating_reach`), where a
+        parcel riding it stays put. None by default: the planner measures in a translating frame only."""
+        return None
 
     def drive_bound(self, velocities: np.ndarray, drive_directions: np.ndarray) -> float:
         """The largest per-cell drive vector's length under wheels ``velocities`` (m/s) on one support set, which

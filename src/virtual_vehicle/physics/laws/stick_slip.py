@@ -57,6 +57,14 @@ class StickSlipLaw(CoulombLaw):
         energy, fastest = energy_reach(y, x, window)
         return np.minimum(dist, energy), np.minimum(speed, fastest)
 
+    def frame_power(self, mu_weight, wheel_slack):
+        """Each wheel pushes along its drive direction with at most ``mu_s N`` of its entry's normal force N, the
+        normal forces summing to the weight (eqs. 3-5, 21 per wheel); where it slips it takes energy out of the
+        parcel relative to its own surface, where it sticks it moves the parcel with it. So in any frame its
+        power on the parcel is at most its force times its surface speed relative to the frame: in all at most
+        ``mu_s W`` times the largest sum of those speeds over one entry's wheels."""
+        return mu_weight * wheel_slack
+
     def stepper_options(self) -> StepperOptions:
         """The solver's limits, ``max_sweeps`` and ``tolerance``."""
         return StepperOptions(self.max_sweeps, self.tolerance)
