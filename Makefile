@@ -33,6 +33,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_ceiling.py
 	$(BIN)/python benchmarks/bench_stick_events.py
 	$(BIN)/python benchmarks/bench_pairs.py
+	$(BIN)/python benchmarks/bench_turntable.py
 	$(BIN)/python benchmarks/bench_throughput.py
 	$(BIN)/python benchmarks/bench_clocks.py
 	$(BIN)/python benchmarks/bench_view.py

@@ -154,6 +154,17 @@ def test_the_rigid_rotation_of_a_rotation_or_a_turning_twist_is_its_own_and_a_tr
     off[17] = [0.03, -0.02]  # grid cells' wheels run along x and y
     got = rigid_rotation(cells.positions, Rotation((0.4, 0.7), -0.8).velocities(cells) + off, cells.active_directions)
     assert got[2] == pytest.approx(0.05, rel=0.02)  # (the fit moves a little toward the odd cell)
+    # asked for a rotation nearer than ``beyond``: judged on a sample of 64 entries first, then on them all
+    big = layout.grid(40, 40, 0.1)
+    turning = Rotation((2.0, 1.0), 0.7).velocities(big)
+    got = rigid_rotation(big.positions, turning, big.active_directions, beyond=0.1)
+    assert got is not None and got[1] == pytest.approx(0.7, rel=1e-12)
+    odd = turning.copy()
+    odd[5] += [0.3, 0.0]  # not among the sample (every 25th entry): only the whole array's pass sees it
+    assert rigid_rotation(big.positions, odd, big.active_directions, beyond=0.2) is None
+    assert rigid_rotation(big.positions, odd, big.active_directions, beyond=0.4)[2] == pytest.approx(0.3, rel=0.02)
+    sorter = np.random.default_rng(1).uniform(-0.3, 0.3, (big.n, 2))
+    assert rigid_rotation(big.positions, sorter, big.active_directions, beyond=0.3) is None
 
 
 def test_windows_on_a_rotation_field_last_while_the_parcels_ride_it():

@@ -304,19 +304,33 @@ def wheel_frame(velocities: np.ndarray) -> tuple[np.ndarray, float]:
     return (centre, spread) if spread < fastest else (np.zeros(2), fastest)
 
 
-def rigid_rotation(positions: np.ndarray, velocities: np.ndarray,
-                   directions: np.ndarray) -> tuple[np.ndarray, float, float] | None:
+def rigid_rotation(positions: np.ndarray, velocities: np.ndarray, directions: np.ndarray,
+                   beyond: float = np.inf) -> tuple[np.ndarray, float, float] | None:
     """The rigid rotation of the plane nearest (least squares) the surface ``velocities`` ((n, 2), m/s) of entries
     at ``positions`` ((n, 2), m): its centre (m, (2,)) and angular speed (rad/s, counter-clockwise), with how far
     the wheels are from it: the largest sum over one entry's wheels (``directions`` (n, k, 2) their unit drive
     directions, zero rows for absent wheels) of ``|d . (v - omega x (X - centre))|`` (m/s), 0 to rounding on a
     rotation field (:class:`~virtual_vehicle.model.fields.Rotation`, or a :class:`~virtual_vehicle.model.fields.Twist`
     that turns). None where there is no rotation (fewer than two entries, or omega 0 to rounding: a translation,
-    which :func:`wheel_frame` takes)."""
+    which :func:`wheel_frame` takes), or where the wheels are ``beyond`` (m/s) or further off it: then the rotation
+    is fitted to at most 64 entries spread over the array first, and a field whose sample is that far off it is
+    given up without the whole array's pass (a sorter's field changes every tick)."""
     P = np.asarray(positions, dtype=float)
     V = np.asarray(velocities, dtype=float)
+    D = np.asarray(directions, dtype=float)
     if len(P) < 2:
         return None
+    stride = max(1, len(P) // 64)
+    if np.isfinite(beyond) and stride > 1:
+        sample = _rotation_fit(P[::stride], V[::stride], D[::stride])
+        if sample is None or sample[2] >= beyond:  # the whole array is at least that far off the sample's frame
+            return None
+    found = _rotation_fit(P, V, D)
+    return None if found is None or found[2] >= beyond else found
+
+
+def _rotation_fit(P: np.ndarray, V: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, float, float] | None:
+    """:func:`rigid_rotation` over all of the entries given."""
     p_mean, v_mean = P.mean(axis=0), V.mean(axis=0)
     dp, dv = P - p_mean, V - v_mean
     spread = float(np.sum(dp * dp))
@@ -329,7 +343,7 @@ def rigid_rotation(positions: np.ndarray, velocities: np.ndarray,
     centre = p_mean + np.array([-v_mean[1], v_mean[0]]) / omega  # where v_mean + omega x (X - p_mean) is 0
     r = P - centre
     rel = V - omega * np.column_stack([-r[:, 1], r[:, 0]])
-    slack = float(np.max(np.sum(np.abs(np.einsum("ikj,ij->ik", np.asarray(directions, dtype=float), rel)), axis=1)))
+    slack = float(np.max(np.sum(np.abs(np.einsum("ikj,ij->ik", D, rel)), axis=1)))
     return centre, omega, slack
 
 
