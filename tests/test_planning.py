@@ -236,8 +236,8 @@ def test_the_stick_slip_reach_bounds_the_event_engine_in_a_turning_frame(seed):
 @pytest.mark.parametrize("law", ["viscous", "stick_slip"])
 def test_a_crowd_on_a_turntable_pushes_but_never_overlaps_unnoticed(law, monkeypatch):
     """Sixteen parcels on a turntable that also draws them inward (wheels well off the rotation): they meet and
-    push, and at no window end do two parcels integrated apart overlap, whichever frame planned the window (under
-    stick-slip the turning frame plans some: those without a group)."""
+    push, and at no window end do two parcels integrated apart overlap, whichever frame planned the window (the
+    turning frame plans some: those without a group)."""
     import virtual_vehicle.engine.plant as plant_module
 
     turned = []
@@ -258,7 +258,7 @@ def test_a_crowd_on_a_turntable_pushes_but_never_overlaps_unnoticed(law, monkeyp
     plant.advance(ys, [True] * len(ys), field, 0.0, 1.5, 0.1)
     assert plant.record.parcel_contacts > 0
     assert plant.record.undetected_overlaps == 0
-    assert bool(turned) == (law == "stick_slip")  # the viscous law bounds no power in a turning frame (yet)
+    assert turned  # windows without a group planned in the turning frame
 
 
 def test_a_parcel_flung_off_a_fast_turntable_stays_within_the_turning_frames_bound():

@@ -308,9 +308,10 @@ def rigid_rotation(positions: np.ndarray, velocities: np.ndarray, directions: np
                    beyond: float = np.inf) -> tuple[np.ndarray, float, float] | None:
     """The rigid rotation of the plane nearest (least squares) the surface ``velocities`` ((n, 2), m/s) of entries
     at ``positions`` ((n, 2), m): its centre (m, (2,)) and angular speed (rad/s, counter-clockwise), with how far
-    the wheels are from it: the largest sum over one entry's wheels (``directions`` (n, k, 2) their unit drive
-    directions, zero rows for absent wheels) of ``|d . (v - omega x (X - centre))|`` (m/s), 0 to rounding on a
-    rotation field (:class:`~virtual_vehicle.model.fields.Rotation`, or a :class:`~virtual_vehicle.model.fields.Twist`
+    the wheels are from it (m/s): the largest, over the entries, of an entry's speed relative to it,
+    ``|v - omega x (X - centre)|``, and of the sum of that along each of its wheels (``directions`` (n, k, 2) their
+    unit drive directions, zero rows for absent wheels), ``sum_k |d_k . (v - omega x (X - centre))|``; 0 to
+    rounding on a rotation field (:class:`~virtual_vehicle.model.fields.Rotation`, or a :class:`~virtual_vehicle.model.fields.Twist`
     that turns). None where there is no rotation (fewer than two entries, or omega 0 to rounding: a translation,
     which :func:`wheel_frame` takes), or where the wheels are ``beyond`` (m/s) or further off it: then the rotation
     is fitted to at most 64 entries spread over the array first, and a field whose sample is that far off it is
@@ -343,7 +344,8 @@ def _rotation_fit(P: np.ndarray, V: np.ndarray, D: np.ndarray) -> tuple[np.ndarr
     centre = p_mean + np.array([-v_mean[1], v_mean[0]]) / omega  # where v_mean + omega x (X - p_mean) is 0
     r = P - centre
     rel = V - omega * np.column_stack([-r[:, 1], r[:, 0]])
-    slack = float(np.max(np.sum(np.abs(np.einsum("ikj,ij->ik", D, rel)), axis=1)))
+    along = np.sum(np.abs(np.einsum("ikj,ij->ik", D, rel)), axis=1)
+    slack = float(np.max(np.maximum(along, np.hypot(rel[:, 0], rel[:, 1]))))
     return centre, omega, slack
 
 

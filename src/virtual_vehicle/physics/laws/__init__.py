@@ -72,25 +72,29 @@ class _Trial:
     def points(self, y):
         return y[:2] + self.levers @ _rotation(y[2]).T
 
-    def forces(self, law: FrictionLaw, y):
-        return law.cell_forces(self.points(y), self.normal, self.V, self.U, self.mu, y)
+    def forces(self, law: FrictionLaw, y, wheels=None):
+        V = self.V if wheels is None else wheels(self.points(y))
+        return law.cell_forces(self.points(y), self.normal, V, self.U, self.mu, y)
 
-    def rate(self, law: FrictionLaw, y):
-        """State derivative under the law's cell forces, the contact points fixed to the parcel."""
-        fx, fy, tau = affine.cell_wrench(self.points(y), self.forces(law, y), y[:2])
+    def rate(self, law: FrictionLaw, y, wheels=None):
+        """State derivative under the law's cell forces, the contact points fixed to the parcel (``wheels``: as
+        :func:`_run`'s)."""
+        fx, fy, tau = affine.cell_wrench(self.points(y), self.forces(law, y, wheels), y[:2])
         return np.array([y[3], y[4], y[5], fx / self.mass, fy / self.mass, tau / self.inertia])
 
 
-def _run(trial: _Trial, law: FrictionLaw, y0, window: float, steps: int):
-    """RK4 states (steps + 1, 6) of the trial's parcel from ``y0`` over ``window`` s under ``law``."""
+def _run(trial: _Trial, law: FrictionLaw, y0, window: float, steps: int, wheels=None):
+    """RK4 states (steps + 1, 6) of the trial's parcel from ``y0`` over ``window`` s under ``law``;
+    ``wheels(points)`` (m -> (m, 2) m/s): the wheels' velocities under the contact points where they are (default:
+    the trial's, fixed)."""
     h = window / steps
     ys = [np.asarray(y0, dtype=float)]
     for _ in range(steps):
         y = ys[-1]
-        k1 = trial.rate(law, y)
-        k2 = trial.rate(law, y + 0.5 * h * k1)
-        k3 = trial.rate(law, y + 0.5 * h * k2)
-        k4 = trial.rate(law, y + h * k3)
+        k1 = trial.rate(law, y, wheels)
+        k2 = trial.rate(law, y + 0.5 * h * k1, wheels)
+        k3 = trial.rate(law, y + 0.5 * h * k2, wheels)
+        k4 = trial.rate(law, y + h * k3, wheels)
         ys.append(y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4))
     return np.array(ys)
 
@@ -146,15 +150,16 @@ def _reach_holds(law: FrictionLaw, t: _Trial, y0, window: float, steps: int, fra
             f"reach bound ({dist[j]} m, {speed[j]} m/s)"
 
 
-def _turning_reach_holds(law: FrictionLaw, t: _Trial, rng: np.random.Generator, steps: int, what: str) -> None:
-    """Assert that :func:`rotating_reach` with the law's
-    :meth:`FrictionLaw.frame_power` bounds how far the trial's points move, and how fast, relative to a frame
-    rotating at a random rate about a random centre, on wheels that turn with it (each at the frame's velocity
-    under its contact point, plus a random slack of up to 5 cm/s), from a random twist relative to it: the wheels
-    stepped as :func:`_stepped` does (a law with modes; others are not bounded this way yet)."""
+def _turning_reach_holds(law: FrictionLaw, t: _Trial, rng: np.random.Generator, steps: int, what: str,
+                         off_by: float, twist: float) -> None:
+    """Assert that :func:`rotating_reach` with the law's :meth:`FrictionLaw.frame_power` bounds how far the trial's
+    points move, and how fast, relative to a frame rotating at a random rate about a random centre, on wheels that
+    turn with it (each at the frame's velocity under its contact point, plus a random slack of up to ``off_by``
+    m/s a wheel), from a random twist relative to it (``twist`` m/s and rad/s its scale, 0: riding): a law with modes
+    by its wheels stepped (:func:`_stepped`), another by RK4 on its cell forces (:func:`_run`)."""
     omega = rng.uniform(0.3, 2.0) * rng.choice([-1.0, 1.0])
     centre = rng.uniform(-2.0, 2.0, 2)
-    slack = rng.uniform(0.0, 0.05, (len(t.levers), 2)) * rng.choice([-1.0, 1.0], (len(t.levers), 2))
+    slack = rng.uniform(0.0, off_by, (len(t.levers), 2)) * rng.choice([-1.0, 1.0], (len(t.levers), 2))
     off = np.einsum("ik,ikj->ij", slack, t.U)  # each wheel's own speed off the frame's, along its direction
 
     def carried(P):  # the frame's velocity at points P, plus each wheel's slack
@@ -162,10 +167,13 @@ def _turning_reach_holds(law: FrictionLaw, t: _Trial, rng: np.random.Generator, 
         return omega * np.column_stack([-r[:, 1], r[:, 0]]) + off
 
     r0 = t.state[:2] - centre
-    y0 = np.array([*t.state[:3], *(omega * np.array([-r0[1], r0[0]]) + rng.normal(0.0, 0.3, 2)),
-                   omega + rng.normal(0.0, 0.5)])
+    y0 = np.array([*t.state[:3], *(omega * np.array([-r0[1], r0[0]]) + twist * rng.normal(0.0, 1.0, 2)),
+                   omega + 1.7 * twist * rng.normal(0.0, 1.0)])
     window = rng.uniform(0.2, 2.0)
-    ys, lag = _stepped(t, y0, window, 2 * steps, carried), window / (2 * steps)
+    if law.modes:
+        ys, lag = _stepped(t, y0, window, 2 * steps, carried), window / (2 * steps)
+    else:
+        ys, lag = _run(t, law, y0, window, 2 * steps, carried), 0.0
     times = np.linspace(0.0, window, 2 * steps + 1)
     lever = 1.0 + t.mass * t.R * t.R / t.inertia
     power = law.frame_power(t.mu * t.weight, float(np.max(np.sum(np.abs(slack), axis=1))))
@@ -203,8 +211,9 @@ def check_law(law: FrictionLaw, trials: int = 20, seed: int = 0, mu: float = 0.5
       (:attr:`FrictionLaw.galilean`) also on wheels all carried at a random common velocity, measured in the frame
       moving with them;
     - a law that bounds its wheels' power in a turning frame (:meth:`FrictionLaw.frame_power`): that bound, through
-      :func:`rotating_reach`, holds against its wheels stepped under a parcel
-      on wheels that turn rigidly (and a little off it), measured in the frame turning with them;
+      :func:`rotating_reach`, holds against the motion (stepped or RK4, as above) of a parcel on wheels that turn
+      rigidly, from random twists on wheels a little off the rotation and from riding it on wheels well off it,
+      measured in the frame turning with them;
     - an event-driven law's constants give its wrench, and its row is those constants' (:data:`affine.ROW_FIELDS`);
     - a time-stepped law hands its stepper its options (:meth:`FrictionLaw.stepper_options`), an event-driven one
       none.
@@ -277,8 +286,10 @@ def check_law(law: FrictionLaw, trials: int = 20, seed: int = 0, mu: float = 0.5
             _reach_holds(law, carried, y0, more.uniform(0.2, 2.0), 2 * steps, frame,
                          f"trial {k}, in a frame moving at {frame} m/s")
         if law.frame_power(1.0, 1.0) is not None:
-            assert law.modes, "a turning frame's bound is checked on a law with modes only"
-            _turning_reach_holds(law, t, np.random.default_rng([seed, k, 1]), steps, f"trial {k}, turning")
+            _turning_reach_holds(law, t, np.random.default_rng([seed, k, 1]), steps, f"trial {k}, turning", 0.05,
+                                 0.3)
+            _turning_reach_holds(law, t, np.random.default_rng([seed, k, 2]), steps,
+                                 f"trial {k}, riding a turning frame on wheels off it", 0.3, 0.0)
 
         # an event-driven law's constants and row
         if law.time_stepper is None:

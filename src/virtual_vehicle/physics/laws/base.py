@@ -159,8 +159,10 @@ class FrictionLaw(ABC):
     def frame_power(self, mu_weight, wheel_slack):
         """An upper bound on the power (W) the wheels can put into a parcel seen from a frame that may rotate, on
         floats or arrays (elementwise), or None when the law gives none. ``mu_weight``: the parcel's largest
-        friction coefficient times its weight (N); ``wheel_slack``: the largest sum, over one entry's wheels, of
-        their surface speeds along their drive directions relative to the frame at the entry (m/s). A law whose
+        friction coefficient times its weight (N, or N s/m for a coefficient in s/m); ``wheel_slack``: how far the
+        wheels are from standing still in the frame (m/s): at least every entry's surface speed relative to the frame
+        at the entry, and the sum, over its wheels, of that along their drive directions
+        (:func:`~virtual_vehicle.physics.collide.rigid_rotation`'s slack). A law whose
         wheels only take energy out of a parcel that moves relative to them (friction dissipates in the frame in
         which the wheels stand still) bounds it; the planner then measures how far parcels stray from a rigidly
         rotating field in the field's own frame (:func:`rotating_reach`), where a

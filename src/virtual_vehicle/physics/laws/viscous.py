@@ -99,6 +99,13 @@ class ViscousLaw(FrictionLaw):
         energy, fastest = energy_reach(y, x, window)
         return np.minimum(dist, energy), np.minimum(speed, fastest)
 
+    def frame_power(self, mu_weight, wheel_slack):
+        """The contacts' power on the parcel seen from any frame, rotating or not, is ``sum_i mu N_i p_i . (V_i -
+        p_i)`` with ``p_i`` the parcel's point velocity over entry i and ``V_i`` its surface velocity, both
+        relative to the frame there (eq. 30), at most ``mu W s^2 / 4`` where every ``|V_i| <= s`` (the slip
+        dissipates all but a quarter of what the wheels could put in, as in :meth:`reach`)."""
+        return 0.25 * mu_weight * np.square(wheel_slack)
+
     def drive_bound(self, velocities, drive_directions) -> float:
         """Not needed: :meth:`piece_reach` reads the slips."""
         return 0.0
