@@ -1,7 +1,7 @@
 """The plant's planner: its meet times against a scalar root finder, its windows on a uniform field (the viscous
-and stick-slip bounds relative to the wheels' common velocity, so they stop shrinking) and on a rotation field (the
-stick-slip bound in the field's turning frame), the stick-slip bounds against the event engine's motion, and no
-overlap missed in crowds."""
+and stick-slip bounds relative to the wheels' common velocity, so they stop shrinking) and on a rotation field (both
+bounds in the field's turning frame), the stick-slip bounds against the event engine's motion, and no overlap missed
+in crowds."""
 
 import numpy as np
 import pytest
