@@ -9,8 +9,10 @@ delivers at the same rate. Here the junction is fed a parcel every 3 s (the stre
 the fault-free run's, and the draws one by one. The stream's scenario is written beside the study
 (``stream.toml``), so ``virtual-vehicle fault-study OUT/stream.toml`` reruns any of it.
 
-Run: ``python benchmarks/fault_stream.py [--minutes 3] [--rates 0.05 0.1] [--samples 20] [--out DIR]`` (a 3-minute
-run takes ~70 s of one core; the fault-free run is made once, not once a seed).
+``--dead-wheels free``: a dead cell's wheels turn with the parcel (``[faults] dead_wheels``) instead of holding it.
+
+Run: ``python benchmarks/fault_stream.py [--minutes 3] [--rates 0.05 0.1] [--samples 20] [--dead-wheels held]
+[--out DIR]`` (a 3-minute run takes ~70 s of one core; the fault-free run is made once, not once a seed).
 """
 
 from __future__ import annotations
@@ -26,13 +28,16 @@ from virtual_vehicle.config.scenario import dump_toml
 KIND = "dead_cell_rate"
 
 
-def stream_file(minutes: float, out: Path, interval: float = 3.0) -> Path:
-    """Write the junction's stream (a parcel every ``interval`` s for ``minutes``) as ``out/stream.toml``."""
+def stream_file(minutes: float, out: Path, interval: float = 3.0, dead_wheels: str = "held") -> Path:
+    """Write the junction's stream (a parcel every ``interval`` s for ``minutes``; a dead cell's wheels
+    ``dead_wheels``) as ``out/stream.toml``."""
     from long_run import hour_scenario  # (this folder's: the junction's stream)
 
     out.mkdir(parents=True, exist_ok=True)
     path = out / "stream.toml"
-    path.write_text(dump_toml(hour_scenario(minutes, interval)), encoding="utf-8")
+    sc = hour_scenario(minutes, interval)
+    sc = sc.model_copy(update={"faults": sc.faults.model_copy(update={"dead_wheels": dead_wheels})})
+    path.write_text(dump_toml(sc), encoding="utf-8")
     return path
 
 
@@ -54,14 +59,17 @@ def main() -> None:
     parser.add_argument("--rates", type=float, nargs="+", default=[0.05, 0.1])
     parser.add_argument("--samples", type=int, default=20, help="fault seeds per rate")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--dead-wheels", choices=("held", "free"), default="held",
+                        help="what a dead cell's wheels do (the scenario's [faults] dead_wheels)")
     parser.add_argument("--out", default="results/fault_stream")
     args = parser.parse_args()
     out = Path(args.out)
-    scenario = str(stream_file(args.minutes, out))
+    scenario = str(stream_file(args.minutes, out, dead_wheels=args.dead_wheels))
     base = fault_study(scenario, KIND, [0.0], 1, out / "fault_free", workers=args.workers)[0]
     rows = fault_study(scenario, KIND, args.rates, args.samples, out / "faults", workers=args.workers)
     free = per_seed(out / "fault_free", 0.0)[0]
-    print(f"sorting_junction fed every 3 s for {args.minutes:g} min: fault-free {free} delivered "
+    print(f"sorting_junction fed every 3 s for {args.minutes:g} min, dead cells' wheels {args.dead_wheels}: "
+          f"fault-free {free} delivered "
           f"(fraction {base['delivered_fraction']:.3f})")
     print(f"{'rate':>6}{'draws':>7}{'cut off':>8}{'of free':>9}{'collisions':>11}{'misrouted':>10}"
           f"{'deadlocked':>11}  delivered per seed")

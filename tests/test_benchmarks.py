@@ -126,8 +126,11 @@ def test_the_dead_cell_stream_study_counts_what_a_plain_run_of_its_stream_delive
     from virtual_vehicle.run.sim import run
     from virtual_vehicle.run.tasks import sorting_report
 
+    free = fault_stream.stream_file(0.25, tmp_path / "free", dead_wheels="free")
+    assert load_scenario(free)[0].faults.dead_wheels == "free"
     path = fault_stream.stream_file(0.25, tmp_path)
     sc, _ = load_scenario(path)
+    assert sc.faults.dead_wheels == "held"
     assert sc.duration == 15.0 and [p.t_start for p in sc.parcels] == [3.0 * k for k in range(5)]
     plain = sum(r["outcome"] == "delivered" and r["correct"] for r in sorting_report(run(sc.build()))["parcels"])
     assert plain >= 1  # (the first parcel leaves the junction at ~8.6 s)

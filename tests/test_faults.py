@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from virtual_vehicle.config.scenario import load_scenario
+from virtual_vehicle.config.scenario import FaultEvent, load_scenario, parse_scenario
 from virtual_vehicle.errors import ScenarioError
 from virtual_vehicle.run.sim import run
 
@@ -166,8 +166,6 @@ def test_bad_fault_studies_exit_2(tmp_path, args, message):
 
 
 def _inject(sc, **event):
-    from virtual_vehicle.config.scenario import FaultEvent
-
     return sc.model_copy(update={"faults": sc.faults.model_copy(update={"events": [FaultEvent(**event)]})})
 
 
@@ -196,8 +194,6 @@ def test_a_cell_that_dies_mid_run_goes_silent_and_still_from_then_on(tmp_path):
 
 
 def test_a_revived_cell_talks_and_drives_again():
-    from virtual_vehicle.config.scenario import FaultEvent
-
     sc, _ = load_scenario("sorting_junction")
     cell = 5 * 24 + 12
     events = [FaultEvent(t=2.0, dead_cells=[cell]), FaultEvent(t=4.0, revived_cells=[cell])]
@@ -361,3 +357,60 @@ def test_a_parcel_does_not_drive_a_second_dead_cell_under_it_in_line_with_the_fi
     side, the way east closes to the vehicle and the gradient leads it round."""
     dead = [6 * 24 + 2, 6 * 24 + 3]  # row * 24 + column
     _first_parcel_delivered_past(dead)
+
+
+def _carton_over_dead_front(dead_wheels: str, duration: float = 0.1):
+    """A 0.18 m square carton (1 kg, mu 0.4, mu_static 0.5) put down at rest on the four cells centred at x = 0.3,
+    0.4 m and y = 0.1, 0.2 m of a 10 x 4 grid at 0.1 m pitch, rollers running at 0.3 m/s along x under stick-slip;
+    the two cells of its front column dead."""
+    front = [1 * 10 + 4, 2 * 10 + 4]  # cell id = row * nx + column; column 4 is x = 0.4 m
+    table = {"name": "dead_front", "duration": duration, "output_dt": 0.01,
+             "array": {"kind": "grid", "nx": 10, "ny": 4, "pitch": 0.1},
+             "field": {"kind": "uniform", "velocity": [0.3, 0.0]}, "friction": {"law": "stick_slip"},
+             "faults": {"dead_cells": front, "dead_wheels": dead_wheels},
+             "parcels": [{"name": "carton", "length": 0.18, "width": 0.18, "mass": 1.0, "mu": 0.4,
+                          "mu_static": 0.5, "x": 0.35, "y": 0.15}]}
+    return parse_scenario(table)
+
+
+def test_a_dead_cell_s_held_wheels_stop_a_parcel_its_free_wheels_let_pass():
+    """What a dead cell's wheels do decides whether its neighbours can carry a parcel over it (paper Section 1:
+    "simply passing parcels over" a broken cell). Closed forms: the carton's weight W is shared by its rear (live)
+    and front (dead) columns as its centre of mass lies between them (eq. 19: the rear bears (0.4 - x) / 0.1 of it,
+    half at the start). With the dead wheels held, the rear's slipping wheels push with mu W / 2 = 1.96 N against up
+    to mu_static W / 2 = 2.45 N of static grip, and the carton stays where it was put. With them free (``dead_wheels
+    = "free"``: back-drivable) nothing holds it, and the rear's slipping wheels push with mu W (0.4 - x) / 0.1 (eq.
+    22): x'' = -(mu g / 0.1) (x - 0.4), a harmonic pull toward the dead column, so x = 0.4 - 0.05 cos(w t) with w =
+    sqrt(mu g / 0.1) while the wheels outrun it (0.18 m/s at 0.1 s, on the same four cells)."""
+    g, mu, t = 9.81, 0.4, 0.1
+    held = run(_carton_over_dead_front("held").build()).parcels[0].trajectory.states[-1]
+    np.testing.assert_allclose(held, [0.35, 0.15, 0.0, 0.0, 0.0, 0.0], atol=1e-9)
+    free_setup = _carton_over_dead_front("free").build()
+    assert free_setup.faults.free_wheels[[14, 24]].all() and free_setup.faults.free_wheels.sum() == 4
+    free = run(free_setup).parcels[0].trajectory.states[-1]
+    w = np.sqrt(mu * g / 0.1)
+    np.testing.assert_allclose(free, [0.4 - 0.05 * np.cos(w * t), 0.15, 0.0, 0.05 * w * np.sin(w * t), 0.0, 0.0],
+                               atol=1e-9)
+
+
+def test_free_dead_wheels_keep_the_fault_draws_and_refuse_what_they_cannot_model():
+    """``dead_wheels = "free"`` draws no random number (the dead cells of a seed are those of ``"held"``), leaves a
+    stuck wheel of a dead cell held, and is refused where it cannot be modelled: the viscous law (no free
+    direction), events that kill or revive cells (their contacts are built once), hexagonal cells."""
+    sc = _with_faults("sorting_junction", dead_cell_rate=0.1, stuck_wheel_rate=0.3, seed=4)
+    held = sc.build().faults
+    free = sc.model_copy(update={"faults": sc.faults.model_copy(update={"dead_wheels": "free"})}).build().faults
+    assert np.array_equal(held.dead_cells, free.dead_cells) and np.array_equal(held.stuck_wheels, free.stuck_wheels)
+    expected = held.free_wheels | (held.dead_cells[:, None] & ~held.stuck_wheels)
+    assert np.array_equal(free.free_wheels, expected) and (held.dead_cells[:, None] & held.stuck_wheels).any()
+    viscous = _carton_over_dead_front("free")
+    viscous = viscous.model_copy(update={"friction": viscous.friction.model_copy(update={"law": "viscous"})})
+    with pytest.raises(ScenarioError, match="faults"):
+        viscous.build()
+    killing = _with_faults("sorting_junction", dead_wheels="free",
+                           events=[FaultEvent(t=1.0, dead_cells=[30])])
+    with pytest.raises(ScenarioError, match=r"faults\.dead_wheels.*from the start"):
+        killing.build()
+    hexes = _with_faults("hex_sorting_junction", dead_cells=[3], dead_wheels="free")
+    with pytest.raises(ScenarioError, match=r"faults\.dead_wheels.*hexagonal"):
+        hexes.build()

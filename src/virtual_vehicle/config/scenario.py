@@ -425,7 +425,11 @@ class FaultSpec(_Strict):
     ``seed``. Dead links can also be listed as ``[control] dead_links``; stuck sensors as ``[sensors] stuck_on`` /
     ``stuck_off``. ``events`` ([[faults.events]] tables, :class:`FaultEvent`) inject faults at given times of a
     networked run (either delivery model: under the wire model a dying cell loses its queued sentences and
-    transfers in progress over a cut link are broken off)."""
+    transfers in progress over a cut link are broken off). ``dead_wheels``: what a dead cell's wheels do, ``"held"``
+    (still, as a gear train that cannot be driven backwards: they hold a parcel with up to its static friction) or
+    ``"free"`` (they turn with the parcel, as a back-drivable train or a released clutch: the cell carries weight and
+    gives no traction; coulomb or stick_slip law, two-wheel cells, cells dead from the start to the end: with events
+    that kill or revive cells it is an error)."""
 
     dead_cells: list[Annotated[int, Field(ge=0)]] = []
     stuck_wheels: list[tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0, le=1)]]] = []
@@ -436,6 +440,7 @@ class FaultSpec(_Strict):
     dead_link_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
     stuck_sensor_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
     seed: Annotated[int, Field(ge=0)] = 0
+    dead_wheels: Literal["held", "free"] = "held"
     events: list[FaultEvent] = []
 
 
@@ -584,11 +589,18 @@ class Scenario(_Strict):
             except ValueError as e:
                 raise ScenarioError("faults", str(e)) from None
         three = contacts is not None and contacts.wheel_of.max() >= 2
+        if three and self.faults.dead_wheels == "free" and faults.dead_cells.any():
+            raise ScenarioError("faults.dead_wheels", "a hexagonal cell's three omni wheels are held when it is dead "
+                                "(\"free\" is modelled for two-wheel cells)")
         if three and (faults.stuck_wheels.any() or faults.free_wheels.any()):
             raise ScenarioError("faults", "stuck and free wheels are modelled for two-wheel cells; a hexagonal cell's "
                                 "three omni wheels take only whole-cell faults (dead_cells) so far")
         velocities = faults.hold_velocities(velocities, cells.drive_directions)
         if self.faults.events:
+            if self.faults.dead_wheels == "free" and any(ev.dead_cells or ev.revived_cells
+                                                         for ev in self.faults.events):
+                raise ScenarioError("faults.dead_wheels", "\"free\" is for cells dead from the start to the end: "
+                                    "a cell an event kills holds its wheels, and one it revives would not drive")
             if self.control is None:
                 raise ScenarioError("faults.events", "faults injected during a run need [control] (constant fields "
                                     "have no ticks to inject them at)")

@@ -3,7 +3,8 @@ sensors, listed in a scenario or drawn at random with given rates and a seed.
 
 What each fault does:
 
-* a dead cell neither drives (its wheels are held still) nor sends or receives sentences; it still carries weight;
+* a dead cell neither drives nor sends or receives sentences; it still carries weight; its wheels are held still,
+  or (``dead_wheels = "free"``) spin freely, as a free-spinning wheel below;
 * a stuck wheel is held still whatever its cell commands (a brake under the viscous and stick-slip laws; under the
   paper's Coulomb law a still wheel pushes nothing);
 * a free-spinning wheel gives no traction along its drive direction (coulomb and stick_slip laws only: the
@@ -85,6 +86,8 @@ def resolve(spec, cells, sensors_per_cell: int, neighbor: np.ndarray, listed_lin
     dead |= rng.random(n) < spec.dead_cell_rate
     wheels["stuck_wheels"] |= rng.random((n, 2)) < spec.stuck_wheel_rate
     wheels["free_wheels"] |= (rng.random((n, 2)) < spec.free_wheel_rate) & ~wheels["stuck_wheels"]
+    if spec.dead_wheels == "free":  # (no draw: the draws stay those of "held"); a stuck wheel stays held
+        wheels["free_wheels"] |= dead[:, None] & ~wheels["stuck_wheels"]
     links = {tuple(map(int, x)) for x in listed_links}
     i, p = np.nonzero(neighbor >= 0)
     once = i < neighbor[i, p]  # each link from its lower-numbered end
