@@ -118,6 +118,14 @@ def test_dead_cells_are_crossed_out_and_start_and_end_outlines_are_in_the_legend
     assert "start (dashed outline)" in labels and "end (filled)" in labels
 
 
+def test_dead_cells_whose_wheels_turn_freely_say_so_in_the_legend():
+    from virtual_vehicle.run.sim import run
+
+    res = run(_built("prototype_18", 0.2, faults={"dead_cells": [7], "dead_wheels": "free"}))
+    (dead,) = _labelled(viz.plot_paths(res).axes[0], "dead cell, wheels free")
+    np.testing.assert_allclose(dead.get_offsets(), res.setup.cells.positions[[7]])
+
+
 def test_cell_ids_drawn_are_the_layouts_numbering_row_by_row_from_the_bottom():
     from virtual_vehicle.config.scenario import parse_scenario
     from virtual_vehicle.model import layout

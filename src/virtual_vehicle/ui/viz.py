@@ -198,12 +198,14 @@ def draw_cells(ax, setup, size: float = 12, color: str = "0.45", label: str | No
         ax.add_patch(PolygonPatch(outlines[i], closed=True, facecolor="0.9", edgecolor="0.5", hatch="//", lw=0.8,
                                   zorder=0, label=None if k else "belt"))
     when = "" if t is not None else " (at some time)" if (setup.fault_events or setup.cell_changes) else ""
+    free = dead.any() and setup.faults is not None and setup.faults.free_wheels[dead].all()
+    dead_label = f"dead cell{when}" + (", wheels free" if free else "")  # ([faults] dead_wheels = "free")
     if dead.any():
         if large:
-            ax.plot([], [], "s", color="0.0", label=f"dead cell{when}")
+            ax.plot([], [], "s", color="0.0", label=dead_label)
         else:
             ax.scatter(P[dead, 0], P[dead, 1], s=max(4 * size, 40), marker="x", color="0.1", linewidths=2, zorder=4,
-                       label=f"dead cell{when}")
+                       label=dead_label)
     if absent.any():
         if large:
             ax.plot([], [], "s", color="0.45", label=f"cell taken out{when}")
