@@ -144,3 +144,23 @@ def test_the_dead_cell_stream_study_counts_what_a_plain_run_of_its_stream_delive
     seeds = [int(k) for k in row[-2:]]
     assert all(0 <= k <= len(sc.parcels) for k in seeds)
     assert abs(float(row[3].rstrip("%")) - 100 * sum(seeds) / 2 / plain) < 0.06
+
+
+def test_the_clocks_benchmark_measures_how_long_a_sentence_waits_for_its_reader():
+    """bench_clocks' mailbox watch: on one shared clock (the synchronous run) it counts nothing (a sentence is read
+    a period after it was sent, by the model's definition); on own clocks every sentence read waited at least one
+    grid instant and at most a period of the slowest clock plus the jitter, and with the ticks spread over the
+    period the mean is well under a period (the reader ticks within a period of the sender, before or after it)."""
+    import bench_clocks
+
+    from virtual_vehicle.config.scenario import load_scenario
+
+    sc, _ = load_scenario("sorting_junction")
+    sc = sc.model_copy(update={"duration": 1.0})
+    _, _, _, sync = bench_clocks.delivered(sc, {})
+    assert sync.read == 0 and sync.mean() is None
+    drift, jitter, period = 0.01, 0.001, sc.control.period
+    _, _, _, own = bench_clocks.delivered(sc, {"drift": drift, "jitter": jitter, "seed": 1})
+    assert own.read > 1000 and own.put >= own.read
+    assert period / 20 - 1e-12 <= own.shortest and own.longest <= period * (1 + drift) + jitter + period / 20
+    assert 0.3 * period < own.mean() < 0.7 * period
