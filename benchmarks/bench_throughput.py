@@ -7,8 +7,9 @@ wheels carry a parcel and the gap behind it), for the distributed sorter (``sort
 (``central``: the same rules on one computer, greedy oldest-first grants) and the central reservation router
 (``reserve``). Targets: distributed >= 80 % of the router; router >= 70 % of the kinematic bound.
 
-Run: ``python benchmarks/bench_throughput.py [--duration S] [scenario ...]`` (default: ``sorting_junction`` for
-40 s and ``facility_40x40`` for 12 s; the facility takes minutes on a loaded machine).
+Run: ``python benchmarks/bench_throughput.py [--duration S] [--controls sort central reserve] [scenario ...]``
+(default: ``sorting_junction`` for 40 s and ``facility_40x40`` for 12 s; the facility takes minutes on a loaded
+machine).
 """
 
 from __future__ import annotations
@@ -42,9 +43,9 @@ def saturated(name: str, control: str, duration: float):
                                  "parcels": parcels})
 
 
-def measure(name: str, duration: float) -> dict:
+def measure(name: str, duration: float, controls=CONTROLS) -> dict:
     out = {}
-    for control in CONTROLS:
+    for control in controls:
         start = time.perf_counter()
         report = sorting_report(run(saturated(name, control, duration).build()))
         out[control] = (report, time.perf_counter() - start)
@@ -81,10 +82,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("scenarios", nargs="*", default=list(DEFAULTS))
     parser.add_argument("--duration", type=float, default=None, help="simulated seconds (default per scenario)")
+    parser.add_argument("--controls", nargs="+", choices=CONTROLS, default=list(CONTROLS))
     args = parser.parse_args()
     for name in args.scenarios:
         duration = args.duration or DEFAULTS.get(name, 30.0)
-        show(name, duration, measure(name, duration))
+        show(name, duration, measure(name, duration, args.controls))
 
 
 if __name__ == "__main__":

@@ -120,3 +120,74 @@ def test_compare_puts_the_router_beside_the_distributed_sorter():
     for mode, r in both.items():
         assert r["collisions"] == 0 and r["misrouted"] == 0 and r["lost"] == 0, (mode, r)
     assert both["reserve"]["correct"] >= 2
+
+
+def test_a_parcel_already_nearer_than_the_gap_to_a_standing_one_still_plans():
+    """Found on facility_40x40 with every entry saturated: a parcel that finds no plan stands, reserved where it
+    stands for the whole window; an older parcel within ``gap`` cells of it then found no plan either (every step's
+    region, waiting included, grown by ``gap`` met it), stood too, and the next one behind it: three parcels stood
+    from 4 s on (6 delivered in 20 s). A parcel nearer than ``gap`` to one planned before keeps at least the
+    spacing it has: it plans, east to its exit here, never nearer to the standing parcel than it started."""
+    from virtual_vehicle.cells.sorting.reserve import ReservationRouter
+
+    n_side, gap, window = 12, 3, 8
+    router = ReservationRouter(pitch=0.1, speed=0.3, gap=gap, window=window)
+    cols, rows = np.meshgrid(np.arange(n_side), np.arange(n_side))
+    router._layout(np.column_stack([cols.ravel(), rows.ravel()]) * 0.1)
+    exit_id = np.where(cols.ravel() == n_side - 1, 0, -1)  # the east column is exit 0's lane, out through port 0
+    router._maps(np.ones(n_side * n_side, dtype=bool), {"exit": exit_id})
+    maps = router._footprint_maps(0, 0, 2, 2)
+    reserved = np.zeros((window + 1, n_side, n_side), dtype=bool)
+    router._reserve(reserved, (5, 2), [], 2, 2)  # standing on columns 2-3; the parcel below on 5-6: one cell free
+    moves = router._plan((5, 5), 2, 2, maps, 0, reserved)
+    assert moves is not None and moves[0] == 0  # (on the parent: None, so it stood)
+    r, c = 5, 5
+    for t, q in enumerate(moves):
+        r, c = (r + (0, 1, 0, -1)[q], c + (1, 0, -1, 0)[q]) if q >= 0 else (r, c)
+        rows_, cols_ = router._region(r, c, r, c, 2, 2, 1)  # the one free cell between them stays free
+        assert not reserved[t + 1, rows_, cols_].any()
+    alone = np.zeros_like(reserved)
+    assert router._plan((5, 5), 2, 2, maps, 0, alone) == moves  # what it plans with the map to itself
+
+
+def test_parcels_whose_lit_cells_join_keep_their_own_records():
+    """One computer sees parcels as groups of lit cells. Two parcels that came so near that their lit cells joined
+    made one group, which kept only the record most of its cells had: on facility_40x40 saturated a parcel for exit 2
+    joined one for exit 1 at 10 s and was carried out of exit 1 by the central sorter (and one by the router). Now
+    the group is shared: each vehicle keeps its cells, a newly lit cell between them goes to the one it is reached
+    from first, and a group of one vehicle's cells, or of none, is as before."""
+    from virtual_vehicle.cells.sorting.central import parcels_seen
+
+    n = 8  # a row of cells, port 0 east, port 2 west; cell 6 not lit, cell 7 lit alone
+    neighbor = np.full((n, 4), -1)
+    neighbor[:-1, 0] = np.arange(1, n)
+    neighbor[1:, 2] = np.arange(n - 1)
+    connected = neighbor >= 0
+    lit = np.array([1, 1, 1, 1, 1, 1, 0, 1], dtype=bool)
+    before = np.array([5, 5, -1, 9, 9, 9, -1, -1])  # vehicle 5 on 0-1, vehicle 9 on 3-5, cell 2 newly lit
+    seen = {vid: cells.tolist() for vid, cells in parcels_seen(lit, connected, neighbor, before)}
+    assert seen == {5: [0, 1, 2], 9: [3, 4, 5], -1: [7]}
+    before = np.array([5, 5, 5, 5, -1, -1, -1, -1])  # one vehicle's cells: the group is its own, newly lit ones too
+    seen = {vid: cells.tolist() for vid, cells in parcels_seen(lit, connected, neighbor, before)}
+    assert seen == {5: [0, 1, 2, 3, 4, 5], -1: [7]}
+
+
+def test_a_parcel_far_from_its_exit_plans_toward_it():
+    """Windowed A*: a plan covers ``window`` steps and is judged at its end by the distance left to the exit. That
+    distance was capped at the window, so every plan ending farther away than a window looked alike and a parcel far
+    from its exit took the first found, east before north, west and south: on facility_40x40 parcels for the north
+    exits rode round the east rim and one tipped off through another exit's lane. Alone on a 4 x 40 aisle whose west
+    end is its exit lane, a parcel 30 cells away plans every step of its window west, and one a window away does
+    too."""
+    from virtual_vehicle.cells.sorting.reserve import ReservationRouter
+
+    rows, cols, window = 4, 40, 8
+    router = ReservationRouter(pitch=0.1, speed=0.3, gap=2, window=window)
+    c, r = np.meshgrid(np.arange(cols), np.arange(rows))
+    router._layout(np.column_stack([c.ravel(), r.ravel()]) * 0.1)
+    router._maps(np.ones(rows * cols, dtype=bool), {"exit": np.where(c.ravel() == 0, 0, -1)})
+    maps = router._footprint_maps(0, 2, 2, 2)  # out through port 2, west
+    free = np.zeros((window + 1, rows, cols), dtype=bool)
+    for start in ((1, cols - 4), (1, window + 2)):
+        assert maps[3][start] > window
+        assert router._plan(start, 2, 2, maps, 2, free) == [2] * window

@@ -11,6 +11,47 @@ from virtual_vehicle.cells.sorting.rules import (MAX_EXITS, NONE, PARK, back_off
                                                  hop_cost, tick_of, vehicle_id)
 
 
+def parcels_seen(lit, connected, neighbor, before) -> list[tuple[int, np.ndarray]]:
+    """The parcels one computer sees in the cells' sensors: connected groups of ``lit`` cells (n,) through live links
+    (``connected``, ``neighbor``: (n, P)), each as (vehicle id, cells): the vehicle whose cells the group holds in
+    ``before`` (n,; the last tick's owners), NONE where it holds none. Two parcels that come so near that their lit
+    cells join make one group holding cells of two vehicles: it is shared among them (each keeps the cells it had; a
+    cell newly lit goes to the vehicle of the lit neighbour it is first reached from, breadth-first in cell order), so
+    that each keeps its own record (given whole to the vehicle most of the group had, the other parcel was carried to
+    that one's exit: a misroute on facility_40x40 saturated)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(lit)
+    idx = np.flatnonzero(lit)
+    pos = np.full(n, -1, dtype=np.int64)
+    pos[idx] = np.arange(len(idx))
+    a, p = np.nonzero(connected[idx])
+    b = neighbor[idx[a], p]
+    keep = lit[b]
+    graph = coo_matrix((np.ones(int(keep.sum())), (a[keep], pos[b[keep]])), shape=(len(idx),) * 2)
+    count, comp = connected_components(graph, directed=False) if len(idx) else (0, np.zeros(0, int))
+    out = []
+    for k in range(count):
+        blob = idx[comp == k]
+        prev = before[blob]
+        held = np.unique(prev[prev >= 0])
+        if len(held) <= 1:
+            out.append((int(held[0]) if len(held) else NONE, blob))
+            continue
+        own = {int(c): int(v) for c, v in zip(blob, prev) if v >= 0}
+        queue = sorted(own)
+        for c in queue:  # breadth-first from the cells owned, in cell order (a list grown while read)
+            for q in range(neighbor.shape[1]):
+                d = int(neighbor[c, q])
+                if d >= 0 and connected[c, q] and lit[d] and d not in own:
+                    own[d] = own[c]
+                    queue.append(d)
+        for v in held:
+            out.append((int(v), np.array(sorted(c for c, w in own.items() if w == v), dtype=np.int64)))
+    return out
+
+
 class CentralSorter:
     """The central counterpart of :class:`Sorter`, for side-by-side comparison: one computer that sees every cell's
     sensors at once, with no network delay, applies the same policies globally each tick.
@@ -75,9 +116,6 @@ class CentralSorter:
     def step(self, state, inputs: CellInputs):
         """One control tick for every cell at once: new state, the sentences to send, and the (n, 2) wheel speeds (m/s
         along each drive direction); see :class:`~virtual_vehicle.cells.network.programs.CellProgram`."""
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
-
         topo, cfg = self.topo, inputs.config
         n, P = inputs.connected.shape
         lit = np.asarray(inputs.sensors, dtype=bool).any(axis=1) & topo.alive
@@ -86,27 +124,11 @@ class CentralSorter:
         exit_port = np.asarray(cfg["exit_port"])
         entry = np.asarray(cfg["entry"], dtype=bool)
         labels = np.full(n, NONE) if inputs.labels is None else np.asarray(inputs.labels)
-        # parcels = connected groups of lit cells
-        idx = np.flatnonzero(lit)
-        pos = {c: k for k, c in enumerate(idx)}
-        a, p = np.nonzero(inputs.connected[idx])
-        b = topo.neighbor[idx[a], p]
-        keep = lit[b]
-        graph = coo_matrix((np.ones(int(keep.sum())), (a[keep], [pos[c] for c in b[keep]])), shape=(len(idx),) * 2)
-        count, comp = connected_components(graph, directed=False) if len(idx) else (0, np.zeros(0, int))
-        owner_prev = state["owner"]
         vehicles = {}
         owner = np.full(n, NONE, dtype=np.int64)
         tick = tick_of(inputs.t, self.period)
-        for k in range(count):
-            blob = idx[comp == k]
-            prev = owner_prev[blob]
-            prev = prev[prev >= 0]
-            if len(prev):
-                vid = int(np.bincount(prev - prev.min()).argmax() + prev.min())  # the record most of it had
-                record = state["vehicles"].get(vid)
-            else:
-                record = None
+        for vid, blob in parcels_seen(lit, inputs.connected, topo.neighbor, state["owner"]):
+            record = state["vehicles"].get(vid) if vid >= 0 else None
             if record is None:
                 lab = labels[blob[entry[blob] & (labels[blob] >= 0)]]
                 if not len(lab):

@@ -4,17 +4,21 @@ ticks a parcel takes to ride one pitch at ``speed``.
 
 One computer sees every cell's sensors. Each parcel is the group of cells it lights, as for
 :class:`~virtual_vehicle.cells.sorting.CentralSorter`; its *footprint* is the rectangle of cells whose centre it
-covers (sensor 0). Every step the router plans again, parcel by parcel, oldest first (prioritized planning,
-windowed cooperative A*, Silver 2005): a parcel's plan is a sequence of moves (one pitch through a port, or wait)
-over the next ``window`` steps, found by A* in (row, column, step) against a reservation table that holds, for
-every step, the cells the parcels planned before it sweep in that step. A move or a wait is allowed only if the
-footprint it sweeps, grown by ``gap`` cells on every side, meets none of those cells (the plan's spacing; the lit
-cells reach up to a cell past the covered centres, so the check at every tick below may hold a parcel a little
-longer than its plan). The heuristic is the exact distance on the empty map (breadth-first over the
-footprint's positions, one-way arrows and the array's holes respected), so a parcel alone rides a shortest path. A
-parcel is at its goal once its front line (its row or column of cells nearest the exit's open side) lies in its
-exit lane; from there it rides straight out. The map is read from the links at every plan: a dead or cut-off cell
-is a hole, so plans go around faults as soon as they appear.
+covers (sensor 0). Every step the router plans again, parcel by parcel, oldest first (prioritized planning, windowed
+cooperative A*, Silver 2005): a parcel's plan is a sequence of moves (one pitch through a port, or wait) over the
+next ``window`` steps, found by A* in (row, column, step) against a reservation table that holds, for every step,
+the cells the parcels planned before it sweep in that step. A move or a wait is allowed only if the footprint it
+sweeps, grown by ``gap`` cells on every side, meets none of those cells (the plan's spacing; the lit cells reach up
+to a cell past the covered centres, so the check at every tick below may hold a parcel a little longer than its
+plan). A parcel that already stands nearer than ``gap`` to a parcel planned before it keeps at least the spacing it
+has (its growth is cut to that): with the full growth not even waiting would be allowed, it would find no plan and
+stand, reserved where it stands, and the parcels near it after it, and so on. The heuristic is the exact distance on
+the empty map (breadth-first over the footprint's positions, one-way arrows and the array's holes respected), so a
+parcel alone rides a shortest path; a plan is judged at the window's end by the whole distance left (capped at the
+window, every plan of a parcel farther away would look alike). A parcel is at its goal once its front line (its row
+or column of cells nearest the exit's open side) lies in its exit lane; from there it rides straight out. The map is
+read from the links at every plan: a dead or cut-off cell is a hole, so plans go around faults as soon as they
+appear.
 
 Why it does not deadlock: priority is age, one total order that every plan uses. The oldest parcel plans against
 the map alone, so its plan leads toward its exit whenever the map has a way. A younger parcel plans against the
@@ -39,6 +43,7 @@ import numpy as np
 
 from virtual_vehicle.cells.network.messages import Mailbox, Schema
 from virtual_vehicle.cells.network.programs import CellInputs
+from virtual_vehicle.cells.sorting.central import parcels_seen
 from virtual_vehicle.cells.sorting.rules import NONE, decode_goal, drive, tick_of, vehicle_id
 
 DR = (0, 1, 0, -1)  # row change of a move through port q (rows run along +y)
@@ -165,7 +170,9 @@ class ReservationRouter:
         r0, c0 = start
         if at_goal[r0, c0]:  # in its lane: out through the open side, reserving the cells it sweeps
             return [out_port] * W
-        heap = [(int(min(dist[r0, c0], W)), 0, 0, 0, r0, c0)]  # f, -step (deeper first), order, step, row, col
+        while gap > 0 and reserved[(0, *self._region(r0, c0, r0, c0, h, w, gap))].any():
+            gap -= 1  # already nearer than gap to a parcel planned before: it keeps at least the spacing it has
+        heap = [(int(dist[r0, c0]), 0, 0, 0, r0, c0)]  # f, -step (deeper first), order, step, row, col
         parent = {(r0, c0, 0): None}
         closed = set()
         count = 0
@@ -197,7 +204,7 @@ class ReservationRouter:
                     continue
                 parent[node] = ((r, c, t), q)
                 count += 1
-                heapq.heappush(heap, (t + 1 + int(min(dist[nr, nc], W)), -(t + 1), count, t + 1, nr, nc))
+                heapq.heappush(heap, (t + 1 + int(dist[nr, nc]), -(t + 1), count, t + 1, nr, nc))
         return None
 
     def _reserve(self, reserved, start, moves, h, w):
@@ -258,9 +265,6 @@ class ReservationRouter:
         """One control tick for every cell at once: new state, no sentences (one central computer), and the (n, 2)
         wheel speeds (m/s along each drive direction); see
         :class:`~virtual_vehicle.cells.network.programs.CellProgram`."""
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
-
         cfg = inputs.config
         self._layout(np.asarray(cfg["position"], dtype=float))
         n, P = inputs.connected.shape
@@ -273,25 +277,11 @@ class ReservationRouter:
         entry = np.asarray(cfg["entry"], dtype=bool)
         labels = np.full(n, NONE) if inputs.labels is None else np.asarray(inputs.labels)
         tick = tick_of(inputs.t, self.period)
-        # parcels: connected groups of lit cells, each keeping the record most of its cells had
-        idx = np.flatnonzero(lit)
-        pos = np.full(n, -1, dtype=np.int64)
-        pos[idx] = np.arange(len(idx))
-        a, p = np.nonzero(inputs.connected[idx])
-        b = self.neighbor[idx[a], p]
-        keep = lit[b]
-        graph = coo_matrix((np.ones(int(keep.sum())), (a[keep], pos[b[keep]])), shape=(len(idx),) * 2)
-        count, comp = connected_components(graph, directed=False) if len(idx) else (0, np.zeros(0, int))
-        before, records = state["owner"], state["vehicles"]
+        # parcels: connected groups of lit cells, each keeping its record
+        records = state["vehicles"]
         vehicles, owner = {}, np.full(n, NONE, dtype=np.int64)
-        for k in range(count):
-            blob = idx[comp == k]
-            prev = before[blob]
-            prev = prev[prev >= 0]
-            record = None
-            if len(prev):
-                vid = int(np.bincount(prev - prev.min()).argmax() + prev.min())
-                record = records.get(vid)
+        for vid, blob in parcels_seen(lit, inputs.connected, self.neighbor, state["owner"]):
+            record = records.get(vid) if vid >= 0 else None
             if record is None:
                 lab = labels[blob[entry[blob] & (labels[blob] >= 0)]]
                 if not len(lab):
