@@ -156,7 +156,7 @@ def test_parcels_whose_lit_cells_join_keep_their_own_records():
     joined one for exit 1 at 10 s and was carried out of exit 1 by the central sorter (and one by the router). Now
     the group is shared: each vehicle keeps its cells, a newly lit cell between them goes to the one it is reached
     from first, and a group of one vehicle's cells, or of none, is as before."""
-    from virtual_vehicle.cells.sorting.central import parcels_seen
+    from virtual_vehicle.cells.sorting.seen import parcels_seen
 
     n = 8  # a row of cells, port 0 east, port 2 west; cell 6 not lit, cell 7 lit alone
     neighbor = np.full((n, 4), -1)

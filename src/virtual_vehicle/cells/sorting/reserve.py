@@ -43,8 +43,8 @@ import numpy as np
 
 from virtual_vehicle.cells.network.messages import Mailbox, Schema
 from virtual_vehicle.cells.network.programs import CellInputs
-from virtual_vehicle.cells.sorting.central import parcels_seen
 from virtual_vehicle.cells.sorting.rules import NONE, decode_goal, drive, tick_of, vehicle_id
+from virtual_vehicle.cells.sorting.seen import parcels_seen
 
 DR = (0, 1, 0, -1)  # row change of a move through port q (rows run along +y)
 DC = (1, 0, -1, 0)  # column change (columns run along +x)
