@@ -65,6 +65,15 @@ from virtual_vehicle.physics.laws.affine import (
 )
 from virtual_vehicle.physics.stick_modes import _wheel_arrays, zonotope_grip
 
+leaf = njit(cache=True, _nrt=False)
+"""The compiler for the event loop's leaves: functions that allocate nothing and return no array (numbers, or
+nothing: they write into arrays given). Numba's runtime counts a reference to every array argument on entry and
+drops it on exit, two atomic calls an array, which its pruning leaves in place in branching code: a call taking a
+:class:`Segment` (16 arrays) cost ~500 cycles so, against ~100 for its work (one margin), measured. Compiled without
+the runtime (numba's ``_nrt`` option) a leaf counts nothing. A leaf may call only leaves, inlined helpers and compiled
+functions that return no array (one returned to a leaf would never be released); the compiler refuses one that
+allocates ("NRT required but not enabled")."""
+
 RECTANGLE, CONVEX, POLYGON = 0, 1, 2
 """Footprint kinds: margins in closed form, from half-planes, or as a signed distance to a simple polygon."""
 
@@ -129,7 +138,7 @@ def accelerations(row, x, y, vx, vy, om):
     return fx * inv_m, fy * inv_m, tau * inv_i
 
 
-accelerations_compiled = njit(cache=True)(accelerations)
+accelerations_compiled = leaf(accelerations)
 
 
 @njit(cache=True)
@@ -243,7 +252,7 @@ def _margin(kind, half, normals, offsets, v, bx, by):
     return d if inside else -d
 
 
-@njit(cache=True)
+@leaf
 def values(seg, y, out):
     """Event values of segment ``seg`` at state ``y`` into ``out`` (n,)."""
     c, s = math.cos(y[2]), math.sin(y[2])
@@ -279,7 +288,7 @@ def values(seg, y, out):
     out[nc + m + q] = _refresh(seg, y)
 
 
-@njit(cache=True)
+@leaf
 def value(seg, y, i):
     """Event value ``i`` of segment ``seg`` at state ``y`` (as :func:`values` computes it, alone)."""
     nc, m, q = seg.candidates.shape[0], seg.basis.shape[0], seg.hull_offsets.shape[0]
@@ -380,12 +389,12 @@ def _noise(nc, m, noise_length, noise_force, i):
     return noise_force if nc <= i < nc + m else noise_length
 
 
-@njit(cache=True)
+@leaf
 def _sign(v):
     return (v > 0) - (v < 0)
 
 
-@njit(cache=True)
+@leaf
 def _edge_and_rate(normals, offsets, y, px, py):
     """For a convex footprint at state ``y``: point (px, py)'s nearest (most violated) edge and that edge distance's
     rate of change (m/s), from the point's velocity relative to the parcel in the body frame."""
@@ -404,7 +413,7 @@ def _edge_and_rate(normals, offsets, y, px, py):
     return edge, -(normals[edge, 0] * pbx + normals[edge, 1] * pby)
 
 
-@njit(cache=True)
+@leaf
 def may_hide(seg, ya, yb, ga, gb, dt, acc, spin_acc, out):
     """Which event values (into ``out``) could have crossed zero and come back between states ``ya`` and ``yb``,
     ``dt`` seconds apart, without changing sign at them, given bounds on the parcel's acceleration (m/s^2) and
@@ -447,7 +456,7 @@ def may_hide(seg, ya, yb, ga, gb, dt, acc, spin_acc, out):
     return any_hidden
 
 
-@njit(cache=True)
+@leaf
 def dense_at(F, y_old, t_old, h, t, out):
     """DOP853's dense output (scipy's ``Dop853DenseOutput``) of the step from ``t_old`` of length ``h`` at ``t``."""
     x = (t - t_old) / h
@@ -462,7 +471,7 @@ def dense_at(F, y_old, t_old, h, t, out):
         out[j] += y_old[j]
 
 
-@njit(cache=True)
+@leaf
 def _changed(g, g0, out):
     """Which values' signs differ from the baseline ``g0``, into ``out``; whether any."""
     anyc = False
@@ -472,7 +481,7 @@ def _changed(g, g0, out):
     return anyc
 
 
-@njit(cache=True)
+@leaf
 def _unchanged(hidden, changed, out):
     """``hidden`` where the value did not already change sign (a change is found, not hidden), into ``out`` (may
     be ``hidden`` itself); whether any."""
@@ -535,7 +544,7 @@ def _search(seg, F, y_old, t_old, h, g0, acc, spin_acc, t0, t1, y0, y1, g0v, g1v
     return False, t0, t1, changed, g0v, g1v
 
 
-@njit(cache=True)
+@leaf
 def _phi(t, ctx):
     """min_k s_k g_k(t) over the changed event values ``idx``: its first zero is the earliest crossing. ``ctx`` is
     (segment, dense output F, y_old, t_old, h, idx, s_k, a work array for the state and a count of evaluations).
@@ -549,7 +558,7 @@ def _phi(t, ctx):
     return out
 
 
-@njit(cache=True)
+@leaf
 def _brent(ctx, xa, xb, fa, fb, xtol, rtol, maxiter):
     """A root of :func:`_phi` (``ctx``) between ``xa`` and ``xb``, whose values there, ``fa`` and ``fb``, have
     opposite signs (or one is zero), to within ``xtol + rtol |x|``: Brent's method as ``scipy.optimize.brentq`` runs
@@ -687,13 +696,13 @@ def _first_change(seg, F, y_old, t_old, h, g0, t_lo, t_hi, f_lo, f_hi):
     return False, t_lo, t_hi, changed, G[0], G[SUBSAMPLES]
 
 
-@njit(cache=True)
+@leaf
 def _rhs(row, y, out):
     out[0], out[1], out[2] = y[3], y[4], y[5]
     out[3], out[4], out[5] = accelerations_compiled(row, y[0], y[1], y[3], y[4], y[5])
 
 
-@njit(cache=True)
+@leaf
 def _stage(row, y, h, K, a, s, work):
     """Stage ``s`` of a Runge-Kutta step from ``y`` of length ``h``: ``K[s] = rhs(y + h sum_i<s a_i K_i)``."""
     for j in range(6):
@@ -704,12 +713,13 @@ def _stage(row, y, h, K, a, s, work):
     _rhs(row, work, K[s])
 
 
-@njit(cache=True)
+@leaf
 def _trial(row, y, f, h, rtol, atol, K, y_new, f_new, work):
     """A trial step of DOP853 of length ``h`` from ``y`` with derivative ``f`` (scipy's ``rk_step``): fills the
     stages ``K``, ``y_new`` and ``f_new``; returns the error norm (scipy's ``_estimate_error_norm``), below 1 for a
     step DOP853 accepts."""
-    K[0] = f
+    for j in range(6):  # (a row assigned whole may copy, with the runtime a leaf has not)
+        K[0, j] = f[j]
     for s in range(1, _N_STAGES):
         _stage(row, y, h, K, _A[s], s, work)
     for j in range(6):
@@ -718,7 +728,8 @@ def _trial(row, y, f, h, rtol, atol, K, y_new, f_new, work):
             acc += K[i, j] * _B[i]
         y_new[j] = y[j] + h * acc
     _rhs(row, y_new, f_new)
-    K[_N_STAGES] = f_new
+    for j in range(6):
+        K[_N_STAGES, j] = f_new[j]
     err5 = err3 = 0.0
     for j in range(6):
         scale = atol + max(abs(y[j]), abs(y_new[j])) * rtol
@@ -733,7 +744,7 @@ def _trial(row, y, f, h, rtol, atol, K, y_new, f_new, work):
     return abs(h) * err5 / math.sqrt((err5 + 0.01 * err3) * 6)
 
 
-@njit(cache=True)
+@leaf
 def _dop853_step(row, t, y, f, t_bound, h_abs, rtol, atol, max_step, K, y_new, f_new, work):
     """One accepted step of scipy's DOP853 (``RungeKutta._step_impl``) from (t, y) with derivative f: fills
     ``y_new``, ``f_new`` and the stages ``K``; returns (ok, t_new, h_abs for the next step, evaluations)."""
@@ -764,7 +775,7 @@ def _dop853_step(row, t, y, f, t_bound, h_abs, rtol, atol, max_step, K, y_new, f
         rejected = True
 
 
-@njit(cache=True)
+@leaf
 def _dense(row, t_old, y_old, f_old, y_new, f_new, h, K, F, work):
     """The step's dense-output coefficients F (7, 6) (scipy's ``DOP853._dense_output_impl``); evaluations made."""
     for e in range(_A_EXTRA.shape[0]):
