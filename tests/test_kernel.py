@@ -771,3 +771,44 @@ def test_the_event_loop_finds_the_cells_under_the_parcel_as_the_model_does(name,
     found = kernel.cells_under(dynamics._grid_args(model), model.cells.positions, kind, half, normals, offsets,
                                vertices, state)
     assert found.dtype == np.int64 and found.tolist() == model.support_at(state).tolist()
+
+
+LEAVES = ("values", "value", "may_hide", "_edge_and_rate", "_changed", "_unchanged", "dense_at", "_phi", "_brent",
+          "_rhs", "_stage", "_trial", "_dop853_step", "_dense", "_sign", "accelerations_compiled")
+
+
+def test_the_event_loops_leaves_are_compiled_without_the_runtime_and_it_refuses_a_leaf_that_allocates():
+    """The event loop's hot leaves count no references (numba's runtime off: ``kernel.leaf``), the loops that call
+    them keep it; and the compiler refuses a leaf that makes an array, so the rule the decorator states is checked,
+    not trusted."""
+    for name in LEAVES:
+        assert getattr(kernel, name).targetoptions.get("_nrt") is False, name
+    assert kernel.run_piece.targetoptions.get("_nrt", True) is not False
+
+    def makes_an_array(n):
+        return np.zeros(n).sum()
+
+    def copies_a_row_whole(K, f):  # may copy through a temporary: the runtime's
+        K[0] = f
+
+    with pytest.raises(Exception, match="Only accept returning of array passed into the function"):
+        kernel.leaf(makes_an_array)(3)
+    with pytest.raises(Exception, match="NRT required but not enabled"):
+        kernel.leaf(copies_a_row_whole)(np.zeros((2, 3)), np.ones(3))
+
+
+def test_a_leaf_called_from_python_gives_what_the_loops_give():
+    """A leaf is also called from Python (the segment's values at a state): the same numbers as its Python source."""
+    model = ParcelModel(layout.grid(8, 8, 0.1), parcel.rectangle(0.3, 0.2, 1.0, 1.0),
+                        fields.Uniform((0.2, 0.0)).velocities(layout.grid(8, 8, 0.1)), laws.CoulombLaw())
+    y = np.array([0.41, 0.37, 0.2, 0.1, 0.0, 0.3])
+    piece = model.piece_at(y)
+    seg = dynamics._Segment(model, piece, y, None)
+    arrays = kernel.Segment(*seg.fields)
+    n = arrays.candidates.shape[0] + arrays.basis.shape[0] + arrays.hull_offsets.shape[0] + 1
+    compiled, python = np.empty(n), np.empty(n)
+    kernel.values(arrays, y, compiled)
+    for i in range(n):
+        python[i] = kernel.value(arrays, y, i)
+    np.testing.assert_allclose(compiled, python, rtol=0, atol=1e-12)
+    assert np.array_equal(compiled > 0, python > 0)
