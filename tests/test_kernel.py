@@ -774,7 +774,8 @@ def test_the_event_loop_finds_the_cells_under_the_parcel_as_the_model_does(name,
 
 
 LEAVES = ("values", "value", "may_hide", "_edge_and_rate", "_changed", "_unchanged", "dense_at", "_phi", "_brent",
-          "_rhs", "_stage", "_trial", "_dop853_step", "_dense", "_sign", "accelerations_compiled")
+          "_rhs", "_stage", "_trial", "_dop853_step", "_dense", "_sign", "accelerations_compiled", "_search",
+          "_first_change", "_locate", "_event_in_step", "_linspace", "_copy")
 
 
 def test_the_event_loops_leaves_are_compiled_without_the_runtime_and_it_refuses_a_leaf_that_allocates():
@@ -812,3 +813,50 @@ def test_a_leaf_called_from_python_gives_what_the_loops_give():
         python[i] = kernel.value(arrays, y, i)
     np.testing.assert_allclose(compiled, python, rtol=0, atol=1e-12)
     assert np.array_equal(compiled > 0, python > 0)
+
+
+def test_a_search_out_of_room_searches_again_and_finds_the_same_bracket():
+    """The search for a step's first event works in a scratch made once a loop; a bisection that outgrows its stores
+    says so (``SEARCH_FULL``) rather than allocate (it is a leaf), and searched again with grown stores it finds the
+    bracket a roomy scratch finds, to the bit. Steps of an oscillating Coulomb parcel from seeded states; a scratch
+    with room for two intervals runs out in many of them (checked: else the growth would go untested)."""
+    cells = layout.grid(12, 12, 0.1)
+    model = ParcelModel(cells, parcel.rectangle(0.3, 0.2, 1.0, 1.0),
+                        fields.Inward((0.6, 0.6), 0.2).velocities(cells), laws.CoulombLaw())
+    rng = np.random.default_rng(0)
+    grown = found = 0
+    for _ in range(40):
+        y = np.array([*rng.uniform(0.4, 0.8, 2), rng.uniform(-3, 3), *rng.uniform(-0.3, 0.3, 2), rng.uniform(-2, 2)])
+        piece = model.piece_at(y)
+        seg = kernel.Segment(*dynamics._Segment(model, piece, y, None).fields)
+        n = seg.candidates.shape[0] + seg.basis.shape[0] + seg.hull_offsets.shape[0] + 1
+        g0 = np.empty(n)
+        kernel.values(seg, y, g0)
+        K, F, f, y_new, f_new, work = kernel._workspace()
+        row = np.array(piece.row)
+        kernel._rhs(row, y, f)
+        ok, h, _, _ = kernel._dop853_step(row, 0.0, y, f, 1.0, 0.2, 1e-9, 1e-12, np.inf, K, y_new, f_new, work)
+        assert ok
+        kernel._dense(row, 0.0, y, f, y_new, f_new, h, K, F, work)
+        roomy, tight = kernel.search_scratch(n), kernel._scratch(n, 2)
+        args = (seg, F, y, 0.0, h, g0 > 0, 0.0, h, f, f_new)
+        want = kernel._first_change(*args, roomy)
+        got = kernel._first_change(*args, tight)
+        while got[0] == kernel.SEARCH_FULL:
+            grown += 1
+            tight = kernel._grown_search(tight)
+            got = kernel._first_change(*args, tight)
+        assert got == want
+        if want[0] == kernel.FOUND:
+            found += 1
+            for name in ("out_changed", "g_a", "g_b"):
+                assert np.array_equal(getattr(tight, name)[:n], getattr(roomy, name)[:n]), name
+    assert grown >= 10 and found >= 10
+
+
+def test_the_compiled_linspace_is_numbas():
+    """The search's sample times, written into its scratch, are np.linspace's as compiled code computes it."""
+    out = np.empty(kernel.SUBSAMPLES + 1)
+    for lo, hi in ((0.0, 1.0), (0.123456789, 0.123456789 + 3.7e-3), (5.0, 5.0 + 1e-9)):
+        kernel._linspace(lo, hi, out)
+        assert np.array_equal(out, np.linspace(lo, hi, kernel.SUBSAMPLES + 1))

@@ -492,56 +492,132 @@ def _unchanged(hidden, changed, out):
     return anyh
 
 
+NOT_FOUND, FOUND, SEARCH_FULL = 0, 1, 2
+"""What :func:`_first_change` and :func:`_search` report: no change in the interval, a bracket (in the scratch), or
+the scratch's bisection stores too small (grow them: :func:`_grown_search`, and search again)."""
+_SEARCH_CAP = 64
+"""Intervals the bisection of one sample interval may hold before its stores are grown."""
+_EPS = float(np.finfo(np.float64).eps)
+
+
+class SearchScratch(NamedTuple):
+    """The arrays a step's search for its first event (:func:`_first_change`, :func:`_search`) and its location
+    (:func:`_locate`) work in, made once a loop (:func:`search_scratch`) rather than a dozen small ones every step,
+    so that both are leaves (:data:`leaf`). Event-value arrays hold up to ``n`` values; a step's ``n`` values are the
+    first ``n`` of each.
+
+    ``ts`` (S,), ``Y`` (S, 6), ``G`` (S, n): the step's samples (S = ``SUBSAMPLES`` + 1: times s, states, event values);
+    ``changed``, ``hidden`` (n,): at a sample; ``s_changed``, ``s_hidden`` (n,), ``T`` (c,), ``SY`` (c, 6), ``SG``
+    (c, n), ``stack`` (c, 2): the bisection's; ``out_changed``, ``g_a``, ``g_b`` (n,): the bracket found (which values
+    changed, the values at its ends); ``idx`` (n,), ``sgn`` (n,), ``y`` (6,), ``g`` (n,), ``calls`` (1,): the
+    location's (the changed values and their signs, a state, the values at the probe, evaluations)."""
+
+    ts: np.ndarray
+    Y: np.ndarray
+    G: np.ndarray
+    changed: np.ndarray
+    hidden: np.ndarray
+    s_changed: np.ndarray
+    s_hidden: np.ndarray
+    T: np.ndarray
+    SY: np.ndarray
+    SG: np.ndarray
+    stack: np.ndarray
+    out_changed: np.ndarray
+    g_a: np.ndarray
+    g_b: np.ndarray
+    idx: np.ndarray
+    sgn: np.ndarray
+    y: np.ndarray
+    g: np.ndarray
+    calls: np.ndarray
+
+
 @njit(cache=True)
-def _search(seg, F, y_old, t_old, h, g0, acc, spin_acc, t0, t1, y0, y1, g0v, g1v, hidden0):
+def _scratch(n, cap):
+    S = SUBSAMPLES + 1
+    return SearchScratch(np.empty(S), np.empty((S, 6)), np.empty((S, n)), np.empty(n, np.bool_),
+                         np.empty(n, np.bool_), np.empty(n, np.bool_), np.empty(n, np.bool_), np.empty(cap),
+                         np.empty((cap, 6)), np.empty((cap, n)), np.empty((cap, 2), np.int64), np.empty(n, np.bool_),
+                         np.empty(n), np.empty(n), np.empty(n, np.int64), np.empty(n), np.empty(6), np.empty(n),
+                         np.zeros(1, np.int64))
+
+
+@njit(cache=True)
+def search_scratch(n):
+    """A :class:`SearchScratch` for up to ``n`` event values."""
+    return _scratch(n, _SEARCH_CAP)
+
+
+@njit(cache=True)
+def _grown_search(sc):
+    """A :class:`SearchScratch` as ``sc`` with bisection stores twice as long (its search said ``SEARCH_FULL``)."""
+    return _scratch(sc.G.shape[1], 2 * sc.T.shape[0])
+
+
+@leaf
+def _linspace(start, stop, out):
+    """``np.linspace(start, stop, len(out))`` into ``out``, as numba computes it (the same floats)."""
+    num = out.shape[0]
+    step = (stop - start) / (num - 1)
+    for i in range(num):
+        out[i] = start + (i * step)
+    out[num - 1] = stop
+
+
+@leaf
+def _copy(a, out):
+    """``out[:] = a`` element by element (a whole-array assignment may copy through a temporary: not in a leaf)."""
+    for i in range(a.shape[0]):
+        out[i] = a[i]
+
+
+@leaf
+def _search(seg, F, y_old, t_old, h, g0, acc, spin_acc, t0, t1, y0, y1, g0v, g1v, hidden0, sc):
     """The earliest bracket in [t0, t1] (states ``y0``, ``y1``, event values ``g0v``, ``g1v``) across which the event
     predicate leaves ``g0``, bisecting while a crossing could hide (``hidden0``: the whole interval's predicate):
-    (found, t_a, t_b, changed, g_a, g_b). Depth first, earliest half first."""
+    (found, t_a, t_b), the bracket's changed values and its ends' values into ``sc`` (``out_changed``, ``g_a``,
+    ``g_b``). Depth first, earliest half first. ``SEARCH_FULL`` when the scratch's stores are too small."""
     n = g0.shape[0]
-    cap = 64
-    T = np.empty(cap)
-    Y = np.empty((cap, 6))
-    G = np.empty((cap, n))
+    T, Y, G, stack = sc.T, sc.SY, sc.SG, sc.stack
     T[0], T[1] = t0, t1
-    Y[0], Y[1] = y0, y1
-    G[0], G[1] = g0v, g1v
+    _copy(y0, Y[0])
+    _copy(y1, Y[1])
+    _copy(g0v, G[0, :n])
+    _copy(g1v, G[1, :n])
     used = 2
-    stack = np.empty((cap, 2), np.int64)
     stack[0, 0], stack[0, 1] = 0, 1
     depth = 1
-    changed = np.empty(n, np.bool_)
-    hidden = np.empty(n, np.bool_)
+    changed, hidden = sc.s_changed[:n], sc.s_hidden[:n]
     first = True
     while depth > 0:
         depth -= 1
         a, b = stack[depth, 0], stack[depth, 1]
-        anyc = _changed(G[b], g0, changed)
+        anyc = _changed(G[b, :n], g0, changed)
         if first:
             anyh = _unchanged(hidden0, changed, hidden)
             first = False
         else:
-            may_hide(seg, Y[a], Y[b], G[a], G[b], T[b] - T[a], acc, spin_acc, hidden)
+            may_hide(seg, Y[a], Y[b], G[a, :n], G[b, :n], T[b] - T[a], acc, spin_acc, hidden)
             anyh = _unchanged(hidden, changed, hidden)
         if not anyh or T[b] - T[a] <= MIN_BRACKET:
             if anyc:
-                return True, T[a], T[b], changed.copy(), G[a].copy(), G[b].copy()
+                _copy(changed, sc.out_changed[:n])
+                _copy(G[a, :n], sc.g_a[:n])
+                _copy(G[b, :n], sc.g_b[:n])
+                return FOUND, T[a], T[b]
             continue
-        if used == T.shape[0] or depth + 2 > stack.shape[0]:  # grow the stores
-            T2, Y2, G2 = np.empty(2 * used), np.empty((2 * used, 6)), np.empty((2 * used, n))
-            T2[:used], Y2[:used], G2[:used] = T[:used], Y[:used], G[:used]
-            T, Y, G = T2, Y2, G2
-            S2 = np.empty((2 * stack.shape[0], 2), np.int64)
-            S2[:depth] = stack[:depth]
-            stack = S2
+        if used == T.shape[0] or depth + 2 > stack.shape[0]:
+            return SEARCH_FULL, t0, t1
         mid = used
         used += 1
         T[mid] = 0.5 * (T[a] + T[b])
         dense_at(F, y_old, t_old, h, T[mid], Y[mid])
-        values(seg, Y[mid], G[mid])
+        values(seg, Y[mid], G[mid, :n])
         stack[depth, 0], stack[depth, 1] = mid, b  # the later half waits
         stack[depth + 1, 0], stack[depth + 1, 1] = a, mid
         depth += 2
-    return False, t0, t1, changed, g0v, g1v
+    return NOT_FOUND, t0, t1
 
 
 @leaf
@@ -603,10 +679,11 @@ def _brent(ctx, xa, xb, fa, fb, xtol, rtol, maxiter):
     return xcur, NO_CONVERGENCE
 
 
-@njit(cache=True)
-def _locate(seg, F, y_old, t_old, h, g0, t_lo, t_hi, changed, g_lo, g_hi):
+@leaf
+def _locate(seg, F, y_old, t_old, h, g0, t_lo, t_hi, changed, g_lo, g_hi, sc):
     """The earliest event in (t_lo, t_hi], whose ends have event values ``g_lo``, ``g_hi``: (outcome, restart,
-    probe, probe values, whether those are clear of rounding noise).
+    probe, whether the probe's values are clear of rounding noise); the probe's values into ``sc.g`` (its first
+    ``len(g0)``), the scratch's location arrays used (:class:`SearchScratch`).
 
     The earliest crossing is the first zero of ``min_k s_k g_k(t)`` over the changed event functions, with ``s_k``
     the sign that makes each positive before its crossing; it is bracketed by the caller and found by Brent's method.
@@ -615,16 +692,19 @@ def _locate(seg, F, y_old, t_old, h, g0, t_lo, t_hi, changed, g_lo, g_hi):
     there, so that cells crossing together by symmetry all cross and no tie at the root decides the piece."""
     n = g0.shape[0]
     nc, m, noise_length, noise_force = seg.candidates.shape[0], seg.basis.shape[0], seg.noise_length, seg.noise_force
-    idx = np.flatnonzero(changed)
-    sgn = np.empty(idx.shape[0])
+    count = 0
+    for i in range(n):  # the changed values' indices, in order (np.flatnonzero)
+        if changed[i]:
+            sc.idx[count] = i
+            count += 1
+    idx, sgn = sc.idx[:count], sc.sgn[:count]
     phi_lo = phi_hi = np.inf
     for k in range(idx.shape[0]):
         sgn[k] = 1.0 if g0[idx[k]] else -1.0
         phi_lo = min(phi_lo, sgn[k] * g_lo[idx[k]])
         phi_hi = min(phi_hi, sgn[k] * g_hi[idx[k]])
-    y = np.empty(6)
-    g = np.empty(n)
-    eps = np.finfo(np.float64).eps
+    y, g = sc.y, sc.g[:n]
+    eps = _EPS
     xtol = max(4 * eps * abs(t_hi), 1e-13)
     outcome = REACHED
     if phi_lo <= 0.0:
@@ -632,10 +712,11 @@ def _locate(seg, F, y_old, t_old, h, g0, t_lo, t_hi, changed, g_lo, g_hi):
     elif phi_hi > 0.0:  # the change was a sign flip through an exact zero at t_hi
         t_ev = t_hi
     else:
-        ctx = (seg, F, y_old, t_old, h, idx, sgn, y, np.zeros(1, np.int64))
+        sc.calls[0] = 0
+        ctx = (seg, F, y_old, t_old, h, idx, sgn, y, sc.calls)
         t_ev, outcome = _brent(ctx, t_lo, t_hi, phi_lo, phi_hi, xtol, 4 * eps, 100)
         if outcome != REACHED:
-            return outcome, t_ev, t_ev, g, False
+            return outcome, t_ev, t_ev, False
     step = PROBE_FIRST
     t_star = min(t_hi, t_ev + xtol)
     first = -1.0
@@ -651,18 +732,19 @@ def _locate(seg, F, y_old, t_old, h, g0, t_lo, t_hi, changed, g_lo, g_hi):
             if first < 0:
                 first = t_star
             if clear:
-                return REACHED, min(t_ev + xtol, t_star), t_star, g, True
+                return REACHED, min(t_ev + xtol, t_star), t_star, True
         if t_star >= t_hi or t_star - t_ev > PROBE_MAX:
             probe = t_hi if first < 0 else first
-            return REACHED, min(t_ev + xtol, probe), probe, g, False
+            return REACHED, min(t_ev + xtol, probe), probe, False
         t_star = min(t_hi, t_ev + step)
         step *= 4
 
 
-@njit(cache=True)
-def _first_change(seg, F, y_old, t_old, h, g0, t_lo, t_hi, f_lo, f_hi):
-    """The earliest bracket (t_a, t_b) in (t_lo, t_hi] across which the event predicate leaves ``g0``:
-    (found, t_a, t_b, changed, g_a, g_b).
+@leaf
+def _first_change(seg, F, y_old, t_old, h, g0, t_lo, t_hi, f_lo, f_hi, sc):
+    """The earliest bracket (t_a, t_b) in (t_lo, t_hi] across which the event predicate leaves ``g0``: (found, t_a,
+    t_b), the bracket's changed values and its ends' values into ``sc`` (``out_changed``, ``g_a``, ``g_b``);
+    ``SEARCH_FULL``: grow the scratch's stores and search again.
 
     The step is sampled at ``SUBSAMPLES`` points. Between two samples an event function can cross zero and come
     back (a cell grazing the footprint's edge) only if it could reach zero in that time (:func:`may_hide`); such
@@ -673,27 +755,40 @@ def _first_change(seg, F, y_old, t_old, h, g0, t_lo, t_hi, f_lo, f_hi):
     in its event, a third of the way along on average (an oscillating Coulomb parcel), and the samples past it
     were most of the search's work."""
     n = g0.shape[0]
-    ts = np.linspace(t_lo, t_hi, SUBSAMPLES + 1)
-    Y = np.empty((SUBSAMPLES + 1, 6))
-    G = np.empty((SUBSAMPLES + 1, n))
+    ts, Y, G = sc.ts, sc.Y, sc.G
+    _linspace(t_lo, t_hi, ts)
     dense_at(F, y_old, t_old, h, ts[0], Y[0])
-    values(seg, Y[0], G[0])
+    values(seg, Y[0], G[0, :n])
     acc = RATE_SAFETY * max(math.hypot(f_lo[3], f_lo[4]), math.hypot(f_hi[3], f_hi[4]))
     spin_acc = RATE_SAFETY * max(abs(f_lo[5]), abs(f_hi[5]))
-    changed = np.empty(n, np.bool_)
-    hidden = np.empty(n, np.bool_)
+    changed, hidden = sc.changed[:n], sc.hidden[:n]
     for j in range(SUBSAMPLES):
         dense_at(F, y_old, t_old, h, ts[j + 1], Y[j + 1])
-        values(seg, Y[j + 1], G[j + 1])
-        anyc = _changed(G[j + 1], g0, changed)
-        may_hide(seg, Y[j], Y[j + 1], G[j], G[j + 1], ts[j + 1] - ts[j], acc, spin_acc, hidden)
+        values(seg, Y[j + 1], G[j + 1, :n])
+        anyc = _changed(G[j + 1, :n], g0, changed)
+        may_hide(seg, Y[j], Y[j + 1], G[j, :n], G[j + 1, :n], ts[j + 1] - ts[j], acc, spin_acc, hidden)
         anyh = _unchanged(hidden, changed, hidden)
         if anyc or anyh:
-            found = _search(seg, F, y_old, t_old, h, g0, acc, spin_acc, ts[j], ts[j + 1], Y[j], Y[j + 1],
-                            G[j], G[j + 1], hidden)
-            if found[0]:
-                return found
-    return False, t_lo, t_hi, changed, G[0], G[SUBSAMPLES]
+            found, t_a, t_b = _search(seg, F, y_old, t_old, h, g0, acc, spin_acc, ts[j], ts[j + 1], Y[j], Y[j + 1],
+                                      G[j, :n], G[j + 1, :n], hidden, sc)
+            if found != NOT_FOUND:
+                return found, t_a, t_b
+    return NOT_FOUND, t_lo, t_hi
+
+
+@leaf
+def _event_in_step(seg, F, y_old, t_old, h, g0, t_lo, t_hi, f_lo, f_hi, sc):
+    """:func:`_first_change` over (t_lo, t_hi] and, where it finds a bracket, :func:`_locate` of the event in it:
+    (found, outcome, restart time, probe time, whether the probe's values are clear of rounding noise), the probe's
+    values in ``sc.g``; not found: the restart time ``t_hi``. ``SEARCH_FULL``: grow the scratch (:func:`_grown_search`)
+    and call again."""
+    found, t_a, t_b = _first_change(seg, F, y_old, t_old, h, g0, t_lo, t_hi, f_lo, f_hi, sc)
+    if found != FOUND:
+        return found, REACHED, t_hi, t_hi, False
+    n = g0.shape[0]
+    outcome, t_reach, t_probe, clear = _locate(seg, F, y_old, t_old, h, g0, t_a, t_b, sc.out_changed[:n],
+                                               sc.g_a[:n], sc.g_b[:n], sc)
+    return FOUND, outcome, t_reach, t_probe, clear
 
 
 @leaf
@@ -834,13 +929,14 @@ def quiet_steps(rows, Y, t, t_bound, rtol, atol, sample_times, out):
 
 @njit(cache=True)
 def run_piece(row, fields, y_base, t, y, t_bound, h_abs, first_step, rtol, atol, max_step, max_steps,
-              sample_times, next_sample, samples):
+              sample_times, next_sample, samples, sc):
     """Integrate one piece from (t, y) towards ``t_bound`` until its first event, ``max_steps`` steps, or the end.
 
     ``row`` is the piece's constants row, ``fields`` its :class:`Segment`'s (:func:`make_segment`), ``y_base`` the
     state at which the event values' signs are the baseline (the piece's start, or the probe just past the event that
     began it). The first step tried is ``first_step`` when positive (a new piece), else ``h_abs`` (the same piece
     resumed after a pause). Output samples ``sample_times[next_sample:]`` reached are written into ``samples``.
+    ``sc`` is the search's scratch (:func:`search_scratch`; a larger one is made here if it holds too few values).
     Times in s, states in SI units.
 
     Returns (outcome, t, y, h_abs, last step, evaluations, next_sample, probe time, probe state, the cells under the
@@ -853,6 +949,8 @@ def run_piece(row, fields, y_base, t, y, t_bound, h_abs, first_step, rtol, atol,
     values(seg, y_base, g0)
     g0 = g0 > 0
     n = g0.shape[0]
+    if sc.G.shape[1] < n:
+        sc = search_scratch(n)
     K, F, f, y_new, f_new, work = _workspace()
     y = y.copy()
     _rhs(row, y, f)
@@ -875,12 +973,12 @@ def run_piece(row, fields, y_base, t, y, t_bound, h_abs, first_step, rtol, atol,
         h = t_new - t
         last = h
         nfev += _dense(row, t, y, f, y_new, f_new, h, K, F, work)
-        found, t_a, t_b, changed, g_a, g_b = _first_change(seg, F, y, t, h, g0, t, t_new, f, f_new)
-        t_reach = t_new
-        if found:
-            outcome, t_reach, t_probe, g, clear = _locate(seg, F, y, t, h, g0, t_a, t_b, changed, g_a, g_b)
-            if outcome != REACHED:
-                return outcome, t_reach, y, h_next, last, nfev, next_sample, t, y_probe, none, False
+        found, outcome, t_reach, t_probe, clear = _event_in_step(seg, F, y, t, h, g0, t, t_new, f, f_new, sc)
+        while found == SEARCH_FULL:  # (searched again from the start, with room: the same bracket)
+            sc = _grown_search(sc)
+            found, outcome, t_reach, t_probe, clear = _event_in_step(seg, F, y, t, h, g0, t, t_new, f, f_new, sc)
+        if found and outcome != REACHED:
+            return outcome, t_reach, y, h_next, last, nfev, next_sample, t, y_probe, none, False
         while next_sample < sample_times.shape[0] and sample_times[next_sample] <= t_reach:
             dense_at(F, y, t, h, sample_times[next_sample], samples[next_sample])
             next_sample += 1
@@ -888,6 +986,7 @@ def run_piece(row, fields, y_base, t, y, t_bound, h_abs, first_step, rtol, atol,
             y_restart = np.empty(6)
             dense_at(F, y, t, h, t_reach, y_restart)
             dense_at(F, y, t, h, t_probe, y_probe)
+            g = sc.g[:n]
             told = clear and g[n - 1] > 0
             return EVENT, t_reach, y_restart, h_next, last, nfev, next_sample, t_probe, y_probe, \
                 _positive(seg.ids, g) if told else none, told
@@ -1346,6 +1445,7 @@ def run_mode(md, n_ev, fields, y_base, t, z, t_bound, h_abs, first_step, rtol, a
     values(seg, y_base[:6].copy(), g0)
     g0 = g0 > 0
     n = g0.shape[0]
+    sc = search_scratch(n)
     K = np.empty((_N_EXTENDED, _MODE_STATE))
     F = np.empty((_D.shape[0] + 3, _MODE_STATE))
     f, z_new, f_new, work = np.empty(8), np.empty(8), np.empty(8), np.empty(8)
@@ -1385,12 +1485,12 @@ def run_mode(md, n_ev, fields, y_base, t, z, t_bound, h_abs, first_step, rtol, a
             moded, t_mode, which = (_mode_crossing(md, F, z, t, h, t, t_new, v_lo, n_ev) if n_ev
                                     else (False, t_new, -1))
         t_end = t_mode if moded else t_new
-        found, t_a, t_b, changed, g_a, g_b = _first_change(seg, F, z, t, h, g0, t, t_end, f, f_new)
-        t_reach = t_end
-        if found:
-            outcome, t_reach, t_probe, g, clear = _locate(seg, F, z, t, h, g0, t_a, t_b, changed, g_a, g_b)
-            if outcome != REACHED:
-                return outcome, t_reach, z, h_next, last, nfev, next_sample, t, y_probe, none, False, -1
+        found, outcome, t_reach, t_probe, clear = _event_in_step(seg, F, z, t, h, g0, t, t_end, f, f_new, sc)
+        while found == SEARCH_FULL:  # (searched again from the start, with room: the same bracket)
+            sc = _grown_search(sc)
+            found, outcome, t_reach, t_probe, clear = _event_in_step(seg, F, z, t, h, g0, t, t_end, f, f_new, sc)
+        if found and outcome != REACHED:
+            return outcome, t_reach, z, h_next, last, nfev, next_sample, t, y_probe, none, False, -1
         while next_sample < sample_times.shape[0] and sample_times[next_sample] <= t_reach:
             dense_at(F, z, t, h, sample_times[next_sample], samples[next_sample])
             next_sample += 1
@@ -1401,6 +1501,7 @@ def run_mode(md, n_ev, fields, y_base, t, z, t_bound, h_abs, first_step, rtol, a
                 return MODE_EVENT, t_reach, z_restart, h_next, last, nfev, next_sample, t_reach, y_probe, none, \
                     False, which
             dense_at(F, z, t, h, t_probe, y_probe)
+            g = sc.g[:n]
             told = clear and g[n - 1] > 0
             return EVENT, t_reach, z_restart, h_next, last, nfev, next_sample, t_probe, y_probe, \
                 _positive(seg.ids, g) if told else none, told, -1
@@ -2026,6 +2127,7 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
     n_ev = born = nfev = begun = 0
     y_probe = y_base
     none = np.empty(0, np.int64)
+    sc = search_scratch(0)  # (made for the first piece's values, then kept)
     while True:
         if begin:  # a new piece: its candidates kept while clearly within half the buffer of where they were gathered
             dx, dy = y_probe[0] - center[0], y_probe[1] - center[1]
@@ -2049,9 +2151,13 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
         begin = True
         seg = piece_segment(srec, fpool, psol[p], porigin[p], kind, convex, half, normals, offsets, vertices,
                             candidates, center, buffer, reach, noise_length, noise_force, ids)
+        j = psol[p]
+        n = candidates.shape[0] + srec[j, 1] + srec[j, 3] + 1  # the piece's event values: margins, springs, hull, one
+        if sc.G.shape[1] < n:
+            sc = search_scratch(2 * n)
         (outcome, t, y, h_abs, last, evals, next_sample, t_probe, y_probe, under,
          told) = run_piece(rows[p], seg, y_base, t, y, t_bound, h_abs, first_step, rtol, atol, max_step, max_steps,
-                           sample_times, next_sample, samples)
+                           sample_times, next_sample, samples, sc)
         nfev += evals
         if last:
             h = last

@@ -998,10 +998,11 @@ def _run_event(model, y0, t0, t1, sample_times, progress, max_segments, *, rtol,
         seg = _Segment(model, piece, y_probe, seg)
         base = y_probe
         first, h_abs = min(h, t1 - t), 0.0
+        scratch = _kernel.search_scratch(0)  # (made to the piece's size in the call)
         while True:
             (outcome, t, y, h_abs, last, evals, rec.next, t_probe, y_probe, under,
              told) = _kernel.run_piece(piece.row, seg.fields, base, t, y, t1, h_abs, first, rtol, atol, max_step,
-                                        max_steps, rec.sample_times, rec.next, rec.samples)
+                                        max_steps, rec.sample_times, rec.next, rec.samples, scratch)
             nfev += evals
             first = 0.0
             if last:
