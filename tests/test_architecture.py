@@ -45,10 +45,10 @@ MODULES = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
 
 
 def layer_of(module: str) -> int:
-    """-1 for the package root, its errors and its compiled code's cache folder, else the index of the module's
-    layer in :data:`LAYERS`."""
+    """-1 for the package root, its errors, its compiled code's cache folder and how it compiles leaves, else the
+    index of the module's layer in :data:`LAYERS`."""
     parts = module.split(".")
-    if len(parts) == 1 or parts[1] in ("errors", "compiled_cache"):
+    if len(parts) == 1 or parts[1] in ("errors", "compiled_cache", "compiled"):
         return -1
     if parts[1] not in LAYERS:
         raise AssertionError(f"{module} is in no layer: put it in one of {LAYERS}")

@@ -775,7 +775,9 @@ def test_the_event_loop_finds_the_cells_under_the_parcel_as_the_model_does(name,
 
 LEAVES = ("values", "value", "may_hide", "_edge_and_rate", "_changed", "_unchanged", "dense_at", "_phi", "_brent",
           "_rhs", "_stage", "_trial", "_dop853_step", "_dense", "_sign", "accelerations_compiled", "_search",
-          "_first_change", "_locate", "_event_in_step", "_linspace", "_copy")
+          "_first_change", "_locate", "_event_in_step", "_linspace", "_copy", "_ids_hash", "table_find", "_free_slot",
+          "table_rehash", "table_add_key", "_put_flat", "_put_rows", "record_floats", "table_add_record",
+          "table_chain_record", "table_add_piece", "table_add_piece_of", "table_lookup", "_record_holds")
 
 
 def test_the_event_loops_leaves_are_compiled_without_the_runtime_and_it_refuses_a_leaf_that_allocates():
@@ -784,6 +786,7 @@ def test_the_event_loops_leaves_are_compiled_without_the_runtime_and_it_refuses_
     not trusted."""
     for name in LEAVES:
         assert getattr(kernel, name).targetoptions.get("_nrt") is False, name
+    assert kernel._holds_packed.targetoptions.get("_nrt") is False  # (physics.contact's, asked at every event)
     assert kernel.run_piece.targetoptions.get("_nrt", True) is not False
 
     def makes_an_array(n):

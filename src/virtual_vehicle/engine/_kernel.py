@@ -26,6 +26,7 @@ import numpy as np
 from numba import njit
 from scipy.integrate import DOP853
 
+from virtual_vehicle.compiled import leaf
 from virtual_vehicle.model.parcel import _within
 from virtual_vehicle.physics.contact import _MAX_ITER, SOLVED, solve_planar_kernel
 from virtual_vehicle.physics.contact import _holds as _holds_packed
@@ -64,15 +65,6 @@ from virtual_vehicle.physics.laws.affine import (
     R_WEIGHT,
 )
 from virtual_vehicle.physics.stick_modes import _wheel_arrays, zonotope_grip
-
-leaf = njit(cache=True, _nrt=False)
-"""The compiler for the event loop's leaves: functions that allocate nothing and return no array (numbers, or
-nothing: they write into arrays given). Numba's runtime counts a reference to every array argument on entry and
-drops it on exit, two atomic calls an array, which its pruning leaves in place in branching code: a call taking a
-:class:`Segment` (16 arrays) cost ~500 cycles so, against ~100 for its work (one margin), measured. Compiled without
-the runtime (numba's ``_nrt`` option) a leaf counts nothing. A leaf may call only leaves, inlined helpers and compiled
-functions that return no array (one returned to a leaf would never be released); the compiler refuses one that
-allocates ("NRT required but not enabled")."""
 
 RECTANGLE, CONVEX, POLYGON = 0, 1, 2
 """Footprint kinds: margins in closed form, from half-planes, or as a signed distance to a simple polygon."""
@@ -1679,7 +1671,7 @@ LOOP_MISS, LOOP_SEGMENT, LOOP_CHATTER, LOOP_DONE, LOOP_TOO_MANY = 10, 11, 12, 13
 U_PIECES, U_KEYS, U_FLOATS, U_IDS, U_RECORDS, U_PATTERNS = 0, 1, 2, 3, 4, 5
 
 
-@njit(cache=True)
+@leaf
 def _ids_hash(ids):
     """A hash of integers (FNV-1a over them, wrapping in 64 bits)."""
     h = np.uint64(14695981039346656037)
@@ -1688,7 +1680,7 @@ def _ids_hash(ids):
     return h
 
 
-@njit(cache=True)
+@leaf
 def table_find(slots, meta, ipool, ids):
     """The index of the key ``ids`` ((n,) int64) in hash ``slots`` over ``meta``, or -1."""
     mask = np.uint64(slots.shape[0] - 1)
@@ -1710,7 +1702,7 @@ def table_find(slots, meta, ipool, ids):
         s = (s + np.uint64(1)) & mask
 
 
-@njit(cache=True)
+@leaf
 def _free_slot(slots, ids):
     mask = np.uint64(slots.shape[0] - 1)
     s = _ids_hash(ids) & mask
@@ -1719,7 +1711,7 @@ def _free_slot(slots, ids):
     return s
 
 
-@njit(cache=True)
+@leaf
 def table_rehash(slots, meta, ipool, keys):
     """Put the first ``keys`` keys of ``meta`` into the empty ``slots`` (all -1), a larger hash's."""
     for k in range(keys):
@@ -1727,13 +1719,13 @@ def table_rehash(slots, meta, ipool, keys):
         slots[_free_slot(slots, ipool[off:off + n])] = k
 
 
-@njit(cache=True)
+@leaf
 def table_add_key(slots, meta, ipool, used, which, ids):
     """Add the key ``ids`` (not there; room for it) to ``slots``/``meta`` (``which`` its count in ``used``) with an
     empty chain; its index."""
     k, off = used[which], used[U_IDS]
     n = ids.shape[0]
-    ipool[off:off + n] = ids
+    _put_flat(ipool, off, ids)
     meta[k, 0], meta[k, 1], meta[k, 2], meta[k, 3] = off, n, -1, -1
     slots[_free_slot(slots, ids)] = k
     used[which] += 1
@@ -1741,35 +1733,45 @@ def table_add_key(slots, meta, ipool, used, which, ids):
     return k
 
 
-@njit(cache=True)
+@leaf
 def _put_flat(fpool, k, a):
     for i in range(a.shape[0]):
         fpool[k + i] = a[i]
     return k + a.shape[0]
 
 
-@njit(cache=True)
+@leaf
+def _put_rows(fpool, k, a):
+    """A 2-d array's entries into ``fpool`` from ``k``, row by row (as ``a.ravel()``); the end."""
+    for i in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            fpool[k] = a[i, j]
+            k += 1
+    return k
+
+
+@leaf
 def record_floats(m, r, q, holding):
     """Entries of ``fpool`` one record of m cells, plane rank r, q hull facets and a holding test this long takes."""
     return 1 + m * r + 3 * r + 3 * q + 8 * m + holding
 
 
-@njit(cache=True)
+@leaf
 def table_add_record(srec, fpool, used, weight, basis, plane_lin, plane_const, hull_normals, hull_offsets, spring_lin,
                      spring_gradient, points, force_lin, force_const, holding):
     """Append a record of these solution arrays (C-contiguous; room for it), copied value for value; its index."""
     j, off = used[U_RECORDS], used[U_FLOATS]
     (m, r), q = basis.shape, hull_offsets.shape[0]
     fpool[off] = weight
-    end = _put_flat(fpool, off + 1, basis.ravel())
-    end = _put_flat(fpool, end, plane_lin.ravel())
+    end = _put_rows(fpool, off + 1, basis)
+    end = _put_rows(fpool, end, plane_lin)
     end = _put_flat(fpool, end, plane_const)
-    end = _put_flat(fpool, end, hull_normals.ravel())
+    end = _put_rows(fpool, end, hull_normals)
     end = _put_flat(fpool, end, hull_offsets)
-    end = _put_flat(fpool, end, spring_lin.ravel())
+    end = _put_rows(fpool, end, spring_lin)
     end = _put_flat(fpool, end, spring_gradient)
-    end = _put_flat(fpool, end, points.ravel())
-    end = _put_flat(fpool, end, force_lin.ravel())
+    end = _put_rows(fpool, end, points)
+    end = _put_rows(fpool, end, force_lin)
     end = _put_flat(fpool, end, force_const)
     end = _put_flat(fpool, end, holding)
     srec[j, 0], srec[j, 1], srec[j, 2], srec[j, 3], srec[j, 4], srec[j, 5] = off, m, r, q, holding.shape[0], -1
@@ -1778,7 +1780,7 @@ def table_add_record(srec, fpool, used, weight, basis, plane_lin, plane_const, h
     return j
 
 
-@njit(cache=True)
+@leaf
 def table_chain_record(srec, gmeta, g, j):
     """Append record ``j`` to the chain of pattern ``g``."""
     if gmeta[g, 3] < 0:
@@ -1788,14 +1790,15 @@ def table_chain_record(srec, gmeta, g, j):
     gmeta[g, 3] = j
 
 
-@njit(cache=True)
+@leaf
 def table_add_piece(kmeta, psol, porigin, pnext, pkey, rows, used, k, j, origin, row):
     """Append a piece of record ``j`` at local origin ``origin`` (m) with constants ``row`` to the chain of support
     set ``k`` (room for it); its index."""
     p = used[U_PIECES]
     psol[p], pkey[p], pnext[p] = j, k, -1
     porigin[p, 0], porigin[p, 1] = origin[0], origin[1]
-    rows[p, :] = row
+    for i in range(row.shape[0]):
+        rows[p, i] = row[i]
     if kmeta[k, 3] < 0:
         kmeta[k, 2] = p
     else:
@@ -1805,7 +1808,7 @@ def table_add_piece(kmeta, psol, porigin, pnext, pkey, rows, used, k, j, origin,
     return p
 
 
-@njit(cache=True)
+@leaf
 def table_add_piece_of(slots, kmeta, ipool, psol, porigin, pnext, pkey, rows, used, ids, j, origin, row):
     """:func:`table_add_piece` to the chain of support set ``ids``, added first if it is not there (room for
     both), in one call (a miss took four); the piece's index."""
@@ -1866,7 +1869,14 @@ def _holding_of(srec, fpool, j):
     return fpool[off:off + srec[j, 4]]
 
 
-@njit(cache=True)
+@leaf
+def _record_holds(srec, fpool, j, x, y):
+    """Whether record ``j``'s contact set and hull hold at (x, y) (m, in its local coordinates)."""
+    off = srec[j, 0] + record_floats(srec[j, 1], srec[j, 2], srec[j, 3], 0)
+    return _holds_packed(fpool[off:off + srec[j, 4]], x, y)
+
+
+@leaf
 def table_lookup(tab, ids, x, y):
     """The first piece of support set ``ids`` whose contact set and hull hold at centre of mass (x, y) (m), as
     :meth:`~virtual_vehicle.engine.dynamics.ParcelModel.piece_for` tries its cached pieces; -1 for none, -2 for a
@@ -1877,7 +1887,7 @@ def table_lookup(tab, ids, x, y):
         return -2
     p = kmeta[k, 2]
     while p >= 0:
-        if _holds_packed(_holding_of(srec, fpool, psol[p]), x - porigin[p, 0], y - porigin[p, 1]):
+        if _record_holds(srec, fpool, psol[p], x - porigin[p, 0], y - porigin[p, 1]):
             return p
         p = pnext[p]
     return -1
@@ -1974,7 +1984,7 @@ def table_from_pattern(tab, ids, x, y, positions, unit, velocities, directions, 
     j = -1
     if g >= 0:
         j = gmeta[g, 2]
-        while j >= 0 and not _holds_packed(_holding_of(srec, fpool, j), xi0, xi1):
+        while j >= 0 and not _record_holds(srec, fpool, j, xi0, xi1):
             j = srec[j, 5]
     if j < 0:
         j = _solve_into(tab, pts, rel, flat, g, x, y, unit, weight, solve_log, solve_origin)
@@ -2016,7 +2026,7 @@ def table_piece_again(tab, ids, x, y, positions, unit, velocities, directions, d
     j = -1
     if g >= 0:
         j = gmeta[g, 2]
-        while j >= 0 and not _holds_packed(_holding_of(srec, fpool, j), x - origin[0], y - origin[1]):
+        while j >= 0 and not _record_holds(srec, fpool, j, x - origin[0], y - origin[1]):
             j = srec[j, 5]
     if j < 0:
         j = _solve_into(tab, pts, rel, flat, g, x, y, unit, weight, solve_log, solve_origin)
@@ -2049,6 +2059,19 @@ def table_next_piece(tab, ids, x, y, positions, unit, velocities, directions, dr
     contact sets (:func:`table_piece_again`), with a drive only. Returns (piece or < 0 where Python must act, pieces
     born so far: ``born`` plus one for a piece made here)."""
     q = table_lookup(tab, ids, x, y)
+    if q >= 0:
+        return q, born
+    return table_new_piece(q, tab, ids, x, y, positions, unit, velocities, directions, drive, mu, damping, inv_mass,
+                           inv_inertia, born_terms, born, weight, solve_log, solve_origin)
+
+
+@njit(cache=True)
+def table_new_piece(missing, tab, ids, x, y, positions, unit, velocities, directions, drive, mu, damping, inv_mass,
+                    inv_inertia, born_terms, born, weight, solve_log, solve_origin):
+    """:func:`table_next_piece` past its lookup, whose answer ``missing`` is -2 (a support set the table does not
+    know) or -1 (none of its pieces holds): the piece made, as there (the event loop looks up with the leaf alone,
+    and calls this, whose arguments are counted, only for a piece it must make)."""
+    q = missing
     if q == -2 and drive:
         q = table_from_pattern(tab, ids, x, y, positions, unit, velocities, directions, drive, mu, damping, inv_mass,
                                inv_inertia, born_terms, born, weight, solve_log, solve_origin)
@@ -2185,9 +2208,11 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
                         told, ids, candidates, center)
         if not told:  # the probe's values do not tell: the cells under the footprint found as support_at finds them
             under, told = cells_under(grid, positions, kind, half, normals, offsets, vertices, y_probe), True
-        q, born = table_next_piece(tab, under, y_probe[0], y_probe[1], positions, unit, velocities, directions, drive,
-                                   mu, damping, inv_mass, inv_inertia, born_terms, born, weight, solve_log,
-                                   solve_origin)
+        q = table_lookup(tab, under, y_probe[0], y_probe[1])
+        if q < 0:
+            q, born = table_new_piece(q, tab, under, y_probe[0], y_probe[1], positions, unit, velocities, directions,
+                                      drive, mu, damping, inv_mass, inv_inertia, born_terms, born, weight, solve_log,
+                                      solve_origin)
         if q < 0:
             return (LOOP_MISS, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, under, told, ids,
                     candidates, center)

@@ -36,6 +36,7 @@ from functools import cached_property
 import numpy as np
 from numba import njit
 
+from virtual_vehicle.compiled import leaf
 from virtual_vehicle.errors import IntegrationError, TippingError
 from virtual_vehicle.model.layout import COLLINEAR_TOL, _collinear_kernel, collinear
 
@@ -186,21 +187,20 @@ def _put(out, k, flat):
     return k + flat.shape[0]
 
 
-@njit(cache=True)
+@leaf
 def _holds(p, x, y):
-    """:meth:`SupportSolution.holds` on its packed arrays ``p`` (:attr:`SupportSolution._holding`), compiled."""
+    """:meth:`SupportSolution.holds` on its packed arrays ``p`` (:attr:`SupportSolution._holding`), compiled (a leaf:
+    the event loop asks it at every support event)."""
     m, r, q = int(p[0]), int(p[1]), int(p[2])
     basis, plane_lin = 3, 3 + m * r
     plane_const, in_contact = plane_lin + 2 * r, plane_lin + 3 * r
     hull_normals = in_contact + m
     hull_offsets = hull_normals + 2 * q
-    plane = np.empty(r)
-    for j in range(r):
-        plane[j] = p[plane_lin + 2 * j] * x + p[plane_lin + 2 * j + 1] * y + p[plane_const + j]
     for i in range(m):
         spring = 0.0
-        for j in range(r):
-            spring += p[basis + r * i + j] * plane[j]
+        for j in range(r):  # (the plane's value, the same floats each cell: no array made for it)
+            spring += p[basis + r * i + j] * (p[plane_lin + 2 * j] * x + p[plane_lin + 2 * j + 1] * y
+                                              + p[plane_const + j])
         if (spring > 0) != (p[in_contact + i] > 0.5):
             return False
     for k in range(q):
