@@ -777,7 +777,7 @@ LEAVES = ("values", "value", "may_hide", "_edge_and_rate", "_changed", "_unchang
           "_rhs", "_stage", "_trial", "_dop853_step", "_dense", "_sign", "accelerations_compiled", "_search",
           "_first_change", "_locate", "_event_in_step", "_linspace", "_copy", "_ids_hash", "table_find", "_free_slot",
           "table_rehash", "table_add_key", "_put_flat", "_put_rows", "record_floats", "table_add_record",
-          "table_chain_record", "table_add_piece", "table_add_piece_of", "table_lookup", "_record_holds")
+          "table_chain_record", "table_add_piece", "table_add_piece_of", "table_lookup", "_record_holds", "_piece")
 
 
 def test_the_event_loops_leaves_are_compiled_without_the_runtime_and_it_refuses_a_leaf_that_allocates():
@@ -855,6 +855,35 @@ def test_a_search_out_of_room_searches_again_and_finds_the_same_bracket():
             for name in ("out_changed", "g_a", "g_b"):
                 assert np.array_equal(getattr(tight, name)[:n], getattr(roomy, name)[:n]), name
     assert grown >= 10 and found >= 10
+
+
+def test_a_piece_whose_search_outgrows_the_scratch_is_resumed_and_ends_as_with_room():
+    """A piece run in the leaf (``_piece``) hands back when a step's search outgrows the scratch (``SEARCH_OUT``);
+    run_piece grows it and resumes from the state it stopped in, taking the same step again: the same event, restart,
+    probe and cells under the footprint, to the bit, as with room from the start; the step taken again shows only as
+    more evaluations (checked: else the resumption would go untested)."""
+    cells = layout.grid(12, 12, 0.1)
+    model = ParcelModel(cells, parcel.rectangle(0.3, 0.2, 1.0, 1.0),
+                        fields.Inward((0.6, 0.6), 0.2).velocities(cells), laws.CoulombLaw())
+    rng = np.random.default_rng(1)
+    resumed = 0
+    for _ in range(20):
+        y = np.array([*rng.uniform(0.4, 0.8, 2), rng.uniform(-3, 3), *rng.uniform(-0.3, 0.3, 2), rng.uniform(-2, 2)])
+        piece = model.piece_at(y)
+        fields_ = dynamics._Segment(model, piece, y, None).fields
+        n = len(fields_[6]) + fields_[8].shape[0] + fields_[12].shape[0] + 1
+        runs = []
+        for sc in (kernel.search_scratch(n), kernel._scratch(n, 2)):
+            samples = np.empty((3, 6))
+            runs.append(kernel.run_piece(np.array(piece.row), fields_, y, 0.0, y, 1.0, 0.0, 0.2, 1e-9, 1e-12, np.inf,
+                                         10 ** 6, np.array([0.1, 0.5, 1.0]), 0, samples, sc) + (samples,))
+        roomy, tight = runs
+        assert roomy[0] == kernel.EVENT
+        for i in (0, 1, 2, 6, 7, 8, 9, 10):  # outcome, t, state, next sample, probe time and state, cells, told
+            assert np.array_equal(roomy[i], tight[i]), i
+        np.testing.assert_array_equal(roomy[11][:roomy[6]], tight[11][:tight[6]])  # the samples written
+        resumed += tight[5] > roomy[5]
+    assert resumed >= 3
 
 
 def test_the_compiled_linspace_is_numbas():

@@ -502,7 +502,10 @@ class SearchScratch(NamedTuple):
     ``changed``, ``hidden`` (n,): at a sample; ``s_changed``, ``s_hidden`` (n,), ``T`` (c,), ``SY`` (c, 6), ``SG``
     (c, n), ``stack`` (c, 2): the bisection's; ``out_changed``, ``g_a``, ``g_b`` (n,): the bracket found (which values
     changed, the values at its ends); ``idx`` (n,), ``sgn`` (n,), ``y`` (6,), ``g`` (n,), ``calls`` (1,): the
-    location's (the changed values and their signs, a state, the values at the probe, evaluations)."""
+    location's (the changed values and their signs, a state, the values at the probe, evaluations). The piece's
+    (:func:`_piece`): a DOP853 step's ``K``, ``F``, ``f``, ``y_new``, ``f_new``, ``work`` (:func:`_workspace`), the
+    baseline's values ``g0v`` (n,) and signs ``g0`` (n,), the ``state`` (6,) it ends in, the ``restart`` (6,) and
+    ``probe`` (6,) states of its event, and the cells ``under`` (n,) the footprint there."""
 
     ts: np.ndarray
     Y: np.ndarray
@@ -523,16 +526,30 @@ class SearchScratch(NamedTuple):
     y: np.ndarray
     g: np.ndarray
     calls: np.ndarray
+    K: np.ndarray
+    F: np.ndarray
+    f: np.ndarray
+    y_new: np.ndarray
+    f_new: np.ndarray
+    work: np.ndarray
+    g0v: np.ndarray
+    g0: np.ndarray
+    state: np.ndarray
+    restart: np.ndarray
+    probe: np.ndarray
+    under: np.ndarray
 
 
 @njit(cache=True)
 def _scratch(n, cap):
     S = SUBSAMPLES + 1
+    K, F, f, y_new, f_new, work = _workspace()
     return SearchScratch(np.empty(S), np.empty((S, 6)), np.empty((S, n)), np.empty(n, np.bool_),
                          np.empty(n, np.bool_), np.empty(n, np.bool_), np.empty(n, np.bool_), np.empty(cap),
                          np.empty((cap, 6)), np.empty((cap, n)), np.empty((cap, 2), np.int64), np.empty(n, np.bool_),
                          np.empty(n), np.empty(n), np.empty(n, np.int64), np.empty(n), np.empty(6), np.empty(n),
-                         np.zeros(1, np.int64))
+                         np.zeros(1, np.int64), K, F, f, y_new, f_new, work, np.empty(n), np.empty(n, np.bool_),
+                         np.empty(6), np.empty(6), np.empty(6), np.empty(n, np.int64))
 
 
 @njit(cache=True)
@@ -928,8 +945,9 @@ def run_piece(row, fields, y_base, t, y, t_bound, h_abs, first_step, rtol, atol,
     state at which the event values' signs are the baseline (the piece's start, or the probe just past the event that
     began it). The first step tried is ``first_step`` when positive (a new piece), else ``h_abs`` (the same piece
     resumed after a pause). Output samples ``sample_times[next_sample:]`` reached are written into ``samples``.
-    ``sc`` is the search's scratch (:func:`search_scratch`; a larger one is made here if it holds too few values).
-    Times in s, states in SI units.
+    ``sc`` is the loop's scratch (:func:`search_scratch`; a larger one is made here if it holds too few values).
+    Times in s, states in SI units. (:func:`_piece`, the leaf that does it, for a caller from Python: the event loop
+    calls the leaf.)
 
     Returns (outcome, t, y, h_abs, last step, evaluations, next_sample, probe time, probe state, the cells under the
     footprint at the probe (ids, as :meth:`~virtual_vehicle.engine.dynamics._Segment.support` finds them from the
@@ -937,56 +955,86 @@ def run_piece(row, fields, y_base, t, y, t_bound, h_abs, first_step, rtol, atol,
     reach). On ``EVENT`` (t, y) is the restart point just past it.
     """
     seg = Segment(*fields)
-    g0 = np.empty(seg.candidates.shape[0] + seg.basis.shape[0] + seg.hull_offsets.shape[0] + 1)
-    values(seg, y_base, g0)
-    g0 = g0 > 0
-    n = g0.shape[0]
+    n = seg.candidates.shape[0] + seg.basis.shape[0] + seg.hull_offsets.shape[0] + 1
     if sc.G.shape[1] < n:
         sc = search_scratch(n)
-    K, F, f, y_new, f_new, work = _workspace()
-    y = y.copy()
+    nfev = 0
+    while True:
+        (outcome, t, h_abs, last, evals, next_sample, t_probe, n_under,
+         told) = _piece(row, seg, y_base, t, y, t_bound, h_abs, first_step, rtol, atol, max_step, max_steps,
+                        sample_times, next_sample, samples, sc)
+        nfev += evals
+        if outcome != SEARCH_OUT:
+            return (outcome, t, sc.state.copy(), h_abs, last, nfev, next_sample, t_probe, sc.probe.copy(),
+                    sc.under[:n_under].copy(), told)
+        y, first_step, sc = sc.state.copy(), 0.0, _grown_search(sc)
+
+
+SEARCH_OUT = 6
+"""An outcome of :func:`_piece` besides run_piece's: a step's search outgrew the scratch's stores; grow them
+(:func:`_grown_search`) and call again from the state it stopped in (``state``) with ``first_step`` 0: the same
+step is taken again (one more evaluation counted), the same event found."""
+
+
+@leaf
+def _piece(row, seg, y_base, t, y0, t_bound, h_abs, first_step, rtol, atol, max_step, max_steps, sample_times,
+           next_sample, samples, sc):
+    """:func:`run_piece` on :class:`Segment` ``seg`` from (t, ``y0``), working in scratch ``sc`` (room for the
+    piece's event values): a leaf, so a piece begun in the event loop counts none of its arrays and makes none.
+    Returns (outcome, t, h_abs, last step, evaluations, next_sample, probe time, cells under the footprint at the
+    probe (how many: their ids in ``sc.under``), whether those tell); the state it ends in (the restart point on
+    ``EVENT``) in ``sc.state``, the probe state in ``sc.probe``. ``SEARCH_OUT``: see there."""
+    n = seg.candidates.shape[0] + seg.basis.shape[0] + seg.hull_offsets.shape[0] + 1
+    g0v, g0 = sc.g0v[:n], sc.g0[:n]
+    values(seg, y_base, g0v)
+    for i in range(n):
+        g0[i] = g0v[i] > 0
+    K, F, f, y_new, f_new, work, y = sc.K, sc.F, sc.f, sc.y_new, sc.f_new, sc.work, sc.state
+    _copy(y0, y)
     _rhs(row, y, f)
     nfev = 1
     if first_step > 0:
         h_abs = first_step
     last = 0.0
-    y_probe = np.empty(6)
-    none = np.empty(0, np.int64)
     steps = 0
     while t < t_bound:
         if steps == max_steps:
-            return PAUSED, t, y, h_abs, last, nfev, next_sample, t, y_probe, none, False
+            return PAUSED, t, h_abs, last, nfev, next_sample, t, 0, False
         ok, t_new, h_next, evals = _dop853_step(row, t, y, f, t_bound, h_abs, rtol, atol, max_step, K, y_new,
                                                 f_new, work)
         nfev += evals
         if not ok:
-            return FAILED, t, y, h_abs, last, nfev, next_sample, t, y_probe, none, False
+            return FAILED, t, h_abs, last, nfev, next_sample, t, 0, False
         steps += 1
         h = t_new - t
         last = h
         nfev += _dense(row, t, y, f, y_new, f_new, h, K, F, work)
         found, outcome, t_reach, t_probe, clear = _event_in_step(seg, F, y, t, h, g0, t, t_new, f, f_new, sc)
-        while found == SEARCH_FULL:  # (searched again from the start, with room: the same bracket)
-            sc = _grown_search(sc)
-            found, outcome, t_reach, t_probe, clear = _event_in_step(seg, F, y, t, h, g0, t, t_new, f, f_new, sc)
+        if found == SEARCH_FULL:  # (the step not taken: the caller grows the stores and calls again)
+            return SEARCH_OUT, t, h_abs, last, nfev, next_sample, t, 0, False
         if found and outcome != REACHED:
-            return outcome, t_reach, y, h_next, last, nfev, next_sample, t, y_probe, none, False
+            return outcome, t_reach, h_next, last, nfev, next_sample, t, 0, False
         while next_sample < sample_times.shape[0] and sample_times[next_sample] <= t_reach:
             dense_at(F, y, t, h, sample_times[next_sample], samples[next_sample])
             next_sample += 1
         if found:
-            y_restart = np.empty(6)
-            dense_at(F, y, t, h, t_reach, y_restart)
-            dense_at(F, y, t, h, t_probe, y_probe)
+            dense_at(F, y, t, h, t_reach, sc.restart)
+            dense_at(F, y, t, h, t_probe, sc.probe)
+            _copy(sc.restart, y)
             g = sc.g[:n]
             told = clear and g[n - 1] > 0
-            return EVENT, t_reach, y_restart, h_next, last, nfev, next_sample, t_probe, y_probe, \
-                _positive(seg.ids, g) if told else none, told
+            count = 0
+            if told:  # the candidates of positive margin, in order
+                for i in range(seg.ids.shape[0]):
+                    if g[i] > 0:
+                        sc.under[count] = seg.ids[i]
+                        count += 1
+            return EVENT, t_reach, h_next, last, nfev, next_sample, t_probe, count, told
         t = t_new
-        y[:] = y_new
-        f[:] = f_new
+        _copy(y_new, y)
+        _copy(f_new, f)
         h_abs = h_next
-    return REACHED, t, y, h_abs, last, nfev, next_sample, t, y_probe, none, False
+    return REACHED, t, h_abs, last, nfev, next_sample, t, 0, False
 
 
 @njit(cache=True)
@@ -2151,6 +2199,7 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
     y_probe = y_base
     none = np.empty(0, np.int64)
     sc = search_scratch(0)  # (made for the first piece's values, then kept)
+    base = np.empty(6)
     while True:
         if begin:  # a new piece: its candidates kept while clearly within half the buffer of where they were gathered
             dx, dy = y_probe[0] - center[0], y_probe[1] - center[1]
@@ -2169,21 +2218,28 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
             if segments > max_segments:
                 return (LOOP_TOO_MANY, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_probe, none,
                         False, ids, candidates, center)
-            y_base = y_probe
+            base[:] = y_probe  # (the probe's view is written again at the piece's event)
+            y_base = base
             first_step, h_abs = min(h, t_bound - t), 0.0
         begin = True
-        seg = piece_segment(srec, fpool, psol[p], porigin[p], kind, convex, half, normals, offsets, vertices,
-                            candidates, center, buffer, reach, noise_length, noise_force, ids)
+        seg = Segment(*piece_segment(srec, fpool, psol[p], porigin[p], kind, convex, half, normals, offsets,
+                                     vertices, candidates, center, buffer, reach, noise_length, noise_force, ids))
         j = psol[p]
         n = candidates.shape[0] + srec[j, 1] + srec[j, 3] + 1  # the piece's event values: margins, springs, hull, one
         if sc.G.shape[1] < n:
             sc = search_scratch(2 * n)
-        (outcome, t, y, h_abs, last, evals, next_sample, t_probe, y_probe, under,
-         told) = run_piece(rows[p], seg, y_base, t, y, t_bound, h_abs, first_step, rtol, atol, max_step, max_steps,
-                           sample_times, next_sample, samples, sc)
-        nfev += evals
-        if last:
-            h = last
+        while True:
+            (outcome, t, h_abs, last, evals, next_sample, t_probe, n_under,
+             told) = _piece(rows[p], seg, y_base, t, y, t_bound, h_abs, first_step, rtol, atol, max_step, max_steps,
+                            sample_times, next_sample, samples, sc)
+            nfev += evals
+            if last:
+                h = last
+            if outcome != SEARCH_OUT:
+                break
+            y, first_step, sc = sc.state.copy(), 0.0, _grown_search(sc)
+        # (views of the scratch: the next piece reads them before it writes it, and a new call makes its own)
+        y, y_probe, under = sc.state, sc.probe, sc.under[:n_under]
         if outcome != EVENT:
             return (outcome, t, y, p, h, h_abs, nfev, next_sample, segments, n_ev, born, y_base, none, False, ids,
                     candidates, center)
