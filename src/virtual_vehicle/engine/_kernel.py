@@ -9,7 +9,9 @@ to the last bit), samples every step's dense output for the first sign change of
 method and probes past it, as :mod:`virtual_vehicle.engine.dynamics` documents. In Python each of the ~100 support
 changes a second of an oscillating Coulomb parcel cost about a millisecond, mostly in array calls on a handful of
 numbers; compiled, a piece's own work takes a few tens of microseconds, and most of what remains is the Python between
-pieces (which cells, the support solve, the friction constants).
+pieces (which cells, the support solve, the friction constants). The piece (:func:`_piece`), its event search and
+location are leaves (:data:`~virtual_vehicle.compiled.leaf`: no reference counting, nothing allocated) over one
+:class:`SearchScratch` that :func:`run_events` makes per call; :func:`run_piece` wraps the piece for callers from Python.
 
 Event values of a segment (:class:`~virtual_vehicle.engine.dynamics._Segment`), in order: the footprint margin of every
 candidate cell (m), the spring force of every supporting cell (N), the slack of the centre of mass in the supports'
