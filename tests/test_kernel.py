@@ -777,7 +777,8 @@ LEAVES = ("values", "value", "may_hide", "_edge_and_rate", "_changed", "_unchang
           "_rhs", "_stage", "_trial", "_dop853_step", "_dense", "_sign", "accelerations_compiled", "_search",
           "_first_change", "_locate", "_event_in_step", "_linspace", "_copy", "_ids_hash", "table_find", "_free_slot",
           "table_rehash", "table_add_key", "_put_flat", "_put_rows", "record_floats", "table_add_record",
-          "table_chain_record", "table_add_piece", "table_add_piece_of", "table_lookup", "_record_holds", "_piece")
+          "table_chain_record", "table_add_piece", "table_add_piece_of", "table_lookup", "_record_holds", "_piece",
+          "n_values", "_positive_into", "_holding_at")
 
 
 def test_the_event_loops_leaves_are_compiled_without_the_runtime_and_it_refuses_a_leaf_that_allocates():
@@ -832,7 +833,7 @@ def test_a_search_out_of_room_searches_again_and_finds_the_same_bracket():
         y = np.array([*rng.uniform(0.4, 0.8, 2), rng.uniform(-3, 3), *rng.uniform(-0.3, 0.3, 2), rng.uniform(-2, 2)])
         piece = model.piece_at(y)
         seg = kernel.Segment(*dynamics._Segment(model, piece, y, None).fields)
-        n = seg.candidates.shape[0] + seg.basis.shape[0] + seg.hull_offsets.shape[0] + 1
+        n = kernel.n_values(seg)
         g0 = np.empty(n)
         kernel.values(seg, y, g0)
         K, F, f, y_new, f_new, work = kernel._workspace()

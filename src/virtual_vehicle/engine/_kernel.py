@@ -247,6 +247,13 @@ def _margin(kind, half, normals, offsets, v, bx, by):
 
 
 @leaf
+def n_values(seg):
+    """How many event values segment ``seg`` has: a margin per candidate, a spring force per support, a slack per
+    hull facet, and the refresh distance (:func:`values`' order)."""
+    return seg.candidates.shape[0] + seg.basis.shape[0] + seg.hull_offsets.shape[0] + 1
+
+
+@leaf
 def values(seg, y, out):
     """Event values of segment ``seg`` at state ``y`` into ``out`` (n,)."""
     c, s = math.cos(y[2]), math.sin(y[2])
@@ -495,10 +502,10 @@ _EPS = float(np.finfo(np.float64).eps)
 
 
 class SearchScratch(NamedTuple):
-    """The arrays a step's search for its first event (:func:`_first_change`, :func:`_search`) and its location
-    (:func:`_locate`) work in, made once a loop (:func:`search_scratch`) rather than a dozen small ones every step,
-    so that both are leaves (:data:`leaf`). Event-value arrays hold up to ``n`` values; a step's ``n`` values are the
-    first ``n`` of each.
+    """The arrays a piece (:func:`_piece`), its steps' search for their first event (:func:`_first_change`,
+    :func:`_search`) and its location (:func:`_locate`) work in, made once a loop (:func:`search_scratch`) rather
+    than a dozen small ones every step, so that all of them are leaves (:data:`leaf`). Event-value arrays hold up to
+    ``n`` values; a piece's ``n`` values (:func:`n_values`) are the first ``n`` of each.
 
     ``ts`` (S,), ``Y`` (S, 6), ``G`` (S, n): the step's samples (S = ``SUBSAMPLES`` + 1: times s, states, event values);
     ``changed``, ``hidden`` (n,): at a sample; ``s_changed``, ``s_hidden`` (n,), ``T`` (c,), ``SY`` (c, 6), ``SG``
@@ -957,7 +964,7 @@ def run_piece(row, fields, y_base, t, y, t_bound, h_abs, first_step, rtol, atol,
     reach). On ``EVENT`` (t, y) is the restart point just past it.
     """
     seg = Segment(*fields)
-    n = seg.candidates.shape[0] + seg.basis.shape[0] + seg.hull_offsets.shape[0] + 1
+    n = n_values(seg)
     if sc.G.shape[1] < n:
         sc = search_scratch(n)
     nfev = 0
@@ -986,7 +993,7 @@ def _piece(row, seg, y_base, t, y0, t_bound, h_abs, first_step, rtol, atol, max_
     Returns (outcome, t, h_abs, last step, evaluations, next_sample, probe time, cells under the footprint at the
     probe (how many: their ids in ``sc.under``), whether those tell); the state it ends in (the restart point on
     ``EVENT``) in ``sc.state``, the probe state in ``sc.probe``. ``SEARCH_OUT``: see there."""
-    n = seg.candidates.shape[0] + seg.basis.shape[0] + seg.hull_offsets.shape[0] + 1
+    n = n_values(seg)
     g0v, g0 = sc.g0v[:n], sc.g0[:n]
     values(seg, y_base, g0v)
     for i in range(n):
@@ -1025,12 +1032,7 @@ def _piece(row, seg, y_base, t, y0, t_bound, h_abs, first_step, rtol, atol, max_
             _copy(sc.restart, y)
             g = sc.g[:n]
             told = clear and g[n - 1] > 0
-            count = 0
-            if told:  # the candidates of positive margin, in order
-                for i in range(seg.ids.shape[0]):
-                    if g[i] > 0:
-                        sc.under[count] = seg.ids[i]
-                        count += 1
+            count = _positive_into(seg.ids, g, sc.under) if told else 0
             return EVENT, t_reach, h_next, last, nfev, next_sample, t_probe, count, told
         t = t_new
         _copy(y_new, y)
@@ -1039,19 +1041,23 @@ def _piece(row, seg, y_base, t, y0, t_bound, h_abs, first_step, rtol, atol, max_
     return REACHED, t, h_abs, last, nfev, next_sample, t, 0, False
 
 
-@njit(cache=True)
-def _positive(ids, g):
-    """The ``ids`` whose value in ``g`` (the candidates' margins first) is positive, in order."""
+@leaf
+def _positive_into(ids, g, out):
+    """The ``ids`` whose value in ``g`` (the candidates' margins first) is positive, in order, into ``out``; how
+    many."""
     count = 0
     for i in range(ids.shape[0]):
-        count += g[i] > 0
-    out = np.empty(count, np.int64)
-    k = 0
-    for i in range(ids.shape[0]):
         if g[i] > 0:
-            out[k] = ids[i]
-            k += 1
-    return out
+            out[count] = ids[i]
+            count += 1
+    return count
+
+
+@njit(cache=True)
+def _positive(ids, g):
+    """:func:`_positive_into` in an array of its own."""
+    out = np.empty(ids.shape[0], np.int64)
+    return out[:_positive_into(ids, g, out)].copy()
 
 
 @njit(cache=True)
@@ -1483,7 +1489,7 @@ def run_mode(md, n_ev, fields, y_base, t, z, t_bound, h_abs, first_step, rtol, a
     the footprint at the probe, whether those tell, the mode event's value index). On ``EVENT`` and ``MODE_EVENT``
     (t, z) is the restart point just past it."""
     seg = Segment(*fields)
-    g0 = np.empty(seg.candidates.shape[0] + seg.basis.shape[0] + seg.hull_offsets.shape[0] + 1)
+    g0 = np.empty(n_values(seg))
     values(seg, y_base[:6].copy(), g0)
     g0 = g0 > 0
     n = g0.shape[0]
@@ -1913,17 +1919,24 @@ def _record_arrays(srec, fpool, j):
             force_lin, force_const, holding)
 
 
+@leaf
+def _holding_at(srec, j):
+    """Where record ``j``'s packed holding test lies in the float pool: its first entry, and the one after it."""
+    off = srec[j, 0] + record_floats(srec[j, 1], srec[j, 2], srec[j, 3], 0)
+    return off, off + srec[j, 4]
+
+
 @njit(cache=True)
 def _holding_of(srec, fpool, j):
-    off = srec[j, 0] + record_floats(srec[j, 1], srec[j, 2], srec[j, 3], 0)
-    return fpool[off:off + srec[j, 4]]
+    start, end = _holding_at(srec, j)
+    return fpool[start:end]
 
 
 @leaf
 def _record_holds(srec, fpool, j, x, y):
     """Whether record ``j``'s contact set and hull hold at (x, y) (m, in its local coordinates)."""
-    off = srec[j, 0] + record_floats(srec[j, 1], srec[j, 2], srec[j, 3], 0)
-    return _holds_packed(fpool[off:off + srec[j, 4]], x, y)
+    start, end = _holding_at(srec, j)
+    return _holds_packed(fpool[start:end], x, y)
 
 
 @leaf
@@ -2226,8 +2239,7 @@ def run_events(tab, fields, p, begin, y_base, t, y, t_bound, h, h_abs, first_ste
         begin = True
         seg = Segment(*piece_segment(srec, fpool, psol[p], porigin[p], kind, convex, half, normals, offsets,
                                      vertices, candidates, center, buffer, reach, noise_length, noise_force, ids))
-        j = psol[p]
-        n = candidates.shape[0] + srec[j, 1] + srec[j, 3] + 1  # the piece's event values: margins, springs, hull, one
+        n = n_values(seg)
         if sc.G.shape[1] < n:
             sc = search_scratch(2 * n)
         while True:
