@@ -318,7 +318,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     new_hold = np.where(lit, _NONE, new_hold)  # a cell under a parcel is that parcel's, not anyone's to hold
     hport = np.where(new_hold >= 0, hport, _NONE)
     # acknowledgement: how many held cells run ahead from here (the whole chain when it reaches the edge)
-    L = sorter.gap + 1  # one cell of look-ahead beyond the gap keeps a moving vehicle's chain ahead of it
+    L = sorter.gap + 1 + sorter.lead  # look-ahead beyond the gap keeps a moving vehicle's chain ahead of it
     fwd = (hport + across) % P
     fp = np.maximum(fwd, 0)
     succ = (new_hold >= 0) & trusted[rows, fp] & (heard["hold"][rows, fp] == new_hold)
@@ -336,7 +336,11 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # a front cell may go when the cell ahead is held for its vehicle with a full free run, or at the exit edge
     ahead_hold = heard["hold"][rows, dp]
     ahead_ack = heard["ack"][rows, dp] & ((1 << RB) - 1)
-    go_front = off_array | (trusted[rows, dp] & (ahead_hold == vid) & (ahead_ack >= sorter.gap))
+    # ... but on a slow link not out of its exit lane's far side, where its front cell stops a vehicle moved
+    # sideways into it
+    lane_end = (sorter.lead > 0) & mine & front & ~yielding & ((dp == side[:, 0]) | (dp == side[:, 1])) & ~(
+        trusted[rows, dp] & (heard["ex"][rows, dp] == target))
+    go_front = (off_array | (trusted[rows, dp] & (ahead_hold == vid) & (ahead_ack >= sorter.gap))) & ~lane_end
     # a cell that only sees the parcel's edge may hang over the array's edge or a dead cell: only cells that
     # carry the parcel, or that have a neighbour ahead to ask, can stop it
     own_stop = np.where(front & ~go_front & (core | inputs.connected[rows, dp]) & ~passable[rows, dp], 0, 255)

@@ -191,6 +191,60 @@ def test_the_sorter_delivers_at_the_papers_9600_baud():
     assert row["outcome"] == "delivered" and row["correct"], row
 
 
+def test_at_9600_baud_a_parcel_rides_into_its_lane_within_twice_the_ideal_time_without_running_past_it():
+    """Where a word takes several ticks a hop (9600 baud), a lone parcel is carried as on ideal rounds, only slower:
+    out within twice the ideal run's time, and it does not run past its exit lane and back (before: out at 23.4 s
+    against 8.6, or, with a long handshake timeout, back and forth at the lane for good). Three things together:
+    the handshake timeout waits out the longest sentence (heartbeats are not given up, so the gradients settle), the
+    vehicle asks ``lead`` cells further than ``gap + 1`` (it rides on while its run of held cells is told back) and
+    its front cell at the lane's far side stops it there (the turn out reaches its cells late)."""
+    from virtual_vehicle.config.scenario import WireSpec
+    from virtual_vehicle.run.tasks import sorting_report
+
+    def first(delivery, **wire):
+        sc = sorting(duration=20.0, parcels=1)
+        sc = sc.model_copy(update={"control": sc.control.model_copy(update={"delivery": delivery, **wire})})
+        res = run(sc.build())
+        report = sorting_report(res)
+        assert report["collisions"] == 0 and report["lost"] == 0 and report["misrouted"] == 0
+        row = report["parcels"][0]
+        assert row["outcome"] == "delivered" and row["correct"], (delivery, row)
+        return res, row["delivery_time_s"]
+
+    _, ideal = first("ideal")
+    res, slow = first("wire", wire=WireSpec(baud=9600.0))
+    assert res.setup.control.program.lead >= 1
+    assert slow < 2 * ideal, (slow, ideal)
+    xy = res.parcels[0].trajectory.states[:, :2]
+    step = np.diff(xy, axis=0)
+    step = step[np.hypot(step[:, 0], step[:, 1]) > 1e-3]
+    unit = step / np.hypot(step[:, 0], step[:, 1])[:, None]
+    assert not (np.sum(unit[1:] * unit[:-1], axis=1) < -0.5).any()  # never back the way it came
+
+
+def test_the_wire_waits_out_the_longest_sentence_and_the_lead_follows_the_line():
+    """The handshake timeout by default: the longest sentence's time on the line (64 bytes at 10 bits), at least
+    2 ms; a value given is kept. The cells a vehicle asks beyond gap + 1, by hand for the junction at 9600 baud: a
+    hop 2 x 4 ports x 10 bytes x 10 bits / 9600 + 0.01 s = 0.0933 s, the run told back over 6 hops at 0.3 m/s: 1.68
+    pitches, one of them the slack gap + 1 leaves, so 1; none on ideal rounds, none at 115200 baud, never more on a
+    faster line; the Sorter refuses a lead that leaves no room below a request's marks."""
+    from virtual_vehicle.cells.sorting import Sorter
+    from virtual_vehicle.cells.sorting.rules import lead_cells
+
+    assert WireParams(baud=9600.0).cts_timeout == pytest.approx(20e-6 + 64 * 10 / 9600)
+    assert WireParams(baud=460800.0).cts_timeout == 2e-3
+    assert WireParams(baud=9600.0, cts_timeout=0.005).cts_timeout == 0.005
+    assert lead_cells(0.3, 0.1, 2, 0.01, 4, 10 / 9600) == 1
+    assert lead_cells(0.3, 0.1, 2, 0.01, 4, 0.0) == 0
+    assert lead_cells(0.3, 0.1, 2, 0.01, 4, 10 / 115200) == 0
+    leads = [lead_cells(1.1, 0.1, 2, 0.01, 6, 10 / b) for b in (2400, 9600, 38400, 115200, 460800)]
+    assert leads == sorted(leads, reverse=True) and leads[0] > leads[-1]
+    with pytest.raises(ValueError, match="lead"):
+        Sorter(0.3, gap=2, lead=61)
+    with pytest.raises(ValueError, match="lead"):
+        Sorter(0.3, gap=2, lead=-1)
+
+
 def test_a_main_line_diverts_each_parcel_to_its_spur_and_lets_the_rest_through():
     from virtual_vehicle.config.scenario import load_scenario
     from virtual_vehicle.run.tasks import sorting_report

@@ -158,7 +158,7 @@ def test_wire_mutual_sends_resolve_by_backoff():
 
 
 def test_wire_dead_link_times_out_and_drops_after_max_attempts():
-    p = WireParams(max_attempts=3)
+    p = WireParams(max_attempts=3, cts_timeout=2e-3)  # three tries of 2 ms (not the line's 67 ms) fit in the tick
     t = from_layout(layout.grid(2, 1, 0.1)).with_faults(dead_links=[(0, EAST)])
     w = WireLevel(t, p)
     inbox, stats = w.exchange(outbox(2, {(0, EAST): 5}), 0.0, 0.1)

@@ -6,6 +6,7 @@ Each cell has one serial port (UART) multiplexed between its neighbours, and one
   seconds, port after port. A cell with sentences queued tries to send after each full sweep of its ports.
 - To send on port q the cell selects q, raises its handshake line toward that neighbour and waits, unable to do
   anything else, until the neighbour's polling reaches that line (the transfer starts) or ``cts_timeout`` passes
+  (by default as long as the longest sentence holds a line: a neighbour busy with one transfer is waited for)
   (it lowers the line, waits a random backoff in [0, ``backoff_max``] while polling, and tries again; after
   ``max_attempts`` tries the sentence is dropped).
 - A transfer takes ``select_time`` plus the sentence's bytes at ``bits_per_byte`` bits each at ``baud`` bits/s;
@@ -33,7 +34,7 @@ import numpy as np
 
 from virtual_vehicle.cells.network.delivery import TickStats
 from virtual_vehicle.cells.network.messages import Mailbox
-from virtual_vehicle.cells.network.sentence import SentenceError
+from virtual_vehicle.cells.network.sentence import MAX_PAYLOAD, OVERHEAD, SentenceError
 from virtual_vehicle.cells.network.topology import Topology
 from virtual_vehicle.model import state_data
 
@@ -48,7 +49,11 @@ class WireParams:
     bits_per_byte: int = 10
     poll_time: float = 50e-6
     select_time: float = 20e-6
-    cts_timeout: float = 2e-3
+    cts_timeout: float | None = None
+    """How long a sender waits for the neighbour to answer its handshake line (s); None: as long as the longest
+    sentence holds a line at this baud (64 bytes, :data:`~virtual_vehicle.cells.network.sentence.MAX_PAYLOAD` plus
+    its frame, and the select time), at least 2 ms, so that a neighbour busy with one transfer is waited for and not
+    given up on (:meth:`longest_transfer`)."""
     backoff_max: float = 1e-3
     max_attempts: int = 5
     queue_limit: int = 1
@@ -56,6 +61,8 @@ class WireParams:
     loss_rate: float = 0.0
 
     def __post_init__(self):
+        if self.cts_timeout is None and self.baud > 0 and self.bits_per_byte >= 8 and self.select_time >= 0:
+            object.__setattr__(self, "cts_timeout", max(2e-3, self.longest_transfer()))
         for name in ("baud", "poll_time", "cts_timeout"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive")
@@ -67,6 +74,11 @@ class WireParams:
         for name in ("bit_error_rate", "loss_rate"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1]")
+
+
+    def longest_transfer(self) -> float:
+        """The time the longest sentence (64 bytes) holds a line: the select time and its bytes at the baud (s)."""
+        return self.select_time + (MAX_PAYLOAD + OVERHEAD) * self.bits_per_byte / self.baud
 
 
 class _Sentence:

@@ -34,14 +34,16 @@ class FieldError(ValueError):
 class WireSpec(BaseModel):
     """Wire-level network hardware (see :class:`~virtual_vehicle.cells.network.wire.WireParams`): ``baud`` (bits/s),
     ``poll_time``, ``select_time``, ``cts_timeout``, ``backoff_max`` (s), ``max_attempts``, ``queue_limit``,
-    ``bit_error_rate`` and ``loss_rate`` (0..1)."""
+    ``bit_error_rate`` and ``loss_rate`` (0..1). Without ``cts_timeout`` a sender waits for its neighbour's answer as
+    long as the longest sentence (64 bytes) holds a line at ``baud``, at least 2 ms (67 ms at 9600 baud): a neighbour
+    busy with one transfer is waited for, not given up on."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
     baud: Pos = 9600.0
     poll_time: Pos = 50e-6
     select_time: Annotated[float, Field(ge=0)] = 20e-6
-    cts_timeout: Pos = 2e-3
+    cts_timeout: Pos | None = None
     backoff_max: Annotated[float, Field(ge=0)] = 1e-3
     max_attempts: Annotated[int, Field(ge=1, le=1000)] = 5
     queue_limit: Annotated[int, Field(ge=1, le=1000)] = 1

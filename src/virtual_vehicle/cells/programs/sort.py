@@ -63,7 +63,8 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
     """Each cell is told whether it is an entry, a parking cell, which exit it belongs to and its way out, the port
     a one-way cell forbids, and a unique installation number; the parcels' labels are checked against the exits."""
     from virtual_vehicle.cells.sorting import PARK, Sorter
-    from virtual_vehicle.cells.sorting.rules import tick_of
+    from virtual_vehicle.cells.network.wire import WireParams
+    from virtual_vehicle.cells.sorting.rules import lead_cells, tick_of
     from virtual_vehicle.model import layout
 
     c, cells, topo, marks = options, ctx.cells, ctx.topology, ctx.marks
@@ -138,10 +139,14 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
 
         program = CentralSorter(topo, c.speed, c.gap, period=c.period)
     else:
-        # over the wire a sentence takes time in proportion to its bytes: send only the words that changed
+        # over the wire a sentence takes time in proportion to its bytes: send only the words that changed, and
+        # ask as far ahead as the vehicle travels while its run of held cells is told back
+        wire = c.delivery == "wire"
+        byte = WireParams.bits_per_byte / c.wire.baud if wire else 0.0  # (the scenario sets no framing)
         program = Sorter(c.speed, c.gap, c.reach, max_age=c.max_age, period=c.period, pitch=cells.pitch,
-                         heartbeat=c.heartbeat,
-                         partial=c.delivery == "wire" and tick_of(c.heartbeat, c.period) > 1)
+                         heartbeat=c.heartbeat, partial=wire and tick_of(c.heartbeat, c.period) > 1,
+                         lead=min(lead_cells(c.speed, cells.pitch, c.gap, c.period, int(kinds[0]), byte),
+                                  62 - c.gap))
     for i, p in enumerate(ctx.parcels):
         if p.destination is not None and p.destination >= n_exits:
             raise FieldError(f"parcels[{i}].destination", f"exit {p.destination} does not exist (the scenario has "

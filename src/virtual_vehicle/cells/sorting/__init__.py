@@ -27,7 +27,9 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
 - *Traffic*: a vehicle moves only along cells it holds. Each front cell (whose neighbour ahead is not under the
   same vehicle) asks that neighbour; an empty cell grants itself to the asking vehicle (the oldest when several
   ask, every tick: the older parcel goes first at a merge, and a younger one yields even a cell it held, so two
-  vehicles never wait for each other) and passes the request on, ``gap + 1`` cells deep. A held cell reports back
+  vehicles never wait for each other) and passes the request on, ``gap + 1`` cells deep (``gap + 1 + lead`` on a
+  link slow enough that a vehicle would travel more than a cell while its run of held cells is told back:
+  :func:`~.rules.lead_cells`; the vehicle still moves on a run of ``gap``, the rest is slack). A held cell reports back
   how many held cells run ahead of it (none from a held cell with a parked vehicle on a side neighbour: a body
   reaches past the cell centres it covers, so one cell row beside a parked parcel is no room to pass); a vehicle
   moves when the run ahead of every front cell is at least ``gap`` long (or leads off the array at its exit), else
@@ -75,8 +77,10 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
   and the cells' words travel a hop a tick, so a cycle can stand for the ticks its requests take to arrive.
 - *Exits*: a cell of the goal's exit lane drives the vehicle out through the lane's open side once the vehicle lies
   within the lane (no cell beside it, across the way out, is under the vehicle without belonging to the lane);
-  until then such cells move the vehicle sideways into the lane. Nowhere else may a vehicle move over the edge: a
-  front cell with no neighbour ahead stops it.
+  until then such cells move the vehicle sideways into the lane; on a slow link (``lead`` above 0) no further: a
+  front cell of the lane facing out of it across a lane side stops the vehicle there (unless it gives way), so
+  that where the cells agree on the turn out late the body does not run past the lane and come back. Nowhere else may a vehicle move
+  over the edge: a front cell with no neighbour ahead stops it.
 - *Dead cells* (silent neighbours on the ports config ``inner`` names: a neighbour installed, not on the edge): a
   dead cell carries weight and holds its wheels still, so it brakes a parcel over it while the live cells under
   the parcel drive it. A side on which a carrying cell has

@@ -39,11 +39,12 @@ Config = namedtuple("Config", "exit exit_port entry entry_no park forbid labels 
 (n, P) ports with a neighbour installed and another cell beyond it (such a port not connected leads to a dead cell
 or link inside the array, not off it) and, (n, P), the cell's sensor at the point it shares with the neighbour on
 each port (the midpoint of their centres; -1 none): lit, the body over it covers that neighbour too."""
-Rules = namedtuple("Rules", "tick max_age edge_cost reach gap back_ticks speed heartbeat trust repeats partial")
+Rules = namedtuple("Rules", "tick max_age edge_cost reach gap back_ticks speed heartbeat trust repeats partial lead")
 """The tick stepped and the sorter's numbers (hops and ticks; ``speed`` in m/s; ``heartbeat`` the ticks between two
 sentences of a cell with nothing new to say, ``trust`` the ticks a neighbour's last sentence is trusted, ``repeats``
 the ticks a new sentence is sent again after it changed; ``partial``: a sentence carries only the words that changed,
-and those that changed in the last ``repeats`` ticks, all of them at the heartbeat)."""
+and those that changed in the last ``repeats`` ticks, all of them at the heartbeat; ``lead``: the cells a vehicle asks
+beyond ``gap + 1``, where its run of held cells is told back slower than it drives)."""
 Inputs = namedtuple("Inputs", "present arrived sensors connected words")
 """Which sentences arrived (n, P), their words (:class:`Words`), the sensors (n, S), the live links (n, P) and the
 bit mask of the words each sentence carries (n, P; bit k: the schema's k-th word)."""
@@ -251,7 +252,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     heard_in, at_in, dist_in, state_in, said_in, again_in = old  # reached through a record inside it costs a reference
     heard_out, at_out, dist_out, state_out, said_out, again_out = new  # count a use
     exit_id, exit_port, entry, entry_no, park_cell, forbid, labels, inner, sides = cfg
-    tick, max_age, edge_cost, reach, gap, back_ticks, speed, heartbeat, trust, repeats, partial = rules
+    tick, max_age, edge_cost, reach, gap, back_ticks, speed, heartbeat, trust, repeats, partial, lead = rules
     sent_present, sent, wheels, unsettled, out_changed, sent_words, ticking = out
     n_vid, n_goal, n_dir, n_key, n_stop, n_hold, n_hdep, n_hport, n_hage, n_ack, n_nxt, n_park, n_back, n_bdir = \
         state_out
@@ -560,7 +561,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             new_hold = NONE
         if new_hold < 0:
             hport = NONE
-        L = gap + 1
+        L = gap + 1 + lead  # the cells asked (it moves on a run of gap: the rest is slack for a slow link)
         fwd = opposite(hport, P)
         fp = max(fwd, 0)
         succ = new_hold >= 0 and trusted[fp] and hhold[i, fp] == new_hold
@@ -581,7 +582,12 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
                 ack = 0
         ahead_hold = hhold[i, dp]
         ahead_ack = hack[i, dp] & run_max
-        go_front = off_array or (trusted[dp] and ahead_hold == vid and ahead_ack >= gap)
+        # on a slow link (lead) a vehicle moved sideways into its exit lane goes no further than the lane's far side:
+        # its front cell there stops it, where the cells agree on the turn out only after the body ran on (on ideal
+        # rounds the turn reaches them within a tick, and the stop would only cost time)
+        lane_end = lead > 0 and mine and front and not yielding and (dp == left_of(ep, P) or dp == right_of(
+            ep, P)) and not (trusted[dp] and hex_[i, dp] == target)
+        go_front = (off_array or (trusted[dp] and ahead_hold == vid and ahead_ack >= gap)) and not lane_end
         own_stop = 0 if (front and not go_front and (core or connected[i, dp]) and not passable[dp]) else 255
         stop = _spread_stop(0 if (own_park == 0 or parked) else own_stop, hstop[i], same_nb, on, reach, direction)
         moving = on and direction >= 0 and (stop & none) > reach

@@ -143,6 +143,20 @@ def back_off_ticks(distance: float, speed: float, period: float) -> int:
     return int(np.ceil(distance / (speed * period)))
 
 
+def lead_cells(speed: float, pitch: float, gap: int, period: float, ports: int, seconds_per_byte: float) -> int:
+    """Cells a vehicle asks beyond ``gap + 1`` so that it rides on while each step's run of held cells is told back
+    (:class:`~virtual_vehicle.cells.sorting.Sorter`'s ``lead``), on links that carry a byte in ``seconds_per_byte``
+    (s; 0 for ideal rounds, where a word travels a hop a tick): a change crosses a hop once the cell has said its
+    changes on each of its ``ports`` and heard theirs on the one serial port they share (2 ``ports`` sentences of
+    one 32-bit word, 10 bytes each, :mod:`~virtual_vehicle.cells.network.sentence`) and the neighbour has ticked
+    (``period``, s); a step's run is told back after ``2 (gap + 1)`` hops, while the vehicle travels at ``speed``
+    (m/s); the first cell of that travel is the slack ``gap + 1`` already leaves (a vehicle moves on a run of
+    ``gap``). Units: m, s."""
+    hop = 2 * ports * 10 * seconds_per_byte + period
+    travelled = speed * 2 * (gap + 1) * hop / pitch
+    return max(0, int(np.ceil(travelled - 1e-9)) - 1) if seconds_per_byte > 0 else 0
+
+
 def pack(values, bits: int = 8) -> np.ndarray:
     """Small non-negative integers (n, k), each below 2**bits, packed into one signed 32-bit word per row."""
     v = np.asarray(values, dtype=np.int64)

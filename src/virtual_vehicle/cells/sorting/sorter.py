@@ -41,6 +41,9 @@ class Sorter:
             ``repeats`` ticks; every word at the heartbeat), and a cell keeps what it last heard of the words a
             sentence leaves out: on a slow wire a sentence of two changed words takes a fifth of the time of all
             twelve, so what changes reaches the neighbours sooner. Needs a heartbeat (it repairs a lost word).
+        lead: cells a vehicle asks (and holds) beyond the ``gap + 1`` ahead of its front cells, while it still moves
+            on a run of ``gap``: the slack that lets it ride on while each step's run of held cells is told back, where
+            that takes longer than the step (a slow link: :func:`~virtual_vehicle.cells.sorting.rules.lead_cells`).
 
     Cells have four ports (square lattices) or six (hexagonal ones: see :mod:`virtual_vehicle.cells.sorting` for
     what ahead, beside and behind mean there), all cells alike. Sensor 0 of every cell must be its centre (the
@@ -83,7 +86,7 @@ class Sorter:
 
     def __init__(self, speed: float, gap: int = 2, reach: int = 8, max_age: int = 0, edge_cost: int = 3,
                  period: float = 0.01, pitch: float = 0.1, heartbeat: float = 0.0,
-                 repeats: int = 2, partial: bool = False):
+                 repeats: int = 2, partial: bool = False, lead: int = 0):
         if not speed > 0:
             raise ValueError("speed must be positive (m/s)")
         if not 1 <= reach <= 62:
@@ -107,6 +110,10 @@ class Sorter:
         if partial and self.heartbeat_ticks <= 1:
             raise ValueError("partial sentences need a heartbeat (it sends every word, repairing a lost one)")
         self.partial = bool(partial)
+        if not (0 <= lead and self.gap + 1 + lead < 64):  # a request's depth lies below its LATE and YIELD marks
+            raise ValueError(f"lead must be 0..{62 - self.gap} cells (gap + 1 + lead below 64)")
+        self.lead = int(lead)
+        """Cells a vehicle asks beyond ``gap + 1`` (see the class notes)."""
         """Whether sentences carry only the words that changed (see the class notes)."""
         self.trust = self.max_age + 2 * (self.heartbeat_ticks - 1)
         """Ticks a neighbour's last sentence is trusted after it arrived."""
@@ -288,7 +295,7 @@ class Sorter:
                           _arg(cfg["sides"] if "sides" in cfg else _filled((n, P), NONE, np.int64), np.int64)),
             policy.Rules(tick_of(inputs.t, self.period), self.max_age, self.edge_cost, self.reach, self.gap,
                          self.back_ticks, self.speed, self.heartbeat_ticks, self.trust,
-                         self.repeats, self.partial),
+                         self.repeats, self.partial, self.lead),
             self._memory(state, _arg), self._memory(new),
             policy.Outputs(out.present, policy.Words(*(out.values[w] for w in self._words)), wheels, unsettled,
                            out_changed, words_out, ticking))
