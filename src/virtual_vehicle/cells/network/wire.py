@@ -75,7 +75,6 @@ class WireParams:
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1]")
 
-
     def longest_transfer(self) -> float:
         """The time the longest sentence (64 bytes) holds a line: the select time and its bytes at the baud (s)."""
         return self.select_time + (MAX_PAYLOAD + OVERHEAD) * self.bits_per_byte / self.baud

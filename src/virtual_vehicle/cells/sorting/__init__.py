@@ -79,8 +79,8 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
   within the lane (no cell beside it, across the way out, is under the vehicle without belonging to the lane);
   until then such cells move the vehicle sideways into the lane; on a slow link (``lead`` above 0) no further: a
   front cell of the lane facing out of it across a lane side stops the vehicle there (unless it gives way), so
-  that where the cells agree on the turn out late the body does not run past the lane and come back. Nowhere else may a vehicle move
-  over the edge: a front cell with no neighbour ahead stops it.
+  that where the cells agree on the turn out late the body does not run past the lane and come back. Nowhere
+  else may a vehicle move over the edge: a front cell with no neighbour ahead stops it.
 - *Dead cells* (silent neighbours on the ports config ``inner`` names: a neighbour installed, not on the edge): a
   dead cell carries weight and holds its wheels still, so it brakes a parcel over it while the live cells under
   the parcel drive it. A side on which a carrying cell has

@@ -110,7 +110,7 @@ def ack_bits(P):
     """The ``ack`` word's layout (a 16-bit word) on a cell with ``P`` ports: (bits of the run of held cells ahead,
     bits of the port the hold was asked through plus one); the bits above them name the cell's ports that lead to a
     dead neighbour, one a port: 8 + 4 + 4 on a square cell, 7 + 3 + 6 on a hexagonal one (a run is at most
-    ``gap + 1`` cells, so 127 leaves room)."""
+    ``gap + 1 + lead`` cells, below 64, so 127 leaves room)."""
     return (8, 4) if P <= 4 else (7, 3)
 
 

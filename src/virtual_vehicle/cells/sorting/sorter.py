@@ -110,11 +110,11 @@ class Sorter:
         if partial and self.heartbeat_ticks <= 1:
             raise ValueError("partial sentences need a heartbeat (it sends every word, repairing a lost one)")
         self.partial = bool(partial)
+        """Whether sentences carry only the words that changed (see the class notes)."""
         if not (0 <= lead and self.gap + 1 + lead < 64):  # a request's depth lies below its LATE and YIELD marks
             raise ValueError(f"lead must be 0..{62 - self.gap} cells (gap + 1 + lead below 64)")
         self.lead = int(lead)
         """Cells a vehicle asks beyond ``gap + 1`` (see the class notes)."""
-        """Whether sentences carry only the words that changed (see the class notes)."""
         self.trust = self.max_age + 2 * (self.heartbeat_ticks - 1)
         """Ticks a neighbour's last sentence is trusted after it arrived."""
         self.back_ticks = back_off_ticks((self.gap + 1) * pitch, self.speed, self.period)
