@@ -16,7 +16,8 @@ Each cell has one serial port (UART) multiplexed between its neighbours, and one
 - Ports with no neighbour are known to be empty and their sentences dropped at once; a dead link or dead neighbour
   simply never answers, which the sender finds out by timing out.
 - Per port at most ``queue_limit`` sentences wait; a newer one replaces the oldest waiting one (state-sharing
-  programs want the latest value).
+  programs want the latest value), and the tries the port's handshake has made still count, so that a silent
+  neighbour is given up on after ``max_attempts`` tries however often the sender has news for it.
 
 Latency, queueing and lost opportunities therefore emerge from the model. Polling of idle cells is not simulated
 poll by poll: a polling cell's position in its sweep is a function of time, so only interactions cost events.
@@ -134,15 +135,19 @@ class WireLevel:
             words = int(outbox.words[i, q]) if partial else None
             queue = self.queues[i][q]
             waiting = len(queue) - (1 if (self.mode[i] == XFER and self.target[i] == q) else 0)
+            tries = 0
             if waiting >= self.p.queue_limit:
                 # replace the oldest waiting sentence (not the one on the wire)
                 idx = 1 if len(queue) > waiting else 0
                 if partial:  # the words it carried and the new one does not still go (the port's latest words)
                     values, words = self._merged(queue[idx].data, values, words)
+                tries = queue[idx].attempts if idx == 0 else 0
                 del queue[idx]
                 self.superseded += 1
             data = outbox.schema.to_bytes(values, words)
             queue.append(_Sentence(data, t))
+            if tries:  # the port's handshake goes on: the tries it made count for the sentence now at its head
+                queue[0].attempts = max(queue[0].attempts, tries)
             self.sent[i] += 1
             self.bytes_sent[i] += len(data)
         for i in range(n):
