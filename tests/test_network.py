@@ -149,12 +149,18 @@ def test_wire_serialises_a_busy_receiver():
     assert stats.dropped == 0 and stats.corrupted == 0
 
 
-def test_wire_mutual_sends_resolve_by_backoff():
+def test_wire_mutual_sends_resolve_by_polling_while_waiting():
+    """Cells 0 and 1 both want to send to each other at t=0. Each raises its line and, waiting, polls on: cell 0's
+    sweep is at port 0 (east) at once, sees cell 1's line and receives (its own try not counted). After the transfer
+    cell 0 tries again after one sweep (4 polls) and cell 1, polling from port 3 on, reaches port 2 (west) three
+    polls later: nobody waits the other out (no timeout, no back-off)."""
     p = WireParams()
     w = WireLevel(from_layout(layout.grid(2, 1, 0.1)), p, seed=3)
     inbox, stats = w.exchange(outbox(2, {(0, EAST): 1, (1, WEST): 2}), 0.0, 0.1)
     assert inbox.present[1, WEST] and inbox.present[0, EAST]
-    assert stats.extra["timeouts"] >= 1  # both waited on each other at first
+    transfer = p.select_time + byte_time(p, SCHEMA.sentence_bytes)
+    assert stats.latencies.tolist() == pytest.approx([transfer, 2 * transfer + 7 * p.poll_time], abs=1e-12)
+    assert stats.extra["timeouts"] == 0 and stats.dropped == 0
 
 
 def test_wire_dead_link_times_out_and_drops_after_max_attempts():

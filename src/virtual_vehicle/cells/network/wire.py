@@ -4,11 +4,14 @@ Each cell has one serial port (UART) multiplexed between its neighbours, and one
 
 - A cell with nothing in progress *polls*: it checks the incoming handshake line of one port every ``poll_time``
   seconds, port after port. A cell with sentences queued tries to send after each full sweep of its ports.
-- To send on port q the cell selects q, raises its handshake line toward that neighbour and waits, unable to do
-  anything else, until the neighbour's polling reaches that line (the transfer starts) or ``cts_timeout`` passes
-  (by default as long as the longest sentence holds a line: a neighbour busy with one transfer is waited for)
-  (it lowers the line, waits a random backoff in [0, ``backoff_max``] while polling, and tries again; after
-  ``max_attempts`` tries the sentence is dropped).
+- To send on port q the cell selects q, raises its handshake line toward that neighbour and waits until the
+  neighbour's polling reaches that line (the transfer starts) or ``cts_timeout`` passes (by default as long as the
+  longest sentence holds a line: a neighbour busy with one transfer is waited for) (it lowers the line, waits a
+  random backoff in [0, ``backoff_max``] while polling, and tries again; after ``max_attempts`` tries the sentence
+  is dropped). While it waits it goes on polling its neighbours' handshake lines (the paper's processor "polls
+  through all four neighbor's handshaking lines"): a neighbour waiting to send to it is answered, its own line
+  lowered (that try is not counted), and it tries again after the transfer. So two cells that want to send to each
+  other at once, or a ring of them, do not wait each other out: the first to poll the other's line receives.
 - A transfer takes ``select_time`` plus the sentence's bytes at ``bits_per_byte`` bits each at ``baud`` bits/s;
   both cells are busy for that time. Bit errors flip data bits independently at ``bit_error_rate``; the receiver
   decodes the bytes and drops a sentence that fails (counted as corrupted), or, if the checksum misses, delivers the
@@ -340,13 +343,18 @@ class WireLevel:
         them; if sentences are queued, try to send again at ``retry_at`` (default: after one full sweep)."""
         self._set_mode(i, POLL, t)
         self.p0[i] = first_port % self.topology.ports
+        self._listen(i, t)
+        if self._has_queue(i):
+            self._push(t + self.topology.ports * self.p.poll_time if retry_at is None else retry_at, "try", i)
+
+    def _listen(self, i, t):
+        """Answer the neighbours already waiting to send to polling cell i, in the order its sweep reaches their
+        lines (from the epoch of i's mode now: a new mode, a new listen)."""
         topo = self.topology
         for q in range(topo.ports):
             j = topo.neighbor[i, q]
             if j >= 0 and topo.link_up[i, q] and self.mode[j] == WAIT and self.target[j] == topo.back_port[i, q]:
                 self._push(self._poll_time_of(i, q, t), "connect", i, j)
-        if self._has_queue(i):
-            self._push(t + topo.ports * self.p.poll_time if retry_at is None else retry_at, "try", i)
 
     def _on_try(self, t, i, _):
         if self.mode[i] != POLL or not self._has_queue(i):
@@ -358,17 +366,22 @@ class WireLevel:
                 break
         self.next_port[i] = (q + 1) % P
         self.target[i] = q
+        t0 = self.t0[i]
         self._set_mode(i, WAIT, t)
+        self.t0[i] = t0  # waiting, it polls on in the same sweep
         self._push(t + self.p.cts_timeout, "timeout", i)
+        self._listen(i, t)  # (its mode's epoch is new: the neighbours waiting on it are answered anew)
         topo = self.topology
         j = topo.neighbor[i, q]
-        if topo.link_up[i, q] and topo.alive[j] and self.mode[j] == POLL:
+        if topo.link_up[i, q] and topo.alive[j] and self.mode[j] in (POLL, WAIT):
             self._push(self._poll_time_of(j, topo.back_port[i, q], t), "connect", j, i)
 
     def _on_connect(self, t, j, i):
-        # j (polling) sees i's handshake line on the port that leads to i; i is waiting to send to j
-        if self.mode[j] != POLL or self.mode[i] != WAIT:
+        # j (polling, or waiting to send and polling meanwhile) sees i's handshake line on the port that leads to i;
+        # i is waiting to send to j. A waiting j lowers its own line: that try is not counted, it tries again later
+        if self.mode[j] not in (POLL, WAIT) or self.mode[i] != WAIT:
             return
+        self.target[j] = -1  # j receives
         q = self.target[i]
         head = self.queues[i][q][0]
         duration = self.p.select_time + len(head.data) * self.p.bits_per_byte / self.p.baud
