@@ -163,6 +163,21 @@ def test_wire_mutual_sends_resolve_by_polling_while_waiting():
     assert stats.extra["timeouts"] == 0 and stats.dropped == 0
 
 
+def test_wire_a_ring_of_waiting_senders_is_served_without_timeouts():
+    """Four cells of a 2 x 2 block each send to the next round the block at t=0 (0 east, 1 north, 3 west, 2 south):
+    every one waits on a neighbour that waits on another. Polling while they wait, each answers the one waiting on
+    it: all four arrive with no handshake timed out, within the four transfers one after another and a few sweeps,
+    far inside one timeout (a model whose waiting cells poll nobody has all four time out first)."""
+    p = WireParams()
+    w = WireLevel(from_layout(layout.grid(2, 2, 0.1)), p, seed=1)
+    inbox, stats = w.exchange(outbox(4, {(0, EAST): 1, (1, NORTH): 2, (3, WEST): 3, (2, SOUTH): 4}), 0.0, 0.1)
+    assert inbox.present[1, WEST] and inbox.present[3, SOUTH] and inbox.present[2, EAST] and inbox.present[0, NORTH]
+    assert [inbox.values["value"][c, q] for c, q in ((1, WEST), (3, SOUTH), (2, EAST), (0, NORTH))] == [1, 2, 3, 4]
+    transfer = p.select_time + byte_time(p, SCHEMA.sentence_bytes)
+    assert stats.extra["timeouts"] == 0 and stats.dropped == 0
+    assert max(stats.latencies) <= 4 * (transfer + 2 * 4 * p.poll_time) < p.cts_timeout
+
+
 def test_wire_dead_link_times_out_and_drops_after_max_attempts():
     p = WireParams(max_attempts=3, cts_timeout=2e-3)  # three tries of 2 ms (not the line's 67 ms) fit in the tick
     t = from_layout(layout.grid(2, 1, 0.1)).with_faults(dead_links=[(0, EAST)])
