@@ -225,6 +225,13 @@ def test_wire_parameters_are_validated():
         WireParams(baud=0)
     with pytest.raises(ValueError):
         WireParams(bit_error_rate=2.0)
+    # a bad number the default handshake timeout is made from is named, not tripped over
+    with pytest.raises(ValueError, match="bits_per_byte"):
+        WireParams(bits_per_byte=4)
+    with pytest.raises(ValueError, match="select_time"):
+        WireParams(select_time=-1.0)
+    with pytest.raises(ValueError, match="cts_timeout"):
+        WireParams(cts_timeout=0.0)
 
 
 def test_a_partial_sentence_carries_only_its_words_and_takes_their_time():

@@ -65,9 +65,7 @@ class WireParams:
     loss_rate: float = 0.0
 
     def __post_init__(self):
-        if self.cts_timeout is None and self.baud > 0 and self.bits_per_byte >= 8 and self.select_time >= 0:
-            object.__setattr__(self, "cts_timeout", max(2e-3, self.longest_transfer()))
-        for name in ("baud", "poll_time", "cts_timeout"):
+        for name in ("baud", "poll_time"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive")
         for name in ("select_time", "backoff_max"):
@@ -78,6 +76,10 @@ class WireParams:
         for name in ("bit_error_rate", "loss_rate"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1]")
+        if self.cts_timeout is None:  # (from the line's numbers, checked above)
+            object.__setattr__(self, "cts_timeout", max(2e-3, self.longest_transfer()))
+        if not self.cts_timeout > 0:
+            raise ValueError("cts_timeout must be positive")
 
     def longest_transfer(self) -> float:
         """The time the longest sentence (64 bytes) holds a line: the select time and its bytes at the baud (s)."""
@@ -366,9 +368,7 @@ class WireLevel:
                 break
         self.next_port[i] = (q + 1) % P
         self.target[i] = q
-        t0 = self.t0[i]
-        self._set_mode(i, WAIT, t)
-        self.t0[i] = t0  # waiting, it polls on in the same sweep
+        self._set_mode(i, WAIT, t)  # (t0 kept: waiting, it polls on in the same sweep)
         self._push(t + self.p.cts_timeout, "timeout", i)
         self._listen(i, t)  # (its mode's epoch is new: the neighbours waiting on it are answered anew)
         topo = self.topology

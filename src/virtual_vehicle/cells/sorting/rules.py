@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 from numba.extending import register_jitable
 
+from virtual_vehicle.cells.network.sentence import WordType, wire_size
+
 MAX_EXITS = 4
 PARK = MAX_EXITS - 1
 """In a sequenced run (parcels with sequence numbers), gradient PARK leads to a free parking cell, not to exit 3."""
@@ -148,11 +150,11 @@ def lead_cells(speed: float, pitch: float, gap: int, period: float, ports: int, 
     (:class:`~virtual_vehicle.cells.sorting.Sorter`'s ``lead``), on links that carry a byte in ``seconds_per_byte``
     (s; 0 for ideal rounds, where a word travels a hop a tick): a change crosses a hop once the cell has said its
     changes on each of its ``ports`` and heard theirs on the one serial port they share (2 ``ports`` sentences of
-    one 32-bit word, 10 bytes each, :mod:`~virtual_vehicle.cells.network.sentence`) and the neighbour has ticked
-    (``period``, s); a step's run is told back after ``2 (gap + 1)`` hops, while the vehicle travels at ``speed``
-    (m/s); the first cell of that travel is the slack ``gap + 1`` already leaves (a vehicle moves on a run of
-    ``gap``). Units: m, s."""
-    hop = 2 * ports * 10 * seconds_per_byte + period
+    one 32-bit word, 10 bytes each: :func:`~virtual_vehicle.cells.network.sentence.wire_size`) and the neighbour
+    has ticked (``period``, s); a step's run is told back after ``2 (gap + 1)`` hops, while the vehicle travels at
+    ``speed`` (m/s); the first cell of that travel is the slack ``gap + 1`` already leaves (a vehicle moves on a run
+    of ``gap``). Units: m, s."""
+    hop = 2 * ports * wire_size([WordType.I32]) * seconds_per_byte + period
     travelled = speed * 2 * (gap + 1) * hop / pitch
     return max(0, int(np.ceil(travelled - 1e-9)) - 1) if seconds_per_byte > 0 else 0
 
