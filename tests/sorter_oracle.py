@@ -337,9 +337,11 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     ahead_hold = heard["hold"][rows, dp]
     ahead_ack = heard["ack"][rows, dp] & ((1 << RB) - 1)
     # ... but on a slow link not out of its exit lane's far side, where its front cell stops a vehicle moved
-    # sideways into it
-    lane_end = (sorter.lead > 0) & mine & front & ~yielding & ((dp == side[:, 0]) | (dp == side[:, 1])) & ~(
+    # sideways into it: for lane_hold ticks, then lets it go for half as long, and again while it is there
+    at_end = (sorter.lane_hold > 0) & mine & front & ~yielding & ((dp == side[:, 0]) | (dp == side[:, 1])) & ~(
         trusted[rows, dp] & (heard["ex"][rows, dp] == target))
+    lane = np.where(at_end, state["lane"] % max(sorter.lane_hold + sorter.lane_hold // 2, 1) + 1, 0)
+    lane_end = at_end & (lane <= sorter.lane_hold)
     go_front = (off_array | (trusted[rows, dp] & (ahead_hold == vid) & (ahead_ack >= sorter.gap))) & ~lane_end
     # a cell that only sees the parcel's edge may hang over the array's edge or a dead cell: only cells that
     # carry the parcel, or that have a neighbour ahead to ask, can stop it
@@ -421,7 +423,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     new_state = {"dist": dist, "heard": heard, "heard_at": heard_at, "vid": vid, "goal": goal,
                  "dir": np.where(moving | (direction >= 0), direction, _NONE), "key": key, "stop": stop,
                  "hold": new_hold, "hdep": hdep, "hport": hport, "hage": hage, "ack": ack, "nxt": nxt,
-                 "park": park, "back": back, "bdir": bdir, "said": said, "again": again}
+                 "park": park, "back": back, "bdir": bdir, "lane": lane, "said": said, "again": again}
     return new_state, out, wheels
 
 def _away(open_side, q, P):

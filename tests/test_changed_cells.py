@@ -475,6 +475,11 @@ def _random_sorter_inputs(rng, max_age: int, parking: bool, labelled: bool, part
     # the sensor each cell shares with the neighbour on a port (-1 none, some beyond the cell's five), from a
     # generator of its own again, so that every draw above is as it was
     config["sides"] = rng.spawn(1)[0].integers(-1, 7, (n, P))
+    # a sorter that stops a vehicle at its exit lane's far side (or not), and the ticks each cell has stood there
+    # (some at the end of a stop or of a pause), from a generator of their own again
+    lanes = rng.spawn(1)[0]
+    program.lane_hold = int(lanes.choice([0, 1, 2, 4]))
+    state["lane"] = lanes.integers(0, 8, n)
     return program, state, inputs
 
 

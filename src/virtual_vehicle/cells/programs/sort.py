@@ -64,7 +64,7 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
     a one-way cell forbids, and a unique installation number; the parcels' labels are checked against the exits."""
     from virtual_vehicle.cells.sorting import PARK, Sorter
     from virtual_vehicle.cells.network.wire import WireParams
-    from virtual_vehicle.cells.sorting.rules import lead_cells, tick_of
+    from virtual_vehicle.cells.sorting.rules import lane_hold_ticks, lead_cells, tick_of
     from virtual_vehicle.model import layout
 
     c, cells, topo, marks = options, ctx.cells, ctx.topology, ctx.marks
@@ -146,7 +146,8 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
         program = Sorter(c.speed, c.gap, c.reach, max_age=c.max_age, period=c.period, pitch=cells.pitch,
                          heartbeat=c.heartbeat, partial=wire and tick_of(c.heartbeat, c.period) > 1,
                          lead=min(lead_cells(c.speed, cells.pitch, c.gap, c.period, int(kinds[0]), byte),
-                                  62 - c.gap))
+                                  62 - c.gap),
+                         lane_hold=lane_hold_ticks(c.reach, c.period, int(kinds[0]), byte))
     for i, p in enumerate(ctx.parcels):
         if p.destination is not None and p.destination >= n_exits:
             raise FieldError(f"parcels[{i}].destination", f"exit {p.destination} does not exist (the scenario has "

@@ -24,7 +24,7 @@ from virtual_vehicle.cells.sorting.rules import (BIG, ENTRY, HUGE, MAX_EXITS, NO
 
 Words = namedtuple("Words", "d nxt vid goal key stop req rdep hold ack ex blk")
 """The sorter's sentence words, one (n, P) array each, in the schema's order."""
-CellState = namedtuple("CellState", "vid goal dir key stop hold hdep hport hage ack nxt park back bdir")
+CellState = namedtuple("CellState", "vid goal dir key stop hold hdep hport hage ack nxt park back bdir lane")
 """The per-cell state words (n,), int64, in the order the sorter's state holds them after ``dist``, ``heard``,
 ``age``."""
 Memory = namedtuple("Memory", "heard heard_at dist cell said again")
@@ -39,12 +39,14 @@ Config = namedtuple("Config", "exit exit_port entry entry_no park forbid labels 
 (n, P) ports with a neighbour installed and another cell beyond it (such a port not connected leads to a dead cell
 or link inside the array, not off it) and, (n, P), the cell's sensor at the point it shares with the neighbour on
 each port (the midpoint of their centres; -1 none): lit, the body over it covers that neighbour too."""
-Rules = namedtuple("Rules", "tick max_age edge_cost reach gap back_ticks speed heartbeat trust repeats partial lead")
+Rules = namedtuple("Rules", "tick max_age edge_cost reach gap back_ticks speed heartbeat trust repeats partial lead "
+                   "lane_hold")
 """The tick stepped and the sorter's numbers (hops and ticks; ``speed`` in m/s; ``heartbeat`` the ticks between two
 sentences of a cell with nothing new to say, ``trust`` the ticks a neighbour's last sentence is trusted, ``repeats``
 the ticks a new sentence is sent again after it changed; ``partial``: a sentence carries only the words that changed,
 and those that changed in the last ``repeats`` ticks, all of them at the heartbeat; ``lead``: the cells a vehicle asks
-beyond ``gap + 1``, where its run of held cells is told back slower than it drives)."""
+beyond ``gap + 1``, where its run of held cells is told back slower than it drives; ``lane_hold``: the ticks a vehicle
+moved sideways into its exit lane stands at the lane's far side, 0 none: see :func:`lane_stop`)."""
 Inputs = namedtuple("Inputs", "present arrived sensors connected words")
 """Which sentences arrived (n, P), their words (:class:`Words`), the sensors (n, S), the live links (n, P) and the
 bit mask of the words each sentence carries (n, P; bit k: the schema's k-th word)."""
@@ -136,6 +138,21 @@ def _spread(own, stop_word, field, same, on, reach):
         nb = v + 1 if same[q] and v < reach else 255
         out = min(out, nb)
     return out if on else 255
+
+
+@njit(cache=True, inline="always")
+def lane_stop(at_end, count, hold):
+    """A vehicle's front cell at its exit lane's far side (``at_end``; the vehicle moved sideways into the lane)
+    stops it for ``hold`` ticks, lets it go for ``hold // 2``, and so on while it is there: the new tick count (0 away
+    from the lane's end; ``count`` the last) and whether it stops the vehicle now. The stop keeps a body that the
+    cells have not yet agreed to turn out of the lane from running on past its far side (on a slow link a withdrawn
+    proposal to move in takes ``reach`` exchanges to be forgotten: ``hold``); the pauses move in a body that still
+    reaches out of the lane's near side (a body wider than three pitches covers the far cell's sensor before it
+    has left the cell outside the near side: a stop that never let go held it there for good)."""
+    if not at_end:
+        return 0, False
+    count = count % (hold + hold // 2) + 1
+    return count, count <= hold
 
 
 @njit(cache=True)
@@ -252,15 +269,15 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
     heard_in, at_in, dist_in, state_in, said_in, again_in = old  # reached through a record inside it costs a reference
     heard_out, at_out, dist_out, state_out, said_out, again_out = new  # count a use
     exit_id, exit_port, entry, entry_no, park_cell, forbid, labels, inner, sides = cfg
-    tick, max_age, edge_cost, reach, gap, back_ticks, speed, heartbeat, trust, repeats, partial, lead = rules
+    tick, max_age, edge_cost, reach, gap, back_ticks, speed, heartbeat, trust, repeats, partial, lead, lane_hold = rules
     sent_present, sent, wheels, unsettled, out_changed, sent_words, ticking = out
-    n_vid, n_goal, n_dir, n_key, n_stop, n_hold, n_hdep, n_hport, n_hage, n_ack, n_nxt, n_park, n_back, n_bdir = \
-        state_out
+    n_vid, n_goal, n_dir, n_key, n_stop, n_hold, n_hdep, n_hport, n_hage, n_ack, n_nxt, n_park, n_back, n_bdir, \
+        n_lane = state_out
     w_d, w_nxt, w_vid, w_goal, w_key, w_stop, w_req, w_rdep, w_hold, w_ack, w_ex, w_blk = words
     i_d, i_nxt, i_vid, i_goal, i_key, i_stop, i_req, i_rdep, i_hold, i_ack, i_ex, i_blk = heard_in
     hd, hnxt, hvid, hgoal, hkey, hstop, hreq, hrdep, hhold, hack, hex_, hblk = heard_out
-    s_vid, s_goal, s_dir, s_key, s_stop, s_hold, s_hdep, s_hport, s_hage, s_ack, s_nxt, s_park, s_back, s_bdir = \
-        state_in
+    s_vid, s_goal, s_dir, s_key, s_stop, s_hold, s_hdep, s_hport, s_hage, s_ack, s_nxt, s_park, s_back, s_bdir, \
+        s_lane = state_in
     told = (said_in, said_out)  # what each port last sent, and where the step writes it
     o_d, o_nxt, o_vid, o_goal, o_key, o_stop, o_req, o_rdep, o_hold, o_ack, o_ex, o_blk = sent
     park_any = False  # over the cells stepped, as stepping those rows gathered sees them
@@ -582,11 +599,13 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
                 ack = 0
         ahead_hold = hhold[i, dp]
         ahead_ack = hack[i, dp] & run_max
-        # on a slow link (lead) a vehicle moved sideways into its exit lane goes no further than the lane's far side:
-        # its front cell there stops it, where the cells agree on the turn out only after the body ran on (on ideal
-        # rounds the turn reaches them within a tick, and the stop would only cost time)
-        lane_end = lead > 0 and mine and front and not yielding and (dp == left_of(ep, P) or dp == right_of(
+        # on a slow link (lane_hold) a vehicle moved sideways into its exit lane stops at the lane's far side: its
+        # front cell there stops it, where the cells agree on the turn out only after the body ran on (on ideal
+        # rounds the turn reaches them within a tick, and the stop would only cost time); for lane_hold ticks at a
+        # time, so that a body still reaching out of the lane's near side is moved in (see lane_stop)
+        at_lane_end = lane_hold > 0 and mine and front and not yielding and (dp == left_of(ep, P) or dp == right_of(
             ep, P)) and not (trusted[dp] and hex_[i, dp] == target)
+        lane, lane_end = lane_stop(at_lane_end, s_lane[i], lane_hold)
         go_front = (off_array or (trusted[dp] and ahead_hold == vid and ahead_ack >= gap)) and not lane_end
         own_stop = 0 if (front and not go_front and (core or connected[i, dp]) and not passable[dp]) else 255
         stop = _spread_stop(0 if (own_park == 0 or parked) else own_stop, hstop[i], same_nb, on, reach, direction)
@@ -690,6 +709,7 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         held |= _put1(n_park, s_park, i, park)
         held |= _put1(n_back, s_back, i, back)
         held |= _put1(n_bdir, s_bdir, i, bdir)
+        held |= _put1(n_lane, s_lane, i, lane)
         unsettled[i] = changed or held or clocks
         ticking[i] = (changed or clocks) and not held
 

@@ -44,6 +44,11 @@ class Sorter:
         lead: cells a vehicle asks (and holds) beyond the ``gap + 1`` ahead of its front cells, while it still moves
             on a run of ``gap``: the slack that lets it ride on while each step's run of held cells is told back, where
             that takes longer than the step (a slow link: :func:`~virtual_vehicle.cells.sorting.rules.lead_cells`).
+        lane_hold: ticks a vehicle moved sideways into its exit lane stands at the lane's far side before it is let go
+            for half as long, again and again while it is there (0: it is not stopped there): on a slow link the
+            cells agree on the turn out of the lane only after the body ran on
+            (:func:`~virtual_vehicle.cells.sorting.rules.lane_hold_ticks`; the rule:
+            :func:`~virtual_vehicle.cells.sorting.policy.lane_stop`).
 
     Cells have four ports (square lattices) or six (hexagonal ones: see :mod:`virtual_vehicle.cells.sorting` for
     what ahead, beside and behind mean there), all cells alike. Sensor 0 of every cell must be its centre (the
@@ -86,7 +91,7 @@ class Sorter:
 
     def __init__(self, speed: float, gap: int = 2, reach: int = 8, max_age: int = 0, edge_cost: int = 3,
                  period: float = 0.01, pitch: float = 0.1, heartbeat: float = 0.0,
-                 repeats: int = 2, partial: bool = False, lead: int = 0):
+                 repeats: int = 2, partial: bool = False, lead: int = 0, lane_hold: int = 0):
         if not speed > 0:
             raise ValueError("speed must be positive (m/s)")
         if not 1 <= reach <= 62:
@@ -115,6 +120,10 @@ class Sorter:
             raise ValueError(f"lead must be 0..{62 - self.gap} cells (gap + 1 + lead below 64)")
         self.lead = int(lead)
         """Cells a vehicle asks beyond ``gap + 1`` (see the class notes)."""
+        if not 0 <= lane_hold <= 1_000_000:
+            raise ValueError("lane_hold must be 0..1000000 ticks")
+        self.lane_hold = int(lane_hold)
+        """Ticks a vehicle stands at its exit lane's far side at a time (see the class notes)."""
         self.trust = self.max_age + 2 * (self.heartbeat_ticks - 1)
         """Ticks a neighbour's last sentence is trusted after it arrived."""
         self.back_ticks = back_off_ticks((self.gap + 1) * pitch, self.speed, self.period)
@@ -136,7 +145,7 @@ class Sorter:
                 "stop": np.full(n, 255, dtype=np.int64), "hold": np.full(n, NONE, dtype=np.int64),
                 "hdep": np.zeros(n, dtype=np.int64), "hport": np.full(n, NONE, dtype=np.int64),
                 "hage": np.zeros(n, dtype=np.int64), "back": np.zeros(n, dtype=np.int64),
-                "bdir": np.full(n, NONE, dtype=np.int64),
+                "bdir": np.full(n, NONE, dtype=np.int64), "lane": np.zeros(n, dtype=np.int64),
                 "ack": np.zeros(n, dtype=np.int64), "nxt": np.zeros(n, dtype=np.int64),
                 "park": np.full(n, 255, dtype=np.int64),
                 # nothing said yet: the first tick says everything
@@ -295,7 +304,7 @@ class Sorter:
                           _arg(cfg["sides"] if "sides" in cfg else _filled((n, P), NONE, np.int64), np.int64)),
             policy.Rules(tick_of(inputs.t, self.period), self.max_age, self.edge_cost, self.reach, self.gap,
                          self.back_ticks, self.speed, self.heartbeat_ticks, self.trust,
-                         self.repeats, self.partial, self.lead),
+                         self.repeats, self.partial, self.lead, self.lane_hold),
             self._memory(state, _arg), self._memory(new),
             policy.Outputs(out.present, policy.Words(*(out.values[w] for w in self._words)), wheels, unsettled,
                            out_changed, words_out, ticking))
