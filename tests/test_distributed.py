@@ -270,6 +270,32 @@ def test_the_lane_stop_holds_then_lets_go_in_turn_and_follows_the_line():
         Sorter(0.3, lane_hold=-1)
 
 
+def test_the_heartbeat_keeps_to_a_tenth_of_a_slow_line():
+    """Without a heartbeat given, the sorter beats every second, or, where a cell's heartbeats (a whole sentence said
+    and one heard on each of its ports) would take more than a tenth of its line, no more often than keeps them to
+    that tenth: by hand at 9600 baud, 2 x 4 ports x 63 bytes x 10 bits / 9600 / 0.1 = 5.25 s; 1 s at 115200 baud
+    and on ideal rounds; a heartbeat given is kept, on any link."""
+    from virtual_vehicle.cells.sorting import Sorter
+    from virtual_vehicle.cells.sorting.rules import heartbeat_seconds
+    from virtual_vehicle.config.scenario import WireSpec
+
+    assert Sorter.schema.sentence_bytes == 63
+    assert heartbeat_seconds(4, 63, 10 / 9600) == pytest.approx(5.25)
+    assert heartbeat_seconds(4, 63, 10 / 115200) == 1.0
+    assert heartbeat_seconds(6, 63, 0.0) == 1.0
+
+    def ticks(delivery, **control):
+        sc = sorting(duration=1.0, parcels=1)
+        sc = sc.model_copy(update={"control": sc.control.model_copy(update={"delivery": delivery, **control})})
+        return sc.build().control.program.heartbeat_ticks
+
+    assert sorting().control.period == 0.01
+    assert ticks("wire", wire=WireSpec(baud=9600.0)) == 525
+    assert ticks("wire", wire=WireSpec(baud=115200.0)) == 100
+    assert ticks("ideal") == 100
+    assert ticks("wire", wire=WireSpec(baud=9600.0), heartbeat=2.0) == 200
+
+
 def test_a_main_line_diverts_each_parcel_to_its_spur_and_lets_the_rest_through():
     from virtual_vehicle.config.scenario import load_scenario
     from virtual_vehicle.run.tasks import sorting_report

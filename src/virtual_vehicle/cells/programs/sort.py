@@ -26,7 +26,10 @@ class SortOptions(ProgramOptions):
     (``E``), exits (``0``..``3``) and parking cells come from an ``[array]`` map. ``central`` = true runs the same
     policies on one central computer instead (:class:`~virtual_vehicle.cells.sorting.CentralSorter`), for
     comparison. A cell sends on a link only when what it says there changed, and everything every ``heartbeat``
-    (s; 0: every tick), which repairs a lost sentence: traffic follows activity, not the number of cells. A parcel
+    (s; 0: every tick), which repairs a lost sentence: traffic follows activity, not the number of cells. Without
+    ``heartbeat``: 1 s, or, on a wire so slow that one-second heartbeats would take more than a tenth of a cell's
+    line, long enough to keep them to that tenth (5.25 s at 9600 baud;
+    :func:`~virtual_vehicle.cells.sorting.rules.heartbeat_seconds`). A parcel
     on the array that stands still longer than ``wait_bound`` (s) is reported as stalled (see :func:`stalls`)."""
 
     program: Literal["sort"]
@@ -37,7 +40,7 @@ class SortOptions(ProgramOptions):
     gap: Annotated[int, Field(ge=1, le=50)] = 2
     reach: Annotated[int, Field(ge=1, le=62)] = 8
     central: bool = False
-    heartbeat: Annotated[float, Field(ge=0, le=60)] = 1.0
+    heartbeat: Annotated[float, Field(ge=0, le=60)] | None = None
     wait_bound: Annotated[float, Field(gt=0, le=1e6)] = 10.0
 
     def top_speed(self) -> float:
@@ -64,7 +67,7 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
     a one-way cell forbids, and a unique installation number; the parcels' labels are checked against the exits."""
     from virtual_vehicle.cells.sorting import PARK, Sorter
     from virtual_vehicle.cells.network.wire import WireParams
-    from virtual_vehicle.cells.sorting.rules import lane_hold_ticks, lead_cells, tick_of
+    from virtual_vehicle.cells.sorting.rules import heartbeat_seconds, lane_hold_ticks, lead_cells, tick_of
     from virtual_vehicle.model import layout
 
     c, cells, topo, marks = options, ctx.cells, ctx.topology, ctx.marks
@@ -143,8 +146,11 @@ def build(options: SortOptions, ctx: BuildContext) -> ControlSetup:
         # ask as far ahead as the vehicle travels while its run of held cells is told back
         wire = c.delivery == "wire"
         byte = WireParams.bits_per_byte / c.wire.baud if wire else 0.0  # (the scenario sets no framing)
+        # and beat no more often than keeps the heartbeats to a tenth of the line
+        beat = c.heartbeat if c.heartbeat is not None else heartbeat_seconds(int(kinds[0]),
+                                                                               Sorter.schema.sentence_bytes, byte)
         program = Sorter(c.speed, c.gap, c.reach, max_age=c.max_age, period=c.period, pitch=cells.pitch,
-                         heartbeat=c.heartbeat, partial=wire and tick_of(c.heartbeat, c.period) > 1,
+                         heartbeat=beat, partial=wire and tick_of(beat, c.period) > 1,
                          lead=min(lead_cells(c.speed, cells.pitch, c.gap, c.period, int(kinds[0]), byte),
                                   62 - c.gap),
                          lane_hold=lane_hold_ticks(c.reach, c.period, int(kinds[0]), byte))
