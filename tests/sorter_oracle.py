@@ -150,7 +150,10 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # the neighbours that say its goal: a dead cell can cut one parcel's cells apart into two ids.
     dead = inner & ~inputs.connected
     near_dead = dead.any(axis=1)[:, None] | ((heard["ack"] >> dead_shift) != 0)
-    joins = lit[:, None] & (vid[:, None] >= 0) & near_dead & trusted & (heard["vid"] >= 0) \
+    # So does any cell whose neighbour's id was made in the same tick (a parcel put on at once over more cells than
+    # its entry's got several ids, and the cells beyond the entry's neighbours kept the one they took first).
+    twin = heard["vid"] // 1024 == vid[:, None] // 1024
+    joins = lit[:, None] & (vid[:, None] >= 0) & (near_dead | twin) & trusted & (heard["vid"] >= 0) \
         & (heard["goal"] == goal[:, None])
     vid = np.minimum(vid, _across(np.minimum, np.where(joins, heard["vid"], _HUGE)) if P else vid)
     fresh = lit & (vid < 0) & entry & (labels >= 0)

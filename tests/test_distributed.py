@@ -222,6 +222,22 @@ def test_at_9600_baud_a_parcel_rides_into_its_lane_within_twice_the_ideal_time_w
     assert not (np.sum(unit[1:] * unit[:-1], axis=1) < -0.5).any()  # never back the way it came
 
 
+def test_a_parcel_longer_than_its_entry_rides_under_one_id():
+    """A parcel put on over more cells than its entry's (0.5 m long on the junction's 0.3 m entry) gets an id from
+    each entry cell under it in its first tick; the cells beyond the entry's neighbours take one of them and, before,
+    kept it: the parcel stood for good under three ids (seen on ideal rounds). Cells whose ids were made in the same
+    tick now settle on the smallest, and it is delivered, as is the next one."""
+    from virtual_vehicle.run.tasks import sorting_report
+
+    sc = sorting(duration=14.0, parcels=2)
+    sc = sc.model_copy(update={"parcels": [p.model_copy(update={"length": 0.5, "x": p.x + (0.5 - p.length) / 2})
+                                           for p in sc.parcels]})
+    assert sc.parcels[0].x + 0.25 > 0.25 + 0.2  # it reaches two cells beyond the entry
+    report = sorting_report(run(sc.build()))
+    assert report["collisions"] == 0 and report["misrouted"] == 0
+    assert [(r["outcome"], r["correct"]) for r in report["parcels"]] == [("delivered", True)] * 2, report["parcels"]
+
+
 def test_the_wire_waits_out_the_longest_sentence_and_the_lead_follows_the_line():
     """The handshake timeout by default: the longest sentence's time on the line (64 bytes at 10 bits), at least
     2 ms; a value given is kept. The cells a vehicle asks beyond gap + 1, by hand for the junction at 9600 baud: a

@@ -18,7 +18,7 @@ from numba import njit
 
 from virtual_vehicle.cells.network.programs import UNREACHABLE
 from virtual_vehicle.cells.sorting.rules import (BIG, ENTRY, HUGE, MAX_EXITS, NONE, PARK, ack_bits, direction_key, due,
-                                                 heading, heartbeat_due, hop_bits,
+                                                 heading, heartbeat_due, hop_bits, ID_TICK,
                                                  hop_cost, into_lane, left_of, opposite, right_of, split_goal, unpack,
                                                  vehicle_id)
 
@@ -395,13 +395,20 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
             goal = hgoal[i, k]
         # where a dead cell cut a parcel's cells apart (at the entry, where they settle on one id, or under it) the
         # parcel can carry two ids, whose cells then pull it two ways: next to a dead cell (this one's or the
-        # neighbour's), a cell takes the smaller id of a neighbour that says the same goal
+        # neighbour's), a cell takes the smaller id of a neighbour that says the same goal. So does any cell whose
+        # neighbour's id was made in the same tick (the tick is the id's high part): a parcel put on at once over
+        # more cells than its entry's (a longer parcel) got an id from each entry cell, and the cells beyond the
+        # entry's neighbours kept the one they took first, so that it stood for good under two or three ids; the
+        # loader's clearance keeps two parcels put on in one tick apart
         dead_mask = 0
         for q in range(P):
             dead_mask |= (1 << q) if (inner[i, q] and not connected[i, q]) else 0
+        born = vid // ID_TICK
         for q in range(P):
             near_dead = dead_mask != 0 or (hack[i, q] >> dead_shift) != 0
-            if lit and vid >= 0 and near_dead and trusted[q] and 0 <= hvid[i, q] < vid and hgoal[i, q] == goal:
+            twin = hvid[i, q] // ID_TICK == born
+            if lit and vid >= 0 and (near_dead or twin) and trusted[q] and 0 <= hvid[i, q] < vid and \
+                    hgoal[i, q] == goal:
                 vid = hvid[i, q]
         if lit and vid < 0 and entry[i] and labels[i] >= 0:
             vid = vehicle_id(tick, entry_no[i])

@@ -43,11 +43,16 @@ def due(seq, nxt):
     return seq < 0 or seq <= nxt
 
 
+ID_TICK = 1024
+"""A vehicle id's tick unit: ``id // ID_TICK`` is the tick it was made (:func:`vehicle_id`)."""
+
+
 @register_jitable
 def vehicle_id(tick, number):
     """A new vehicle's id: the tick it was made (so smaller ids are older vehicles, which go first at a merge),
-    times 1024, plus the number of the cell that made it modulo 1024 (so two entries' vehicles differ)."""
-    return tick * 1024 + number % 1024
+    times :data:`ID_TICK`, plus the number of the cell that made it modulo :data:`ID_TICK` (so two entries'
+    vehicles differ)."""
+    return tick * ID_TICK + number % ID_TICK
 
 
 @register_jitable
