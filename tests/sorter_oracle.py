@@ -343,7 +343,7 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     # sideways into it: for lane_hold ticks, then lets it go for half as long, and again while it is there
     at_end = (sorter.lane_hold > 0) & mine & front & ~yielding & ((dp == side[:, 0]) | (dp == side[:, 1])) & ~(
         trusted[rows, dp] & (heard["ex"][rows, dp] == target))
-    lane = np.where(at_end, state["lane"] % max(sorter.lane_hold + sorter.lane_hold // 2, 1) + 1, 0)
+    lane = np.where(at_end, state["lane"] % (sorter.lane_hold + max(sorter.lane_hold // 2, 1)) + 1, 0)
     lane_end = at_end & (lane <= sorter.lane_hold)
     go_front = (off_array | (trusted[rows, dp] & (ahead_hold == vid) & (ahead_ack >= sorter.gap))) & ~lane_end
     # a cell that only sees the parcel's edge may hang over the array's edge or a dead cell: only cells that

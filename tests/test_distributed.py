@@ -278,6 +278,7 @@ def test_the_lane_stop_holds_then_lets_go_in_turn_and_follows_the_line():
         stops.append((count, stop))
     assert [c for c, _ in stops] == [1, 2, 3, 4, 5, 6, 1, 2, 3, 4, 5, 6, 1, 0, 1, 2]
     assert [s for _, s in stops] == [True] * 4 + [False] * 2 + [True] * 4 + [False] * 2 + [True, False, True, True]
+    assert [lane_stop(True, c, 1) for c in range(3)] == [(1, True), (2, False), (1, True)]  # let go at least a tick
     assert lane_hold_ticks(8, 0.01, 4, 10 / 9600) == 112
     assert lane_hold_ticks(8, 0.01, 4, 0.0) == 0
     holds = [lane_hold_ticks(8, 0.01, 4, 10 / b) for b in (2400, 9600, 38400, 115200)]

@@ -17,8 +17,8 @@ import numpy as np
 from numba import njit
 
 from virtual_vehicle.cells.network.programs import UNREACHABLE
-from virtual_vehicle.cells.sorting.rules import (BIG, ENTRY, HUGE, MAX_EXITS, NONE, PARK, ack_bits, direction_key, due,
-                                                 heading, heartbeat_due, hop_bits, ID_TICK,
+from virtual_vehicle.cells.sorting.rules import (BIG, ENTRY, HUGE, ID_TICK, MAX_EXITS, NONE, PARK, ack_bits,
+                                                 direction_key, due, heading, heartbeat_due, hop_bits,
                                                  hop_cost, into_lane, left_of, opposite, right_of, split_goal, unpack,
                                                  vehicle_id)
 
@@ -143,15 +143,15 @@ def _spread(own, stop_word, field, same, on, reach):
 @njit(cache=True, inline="always")
 def lane_stop(at_end, count, hold):
     """A vehicle's front cell at its exit lane's far side (``at_end``; the vehicle moved sideways into the lane)
-    stops it for ``hold`` ticks, lets it go for ``hold // 2``, and so on while it is there: the new tick count (0 away
-    from the lane's end; ``count`` the last) and whether it stops the vehicle now. The stop keeps a body that the
-    cells have not yet agreed to turn out of the lane from running on past its far side (on a slow link a withdrawn
-    proposal to move in takes ``reach`` exchanges to be forgotten: ``hold``); the pauses move in a body that still
-    reaches out of the lane's near side (a body wider than three pitches covers the far cell's sensor before it
-    has left the cell outside the near side: a stop that never let go held it there for good)."""
+    stops it for ``hold`` ticks, lets it go for ``hold // 2`` (at least one), and so on while it is there: the new
+    tick count (0 away from the lane's end; ``count`` the last) and whether it stops the vehicle now. The stop keeps a
+    body that the cells have not yet agreed to turn out of the lane from running on past its far side (on a slow
+    link a withdrawn proposal to move in takes ``reach`` exchanges to be forgotten: ``hold``); the pauses move in a
+    body that still reaches out of the lane's near side (a body wider than three pitches covers the far cell's
+    sensor before it has left the cell outside the near side: a stop that never let go held it there for good)."""
     if not at_end:
         return 0, False
-    count = count % (hold + hold // 2) + 1
+    count = count % (hold + max(hold // 2, 1)) + 1
     return count, count <= hold
 
 
