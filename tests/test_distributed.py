@@ -287,6 +287,30 @@ def test_the_lane_stop_holds_then_lets_go_in_turn_and_follows_the_line():
         Sorter(0.3, lane_hold=-1)
 
 
+def test_at_9600_baud_a_body_still_out_of_its_lane_when_it_reaches_the_far_side_is_moved_in():
+    """A parcel 0.36 m across put on over the junction's east-north lane (0.4 m wide) with its near edge in the row
+    outside the lane (an entry there reads its label) covers the lane's far cell at once: the lane stop fires while
+    the lane cells beside that row pull the body in. A stop that never let go held it where it was put, for good
+    (tried: on_array, not moved); the stop that lets go in turn moves it in, and it leaves by its exit, as on ideal
+    rounds."""
+    from virtual_vehicle.config.scenario import WireSpec
+    from virtual_vehicle.run.tasks import sorting_report
+
+    sc = sorting(duration=10.0, parcels=1)
+    p = sc.parcels[0].model_copy(update={"width": 0.36, "length": 0.3, "x": 2.15, "y": 0.59 + 0.18,
+                                         "destination": 0})
+    control = sc.control.model_copy(update={"entries": [[[1.95, 0.55], [2.35, 0.55], [2.35, 0.65], [1.95, 0.65]]]})
+    sc = sc.model_copy(update={"parcels": [p], "control": control})
+    assert tuple(sc.control.exits[0][0]) == (1.95, 0.65)  # the lane's near side: the body starts 6 cm outside it
+    for delivery in ("ideal", "wire"):
+        s = sc.model_copy(update={"control": sc.control.model_copy(update={"delivery": delivery,
+                                                                            "wire": WireSpec(baud=9600.0)})})
+        res = run(s.build())
+        row = sorting_report(res)["parcels"][0]
+        assert row["outcome"] == "delivered" and row["correct"], (delivery, row)
+    assert res.setup.control.program.lane_hold > 0
+
+
 def test_the_heartbeat_keeps_to_a_tenth_of_a_slow_line():
     """Without a heartbeat given, the sorter beats every second, or, where a cell's heartbeats (a whole sentence said
     and one heard on each of its ports) would take more than a tenth of its line, no more often than keeps them to
