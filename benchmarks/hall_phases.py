@@ -3,7 +3,8 @@
 overhead per call would favour the compiled parts). Prints each phase's wall time, calls and time per call of the
 fastest of ``--runs`` runs; asserts nothing about time. Nested phases are indented; they overlap their parents.
 
-Run: ``python benchmarks/hall_phases.py --seconds 1 --runs 2``.
+Run: ``python benchmarks/hall_phases.py --seconds 1 --runs 2``; ``--per-second`` also prints each simulated second's
+wall time and its cells' part (the hall does not settle: its parcels start, travel and queue at the one exit).
 """
 
 from __future__ import annotations
@@ -61,6 +62,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=1.0, help="simulated seconds (default 1)")
     ap.add_argument("--runs", type=int, default=2, help="runs; the fastest is printed (default 2)")
+    ap.add_argument("--per-second", action="store_true", help="print each simulated second's wall time (fastest run)")
     args = ap.parse_args()
     for owner, name, label in PHASES:
         timed(owner, name, label)
@@ -71,20 +73,29 @@ def main() -> None:
         TOTAL.clear()
         CALLS.clear()
         job = sim.NetworkRun(setup)
+        seconds = []  # per simulated second: (wall, the cells' part) in s
         start = time.perf_counter()
-        res = job.run(None)
+        while not job.done:
+            job.tick()
+            if job.k * job.period >= len(seconds) + 1 - 1e-9 or job.done:
+                seconds.append((time.perf_counter() - start - sum(w for w, _ in seconds),
+                                TOTAL["  sorter and network"] - sum(c for _, c in seconds)))
+        res = job.result()
         wall = time.perf_counter() - start
         if best is None or wall < best[0]:
             g = job.plant._glide
             reasons = {} if g is None else {r: int(c) for r, c in zip(glide.REASONS, g.reasons) if c}
-            best = wall, dict(TOTAL), dict(CALLS), res.stats["plant"]["quiet_steps"], reasons
-    wall, total, calls, rides, reasons = best
+            best = wall, dict(TOTAL), dict(CALLS), res.stats["plant"]["quiet_steps"], reasons, seconds
+    wall, total, calls, rides, reasons, seconds = best
     print(f"# {wall:.3f} s wall for {args.seconds} s simulated; {rides} parcel windows rode")
     for _, _, label in PHASES:
         if calls.get(label):
             each = 1e6 * total[label] / calls[label]
             print(f"{label:36s} {total[label]:8.3f} s {calls[label]:8d} calls {each:10.1f} us a call")
     print("# glide: parcel windows written in closed form, and why the others went on to the exact path:", reasons)
+    if args.per_second:
+        for k, (w, cells) in enumerate(seconds):
+            print(f"second {k + 1}: {w:6.2f} s wall, of it the sorter and network {cells:6.2f} s")
 
 
 if __name__ == "__main__":

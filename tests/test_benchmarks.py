@@ -164,3 +164,20 @@ def test_the_clocks_benchmark_measures_how_long_a_sentence_waits_for_its_reader(
     assert own.read > 1000 and own.put >= own.read
     assert period / 20 - 1e-12 <= own.shortest and own.longest <= period * (1 + drift) + jitter + period / 20
     assert 0.3 * period < own.mean() < 0.7 * period
+
+
+def test_the_hall_phases_benchmark_splits_its_run_by_simulated_second():
+    """hall_phases --per-second: a line for each simulated second begun (one for a run shorter than a second), whose
+    cells' part lies within it and whose wall time lies within the run's. In its own process: the script wraps the
+    run's classes for good."""
+    import re
+    import subprocess
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "hall_phases.py"
+    out = subprocess.run([sys.executable, str(script), "--seconds", "0.05", "--runs", "1", "--per-second"],
+                         capture_output=True, text=True, check=True).stdout
+    total = float(re.search(r"^# ([0-9.]+) s wall for 0.05 s simulated", out, re.M).group(1))
+    seconds = re.findall(r"^second (\d+): +([0-9.]+) s wall, of it the sorter and network +([0-9.]+) s$", out, re.M)
+    assert [k for k, _, _ in seconds] == ["1"]
+    wall, cells = float(seconds[0][1]), float(seconds[0][2])
+    assert 0 < cells <= wall <= total + 0.01
