@@ -276,11 +276,13 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     backing = (back > 0) & open_side[rows, np.maximum(bdir, 0) % _WEAK] & (bdir >= 0)
     prop_port = np.where(backing, bdir % _WEAK, prop_port)
     prop_d = np.where(backing, np.where(bdir >= _WEAK, 1, 0), prop_d)
-    own_key = np.where(on & (prop_port >= 0), _key(prop_d, prop_port == state["dir"], np.maximum(prop_port, 0), 0),
-                       _BIG)
     nb_key = np.where(same_nb, heard["key"], _BIG)
     nb_key = np.where(nb_key % 64 < sorter.reach, nb_key + 1, _BIG)  # one more hop; forget beyond reach
-    key = np.minimum(own_key, _across(np.minimum, nb_key)) if P else own_key
+    least = _across(np.minimum, nb_key) if P else np.full(len(rows), _BIG)
+    # the direction kept: the cell's own, or for a cell new under the vehicle the one its neighbours' least key says
+    current = np.where(state["dir"] >= 0, state["dir"], np.where(least < _BIG, (least // 64) % 8, _NONE))
+    own_key = np.where(on & (prop_port >= 0), _key(prop_d, prop_port == current, np.maximum(prop_port, 0), 0), _BIG)
+    key = np.minimum(own_key, least) if P else own_key
     key = np.where(on, key, _BIG)
     direction = np.where(key < _BIG, (key // 64) % 8, _NONE)
     yielding = on & (key < _key(2, 1, 0, 0))  # a cell within reach gives way (distance 0, the least proposal)

@@ -10,6 +10,7 @@ from virtual_vehicle.cells.network.messages import Mailbox
 from virtual_vehicle.cells.network.programs import CellInputs, check_program
 from virtual_vehicle.cells.network.topology import from_layout
 from virtual_vehicle.cells.network.wire import WireLevel, WireParams
+from virtual_vehicle.cells.sorting import rules
 from virtual_vehicle.config.scenario import parse_scenario
 from virtual_vehicle.model import layout
 from virtual_vehicle.run.sim import run
@@ -236,6 +237,37 @@ def test_a_parcel_longer_than_its_entry_rides_under_one_id():
     report = sorting_report(run(sc.build()))
     assert report["collisions"] == 0 and report["misrouted"] == 0
     assert [(r["outcome"], r["correct"]) for r in report["parcels"]] == [("delivered", True)] * 2, report["parcels"]
+
+
+def test_a_cell_new_under_a_vehicle_proposes_keeping_the_vehicle_s_direction():
+    """A cell that has just come under a vehicle has no direction of its own; its proposal (the least, at a new
+    front cell) said "a change of direction" and a tick later "keeping it", and each went through all the vehicle's
+    cells: on the junction's first parcel alone 18 of the 93 cells it came over flipped so a tick after, and 242 of
+    its cells' 520 key changes were that bit alone. It now keeps the vehicle's direction (its neighbours' least
+    key); what is left are turns (the same ride: 1 and 38 of 291)."""
+    from virtual_vehicle.run.sim import network_job
+
+    job = network_job(sorting(duration=9.0, parcels=1).build())
+    same_bit = rules.direction_key(0, 0, 0, 0) - rules.direction_key(0, 1, 0, 0)  # keeping the direction or not
+    joined = np.full(len(job.state["vid"]), -10)
+    joins = after_join = changes = flips = 0
+    before = None
+    while not job.done:
+        job.tick()
+        key, vid = job.state["key"].copy(), job.state["vid"].copy()
+        if before is not None:
+            old_key, old_vid = before
+            fresh = (old_vid < 0) & (vid >= 0)
+            joins += int(fresh.sum())
+            joined[fresh] = job.k
+            kept = (vid == old_vid) & (vid >= 0) & (key < rules.BIG) & (old_key < rules.BIG) & (key != old_key)
+            flip = kept & ((key ^ old_key) == same_bit)  # that bit alone
+            changes += int(kept.sum())
+            flips += int(flip.sum())
+            after_join += int((flip & (joined == job.k - 1)).sum())
+        before = key, vid
+    assert joins > 50 and changes > 100
+    assert after_join <= 2 and flips < 0.2 * changes, (joins, after_join, changes, flips)
 
 
 def test_the_wire_waits_out_the_longest_sentence_and_the_lead_follows_the_line():

@@ -23,7 +23,8 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
   direction: every cell proposes
   (its distance to the goal, the port toward its closest neighbour); the smallest proposal (the front cell's)
   spreads through the vehicle within ``reach`` hops (hop-limited, so what a departed cell said is soon forgotten),
-  the current direction preferred on a tie so the vehicle does not dither.
+  the current direction preferred on a tie so the vehicle does not dither (a cell that has just come under the
+  vehicle prefers the vehicle's, as its neighbours' keys say: it has none of its own yet).
 - *Traffic*: a vehicle moves only along cells it holds. Each front cell (whose neighbour ahead is not under the
   same vehicle) asks that neighbour; an empty cell grants itself to the asking vehicle (the oldest when several
   ask, every tick: the older parcel goes first at a merge, and a younger one yields even a cell it held, so two

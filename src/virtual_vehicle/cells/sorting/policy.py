@@ -544,14 +544,18 @@ def step_cells(rows, inp, cfg, rules, old, new, out):
         backing = back > 0 and bdir >= 0 and open_side[bdir % WEAK]
         if backing:
             prop_port, prop_d = bdir % WEAK, (1 if bdir >= WEAK else 0)
-        own_key = BIG
-        if on and prop_port >= 0:
-            own_key = direction_key(prop_d, 1 if prop_port == sdir else 0, max(prop_port, 0), 0)
         least = 0
         for q in range(P):  # one more hop; forget beyond reach
             nk = hkey[i, q] if same_nb[q] else BIG
             nk = nk + 1 if nk % 64 < reach else BIG
             least = nk if q == 0 else min(least, nk)
+        # the direction a proposal keeps: the cell's own, or, for a cell that has just come under the vehicle and has
+        # none yet, the vehicle's (its neighbours' least key): else each step of a vehicle onto a new front cell went
+        # through all its cells twice, as a change of direction and a tick later as keeping it
+        current = sdir if sdir >= 0 else ((least // 64) % 8 if least < BIG else NONE)
+        own_key = BIG
+        if on and prop_port >= 0:
+            own_key = direction_key(prop_d, 1 if prop_port == current else 0, max(prop_port, 0), 0)
         key = min(own_key, least)
         if not on:
             key = BIG
