@@ -36,10 +36,10 @@ what its neighbours said last tick (:mod:`virtual_vehicle.cells.network.programs
   moves when the run ahead of every front cell is at least ``gap`` long (or leads off the array at its exit), else
   all its cells stop. A stop spreads through the vehicle from the
   cell ahead or beside, never from behind nor back to the cell it came from (the stop word names the port), so it
-  runs along no loop; but once the cell that said it says go, the cells' old counts still pass from cell to cell
-  (a cell whose stop has gone takes a neighbour's old count before that neighbour has heard the go), a hop more each
-  exchange, so a cleared stop is gone from a vehicle two or more cells wide only when the counts pass ``reach``:
-  ``reach`` exchanges at most (a parked vehicle's every cell says stop).
+  runs along no loop; but once the cell that said it says go, its last stop still arrives along the longer ways
+  through the vehicle's cells, a hop later for each hop longer, so a cleared stop is gone from a vehicle two or more
+  cells wide only when those ways are longer than ``reach``: ``reach`` exchanges at most (a parked vehicle's every
+  cell says stop).
   Parcels therefore keep ``gap`` free cells between them and do not collide. Two
   vehicles that meet head on would each hold what the other needs; a front cell that sees the cell ahead held for
   an older vehicle that asked from the far side (the held cell tells through which port it was asked), or carrying

@@ -161,12 +161,12 @@ def _spread_stop(own, stop_word, same, on, reach, direction):
     bits, 63 none) and the port it was heard through (high two bits; on a hexagonal cell five and three bits,
     :func:`~.rules.hop_bits`); 255 when no stop is within ``reach``. A cell
     takes a stop from the cell ahead (port ``direction``) or beside it, not from behind, and not from a neighbour
-    that took it from this cell: a stop then runs only backward and sideways through the vehicle, along no loop. It
-    does not make a cleared stop go at once: a cell whose stop has gone takes a neighbour's old count (plus a hop)
-    before that neighbour has heard the go, and the port names only the one cell a count came from, so the old
-    counts still pass round the vehicle's cells, one hop more each exchange, until they pass ``reach`` (traced at
-    the junction's entry: up to ``reach`` on ideal rounds, ~0.08 s, and at 9600 baud, ~0.6 s;
-    docs/distributed-control.md)."""
+    that took it from this cell: a stop then runs only backward and sideways through the vehicle, along no loop. A
+    cleared stop is not gone at once for all that: the last stop its cell said still arrives along every longer way
+    through the vehicle's cells (back a column, sideways, back, sideways the other way: simple paths, no loop), a hop
+    later for each hop longer, and a cell whose shorter way has said go takes it from the next longer one, until the
+    ways are longer than ``reach`` (traced at the junction's entry: counts up to ``reach``, ~0.08 s on ideal rounds
+    and ~0.6 s at 9600 baud; docs/distributed-control.md)."""
     if not on:
         return 255
     if own == 0:
