@@ -19,6 +19,7 @@ from virtual_vehicle.cells.sorting.policy import LATE as _LATE
 from virtual_vehicle.cells.sorting.policy import WEAK as _WEAK
 from virtual_vehicle.cells.sorting.policy import YIELD as _YIELD
 from virtual_vehicle.cells.sorting.rules import HUGE as _HUGE
+from virtual_vehicle.cells.sorting.rules import ID_TICK as _ID_TICK
 from virtual_vehicle.cells.sorting.rules import MAX_EXITS, PARK, pack
 from virtual_vehicle.cells.sorting.rules import NONE as _NONE
 
@@ -152,13 +153,13 @@ def step_arrays(sorter: Sorter, state, inputs: CellInputs):
     near_dead = dead.any(axis=1)[:, None] | ((heard["ack"] >> dead_shift) != 0)
     # So does any cell whose neighbour's id was made in the same tick (a parcel put on at once over more cells than
     # its entry's got several ids, and the cells beyond the entry's neighbours kept the one they took first).
-    twin = heard["vid"] // 1024 == vid[:, None] // 1024
+    twin = heard["vid"] // _ID_TICK == vid[:, None] // _ID_TICK
     joins = lit[:, None] & (vid[:, None] >= 0) & (near_dead | twin) & trusted & (heard["vid"] >= 0) \
         & (heard["goal"] == goal[:, None])
     vid = np.minimum(vid, _across(np.minimum, np.where(joins, heard["vid"], _HUGE)) if P else vid)
     fresh = lit & (vid < 0) & entry & (labels >= 0)
     # ids order vehicles by age (the tick they were made), which is the priority at a merge
-    vid[fresh] = tick * 1024 + entry_no[fresh] % 1024
+    vid[fresh] = tick * _ID_TICK + entry_no[fresh] % _ID_TICK
     goal[fresh] = labels[fresh]
     # a cell that took the id before it heard the goal (a partial sentence carries a word only when it changed)
     # takes the goal from a neighbour of the same vehicle that says one
