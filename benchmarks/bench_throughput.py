@@ -71,7 +71,7 @@ def show(name: str, duration: float, runs: dict) -> None:
         out_h = "n/a" if t["delivered_per_hour"] is None else f"{t['delivered_per_hour']:.0f}"
         print(f"{control:<9}{'all entries':>16}{report['correct']:>5}{'':>5}{'':>8}{out_h:>8}"
               f"{t['bound_per_hour']:>9.0f}{frac:>10}   collisions {report['collisions']}, misrouted "
-              f"{report['misrouted']}, wall {wall:.0f} s")
+              f"{report['misrouted']}, lost {report['lost']}, wall {wall:.0f} s")
     if totals.get("sort") and totals.get("reserve"):
         print(f"distributed / reservation router: {100 * totals['sort'] / totals['reserve']:.0f} % (target >= 80 %)")
     if totals.get("central") and totals.get("reserve"):

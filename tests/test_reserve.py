@@ -144,7 +144,7 @@ def test_a_parcel_already_nearer_than_the_gap_to_a_standing_one_still_plans():
     r, c = 5, 5
     for t, q in enumerate(moves):
         r, c = (r + (0, 1, 0, -1)[q], c + (1, 0, -1, 0)[q]) if q >= 0 else (r, c)
-        rows_, cols_ = router._region(r, c, r, c, 2, 2, 1)  # the one free cell between them stays free
+        rows_, cols_ = router._region(r, c, r, c, 2, 2, 0)  # its footprint stays off the other's lit cells
         assert not reserved[t + 1, rows_, cols_].any()
     alone = np.zeros_like(reserved)
     assert router._plan((5, 5), 2, 2, maps, 0, alone) == moves  # what it plans with the map to itself
@@ -191,3 +191,93 @@ def test_a_parcel_far_from_its_exit_plans_toward_it():
     for start in ((1, cols - 4), (1, window + 2)):
         assert maps[3][start] > window
         assert router._plan(start, 2, 2, maps, 2, free) == [2] * window
+
+
+def test_the_router_keeps_room_to_stop_before_the_array_s_edge():
+    """Found on facility_40x40 saturated: the router rode parcels north along the west edge toward the top rows and
+    east along the bottom rows toward the east edge, stopping them only once their footprint reached the edge; the
+    wheels run on for ~0.15 s after they are told to stop, and at 1.1 m/s two parcels in 20 s (seven in 30 s once the
+    cells ahead were spun up) rode off the array. A parcel now moves toward the edge or a hole only with room to
+    stop beyond its footprint (the cells it runs on at its speed, at most ``gap``: all 3 here), in its plans and at
+    every tick, unless the edge there is its exit's way out."""
+    from virtual_vehicle.cells.sorting.reserve import ReservationRouter
+
+    assert ReservationRouter(pitch=0.1, speed=1.1, gap=5).room == 4  # runs on 0.41 m, its centre a cell behind
+    assert ReservationRouter(pitch=0.1, speed=0.3, gap=2).room == 0  # 0.06 m: as before
+
+    n_side, gap = 12, 3
+    router = ReservationRouter(pitch=0.1, speed=1.1, gap=gap, window=8)
+    cols, rows = np.meshgrid(np.arange(n_side), np.arange(n_side))
+    router._layout(np.column_stack([cols.ravel(), rows.ravel()]) * 0.1)
+    exit_id = np.where((cols.ravel() == n_side - 1) & (rows.ravel() < 4), 0, -1)  # east column, rows 0-3: out east
+    exit_port = np.where(exit_id == 0, 0, -1)
+    router._maps(np.ones(n_side * n_side, dtype=bool), {"exit": exit_id})
+    room = router._footprint_maps(0, 0, 2, 2)[4]
+    connected = router.neighbor >= 0
+    n = n_side * n_side
+
+    def clear(r0, c0, q):  # a 2 x 2 footprint at rows r0.., columns c0.., its lit cells the footprint alone
+        cells = np.array([(r0 + i) * n_side + c0 + j for i in range(2) for j in range(2)])
+        core = np.zeros(n, dtype=bool)
+        core[cells] = True
+        owner = np.full(n, -1)
+        owner[cells] = 7
+        return router._clear(cells, core, q, 7, owner, np.full(n, -1), 0, exit_id, exit_port, connected)
+
+    assert clear(8, 5, 1) is None and not room[1][8, 5]  # north: rows 10 and 11, then the edge
+    assert clear(7, 5, 1) is not None and room[1][7, 5]  # rows 9-11: room enough
+    assert clear(8, 5, 0) is not None and room[0][8, 5]  # east, along the top rows: the edge is beside it
+    assert clear(5, 8, 0) is None and not room[0][5, 8]  # east toward a part of the edge that is no exit
+    assert clear(0, 8, 0) is not None and room[0][0, 8]  # east toward its exit lane's open side
+    plan = router._plan((5, 2), 2, 2, router._footprint_maps(0, 0, 2, 2), 0, np.zeros((9, n_side, n_side), bool))
+    r, c = 5, 2
+    for q in plan:  # on its way to the exit it never comes nearer to the edge than its room
+        r, c = (r + (0, 1, 0, -1)[q], c + (1, 0, -1, 0)[q]) if q >= 0 else (r, c)
+        assert r <= n_side - 2 - gap and (c <= n_side - 2 - gap or r < 4)
+
+
+def test_a_lone_parcel_rides_at_the_wheels_speed_on_the_industrial_drive():
+    """The router turned on only the cells under a parcel; on the industrial drive (150 ms response, 2.5 m/s^2) a
+    cell a parcel rides onto at 1.1 m/s is still speeding up, and parcels rode at ~0.65 m/s on facility_40x40. The
+    free cells a parcel holds ahead of it now turn with it, so it rides at the wheels' speed."""
+    rows = ["o" * 30 + "00"] * 6
+    rows[2:4] = ["EEE" + "o" * 27 + "00"] * 2
+    sc = parse_scenario({"name": "aisle", "duration": 6.0, "output_dt": 0.02,
+                         "array": {"kind": "map", "pitch": 0.1, "map": "\n".join(rows)},
+                         "control": {"program": "reserve", "speed": 1.1, "gap": 5},
+                         "wheels": {"profile": "industrial", "period": 0.01},
+                         "friction": {"law": "stick_slip"},
+                         "parcels": [{"name": "p", "length": 0.25, "width": 0.22, "mass": 2.0, "mu": 0.6,
+                                      "mu_static": 0.7, "x": 0.15, "y": 0.3, "t_start": 0.0, "destination": 0}]})
+    result = run(sc.build())
+    report = sorting_report(result)
+    assert report["correct"] == 1 and report["collisions"] == 0 and report["lost"] == 0, report
+    tr = result.parcels[0].trajectory
+    speed = np.hypot(tr.states[:, 3], tr.states[:, 4])
+    assert speed.max() > 0.95 * 1.1  # (before: 0.82 m/s at most)
+
+
+def test_a_moving_parcel_reserves_the_room_it_holds_at_every_tick():
+    """A plan and the check at every tick must ask for the same room, or an older parcel's plan says go while a
+    younger one waits where the older one's tick-level run ahead meets it, each for the other (on facility_40x40,
+    with the room reserved only as wide as the footprint, two parcels stood so from 4.75 s on). What the check claims
+    ahead of every lit cell of a moving parcel lies inside what its plan reserves for that step."""
+    from virtual_vehicle.cells.sorting.reserve import ReservationRouter
+
+    n_side, gap = 16, 3
+    router = ReservationRouter(pitch=0.1, speed=0.3, gap=gap, window=4)
+    cols, rows = np.meshgrid(np.arange(n_side), np.arange(n_side))
+    router._layout(np.column_stack([cols.ravel(), rows.ravel()]) * 0.1)
+    n = n_side * n_side
+    core = np.zeros(n, dtype=bool)
+    core[[6 * n_side + 6, 6 * n_side + 7, 7 * n_side + 6, 7 * n_side + 7]] = True  # footprint: rows 6-7, cols 6-7
+    lit = np.flatnonzero((np.abs(rows.ravel() - 6.5) < 2) & (np.abs(cols.ravel() - 6.5) < 2))  # a cell around it
+    owner = np.full(n, -1)
+    owner[lit] = 3
+    for q in range(4):
+        claim = router._clear(lit, core, q, 3, owner, np.full(n, -1), 0, np.full(n, -1), np.full(n, -1),
+                              router.neighbor >= 0)
+        assert claim is not None and len(claim) == 4 * gap
+        reserved = np.zeros((5, n_side, n_side), dtype=bool)
+        router._reserve(reserved, (6, 6), [q], 2, 2)
+        assert reserved[0].ravel()[claim].all(), q
