@@ -281,3 +281,23 @@ def test_a_moving_parcel_reserves_the_room_it_holds_at_every_tick():
         reserved = np.zeros((5, n_side, n_side), dtype=bool)
         router._reserve(reserved, (6, 6), [q], 2, 2)
         assert reserved[0].ravel()[claim].all(), q
+
+
+def test_of_equally_short_plans_the_router_keeps_the_parcel_s_heading_and_turns_once():
+    """A turn costs the wheels' response (~0.15 s on the industrial drive, longer than a step), so where plans tie
+    the one with fewer turns wins, and the parcel's current heading counts for its first move: a parcel 6 rows below
+    and 8 columns west of its exit lane, riding north, plans north then east; riding east, east then north."""
+    from virtual_vehicle.cells.sorting.reserve import ReservationRouter
+
+    n_side, window = 12, 16
+    router = ReservationRouter(pitch=0.1, speed=0.3, gap=2, window=window)
+    cols, rows = np.meshgrid(np.arange(n_side), np.arange(n_side))
+    router._layout(np.column_stack([cols.ravel(), rows.ravel()]) * 0.1)
+    exit_id = np.where((cols.ravel() == n_side - 1) & (rows.ravel() >= 8), 0, -1)  # east column, rows 8-11
+    router._maps(np.ones(n_side * n_side, dtype=bool), {"exit": exit_id})
+    maps = router._footprint_maps(0, 0, 2, 2)
+    free = np.zeros((window + 1, n_side, n_side), dtype=bool)
+    north_first = router._plan((2, 2), 2, 2, maps, 0, free, heading=1)
+    east_first = router._plan((2, 2), 2, 2, maps, 0, free, heading=0)
+    assert north_first == [1] * 6 + [0] * 10
+    assert east_first == [0] * 8 + [1] * 6 + [0] * 2

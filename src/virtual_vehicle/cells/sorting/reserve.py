@@ -142,8 +142,9 @@ class ReservationRouter:
 
     def _footprint_maps(self, goal, out_port, h, w):
         """(valid anchors, goal anchors, anchors whose rectangle forbids each port, distance in moves to a goal
-        anchor) for an h x w footprint heading out of exit ``goal`` through ``out_port``; distances by breadth-first
-        search backwards from the goal anchors."""
+        anchor, anchors with room to stop beyond each side (:meth:`_room`)) for an h x w footprint heading out of
+        exit ``goal`` through ``out_port``; distances by breadth-first search backwards from the goal anchors, over
+        moves that keep that room."""
         key = (goal, out_port, h, w)
         if key in self._cache:
             return self._cache[key]
